@@ -1,0 +1,168 @@
+"""Serve a fake serial device on a pseudo-terminal, so any client (our drivers, dynamixel-sdk, urg_c,
+a terminal program) can open its path like a real port.
+
+The fake keeps the master side; the slave side is what clients open. ``unplug()`` closes the master, which
+is what a client sees when a USB-serial device is pulled (reads fail with EIO / "device disconnected"), and
+``replug()`` brings a new pty up. With ``link=`` the server keeps a symlink pointing at the current slave,
+the way a udev rule keeps ``/dev/urg`` pointing at whichever ``ttyACM`` the sensor came up as.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import os
+import select
+import threading
+import time
+import tty
+from pathlib import Path
+from types import TracebackType
+from typing import Protocol
+
+log = logging.getLogger(__name__)
+
+
+class ByteDevice(Protocol):
+    """The device side of a fake: bytes in, bytes out, plus output that falls due with time."""
+
+    def receive(self, data: bytes, now: float) -> bytes:
+        """Take bytes the host wrote; return the bytes to answer with right away (may be empty)."""
+        ...
+
+    def poll(self, now: float) -> bytes:
+        """Return unsolicited bytes due by monotonic time ``now`` (streamed scans, tag reads)."""
+        ...
+
+
+class PtyServer:
+    """Runs a :class:`ByteDevice` on a pty in a background thread."""
+
+    def __init__(self, device: ByteDevice, link: str | os.PathLike[str] | None = None,
+                 poll_interval_s: float = 0.002) -> None:
+        self.device = device
+        self.link = Path(link) if link is not None else None
+        self.poll_interval_s = poll_interval_s
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._slave_path = ""
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.bytes_in = 0
+        self.bytes_out = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    @property
+    def path(self) -> str:
+        """The path clients open: the symlink if one was asked for, else the pty slave."""
+        return str(self.link) if self.link is not None else self._slave_path
+
+    @property
+    def plugged(self) -> bool:
+        return self._master is not None
+
+    def start(self) -> str:
+        self.replug()
+        return self.path
+
+    def replug(self) -> None:
+        """Bring a fresh pty up (the device is plugged back in)."""
+        with self._lock:
+            if self._master is not None:
+                return
+            master, slave = os.openpty()
+            tty.setraw(slave)
+            tty.setraw(master)
+            self._master, self._slave = master, slave
+            self._slave_path = os.ttyname(slave)
+            if self.link is not None:
+                tmp = self.link.with_name(self.link.name + ".tmp")
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+                tmp.symlink_to(self._slave_path)
+                os.replace(tmp, self.link)
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=f"fake-pty {self._slave_path}",
+                                            daemon=True)
+            self._thread.start()
+        log.debug("fake device up on %s", self.path)
+
+    def unplug(self) -> None:
+        """Pull the device: the pty goes away under any client that has it open."""
+        with self._lock:
+            thread = self._thread
+            self._stop.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=2.0)
+        with self._lock:
+            for fd in (self._master, self._slave):
+                if fd is not None:
+                    with contextlib.suppress(OSError):
+                        os.close(fd)
+            self._master = self._slave = None
+            self._thread = None
+            if self.link is not None:
+                with contextlib.suppress(FileNotFoundError):
+                    self.link.unlink()
+
+    def close(self) -> None:
+        self.unplug()
+
+    def __enter__(self) -> PtyServer:
+        if not self.plugged:
+            self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- the serving thread ------------------------------------------------------------------------
+    def _write(self, master: int, data: bytes) -> None:
+        view = memoryview(data)
+        while view and not self._stop.is_set():
+            try:
+                n = os.write(master, view)
+            except BlockingIOError:
+                time.sleep(0.001)
+                continue
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EBADF):
+                    return
+                raise
+            self.bytes_out += n
+            view = view[n:]
+
+    def _run(self) -> None:
+        master = self._master
+        assert master is not None
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([master], [], [], self.poll_interval_s)
+            except (OSError, ValueError):
+                return
+            now = time.monotonic()
+            try:
+                if ready:
+                    data = os.read(master, 4096)
+                    if data:
+                        self.bytes_in += len(data)
+                        reply = self.device.receive(data, now)
+                        if reply:
+                            self._write(master, reply)
+                due = self.device.poll(now)
+                if due:
+                    self._write(master, due)
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EBADF):
+                    if self._stop.is_set():
+                        return
+                    time.sleep(self.poll_interval_s)
+                    continue
+                log.exception("fake device on %s failed", self.path)
+                return
+            except Exception:  # a bug in a fake must not kill the test run silently
+                log.exception("fake device on %s failed", self.path)
+                return

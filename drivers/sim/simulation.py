@@ -1,0 +1,220 @@
+"""The moving state of a simulated world, shared by every fake device in one process.
+
+The robot moves only from the wheel velocities the fake servos receive, so the loop is closed through the
+real bytes: agent -> Dynamixel packets -> ``set_wheel_velocity`` -> motion -> laser, camera, IMU, odometry.
+Time comes from an injectable clock (``time.monotonic`` by default); the state is integrated lazily up to
+"now" whenever it is read, in sub-steps of at most ``max_step_s``, and a short pose history is kept so the
+camera can render motion during its rolling readout.
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.sim.raycast import cast_rays, walls_array
+from drivers.sim.world import Person, Pose2D, World
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class WheelTruth:
+    position_rad: tuple[float, float]
+    velocity_radps: tuple[float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class TagInRange:
+    tag_id: str
+    person: str
+    distance_m: float
+    bearing_rad: float
+
+
+def _wrap(angle_rad: float) -> float:
+    return math.atan2(math.sin(angle_rad), math.cos(angle_rad))
+
+
+class Simulation:
+    """Ground truth for one world, advanced in time on demand. All methods are thread-safe."""
+
+    history_s = 2.0
+    max_step_s = 0.002
+
+    def __init__(self, world: World, clock: Callable[[], float] = time.monotonic, seed: int = 0) -> None:
+        self.world = world
+        self.clock = clock
+        self.rng = np.random.default_rng(seed)
+        self._lock = threading.RLock()
+        self._segments = walls_array(world.walls)
+        robot = world.robot
+        self._t = clock()
+        self.t_start = self._t
+        self._x, self._y, self._yaw = robot.start.x_m, robot.start.y_m, robot.start.yaw_rad
+        self._wheel_pos = [0.0, 0.0]
+        self._wheel_vel = [0.0, 0.0]
+        self._wheel_goal = [0.0, 0.0]
+        self._v_mps = 0.0
+        self._a_long_mps2 = 0.0
+        self._omega_radps = 0.0
+        self._times: collections.deque[float] = collections.deque()
+        self._poses: collections.deque[tuple[float, float, float]] = collections.deque()
+        self._record()
+
+    # -- time ----------------------------------------------------------------------------------------
+    def now(self) -> float:
+        return self.clock()
+
+    def elapsed_s(self) -> float:
+        return self.clock() - self.t_start
+
+    def advance(self) -> float:
+        """Integrate the state up to the clock's now; returns now."""
+        with self._lock:
+            now = self.clock()
+            self._integrate_to(now)
+            return now
+
+    def _record(self) -> None:
+        self._times.append(self._t)
+        self._poses.append((self._x, self._y, self._yaw))
+        while self._times and self._times[0] < self._t - self.history_s:
+            self._times.popleft()
+            self._poses.popleft()
+
+    def _integrate_to(self, t: float) -> None:
+        robot = self.world.robot
+        r, track = robot.wheel_radius_m, robot.track_m
+        max_dv = robot.max_wheel_accel_radps2
+        while self._t < t:
+            dt = min(self.max_step_s, t - self._t)
+            v_before = self._v_mps
+            for i in (0, 1):
+                goal = max(-robot.max_wheel_radps, min(robot.max_wheel_radps, self._wheel_goal[i]))
+                step = max(-max_dv * dt, min(max_dv * dt, goal - self._wheel_vel[i]))
+                self._wheel_vel[i] += step
+                self._wheel_pos[i] += self._wheel_vel[i] * dt
+            # Differential drive: v = r (wl + wr) / 2, omega = r (wr - wl) / track; exact arc per sub-step.
+            v = r * (self._wheel_vel[0] + self._wheel_vel[1]) / 2.0
+            omega = r * (self._wheel_vel[1] - self._wheel_vel[0]) / track
+            if abs(omega) < 1e-9:
+                self._x += v * dt * math.cos(self._yaw)
+                self._y += v * dt * math.sin(self._yaw)
+            else:
+                yaw2 = self._yaw + omega * dt
+                self._x += v / omega * (math.sin(yaw2) - math.sin(self._yaw))
+                self._y -= v / omega * (math.cos(yaw2) - math.cos(self._yaw))
+                self._yaw = _wrap(yaw2)
+            self._v_mps, self._omega_radps = v, omega
+            self._a_long_mps2 = (v - v_before) / dt if dt > 0 else 0.0
+            self._t += dt
+            self._record()
+
+    # -- the robot -----------------------------------------------------------------------------------
+    def set_wheel_velocity(self, left_radps: float, right_radps: float) -> None:
+        """Command the wheels (what the servos' Goal Velocity registers say)."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            self._wheel_goal = [float(left_radps), float(right_radps)]
+
+    def set_body_velocity(self, v_mps: float, omega_radps: float) -> None:
+        robot = self.world.robot
+        half = omega_radps * robot.track_m / 2.0
+        self.set_wheel_velocity((v_mps - half) / robot.wheel_radius_m, (v_mps + half) / robot.wheel_radius_m)
+
+    def wheels(self) -> WheelTruth:
+        with self._lock:
+            self._integrate_to(self.clock())
+            return WheelTruth((self._wheel_pos[0], self._wheel_pos[1]),
+                              (self._wheel_vel[0], self._wheel_vel[1]))
+
+    def pose(self) -> Pose2D:
+        """The robot base's true pose now."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return Pose2D(self._x, self._y, self._yaw)
+
+    def pose_at(self, t: float) -> Pose2D:
+        """The true pose at a recent time ``t`` (linear interpolation over the kept history)."""
+        with self._lock:
+            self._integrate_to(max(t, self.clock()) if t > self._t else self._t)
+            times = self._times
+            if t <= times[0]:
+                return Pose2D(*self._poses[0])
+            if t >= times[-1]:
+                return Pose2D(*self._poses[-1])
+            i = bisect.bisect_left(times, t)
+            t0, t1 = times[i - 1], times[i]
+            (x0, y0, a0), (x1, y1, a1) = self._poses[i - 1], self._poses[i]
+            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+            return Pose2D(x0 + w * (x1 - x0), y0 + w * (y1 - y0), a0 + w * _wrap(a1 - a0))
+
+    def body_motion(self) -> tuple[float, float, float]:
+        """(forward speed m/s, forward acceleration m/s^2, yaw rate rad/s), true values now."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return self._v_mps, self._a_long_mps2, self._omega_radps
+
+    @staticmethod
+    def mount_pose(base: Pose2D, mx: float, my: float, myaw: float) -> Pose2D:
+        c, s = math.cos(base.yaw_rad), math.sin(base.yaw_rad)
+        return Pose2D(base.x_m + c * mx - s * my, base.y_m + s * mx + c * my, _wrap(base.yaw_rad + myaw))
+
+    # -- people --------------------------------------------------------------------------------------
+    def person_position(self, person: Person, t: float | None = None) -> tuple[float, float]:
+        """Where a person is at time ``t`` walking their looped path at constant speed."""
+        t = self.clock() if t is None else t
+        pts = person.path
+        if len(pts) == 1:
+            return pts[0]
+        legs = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+        lengths = [math.dist(a, b) for a, b in legs]
+        total = sum(lengths)
+        if total <= 0:
+            return pts[0]
+        d = ((t - self.t_start) * person.speed_mps) % total
+        for (a, b), length in zip(legs, lengths, strict=True):
+            if d <= length and length > 0:
+                w = d / length
+                return (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]))
+            d -= length
+        return pts[0]
+
+    def tags_in_range(self, range_m: float | None = None) -> list[TagInRange]:
+        range_m = self.world.rfid.range_m if range_m is None else range_m
+        base = self.pose()
+        found = []
+        for person in self.world.people:
+            px, py = self.person_position(person)
+            dist = math.hypot(px - base.x_m, py - base.y_m)
+            if dist <= range_m:
+                bearing = _wrap(math.atan2(py - base.y_m, px - base.x_m) - base.yaw_rad)
+                found.append(TagInRange(person.tag_id, person.name, dist, bearing))
+        return found
+
+    # -- sensors' geometry ---------------------------------------------------------------------------
+    def laser_ranges_m(self, angles_rad: FloatArray, t: float | None = None) -> FloatArray:
+        """True distances from the laser along each beam (laser frame angles), ``inf`` beyond max range."""
+        base = self.pose() if t is None else self.pose_at(t)
+        mount = self.world.robot.laser_mount
+        lp = self.mount_pose(base, mount.x_m, mount.y_m, mount.yaw_rad)
+        circles = None
+        if self.world.people:
+            circles = np.array([(*self.person_position(p, t), p.radius_m) for p in self.world.people])
+        max_m = self.world.laser.max_range_mm / 1000.0
+        return cast_rays((lp.x_m, lp.y_m), np.asarray(angles_rad) + lp.yaw_rad, self._segments, circles, max_m)
+
+    def imu_truth(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Specific force (m/s^2) and angular rate (rad/s) in the base frame (x fwd, y left, z up)."""
+        v, a_long, omega = self.body_motion()
+        g = 9.80665
+        return (a_long, v * omega, g), (0.0, 0.0, omega)
