@@ -75,6 +75,13 @@ class Device(abc.ABC):
     def connected(self) -> bool:
         return self._opened
 
+    def _live_counters(self) -> dict[str, int]:
+        """Counters a subclass keeps elsewhere (a codec's discarded bytes, say), merged into ``health()``."""
+        return {}
+
     def health(self) -> DeviceHealth:
+        live = self._live_counters()
         with self._health_lock:
-            return DeviceHealth(self.name, self.connected, self._last_error, dict(self._counters))
+            counters = dict(self._counters)
+            counters.update(live)
+            return DeviceHealth(self.name, self.connected, self._last_error, counters)

@@ -46,7 +46,9 @@ class Scan:
         return (self.ranges_mm >= self.min_range_mm) & (self.ranges_mm <= self.max_range_mm)
 
     def angles_rad(self) -> npt.NDArray[np.float64]:
-        return self.angle_min_rad + self.angle_increment_rad * np.arange(self.ranges_mm.size)
+        steps = np.arange(self.ranges_mm.size, dtype=np.float64)
+        angles: npt.NDArray[np.float64] = self.angle_min_rad + self.angle_increment_rad * steps
+        return angles
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,10 +73,14 @@ class ImuSample:
 
 @dataclass(frozen=True, slots=True)
 class TagRead:
-    """One RFID tag detection. ``rssi_dbm`` and ``antenna`` only from readers that report them (UHF)."""
+    """One RFID tag detection. ``rssi_dbm``, ``antenna``, ``frequency_khz``, ``phase_deg`` and the reader's
+    own ``device_time_ms`` only from readers that report them (UHF)."""
 
     tag_id: str
     host_time_ns: int
     reader: str
     rssi_dbm: float | None = None
     antenna: int | None = None
+    frequency_khz: int | None = None
+    phase_deg: float | None = None
+    device_time_ms: int | None = None
