@@ -156,7 +156,7 @@ class Simulation:
             t0, t1 = times[i - 1], times[i]
             (x0, y0, a0), (x1, y1, a1) = self._poses[i - 1], self._poses[i]
             w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-            return Pose2D(x0 + w * (x1 - x0), y0 + w * (y1 - y0), a0 + w * _wrap(a1 - a0))
+            return Pose2D(x0 + w * (x1 - x0), y0 + w * (y1 - y0), _wrap(a0 + w * _wrap(a1 - a0)))
 
     def body_motion(self) -> tuple[float, float, float]:
         """(forward speed m/s, forward acceleration m/s^2, yaw rate rad/s), true values now."""
@@ -211,7 +211,8 @@ class Simulation:
         if self.world.people:
             circles = np.array([(*self.person_position(p, t), p.radius_m) for p in self.world.people])
         max_m = self.world.laser.max_range_mm / 1000.0
-        return cast_rays((lp.x_m, lp.y_m), np.asarray(angles_rad) + lp.yaw_rad, self._segments, circles, max_m)
+        angles = np.asarray(angles_rad) + lp.yaw_rad
+        return cast_rays((lp.x_m, lp.y_m), angles, self._segments, circles, max_m)
 
     def imu_truth(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """Specific force (m/s^2) and angular rate (rad/s) in the base frame (x fwd, y left, z up)."""

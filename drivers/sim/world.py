@@ -79,6 +79,8 @@ class CameraModel:
     full_well_e: float = 10000.0
     blur_sigma_px: float = 0.7
     radial_falloff: float = 0.3
+    # Fraction of the charge above full well that spills into each vertical neighbour (blooming).
+    bloom_fraction: float = 0.05
 
     @property
     def focal_length_px(self) -> float:

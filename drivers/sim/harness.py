@@ -1,0 +1,112 @@
+"""The simulated robot as hardware: every fake device served where a real one would be.
+
+``SimulatedRobot`` starts a :class:`~drivers.sim.simulation.Simulation` of a world and serves the fake
+laser, servos and RFID reader on pseudo-terminals (with stable symlinks in a private folder, like the udev
+names ``/dev/urg`` and ``/dev/dynamixel``), the fake IMU behind ``smbus2`` and the simulated camera. The agent
+then opens them through the same drivers and the same config keys it uses on the robot. Fault injection
+(pull a device, stall it) is here too, for tests and demonstrations.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import tempfile
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from drivers.fakes.dynamixel import FakeDynamixelBus
+from drivers.fakes.pty import PtyServer
+from drivers.fakes.rfid import FakeRfidReader
+from drivers.fakes.urg import FakeUrg
+from drivers.sim.simulation import Simulation
+from drivers.sim.world import World
+
+log = logging.getLogger(__name__)
+
+
+class SimulatedRobot:
+    """Fake devices for one world, up while the context is open."""
+
+    def __init__(self, world: World, simulation: Simulation | None = None, seed: int = 0) -> None:
+        self.world = world
+        self.simulation = simulation or Simulation(world, seed=seed)
+        self.urg = FakeUrg(self.simulation, seed=seed)
+        self.servos = FakeDynamixelBus(self.simulation)
+        self.rfid = FakeRfidReader(self.simulation, seed=seed)
+        self._dir: Path | None = None
+        self.servers: dict[str, PtyServer] = {}
+        self._imu: Any = None
+        self.imu: Any = None
+        self.seed = seed
+        self._stack = contextlib.ExitStack()
+
+    # -- where the agent finds the devices ---------------------------------------------------------
+    @property
+    def laser_url(self) -> str:
+        return self.servers["laser"].path
+
+    @property
+    def servo_port(self) -> str:
+        return self.servers["servos"].path
+
+    @property
+    def rfid_url(self) -> str:
+        return self.servers["rfid"].path
+
+    @property
+    def imu_bus(self) -> str:
+        return str(self._imu.path)
+
+    def device_config(self) -> dict[str, dict[str, Any]]:
+        """The devices as config tables, the same keys a robot's config file uses."""
+        return {
+            "laser": {"backend": "urg", "url": self.laser_url},
+            "servos": {"backend": "dynamixel", "port": self.servo_port,
+                       "left_id": self.world.robot.left_id, "right_id": self.world.robot.right_id,
+                       "wheel_radius_m": self.world.robot.wheel_radius_m, "track_m": self.world.robot.track_m},
+            "rfid": {"backend": self.world.rfid.protocol, "url": self.rfid_url},
+            "imu": {"backend": "mpu6050", "bus": self.imu_bus},
+            "camera": {"backend": "sim"},
+        }
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    def start(self) -> None:
+        from drivers.fakes.imu import FakeI2cBus, FakeMpu6050
+
+        self._dir = Path(tempfile.mkdtemp(prefix="vlp-sim-"))
+        for name, device in (("laser", self.urg), ("servos", self.servos), ("rfid", self.rfid)):
+            server = PtyServer(device, link=self._dir / name)
+            server.start()
+            self.servers[name] = server
+        self._imu = FakeI2cBus(directory=self._dir)
+        self._stack.callback(self._imu.close)
+        self.imu = FakeMpu6050(self.simulation, seed=self.seed)
+        self._imu.attach(0x68, self.imu)
+        log.info("simulated robot up in %s", self._dir)
+
+    def close(self) -> None:
+        for server in self.servers.values():
+            server.close()
+        self._stack.close()
+        if self._dir is not None:
+            shutil.rmtree(self._dir, ignore_errors=True)
+            self._dir = None
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- faults ------------------------------------------------------------------------------------
+    def unplug(self, device: str) -> None:
+        """Pull a serial device ("laser", "servos" or "rfid") as a USB cable would be pulled."""
+        self.servers[device].unplug()
+
+    def replug(self, device: str) -> None:
+        self.servers[device].replug()

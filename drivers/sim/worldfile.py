@@ -1,0 +1,967 @@
+"""Simulated worlds from TOML files (the format is ``docs/world.md``).
+
+``load_world(path)`` returns a :class:`~drivers.sim.world.World`. Every field of the dataclasses in
+``drivers.sim.world`` can be set from the file under its own name (``[camera] t_row_s = 32e-6``); what is
+absent keeps the dataclass default. Angles may be given in degrees instead: ``yaw_deg`` for ``yaw_rad``.
+
+Everything is checked on load, and a mistake raises :class:`~drivers.errors.ConfigError` naming the file
+and the exact key (``leds[3].frequency_hz``): unknown or missing keys, wrong types, values out of range,
+LED signatures the decoder could not tell apart, routes and people's paths that go through walls. Things
+that are legal but probably not meant (an LED frequency that aliases after the downsampling, a frame rate
+the readout cannot keep up with) are logged as warnings.
+
+``surveyed_leds`` and ``nominal_camera`` give the agent's view of a world: the truth bent by the world's
+``[errors]``, for wiring the simulated agent exactly as a surveyed and calibrated robot would be.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import itertools
+import logging
+import math
+import os
+import random
+import tomllib
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import ConfigError
+from drivers.sim.world import (
+    CameraModel,
+    ErrorModel,
+    LaserModel,
+    Led,
+    Person,
+    RfidModel,
+    RobotSpec,
+    Wall,
+    World,
+)
+
+__all__ = ["load_world", "nominal_camera", "parse_world", "surveyed_leds"]
+
+log = logging.getLogger(__name__)
+
+Point = tuple[float, float]
+
+_SIDES = ("south", "north", "west", "east")
+# Dynamixel Protocol 2.0 unicast ids (253 and up are reserved or broadcast).
+_MAX_SERVO_ID = 252
+# Two distinct LED signatures closer than both of these are legal but hard to separate from the stripes.
+_CLOSE_FREQUENCY_HZ = 200.0
+_CLOSE_DUTY = 0.1
+# The fundamental's contrast after the exposure box filter is |sinc(f T_exp)|; below this stripes fade.
+_MIN_STRIPE_CONTRAST = 0.3
+# Above this many signatures in a grid the best row shift is not searched for (the search is O(n^3)).
+_MAX_SEARCHED_SIGNATURES = 48
+# A camera tilt beyond this is a mounting mistake, not an error model (and leaves the LEDs out of view).
+_MAX_TILT_RAD = math.radians(20.0)
+
+_Check = tuple[Callable[[Any], bool], str]
+_POSITIVE: _Check = (lambda v: v > 0, "must be > 0")
+_NON_NEGATIVE: _Check = (lambda v: v >= 0, "must be >= 0")
+_FRACTION_OPEN: _Check = (lambda v: 0 < v < 1, "must be strictly between 0 and 1")
+_UNIT_INTERVAL: _Check = (lambda v: 0 <= v <= 1, "must be between 0 and 1")
+_SERVO_ID: _Check = (lambda v: 0 <= v <= _MAX_SERVO_ID, f"must be a Dynamixel id 0..{_MAX_SERVO_ID}")
+
+# Range checks on single fields, by "Class.field". Cross-field checks are in the section readers below.
+_RULES: dict[str, _Check] = {
+    "CameraModel.sensor_width_px": _POSITIVE,
+    "CameraModel.sensor_height_px": _POSITIVE,
+    "CameraModel.pixel_size_m": _POSITIVE,
+    "CameraModel.focal_length_m": _POSITIVE,
+    "CameraModel.t_row_s": _POSITIVE,
+    "CameraModel.exposure_s": _POSITIVE,
+    "CameraModel.output_width_px": _POSITIVE,
+    "CameraModel.output_height_px": _POSITIVE,
+    "CameraModel.frame_rate_hz": _POSITIVE,
+    "CameraModel.led_peak_dn": _POSITIVE,
+    "CameraModel.black_level_dn": (lambda v: 0 <= v < 255, "must be in [0, 255)"),
+    "CameraModel.read_noise_dn": _NON_NEGATIVE,
+    "CameraModel.full_well_e": _POSITIVE,
+    "CameraModel.blur_sigma_px": _NON_NEGATIVE,
+    "CameraModel.radial_falloff": _UNIT_INTERVAL,
+    "CameraModel.bloom_fraction": (lambda v: 0 <= v <= 0.5, "must be between 0 and 0.5"),
+    "LaserModel.min_range_mm": _NON_NEGATIVE,
+    "LaserModel.max_range_mm": _POSITIVE,
+    "LaserModel.steps_per_rev": _POSITIVE,
+    "LaserModel.first_step": _NON_NEGATIVE,
+    "LaserModel.front_step": _NON_NEGATIVE,
+    "LaserModel.last_step": _NON_NEGATIVE,
+    "LaserModel.scan_rpm": _POSITIVE,
+    "LaserModel.range_noise_mm": _NON_NEGATIVE,
+    "LaserModel.dropout": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
+    "RobotSpec.wheel_radius_m": _POSITIVE,
+    "RobotSpec.track_m": _POSITIVE,
+    "RobotSpec.left_id": _SERVO_ID,
+    "RobotSpec.right_id": _SERVO_ID,
+    "RobotSpec.max_wheel_radps": _POSITIVE,
+    "RobotSpec.max_wheel_accel_radps2": _POSITIVE,
+    "RobotSpec.radius_m": _POSITIVE,
+    "RfidModel.range_m": _POSITIVE,
+    "RfidModel.repeat_s": _POSITIVE,
+    "Led.diameter_m": _POSITIVE,
+    "Led.frequency_hz": _POSITIVE,
+    "Led.duty": _FRACTION_OPEN,
+    "Person.speed_mps": _POSITIVE,
+    "Person.radius_m": _POSITIVE,
+    "ErrorModel.led_survey_error_m": _NON_NEGATIVE,
+    "ErrorModel.led_height_error_m": _NON_NEGATIVE,
+    "ErrorModel.camera_tilt_rad": (
+        lambda v: all(abs(a) <= _MAX_TILT_RAD for a in v),
+        f"each angle must be within +-{math.degrees(_MAX_TILT_RAD):.0f} degrees",
+    ),
+    "Mount.roll_rad": (
+        lambda v: abs(v) <= _MAX_TILT_RAD,
+        f"must be within +-{math.degrees(_MAX_TILT_RAD):.0f} degrees",
+    ),
+    "Mount.pitch_rad": (
+        lambda v: abs(v) <= _MAX_TILT_RAD,
+        f"must be within +-{math.degrees(_MAX_TILT_RAD):.0f} degrees",
+    ),
+}
+
+
+# -- entry points --------------------------------------------------------------------------------------------
+def load_world(path: str | os.PathLike[str]) -> World:
+    """Read and check a world file. Raises ConfigError (with the file and the key) on any mistake."""
+    file = os.fspath(path)
+    try:
+        with open(file, "rb") as fp:
+            data = tomllib.load(fp)
+    except tomllib.TOMLDecodeError as exc:
+        # The message carries "(at line L, column C)".
+        raise ConfigError("", f"not valid TOML: {exc}", file) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            "", f"not UTF-8 text (TOML files must be): {exc.reason} at byte {exc.start}", file
+        ) from exc
+    except OSError as exc:
+        raise ConfigError("", f"cannot read the world file: {exc.strerror or exc}", file) from exc
+    return parse_world(data, source=file)
+
+
+def parse_world(data: Mapping[str, Any] | str, source: str | None = None) -> World:
+    """Build a World from TOML text or an already parsed table. ``source`` names it in errors."""
+    if isinstance(data, str):
+        try:
+            data = tomllib.loads(data)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError("", f"not valid TOML: {exc}", source) from exc
+    return _WorldReader(dict(data), source).read()
+
+
+def surveyed_leds(world: World) -> tuple[Led, ...]:
+    """The LED map the agent is given: the true LEDs moved by the world's survey errors.
+
+    Each coordinate is off by a normal draw with standard deviation ``errors.led_survey_error_m`` (x, y)
+    and ``errors.led_height_error_m`` (z), seeded by ``errors.seed`` so every run sees the same map.
+    """
+    errors = world.errors
+    rng = random.Random(errors.seed)
+    out = []
+    for led in world.leds:
+        out.append(
+            dataclasses.replace(
+                led,
+                x_m=led.x_m + rng.gauss(0.0, errors.led_survey_error_m),
+                y_m=led.y_m + rng.gauss(0.0, errors.led_survey_error_m),
+                z_m=led.z_m + rng.gauss(0.0, errors.led_height_error_m),
+            )
+        )
+    return tuple(out)
+
+
+def nominal_camera(world: World) -> CameraModel:
+    """The camera as the agent's calibration knows it.
+
+    ``world.camera`` is the truth (the renderer uses it); the nominal principal point is the true one minus
+    ``errors.principal_point_error_px`` (sensor pixels), i.e. the truth is off the nominal by the error.
+    """
+    cx, cy = world.camera.principal_point_px
+    ex, ey = world.errors.principal_point_error_px
+    return dataclasses.replace(world.camera, cx_px=cx - ex, cy_px=cy - ey)
+
+
+# -- a table being read --------------------------------------------------------------------------------------
+class _Table:
+    """One TOML table and its dotted key path; remembers which keys were read to report unknown ones."""
+
+    def __init__(self, data: Mapping[str, Any], path: str, file: str | None) -> None:
+        self.data = data
+        self.path = path
+        self.file = file
+        self.used: set[str] = set()
+        self.expected: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def error(self, name: str, reason: str) -> ConfigError:
+        return ConfigError(self.key(name), reason, self.file)
+
+    def has(self, name: str) -> bool:
+        return name in self.data
+
+    def take(self, name: str) -> Any:
+        self.used.add(name)
+        return self.data[name]
+
+    def finish(self) -> None:
+        """Reject keys nobody read, suggesting the closest known one."""
+        for name in self.data:
+            if name not in self.used:
+                close = difflib.get_close_matches(name, sorted(self.expected | self.used), n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise self.error(name, f"unknown key{hint}")
+
+    def expect(self, *names: str) -> None:
+        """Names the reader knows, for the 'did you mean' hint even when they were absent."""
+        self.expected.update(names)
+
+    # typed getters ---------------------------------------------------------------------------------
+    def number(self, name: str, default: float | None = None, *, required: bool = False) -> float:
+        if not self.has(name):
+            if required or default is None:
+                raise self.error(name, "missing (a number is required)")
+            return default
+        return _as_float(self.take(name), self.key(name), self.file)
+
+    def integer(self, name: str, default: int | None = None) -> int:
+        if not self.has(name):
+            if default is None:
+                raise self.error(name, "missing (an integer is required)")
+            return default
+        return _as_int(self.take(name), self.key(name), self.file)
+
+    def string(self, name: str, default: str | None = None, *, allow_int: bool = False) -> str:
+        if not self.has(name):
+            if default is None:
+                raise self.error(name, "missing (a string is required)")
+            return default
+        value = self.take(name)
+        if allow_int and isinstance(value, int) and not isinstance(value, bool):
+            return str(value)
+        if not isinstance(value, str):
+            raise self.error(name, f"must be a string, not {_type_name(value)}")
+        if not value.strip():
+            raise self.error(name, "must not be empty")
+        return value
+
+    def boolean(self, name: str, default: bool) -> bool:
+        if not self.has(name):
+            return default
+        value = self.take(name)
+        if not isinstance(value, bool):
+            raise self.error(name, f"must be true or false, not {_type_name(value)}")
+        return value
+
+    def points(self, name: str, *, minimum: int = 1, required: bool = True) -> tuple[Point, ...]:
+        if not self.has(name):
+            if required:
+                raise self.error(name, "missing (a list of [x, y] points in metres is required)")
+            return ()
+        value = self.take(name)
+        if not isinstance(value, list):
+            raise self.error(name, f"must be a list of [x, y] points, not {_type_name(value)}")
+        pts = tuple(_as_point(p, f"{self.key(name)}[{i}]", self.file) for i, p in enumerate(value))
+        if len(pts) < minimum:
+            raise self.error(
+                name, f"needs at least {minimum} point{'s' if minimum > 1 else ''}, got {len(pts)}"
+            )
+        return pts
+
+    def table(self, name: str) -> _Table:
+        path = self.key(name)
+        if not self.has(name):
+            return _Table({}, path, self.file)
+        value = self.take(name)
+        if not isinstance(value, dict):
+            raise ConfigError(
+                path, f"must be a table ([{path}] or {{...}}), not {_type_name(value)}", self.file
+            )
+        return _Table(value, path, self.file)
+
+    def tables(self, name: str) -> list[_Table]:
+        if not self.has(name):
+            return []
+        value = self.take(name)
+        path = self.key(name)
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            raise ConfigError(
+                path, f"must be an array of tables ([[{path}]]), not {_type_name(value)}", self.file
+            )
+        return [_Table(v, f"{path}[{i}]", self.file) for i, v in enumerate(value)]
+
+
+def _type_name(value: object) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int):
+        return "an integer"
+    if isinstance(value, float):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "an array"
+    if isinstance(value, dict):
+        return "a table"
+    return type(value).__name__
+
+
+def _as_float(value: object, key: str, file: str | None) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(key, f"must be a number, not {_type_name(value)}", file)
+    result = float(value)
+    if not math.isfinite(result):
+        raise ConfigError(key, f"must be finite, not {value}", file)
+    return result
+
+
+def _as_int(value: object, key: str, file: str | None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(key, f"must be an integer, not {_type_name(value)}", file)
+    return value
+
+
+def _as_point(value: object, key: str, file: str | None) -> Point:
+    if not isinstance(value, list) or len(value) != 2:
+        raise ConfigError(key, f"must be a point [x, y] in metres, not {value!r}", file)
+    return _as_float(value[0], f"{key}[0]", file), _as_float(value[1], f"{key}[1]", file)
+
+
+# -- dataclasses from tables, field by field -----------------------------------------------------------------
+def _read_dataclass(cls: type[Any], table: _Table) -> Any:
+    """Build ``cls`` from ``table``: every field under its own name (``*_rad`` also as ``*_deg``), with its
+    type from the annotations, its range from ``_RULES``, and the dataclass default when absent."""
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        name = f.name
+        table.expect(name)
+        scale = 1.0
+        if name.endswith("_rad"):
+            alias = name[: -len("_rad")] + "_deg"
+            table.expect(alias)
+            if table.has(name) and table.has(alias):
+                raise table.error(alias, f"give either {name} or {alias}, not both")
+            if table.has(alias):
+                name, scale = alias, math.pi / 180.0
+        if not table.has(name):
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                hint = f" (or {name[: -len('_rad')]}_deg)" if name.endswith("_rad") else ""
+                raise table.error(name, f"missing{hint}: it has no default")
+            continue
+        value = _convert(hints[f.name], table, name, scale)
+        rule = _RULES.get(f"{cls.__name__}.{f.name}")
+        if rule is not None and not rule[0](value):
+            raise table.error(name, f"{rule[1]}, got {_show(table.data[name])}")
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def _show(value: object) -> str:
+    return repr(value) if not isinstance(value, float) else f"{value:g}"
+
+
+def _convert(tp: Any, table: _Table, name: str, scale: float) -> Any:
+    key = table.key(name)
+    origin = typing.get_origin(tp)
+    if origin in (types.UnionType, typing.Union):
+        # Optional fields (``float | None``): TOML has no null, so a present value is the non-None type.
+        inner = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _convert(inner[0], table, name, scale)
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+        sub = table.table(name)
+        value = _read_dataclass(tp, sub)
+        sub.finish()
+        return value
+    raw = table.take(name)
+    if tp is float:
+        return _as_float(raw, key, table.file) * scale
+    if tp is int:
+        return _as_int(raw, key, table.file)
+    if tp is str:
+        if not isinstance(raw, str):
+            raise ConfigError(key, f"must be a string, not {_type_name(raw)}", table.file)
+        return raw
+    if tp is bool:
+        if not isinstance(raw, bool):
+            raise ConfigError(key, f"must be true or false, not {_type_name(raw)}", table.file)
+        return raw
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(raw, list):
+            raise ConfigError(key, f"must be an array, not {_type_name(raw)}", table.file)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_as_point(p, f"{key}[{i}]", table.file) for i, p in enumerate(raw))
+        if len(raw) != len(args):
+            raise ConfigError(key, f"must be an array of {len(args)} numbers, got {len(raw)}", table.file)
+        return tuple(_as_float(v, f"{key}[{i}]", table.file) * scale for i, v in enumerate(raw))
+    raise ConfigError(key, f"cannot be set from a world file (type {tp})", table.file)
+
+
+# -- geometry helpers ----------------------------------------------------------------------------------------
+def _cross(o: Point, a: Point, b: Point) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def _segments_cross(p1: Point, p2: Point, q1: Point, q2: Point) -> bool:
+    """Proper or touching intersection of two closed segments (orientation tests, with collinear overlap)."""
+    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
+    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
+    if ((d1 > 0) != (d2 > 0)) and ((d3 > 0) != (d4 > 0)) and d1 != 0 and d2 != 0 and d3 != 0 and d4 != 0:
+        return True
+
+    def on(a: Point, b: Point, c: Point, d: float) -> bool:
+        return (
+            abs(d) < 1e-12
+            and min(a[0], b[0]) - 1e-12 <= c[0] <= max(a[0], b[0]) + 1e-12
+            and min(a[1], b[1]) - 1e-12 <= c[1] <= max(a[1], b[1]) + 1e-12
+        )
+
+    return on(q1, q2, p1, d1) or on(q1, q2, p2, d2) or on(p1, p2, q1, d3) or on(p1, p2, q2, d4)
+
+
+def _point_segment_distance(p: Point, a: Point, b: Point) -> float:
+    ex, ey = b[0] - a[0], b[1] - a[1]
+    length2 = ex * ex + ey * ey
+    s = 0.0 if length2 == 0 else max(0.0, min(1.0, ((p[0] - a[0]) * ex + (p[1] - a[1]) * ey) / length2))
+    return math.hypot(p[0] - a[0] - s * ex, p[1] - a[1] - s * ey)
+
+
+def _segment_distance(p1: Point, p2: Point, q1: Point, q2: Point) -> float:
+    if _segments_cross(p1, p2, q1, q2):
+        return 0.0
+    return min(
+        _point_segment_distance(p1, q1, q2),
+        _point_segment_distance(p2, q1, q2),
+        _point_segment_distance(q1, p1, p2),
+        _point_segment_distance(q2, p1, p2),
+    )
+
+
+def _best_row_shift(n: int, dx_m: float, dy_m: float) -> int:
+    """The shift s that keeps equal signatures farthest apart when LED (ix, iy) gets (ix + s iy) mod n.
+
+    LEDs (ix, iy) and (ix + a, iy + b) share a signature when a + s b = 0 (mod n); the nearest such pair is
+    found over one period of the pattern, and the s with the largest nearest distance wins.
+    """
+    if n <= 1:
+        return 0
+    if n > _MAX_SEARCHED_SIGNATURES:
+        # The search is O(n^3); a golden-ratio shift is the classic low-discrepancy choice for large n.
+        return max(1, round(n * (3 - math.sqrt(5)) / 2)) % n
+    dx, dy = abs(dx_m) or 1.0, abs(dy_m) or 1.0
+    best, best_gap = 0, -1.0
+    for s in range(n):
+        gap = min(
+            math.hypot(a * dx, b * dy)
+            for b in range(n)
+            for a in range(-n, n + 1)
+            if (a, b) != (0, 0) and (a + s * b) % n == 0
+        )
+        if gap > best_gap + 1e-12:
+            best, best_gap = s, gap
+    return best
+
+
+class _Placed(typing.NamedTuple):
+    """An LED and where it came from: ``key`` for its position and size, ``signature_key`` for its
+    modulation (a grid's signature entry), ``where`` to tell grid LEDs apart in messages."""
+
+    led: Led
+    key: str
+    signature_key: str
+    where: str
+
+
+def _wall_ends(w: Wall) -> tuple[Point, Point]:
+    return (w.x1_m, w.y1_m), (w.x2_m, w.y2_m)
+
+
+# -- the world -----------------------------------------------------------------------------------------------
+_SECTIONS = (
+    "name",
+    "robot",
+    "camera",
+    "laser",
+    "rfid",
+    "errors",
+    "led_defaults",
+    "leds",
+    "led_grids",
+    "walls",
+    "polygons",
+    "rooms",
+    "people",
+    "route",
+)
+
+
+class _WorldReader:
+    def __init__(self, data: dict[str, Any], file: str | None) -> None:
+        self.root = _Table(data, "", file)
+        self.root.expect(*_SECTIONS)
+        self.file = file
+
+    def error(self, key: str, reason: str) -> ConfigError:
+        return ConfigError(key, reason, self.file)
+
+    def read(self) -> World:
+        root = self.root
+        default_name = Path(self.file).stem if self.file else "world"
+        name = root.string("name", default_name)
+        robot = self._section(RobotSpec, "robot")
+        camera = self._section(CameraModel, "camera")
+        laser = self._section(LaserModel, "laser")
+        rfid = self._section(RfidModel, "rfid")
+        errors = self._section(ErrorModel, "errors")
+        self._check_robot(robot)
+        self._check_camera(camera)
+        self._check_laser(laser)
+        self._check_rfid(rfid)
+        self._check_errors(errors, camera)
+
+        walls = self._walls()
+        leds_with_keys = self._leds(robot, camera)
+        people = self._people(walls)
+        route, speed = self._route(walls, robot)
+        root.finish()
+        self._check_start(robot, walls)
+        return World(
+            name=name,
+            walls=tuple(walls),
+            leds=tuple(placed.led for placed in leds_with_keys),
+            robot=robot,
+            camera=camera,
+            laser=laser,
+            rfid=rfid,
+            people=tuple(people),
+            route=route,
+            route_speed_mps=speed,
+            errors=errors,
+            source=self.file,
+        )
+
+    def _section(self, cls: type[Any], name: str) -> Any:
+        table = self.root.table(name)
+        value = _read_dataclass(cls, table)
+        table.finish()
+        return value
+
+    # -- per-section checks ----------------------------------------------------------------------------
+    def _check_robot(self, robot: RobotSpec) -> None:
+        if robot.left_id == robot.right_id:
+            raise self.error("robot.right_id", f"must differ from robot.left_id ({robot.left_id})")
+
+    def _check_camera(self, cam: CameraModel) -> None:
+        if cam.cx_px is not None and not 0 <= cam.cx_px <= cam.sensor_width_px - 1:
+            raise self.error(
+                "camera.cx_px", f"must be on the sensor (0..{cam.sensor_width_px - 1}), got {cam.cx_px:g}"
+            )
+        if cam.cy_px is not None and not 0 <= cam.cy_px <= cam.sensor_height_px - 1:
+            raise self.error(
+                "camera.cy_px", f"must be on the sensor (0..{cam.sensor_height_px - 1}), got {cam.cy_px:g}"
+            )
+        period_s = 1.0 / cam.frame_rate_hz
+        if cam.exposure_s >= period_s:
+            raise self.error(
+                "camera.exposure_s",
+                f"{cam.exposure_s:g} s does not fit in a frame period "
+                f"({period_s:g} s at {cam.frame_rate_hz:g} fps)",
+            )
+        if cam.led_peak_dn + cam.black_level_dn > 4 * 255:
+            log.warning(
+                "%s: camera.led_peak_dn %g saturates LEDs far beyond 8 bits", self.file, cam.led_peak_dn
+            )
+        readout_s = cam.sensor_height_px * cam.t_row_s
+        # The dataclass defaults themselves (1536 rows x 32 us at 30 fps) overlap; only warn about a choice.
+        chosen = {"sensor_height_px", "t_row_s", "frame_rate_hz"} & set(self.root.data.get("camera", {}))
+        if readout_s > period_s and chosen:
+            log.warning(
+                "%s: camera readout %.1f ms (%d rows x %g us) is longer than the frame period %.1f ms: "
+                "a real sensor could not run at %g fps; frames will overlap in time",
+                self.file,
+                readout_s * 1e3,
+                cam.sensor_height_px,
+                cam.t_row_s * 1e6,
+                period_s * 1e3,
+                cam.frame_rate_hz,
+            )
+
+    def _check_laser(self, laser: LaserModel) -> None:
+        if laser.min_range_mm >= laser.max_range_mm:
+            raise self.error("laser.max_range_mm", f"must be above laser.min_range_mm ({laser.min_range_mm})")
+        if not laser.first_step <= laser.front_step <= laser.last_step:
+            raise self.error(
+                "laser.front_step",
+                "steps must satisfy first_step <= front_step <= last_step, got "
+                f"{laser.first_step} / {laser.front_step} / {laser.last_step}",
+            )
+        if laser.last_step >= laser.steps_per_rev:
+            raise self.error("laser.last_step", f"must be below laser.steps_per_rev ({laser.steps_per_rev})")
+
+    def _check_rfid(self, rfid: RfidModel) -> None:
+        from drivers.registry import BACKENDS, DeviceKind
+
+        protocols = sorted(BACKENDS[DeviceKind.RFID])
+        if rfid.protocol not in protocols:
+            raise self.error(
+                "rfid.protocol", f"unknown reader protocol {rfid.protocol!r}; choose one of {protocols}"
+            )
+
+    def _check_errors(self, errors: ErrorModel, cam: CameraModel) -> None:
+        cx, cy = cam.principal_point_px
+        ex, ey = errors.principal_point_error_px
+        if not (0 <= cx - ex <= cam.sensor_width_px - 1 and 0 <= cy - ey <= cam.sensor_height_px - 1):
+            raise self.error(
+                "errors.principal_point_error_px",
+                f"({ex:g}, {ey:g}) px puts the nominal principal point off the sensor",
+            )
+
+    # -- walls -------------------------------------------------------------------------------------------
+    def _walls(self) -> list[Wall]:
+        walls: list[Wall] = []
+        for t in self.root.tables("walls"):
+            t.expect("points", "closed")
+            closed = t.boolean("closed", False)
+            pts = t.points("points", minimum=3 if closed else 2)
+            t.finish()
+            walls += self._chain(pts, closed, t.key("points"))
+        for t in self.root.tables("polygons"):
+            t.expect("points")
+            pts = t.points("points", minimum=3)
+            t.finish()
+            if len(pts) > 3 and pts[0] == pts[-1]:
+                pts = pts[:-1]  # a ring written with its closing point repeated
+            walls += self._chain(pts, True, t.key("points"))
+        for t in self.root.tables("rooms"):
+            walls += self._room(t)
+        return walls
+
+    def _chain(self, pts: tuple[Point, ...], closed: bool, key: str) -> list[Wall]:
+        ends = list(pts) + ([pts[0]] if closed else [])
+        walls = []
+        for i, (a, b) in enumerate(itertools.pairwise(ends)):
+            if math.dist(a, b) < 1e-9:
+                raise self.error(
+                    f"{key}[{(i + 1) % len(pts)}]",
+                    f"repeats the point before it {a}: a wall needs two distinct ends",
+                )
+            walls.append(Wall(a[0], a[1], b[0], b[1]))
+        return walls
+
+    def _room(self, t: _Table) -> list[Wall]:
+        """A rectangle of walls with door gaps. Sides run west to east (south, north) and south to north
+        (west, east); a door's ``offset_m`` is its centre's distance from the side's start."""
+        t.expect("x_min_m", "y_min_m", "x_max_m", "y_max_m", "doors")
+        x0, y0 = t.number("x_min_m", required=True), t.number("y_min_m", required=True)
+        x1, y1 = t.number("x_max_m", required=True), t.number("y_max_m", required=True)
+        if x1 <= x0:
+            raise t.error("x_max_m", f"must be above x_min_m ({x0:g}), got {x1:g}")
+        if y1 <= y0:
+            raise t.error("y_max_m", f"must be above y_min_m ({y0:g}), got {y1:g}")
+        sides: dict[str, tuple[Point, Point]] = {
+            "south": ((x0, y0), (x1, y0)),
+            "north": ((x0, y1), (x1, y1)),
+            "west": ((x0, y0), (x0, y1)),
+            "east": ((x1, y0), (x1, y1)),
+        }
+        gaps: dict[str, list[tuple[float, float, str]]] = {side: [] for side in _SIDES}
+        for d in t.tables("doors"):
+            d.expect("side", "offset_m", "width_m")
+            side = d.string("side")
+            if side not in sides:
+                raise d.error("side", f"must be one of {list(_SIDES)}, got {side!r}")
+            offset = d.number("offset_m", required=True)
+            width = d.number("width_m", 0.9)
+            d.finish()
+            if width <= 0:
+                raise d.error("width_m", f"must be > 0, got {width:g}")
+            a, b = sides[side]
+            length = math.dist(a, b)
+            lo, hi = offset - width / 2, offset + width / 2
+            if lo < 0 or hi > length:
+                raise d.error(
+                    "offset_m",
+                    f"a {width:g} m door centred at {offset:g} m does not fit in the "
+                    f"{length:g} m {side} side",
+                )
+            for plo, phi, pkey in gaps[side]:
+                if lo < phi and plo < hi:
+                    raise d.error("offset_m", f"overlaps the door {pkey}")
+            gaps[side].append((lo, hi, d.path))
+        t.finish()
+        walls = []
+        for side, (a, b) in sides.items():
+            length = math.dist(a, b)
+            ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length
+            cursor = 0.0
+            for lo, hi, _ in [*sorted(gaps[side]), (length, length, "")]:
+                if lo - cursor > 1e-9:
+                    walls.append(Wall(a[0] + ux * cursor, a[1] + uy * cursor, a[0] + ux * lo, a[1] + uy * lo))
+                cursor = hi
+        return walls
+
+    # -- LEDs --------------------------------------------------------------------------------------------
+    def _leds(self, robot: RobotSpec, cam: CameraModel) -> list[_Placed]:
+        defaults_table = self.root.table("led_defaults")
+        defaults_table.expect("z_m", "diameter_m", "frequency_hz", "duty")
+        base = Led("", 0.0, 0.0, 0.0)
+        defaults = {
+            "z_m": defaults_table.number("z_m") if defaults_table.has("z_m") else None,
+            "diameter_m": defaults_table.number("diameter_m", base.diameter_m),
+            "frequency_hz": defaults_table.number("frequency_hz", base.frequency_hz),
+            "duty": defaults_table.number("duty", base.duty),
+        }
+        defaults_table.finish()
+        for name in ("diameter_m", "frequency_hz", "duty"):
+            rule = _RULES[f"Led.{name}"]
+            if not rule[0](defaults[name]):
+                raise defaults_table.error(name, f"{rule[1]}, got {defaults[name]:g}")
+
+        leds: list[_Placed] = []
+        for t in self.root.tables("leds"):
+            t.expect("id", "x_m", "y_m", "z_m", "diameter_m", "frequency_hz", "duty")
+            led = Led(
+                id=t.string("id", allow_int=True),
+                x_m=t.number("x_m", required=True),
+                y_m=t.number("y_m", required=True),
+                z_m=self._led_number(t, "z_m", defaults),
+                diameter_m=self._led_number(t, "diameter_m", defaults),
+                frequency_hz=self._led_number(t, "frequency_hz", defaults),
+                duty=self._led_number(t, "duty", defaults),
+            )
+            t.finish()
+            leds.append(_Placed(led, t.path, t.path, t.path))
+        for t in self.root.tables("led_grids"):
+            leds += self._led_grid(t, defaults)
+        self._check_leds(leds, robot, cam)
+        return leds
+
+    def _led_number(self, t: _Table, name: str, defaults: Mapping[str, float | None]) -> float:
+        default = defaults[name]
+        if not t.has(name) and default is None:
+            raise t.error(name, "missing (give it here or in [led_defaults])")
+        value = t.number(name, default)
+        rule = _RULES.get(f"Led.{name}")
+        if rule is not None and not rule[0](value):
+            raise t.error(name, f"{rule[1]}, got {value:g}")
+        return value
+
+    def _led_grid(self, t: _Table, defaults: Mapping[str, float | None]) -> list[_Placed]:
+        """LEDs on a rectangular grid; signature k goes to LED (ix, iy) with k = (ix + row_shift iy) mod n.
+        Neighbours along a row always differ (n > 1); the default row_shift keeps repeats farthest apart."""
+        t.expect("x0_m", "y0_m", "nx", "ny", "dx_m", "dy_m", "z_m", "diameter_m", "signatures", "row_shift")
+        x0, y0 = t.number("x0_m", required=True), t.number("y0_m", required=True)
+        nx, ny = t.integer("nx"), t.integer("ny")
+        for name, n in (("nx", nx), ("ny", ny)):
+            if n < 1:
+                raise t.error(name, f"must be >= 1, got {n}")
+        dx = t.number("dx_m", 0.0 if nx == 1 else None)
+        dy = t.number("dy_m", 0.0 if ny == 1 else None)
+        z = self._led_number(t, "z_m", defaults)
+        diameter = self._led_number(t, "diameter_m", defaults)
+        signatures = []
+        for s in t.tables("signatures"):
+            s.expect("id", "frequency_hz", "duty")
+            sig = (
+                s.string("id", allow_int=True),
+                self._led_number(s, "frequency_hz", defaults),
+                self._led_number(s, "duty", defaults),
+            )
+            s.finish()
+            signatures.append(sig)
+        if not signatures:
+            raise t.error("signatures", "missing (at least one {id, frequency_hz, duty} is required)")
+        n = len(signatures)
+        row_shift = t.integer("row_shift", _best_row_shift(n, dx, dy))
+        if not 0 <= row_shift < max(n, 1):
+            raise t.error("row_shift", f"must be in 0..{n - 1}, got {row_shift}")
+        t.finish()
+        out = []
+        for iy in range(ny):
+            for ix in range(nx):
+                k = (ix + row_shift * iy) % n
+                sid, freq, duty = signatures[k]
+                led = Led(sid, x0 + ix * dx, y0 + iy * dy, z, diameter, freq, duty)
+                out.append(_Placed(led, t.path, f"{t.path}.signatures[{k}]", f"{t.path} (ix={ix}, iy={iy})"))
+        return out
+
+    def _check_leds(self, leds: list[_Placed], robot: RobotSpec, cam: CameraModel) -> None:
+        nyquist_sensor_hz = 1.0 / (2.0 * cam.t_row_s)
+        k = cam.sensor_height_px / cam.output_height_px
+        nyquist_output_hz = nyquist_sensor_hz / k if k > 1 else nyquist_sensor_hz
+        by_id: dict[str, tuple[Led, str]] = {}
+        by_signature: dict[tuple[float, float], tuple[Led, str]] = {}
+        for led, key, sig_key, _ in leds:
+            if led.z_m <= robot.camera_mount.z_m:
+                raise self.error(
+                    f"{key}.z_m",
+                    f"{led.z_m:g} m is not above the camera "
+                    f"(robot.camera_mount.z_m = {robot.camera_mount.z_m:g} m)",
+                )
+            if led.frequency_hz > nyquist_sensor_hz:
+                raise self.error(
+                    f"{sig_key}.frequency_hz",
+                    f"{led.frequency_hz:g} Hz is above the rolling-shutter "
+                    f"Nyquist limit 1/(2 t_row) = {nyquist_sensor_hz:.0f} Hz: the stripes alias",
+                )
+            if led.frequency_hz > nyquist_output_hz:
+                log.warning(
+                    "%s: %s.frequency_hz %g Hz is above %.0f Hz, where the stripes alias after the "
+                    "%.2fx nearest-neighbour downsampling",
+                    self.file,
+                    sig_key,
+                    led.frequency_hz,
+                    nyquist_output_hz,
+                    k,
+                )
+            x = math.pi * led.frequency_hz * cam.exposure_s
+            contrast = abs(math.sin(x) / x) if x > 0 else 1.0
+            if contrast < _MIN_STRIPE_CONTRAST:
+                log.warning(
+                    "%s: %s.frequency_hz %g Hz keeps only %.0f%% stripe contrast with a %g us exposure",
+                    self.file,
+                    sig_key,
+                    led.frequency_hz,
+                    100 * contrast,
+                    cam.exposure_s * 1e6,
+                )
+            signature = (led.frequency_hz, led.duty)
+            if led.id in by_id:
+                other, other_key = by_id[led.id]
+                if (other.frequency_hz, other.duty) != signature:
+                    raise self.error(
+                        sig_key,
+                        f"LED id {led.id!r} is {other.frequency_hz:g} Hz / duty {other.duty:g} "
+                        f"at {other_key} but {led.frequency_hz:g} Hz / duty {led.duty:g} here: "
+                        "an id is its modulation, so one id needs one signature",
+                    )
+            else:
+                by_id[led.id] = (led, sig_key)
+                if signature in by_signature:
+                    other, other_key = by_signature[signature]
+                    raise self.error(
+                        sig_key,
+                        f"ids {other.id!r} ({other_key}) and {led.id!r} share the signature "
+                        f"{led.frequency_hz:g} Hz / duty {led.duty:g}: the decoder could not tell "
+                        "them apart",
+                    )
+                by_signature[signature] = (led, sig_key)
+        for i, (a, _) in enumerate(list(by_signature.values())):
+            for b, bkey in list(by_signature.values())[i + 1 :]:
+                if (
+                    abs(a.frequency_hz - b.frequency_hz) < _CLOSE_FREQUENCY_HZ
+                    and abs(a.duty - b.duty) < _CLOSE_DUTY
+                ):
+                    log.warning(
+                        "%s: LED ids %r and %r (%s) have close signatures (%g/%g Hz, duty %g/%g)",
+                        self.file,
+                        a.id,
+                        b.id,
+                        bkey,
+                        a.frequency_hz,
+                        b.frequency_hz,
+                        a.duty,
+                        b.duty,
+                    )
+        for i, first in enumerate(leds):
+            a = first.led
+            for second in leds[i + 1 :]:
+                b = second.led
+                apart_m = math.hypot(a.x_m - b.x_m, a.y_m - b.y_m)
+                if apart_m < (a.diameter_m + b.diameter_m) / 2 and abs(a.z_m - b.z_m) < 0.05:
+                    raise self.error(
+                        second.key,
+                        f"the LED at {second.where} overlaps the one at {first.where} "
+                        f"(centres {apart_m:.3f} m apart)",
+                    )
+
+    # -- things that move --------------------------------------------------------------------------------
+    def _check_path(self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str) -> None:
+        """A looped path must not go through a wall (people and the robot use the doors)."""
+        if len(pts) < 2:
+            return
+        legs = list(zip(pts, pts[1:] + pts[:1], strict=True)) if len(pts) > 2 else [(pts[0], pts[1])]
+        for i, (a, b) in enumerate(legs):
+            for w in walls:
+                q1, q2 = _wall_ends(w)
+                if _segments_cross(a, b, q1, q2):
+                    raise self.error(
+                        f"{key}[{i}]",
+                        f"{what} from {a} to {b} goes through the wall "
+                        f"({q1[0]:g}, {q1[1]:g})-({q2[0]:g}, {q2[1]:g})",
+                    )
+
+    def _people(self, walls: list[Wall]) -> list[Person]:
+        people = []
+        names: dict[str, str] = {}
+        for t in self.root.tables("people"):
+            t.expect("name", "tag_id", "path", "speed_mps", "radius_m")
+            base = Person("", "", ())
+            person = Person(
+                name=t.string("name"),
+                tag_id=t.string("tag_id", allow_int=True),
+                path=t.points("path", minimum=1),
+                speed_mps=self._checked(t, "Person", "speed_mps", base.speed_mps),
+                radius_m=self._checked(t, "Person", "radius_m", base.radius_m),
+            )
+            t.finish()
+            if person.name in names:
+                raise t.error("name", f"{person.name!r} is already the name of {names[person.name]}")
+            names[person.name] = t.path
+            self._check_path(person.path, walls, t.key("path"), "the walk")
+            people.append(person)
+        return people
+
+    def _checked(self, t: _Table, cls: str, name: str, default: float) -> float:
+        value = t.number(name, default)
+        rule = _RULES[f"{cls}.{name}"]
+        if not rule[0](value):
+            raise t.error(name, f"{rule[1]}, got {value:g}")
+        return value
+
+    def _route(self, walls: list[Wall], robot: RobotSpec) -> tuple[tuple[Point, ...], float]:
+        t = self.root.table("route")
+        t.expect("waypoints", "speed_mps")
+        waypoints = t.points("waypoints", minimum=1, required=False)
+        speed = t.number("speed_mps", World("").route_speed_mps)
+        t.finish()
+        if speed <= 0:
+            raise t.error("speed_mps", f"must be > 0, got {speed:g}")
+        self._check_path(waypoints, walls, "route.waypoints", "the route leg")
+        if len(waypoints) >= 2:
+            legs = list(zip(waypoints, waypoints[1:] + waypoints[:1], strict=True))
+            for i, (a, b) in enumerate(legs):
+                for w in walls:
+                    gap = _segment_distance(a, b, *_wall_ends(w))
+                    if gap < robot.radius_m:
+                        log.warning(
+                            "%s: route leg %d passes %.2f m from a wall, closer than the robot's radius "
+                            "%.2f m",
+                            self.file,
+                            i,
+                            gap,
+                            robot.radius_m,
+                        )
+                        break
+        return waypoints, speed
+
+    def _check_start(self, robot: RobotSpec, walls: list[Wall]) -> None:
+        start = (robot.start.x_m, robot.start.y_m)
+        for w in walls:
+            gap = _point_segment_distance(start, *_wall_ends(w))
+            if gap < robot.radius_m:
+                raise self.error(
+                    "robot.start",
+                    f"the robot ({robot.radius_m:g} m radius) at {start} overlaps the "
+                    f"wall ({w.x1_m:g}, {w.y1_m:g})-({w.x2_m:g}, {w.y2_m:g})",
+                )
