@@ -16,7 +16,10 @@ def resolve_world(path: str | None) -> Path:
     chosen = Path(path) if path else DEFAULT_WORLD
     if not chosen.is_file():
         if path is None:
-            raise ConfigError("--world", f"no world given and the default {chosen} is not there; "
-                              "pass --world FILE (see docs/world.md)")
+            raise ConfigError(
+                "--world",
+                f"no world given and the default {chosen} is not there; "
+                "pass --world FILE (see docs/world.md)",
+            )
         raise ConfigError("--world", f"no such world file: {chosen}")
     return chosen

@@ -39,8 +39,9 @@ class ByteDevice(Protocol):
 class PtyServer:
     """Runs a :class:`ByteDevice` on a pty in a background thread."""
 
-    def __init__(self, device: ByteDevice, link: str | os.PathLike[str] | None = None,
-                 poll_interval_s: float = 0.002) -> None:
+    def __init__(
+        self, device: ByteDevice, link: str | os.PathLike[str] | None = None, poll_interval_s: float = 0.002
+    ) -> None:
         self.device = device
         self.link = Path(link) if link is not None else None
         self.poll_interval_s = poll_interval_s
@@ -84,8 +85,9 @@ class PtyServer:
                 tmp.symlink_to(self._slave_path)
                 os.replace(tmp, self.link)
             self._stop.clear()
-            self._thread = threading.Thread(target=self._run, name=f"fake-pty {self._slave_path}",
-                                            daemon=True)
+            self._thread = threading.Thread(
+                target=self._run, name=f"fake-pty {self._slave_path}", daemon=True
+            )
             self._thread.start()
         log.debug("fake device up on %s", self.path)
 
@@ -115,8 +117,9 @@ class PtyServer:
             self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
     # -- the serving thread ------------------------------------------------------------------------

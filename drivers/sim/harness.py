@@ -64,9 +64,14 @@ class SimulatedRobot:
         """The devices as config tables, the same keys a robot's config file uses."""
         return {
             "laser": {"backend": "urg", "url": self.laser_url},
-            "servos": {"backend": "dynamixel", "port": self.servo_port,
-                       "left_id": self.world.robot.left_id, "right_id": self.world.robot.right_id,
-                       "wheel_radius_m": self.world.robot.wheel_radius_m, "track_m": self.world.robot.track_m},
+            "servos": {
+                "backend": "dynamixel",
+                "port": self.servo_port,
+                "left_id": self.world.robot.left_id,
+                "right_id": self.world.robot.right_id,
+                "wheel_radius_m": self.world.robot.wheel_radius_m,
+                "track_m": self.world.robot.track_m,
+            },
             "rfid": {"backend": self.world.rfid.protocol, "url": self.rfid_url},
             "imu": {"backend": "mpu6050", "bus": self.imu_bus},
             "camera": {"backend": "sim"},
@@ -99,8 +104,9 @@ class SimulatedRobot:
         self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.close()
 
     # -- faults ------------------------------------------------------------------------------------

@@ -14,8 +14,13 @@ def walls_array(walls: object) -> FloatArray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 4)
 
 
-def cast_rays(origin_xy: tuple[float, float], angles_rad: FloatArray, segments: FloatArray,
-              circles: FloatArray | None = None, max_range_m: float = np.inf) -> FloatArray:
+def cast_rays(
+    origin_xy: tuple[float, float],
+    angles_rad: FloatArray,
+    segments: FloatArray,
+    circles: FloatArray | None = None,
+    max_range_m: float = np.inf,
+) -> FloatArray:
     """Distance along each ray to the nearest hit, ``inf`` where nothing is hit within ``max_range_m``.
 
     Ray: p = o + t d, |d| = 1. Segment: q = a + s e, 0 <= s <= 1. With x the 2-D cross product,

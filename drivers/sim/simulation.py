@@ -134,8 +134,9 @@ class Simulation:
     def wheels(self) -> WheelTruth:
         with self._lock:
             self._integrate_to(self.clock())
-            return WheelTruth((self._wheel_pos[0], self._wheel_pos[1]),
-                              (self._wheel_vel[0], self._wheel_vel[1]))
+            return WheelTruth(
+                (self._wheel_pos[0], self._wheel_pos[1]), (self._wheel_vel[0], self._wheel_vel[1])
+            )
 
     def pose(self) -> Pose2D:
         """The robot base's true pose now."""

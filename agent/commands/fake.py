@@ -1,0 +1,90 @@
+"""``vlp-agent fake DEVICE``: serve one fake device on a pseudo-terminal for third-party tools.
+
+The first line of output is the path to open (nothing else is printed before it, so a script can read it
+with ``head -1``); the fake then serves until interrupted. The fake draws its data from the simulated world:
+the laser ray-casts the floor plan, the servos drive the simulated robot's wheels, the RFID reader sees the
+tags of the people walking by.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from types import FrameType
+from typing import Any
+
+from agent.commands.worlds import resolve_world
+from drivers.fakes.pty import ByteDevice, PtyServer
+from drivers.sim.simulation import Simulation
+from drivers.sim.worldfile import load_world
+
+DEVICES = {
+    "urg": "Hokuyo URG-04LX laser scanner, SCIP 2.0 (real PP values, MD scans every 100 ms)",
+    "dynamixel": "two XL430-W250 wheel servos (ids from the world, 1 and 2 by default), Protocol 2.0",
+    "rfid": "RFID reader (protocol from the world's [rfid] table: id12la, rdm6300 or mercury)",
+}
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "fake",
+        help="serve one fake device on a pseudo-terminal",
+        description="Serve one fake device on a pseudo-terminal and print the path to open on the first line "
+        "of output; serve until Ctrl-C or SIGTERM. Point any client at it: our drivers, dynamixel-sdk, "
+        "urg_c, "
+        "a terminal program. Devices: " + "; ".join(f"{k}: {v}" for k, v in DEVICES.items()) + ".",
+    )
+    p.add_argument("device", choices=sorted(DEVICES), help="which device to fake")
+    p.add_argument("--world", metavar="FILE", help="world file (default: examples/worlds/office.toml)")
+    p.add_argument(
+        "--link",
+        metavar="PATH",
+        help="also keep a symlink at PATH pointing at the pty, like a udev rule's stable name",
+    )
+    p.add_argument(
+        "--rfid-protocol", choices=["id12la", "rdm6300", "mercury"], help="override the world's RFID protocol"
+    )
+
+
+def make_device(name: str, simulation: Simulation, rfid_protocol: str | None = None) -> ByteDevice:
+    if name == "urg":
+        from drivers.fakes.urg import FakeUrg
+
+        return FakeUrg(simulation)
+    if name == "dynamixel":
+        from drivers.fakes.dynamixel import FakeDynamixelBus
+
+        return FakeDynamixelBus(simulation)
+    if name == "rfid":
+        from drivers.fakes.rfid import FakeRfidReader
+
+        return FakeRfidReader(simulation, rfid_protocol)
+    raise ValueError(f"unknown fake device {name!r}")
+
+
+def run(args: argparse.Namespace) -> int:
+    world = load_world(resolve_world(args.world))
+    simulation = Simulation(world)
+    device = make_device(args.device, simulation, args.rfid_protocol)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    with PtyServer(device, link=args.link) as server:
+        print(server.path, flush=True)
+        print(
+            f"serving a fake {args.device} ({DEVICES[args.device]}) over world {world.name!r}; "
+            "Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
+        while not stop.is_set():
+            # Keep the world moving even when nobody reads it, so scans and tags stay current.
+            simulation.advance()
+            stop.wait(0.05)
+    return 0
