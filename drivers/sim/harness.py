@@ -71,6 +71,9 @@ class SimulatedRobot:
                 "right_id": self.world.robot.right_id,
                 "wheel_radius_m": self.world.robot.wheel_radius_m,
                 "track_m": self.world.robot.track_m,
+                # Fakes share a busy 2-core machine with the agent: allow more than the SDK's 16 ms
+                # latency timer before a reply counts as missing.
+                "latency_timer_ms": 50,
             },
             "rfid": {"backend": self.world.rfid.protocol, "url": self.rfid_url},
             "imu": {"backend": "mpu6050", "bus": self.imu_bus},
