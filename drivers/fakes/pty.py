@@ -135,8 +135,8 @@ class PtyServer:
                 if exc.errno in (errno.EIO, errno.EBADF):
                     return
                 raise
-            self.bytes_out += n
             view = view[n:]
+            self.bytes_out += n
 
     def _run(self) -> None:
         master = self._master
