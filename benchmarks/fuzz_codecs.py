@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from firmware_protocol import dynamixel, rfid, scip
+from firmware_protocol import dynamixel, pose_frame, rfid, scip
 from firmware_protocol.errors import ProtocolError
 
 
@@ -104,7 +104,21 @@ def mercury_corpus() -> list[bytes]:
     ]
 
 
+def pose_corpus() -> list[bytes]:
+    pf = pose_frame
+    frames = [
+        pf.PoseFrame(1, 1_000_000, 1.5, -2.25, 0.5, 0.002, 0.01, pf.PoseFlags(0b1111)),
+        pf.PoseFrame(2**32 - 1, 2**63, -100.0, 0.0, -3.14159, flags=pf.PoseFlags(0x0F00)),
+        pf.PoseFrame(0, 0, 0.0, 0.0, 0.0),
+    ]
+    wires = [pf.encode_pose(f) for f in frames]
+    return [*wires, b"".join(wires)]
+
+
 CODECS: dict[str, Codec] = {
+    "pose": Codec(
+        "pose", pose_frame.PoseFrameError, pose_frame.PoseFrameDecoder, pose_frame.decode_pose, pose_corpus
+    ),
     "scip": Codec("scip", scip.ScipError, scip.ScipDecoder, scip.parse_reply, scip_corpus),
     "dynamixel": Codec(
         "dynamixel",
