@@ -1,0 +1,217 @@
+"""``vlp-agent eval slam``: run the SLAM filter on a recorded laser log as fast as it goes.
+
+Prints the speed (per filter update, wall time, real-time factor, peak memory) and, for logs that carry
+reference poses (radish), the relative-pose error against them (``reference/slam.md`` §1.5, every pair of
+consecutive reference poses); writes the map as ROS map_server PGM + YAML, a PNG of it, and a PNG of the
+trajectory over the map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMATS = ("breezyslam", "radish")
+# Usable range per format: the URG-04LX reaches 5.6 m; the radish SICK logs reach far, but beams longer
+# than this add little and cost window area.
+DEFAULT_MAX_RANGE_M = {"breezyslam": 5.5, "radish": 15.0}
+
+
+def add_parser(subparsers: Any) -> None:
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "slam",
+        help="run the SLAM filter on a recorded laser log; report speed (and accuracy where the log has "
+        "reference poses); write the map and trajectory",
+        description=textwrap.dedent(
+            """\
+            Run the particle-filter SLAM on a recorded log as fast as it goes. Reports update time
+            (median, p95), wall time, real-time factor and peak memory; for radish logs also the
+            relative-pose error against the log's GMapping-corrected poses over every pair of
+            consecutive scans (trans_error_m_*, rot_error_deg_*), next to raw odometry's. Writes
+            map.pgm + map.yaml (ROS map_server), map.png and trajectory.png into --out."""
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--log", required=True, metavar="FILE", help="the log file")
+    p.add_argument("--format", required=True, choices=FORMATS, help="log format")
+    p.add_argument("--particles", type=int, default=30, help="number of particles (default: 30)")
+    p.add_argument(
+        "--odometry-noise",
+        type=float,
+        nargs=4,
+        metavar=("SRR", "SRT", "STR", "STT"),
+        help="motion model noise in GMapping's terms (default: 0.1 0.2 0.1 0.2, slam_gmapping's)",
+    )
+    p.add_argument(
+        "--map-mode",
+        choices=("per_particle", "shared"),
+        default="per_particle",
+        help="one copy-on-write map per particle (default), or one map shared by all particles",
+    )
+    p.add_argument("--linear-update", type=float, metavar="M", help="filter update every M metres (0.25)")
+    p.add_argument("--angular-update", type=float, metavar="RAD", help="... or every RAD radians (0.2)")
+    p.add_argument("--max-range", type=float, metavar="M", help="usable range (5.5 breezyslam, 15 radish)")
+    p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument(
+        "--out", metavar="DIR", help="where to write the map and pictures (default: ./eval-slam-LOG)"
+    )
+    p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+
+
+def _progress(done: int, total: int, slam: Any) -> None:
+    print(f"  scan {done}/{total}, {slam.stats.updates} updates", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    import cv2
+
+    from agent.slam.logs import read_log
+    from agent.slam.mapio import save_map, write_png
+    from agent.slam.metrics import relative_pose_error, wall_thickness
+    from agent.slam.motion import OdometryNoise
+    from agent.slam.pose import between, compose
+    from agent.slam.rbpf import MapMode, RbpfConfig
+    from agent.slam.render import occupancy_image, trajectory_picture
+    from agent.slam.replay import replay
+    from drivers.errors import ConfigError
+
+    if args.particles < 1:
+        raise ConfigError("--particles", "must be at least 1")
+    log = read_log(args.log, args.format)
+    if args.scans is not None:
+        log = log.sliced(0, args.scans)
+    if len(log) < 2:
+        raise ConfigError("--log", f"needs at least 2 scans, has {len(log)}", args.log)
+    defaults = RbpfConfig()
+    config = RbpfConfig(
+        particles=args.particles,
+        map_mode=MapMode(args.map_mode),
+        noise=OdometryNoise(*args.odometry_noise) if args.odometry_noise else defaults.noise,
+        linear_update_m=args.linear_update if args.linear_update is not None else defaults.linear_update_m,
+        angular_update_rad=args.angular_update
+        if args.angular_update is not None
+        else defaults.angular_update_rad,
+        max_usable_range_m=args.max_range if args.max_range is not None else DEFAULT_MAX_RANGE_M[args.format],
+        seed=args.seed,
+    )
+    long_run = not args.json or sys.stderr.isatty()
+    result = replay(log, config, _progress if long_run else None, progress_every_s=5.0)
+    slam = result.slam
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+    summary: dict[str, Any] = {
+        "log": str(args.log),
+        "format": args.format,
+        "scans": len(log),
+        "particles": config.particles,
+        "map_mode": config.map_mode.value,
+        "updates": slam.stats.updates,
+        "update_ms_median": _round(np.median(result.update_ms)) if result.update_ms.size else None,
+        "update_ms_p95": _round(np.percentile(result.update_ms, 95)) if result.update_ms.size else None,
+        "update_ms_max": _round(np.max(result.update_ms)) if result.update_ms.size else None,
+        "wall_s": _round(result.wall_s),
+        "cpu_s": _round(result.cpu_s),
+        "log_duration_s": _round(log.duration_s),
+        "realtime_factor": _round(log.duration_s / result.wall_s) if result.wall_s > 0 else None,
+        "peak_rss_mb": _round(peak_rss_mb),
+        "map_tiles": slam.maps.tiles_in_use(),
+        "map_mb": _round(slam.maps.used_bytes() / 1e6),
+        "resamples": slam.stats.resamples,
+        "match_failures": slam.stats.match_failures,
+        "rejected": dict(result.rejections),
+    }
+    reference = log.reference_poses()
+    if reference is not None:
+        error = relative_pose_error(reference, result.poses)
+        odometry_error = relative_pose_error(reference, log.odometry_poses())
+        summary.update(
+            relations=error.n,
+            trans_error_m_mean=_round(error.trans_error_m_mean, 4),
+            trans_error_m_std=_round(error.trans_error_m_std, 4),
+            rot_error_deg_mean=_round(error.rot_error_deg_mean, 3),
+            rot_error_deg_std=_round(error.rot_error_deg_std, 3),
+            odometry_trans_error_m_mean=_round(odometry_error.trans_error_m_mean, 4),
+            odometry_rot_error_deg_mean=_round(odometry_error.rot_error_deg_mean, 3),
+        )
+
+    window = slam.map_window()
+    out = Path(args.out) if args.out else Path(f"eval-slam-{Path(args.log).stem}")
+    if window is not None:
+        log_odds, origin = window
+        image = occupancy_image(log_odds, origin, config.grid.resolution_m)
+        walls = wall_thickness(image.occupied_mask())
+        summary["wall_thin_fraction"] = _round(walls.thin_fraction, 3)
+        files = save_map(image, out / "map.yaml", comment=f"vlp-agent eval slam {args.log}")
+        enlarged = cv2.resize(image.pixels, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
+        write_png(out / "map.png", np.asarray(enlarged, dtype=np.uint8))
+        odometry = log.odometry_poses()
+        start = result.poses[0]
+        paths = [(compose(start, between(odometry[0], odometry)), (200, 120, 0))]
+        if reference is not None:
+            paths.append((compose(start, between(reference[0], reference)), (0, 160, 0)))
+        paths.append((result.poses, (0, 0, 220)))
+        write_png(out / "trajectory.png", trajectory_picture(image, paths, scale=2))
+        summary["files"] = [
+            str(files.yaml),
+            str(files.image),
+            str(out / "map.png"),
+            str(out / "trajectory.png"),
+        ]
+
+    if args.json:
+        print(json.dumps(summary, sort_keys=True))
+    else:
+        _print_table(summary)
+    return 0
+
+
+def _round(value: float, digits: int = 2) -> float | None:
+    value = float(value)
+    return round(value, digits) if math.isfinite(value) else None
+
+
+def _print_table(s: dict[str, Any]) -> None:
+    print(f"vlp-agent eval slam: {s['log']} ({s['format']}, {s['scans']} scans, {s['log_duration_s']} s)")
+    print(f"  particles          {s['particles']} ({s['map_mode']} maps)")
+    print(
+        f"  filter updates     {s['updates']}, {s['resamples']} resamplings, "
+        f"{s['match_failures']} failed matches"
+    )
+    print(
+        f"  update time        median {s['update_ms_median']} ms, p95 {s['update_ms_p95']} ms, "
+        f"max {s['update_ms_max']} ms"
+    )
+    print(
+        f"  whole log          {s['wall_s']} s wall, {s['cpu_s']} s CPU, {s['realtime_factor']} x real time"
+    )
+    print(
+        f"  memory             peak RSS {s['peak_rss_mb']} MB; "
+        f"maps {s['map_mb']} MB in {s['map_tiles']} tiles"
+    )
+    rejected = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items())) or "none"
+    print(f"  rejected scans     {rejected}")
+    if "trans_error_m_mean" in s:
+        print(
+            f"  relative error     {s['trans_error_m_mean']} ± {s['trans_error_m_std']} m, "
+            f"{s['rot_error_deg_mean']} ± {s['rot_error_deg_std']} deg over {s['relations']} relations"
+        )
+        print(
+            f"  (raw odometry      {s['odometry_trans_error_m_mean']} m, "
+            f"{s['odometry_rot_error_deg_mean']} deg)"
+        )
+    if "wall_thin_fraction" in s:
+        print(
+            f"  walls              {s['wall_thin_fraction']:.0%} of occupied cells in walls "
+            "at most 2 cells thick, no ghost copy beside them"
+        )
+    for path in s.get("files", []):
+        print(f"  wrote              {path}")

@@ -1,0 +1,132 @@
+"""Accuracy and map-quality measures.
+
+* :func:`relative_pose_error`: the relative-pose metric of ``reference/slam.md`` §1.5 (Kümmerle et al.
+  2009, local relations) in Cartographer's variant: for each relation (i, j) with reference motion
+  D* = ref_i⁻¹ ⊕ ref_j and estimated motion D = est_i⁻¹ ⊕ est_j, the error is E = D ⊕ D*⁻¹
+  (``compute_relations_metrics_main.cc``: (pose1⁻¹ pose2) expected⁻¹); translational error |E.t|,
+  rotational error |E.yaw|; mean and sample standard deviation (n - 1), absolute and squared.
+* :func:`wall_thickness`: how many occupied cells a wall is thick, measured across it.
+* :func:`absolute_trajectory_error`: RMS position error after nothing but a common start (for simulation,
+  where the map frame is the world frame).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.slam.pose import between, compose, inverse
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class RelativePoseError:
+    n: int
+    trans_error_m_mean: float
+    trans_error_m_std: float
+    trans_error_m2_mean: float
+    trans_error_m2_std: float
+    rot_error_deg_mean: float
+    rot_error_deg_std: float
+    rot_error_deg2_mean: float
+    rot_error_deg2_std: float
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+def _mean_std(values: FloatArray) -> tuple[float, float]:
+    if values.size == 0:
+        return (math.nan, math.nan)
+    std = float(np.std(values, ddof=1)) if values.size > 1 else 0.0
+    return float(np.mean(values)), std
+
+
+def relative_pose_error(
+    reference: FloatArray, estimate: FloatArray, pairs: npt.NDArray[np.int64] | None = None
+) -> RelativePoseError:
+    """The metric over ``pairs`` (M, 2) of indices into both pose arrays (N, 3); default every pair of
+    consecutive poses (i, i + 1), the relations used for the radish logs."""
+    if reference.shape != estimate.shape or reference.ndim != 2 or reference.shape[1] != 3:
+        raise ValueError(
+            f"need two (N, 3) pose arrays of the same shape, got {reference.shape}, {estimate.shape}"
+        )
+    if pairs is None:
+        idx = np.arange(reference.shape[0] - 1)
+        pairs = np.stack([idx, idx + 1], axis=1)
+    expected = between(reference[pairs[:, 0]], reference[pairs[:, 1]])
+    measured = between(estimate[pairs[:, 0]], estimate[pairs[:, 1]])
+    error = compose(measured, inverse(expected))
+    trans = np.hypot(error[:, 0], error[:, 1])
+    rot = np.degrees(np.abs(error[:, 2]))
+    t_mean, t_std = _mean_std(trans)
+    t2_mean, t2_std = _mean_std(trans**2)
+    r_mean, r_std = _mean_std(rot)
+    r2_mean, r2_std = _mean_std(rot**2)
+    return RelativePoseError(
+        int(pairs.shape[0]), t_mean, t_std, t2_mean, t2_std, r_mean, r_std, r2_mean, r2_std
+    )
+
+
+def absolute_trajectory_error(truth: FloatArray, estimate: FloatArray) -> float:
+    """RMS of the position differences (metres) between two (N, >=2) trajectories in one frame."""
+    d = truth[:, :2] - estimate[:, :2]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1)))) if d.size else math.nan
+
+
+@dataclass(frozen=True)
+class WallThickness:
+    """For every occupied cell, the occupied cells on the line through it across the wall, within
+    ``reach_cells`` on each side. A cell is *thin* when those are at most 2 and all touch it (a wall one
+    or two cells thick, no ghost copy beside it); ``thin_fraction`` is the share of thin cells."""
+
+    occupied_cells: int
+    thin_fraction: float
+    median_count: float
+
+
+def wall_thickness(occupied: BoolArray, reach_cells: int = 3) -> WallThickness:
+    """Thickness of walls across their direction.
+
+    The wall direction at a cell is the one of four (0, 45, 90, 135 deg) along which the most occupied
+    cells lie within ``reach_cells``; across it (the perpendicular one of the four) the count c and the
+    contiguous run r through the cell are taken. Thin: c <= 2 and c == r.
+    """
+    occ = occupied.astype(np.int32)
+    h, w = occ.shape
+    pad = reach_cells
+    padded = np.pad(occ, pad)
+
+    def shifted(dy: int, dx: int, k: int) -> npt.NDArray[np.int32]:
+        return padded[pad + k * dy : pad + k * dy + h, pad + k * dx : pad + k * dx + w]
+
+    directions = [(0, 1), (1, 1), (1, 0), (1, -1)]
+    sums = []
+    runs = []
+    for dy, dx in directions:
+        total = occ.copy()
+        run = occ.copy()
+        for sign in (1, -1):
+            alive = occ.copy()
+            for k in range(1, reach_cells + 1):
+                cell = shifted(sign * dy, sign * dx, k)
+                total += cell
+                alive = alive * cell
+                run += alive
+        sums.append(total)
+        runs.append(run)
+    count = np.stack(sums)  # (4, h, w)
+    run_length = np.stack(runs)
+    along = np.argmax(count, axis=0)
+    across = (along + 2) % 4
+    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
+    c = count[across, rows, cols][occupied]
+    r = run_length[across, rows, cols][occupied]
+    if c.size == 0:
+        return WallThickness(0, math.nan, math.nan)
+    return WallThickness(int(c.size), float(np.mean((c <= 2) & (c == r))), float(np.median(c)))

@@ -1,0 +1,413 @@
+"""Rao-Blackwellized particle filter SLAM (GMapping's scheme; the seed's Algorithm 1), on an occupancy grid.
+
+Per accepted scan (``process``):
+
+1. gate: bad scans are rejected with a counted reason (``agent.slam.scan.ScanGate``);
+2. update gating: the filter only works once the odometry since the last update exceeds
+   ``linear_update_m`` or ``angular_update_rad``; in between, the pose is the best particle's ⊕ odometry;
+3. proposal: each particle is scan-matched against its own map and sampled around the match
+   (``agent.slam.proposal``), its weight multiplied by eta;
+4. absolute fixes (VLP) multiply the weights: w_i *= N(z_fix; x_i, Sigma_fix);
+5. N_eff = 1 / sum_i w_i^2 (normalised weights); below ``resample_threshold`` * N, systematic resampling;
+6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy).
+
+Maps (``map_mode``): ``per_particle`` keeps one map per particle in copy-on-write tiles (GMapping: each
+particle's map is conditioned on its own trajectory), ``shared`` keeps the seed's single map for all
+particles, integrated at the best particle's pose: far less memory and work, but a particle cannot
+recover from a map the others have already bent.
+
+Update gating defaults are 0.25 m / 0.2 rad, four times denser than slam_gmapping's 1.0 m / 0.5 rad:
+at 1 m the odometry between two updates of a URG-04LX rover drifts by several centimetres and degrees,
+more than a 5 cm grid can absorb, and matches between scans that far apart overlap less
+(``docs/slam.md`` has the measurements).
+"""
+
+from __future__ import annotations
+
+import collections
+import enum
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.slam.fix import PoseFix, pending_fixes_log_likelihood
+from agent.slam.grid import (
+    GridGeometry,
+    LogOddsModel,
+    ScanPoints,
+    TiledMaps,
+    TileRect,
+    integrate_scans,
+    prepare_scan,
+)
+from agent.slam.matcher import DistanceField
+from agent.slam.motion import OdometryNoise, sample_motion
+from agent.slam.pose import between, compose, inverse, transform_points
+from agent.slam.proposal import ProposalConfig, improved_proposal
+from agent.slam.scan import LaserGeometry, Rejection, ScanGate
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+log = logging.getLogger(__name__)
+
+
+class MapMode(enum.StrEnum):
+    PER_PARTICLE = "per_particle"
+    SHARED = "shared"
+
+
+@dataclass(frozen=True)
+class RbpfConfig:
+    particles: int = 30
+    map_mode: MapMode = MapMode.PER_PARTICLE
+    grid: GridGeometry = field(default_factory=GridGeometry)
+    log_odds: LogOddsModel = field(default_factory=LogOddsModel)
+    noise: OdometryNoise = field(default_factory=OdometryNoise)
+    proposal: ProposalConfig = field(default_factory=ProposalConfig)
+    linear_update_m: float = 0.25
+    angular_update_rad: float = 0.2
+    resample_threshold: float = 0.5
+    min_range_m: float = 0.1
+    max_usable_range_m: float = 5.5
+    match_voxel_m: float = 0.1
+    max_match_points: int = 200
+    field_margin_m: float = 0.6
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    deskew: bool = True
+    history_limit: int | None = None  # updates of trajectory history kept (None: all, as for a log)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.particles < 1:
+            raise ValueError("particles must be >= 1")
+        if not 0.0 < self.resample_threshold <= 1.0:
+            raise ValueError("resample_threshold must be in (0, 1]")
+
+
+class StepKind(enum.StrEnum):
+    UNINITIALIZED = "uninitialized"  # localization only: no fix to start from yet
+    REJECTED = "rejected"
+    FIRST = "first"
+    GATED = "gated"
+    UPDATED = "updated"
+
+
+@dataclass(frozen=True)
+class StepResult:
+    kind: StepKind
+    pose: FloatArray
+    rejection: Rejection | None = None
+    n_eff: float | None = None
+    resampled: bool = False
+    matched: int = 0
+
+
+@dataclass
+class FilterStats:
+    scans: int = 0
+    updates: int = 0
+    resamples: int = 0
+    match_failures: int = 0
+    fixes_applied: int = 0
+    n_eff: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=10_000))
+
+
+def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> IntArray:
+    """Low-variance resampling: u_i = (u_0 + i) / N, u_0 ~ U[0, 1); pick j with c_{j-1} <= u_i < c_j."""
+    n = weights.size
+    positions = (rng.random() + np.arange(n)) / n
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    indices: IntArray = np.searchsorted(cumulative, positions, side="right").astype(np.int64)
+    return np.minimum(indices, n - 1)
+
+
+def sweep_offsets(laser: LaserGeometry, dt_s: float, motion: FloatArray) -> FloatArray | None:
+    """Where the base was at each beam of a sweep, relative to the base at the scan's time, assuming the
+    ``motion`` (odometry over the ``dt_s`` before the scan) went on at a constant twist: offset(tau) =
+    twist * tau, tau the beam's time. None when the laser has no beam timing or dt is not positive."""
+    if laser.beam_time_s is None or dt_s <= 0.0:
+        return None
+    twist = np.asarray(motion, dtype=np.float64) / dt_s
+    offsets: FloatArray = twist[None, :] * laser.beam_time_s[:, None]
+    return offsets
+
+
+def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> FloatArray:
+    """One point per voxel (the first in beam order), then an even stride down to ``max_points``."""
+    if points_xy.shape[0] == 0:
+        return points_xy
+    keys = np.floor(points_xy / voxel_m).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
+    kept: FloatArray = points_xy[np.sort(first)]
+    if kept.shape[0] > max_points:
+        kept = kept[np.linspace(0, kept.shape[0] - 1, max_points).round().astype(np.int64)]
+    return kept
+
+
+class RbpfSlam:
+    """The filter. Feed it scans with their odometry; read the pose, the map and the trajectory."""
+
+    def __init__(self, laser: LaserGeometry, config: RbpfConfig | None = None) -> None:
+        self.laser = laser
+        self.config = config or RbpfConfig()
+        cfg = self.config
+        self.rng = np.random.default_rng(cfg.seed)
+        self.gate = ScanGate(laser)
+        n = cfg.particles
+        self.poses: FloatArray = np.tile(np.asarray(cfg.initial_pose, dtype=np.float64), (n, 1))
+        self.log_weights: FloatArray = np.zeros(n)
+        rows = n if cfg.map_mode is MapMode.PER_PARTICLE else 1
+        self.maps = TiledMaps(cfg.grid, rows)
+        # Particles with the same group id have identical maps (duplicates after resampling).
+        self._groups: IntArray = np.zeros(n, dtype=np.int64)
+        self._started = False
+        self._update_odom: FloatArray | None = None  # odometry at the last filter update
+        self._last_odom: FloatArray | None = None  # odometry of the last accepted scan
+        self._pending_fixes: list[tuple[PoseFix, FloatArray]] = []
+        # Per update: poses (P, 3) after resampling, parent index of each in the previous update, time,
+        # odometry. Bounded by ``history_limit`` on board; the oldest entries go first.
+        limit = cfg.history_limit
+        self.history_poses: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
+        self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
+        self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        self.stats = FilterStats()
+
+    # -- public API --------------------------------------------------------------------------------------
+    @property
+    def weights(self) -> FloatArray:
+        w = np.exp(self.log_weights - self.log_weights.max())
+        normalised: FloatArray = w / w.sum()
+        return normalised
+
+    @property
+    def best_index(self) -> int:
+        return int(np.argmax(self.log_weights))
+
+    def pose(self, odom_pose: FloatArray | None = None) -> FloatArray:
+        """The best particle's pose, moved on by the odometry since the last update if ``odom_pose``."""
+        best: FloatArray = self.poses[self.best_index]
+        if odom_pose is None or self._update_odom is None:
+            return best.copy()
+        return compose(best, between(self._update_odom, odom_pose))
+
+    def add_fix(self, fix: PoseFix, odom_pose: FloatArray) -> None:
+        """Queue an absolute fix taken when the odometry read ``odom_pose``; it weighs the particles at
+        the next filter update, moved there by the odometry in between (with that motion's noise)."""
+        self._pending_fixes.append((fix, np.asarray(odom_pose, dtype=np.float64).copy()))
+
+    def process(self, t_s: float, ranges_m: FloatArray, odom_pose: FloatArray) -> StepResult:
+        """One scan with the odometry pose of the robot base at the scan's time."""
+        cfg = self.config
+        self.stats.scans += 1
+        odom = np.asarray(odom_pose, dtype=np.float64)
+        rejection = self.gate.check(t_s, np.asarray(ranges_m), odom)
+        if rejection is not None:
+            if (
+                rejection is Rejection.POSE_JUMP
+                and self._last_odom is not None
+                and self._update_odom is not None
+            ):
+                # Keep the motion accumulated up to the last good scan, drop the jump itself.
+                travelled = between(self._update_odom, self._last_odom)
+                self._update_odom = compose(odom, inverse(travelled))
+                self._last_odom = odom
+            return StepResult(StepKind.REJECTED, self.pose(self._last_odom), rejection)
+        beam_offsets = None
+        if cfg.deskew and self._last_odom is not None and self.gate.previous_t_s is not None:
+            beam_offsets = sweep_offsets(
+                self.laser, t_s - self.gate.previous_t_s, between(self._last_odom, odom)
+            )
+        self._last_odom = odom
+        scan = prepare_scan(
+            ranges_m,
+            self.laser.angles_rad,
+            self.laser.mount,
+            max(self.laser.min_range_m, cfg.min_range_m),
+            self.laser.no_return_m,
+            cfg.max_usable_range_m,
+            cfg.grid.resolution_m / 2.0,
+            beam_offsets,
+        )
+        if not self._started:
+            self._started = True
+            self._integrate(scan, np.zeros(cfg.particles, dtype=np.int64), fresh=True)
+            self._update_odom = odom
+            self._record(t_s, odom, np.arange(cfg.particles))
+            return StepResult(StepKind.FIRST, self.pose())
+        assert self._update_odom is not None
+        increment = between(self._update_odom, odom)
+        if (
+            math.hypot(increment[0], increment[1]) < cfg.linear_update_m
+            and abs(increment[2]) < cfg.angular_update_rad
+        ):
+            return StepResult(StepKind.GATED, self.pose(odom))
+        return self._update(t_s, scan, odom, increment)
+
+    def trajectory(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(times (U,), poses (U, 3), odometry (U, 3)) at every filter update along the ancestry of the
+        current best particle: the path its map was built from."""
+        if not self.history_poses:
+            return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
+        index = self.best_index
+        out = np.zeros((len(self.history_poses), 3))
+        for k in range(len(self.history_poses) - 1, -1, -1):
+            out[k] = self.history_poses[k][index]
+            index = int(self.history_parents[k][index])
+        return np.array(self.history_t_s), out, np.array(self.history_odom)
+
+    def map_window(
+        self, particle: int | None = None
+    ) -> tuple[npt.NDArray[np.float32], tuple[float, float]] | None:
+        """The known part of a particle's map (default: the best) as log-odds (rows = y) and the world
+        position of its first cell's lower-left corner; None before the first scan."""
+        index = self.best_index if particle is None else particle
+        row = index if self.config.map_mode is MapMode.PER_PARTICLE else 0
+        rect = self.maps.extent(row)
+        if rect is None:
+            return None
+        stored = self.maps.gather([row], rect)[0]
+        return self.config.log_odds.to_log_odds(stored), rect.origin_m(self.config.grid)
+
+    def memory_bytes(self) -> int:
+        return self.maps.memory_bytes()
+
+    # -- internals -----------------------------------------------------------------------------------
+    def _map_rows(self, particles: IntArray) -> IntArray:
+        if self.config.map_mode is MapMode.PER_PARTICLE:
+            return particles
+        return np.zeros_like(particles)
+
+    def _match_points(self, scan: ScanPoints) -> FloatArray:
+        return voxel_filter(scan.hit_xy, self.config.match_voxel_m, self.config.max_match_points)
+
+    def _field(self, predicted: FloatArray, points_xy: FloatArray) -> tuple[DistanceField, IntArray]:
+        cfg = self.config
+        world = transform_points(predicted, points_xy[None, :, :]).reshape(-1, 2)
+        lo = world.min(axis=0) - cfg.field_margin_m
+        hi = world.max(axis=0) + cfg.field_margin_m
+        rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+        _groups, first, window_index = np.unique(self._groups, return_index=True, return_inverse=True)
+        rows = self._map_rows(first.astype(np.int64))
+        if cfg.map_mode is MapMode.SHARED:
+            rows = rows[:1]
+            window_index = np.zeros(cfg.particles, dtype=np.int64)
+        windows = self.maps.gather(rows, rect)
+        # Crop the tile-aligned windows to the box the points can reach: the transform costs per cell.
+        origin = rect.origin_m(cfg.grid)
+        res = cfg.grid.resolution_m
+        h, w = windows.shape[1:]
+        c0 = min(max(int((lo[0] - origin[0]) / res), 0), w - 1)
+        r0 = min(max(int((lo[1] - origin[1]) / res), 0), h - 1)
+        c1 = min(max(int(np.ceil((hi[0] - origin[0]) / res)), c0 + 1), w)
+        r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
+        obstacles = windows[:, r0:r1, c0:c1] > cfg.log_odds.counts(cfg.log_odds.occupied)
+        field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
+        field = DistanceField.from_obstacles(
+            obstacles, (origin[0] + c0 * res, origin[1] + r0 * res), res, field_cap + res
+        )
+        return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
+
+    def _update(self, t_s: float, scan: ScanPoints, odom: FloatArray, increment: FloatArray) -> StepResult:
+        cfg = self.config
+        points = self._match_points(scan)
+        if points.shape[0] < cfg.proposal.matcher.min_inliers:
+            # Too little structure to match: move by the motion model only, keep the weights.
+            self.poses = sample_motion(self.poses, increment, cfg.noise, self.rng)
+            proposal_log_eta = np.zeros(cfg.particles)
+            matched = np.zeros(cfg.particles, dtype=bool)
+        else:
+            predicted = compose(self.poses, increment[None, :])
+            field, window_index = self._field(predicted, points)
+            result = improved_proposal(
+                field,
+                window_index,
+                points,
+                self.poses,
+                increment,
+                cfg.noise,
+                cfg.proposal,
+                self.rng,
+                self.log_weights,
+            )
+            self.poses = result.poses
+            proposal_log_eta = result.log_eta
+            matched = result.matched
+        self.stats.match_failures += int(np.count_nonzero(~matched))
+        self.log_weights = self.log_weights + proposal_log_eta
+        if self._pending_fixes:
+            self.log_weights = self.log_weights + pending_fixes_log_likelihood(
+                self.poses, self._pending_fixes, odom, cfg.noise
+            )
+            self.stats.fixes_applied += len(self._pending_fixes)
+            self._pending_fixes.clear()
+        self.log_weights -= self.log_weights.max()
+        w = self.weights
+        n_eff = float(1.0 / np.sum(w * w))
+        self.stats.n_eff.append(n_eff)
+        resampled = n_eff < cfg.resample_threshold * cfg.particles
+        if resampled:
+            parents = systematic_resample(w, self.rng)
+            self.stats.resamples += 1
+            self.poses = self.poses[parents]
+            self.log_weights = np.zeros(cfg.particles)
+            if cfg.map_mode is MapMode.PER_PARTICLE:
+                self.maps.select(parents)
+        else:
+            parents = np.arange(cfg.particles)
+        self._integrate(scan, parents, fresh=False)
+        self._update_odom = odom
+        self._record(t_s, odom, parents)
+        self.stats.updates += 1
+        return StepResult(
+            StepKind.UPDATED, self.pose(), None, n_eff, resampled, int(np.count_nonzero(matched))
+        )
+
+    def _integrate(self, scan: ScanPoints, parents: IntArray, fresh: bool) -> None:
+        """Integrate the scan into every distinct map. After resampling, particles with the same parent
+        have the same pose and the same map: integrate once and let the copies share the result."""
+        cfg = self.config
+        if cfg.map_mode is MapMode.SHARED:
+            targets = np.array([self.best_index])
+            rows = np.array([0])
+            groups = np.zeros(cfg.particles, dtype=np.int64)
+        else:
+            _, targets, groups = np.unique(parents, return_index=True, return_inverse=True)
+            targets = targets.astype(np.int64)
+            rows = targets
+        groups = np.asarray(groups, dtype=np.int64).reshape(-1)
+        if fresh and cfg.map_mode is MapMode.PER_PARTICLE:
+            targets = np.array([0])
+            rows = np.array([0])
+            groups = np.zeros(cfg.particles, dtype=np.int64)
+        local = np.vstack([scan.hit_xy, scan.fan_xy, np.array([scan.origin_xy])])
+        world = transform_points(self.poses[targets], local[None, :, :]).reshape(-1, 2)
+        lo = world.min(axis=0) - cfg.grid.resolution_m
+        hi = world.max(axis=0) + cfg.grid.resolution_m
+        rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+        windows = self.maps.gather(rows, rect)
+        touched = integrate_scans(
+            windows,
+            rect.origin_m(cfg.grid),
+            cfg.grid.resolution_m,
+            self.poses[targets],
+            scan,
+            cfg.log_odds,
+            cfg.grid.tile_cells,
+        )
+        self.maps.scatter(rows, rect, windows, touched)
+        if cfg.map_mode is MapMode.PER_PARTICLE:
+            copies = np.flatnonzero(rows[groups] != np.arange(cfg.particles))
+            self.maps.share(rows[groups[copies]], copies)
+        self._groups = groups
+
+    def _record(self, t_s: float, odom: FloatArray, parents: IntArray) -> None:
+        self.history_poses.append(self.poses.copy())
+        self.history_parents.append(np.asarray(parents, dtype=np.int64))
+        self.history_t_s.append(t_s)
+        self.history_odom.append(odom.copy())

@@ -1,0 +1,124 @@
+"""``vlp-agent eval slam`` end to end on short slices of the real logs: the JSON, the table, the files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.cli import main
+from agent.slam.mapio import load_map
+
+
+def test_eval_slam_json_on_radish(
+    shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = shared_data / "slam/radish/intel_scans.txt"
+    out = tmp_path / "intel"
+    code = main(
+        [
+            "eval",
+            "slam",
+            "--log",
+            str(log),
+            "--format",
+            "radish",
+            "--particles",
+            "5",
+            "--scans",
+            "60",
+            "--out",
+            str(out),
+            "--json",
+        ]
+    )
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    for key in ("update_ms_median", "update_ms_p95", "wall_s", "realtime_factor", "peak_rss_mb", "updates"):
+        assert isinstance(summary[key], (int, float)) and summary[key] > 0, key
+    assert summary["scans"] == 60 and summary["particles"] == 5
+    assert summary["relations"] == 59
+    # Over 60 scans the filter follows GMapping's poses closer than raw odometry does.
+    assert summary["trans_error_m_mean"] < summary["odometry_trans_error_m_mean"]
+    assert summary["rot_error_deg_mean"] < summary["odometry_rot_error_deg_mean"]
+    assert summary["trans_error_m_mean"] < 0.1
+    image = load_map(out / "map.yaml")
+    assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
+    assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out / "trajectory.png").stat().st_size > 1000
+    assert sorted(summary["files"]) == sorted(
+        str(out / n) for n in ("map.yaml", "map.pgm", "map.png", "trajectory.png")
+    )
+
+
+def test_eval_slam_table_on_breezyslam(
+    shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = shared_data / "slam/breezyslam/exp1.dat"
+    code = main(
+        [
+            "eval",
+            "slam",
+            "--log",
+            str(log),
+            "--format",
+            "breezyslam",
+            "--particles",
+            "4",
+            "--scans",
+            "80",
+            "--map-mode",
+            "shared",
+            "--odometry-noise",
+            "0.1",
+            "0.1",
+            "0.1",
+            "0.1",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert code == 0
+    captured = capsys.readouterr()
+    assert "update time        median" in captured.out
+    assert "particles          4 (shared maps)" in captured.out
+    assert "relative error" not in captured.out  # exp1 has no reference poses
+    assert "scan 80/80" in captured.err  # progress goes to stderr
+    first = load_map(tmp_path / "map.yaml").pixels
+    # A second run keeps the first map as map.prev.*.
+    main(
+        [
+            "eval",
+            "slam",
+            "--log",
+            str(log),
+            "--format",
+            "breezyslam",
+            "--particles",
+            "2",
+            "--scans",
+            "30",
+            "--out",
+            str(tmp_path),
+            "--json",
+        ]
+    )
+    np.testing.assert_array_equal(load_map(tmp_path / "map.prev.yaml").pixels, first)
+    assert load_map(tmp_path / "map.yaml").pixels.shape != first.shape  # 30 scans map less than 80
+
+
+def test_eval_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.dat"
+    bad.write_text("1 2 3\n")
+    assert main(["eval", "slam", "--log", str(bad), "--format", "breezyslam", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert f"{bad}:1: truncated line" in err and "Traceback" not in err
+    assert main(["eval", "slam", "--log", str(tmp_path / "none.dat"), "--format", "breezyslam"]) == 1
+    assert "cannot read the log" in capsys.readouterr().err
+
+
+def test_eval_without_what_says_what(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["eval"]) == 2
+    assert "slam" in capsys.readouterr().out

@@ -1,0 +1,155 @@
+"""The filter on real URG-04LX data (BreezySLAM exp1.dat, first 37 s): the map is coherent.
+
+exp1 has no ground truth, so coherence is measured two ways that do not trust the filter:
+
+* loop closure: after a 25 m loop the rover passes the start again (record ~350, facing the same way).
+  Scan j is registered directly against a map of the first scans (correlative search from raw odometry,
+  then Gauss-Newton; it lands on the same pose when seeded from the SLAM estimate instead); the SLAM
+  trajectory's relative pose start -> j is compared with that registration, and with raw odometry's;
+* thin walls: the fraction of occupied cells that lie in walls at most two cells thick with no ghost copy
+  beside them (``agent.slam.metrics.wall_thickness``), against the same scans mapped at the raw odometry
+  poses; and whether the scans of the way back past the start land on the walls mapped on the way out.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.slam.grid import GridGeometry, LogOddsModel, ScanPoints, TileRect, integrate_scans, prepare_scan
+from agent.slam.logs import SlamLog, read_log
+from agent.slam.matcher import DistanceField, MatcherConfig, SearchConfig, correlative_search, match
+from agent.slam.metrics import wall_thickness
+from agent.slam.pose import between, transform_points
+from agent.slam.rbpf import RbpfConfig, StepKind, sweep_offsets, voxel_filter
+from agent.slam.replay import ReplayResult, replay
+from tests.conftest import DATA
+
+RECORDS = 365
+MODEL = LogOddsModel()
+GEOMETRY = GridGeometry()
+
+
+@pytest.fixture(scope="module")
+def run() -> tuple[SlamLog, ReplayResult]:
+    # Module scope: one filter run for all the checks. Same skip as the ``shared_data`` fixture.
+    if not DATA.is_dir():
+        pytest.skip(f"reference data not found at {DATA} (set VLP_SHARED to the shared folder)")
+    log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
+    return log, replay(log, RbpfConfig(particles=30, seed=0))
+
+
+def scan(log: SlamLog, i: int) -> ScanPoints:
+    """Record i's scan, de-skewed with the odometry since the record before, as the filter does."""
+    g, records = log.geometry, log.records
+    offsets = None
+    if i > 0:
+        motion = between(records[i - 1].odom_pose, records[i].odom_pose)
+        offsets = sweep_offsets(g, records[i].t_s - records[i - 1].t_s, motion)
+    return prepare_scan(records[i].ranges_m, g.angles_rad, g.mount, 0.1, g.no_return_m, 5.5, 0.025, offsets)
+
+
+def map_along(
+    log: SlamLog, poses: np.ndarray, indices: range | list[int]
+) -> tuple[np.ndarray, tuple[float, float]]:
+    """Stored log-odds of the scans ``indices`` placed at ``poses``."""
+    rect = TileRect.covering(GEOMETRY, (-9.0, -6.0), (9.0, 9.0))
+    windows = np.zeros((1, rect.shape[0] * 32, rect.shape[1] * 32), dtype=np.int8)
+    for i in indices:
+        integrate_scans(windows, rect.origin_m(GEOMETRY), 0.05, poses[i][None, :], scan(log, i), MODEL, 32)
+    return windows[0], rect.origin_m(GEOMETRY)
+
+
+def loop_closure_errors(log: SlamLog, poses: np.ndarray) -> tuple[float, float, float]:
+    """(SLAM error m, SLAM error deg, odometry error m) of the relative pose start -> revisit, against a
+    direct registration of the revisit scan on a map of the first scans."""
+    odometry = log.odometry_poses()
+    # The place where the rover passes its start again, found on the raw odometry (no filter involved).
+    late = np.arange(300, len(log))
+    nearest = int(
+        late[np.argmin(np.hypot(odometry[late, 0] - odometry[0, 0], odometry[late, 1] - odometry[0, 1]))]
+    )
+    assert np.hypot(*(odometry[nearest, :2] - odometry[0, :2])) < 1.0
+    # Register the scans around there against a map of the first six scans (the rover stood still for
+    # them); keep the one that registers best.
+    stored, origin = map_along(log, np.zeros((len(log), 3)), range(6))
+    field = DistanceField.from_obstacles((stored > MODEL.counts(MODEL.occupied))[None], origin, 0.05, 0.6)
+    search = SearchConfig(
+        xy_range_m=0.8, xy_step_m=0.05, yaw_range_rad=0.35, yaw_step_rad=0.01, truncate_m=0.3
+    )
+    best: tuple[float, int, np.ndarray] | None = None
+    for j in range(nearest - 10, min(nearest + 11, len(log))):
+        points = voxel_filter(scan(log, j).hit_xy, 0.1, 200)
+        coarse, _ = correlative_search(field, 0, points, between(odometry[0], odometry[j]), search)
+        registered = match(field, np.zeros(1, dtype=np.int64), points, coarse[None, :], MatcherConfig())
+        if registered.ok[0] and (best is None or registered.inlier_fraction[0] > best[0]):
+            best = (float(registered.inlier_fraction[0]), j, registered.poses[0])
+    assert best is not None and best[0] > 0.5
+    _, j, truth_like = best
+    slam_error = between(truth_like, between(poses[0], poses[j]))
+    odometry_error = between(truth_like, between(odometry[0], odometry[j]))
+    return (
+        float(np.hypot(*slam_error[:2])),
+        float(abs(np.degrees(slam_error[2]))),
+        float(np.hypot(*odometry_error[:2])),
+    )
+
+
+def test_at_the_revisit_slam_beats_odometry(run: tuple[SlamLog, ReplayResult]) -> None:
+    log, result = run
+    slam_m, _, odometry_m = loop_closure_errors(log, result.poses)
+    assert slam_m < 0.25
+    assert slam_m < 0.75 * odometry_m
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known gap: at the revisit the SLAM pose is still ~0.2 m / ~6 deg off the direct registration "
+    "(odometry ~0.3 m); the loop does not close to within 0.1 m / 2 deg yet (docs/slam.md, Open problems)",
+)
+def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
+    log, result = run
+    slam_m, slam_deg, _ = loop_closure_errors(log, result.poses)
+    assert slam_m < 0.1
+    assert slam_deg < 2.0
+
+
+def test_walls_are_thin_lines(run: tuple[SlamLog, ReplayResult]) -> None:
+    log, result = run
+    window = result.slam.map_window()
+    assert window is not None
+    slam_walls = wall_thickness(window[0] > MODEL.occupied)
+    # The same scans the filter integrated (its updates), mapped at the raw odometry poses.
+    updates = [i for i, kind in enumerate(result.kinds) if kind in (StepKind.FIRST, StepKind.UPDATED)]
+    stored, _ = map_along(log, log.odometry_poses(), updates)
+    odometry_walls = wall_thickness(stored > MODEL.counts(MODEL.occupied))
+    assert slam_walls.occupied_cells > 1500  # a real map, not a few cells
+    assert slam_walls.thin_fraction > 0.5
+    assert slam_walls.thin_fraction > odometry_walls.thin_fraction + 0.05
+
+
+def fraction_on_walls(log: SlamLog, poses: np.ndarray) -> float:
+    """Of the endpoints of the scans on the way back past the start (records 320 on) that land near
+    something the first 18 s mapped (both placed along ``poses``), the fraction within 5 cm of a wall."""
+    stored, origin = map_along(log, poses, range(180))
+    field = DistanceField.from_obstacles((stored > MODEL.counts(MODEL.occupied))[None], origin, 0.05, 1.0)
+    distances = []
+    for i in range(320, len(log)):
+        world = transform_points(poses[i], scan(log, i).hit_xy)
+        d, _, _ = field.sample(np.zeros(1, dtype=np.int64), world[None, :, 0], world[None, :, 1])
+        distances.append(d[0][d[0] < 0.5])
+    return float(np.mean(np.concatenate(distances) <= 0.05))
+
+
+def test_the_return_fits_the_first_map(run: tuple[SlamLog, ReplayResult]) -> None:
+    log, result = run
+    slam, odometry = fraction_on_walls(log, result.poses), fraction_on_walls(log, log.odometry_poses())
+    assert slam > 0.4
+    assert slam > odometry + 0.1
+
+
+def test_speed_figures_are_recorded(run: tuple[SlamLog, ReplayResult]) -> None:
+    _log, result = run
+    assert result.update_ms.size == result.slam.stats.updates > 60
+    assert result.scan_ms.size == RECORDS
+    assert result.slam.gate.counts.total() == 0  # exp1 has no bad scans

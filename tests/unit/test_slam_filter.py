@@ -1,0 +1,266 @@
+"""The particle filter, localization and fixes on a synthetic room with ground truth.
+
+The robot drives a loop around a box in an 8 m x 6 m room; scans come from exact ray casting plus range
+noise, odometry from the true motion with a heading bias and noise, so raw odometry drifts while the
+truth is known.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.slam.fix import PoseFix, fix_log_likelihood, pending_fixes_log_likelihood
+from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
+from agent.slam.mapio import load_map, save_map
+from agent.slam.mcl import MclConfig, MclLocalizer
+from agent.slam.metrics import absolute_trajectory_error
+from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
+from agent.slam.pose import between, compose
+from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind, systematic_resample
+from agent.slam.render import occupancy_image
+from agent.slam.scan import LaserGeometry, Rejection
+from drivers.sim.raycast import cast_rays
+
+ROOM = (
+    np.array(
+        [
+            (-4.0, -3.0, 4.0, -3.0),
+            (4.0, -3.0, 4.0, 3.0),
+            (4.0, 3.0, -4.0, 3.0),
+            (-4.0, 3.0, -4.0, -3.0),
+            (-0.5, -0.5, 1.0, -0.5),
+            (1.0, -0.5, 1.0, 0.8),
+            (1.0, 0.8, -0.5, 0.8),
+            (-0.5, 0.8, -0.5, -0.5),
+            (-4.0, 1.5, -3.2, 2.3),
+            (2.8, -3.0, 3.3, -2.2),
+        ]
+    )
+    + 0.025
+)
+LASER = LaserGeometry(np.radians(np.linspace(-120.0, 120.0, 341)), 0.02, 5.6, (0.1, 0.0, 0.0))
+
+
+def drive(seed: int = 0, step_m: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(times, true poses, odometry poses, ranges) for one loop around the box."""
+    corners = [(-2.5, -1.8), (2.5, -1.8), (2.5, 2.0), (-2.5, 2.0), (-2.5, -1.8)]
+    truth = [np.array([-2.5, -1.8, 0.0])]
+    for (x0, y0), (x1, y1) in itertools.pairwise(corners):
+        heading = math.atan2(y1 - y0, x1 - x0)
+        while abs(((truth[-1][2] - heading) + math.pi) % (2 * math.pi) - math.pi) > 1e-9:
+            turn = ((heading - truth[-1][2]) + math.pi) % (2 * math.pi) - math.pi
+            truth.append(compose(truth[-1], np.array([0.0, 0.0, float(np.clip(turn, -0.1, 0.1))])))
+        for _ in range(round(math.hypot(x1 - x0, y1 - y0) / step_m)):
+            truth.append(compose(truth[-1], np.array([step_m, 0.0, 0.0])))
+    poses = np.array(truth)
+    rng = np.random.default_rng(seed)
+    odometry = [poses[0].copy()]
+    for a, b in itertools.pairwise(poses):
+        u = between(a, b)
+        # 3 % scale error, 2 deg per metre of heading bias, noise: raw odometry drifts visibly.
+        noisy = u + np.array([0.03 * u[0], 0.0, math.radians(2.0) * abs(u[0])])
+        noisy += rng.standard_normal(3) * np.array([0.002, 0.001, 0.002])
+        odometry.append(compose(odometry[-1], noisy))
+    ranges = []
+    for pose in poses:
+        laser = compose(pose, np.array(LASER.mount))
+        r = cast_rays((laser[0], laser[1]), LASER.angles_rad + laser[2], ROOM, None, 5.6)
+        r = np.where(np.isfinite(r), r + rng.standard_normal(r.size) * 0.01, 0.0)
+        ranges.append(r)
+    times = np.arange(len(poses)) * 0.1
+    return times, poses, np.array(odometry), np.array(ranges)
+
+
+@pytest.fixture(scope="module")
+def loop() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return drive()
+
+
+def run_filter(loop: tuple[np.ndarray, ...], config: RbpfConfig) -> tuple[RbpfSlam, np.ndarray]:
+    times, _truth, odometry, ranges = loop
+    slam = RbpfSlam(LASER, config)
+    estimate = []
+    for t, odom, r in zip(times, odometry, ranges, strict=True):
+        slam.process(float(t), r, odom)
+        estimate.append(slam.pose(odom))
+    return slam, np.array(estimate)
+
+
+# -- the filter ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", [MapMode.PER_PARTICLE, MapMode.SHARED])
+def test_slam_follows_the_truth_where_odometry_drifts(loop: tuple[np.ndarray, ...], mode: MapMode) -> None:
+    _times, truth, odometry, _ = loop
+    start = tuple(float(v) for v in truth[0])
+    slam, estimate = run_filter(loop, RbpfConfig(particles=8, map_mode=mode, initial_pose=start))
+    odometry_in_world = compose(truth[0], between(odometry[0], odometry))
+    assert absolute_trajectory_error(truth, odometry_in_world) > 0.25
+    assert absolute_trajectory_error(truth, estimate) < 0.05
+    # The loop closes: back at the start, the estimate is where the truth is.
+    assert np.hypot(*(estimate[-1, :2] - truth[-1, :2])) < 0.06
+    assert slam.stats.updates > 50
+    assert slam.stats.match_failures < slam.stats.updates  # nearly every particle matched
+
+
+def test_shared_map_needs_less_memory(loop: tuple[np.ndarray, ...]) -> None:
+    start = tuple(float(v) for v in loop[1][0])
+    short = tuple(a[:150] for a in loop)
+    per_particle, _ = run_filter(short, RbpfConfig(particles=8, initial_pose=start))
+    shared, _ = run_filter(short, RbpfConfig(particles=8, map_mode=MapMode.SHARED, initial_pose=start))
+    assert shared.maps.maps == 1
+    assert shared.maps.tiles_in_use() < per_particle.maps.tiles_in_use()
+    assert shared.maps.used_bytes() < per_particle.maps.used_bytes()
+
+
+def test_bad_scans_are_rejected_counted_and_survived(loop: tuple[np.ndarray, ...]) -> None:
+    times, truth, odometry, ranges = loop
+    slam = RbpfSlam(LASER, RbpfConfig(particles=4, initial_pose=tuple(float(v) for v in truth[0])))
+    nan_scan = ranges[30].copy()
+    nan_scan[5] = np.nan
+    jumped = compose(odometry[40], np.array([5.0, 0.0, 0.0]))
+    bad = {
+        20: (times[20], np.zeros_like(ranges[20]), odometry[20], Rejection.NO_RETURNS),
+        30: (times[30], nan_scan, odometry[30], Rejection.NON_FINITE),
+        35: (times[35], ranges[35][:-1], odometry[35], Rejection.BEAM_COUNT),
+        38: (times[36] - 0.05, ranges[38], odometry[38], Rejection.TIME_BACKWARDS),
+        40: (times[40], ranges[40], jumped, Rejection.POSE_JUMP),
+    }
+    for i in range(len(times)):
+        if i in bad:
+            t, r, o, reason = bad[i]
+            result = slam.process(float(t), r, o)
+            assert result.kind is StepKind.REJECTED and result.rejection is reason
+        else:
+            # After the jump the odometry stays shifted by 5 m: the filter must take the jump out.
+            o = compose(jumped, between(odometry[40], odometry[i])) if i > 40 else odometry[i]
+            result = slam.process(float(times[i]), ranges[i], o)
+            assert result.kind is not StepKind.REJECTED
+    assert dict(slam.gate.counts) == {reason: 1 for *_, reason in bad.values()}
+    assert slam.stats.updates > 50  # it carried on
+    assert np.hypot(*(slam.pose()[:2] - truth[-1, :2])) < 0.5  # and the 5 m jump did not move it
+
+
+def test_resampling_is_systematic() -> None:
+    rng = np.random.default_rng(1)
+    weights = np.array([0.5, 0.25, 0.125, 0.125])
+    counts = np.bincount(systematic_resample(weights, rng), minlength=4)
+    assert counts.tolist() == [2, 1, 0, 1] or counts.tolist() == [2, 1, 1, 0]
+    big = np.bincount(systematic_resample(np.full(1000, 1e-3), rng), minlength=1000)
+    assert (big == 1).all()  # equal weights: every particle survives exactly once
+
+
+def test_motion_model_spread_and_density() -> None:
+    noise = OdometryNoise()
+    rng = np.random.default_rng(2)
+    increment = np.array([0.5, 0.0, 0.2])
+    samples = sample_motion(np.zeros((20000, 3)), increment, noise, rng)
+    sig = noise.sigmas(increment)  # sigma_x = 0.1*0.5 + 0.1*0.2, sigma_yaw = 0.2*0.2 + 0.2*0.5
+    np.testing.assert_allclose(sig, [0.07, 0.035, 0.14])
+    rel = between(np.zeros(3), samples)
+    np.testing.assert_allclose(rel.mean(axis=0), increment, atol=0.005)
+    np.testing.assert_allclose(rel.std(axis=0), sig, rtol=0.05)
+    density = motion_log_density(
+        np.zeros((1, 3)), np.array([[increment, increment + np.array([0.07, 0.0, 0.0])]]), increment, noise
+    )
+    np.testing.assert_allclose(density[0], [0.0, -0.5])
+
+
+# -- absolute fixes -------------------------------------------------------------------------------------
+
+
+def test_fix_likelihood_with_and_without_yaw() -> None:
+    poses = np.array([[1.0, 2.0, 0.0], [1.1, 2.0, 0.5], [3.0, 2.0, 0.0]])
+    fix = PoseFix(1.0, 2.0, None, np.diag([0.01**2, 0.01**2]))
+    ll = fix_log_likelihood(poses, fix)
+    assert ll[0] == 0.0 and ll[1] == pytest.approx(-0.5 * 100.0) and ll[2] < ll[1]
+    with_yaw = PoseFix(1.0, 2.0, 0.0, np.diag([0.01**2, 0.01**2, 0.1**2]))
+    assert fix_log_likelihood(poses[:2], with_yaw)[1] == pytest.approx(-0.5 * (100.0 + 25.0))
+    with pytest.raises(ValueError):
+        PoseFix(0.0, 0.0, None, np.eye(3))
+
+
+def test_fix_is_moved_along_odometry() -> None:
+    # Fix at (0, 0) facing +x; then the robot drove 1 m forward. A particle at (1, 0) now agrees, one at
+    # (0, 0) does not; the motion model's noise for that metre widens the fix.
+    fix = PoseFix(0.0, 0.0, None, np.diag([1e-4, 1e-4]))
+    poses = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.05, 0.0]])
+    ll = pending_fixes_log_likelihood(
+        poses,
+        [(fix, np.array([5.0, 5.0, 1.0]))],
+        np.array([5.0 + math.cos(1.0), 5.0 + math.sin(1.0), 1.0]),
+        OdometryNoise(),
+    )
+    assert ll[0] == pytest.approx(0.0, abs=1e-9)
+    assert ll[1] < ll[2] < ll[0]
+
+
+def test_fixes_pick_the_particle_that_agrees(loop: tuple[np.ndarray, ...]) -> None:
+    times, truth, odometry, ranges = loop
+    start = tuple(float(v) for v in truth[0])
+    slam = RbpfSlam(LASER, RbpfConfig(particles=12, initial_pose=start, resample_threshold=1e-6, seed=4))
+    for i in range(60):
+        slam.process(float(times[i]), ranges[i], odometry[i])
+    # A tight fix (1 mm), 4 cm away from the truth: it outweighs what the scans say about the particles.
+    fix = PoseFix(float(truth[59, 0]) + 0.04, float(truth[59, 1]), None, np.diag([1e-6, 1e-6]))
+    slam.add_fix(fix, odometry[59])
+    for i in range(60, 80):
+        result = slam.process(float(times[i]), ranges[i], odometry[i])
+        if result.kind is StepKind.UPDATED:
+            break
+    assert slam.stats.fixes_applied == 1
+    agreement = pending_fixes_log_likelihood(slam.poses, [(fix, odometry[59])], odometry[i], OdometryNoise())
+    assert np.ptp(agreement) > 5.0  # the particles differ enough for the fix to tell them apart
+    assert slam.best_index == int(np.argmax(agreement))
+
+
+# -- localization on a saved map ---------------------------------------------------------------------------
+
+
+def true_map(loop: tuple[np.ndarray, ...], tmp_path: Path) -> Path:
+    """The room mapped from the true poses, saved and reloaded as map_server files."""
+    _times, truth, _, ranges = loop
+    geometry, model = GridGeometry(), LogOddsModel()
+    rect = TileRect.covering(geometry, (-5.0, -4.0), (5.0, 4.0))
+    windows = np.zeros((1, rect.shape[0] * 32, rect.shape[1] * 32), dtype=np.int8)
+    for pose, r in zip(truth[::4], ranges[::4], strict=True):
+        scan = prepare_scan(r, LASER.angles_rad, LASER.mount, 0.1, 5.6, 5.5, 0.025)
+        integrate_scans(windows, rect.origin_m(geometry), 0.05, pose[None, :], scan, model, 32)
+    image = occupancy_image(model.to_log_odds(windows[0]), rect.origin_m(geometry), 0.05)
+    return save_map(image, tmp_path / "room.yaml").yaml
+
+
+def test_localization_from_a_position_only_fix(loop: tuple[np.ndarray, ...], tmp_path: Path) -> None:
+    times, truth, odometry, ranges = loop
+    occupancy = load_map(true_map(loop, tmp_path))
+    mcl = MclLocalizer(LASER, occupancy, MclConfig(particles=40, seed=3))
+    first = mcl.process(float(times[0]), ranges[0], odometry[0])
+    assert first.kind is StepKind.UNINITIALIZED
+    # A VLP fix 7 cm off the truth, 10 cm sigma, no heading: headings start spread round the circle.
+    mcl.initialize(
+        PoseFix(float(truth[5, 0]) + 0.05, float(truth[5, 1]) - 0.05, None, np.diag([0.01, 0.01])),
+        odometry[5],
+    )
+    errors = []
+    for i in range(5, 200):
+        mcl.process(float(times[i]), ranges[i], odometry[i])
+        errors.append(np.hypot(*(mcl.pose(odometry[i])[:2] - truth[i, :2])))
+    errors_after_start = np.array(errors[40:])  # a few updates to pick the heading
+    assert errors_after_start.max() < 0.05
+    assert np.mean(errors_after_start) < 0.02
+    assert mcl.spread_m() < 0.05
+
+
+def test_history_can_be_bounded_for_long_runs(loop: tuple[np.ndarray, ...]) -> None:
+    start = tuple(float(v) for v in loop[1][0])
+    short = tuple(a[:120] for a in loop)
+    slam, _estimate = run_filter(short, RbpfConfig(particles=3, initial_pose=start, history_limit=5))
+    times, poses, odometry = slam.trajectory()
+    assert slam.stats.updates > 5
+    assert poses.shape == (5, 3) and times.shape == (5,) and odometry.shape == (5, 3)
+    np.testing.assert_allclose(poses[-1], slam.poses[slam.best_index])

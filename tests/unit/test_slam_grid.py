@@ -1,0 +1,220 @@
+"""Occupancy grid: scan preparation, ray casting by polygon fill against per-beam sampling, the log-odds
+update, and the copy-on-write tile store."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.slam.grid import (
+    UNKNOWN_TILE,
+    GridGeometry,
+    LogOddsModel,
+    TiledMaps,
+    TileRect,
+    integrate_scans,
+    prepare_scan,
+    swept_cells_sampled,
+)
+from agent.slam.logs import read_log
+from drivers.sim.raycast import cast_rays
+
+RES = 0.05
+MODEL = LogOddsModel()
+ROOM = np.array(
+    [  # x1, y1, x2, y2: an 8 m x 6 m room with a 1 m box in it
+        (-4.0, -3.0, 4.0, -3.0),
+        (4.0, -3.0, 4.0, 3.0),
+        (4.0, 3.0, -4.0, 3.0),
+        (-4.0, 3.0, -4.0, -3.0),
+        (1.0, 0.5, 2.0, 0.5),
+        (2.0, 0.5, 2.0, 1.5),
+        (2.0, 1.5, 1.0, 1.5),
+        (1.0, 1.5, 1.0, 0.5),
+    ]
+) + np.array([0.021, 0.013, 0.021, 0.013])  # walls off the cell boundaries: no ties in the tests
+ANGLES = np.radians(np.linspace(-120.0, 120.0, 682))
+
+
+def room_scan(pose: tuple[float, float, float], max_range: float = 5.6) -> np.ndarray:
+    ranges = cast_rays((pose[0], pose[1]), ANGLES + pose[2], ROOM, None, max_range)
+    return np.where(np.isfinite(ranges), ranges, 0.0)
+
+
+def window_for(geometry: GridGeometry, half_m: float = 5.0) -> tuple[TileRect, tuple[float, float]]:
+    rect = TileRect.covering(geometry, (-half_m, -half_m), (half_m, half_m))
+    return rect, rect.origin_m(geometry)
+
+
+def cell(origin: tuple[float, float], x: float, y: float) -> tuple[int, int]:
+    return math.floor((y - origin[1]) / RES), math.floor((x - origin[0]) / RES)
+
+
+# -- scan preparation ------------------------------------------------------------------------------------
+
+
+def test_prepare_scan_classifies_beams() -> None:
+    angles = np.radians([-10.0, -5.0, 0.0, 5.0, 10.0, 15.0])
+    # below min range, hit, no return (0), beyond usable but a return, saturation (no return), hit
+    ranges = np.array([0.05, 2.0, 0.0, 7.0, 8.0, 3.0])
+    scan = prepare_scan(ranges, angles, (0.0, 0.0, 0.0), 0.1, 8.0, 6.0, 0.025)
+    np.testing.assert_allclose(np.hypot(*scan.hit_xy.T), [2.0, 3.0])
+    # Free space: the two hits (shortened by half a cell) and the far beam, cut at the usable range.
+    np.testing.assert_allclose(np.hypot(*scan.fan_xy.T), [1.975, 6.0, 2.975])
+    # Polygon: origin, beam 1, origin (gap: beam 2 had no return), beam 3, origin (gap), beam 5.
+    assert scan.polygon.tolist() == [-1, 0, -1, 1, -1, 2]
+
+
+def test_prepare_scan_mount_and_deskew() -> None:
+    angles = np.array([0.0, math.pi / 2])
+    ranges = np.array([1.0, 1.0])
+    mounted = prepare_scan(ranges, angles, (0.2, 0.1, math.pi / 2), 0.1, 5.0, 5.0, 0.0)
+    # Laser turned left by 90 deg at (0.2, 0.1): its forward beam points along +y of the base.
+    np.testing.assert_allclose(mounted.hit_xy, [[0.2, 1.1], [-0.8, 0.1]], atol=1e-12)
+    # The base moved 0.1 m forward between the first beam and the scan's time: the first beam's point is
+    # 0.1 m further back in the frame of the base at the scan's time.
+    offsets = np.array([[-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    skewed = prepare_scan(ranges, angles, (0.0, 0.0, 0.0), 0.1, 5.0, 5.0, 0.0, offsets)
+    np.testing.assert_allclose(skewed.hit_xy, [[0.9, 0.0], [0.0, 1.0]], atol=1e-12)
+
+
+# -- ray casting ----------------------------------------------------------------------------------------
+
+
+def test_single_scan_marks_wall_free_and_unknown() -> None:
+    geometry = GridGeometry()
+    maps = TiledMaps(geometry, 1)
+    rect, origin = window_for(geometry)
+    windows = maps.gather([0], rect)
+    pose = np.array([[0.0, 0.0, 0.0]])
+    scan = prepare_scan(room_scan((0.0, 0.0, 0.0)), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2)
+    integrate_scans(windows, origin, RES, pose, scan, MODEL, geometry.tile_cells)
+    stored = windows[0]
+    hit, miss = MODEL.counts(MODEL.hit), MODEL.counts(MODEL.miss)
+    assert stored[cell(origin, 4.021, 0.0)] == hit  # the east wall straight ahead (4 m) is a hit
+    for x in (0.5, 1.5, 2.5, 3.5):
+        assert stored[cell(origin, x, -0.3)] == miss  # free in front of the wall
+    assert stored[cell(origin, 4.3, 0.0)] == 0  # behind the wall: never seen
+    assert stored[cell(origin, 1.5, 1.7)] == 0  # behind the box (in its shadow)
+    assert stored[cell(origin, -3.0, 0.0)] == 0  # behind the laser (outside its 240 deg): unknown
+    assert stored[cell(origin, 1.021, 0.9)] == hit  # the box's near face
+
+
+def test_polygon_fill_matches_per_beam_sampling() -> None:
+    geometry = GridGeometry()
+    rect, origin = window_for(geometry)
+    shape = rect.shape[0] * geometry.tile_cells, rect.shape[1] * geometry.tile_cells
+    for pose in [(0.0, 0.0, 0.0), (-1.3, 0.7, 2.1), (2.5, -1.7, -0.8)]:
+        scan = prepare_scan(room_scan(pose), ANGLES, (0.1, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2)
+        windows = np.zeros((1, *shape), dtype=np.int8)
+        integrate_scans(windows, origin, RES, np.array([pose]), scan, MODEL, geometry.tile_cells)
+        reference = swept_cells_sampled(shape, origin, RES, np.array(pose), scan)
+        filled = windows[0] == MODEL.counts(MODEL.miss)
+        sampled = reference == 1
+        union = np.count_nonzero(filled | sampled)
+        agree = np.count_nonzero(filled & sampled) / union
+        assert agree > 0.93, (pose, agree)
+        # Endpoint cells are the same set either way.
+        assert np.array_equal(windows[0] == MODEL.counts(MODEL.hit), reference == 2)
+
+
+def test_polygon_fill_matches_sampling_on_a_real_scan(shared_data: Path) -> None:
+    log = read_log(shared_data / "slam/breezyslam/exp1.dat", "breezyslam")
+    geometry = GridGeometry()
+    rect, origin = window_for(geometry, 6.0)
+    shape = rect.shape[0] * geometry.tile_cells, rect.shape[1] * geometry.tile_cells
+    record = log.records[400]  # 52 % of the beams have no return: many gaps in the fan
+    g = log.geometry
+    scan = prepare_scan(record.ranges_m, g.angles_rad, g.mount, 0.1, g.no_return_m, 5.5, RES / 2)
+    pose = np.array([0.3, -0.2, 0.7])
+    windows = np.zeros((1, *shape), dtype=np.int8)
+    integrate_scans(windows, origin, RES, pose[None, :], scan, MODEL, geometry.tile_cells)
+    reference = swept_cells_sampled(shape, origin, RES, pose, scan)
+    filled = windows[0] == MODEL.counts(MODEL.miss)
+    sampled = reference == 1
+    assert np.count_nonzero(filled & sampled) / np.count_nonzero(filled | sampled) > 0.9
+
+
+def test_log_odds_clamp_and_batch() -> None:
+    """Two windows seeing the scan from different poses; repeated hits saturate at the clamp."""
+    geometry = GridGeometry()
+    rect, origin = window_for(geometry)
+    shape = rect.shape[0] * geometry.tile_cells, rect.shape[1] * geometry.tile_cells
+    windows = np.zeros((2, *shape), dtype=np.int8)
+    poses = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, math.pi]])
+    scan = prepare_scan(room_scan((0.0, 0.0, 0.0)), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2)
+    for _ in range(10):
+        touched = integrate_scans(windows, origin, RES, poses, scan, MODEL, geometry.tile_cells)
+    assert windows[0][cell(origin, 4.021, 0.0)] == MODEL.counts(MODEL.maximum)
+    assert windows[0][cell(origin, 1.5, -0.3)] == MODEL.counts(MODEL.minimum)
+    # The second window saw the same ranges turned round: the wall lands at x = -4.
+    assert windows[1][cell(origin, -4.021, 0.0)] == MODEL.counts(MODEL.maximum)
+    assert windows[1][cell(origin, 4.021, 0.0)] == 0
+    assert touched.shape == (2, rect.shape[0], rect.shape[1])
+    assert touched[0].any() and not touched[0].all()
+
+
+def test_log_odds_model_must_fit_int8() -> None:
+    with pytest.raises(ValueError, match="int8"):
+        LogOddsModel(maximum=6.0, hit=1.0)
+
+
+# -- copy-on-write tiles --------------------------------------------------------------------------------
+
+
+def _consistent(maps: TiledMaps) -> None:
+    counts = np.bincount(maps.tables.ravel(), minlength=maps.pool.shape[0])
+    live = np.flatnonzero(counts[1:]) + 1
+    np.testing.assert_array_equal(maps.refcount[live], counts[live])
+    free = set(maps._free)
+    assert not free & set(live.tolist())
+    assert maps.tiles_in_use() == live.size
+
+
+def test_copy_on_write_keeps_maps_apart() -> None:
+    geometry = GridGeometry(tile_cells=8, tiles_per_side=16)
+    maps = TiledMaps(geometry, 3, initial_tiles=4)
+    rect = TileRect(2, 2, 4, 5)
+    h, w = rect.shape[0] * 8, rect.shape[1] * 8
+    window = np.full((1, h, w), 5, dtype=np.int8)
+    touched = np.zeros((1, *rect.shape), dtype=bool)
+    touched[0, 0, 0] = touched[0, 1, 2] = True
+    maps.scatter([0], rect, window, touched)
+    assert maps.tiles_in_use() == 2
+    assert maps.gather([1], rect).max() == 0  # the other maps are still unknown there
+    maps.select([0, 0, 0])  # resampling: three copies of map 0, sharing its two tiles
+    assert maps.tiles_in_use() == 2
+    _consistent(maps)
+    window2 = maps.gather([1], rect)
+    window2[0, :8, :8] = -3
+    maps.scatter([1], rect, window2, touched)  # map 1 writes: its tiles are copied first
+    assert maps.tiles_in_use() == 4
+    assert maps.gather([0], rect)[0, 0, 0] == 5
+    assert maps.gather([1], rect)[0, 0, 0] == -3
+    assert maps.gather([2], rect)[0, 0, 0] == 5
+    _consistent(maps)
+    maps.select([1, 1, 2])  # map 0's copy of the first tile is now only held by map 2
+    _consistent(maps)
+    maps.select([0, 0, 0])  # only map 1's tiles survive; map 0's are freed
+    assert maps.tiles_in_use() == 2
+    _consistent(maps)
+    assert maps.gather([2], rect)[0, 0, 0] == -3
+
+
+def test_pool_grows_and_extent() -> None:
+    geometry = GridGeometry(tile_cells=8, tiles_per_side=16)
+    maps = TiledMaps(geometry, 2, initial_tiles=2)
+    rect = TileRect(0, 0, 4, 4)
+    window = np.ones((2, 32, 32), dtype=np.int8)
+    maps.scatter([0, 1], rect, window, np.ones((2, 4, 4), dtype=bool))
+    assert maps.tiles_in_use() == 32
+    assert maps.pool.shape[0] >= 33
+    _consistent(maps)
+    assert maps.extent(0) == rect
+    assert maps.tables[0, 5, 5] == UNKNOWN_TILE
+    maps.share([0], [1])
+    assert maps.tiles_in_use() == 16
+    _consistent(maps)

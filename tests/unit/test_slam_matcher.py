@@ -1,0 +1,184 @@
+"""Likelihood-field scan matching on a synthetic room: known offsets are recovered."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
+from agent.slam.matcher import (
+    DistanceField,
+    MatcherConfig,
+    SearchConfig,
+    correlative_search,
+    match,
+    scan_log_likelihood,
+)
+from agent.slam.pose import between
+from agent.slam.rbpf import voxel_filter
+from drivers.sim.raycast import cast_rays
+
+RES = 0.05
+MODEL = LogOddsModel()
+ROOM = (
+    np.array(
+        [
+            (-4.0, -3.0, 4.0, -3.0),
+            (4.0, -3.0, 4.0, 3.0),
+            (4.0, 3.0, -4.0, 3.0),
+            (-4.0, 3.0, -4.0, -3.0),
+            (1.0, 0.5, 2.0, 0.5),
+            (2.0, 0.5, 2.0, 1.5),
+            (2.0, 1.5, 1.0, 1.5),
+            (1.0, 1.5, 1.0, 0.5),
+            (-2.5, -1.0, -1.5, -2.0),
+        ]
+    )
+    + 0.025
+)  # walls through cell centres: the 5 cm grid then represents them without bias
+ANGLES = np.radians(np.linspace(-120.0, 120.0, 682))
+GEOMETRY = GridGeometry()
+
+
+def scan_at(pose: tuple[float, float, float]) -> np.ndarray:
+    ranges = cast_rays((pose[0], pose[1]), ANGLES + pose[2], ROOM, None, 5.6)
+    return np.where(np.isfinite(ranges), ranges, 0.0)
+
+
+def prepared(pose: tuple[float, float, float]):  # type: ignore[no-untyped-def]
+    return prepare_scan(scan_at(pose), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2)
+
+
+def room_field(empty_too: bool = False) -> DistanceField:
+    """A map of the room from three scans at known poses; optionally a second, empty window."""
+    rect = TileRect.covering(GEOMETRY, (-5.0, -4.0), (5.0, 4.0))
+    h, w = rect.shape[0] * GEOMETRY.tile_cells, rect.shape[1] * GEOMETRY.tile_cells
+    windows = np.zeros((2 if empty_too else 1, h, w), dtype=np.int8)
+    for pose in [(0.0, 0.0, 0.0), (-1.0, 1.0, 2.5), (2.5, -1.5, -2.0)]:
+        integrate_scans(
+            windows[:1],
+            rect.origin_m(GEOMETRY),
+            RES,
+            np.array([pose]),
+            prepared(pose),
+            MODEL,
+            GEOMETRY.tile_cells,
+        )
+    return DistanceField.from_obstacles(
+        windows > MODEL.counts(MODEL.occupied), rect.origin_m(GEOMETRY), RES, 0.6
+    )
+
+
+def test_distance_field_is_euclidean_within_chamfer_error() -> None:
+    obstacles = np.zeros((1, 60, 80), dtype=bool)
+    obstacles[0, 20, 10:70] = True
+    obstacles[0, 5:55, 40] = True
+    field = DistanceField.from_obstacles(obstacles, (0.0, 0.0), RES, 10.0)
+    exact = ndimage.distance_transform_edt(~obstacles[0]) * RES
+    inner = field.distance_m[0, 1:-1, 1:-1]
+    np.testing.assert_allclose(inner, exact, rtol=0.02, atol=1e-6)
+    axis = inner[21:30, 25]  # straight below the horizontal wall, nearer to it than to anything: exact
+    np.testing.assert_allclose(axis, exact[21:30, 25], rtol=1e-6)
+    assert field.distance_m[0, 0, 0] == 10.0  # the border holds the cap
+
+
+def test_sample_bilinear_and_gradient() -> None:
+    obstacles = np.zeros((2, 40, 40), dtype=bool)
+    obstacles[0, :, 20] = True  # a wall along y at x = 20.5 cells
+    obstacles[1, 10, :] = True  # the second window: a wall along x
+    field = DistanceField.from_obstacles(obstacles, (1.0, 2.0), RES, 0.6)
+    x = 1.0 + 20.5 * RES + np.array([[0.1, -0.12, 0.0251]])
+    y = np.full_like(x, 2.0 + 15.0 * RES)
+    d, gx, gy = field.sample(np.array([0]), x, y)
+    np.testing.assert_allclose(d, [[0.1, 0.12, 0.0251]], atol=0.003)
+    np.testing.assert_allclose(gx, [[1.0, -1.0, 1.0]], atol=0.05)
+    np.testing.assert_allclose(gy, 0.0, atol=1e-6)
+    d, gx, gy = field.sample(np.array([1]), np.array([[1.5]]), np.array([[2.0 + 10.5 * RES + 0.2]]))
+    assert d[0, 0] == pytest.approx(0.2, abs=0.005)
+    assert gy[0, 0] == pytest.approx(1.0, abs=0.05)
+    far, gx, gy = field.sample(np.array([0]), np.array([[100.0]]), np.array([[100.0]]))
+    assert far[0, 0] == pytest.approx(0.6) and gx[0, 0] == 0.0 and gy[0, 0] == 0.0
+
+
+def test_gauss_newton_recovers_known_offsets() -> None:
+    field = room_field()
+    truth = np.array([0.4, -0.3, 0.35])
+    points = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
+    offsets = np.array([[0.15, -0.10, math.radians(5.0)], [-0.2, 0.05, math.radians(-4.0)], [0.0, 0.0, 0.0]])
+    start = truth[None, :] + offsets
+    result = match(field, np.zeros(3, dtype=np.int64), points, start, MatcherConfig())
+    assert result.ok.all()
+    for pose in result.poses:
+        error = between(truth, pose)
+        assert math.hypot(error[0], error[1]) < 0.01
+        assert abs(math.degrees(error[2])) < 0.3
+    assert (result.inlier_fraction > 0.9).all()
+    assert (result.rms_m < 0.03).all()
+    # The information matrix is positive definite: the room constrains x, y and yaw.
+    assert (np.linalg.eigvalsh(result.information) > 0).all()
+
+
+def test_match_fails_on_an_empty_map() -> None:
+    field = room_field(empty_too=True)
+    truth = np.array([0.0, 0.0, 0.0])
+    points = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
+    result = match(field, np.array([0, 1]), points, np.tile(truth, (2, 1)), MatcherConfig())
+    assert result.ok.tolist() == [True, False]
+
+
+def test_prior_holds_the_unconstrained_direction() -> None:
+    """In a corridor (two parallel walls) the scan does not fix x; with a prior the match stays put."""
+    walls = np.array([(-20.0, -1.0, 20.0, -1.0), (-20.0, 1.0, 20.0, 1.0)]) + 0.025
+    ranges = cast_rays((0.0, 0.0), ANGLES, walls, None, 5.6)
+    scan = prepare_scan(
+        np.where(np.isfinite(ranges), ranges, 0.0), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2
+    )
+    rect = TileRect.covering(GEOMETRY, (-6.0, -3.0), (6.0, 3.0))
+    h, w = rect.shape[0] * GEOMETRY.tile_cells, rect.shape[1] * GEOMETRY.tile_cells
+    windows = np.zeros((1, h, w), dtype=np.int8)
+    integrate_scans(windows, rect.origin_m(GEOMETRY), RES, np.zeros((1, 3)), scan, MODEL, GEOMETRY.tile_cells)
+    field = DistanceField.from_obstacles(
+        windows > MODEL.counts(MODEL.occupied), rect.origin_m(GEOMETRY), RES, 0.6
+    )
+    points = voxel_filter(scan.hit_xy, 0.1, 200)
+    start = np.array([[0.3, 0.08, 0.02]])
+    free = match(field, np.zeros(1, dtype=np.int64), points, start, MatcherConfig())
+    held = match(
+        field, np.zeros(1, dtype=np.int64), points, start, MatcherConfig(), np.diag([20.0, 0.0, 0.0])
+    )
+    # Along the corridor only the ends of the mapped walls say anything: unheld, x wanders off the start.
+    assert abs(free.poses[0, 0] - 0.3) > 2 * abs(held.poses[0, 0] - 0.3)
+    assert abs(held.poses[0, 0] - 0.3) < 0.05
+    for result in (free, held):  # across the corridor and in heading the walls decide
+        assert abs(result.poses[0, 1]) < 0.01
+        assert abs(result.poses[0, 2]) < math.radians(0.5)
+
+
+def test_correlative_search_finds_a_large_heading_error() -> None:
+    field = room_field()
+    truth = np.array([-0.5, 0.6, -1.0])
+    points = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
+    start = truth + np.array([0.2, -0.15, math.radians(12.0)])
+    found, cost = correlative_search(field, 0, points, start, SearchConfig())
+    error = between(truth, found)
+    assert math.hypot(error[0], error[1]) <= 0.1
+    assert abs(math.degrees(error[2])) <= 1.5
+    _, cost_at_start = correlative_search(
+        field, 0, points, start, SearchConfig(xy_range_m=0.0, yaw_range_rad=0.0)
+    )
+    assert cost < cost_at_start
+
+
+def test_log_likelihood_peaks_at_the_truth() -> None:
+    field = room_field()
+    truth = np.array([1.0, -1.0, 0.5])
+    points = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
+    shifts = np.linspace(-0.2, 0.2, 9)
+    candidates = np.tile(truth, (1, 9, 1))
+    candidates[0, :, 0] += shifts
+    ll = scan_log_likelihood(field, np.zeros(1, dtype=np.int64), points, candidates, 0.05, 0.25)
+    assert int(np.argmax(ll[0])) == 4
+    assert np.all(np.diff(ll[0, :5]) > 0) and np.all(np.diff(ll[0, 4:]) < 0)
