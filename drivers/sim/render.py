@@ -14,7 +14,8 @@ Pure numpy/OpenCV, no I/O. The model, in the order light goes through it (``refe
   square wave is integrated over that window in closed form (a box filter, not sampling), and the row's
   geometry uses the robot pose at the row's own time (motion during readout).
 * **Optics and sensor.** Radial fall-off across the disk I0 (1 - a (r/R)^2), cos^4 vignetting, Gaussian lens
-  blur (sigma in sensor px, plus the pixel's own box), full-well saturation with a small vertical spill
+  blur (sigma in sensor px, plus the pixel's own box), optional opaque covers over parts of an LED
+  (occlusion, :class:`LedCover`), full-well saturation with a small vertical spill
   (blooming), Poisson shot noise, Gaussian read noise, black level, 8-bit rounding and clipping.
 * **Downsampling as the reference node does it:** ``cv2.resize(..., INTER_NEAREST)`` from sensor size to
   output size, i.e. output pixel x shows sensor column floor(x * src/dst) (OpenCV ``resizeNN``).
@@ -47,6 +48,7 @@ ImageU8 = npt.NDArray[np.uint8]
 __all__ = [
     "CameraPose",
     "FrameTruth",
+    "LedCover",
     "LedTruth",
     "OutputIntrinsics",
     "RenderedFrame",
@@ -64,6 +66,20 @@ _BLUR_SIGMAS = 6.0
 _CENTRE_ITERATIONS = 3
 # Fraction of the background-noise pool redrawn per frame: the whole pool is new every 32 frames.
 _POOL_REFRESH_FRACTION = 1.0 / 32.0
+
+
+@dataclass(frozen=True, slots=True)
+class LedCover:
+    """An opaque cover over part of one LED's disk (tape, a cable, a hand), in the LED's own plane.
+
+    It hides the points p of the disk of LED ``led_index`` (an index into the renderer's LEDs) with
+    (p - centre) . n > R (1 - 2 ``fraction``), n = (cos ``angle_rad``, sin ``angle_rad``) in the world
+    frame: ``fraction`` 0.5 covers the half facing n, 1 the whole disk. Its edge is blurred like the rim.
+    """
+
+    led_index: int
+    angle_rad: float
+    fraction: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -376,13 +392,18 @@ class RollingShutterRenderer:
 
     # -- one frame -------------------------------------------------------------------------------------
     def render(
-        self, pose_at: Callable[[float], Pose2D], t0_s: float, out: ImageU8 | None = None
+        self,
+        pose_at: Callable[[float], Pose2D],
+        t0_s: float,
+        out: ImageU8 | None = None,
+        covers: Sequence[LedCover] = (),
     ) -> RenderedFrame:
         """Render the frame whose first row starts exposing at ``t0_s``.
 
         ``pose_at(t)`` gives the robot base's true pose at time ``t`` (three calls per frame: first, middle
         and last row; rows in between are interpolated quadratically). ``out``, if given, receives the image
-        (shape (output height, output width), uint8) and is returned in the result.
+        (shape (output height, output width), uint8) and is returned in the result. ``covers`` hide parts
+        of LEDs in this frame (occlusion).
         """
         cam = self.camera
         oh, ow = cam.output_height_px, cam.output_width_px
@@ -404,7 +425,9 @@ class RollingShutterRenderer:
         self._draw_background(out)
         truths, boxes = self._place_leds(t0_s, knots)
         for truth, box in zip(truths, boxes, strict=True):
-            self._accumulate(truth.index, t0_s, knots, *box)
+            self._accumulate(
+                truth.index, t0_s, knots, *box, covers=[c for c in covers if c.led_index == truth.index]
+            )
         for r0, r1, c0, c1 in _merge_rects(boxes):
             self._expose(out, r0, r1, c0, c1)
 
@@ -551,6 +574,7 @@ class RollingShutterRenderer:
         r1: int,
         c0: int,
         c1: int,
+        covers: Sequence[LedCover] = (),
     ) -> None:
         """Add the LED's expected photo-electrons to the surviving pixels of its box (and, for blooming,
         what the sensor rows just above and below them collect)."""
@@ -577,6 +601,14 @@ class RollingShutterRenderer:
         edge_px = (rho - radius_m) * (self._f_px / lam)
         coverage = _gauss_tail(edge_px / self._sigma_px)
         rel = np.minimum(rho / radius_m, 1.0)
+        for cover in covers:
+            # The cover's edge is the line (p - centre) . n = R (1 - 2 fraction) in the LED plane; n turned
+            # into each row's yaw frame like (ox, oy). Visible where the signed distance is negative.
+            nx, ny = math.cos(cover.angle_rad), math.sin(cover.angle_rad)
+            ncx = (cos_y * nx + sin_y * ny)[:, None]
+            ncy = (-sin_y * nx + cos_y * ny)[:, None]
+            beyond = ox * ncx + oy * ncy - radius_m * (1.0 - 2.0 * cover.fraction)
+            coverage = coverage * _gauss_tail(beyond * (self._f_px / lam) / self._sigma_px)
         shape = coverage * (1.0 - cam.radial_falloff * rel * rel) * self._vignette[r0:r1, c0:c1]
 
         t_start = t0_s - (self._t_epoch or 0.0) + rows * cam.t_row_s

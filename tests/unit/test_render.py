@@ -14,6 +14,7 @@ import numpy.typing as npt
 import pytest
 
 from drivers.sim.render import (
+    LedCover,
     RenderedFrame,
     RollingShutterRenderer,
     nearest_indices,
@@ -396,3 +397,25 @@ def test_leds_out_of_view_are_not_reported_and_frames_are_repeatable() -> None:
     assert [t.id for t in a.truth.leds] == ["near"]
     np.testing.assert_array_equal(a.image, b.image)
     assert a.image.shape == (600, 800) and a.image.dtype == np.uint8
+
+
+# -- covers (occlusion) --------------------------------------------------------------------------------------
+def test_a_cover_hides_the_part_of_the_disk_it_is_over() -> None:
+    led = Led("A", 0.0, 0.0, 1.5, diameter_m=0.2, frequency_hz=5000.0)
+    renderer = RollingShutterRenderer(FLAT, [led], MOUNT, seed=3)
+    pose = still(0.0, 0.0, 0.0)
+    bare = renderer.render(pose, 1.0).image.astype(np.float64) - FLAT.black_level_dn
+    # Yaw 0: world +x is image +u. Half covered on the +x side, then all of it.
+    half = renderer.render(pose, 1.0, covers=[LedCover(0, 0.0, 0.5)]).image.astype(np.float64)
+    full = renderer.render(pose, 1.0, covers=[LedCover(0, 0.0, 1.0)]).image.astype(np.float64)
+    half -= FLAT.black_level_dn
+    full -= FLAT.black_level_dn
+    u = round(renderer.output_intrinsics.cx_px)
+    assert half[:, : u - 3].sum() == pytest.approx(bare[:, : u - 3].sum(), rel=1e-6)
+    assert half[:, u + 3 :].sum() == pytest.approx(0.0, abs=1e-6)
+    assert half.sum() == pytest.approx(0.5 * bare.sum(), rel=0.03)
+    # All of it but the blur of the cover's edge where it touches the rim.
+    assert full.sum() < 0.002 * bare.sum()
+    # A cover of another LED changes nothing here.
+    other = renderer.render(pose, 1.0, covers=[LedCover(1, 0.0, 0.5)]).image.astype(np.float64)
+    np.testing.assert_array_equal(other - FLAT.black_level_dn, bare)

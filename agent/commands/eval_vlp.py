@@ -1,0 +1,735 @@
+"""``vlp-agent eval vlp``: VLP accuracy, id accuracy and latency on a simulated world, calibration included.
+
+What it does, in the order a robot would live it:
+
+1. **The agent's view.** The pipeline is built from the world's *nominal* camera and *surveyed* LED map
+   (``drivers.sim.worldfile.nominal_camera`` / ``surveyed_leds``): principal point, LED positions and heights
+   off by the world's ``[errors]``, camera tilt unknown. Frames are rendered by the physical renderer from the
+   *true* world.
+2. **Calibration, as on the robot** (``agent.vlp.calibration``). The robot turns in place once under the LEDs
+   at the test area's centre; the circles its LED tracks draw give the rotation centre (principal point).
+   Then fixes at a grid of known points (four headings each) give the residual correction. The result is
+   written to a calibration file (TOML, docs/vlp.md) and read back from it: nothing true is handed over.
+3. **The test** (static, ``--speed 0``): ``--points`` random places in the test area (the LED map's bounding
+   box; at least two LEDs fully in view), random heading, ``--repeats`` consecutive frames each (the
+   paper's 36 x 12). Each frame goes through an uncalibrated and a calibrated pipeline. The dispersion circle
+   (the paper's Fig. 8) is measured at the area's centre over twelve headings.
+   **Driving** (``--speed`` > 0): ``--points`` straight passes across the area at that speed, frames at the
+   camera's rate, with motion during the rolling readout; the pipeline runs continuously on each pass (with
+   an odometry-grade prior on every frame when the map repeats ids).
+4. **Scores.** Position error of the base at each frame's mid-readout time; id accuracy per frame (the
+   frame's own stripes) and per track (after voting), over every fully visible LED the pipeline reports,
+   checked against the renderer's ground truth; latency of the calibrated pipeline per frame and per stage,
+   on one core (``cv2.setNumThreads(1)``).
+
+Prints one JSON object with ``--json``; otherwise a table, and a PNG of estimated vs true positions with the
+error CDFs (the paper's Fig. 9).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import math
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from agent.commands.worlds import EXAMPLES
+from agent.vlp.calibration import (
+    VlpCalibration,
+    fit_residual_correction,
+    fit_rotation_centre,
+    format_calibration,
+    parse_calibration,
+)
+from agent.vlp.model import (
+    CameraIntrinsics,
+    CameraMount,
+    LedMap,
+    MapLed,
+    PosePrior,
+    VlpFix,
+    VlpResult,
+)
+from agent.vlp.pipeline import VlpPipeline
+from drivers.errors import ConfigError
+from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer
+from drivers.sim.world import Pose2D, World
+from drivers.sim.worldfile import load_world, nominal_camera, surveyed_leds
+
+log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+PoseAt = Callable[[float], Pose2D]
+
+DEFAULT_WORLD = EXAMPLES / "env1.toml"
+# Turning in place for the rotation-centre calibration (a TurtleBot3 turns at up to 2.8 rad/s).
+CALIBRATION_TURN_RADPS = 0.5
+# Known points for the residual correction: a 3 x 3 grid over the inner part of the area, four headings.
+CALIBRATION_GRID = 3
+CALIBRATION_HEADINGS = 4
+CALIBRATION_FRAMES = 3
+# The dispersion circle: headings at the area's centre, frames per heading.
+DISPERSION_HEADINGS = 12
+DISPERSION_FRAMES = 3
+# Driving passes: straight, at most this long (the whole area in Environment 1).
+PASS_LENGTH_M = 4.0
+# The odometry-grade prior given when the map repeats ids (what the robot's odometry or last fix would know).
+PRIOR_SIGMA_XY_M = 0.2
+PRIOR_SIGMA_YAW_RAD = math.radians(10.0)
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "vlp",
+        help="VLP accuracy, id accuracy and latency on a simulated world (with its calibration)",
+        description="Render frames of a simulated world at known poses, calibrate the camera as on the "
+        "robot (turn in place; fixes at known points), then measure the VLP pipeline: position error before "
+        "and after calibration, id accuracy per frame and per track, the dispersion circle, and latency per "
+        "frame and per stage on one core.",
+    )
+    p.add_argument("--world", metavar="FILE", help=f"world file (default: {DEFAULT_WORLD.name})")
+    p.add_argument("--points", type=int, default=36, help="test points, or passes when driving (default 36)")
+    p.add_argument("--repeats", type=int, default=12, help="frames per static test point (default 12)")
+    p.add_argument(
+        "--speed", type=float, default=0.0, metavar="M_PER_S", help="drive across the area at this speed"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed for poses, noise and LED phases (default 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.add_argument("--png", metavar="FILE", help="where to write the figure (default: vlp_eval_<world>.png)")
+    p.add_argument("--calibration-out", metavar="FILE", help="keep the calibration file written here")
+    p.add_argument(
+        "--area",
+        type=float,
+        nargs=4,
+        metavar=("X0", "Y0", "X1", "Y1"),
+        help="test area in metres (default: the LED map's bounding box)",
+    )
+
+
+# -- the agent's view of a world -----------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class AgentView:
+    intrinsics: CameraIntrinsics
+    led_map: LedMap
+    mount: CameraMount
+
+
+def agent_view(world: World) -> AgentView:
+    """What the robot is told: the nominal camera, the surveyed LED map, the nominal mount (no tilt error)."""
+    cam = nominal_camera(world)
+    cx, cy = cam.principal_point_px
+    intrinsics = CameraIntrinsics.from_sensor(
+        sensor_width_px=cam.sensor_width_px,
+        sensor_height_px=cam.sensor_height_px,
+        output_width_px=cam.output_width_px,
+        output_height_px=cam.output_height_px,
+        focal_length_px=cam.focal_length_px,
+        cx_sensor_px=cx,
+        cy_sensor_px=cy,
+        t_row_s=cam.t_row_s,
+        exposure_s=cam.exposure_s,
+        distortion=cam.distortion,
+    )
+    leds = LedMap(
+        tuple(
+            MapLed(led.id, led.x_m, led.y_m, led.z_m, led.frequency_hz, led.duty, led.diameter_m)
+            for led in surveyed_leds(world)
+        )
+    )
+    m = world.robot.camera_mount
+    return AgentView(intrinsics, leds, CameraMount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad))
+
+
+def default_area(world: World) -> tuple[float, float, float, float]:
+    xs = [led.x_m for led in world.leds]
+    ys = [led.y_m for led in world.leds]
+    if not xs:
+        raise ConfigError("leds", "the world has no LEDs to position from", world.source)
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def leds_in_view(renderer: RollingShutterRenderer, pose: Pose2D, margin_px: float) -> int:
+    """How many LED disks are entirely inside the image, ``margin_px`` from its border, at ``pose``."""
+    cam = renderer.camera
+    mount = renderer.mount
+    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+    lens_x = pose.x_m + c * mount.x_m - s * mount.y_m
+    lens_y = pose.y_m + s * mount.x_m + c * mount.y_m
+    yaw = pose.yaw_rad + mount.yaw_rad
+    count = 0
+    for led in renderer.leds:
+        u, v, depth = renderer.project(
+            np.array([led.x_m]), np.array([led.y_m]), np.array([led.z_m]), lens_x, lens_y, yaw
+        )
+        if depth[0] <= 0:
+            continue
+        uo, vo = renderer.sensor_to_output(float(u[0]), float(v[0]))
+        r = renderer.output_intrinsics.fx_px * led.diameter_m / 2.0 / float(depth[0])
+        if r + margin_px < uo < cam.output_width_px - r - margin_px and (
+            r + margin_px < vo < cam.output_height_px - r - margin_px
+        ):
+            count += 1
+    return count
+
+
+# -- scoring -------------------------------------------------------------------------------------------------
+@dataclass
+class Tally:
+    """Errors, id checks and timings of one pipeline over a run."""
+
+    errors_m: list[float] = field(default_factory=list)
+    fixes: list[tuple[float, float, float, float]] = field(default_factory=list)  # est x, y, true x, y
+    no_fix: Counter[str] = field(default_factory=Counter)
+    degraded_errors_m: list[float] = field(default_factory=list)
+    ids_seen: int = 0
+    ids_frame_ok: int = 0
+    ids_settled: int = 0
+    ids_track_ok: int = 0
+    assoc_seen: int = 0
+    assoc_ok: int = 0
+    tracks_final: dict[int, tuple[str, str | None]] = field(default_factory=dict)
+    latency_ms: list[float] = field(default_factory=list)
+    stage_ms: dict[str, list[float]] = field(
+        default_factory=lambda: {"acquire": [], "track": [], "decode": [], "solve": []}
+    )
+
+    def add(self, result: VlpResult, truth: FrameTruth) -> None:
+        t = result.timings
+        self.latency_ms.append(t.total_ms)
+        for name, value in (("acquire", t.acquire_ms), ("track", t.track_ms), ("decode", t.decode_ms)):
+            self.stage_ms[name].append(value)
+        self.stage_ms["solve"].append(t.solve_ms)
+        base = truth.base_pose
+        if isinstance(result, VlpFix):
+            err = math.hypot(result.x_m - base.x_m, result.y_m - base.y_m)
+            if result.degraded:
+                # A degraded fix (one LED and the prior's yaw, an outlier dropped) says so; it is scored
+                # apart, as a consumer weighs it by its covariance.
+                self.degraded_errors_m.append(err)
+            else:
+                self.errors_m.append(err)
+                self.fixes.append((result.x_m, result.y_m, base.x_m, base.y_m))
+        else:
+            self.no_fix[result.reason] += 1
+        for obs in result.leds:
+            if obs.visibility != "full":
+                continue
+            near = [
+                lt
+                for lt in truth.leds
+                if lt.in_image and math.dist(lt.centre_px, obs.centre_px) < max(0.5 * lt.radius_px, 2.0)
+            ]
+            if not near:
+                continue
+            lt = near[0]
+            self.ids_seen += 1
+            self.ids_frame_ok += int(obs.frame_id == lt.id)
+            if obs.id is not None:
+                self.ids_settled += 1
+                self.ids_track_ok += int(obs.id == lt.id)
+            self.tracks_final[obs.track_id] = (lt.id, obs.id)
+            if obs.map_index is not None:
+                self.assoc_seen += 1
+                self.assoc_ok += int(obs.map_index == lt.index)
+
+
+def _pct(values: Sequence[float], q: float) -> float:
+    return float(np.percentile(values, q)) if len(values) else math.nan
+
+
+def _summary_errors(errors_m: Sequence[float]) -> dict[str, float]:
+    cm = [100.0 * e for e in errors_m]
+    return {
+        "mean_error_cm": float(np.mean(cm)) if cm else math.nan,
+        "median_error_cm": _pct(cm, 50),
+        "p90_error_cm": _pct(cm, 90),
+        "max_error_cm": float(np.max(cm)) if cm else math.nan,
+    }
+
+
+# -- running a pipeline over frames --------------------------------------------------------------------------
+class Bench:
+    """The world, its renderer and the agent's view, with helpers to render and process frames."""
+
+    def __init__(self, world: World, seed: int) -> None:
+        self.world = world
+        self.view = agent_view(world)
+        self.renderer = RollingShutterRenderer.for_world(world, seed=seed)
+        self.fps = world.camera.frame_rate_hz
+        self.rng = np.random.default_rng(seed + 1)
+        self.repeats_ids = not self.view.led_map.ids_unique
+        self.margin_px = 20.0 / 800.0 * world.camera.output_width_px
+        self.clock = 1000.0
+
+    def frame(self, pose_at: PoseAt, t0: float) -> RenderedFrame:
+        return self.renderer.render(pose_at, t0)
+
+    def next_start(self, span_s: float) -> float:
+        """A fresh stretch of simulated time (frames of different runs never share a time)."""
+        start = self.clock + float(self.rng.uniform(0.0, 1.0))
+        self.clock = start + span_s + 10.0
+        return start
+
+    def prior_for(self, pose: Pose2D) -> PosePrior | None:
+        """An odometry-grade prior when the map repeats ids (unneeded otherwise)."""
+        if not self.repeats_ids:
+            return None
+        return PosePrior(
+            pose.x_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
+            pose.y_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
+            pose.yaw_rad + float(self.rng.normal(0.0, PRIOR_SIGMA_YAW_RAD)),
+            2.0 * PRIOR_SIGMA_XY_M,
+            2.0 * PRIOR_SIGMA_YAW_RAD,
+        )
+
+    def random_pose(self, area: tuple[float, float, float, float], min_leds: int = 2) -> Pose2D:
+        x0, y0, x1, y1 = area
+        for _ in range(10_000):
+            pose = Pose2D(
+                float(self.rng.uniform(x0, x1)),
+                float(self.rng.uniform(y0, y1)),
+                float(self.rng.uniform(-math.pi, math.pi)),
+            )
+            if leds_in_view(self.renderer, pose, self.margin_px) >= min_leds:
+                return pose
+        raise ConfigError("--area", f"no pose in {area} sees {min_leds} LEDs", self.world.source)
+
+
+def static_frames(
+    bench: Bench,
+    pose: Pose2D,
+    count: int,
+    pipelines: Sequence[VlpPipeline],
+    tallies: Sequence[Tally],
+) -> list[list[VlpResult]]:
+    """``count`` consecutive frames of a robot standing at ``pose``, through each pipeline (reset first)."""
+    for pipe in pipelines:
+        pipe.reset()
+    start = bench.next_start(count / bench.fps)
+    prior = bench.prior_for(pose)
+    out: list[list[VlpResult]] = [[] for _ in pipelines]
+    for k in range(count):
+        t0 = start + k / bench.fps + float(bench.rng.uniform(0.0, 1e-3))
+        rendered = bench.frame(lambda t: pose, t0)
+        for i, (pipe, tally) in enumerate(zip(pipelines, tallies, strict=True)):
+            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior if k == 0 else None)
+            tally.add(result, rendered.truth)
+            out[i].append(result)
+    return out
+
+
+# -- calibration ---------------------------------------------------------------------------------------------
+@dataclass
+class CalibrationReport:
+    calibration: VlpCalibration
+    file: str
+    turn_frames: int
+    tracks_used: int
+    known_fixes: int
+
+
+def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: Path) -> CalibrationReport:
+    """The robot's calibration, simulated: turn in place, then fixes at known points. Writes the file."""
+    view = bench.view
+    centre = Pose2D(0.5 * (area[0] + area[2]), 0.5 * (area[1] + area[3]), 0.0)
+    # 1. Rotation centre: one full turn in place, tracks of the uncalibrated pipeline.
+    pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+    duration = 2.0 * math.pi / CALIBRATION_TURN_RADPS
+    n = int(duration * bench.fps) + 1
+    start = bench.next_start(duration)
+
+    def turning(t: float) -> Pose2D:
+        return Pose2D(centre.x_m, centre.y_m, CALIBRATION_TURN_RADPS * (t - start))
+
+    paths: dict[int, list[tuple[float, float]]] = {}
+    heights: dict[int, float] = {}
+    prior = bench.prior_for(centre)
+    for k in range(n):
+        rendered = bench.frame(turning, start + k / bench.fps)
+        result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior if k == 0 else None)
+        for obs in result.leds:
+            if obs.visibility != "full":
+                continue
+            paths.setdefault(obs.track_id, []).append(obs.centre_px)
+            if obs.map_index is not None:
+                heights[obs.track_id] = view.led_map.leds[obs.map_index].z_m - view.mount.z_m
+    ids = [k for k in paths if k in heights]
+    rc = fit_rotation_centre(
+        [np.array(paths[k]) for k in ids], [heights[k] for k in ids], view.intrinsics, view.mount
+    )
+    centred = VlpCalibration(
+        (view.intrinsics.width_px, view.intrinsics.height_px), (rc.cx_px, rc.cy_px), rc.sigma_px
+    )
+
+    # 2. Residual correction: fixes at known points with the centre applied.
+    pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount, calibration=centred)
+    est: list[tuple[float, float]] = []
+    true: list[tuple[float, float]] = []
+    x0, y0, x1, y1 = area
+    tally = Tally()
+    for i in range(CALIBRATION_GRID):
+        for j in range(CALIBRATION_GRID):
+            fx = (i + 0.5) / CALIBRATION_GRID
+            fy = (j + 0.5) / CALIBRATION_GRID
+            for h in range(CALIBRATION_HEADINGS):
+                pose = Pose2D(
+                    x0 + fx * (x1 - x0), y0 + fy * (y1 - y0), h * 2.0 * math.pi / CALIBRATION_HEADINGS
+                )
+                if leds_in_view(bench.renderer, pose, bench.margin_px) < 2:
+                    continue
+                (results,) = static_frames(bench, pose, CALIBRATION_FRAMES, [pipe], [tally])
+                for r in results:
+                    if isinstance(r, VlpFix) and not r.degraded:
+                        est.append((r.x_m, r.y_m))
+                        true.append((pose.x_m, pose.y_m))
+    residual = fit_residual_correction(np.array(est), np.array(true), degree=1) if len(est) >= 6 else None
+    calibration = dataclasses.replace(centred, residual=residual)
+    text = format_calibration(
+        calibration,
+        f"world {bench.world.name}: rotation centre from a {duration:.1f} s turn in place at "
+        f"({centre.x_m:.2f}, {centre.y_m:.2f}) m ({len(ids)} LED tracks); residual from {len(est)} fixes "
+        f"at {CALIBRATION_GRID}x{CALIBRATION_GRID} known points x {CALIBRATION_HEADINGS} headings",
+    )
+    out_path.write_text(text, encoding="utf-8")
+    log.info(
+        "calibration: principal point (%.2f, %.2f) px from %d tracks, residual rms %.2f -> %.2f mm",
+        rc.cx_px,
+        rc.cy_px,
+        len(ids),
+        1e3 * (residual.rms_before_m if residual else math.nan),
+        1e3 * (residual.rms_after_m if residual else math.nan),
+    )
+    loaded = parse_calibration(out_path.read_text(encoding="utf-8"), source=str(out_path))
+    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est))
+
+
+# -- the runs ------------------------------------------------------------------------------------------------
+def dispersion(bench: Bench, pipe: VlpPipeline, centre: Pose2D) -> dict[str, float]:
+    """The paper's dispersion circle at one spot: fixes over twelve headings; offset = |mean - truth|,
+    radius = the largest distance of a fix from the mean."""
+    tally = Tally()
+    for h in range(DISPERSION_HEADINGS):
+        yaw = (h + 0.37) * 2.0 * math.pi / DISPERSION_HEADINGS
+        static_frames(bench, Pose2D(centre.x_m, centre.y_m, yaw), DISPERSION_FRAMES, [pipe], [tally])
+    if not tally.fixes:
+        return {"offset_cm": math.nan, "radius_cm": math.nan}
+    est = np.array([(f[0], f[1]) for f in tally.fixes])
+    mean = est.mean(axis=0)
+    offset = math.hypot(mean[0] - centre.x_m, mean[1] - centre.y_m)
+    radius = float(np.max(np.hypot(est[:, 0] - mean[0], est[:, 1] - mean[1])))
+    return {"offset_cm": 100.0 * offset, "radius_cm": 100.0 * radius}
+
+
+def driving(
+    bench: Bench, pipe: VlpPipeline, area: tuple[float, float, float, float], passes: int, speed: float
+) -> Tally:
+    """Straight passes at ``speed``, each through a random point of the area at a random heading, as long
+    as the area's diagonal (at most ``PASS_LENGTH_M``), frames at the camera's rate while inside the area."""
+    tally = Tally()
+    x0, y0, x1, y1 = area
+    length = min(math.hypot(x1 - x0, y1 - y0), PASS_LENGTH_M)
+    for _ in range(passes):
+        through = bench.random_pose(area)
+        heading = through.yaw_rad
+        duration = length / speed
+        start = bench.next_start(duration)
+        t_mid = start + 0.5 * duration
+        c, s = math.cos(heading), math.sin(heading)
+
+        def pose_at(
+            t: float,
+            cx: float = through.x_m,
+            cy: float = through.y_m,
+            c: float = c,
+            s: float = s,
+            h: float = heading,
+            tm: float = t_mid,
+        ) -> Pose2D:
+            d = speed * (t - tm)
+            return Pose2D(cx + c * d, cy + s * d, h)
+
+        pipe.reset()
+        for k in range(int(duration * bench.fps)):
+            t0 = start + k / bench.fps
+            p = pose_at(t0)
+            if not (x0 <= p.x_m <= x1 and y0 <= p.y_m <= y1):
+                continue
+            rendered = bench.frame(pose_at, t0)
+            # Driving, the robot's odometry knows roughly where it is on every frame (the runtime passes the
+            # fused pose as the prior); it matters only where the map repeats ids.
+            prior = bench.prior_for(rendered.truth.base_pose)
+            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior)
+            tally.add(result, rendered.truth)
+    return tally
+
+
+def _ratio(num: int, den: int) -> float:
+    return num / den if den else math.nan
+
+
+def _stage_medians(t: Tally) -> dict[str, float]:
+    return {name: _pct(values, 50) for name, values in t.stage_ms.items()}
+
+
+def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, World]:
+    world_path = Path(args.world) if args.world else DEFAULT_WORLD
+    if not world_path.is_file():
+        raise ConfigError("--world", f"no such world file: {world_path}")
+    world = load_world(world_path)
+    if args.points < 1 or args.repeats < 1:
+        raise ConfigError("--points", "points and repeats must be >= 1")
+    if args.speed < 0:
+        raise ConfigError("--speed", f"must be >= 0, got {args.speed}")
+    cv2.setNumThreads(1)
+    bench = Bench(world, args.seed)
+    area = tuple(args.area) if args.area else default_area(world)
+    assert len(area) == 4
+    area4 = (float(area[0]), float(area[1]), float(area[2]), float(area[3]))
+    view = bench.view
+    t_start = time.perf_counter()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(args.calibration_out) if args.calibration_out else Path(tmp) / "vlp_calibration.toml"
+        report = calibrate(bench, area4, out)
+        calibrated = VlpPipeline(view.intrinsics, view.led_map, view.mount, calibration=report.calibration)
+        uncalibrated = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+        cal_tally, uncal_tally = Tally(), Tally()
+        if args.speed > 0:
+            cal_tally = driving(bench, calibrated, area4, args.points, args.speed)
+            bench.rng = np.random.default_rng(args.seed + 1)
+            uncal_tally = driving(bench, uncalibrated, area4, args.points, args.speed)
+            disp_cal = disp_uncal = {"offset_cm": math.nan, "radius_cm": math.nan}
+        else:
+            for _ in range(args.points):
+                pose = bench.random_pose(area4)
+                static_frames(bench, pose, args.repeats, [uncalibrated, calibrated], [uncal_tally, cal_tally])
+            centre = Pose2D(0.5 * (area4[0] + area4[2]), 0.5 * (area4[1] + area4[3]), 0.0)
+            disp_cal = dispersion(bench, calibrated, centre)
+            disp_uncal = dispersion(bench, uncalibrated, centre)
+
+    cal = report.calibration
+    true_intr = bench.renderer.output_intrinsics
+    tracks_ok = sum(1 for truth_id, got in cal_tally.tracks_final.values() if got == truth_id)
+    summary: dict[str, Any] = {
+        "world": world.name,
+        "mode": "driving" if args.speed > 0 else "static",
+        "speed_mps": args.speed,
+        "points": args.points,
+        "repeats": args.repeats if args.speed == 0 else None,
+        "frames": len(cal_tally.latency_ms),
+        "fixes": len(cal_tally.errors_m),
+        "degraded_fixes": len(cal_tally.degraded_errors_m),
+        "degraded_mean_error_cm": _summary_errors(cal_tally.degraded_errors_m)["mean_error_cm"],
+        "no_fix": dict(cal_tally.no_fix),
+        **_summary_errors(cal_tally.errors_m),
+        "uncalibrated_mean_error_cm": _summary_errors(uncal_tally.errors_m)["mean_error_cm"],
+        "uncalibrated_median_error_cm": _summary_errors(uncal_tally.errors_m)["median_error_cm"],
+        "uncalibrated_p90_error_cm": _summary_errors(uncal_tally.errors_m)["p90_error_cm"],
+        "uncalibrated_max_error_cm": _summary_errors(uncal_tally.errors_m)["max_error_cm"],
+        "id_accuracy_frame": _ratio(cal_tally.ids_frame_ok, cal_tally.ids_seen),
+        "id_accuracy_track": _ratio(cal_tally.ids_track_ok, cal_tally.ids_settled),
+        "id_unsettled_fraction": _ratio(cal_tally.ids_seen - cal_tally.ids_settled, cal_tally.ids_seen),
+        "id_tracks_correct": f"{tracks_ok}/{len(cal_tally.tracks_final)}",
+        "id_observations": cal_tally.ids_seen,
+        "association_accuracy": _ratio(cal_tally.assoc_ok, cal_tally.assoc_seen),
+        "dispersion_offset_cm": disp_cal["offset_cm"],
+        "dispersion_radius_cm": disp_cal["radius_cm"],
+        "uncalibrated_dispersion_offset_cm": disp_uncal["offset_cm"],
+        "uncalibrated_dispersion_radius_cm": disp_uncal["radius_cm"],
+        "latency_ms_median": _pct(cal_tally.latency_ms, 50),
+        "latency_ms_p99": _pct(cal_tally.latency_ms, 99),
+        "latency_ms_stages_median": _stage_medians(cal_tally),
+        "image_size_px": [view.intrinsics.width_px, view.intrinsics.height_px],
+        "calibration": {
+            "file": report.file if args.calibration_out else None,
+            "turn_frames": report.turn_frames,
+            "tracks_used": report.tracks_used,
+            "known_point_fixes": report.known_fixes,
+            "principal_point_px": list(cal.principal_point_px) if cal.principal_point_px else None,
+            "nominal_principal_point_px": [view.intrinsics.cx_px, view.intrinsics.cy_px],
+            "true_principal_point_px": [true_intr.cx_px, true_intr.cy_px],
+            "residual_rms_before_cm": 100.0 * cal.residual.rms_before_m if cal.residual else None,
+            "residual_rms_after_cm": 100.0 * cal.residual.rms_after_m if cal.residual else None,
+        },
+        "prior": (
+            f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
+            f"{math.degrees(PRIOR_SIGMA_YAW_RAD):.0f} deg): the map repeats ids"
+            if bench.repeats_ids
+            else None
+        ),
+        "area_m": list(area4),
+        "seed": args.seed,
+        "wall_time_s": time.perf_counter() - t_start,
+    }
+    return summary, cal_tally, uncal_tally, world
+
+
+# -- the figure ----------------------------------------------------------------------------------------------
+def draw_figure(
+    path: Path, world: World, area: Sequence[float], cal: Tally, uncal: Tally, summary: dict[str, Any]
+) -> None:
+    """Estimated vs true positions (left) and the error CDFs (right), like the paper's Fig. 9."""
+    w, h = 1400, 700
+    img = np.full((h, w, 3), 255, dtype=np.uint8)
+    black, grey, red, blue, amber = (0, 0, 0), (150, 150, 150), (40, 40, 220), (200, 90, 30), (0, 170, 230)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    # Left panel: positions.
+    x0, y0, x1, y1 = area
+    pad = 0.1 * max(x1 - x0, y1 - y0)
+    x0, x1, y0, y1 = x0 - pad, x1 + pad, y0 - pad, y1 + pad
+    left, top, size = 80, 60, 560
+    scale = size / max(x1 - x0, y1 - y0)
+
+    def to_px(x: float, y: float) -> tuple[int, int]:
+        return int(left + (x - x0) * scale), int(top + size - (y - y0) * scale)
+
+    cv2.rectangle(img, (left, top), (left + size, top + size), black, 1)
+    for led in world.leds:
+        if x0 <= led.x_m <= x1 and y0 <= led.y_m <= y1:
+            cv2.circle(img, to_px(led.x_m, led.y_m), max(int(led.diameter_m / 2 * scale), 4), amber, -1)
+    for ex, ey, _, _ in uncal.fixes:
+        cv2.circle(img, to_px(ex, ey), 2, grey, -1)
+    for ex, ey, _, _ in cal.fixes:
+        cv2.circle(img, to_px(ex, ey), 2, red, -1)
+    for tx, ty in {(round(f[2], 4), round(f[3], 4)) for f in cal.fixes}:
+        cv2.drawMarker(img, to_px(tx, ty), black, cv2.MARKER_CROSS, 10, 1)
+    for frac in (0.0, 0.5, 1.0):
+        xv = x0 + frac * (x1 - x0)
+        yv = y0 + frac * (y1 - y0)
+        cv2.putText(img, f"{xv:.2f}", (to_px(xv, y0)[0] - 20, top + size + 22), font, 0.45, black, 1)
+        cv2.putText(img, f"{yv:.2f}", (left - 60, to_px(x0, yv)[1] + 5), font, 0.45, black, 1)
+    cv2.putText(img, "x (m)", (left + size // 2 - 20, top + size + 45), font, 0.5, black, 1)
+    cv2.putText(img, "y (m)", (left - 70, top + size // 2 - 30), font, 0.5, black, 1)
+    cv2.putText(img, f"(a) estimated vs true positions, {world.name}", (left, top - 25), font, 0.6, black, 1)
+    cv2.putText(
+        img,
+        "+ true   red: calibrated   grey: uncalibrated   yellow: LEDs",
+        (left, top - 8),
+        font,
+        0.42,
+        black,
+        1,
+    )
+    # Right panel: CDFs.
+    left2 = 780
+    cv2.rectangle(img, (left2, top), (left2 + size, top + size), black, 1)
+    errs = [100.0 * e for e in cal.errors_m] + [100.0 * e for e in uncal.errors_m]
+    e_max = max(max(errs) if errs else 1.0, 0.5) * 1.05
+    for values, colour in ((uncal.errors_m, grey), (cal.errors_m, red)):
+        cm = np.sort(np.array(values) * 100.0)
+        if cm.size == 0:
+            continue
+        pts = [
+            (int(left2 + v / e_max * size), int(top + size - (i + 1) / cm.size * size))
+            for i, v in enumerate(cm)
+        ]
+        cv2.polylines(img, [np.array(pts, dtype=np.int32)], False, colour, 2)
+    for frac in (0.0, 0.5, 1.0):
+        cv2.putText(
+            img, f"{frac * e_max:.2f}", (left2 + int(frac * size) - 15, top + size + 22), font, 0.45, black, 1
+        )
+        cv2.putText(img, f"{frac:.1f}", (left2 - 35, top + size - int(frac * size) + 5), font, 0.45, black, 1)
+    y90 = top + size - int(0.9 * size)
+    cv2.line(img, (left2, y90), (left2 + size, y90), blue, 1)
+    cv2.putText(img, "error (cm)", (left2 + size // 2 - 40, top + size + 45), font, 0.5, black, 1)
+    cv2.putText(img, "(b) CDF of positioning errors", (left2, top - 25), font, 0.6, black, 1)
+    cv2.putText(
+        img,
+        f"mean {summary['mean_error_cm']:.2f} cm, p90 {summary['p90_error_cm']:.2f} cm "
+        f"(uncalibrated mean {summary['uncalibrated_mean_error_cm']:.2f} cm)",
+        (left2, top - 8),
+        font,
+        0.42,
+        black,
+        1,
+    )
+    if not cv2.imwrite(str(path), img):
+        raise ConfigError("--png", f"could not write {path}")
+
+
+def _table(summary: dict[str, Any]) -> str:
+    def f(v: Any, unit: str = "") -> str:
+        if isinstance(v, float):
+            return f"{v:.3f}{unit}" if math.isfinite(v) else "n/a"
+        return f"{v}{unit}"
+
+    cal = summary["calibration"]
+    stages = summary["latency_ms_stages_median"]
+    rows = [
+        (
+            "world",
+            f"{summary['world']} ({summary['mode']}"
+            + (f", {summary['speed_mps']} m/s)" if summary["mode"] == "driving" else ")"),
+        ),
+        (
+            "frames / fixes",
+            f"{summary['frames']} / {summary['fixes']} ({summary['degraded_fixes']} degraded)",
+        ),
+        ("no fix", ", ".join(f"{k}: {v}" for k, v in summary["no_fix"].items()) or "none"),
+        (
+            "error mean / median",
+            f"{f(summary['mean_error_cm'], ' cm')} / {f(summary['median_error_cm'], ' cm')}",
+        ),
+        ("error p90 / max", f"{f(summary['p90_error_cm'], ' cm')} / {f(summary['max_error_cm'], ' cm')}"),
+        (
+            "uncalibrated mean / p90",
+            f"{f(summary['uncalibrated_mean_error_cm'], ' cm')} / "
+            f"{f(summary['uncalibrated_p90_error_cm'], ' cm')}",
+        ),
+        (
+            "dispersion offset / radius",
+            f"{f(summary['dispersion_offset_cm'], ' cm')} / {f(summary['dispersion_radius_cm'], ' cm')}",
+        ),
+        (
+            "  uncalibrated",
+            f"{f(summary['uncalibrated_dispersion_offset_cm'], ' cm')} / "
+            f"{f(summary['uncalibrated_dispersion_radius_cm'], ' cm')}",
+        ),
+        (
+            "id accuracy frame / track",
+            f"{f(summary['id_accuracy_frame'])} / {f(summary['id_accuracy_track'])} "
+            f"({summary['id_observations']} LED sightings, tracks {summary['id_tracks_correct']})",
+        ),
+        (
+            "latency median / p99",
+            f"{f(summary['latency_ms_median'], ' ms')} / {f(summary['latency_ms_p99'], ' ms')}",
+        ),
+        ("  per stage (median)", ", ".join(f"{k} {v:.3f}" for k, v in stages.items())),
+        (
+            "principal point",
+            f"{cal['principal_point_px']} (nominal {cal['nominal_principal_point_px']}, "
+            f"true {cal['true_principal_point_px']})",
+        ),
+    ]
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"{name.ljust(width)}  {value}" for name, value in rows)
+
+
+def run(args: argparse.Namespace) -> int:
+    summary, cal, uncal, world = evaluate(args)
+    if args.json:
+        print(json.dumps(summary, indent=None, sort_keys=False, default=_json_default))
+        return 0
+    print(_table(summary))
+    png = Path(args.png) if args.png else Path(f"vlp_eval_{world.name}.png")
+    draw_figure(png, world, summary["area_m"], cal, uncal, summary)
+    print(f"figure: {png}")
+    return 0
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, np.floating | np.integer):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

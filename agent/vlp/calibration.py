@@ -1,0 +1,324 @@
+"""Camera calibration for VLP: the rotation centre and a residual correction, and their file format.
+
+Two procedures, after ``reference/vlp.md`` §1.6 (the group's error calibration, arXiv 2010.00529):
+
+* **Rotation centre (principal point).** While the robot turns in place, every LED's image moves on a circle
+  around the image of the vertical through the lens. Its centre is the principal point plus what the camera's
+  tilt on its mount adds (f tan(tilt)), so fitting circles to the tracked centres (Kasa least squares,
+  (u - a)^2 + (v - b)^2 = r^2, linear in a, b and c = r^2 - a^2 - b^2) and averaging them gives the centre
+  that makes the level-camera model exact: it absorbs the principal-point error and the tilt together.
+  A lens off the rotation axis by m (base frame) moves every circle by -f R(-yaw_m) m / h, which is undone.
+* **Residual correction.** Fixes taken at known points leave a position-dependent error e(x, y) = fix - truth
+  (LED survey errors, what the centre does not absorb). A low-degree polynomial in (x, y) fitted to the
+  errors by least squares is subtracted from every later fix.
+
+Both are stored in a small TOML file (format in docs/vlp.md) read with :func:`parse_calibration`; this module
+does no I/O: the caller reads and writes the text.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.vlp.detect import fit_circle
+from agent.vlp.model import CameraIntrinsics, CameraMount
+from drivers.errors import ConfigError
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "ResidualCorrection",
+    "RotationCentre",
+    "VlpCalibration",
+    "fit_residual_correction",
+    "fit_rotation_centre",
+    "format_calibration",
+    "parse_calibration",
+]
+
+# A track must sweep at least this much of its circle to constrain the centre.
+_MIN_ARC_RAD = math.radians(60.0)
+
+
+@dataclass(frozen=True, slots=True)
+class RotationCentre:
+    """The principal point found from a turn in place (output px), its standard error, and the circles."""
+
+    cx_px: float
+    cy_px: float
+    sigma_px: float
+    circles: tuple[tuple[float, float, float, float], ...]  # (a, b, r, rms) per track used
+
+
+def _arc_rad(points: FloatArray, a: float, b: float) -> float:
+    """How much of the circle around (a, b) the points cover (2 pi minus the largest angular gap)."""
+    ang = np.sort(np.arctan2(points[:, 1] - b, points[:, 0] - a))
+    if ang.size < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate((ang, [ang[0] + 2.0 * math.pi])))
+    return float(2.0 * math.pi - gaps.max())
+
+
+def fit_rotation_centre(
+    tracks: Sequence[FloatArray],
+    heights_m: Sequence[float],
+    intrinsics: CameraIntrinsics,
+    mount: CameraMount | None = None,
+    *,
+    min_points: int = 12,
+) -> RotationCentre:
+    """The principal point from LED image tracks recorded while turning in place.
+
+    ``tracks[i]`` is an (n, 2) array of one LED's image centres (output px) over the turn, ``heights_m[i]``
+    that LED's height above the lens. Each circle centre, moved back by the lens offset
+    (+f R(-yaw_m) m_xy / h), estimates the principal point; they are averaged weighted by their arc and
+    point count. Raises ValueError when no track sweeps enough of its circle.
+    """
+    mount = mount if mount is not None else CameraMount()
+    cos_m, sin_m = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
+    # The lens offset in the camera's level frame, R(-yaw_m) m.
+    mx = cos_m * mount.x_m + sin_m * mount.y_m
+    my = -sin_m * mount.x_m + cos_m * mount.y_m
+    centres: list[tuple[float, float, float]] = []
+    circles: list[tuple[float, float, float, float]] = []
+    for pts, h in zip(tracks, heights_m, strict=True):
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+        if pts.shape[0] < min_points:
+            continue
+        a, b, r = fit_circle(pts[:, 0], pts[:, 1])
+        arc = _arc_rad(pts, a, b)
+        if arc < _MIN_ARC_RAD or r <= 0:
+            continue
+        rms = float(np.sqrt(np.mean((np.hypot(pts[:, 0] - a, pts[:, 1] - b) - r) ** 2)))
+        # The circle is centred on the principal point minus f R(-yaw_m) m / h.
+        cx = a + intrinsics.fx_px * mx / h
+        cy = b + intrinsics.fy_px * my / h
+        weight = pts.shape[0] * (arc / (2.0 * math.pi)) ** 2 / max(rms, 0.05) ** 2
+        centres.append((cx, cy, weight))
+        circles.append((a, b, r, rms))
+    if not centres:
+        raise ValueError("no LED track covers enough of its circle: turn further, or under more LEDs")
+    c = np.array(centres)
+    w = c[:, 2] / c[:, 2].sum()
+    cx, cy = float(w @ c[:, 0]), float(w @ c[:, 1])
+    if len(centres) > 1:
+        spread = float(np.sqrt(w @ ((c[:, 0] - cx) ** 2 + (c[:, 1] - cy) ** 2) / (len(centres) - 1)))
+    else:
+        spread = circles[0][3] / math.sqrt(len(tracks[0]))
+    return RotationCentre(cx, cy, spread, tuple(circles))
+
+
+def _monomials(x: FloatArray, y: FloatArray, degree: int) -> FloatArray:
+    """[1, x, y, x^2, x y, y^2, ...] up to ``degree``, as columns."""
+    cols = [x**i * y ** (d - i) for d in range(degree + 1) for i in range(d, -1, -1)]
+    return np.column_stack(cols)
+
+
+@dataclass(frozen=True, slots=True)
+class ResidualCorrection:
+    """e(x, y) = sum_k c_k m_k((x - x0) / s, (y - y0) / s), monomials m_k = 1, x, y, x^2, x y, y^2, ...;
+    a fix (x, y) is corrected to (x, y) - e(x, y)."""
+
+    origin_m: tuple[float, float]
+    scale_m: float
+    degree: int
+    x_coefficients: tuple[float, ...]
+    y_coefficients: tuple[float, ...]
+    points: int = 0
+    rms_before_m: float = math.nan
+    rms_after_m: float = math.nan
+
+    def __post_init__(self) -> None:
+        n = (self.degree + 1) * (self.degree + 2) // 2
+        if self.degree < 0 or len(self.x_coefficients) != n or len(self.y_coefficients) != n:
+            raise ValueError(f"degree {self.degree} needs {n} coefficients per axis")
+        if not self.scale_m > 0:
+            raise ValueError("scale_m must be > 0")
+
+    def error_at(self, x_m: float, y_m: float) -> tuple[float, float]:
+        m = _monomials(
+            np.array([(x_m - self.origin_m[0]) / self.scale_m]),
+            np.array([(y_m - self.origin_m[1]) / self.scale_m]),
+            self.degree,
+        )[0]
+        return float(m @ np.asarray(self.x_coefficients)), float(m @ np.asarray(self.y_coefficients))
+
+    def apply(self, x_m: float, y_m: float) -> tuple[float, float]:
+        ex, ey = self.error_at(x_m, y_m)
+        return x_m - ex, y_m - ey
+
+
+def fit_residual_correction(
+    fixes_xy: FloatArray, truth_xy: FloatArray, *, degree: int = 1, ridge: float = 1e-6
+) -> ResidualCorrection:
+    """Least-squares polynomial (``degree``) through the errors fix - truth at known points (one row per
+    fix; several fixes per point average their noise). A small ridge keeps it defined with few points."""
+    fixes_xy = np.asarray(fixes_xy, dtype=np.float64).reshape(-1, 2)
+    truth_xy = np.asarray(truth_xy, dtype=np.float64).reshape(-1, 2)
+    n_coef = (degree + 1) * (degree + 2) // 2
+    if fixes_xy.shape[0] < n_coef:
+        raise ValueError(f"a degree-{degree} correction needs at least {n_coef} fixes")
+    origin = truth_xy.mean(axis=0)
+    scale = float(max(np.abs(truth_xy - origin).max(), 1e-3))
+    err = fixes_xy - truth_xy
+    a = _monomials((fixes_xy[:, 0] - origin[0]) / scale, (fixes_xy[:, 1] - origin[1]) / scale, degree)
+    normal = a.T @ a + ridge * np.eye(n_coef)
+    cx = np.linalg.solve(normal, a.T @ err[:, 0])
+    cy = np.linalg.solve(normal, a.T @ err[:, 1])
+    after = err - np.column_stack((a @ cx, a @ cy))
+    return ResidualCorrection(
+        (float(origin[0]), float(origin[1])),
+        scale,
+        degree,
+        tuple(float(v) for v in cx),
+        tuple(float(v) for v in cy),
+        int(fixes_xy.shape[0]),
+        float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
+        float(np.sqrt(np.mean(np.sum(after**2, axis=1)))),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class VlpCalibration:
+    """What the calibration found: the principal point at the given image size (None: keep the nominal
+    one) and a residual correction (None: none)."""
+
+    image_size_px: tuple[int, int]
+    principal_point_px: tuple[float, float] | None = None
+    principal_point_sigma_px: float = math.nan
+    residual: ResidualCorrection | None = None
+
+    def intrinsics(self, nominal: CameraIntrinsics) -> CameraIntrinsics:
+        """``nominal`` with the calibrated principal point (images must have the calibrated size)."""
+        if (nominal.width_px, nominal.height_px) != self.image_size_px:
+            raise ValueError(
+                f"calibration is for {self.image_size_px[0]}x{self.image_size_px[1]} images, the camera "
+                f"gives {nominal.width_px}x{nominal.height_px}"
+            )
+        if self.principal_point_px is None:
+            return nominal
+        return nominal.with_principal_point(*self.principal_point_px)
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))
+
+
+def format_calibration(cal: VlpCalibration, comment: str = "") -> str:
+    """The calibration as TOML text: the format :func:`parse_calibration` reads (docs/vlp.md)."""
+    lines = ["# vlp-agent VLP calibration (docs/vlp.md)"]
+    lines += [f"# {line}" for line in comment.splitlines()]
+    lines += ["", "[camera]"]
+    lines.append(f"image_size_px = [{cal.image_size_px[0]}, {cal.image_size_px[1]}]")
+    if cal.principal_point_px is not None:
+        cx, cy = cal.principal_point_px
+        lines.append(f"principal_point_px = [{_fmt(cx)}, {_fmt(cy)}]")
+        if math.isfinite(cal.principal_point_sigma_px):
+            lines.append(f"principal_point_sigma_px = {_fmt(cal.principal_point_sigma_px)}")
+    res = cal.residual
+    if res is not None:
+        lines += ["", "[residual]"]
+        lines.append(f"origin_m = [{_fmt(res.origin_m[0])}, {_fmt(res.origin_m[1])}]")
+        lines.append(f"scale_m = {_fmt(res.scale_m)}")
+        lines.append(f"degree = {res.degree}")
+        lines.append("x_coefficients = [" + ", ".join(_fmt(v) for v in res.x_coefficients) + "]")
+        lines.append("y_coefficients = [" + ", ".join(_fmt(v) for v in res.y_coefficients) + "]")
+        lines.append(f"points = {res.points}")
+        for name in ("rms_before_m", "rms_after_m"):
+            value = getattr(res, name)
+            if math.isfinite(value):
+                lines.append(f"{name} = {_fmt(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def _number(table: Mapping[str, Any], key: str, path: str, source: str | None) -> float:
+    value = table.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(float(value)):
+        raise ConfigError(f"{path}.{key}", f"must be a finite number, got {value!r}", source)
+    return float(value)
+
+
+def _numbers(table: Mapping[str, Any], key: str, path: str, source: str | None, n: int | None) -> list[float]:
+    value = table.get(key)
+    if not isinstance(value, list) or (n is not None and len(value) != n):
+        want = f"{n} numbers" if n is not None else "numbers"
+        raise ConfigError(f"{path}.{key}", f"must be an array of {want}, got {value!r}", source)
+    out = []
+    for i, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
+            raise ConfigError(f"{path}.{key}[{i}]", f"must be a finite number, got {v!r}", source)
+        out.append(float(v))
+    return out
+
+
+def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) -> VlpCalibration:
+    """A calibration from TOML text (or a parsed table). Raises ConfigError naming the key on mistakes."""
+    if isinstance(data, str):
+        try:
+            table: Mapping[str, Any] = tomllib.loads(data)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError("", f"not valid TOML: {exc}", source) from exc
+    else:
+        table = data
+    unknown = set(table) - {"camera", "residual"}
+    if unknown:
+        raise ConfigError(sorted(unknown)[0], "unknown section (expected [camera] and [residual])", source)
+    camera = table.get("camera")
+    if not isinstance(camera, dict):
+        raise ConfigError("camera", "missing [camera] section", source)
+    known_camera = {"image_size_px", "principal_point_px", "principal_point_sigma_px"}
+    for key in camera:
+        if key not in known_camera:
+            raise ConfigError(f"camera.{key}", "unknown key", source)
+    size = _numbers(camera, "image_size_px", "camera", source, 2)
+    if any(v <= 0 or v != int(v) for v in size):
+        raise ConfigError("camera.image_size_px", f"must be two positive integers, got {size}", source)
+    principal = None
+    if "principal_point_px" in camera:
+        cx, cy = _numbers(camera, "principal_point_px", "camera", source, 2)
+        principal = (cx, cy)
+    sigma = math.nan
+    if "principal_point_sigma_px" in camera:
+        sigma = _number(camera, "principal_point_sigma_px", "camera", source)
+    residual = None
+    if "residual" in table:
+        res = table["residual"]
+        if not isinstance(res, dict):
+            raise ConfigError("residual", "must be a table", source)
+        known = {
+            "origin_m",
+            "scale_m",
+            "degree",
+            "x_coefficients",
+            "y_coefficients",
+            "points",
+            "rms_before_m",
+            "rms_after_m",
+        }
+        for key in res:
+            if key not in known:
+                raise ConfigError(f"residual.{key}", "unknown key", source)
+        degree = res.get("degree")
+        if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 4:
+            raise ConfigError("residual.degree", f"must be an integer 0..4, got {degree!r}", source)
+        n = (degree + 1) * (degree + 2) // 2
+        ox, oy = _numbers(res, "origin_m", "residual", source, 2)
+        scale = _number(res, "scale_m", "residual", source)
+        if scale <= 0:
+            raise ConfigError("residual.scale_m", f"must be > 0, got {scale}", source)
+        xs = _numbers(res, "x_coefficients", "residual", source, n)
+        ys = _numbers(res, "y_coefficients", "residual", source, n)
+        points = res.get("points", 0)
+        if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+            raise ConfigError("residual.points", f"must be a non-negative integer, got {points!r}", source)
+        before = _number(res, "rms_before_m", "residual", source) if "rms_before_m" in res else math.nan
+        after = _number(res, "rms_after_m", "residual", source) if "rms_after_m" in res else math.nan
+        residual = ResidualCorrection((ox, oy), scale, degree, tuple(xs), tuple(ys), points, before, after)
+    return VlpCalibration((int(size[0]), int(size[1])), principal, sigma, residual)

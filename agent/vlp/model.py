@@ -1,0 +1,334 @@
+"""The small frozen types that go in and out of the VLP pipeline.
+
+Units are in the names. Image coordinates are output pixels (the images the pipeline is given), u to the
+right and v down, pixel centres on integers. The world frame is x east, y north, z up (the LED survey's
+frame); yaw is counter-clockwise from +x. The camera frame is right-handed with z up along the optical axis,
+image u along camera x and v along camera y (``reference/vlp.md`` §1.5).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "CameraIntrinsics",
+    "CameraMount",
+    "LedMap",
+    "LedObservation",
+    "MapLed",
+    "Motion",
+    "NoFix",
+    "PosePrior",
+    "Signature",
+    "StageTimings",
+    "Tilt",
+    "VlpFix",
+    "VlpResult",
+]
+
+
+def _nearest_neighbour_line(src_size: int, dst_size: int) -> tuple[float, float]:
+    """Source coordinate = a * destination coordinate + b, the least-squares line through the indices that
+    ``cv2.resize(..., INTER_NEAREST)`` keeps (OpenCV ``resizeNN``: index = min(floor(x * src/dst), src - 1),
+    with the scale computed as 1 / (dst / src) in double precision)."""
+    if dst_size == src_size:
+        return 1.0, 0.0
+    ifx = 1.0 / (dst_size / src_size)
+    x = np.arange(dst_size, dtype=np.float64)
+    chosen = np.minimum(np.floor(x * ifx), src_size - 1)
+    a, b = np.polyfit(x, chosen, 1)
+    return float(a), float(b)
+
+
+@dataclass(frozen=True, slots=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics of the images the pipeline receives, and the rolling-shutter timing.
+
+    ``fx_px``..``cy_px`` are at output resolution. An image resized from the sensor with nearest neighbour
+    keeps sensor row ``sensor_rows_per_row * v + sensor_row_offset`` in output row v, so a stripe period
+    of P output rows lasts P * ``sensor_rows_per_row`` * ``t_row_s`` (the effective row time). Distortion
+    is OpenCV's (k1, k2, p1, p2, k3) on normalised coordinates, so it does not depend on the resolution.
+    """
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    t_row_s: float
+    sensor_rows_per_row: float = 1.0
+    sensor_row_offset: float = 0.0
+    sensor_height_px: int = 0
+    exposure_s: float = 20e-6
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.width_px <= 0 or self.height_px <= 0:
+            raise ValueError(f"image size must be positive, got {self.width_px}x{self.height_px}")
+        if not (self.fx_px > 0 and self.fy_px > 0):
+            raise ValueError(f"focal lengths must be positive, got {self.fx_px}, {self.fy_px}")
+        if not self.t_row_s > 0:
+            raise ValueError(f"t_row_s must be positive, got {self.t_row_s}")
+        if not self.sensor_rows_per_row > 0:
+            raise ValueError(f"sensor_rows_per_row must be positive, got {self.sensor_rows_per_row}")
+
+    @classmethod
+    def from_sensor(
+        cls,
+        *,
+        sensor_width_px: int,
+        sensor_height_px: int,
+        output_width_px: int,
+        output_height_px: int,
+        focal_length_px: float,
+        cx_sensor_px: float,
+        cy_sensor_px: float,
+        t_row_s: float,
+        exposure_s: float = 20e-6,
+        distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    ) -> CameraIntrinsics:
+        """Output-resolution intrinsics of a sensor whose frames are resized with nearest neighbour.
+
+        Sensor column = a_x u + b_x (rows alike), so fx = f / a_x and cx = (cx_sensor - b_x) / a_x.
+        """
+        ax, bx = _nearest_neighbour_line(sensor_width_px, output_width_px)
+        ay, by = _nearest_neighbour_line(sensor_height_px, output_height_px)
+        return cls(
+            width_px=output_width_px,
+            height_px=output_height_px,
+            fx_px=focal_length_px / ax,
+            fy_px=focal_length_px / ay,
+            cx_px=(cx_sensor_px - bx) / ax,
+            cy_px=(cy_sensor_px - by) / ay,
+            t_row_s=t_row_s,
+            sensor_rows_per_row=ay,
+            sensor_row_offset=by,
+            sensor_height_px=sensor_height_px,
+            exposure_s=exposure_s,
+            distortion=distortion,
+        )
+
+    @property
+    def t_row_eff_s(self) -> float:
+        """Time between consecutive output rows: t_row * sensor rows per output row."""
+        return self.t_row_s * self.sensor_rows_per_row
+
+    @property
+    def readout_rows(self) -> int:
+        return self.sensor_height_px if self.sensor_height_px > 0 else self.height_px
+
+    def row_time_from_mid_s(self, v_px: float) -> float:
+        """When output row ``v_px`` was exposed, relative to the middle of the readout (the frame's time):
+        t = ((a v + b) - (rows - 1) / 2) t_row."""
+        sensor_row = self.sensor_rows_per_row * v_px + self.sensor_row_offset
+        return (sensor_row - (self.readout_rows - 1) / 2.0) * self.t_row_s
+
+    def with_principal_point(self, cx_px: float, cy_px: float) -> CameraIntrinsics:
+        return CameraIntrinsics(
+            self.width_px,
+            self.height_px,
+            self.fx_px,
+            self.fy_px,
+            cx_px,
+            cy_px,
+            self.t_row_s,
+            self.sensor_rows_per_row,
+            self.sensor_row_offset,
+            self.sensor_height_px,
+            self.exposure_s,
+            self.distortion,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class CameraMount:
+    """Where the camera's lens sits on the robot base (x forward, y left, z up) and how it is turned.
+
+    Roll and pitch are the known mounting tilt (the tilt compensation adds the IMU's base tilt to them).
+    """
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    z_m: float = 0.2
+    yaw_rad: float = 0.0
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Signature:
+    """An LED's identity as the camera sees it: its PWM frequency and duty cycle."""
+
+    id: str
+    frequency_hz: float
+    duty: float
+
+
+@dataclass(frozen=True, slots=True)
+class MapLed:
+    """One surveyed ceiling LED: a horizontal disk facing down."""
+
+    id: str
+    x_m: float
+    y_m: float
+    z_m: float
+    frequency_hz: float
+    duty: float
+    diameter_m: float = 0.086
+
+
+@dataclass(frozen=True)
+class LedMap:
+    """The surveyed LED map. Ids may repeat across a large building (the same signature on LEDs far
+    apart); one id always has one signature. ``signatures`` lists each id once, in first-seen order."""
+
+    leds: tuple[MapLed, ...]
+    signatures: tuple[Signature, ...] = field(init=False)
+    indices_by_id: dict[str, tuple[int, ...]] = field(init=False, compare=False)
+    xyz_m: FloatArray = field(init=False, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        by_id: dict[str, list[int]] = {}
+        sigs: dict[str, Signature] = {}
+        for i, led in enumerate(self.leds):
+            if not (led.frequency_hz > 0 and 0 < led.duty < 1 and led.diameter_m > 0):
+                raise ValueError(f"LED {led.id!r} has an impossible signature or size: {led}")
+            known = sigs.get(led.id)
+            if known is None:
+                sigs[led.id] = Signature(led.id, led.frequency_hz, led.duty)
+            elif (known.frequency_hz, known.duty) != (led.frequency_hz, led.duty):
+                raise ValueError(f"LED id {led.id!r} appears with two signatures")
+            by_id.setdefault(led.id, []).append(i)
+        xyz = np.array([[led.x_m, led.y_m, led.z_m] for led in self.leds], dtype=np.float64).reshape(-1, 3)
+        object.__setattr__(self, "signatures", tuple(sigs.values()))
+        object.__setattr__(self, "indices_by_id", {k: tuple(v) for k, v in by_id.items()})
+        object.__setattr__(self, "xyz_m", xyz)
+
+    def __len__(self) -> int:
+        return len(self.leds)
+
+    def candidates(self, led_id: str) -> tuple[int, ...]:
+        """Indices of the map LEDs that carry ``led_id`` (several in a building that repeats ids)."""
+        return self.indices_by_id.get(led_id, ())
+
+    @property
+    def ids_unique(self) -> bool:
+        return all(len(v) == 1 for v in self.indices_by_id.values())
+
+
+@dataclass(frozen=True, slots=True)
+class Tilt:
+    """The robot base's roll and pitch (from the IMU), radians, right-handed about base x and y."""
+
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class PosePrior:
+    """Where the robot base roughly is (odometry, the last fix, a map prior): mean and standard deviations.
+
+    Used to tell apart LEDs that share an id, to reject fixes that jump impossibly far, and for a single-LED
+    degraded fix (which needs the yaw)."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    sigma_xy_m: float = 0.5
+    sigma_yaw_rad: float = math.radians(20.0)
+
+
+@dataclass(frozen=True, slots=True)
+class Motion:
+    """The base's velocity in the world frame during the frame (for the rolling-shutter correction)."""
+
+    vx_mps: float = 0.0
+    vy_mps: float = 0.0
+    yaw_rate_radps: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class StageTimings:
+    """Wall time spent per stage of one frame, milliseconds."""
+
+    acquire_ms: float = 0.0
+    track_ms: float = 0.0
+    decode_ms: float = 0.0
+    solve_ms: float = 0.0
+    total_ms: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class LedObservation:
+    """One LED seen in one frame.
+
+    ``frame_id`` is what this frame's stripes alone say (``None``: undecidable), with ``frame_confidence``;
+    ``id`` is the track's settled identity after voting over frames (``None`` until it settles).
+    ``visibility`` is ``"full"``, ``"partial"`` (partly occluded: kept, not used for the fix) or
+    ``"occluded"`` (coasting on the Kalman prediction). ``map_index`` is the map LED the solver matched.
+    """
+
+    track_id: int
+    centre_px: tuple[float, float]
+    radius_px: float
+    visibility: str
+    bhattacharyya: float
+    frame_id: str | None
+    frame_confidence: float
+    id: str | None
+    id_confidence: float
+    frequency_hz: float
+    duty: float
+    area_px: int
+    map_index: int | None = None
+    used: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class VlpFix:
+    """A pose of the robot base at ``time_s`` (the frame's mid-readout time).
+
+    ``covariance`` is over (x_m, y_m, yaw_rad), row-major 3x3. ``residual_rms`` is the solver's RMS
+    residual in standard deviations (about 1 when the noise is as modelled). ``degraded`` says the fix is
+    weaker than a
+    normal one, with the reasons in ``flags`` (e.g. ``"single-led"``, ``"partial-occlusion"``).
+    """
+
+    time_s: float
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    covariance: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+    ids: tuple[str, ...]
+    leds: tuple[LedObservation, ...]
+    residual_rms: float
+    degraded: bool
+    flags: tuple[str, ...]
+    timings: StageTimings
+
+    @property
+    def sigma_xy_m(self) -> float:
+        """sqrt of the larger eigenvalue of the position covariance: the worst direction's deviation."""
+        c = self.covariance
+        a, b, d = c[0][0], c[0][1], c[1][1]
+        return math.sqrt(max(0.5 * (a + d) + math.sqrt(0.25 * (a - d) ** 2 + b * b), 0.0))
+
+
+@dataclass(frozen=True, slots=True)
+class NoFix:
+    """No pose from this frame, and why (``reason`` is one short sentence)."""
+
+    time_s: float
+    reason: str
+    leds: tuple[LedObservation, ...]
+    timings: StageTimings
+
+
+VlpResult = VlpFix | NoFix

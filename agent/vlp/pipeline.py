@@ -1,0 +1,618 @@
+"""The VLP pipeline: frame in, pose of the robot base (or the reason there is none) out.
+
+Per frame: track the known LEDs in their windows (``agent.vlp.track``), look for new ones when needed
+(``agent.vlp.detect``: on start, when fewer than two LEDs are held, every ``redetect_interval`` frames, and
+at the places the map says an LED should have come into view), decode the stripes of every fully visible LED
+and vote for its id (``agent.vlp.decode``), turn the centres into level rays (``agent.vlp.geometry``: the
+calibrated principal point, undistortion, tilt from the mount and the IMU), and solve the pose
+(``agent.vlp.solve``: closed form, then Gauss-Newton with the rolling-shutter row times). The lens pose is
+moved to the base with the mount, and the calibration's residual correction is applied.
+
+A bad frame never raises: wrong size or type, black, saturated, no LED, one LED each give a ``NoFix`` with a
+reason (or, with one LED and a yaw prior, a fix flagged ``degraded``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.vlp.calibration import VlpCalibration
+from agent.vlp.decode import DecoderConfig, StripeDecoder, StripeFeatures
+from agent.vlp.detect import DetectorConfig, background_level, find_blobs, measure_blob
+from agent.vlp.geometry import (
+    lens_offset_level,
+    level_plane_coordinates,
+    level_rotation,
+    normalised_coordinates,
+)
+from agent.vlp.model import (
+    CameraIntrinsics,
+    CameraMount,
+    LedMap,
+    LedObservation,
+    Motion,
+    NoFix,
+    PosePrior,
+    StageTimings,
+    Tilt,
+    VlpFix,
+    VlpResult,
+)
+from agent.vlp.solve import LedRay, SolverConfig, single_led_position, solve_pose
+from agent.vlp.track import FULL, LedTrack, LedTracker, TrackerConfig
+
+log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["VlpConfig", "VlpPipeline"]
+
+
+@dataclass(frozen=True, slots=True)
+class VlpConfig:
+    """``detector``: None derives it from the map (the smallest and largest LED disk the camera can see).
+    ``redetect_interval``: frames between full-frame searches while tracking; ``predict_interval``: frames
+    between looks at where the map says an untracked LED should have come into view (0: never);
+    ``fft_check_interval``: frames between FFT cross-checks of a settled LED's period.
+    ``prior_max_age_s``: how long the last fix (or a given prior) serves as the prior (its uncertainty grows
+    at ``prior_growth_mps``).
+    ``motion_max_gap_s``: the velocity for the rolling-shutter correction is taken from the last two fixes
+    only when they are this close in time. ``saturated_fraction``: a frame with more pixels at 250+ is
+    saturated. A centre's standard deviation is max(``measurement_sigma_px``, ``outline_sigma_px`` /
+    sqrt(edge points)): on the renderer's frames 0.3 px with 8 outline points, under 0.1 px with 70.
+    ``single_led_max_yaw_sigma_rad``: a one-LED fix is made only from a yaw prior at least this good (it is
+    off by the yaw's error times the LED's horizontal distance)."""
+
+    detector: DetectorConfig | None = None
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    redetect_interval: int = 30
+    predict_interval: int = 4
+    fft_check_interval: int = 4
+    estimate_motion: bool = True
+    motion_max_gap_s: float = 0.2
+    max_speed_mps: float = 2.0
+    max_yaw_rate_radps: float = 4.0
+    prior_max_age_s: float = 1.0
+    prior_growth_mps: float = 1.0
+    saturated_fraction: float = 0.5
+    measurement_sigma_px: float = 0.08
+    single_led_max_yaw_sigma_rad: float = math.radians(5.0)
+    outline_sigma_px: float = 0.85
+
+
+@dataclass
+class _LastFix:
+    time_s: float
+    lens: tuple[float, float, float]
+    base: tuple[float, float, float]
+    previous: tuple[float, tuple[float, float, float]] | None = field(default=None)
+
+
+class VlpPipeline:
+    """Frames of one camera -> VLP fixes. Not thread-safe: one pipeline per camera loop.
+
+    Args:
+        intrinsics: the camera as calibrated (output resolution); a ``calibration`` replaces its principal
+            point.
+        led_map: the surveyed LEDs.
+        mount: where the lens is on the base (and its known tilt).
+        config: tuning (defaults suit the MV-UB300 set-up of the reference system).
+        calibration: rotation-centre and residual calibration (``agent.vlp.calibration``).
+    """
+
+    def __init__(
+        self,
+        intrinsics: CameraIntrinsics,
+        led_map: LedMap,
+        mount: CameraMount | None = None,
+        config: VlpConfig | None = None,
+        calibration: VlpCalibration | None = None,
+    ) -> None:
+        self.nominal = intrinsics
+        self.calibration = calibration
+        self.intrinsics = calibration.intrinsics(intrinsics) if calibration is not None else intrinsics
+        self.led_map = led_map
+        self.mount = mount if mount is not None else CameraMount()
+        self.config = config = config if config is not None else VlpConfig()
+        self.signatures = led_map.signatures
+        self.detector = config.detector if config.detector is not None else self._detector_for_map()
+        self.decoder = StripeDecoder(config.decoder)
+        self.tracker = LedTracker(self.detector, config.tracker)
+        self._frames = 0
+        self._last: _LastFix | None = None
+        self._given: tuple[float, PosePrior] | None = None
+        self._r_level: tuple[Tilt | None, FloatArray] | None = None
+
+    def _detector_for_map(self) -> DetectorConfig:
+        """Detection tuned to the map: disks from half the smallest the camera can see (a partial cover) to
+        2.5 times the largest, stripes bridged over the longest dark run any signature draws."""
+        f = min(self.intrinsics.fx_px, self.intrinsics.fy_px)
+        sizes = [f * led.diameter_m / max(led.z_m - self.mount.z_m, 0.05) for led in self.led_map.leds]
+        # Disk diameters the camera can see: f D / h for every LED at its height above the lens.
+        smallest = min(sizes) if sizes else 20.0
+        largest = max(sizes) if sizes else 200.0
+        # The longest dark stripe any signature draws, (1 - D) / (f t_row_eff) rows, must be bridged.
+        t_eff = self.intrinsics.t_row_eff_s
+        dark = max(((1.0 - s.duty) / (s.frequency_hz * t_eff) for s in self.signatures), default=0.0)
+        return DetectorConfig(
+            min_diameter_px=max(0.5 * smallest, 4.0),
+            max_diameter_px=2.5 * largest + 10,
+            bridge_px=max(dark + 2.0, 0.3 * smallest),
+            radius_range_px=(0.45 * smallest, 0.55 * largest),
+        )
+
+    def reset(self) -> None:
+        """Forget tracks and the last fix (e.g. after the robot was carried elsewhere)."""
+        self.tracker.reset()
+        self._last = None
+        self._given = None
+        self._frames = 0
+
+    @property
+    def tracks(self) -> list[LedTrack]:
+        return list(self.tracker.tracks)
+
+    # -- the frame ---------------------------------------------------------------------------------------
+    def process(
+        self,
+        image: object,
+        time_s: float,
+        *,
+        tilt: Tilt | None = None,
+        prior: PosePrior | None = None,
+        motion: Motion | None = None,
+    ) -> VlpResult:
+        """One frame (uint8, height x width of the intrinsics) taken at ``time_s`` (mid-readout).
+
+        ``tilt``: the base's roll and pitch from the IMU. ``prior``: where the base roughly is (needed to tell
+        repeated ids apart without a recent fix, and for a one-LED fix). ``motion``: the base's velocity (by
+        default estimated from the last fixes) for the rolling-shutter correction.
+        """
+        t_start = time.perf_counter()
+        bad = self._check_frame(image)
+        if bad is not None:
+            return NoFix(time_s, bad, (), StageTimings(total_ms=_ms(t_start)))
+        assert isinstance(image, np.ndarray)
+        frame: npt.NDArray[np.uint8] = image
+        try:
+            return self._process(frame, time_s, tilt, prior, motion, t_start)
+        except Exception as exc:  # the loop must go on; the traceback goes to the log
+            log.exception("VLP pipeline failed on a frame")
+            self.tracker.reset()
+            return NoFix(time_s, f"internal error: {exc}", (), StageTimings(total_ms=_ms(t_start)))
+
+    def _level_rotation(self, tilt: Tilt | None) -> FloatArray:
+        """R_level for this frame's tilt, kept while the tilt does not change (no IMU: always)."""
+        if self._r_level is None or self._r_level[0] != tilt:
+            self._r_level = (tilt, level_rotation(self.mount, tilt))
+        return self._r_level[1]
+
+    def _check_frame(self, image: object) -> str | None:
+        intr = self.intrinsics
+        if not isinstance(image, np.ndarray):
+            return f"not an image: {type(image).__name__}"
+        if image.dtype != np.uint8:
+            return f"wrong pixel type {image.dtype} (mono8 expected)"
+        if image.ndim != 2:
+            return f"wrong shape {image.shape} (one channel expected)"
+        if image.shape != (intr.height_px, intr.width_px):
+            return (
+                f"wrong size {image.shape[1]}x{image.shape[0]} "
+                f"(the calibration is for {intr.width_px}x{intr.height_px})"
+            )
+        return None
+
+    def _process(
+        self,
+        image: npt.NDArray[np.uint8],
+        time_s: float,
+        tilt: Tilt | None,
+        prior: PosePrior | None,
+        motion: Motion | None,
+        t_start: float,
+    ) -> VlpResult:
+        cfg = self.config
+        # 1. Track.
+        t0 = time.perf_counter()
+        self.tracker.step(image, time_s)
+        t_track = time.perf_counter() - t0
+
+        # 2. Acquire new LEDs: a full search on start, when fewer than two are held, and now and then; the
+        # map's predictions in between.
+        t0 = time.perf_counter()
+        usable = sum(1 for t in self.tracker.tracks if t.centre_ok)
+        full_search = usable < 2 or self._frames % max(cfg.redetect_interval, 1) == 0
+        reason_if_none = "no LED in view"
+        if full_search:
+            reason_if_none = self._search(image, time_s) or reason_if_none
+        elif cfg.predict_interval > 0 and self._last is not None and self._frames % cfg.predict_interval == 0:
+            self._search_predicted(image, time_s)
+        self._frames += 1
+        t_acquire = time.perf_counter() - t0
+
+        # 3. Decode the stripes of every fully visible LED and vote.
+        t0 = time.perf_counter()
+        t_eff = self.intrinsics.t_row_eff_s
+        features: dict[int, tuple[float, float, int]] = {}
+        decoded: list[tuple[LedTrack, StripeFeatures]] = []
+        for track in self.tracker.tracks:
+            blob = track.blob
+            if track.visibility != FULL or blob is None:
+                continue
+            # The track's radius (smoothed over frames) places the profile rows better than one frame's fit.
+            # The FFT cross-check of the period: on every frame until the id settles, then every few.
+            check = track.id_index is None or track.age % max(cfg.fft_check_interval, 1) == 0
+            feat = self.decoder.features(
+                image, blob.centre_px, track.radius_px, blob.background_dn, t_eff, fft_check=check
+            )
+            decoded.append((track, feat))
+            features[track.track_id] = (feat.frequency_hz, feat.duty, blob.area_px)
+        if decoded:
+            classes = self.decoder.classify_many([f for _, f in decoded], self.signatures, t_eff)
+            for (track, _), cls in zip(decoded, classes, strict=True):
+                track.vote(cls, cfg.tracker)
+        t_decode = time.perf_counter() - t0
+
+        # 4. Solve.
+        t0 = time.perf_counter()
+        result = self._solve(time_s, tilt, prior, motion, features, reason_if_none)
+        t_solve = time.perf_counter() - t0
+        timings = StageTimings(
+            acquire_ms=1e3 * t_acquire,
+            track_ms=1e3 * t_track,
+            decode_ms=1e3 * t_decode,
+            solve_ms=1e3 * t_solve,
+            total_ms=_ms(t_start),
+        )
+        if isinstance(result, VlpFix):
+            return VlpFix(
+                result.time_s,
+                result.x_m,
+                result.y_m,
+                result.yaw_rad,
+                result.covariance,
+                result.ids,
+                result.leds,
+                result.residual_rms,
+                result.degraded,
+                result.flags,
+                timings,
+            )
+        return NoFix(result.time_s, result.reason, result.leds, timings)
+
+    # -- acquisition ---------------------------------------------------------------------------------------
+    def _search(self, image: npt.NDArray[np.uint8], time_s: float) -> str | None:
+        """Full-frame search; returns a reason when the frame itself is unusable."""
+        blobs = find_blobs(image, self.detector)
+        if not blobs and not self.tracker.tracks:
+            bg, _ = background_level(image)
+            hist_bright = float(np.count_nonzero(image[::4, ::4] >= 250)) / image[::4, ::4].size
+            if hist_bright >= self.config.saturated_fraction:
+                return "saturated frame"
+            top = float(image[::2, ::2].max())
+            if top - bg < self.detector.min_contrast_dn:
+                return "dark frame: nothing brighter than the background"
+            return "no LED found in the frame"
+        self.tracker.add(image, blobs, time_s, len(self.signatures))
+        return None
+
+    def _search_predicted(self, image: npt.NDArray[np.uint8], time_s: float) -> None:
+        """Look where the map says an LED not yet tracked should be, from the last fix (cheap, ROI only)."""
+        last = self._last
+        if last is None or time_s - last.time_s > self.config.prior_max_age_s:
+            return
+        intr = self.intrinsics
+        x, y, yaw = last.lens
+        c, s = math.cos(yaw), math.sin(yaw)
+        xyz = self.led_map.xyz_m
+        h = xyz[:, 2] - self.mount.z_m
+        dx, dy = xyz[:, 0] - x, xyz[:, 1] - y
+        # Level camera prediction q = R(-psi) d / h (tilt and distortion are small next to the search box).
+        u = intr.cx_px + intr.fx_px * (c * dx + s * dy) / h
+        v = intr.cy_px + intr.fy_px * (-s * dx + c * dy) / h
+        radius = intr.fx_px * np.array([led.diameter_m for led in self.led_map.leds]) / (2.0 * h)
+        margin = self.detector.border_fraction * intr.width_px
+        visible = (u > margin) & (u < intr.width_px - margin) & (v > margin) & (v < intr.height_px - margin)
+        blobs = []
+        for k in np.flatnonzero(visible & (h > 0)):
+            if any(
+                math.dist(t.kf.position, (u[k], v[k])) < 2.0 * t.radius_px + 4 for t in self.tracker.tracks
+            ):
+                continue
+            half = 1.6 * radius[k] + 8.0
+            box = (int(u[k] - half), int(v[k] - half), int(u[k] + half) + 1, int(v[k] + half) + 1)
+            bg = self.tracker.tracks[0].background_dn if self.tracker.tracks else background_level(image)[0]
+            blob = measure_blob(image, box, bg, 1.0, self.detector)
+            if blob is not None and not blob.at_border:
+                blobs.append(blob)
+        if blobs:
+            self.tracker.add(image, blobs, time_s, len(self.signatures))
+
+    # -- pose ----------------------------------------------------------------------------------------------
+    def _lens_prior(
+        self, time_s: float, prior: PosePrior | None
+    ) -> tuple[float, float, float, float, float] | None:
+        """The prior on the lens: the one given with this frame, else the more recent of the last full fix
+        and the last given prior, its uncertainty grown with its age; None when both are too old."""
+        m = self.mount
+        if prior is not None:
+            self._given = (time_s, prior)
+        candidates: list[tuple[float, tuple[float, float, float, float, float]]] = []
+        if self._given is not None:
+            t_given, p = self._given
+            c, s = math.cos(p.yaw_rad), math.sin(p.yaw_rad)
+            lens = (p.x_m + c * m.x_m - s * m.y_m, p.y_m + s * m.x_m + c * m.y_m, p.yaw_rad + m.yaw_rad)
+            candidates.append((t_given, (*lens, p.sigma_xy_m, p.sigma_yaw_rad)))
+        if self._last is not None:
+            candidates.append((self._last.time_s, (*self._last.lens, 0.05, math.radians(5.0))))
+        if not candidates:
+            return None
+        t_prior, (x, y, yaw, sxy, syaw) = max(candidates, key=lambda c: c[0])
+        age = time_s - t_prior
+        if not 0 <= age <= self.config.prior_max_age_s:
+            return None
+        return (x, y, yaw, sxy + self.config.prior_growth_mps * age, syaw + 1.0 * age)
+
+    def _lens_velocity(self, time_s: float, motion: Motion | None) -> tuple[float, float, float]:
+        last = self._last
+        if motion is not None:
+            yaw = last.base[2] if last is not None else 0.0
+            m = self.mount
+            c, s = math.cos(yaw), math.sin(yaw)
+            w = motion.yaw_rate_radps
+            # Lens = base + R(psi) m: its velocity is v + omega R'(psi) m, R'(psi) = [[-s, -c], [c, -s]].
+            return (
+                motion.vx_mps + w * (-s * m.x_m - c * m.y_m),
+                motion.vy_mps + w * (c * m.x_m - s * m.y_m),
+                w,
+            )
+        if not self.config.estimate_motion or last is None or last.previous is None:
+            return (0.0, 0.0, 0.0)
+        t_prev, lens_prev = last.previous
+        dt = last.time_s - t_prev
+        if not 0 < dt <= self.config.motion_max_gap_s or time_s - last.time_s > self.config.motion_max_gap_s:
+            return (0.0, 0.0, 0.0)
+        vx = (last.lens[0] - lens_prev[0]) / dt
+        vy = (last.lens[1] - lens_prev[1]) / dt
+        w = math.remainder(last.lens[2] - lens_prev[2], 2.0 * math.pi) / dt
+        # A difference of two fixes that no robot could drive is a bad fix, not motion.
+        if math.hypot(vx, vy) > self.config.max_speed_mps or abs(w) > self.config.max_yaw_rate_radps:
+            return (0.0, 0.0, 0.0)
+        return (vx, vy, w)
+
+    def _observation(self, track: LedTrack, feature: tuple[float, float, int] | None) -> LedObservation:
+        blob = track.blob
+        frame = track.frame if track.visibility == FULL else None
+        centre = blob.centre_px if blob is not None else track.kf.position
+        settled = self.signatures[track.id_index].id if track.id_index is not None else None
+        freq, duty, area = feature if feature is not None else (math.nan, math.nan, 0)
+        return LedObservation(
+            track.track_id,
+            centre,
+            blob.radius_px if blob is not None else track.radius_px,
+            track.visibility,
+            track.rho,
+            frame.id if frame is not None else None,
+            frame.confidence if frame is not None else 0.0,
+            settled,
+            track.id_confidence,
+            freq,
+            duty,
+            area,
+        )
+
+    def _solve(
+        self,
+        time_s: float,
+        tilt: Tilt | None,
+        prior: PosePrior | None,
+        motion: Motion | None,
+        features: dict[int, tuple[float, float, int]],
+        reason_if_none: str,
+    ) -> VlpFix | NoFix:
+        tracks = self.tracker.tracks
+        observations = [self._observation(t, features.get(t.track_id)) for t in tracks]
+        usable = [
+            k for k, t in enumerate(tracks) if t.centre_ok and t.blob is not None and t.id_index is not None
+        ]
+        empty = StageTimings()
+        if not usable:
+            if not tracks:
+                return NoFix(time_s, reason_if_none, tuple(observations), empty)
+            if not any(t.centre_ok for t in tracks):
+                return NoFix(
+                    time_s, "no LED fully visible (covered or at the border)", tuple(observations), empty
+                )
+            return NoFix(time_s, "no LED identified yet", tuple(observations), empty)
+
+        intr = self.intrinsics
+        blobs = [b for b in (tracks[k].blob for k in usable) if b is not None]
+        uv = np.array([b.centre_px for b in blobs])
+        r_level = self._level_rotation(tilt)
+        q = level_plane_coordinates(normalised_coordinates(uv, intr), r_level)
+        f_px = min(intr.fx_px, intr.fy_px)
+        rays = []
+        for row, k in enumerate(usable):
+            track = tracks[k]
+            blob = track.blob
+            led_id = self.signatures[track.id_index].id if track.id_index is not None else ""
+            # The centre's standard deviation falls as 1/sqrt(edge points): a disk crossed by one or two
+            # bright stripes (few points, all near its middle rows) is placed less well across them.
+            points = max(blob.outline_points if blob is not None else 0, 1)
+            sigma_px = max(self.config.measurement_sigma_px, self.config.outline_sigma_px / math.sqrt(points))
+            rays.append(
+                LedRay(
+                    (float(q[row, 0]), float(q[row, 1])),
+                    self.led_map.candidates(led_id),
+                    sigma_px / f_px,
+                    intr.row_time_from_mid_s(float(uv[row, 1])),
+                )
+            )
+        lens_offset = lens_offset_level(self.mount, tilt)
+        lens_z = float(lens_offset[2])
+        lens_prior = self._lens_prior(time_s, prior)
+        if len(rays) == 1:
+            return self._single(time_s, rays[0], usable[0], observations, lens_prior, lens_z, lens_offset)
+
+        velocity = self._lens_velocity(time_s, motion)
+        solution = solve_pose(
+            rays, self.led_map.xyz_m, lens_z, velocity=velocity, prior=lens_prior, config=self.config.solver
+        )
+        if isinstance(solution, str):
+            return NoFix(time_s, solution, tuple(observations), empty)
+
+        flags: list[str] = []
+        for k, a in zip(usable, solution.assignment, strict=True):
+            observations[k] = _with_map(observations[k], a)
+        if solution.dropped:
+            flags.append("outlier-dropped")
+        if any(not t.centre_ok for t in tracks):
+            flags.append("leds-excluded")
+        degraded = solution.dropped > 0 or solution.rms_residual > 3.0
+        if solution.rms_residual > 3.0:
+            flags.append("large-residual")
+        lens = (solution.x_m, solution.y_m, solution.yaw_rad)
+        return self._finish(
+            time_s,
+            lens,
+            solution.covariance,
+            observations,
+            lens_offset,
+            degraded,
+            flags,
+            solution.rms_residual,
+        )
+
+    def _single(
+        self,
+        time_s: float,
+        ray: LedRay,
+        track_index: int,
+        observations: list[LedObservation],
+        lens_prior: tuple[float, float, float, float, float] | None,
+        lens_z: float,
+        lens_offset: FloatArray,
+    ) -> VlpFix | NoFix:
+        """One LED: a degraded fix from the prior's yaw (the SLO-VLP solver), or no fix without a prior."""
+        empty = StageTimings()
+        if lens_prior is None:
+            return NoFix(time_s, "one LED in view and no yaw prior", tuple(observations), empty)
+        px, py, yaw, sxy, syaw = lens_prior
+        own = self._last
+        if own is not None and 0.0 <= time_s - own.time_s <= self.config.prior_max_age_s:
+            # The pipeline's own last fix, its yaw carried forward at the yaw rate of the last two fixes:
+            # uncertain by 0.2 deg, plus 0.05 rad/s of yaw-rate error and 0.5 rad/s^2 of unmodelled angular
+            # acceleration over the age. Used when it is surer than the prior's yaw.
+            age = time_s - own.time_s
+            own_sigma = math.radians(0.2) + 0.05 * age + 0.5 * age * age
+            if own_sigma < syaw:
+                yaw = own.lens[2] + self._lens_velocity(time_s, None)[2] * age
+                syaw = own_sigma
+        if syaw > self.config.single_led_max_yaw_sigma_rad:
+            limit = math.degrees(self.config.single_led_max_yaw_sigma_rad)
+            return NoFix(
+                time_s,
+                f"one LED in view and the yaw not known to {limit:.0f} deg",
+                tuple(observations),
+                empty,
+            )
+        xyz = self.led_map.xyz_m
+        best = min(
+            ray.candidates,
+            key=lambda i: math.hypot(
+                *np.subtract(single_led_position(ray.q, tuple(xyz[i]), lens_z, yaw), (px, py))
+            ),
+            default=None,
+        )
+        if best is None:
+            return NoFix(time_s, "one LED in view, not in the map", tuple(observations), empty)
+        x, y = single_led_position(
+            ray.q, (float(xyz[best, 0]), float(xyz[best, 1]), float(xyz[best, 2])), lens_z, yaw
+        )
+        if math.hypot(x - px, y - py) > 4.0 * sxy + 0.1:
+            return NoFix(time_s, "one LED in view, far from the prior", tuple(observations), empty)
+        h = float(xyz[best, 2]) - lens_z
+        reach = h * math.hypot(*ray.q)
+        var_xy = (h * ray.sigma) ** 2 + (self.config.solver.map_sigma_m) ** 2 + (reach * syaw) ** 2
+        cov = np.diag([var_xy, var_xy, syaw**2])
+        observations[track_index] = _with_map(observations[track_index], best)
+        return self._finish(time_s, (x, y, yaw), cov, observations, lens_offset, True, ["single-led"], 0.0)
+
+    def _finish(
+        self,
+        time_s: float,
+        lens: tuple[float, float, float],
+        cov_lens: FloatArray,
+        observations: list[LedObservation],
+        lens_offset: FloatArray,
+        degraded: bool,
+        flags: list[str],
+        rms: float,
+    ) -> VlpFix:
+        """Lens pose -> base pose (base = lens - R(psi_base) offset), residual correction, bookkeeping."""
+        yaw_base = math.remainder(lens[2] - self.mount.yaw_rad, 2.0 * math.pi)
+        c, s = math.cos(yaw_base), math.sin(yaw_base)
+        ox, oy = float(lens_offset[0]), float(lens_offset[1])
+        x = lens[0] - (c * ox - s * oy)
+        y = lens[1] - (s * ox + c * oy)
+        # d base / d psi = -R'(psi) o, R'(psi) = [[-s, -c], [c, -s]].
+        jac = np.array([[1.0, 0.0, s * ox + c * oy], [0.0, 1.0, -c * ox + s * oy], [0.0, 0.0, 1.0]])
+        cov = jac @ cov_lens @ jac.T
+        if self.calibration is not None and self.calibration.residual is not None:
+            x, y = self.calibration.residual.apply(x, y)
+        if not degraded:
+            # Only full fixes feed the next frames' prior and velocity (a one-LED fix leans on its prior).
+            previous = (self._last.time_s, self._last.lens) if self._last is not None else None
+            self._last = _LastFix(time_s, lens, (x, y, yaw_base), previous)
+        ids = tuple(o.id for o in observations if o.used and o.id is not None)
+        cov_t = (
+            (float(cov[0, 0]), float(cov[0, 1]), float(cov[0, 2])),
+            (float(cov[1, 0]), float(cov[1, 1]), float(cov[1, 2])),
+            (float(cov[2, 0]), float(cov[2, 1]), float(cov[2, 2])),
+        )
+        return VlpFix(
+            time_s,
+            x,
+            y,
+            yaw_base,
+            cov_t,
+            ids,
+            tuple(observations),
+            rms,
+            degraded,
+            tuple(flags),
+            StageTimings(),
+        )
+
+
+def _with_map(obs: LedObservation, map_index: int) -> LedObservation:
+    if map_index < 0:
+        return obs
+    return LedObservation(
+        obs.track_id,
+        obs.centre_px,
+        obs.radius_px,
+        obs.visibility,
+        obs.bhattacharyya,
+        obs.frame_id,
+        obs.frame_confidence,
+        obs.id,
+        obs.id_confidence,
+        obs.frequency_hz,
+        obs.duty,
+        obs.area_px,
+        map_index,
+        True,
+    )
+
+
+def _ms(t_start: float) -> float:
+    return 1e3 * (time.perf_counter() - t_start)

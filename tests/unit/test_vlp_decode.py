@@ -1,0 +1,192 @@
+"""Stripe decoding: the spline operator, LEXW, runs and period, the FFT cross-check, classification against
+the map's signatures, on synthetic profiles with known answers and on rendered LEDs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+from scipy.interpolate import CubicSpline
+
+from agent.vlp.decode import (
+    DecoderConfig,
+    SpectralPeriod,
+    SplineInterpolator,
+    StripeDecoder,
+    classify,
+    classify_many,
+    fft_period,
+    lexw_threshold,
+    stripe_edges,
+    stripe_profile,
+)
+from agent.vlp.detect import DetectorConfig, find_blobs
+from agent.vlp.model import Signature
+from drivers.sim.render import RollingShutterRenderer, pwm_exposure_fraction
+from drivers.sim.world import CameraModel, Led, Mount, Pose2D
+
+FloatArray = npt.NDArray[np.float64]
+T_ROW_EFF = 32e-6 * 1536 / 600  # the MV-UB300 at 800x600: 81.9 us per output row
+ENV1 = (
+    Signature("L1", 1500.0, 0.3),
+    Signature("L2", 2500.0, 0.6),
+    Signature("L3", 3500.0, 0.4),
+    Signature("L4", 4500.0, 0.5),
+)
+
+
+def pwm_profile(
+    n: int, period: float, duty: float, phase: float, *, low: float = 16.0, high: float = 220.0
+) -> FloatArray:
+    """Rows sampled from a PWM wave (period in rows), each integrating 0.6 row (a short exposure)."""
+    rows = np.arange(n, dtype=np.float64)
+    frac = pwm_exposure_fraction(rows / period, 0.6 / period, 1.0, duty, phase)
+    profile: FloatArray = low + (high - low) * frac
+    return profile
+
+
+def test_spline_operator_is_scipys_cubic_spline_and_keeps_the_samples() -> None:
+    y = np.random.default_rng(0).normal(100.0, 30.0, 28)
+    spline = SplineInterpolator(3.9)
+    out, step = spline(y)
+    assert out.size == 109  # the paper's 1 x 28 -> 1 x 109
+    x_new = np.arange(out.size) * step
+    np.testing.assert_allclose(out, CubicSpline(np.arange(28), y)(x_new), atol=1e-9)
+    assert out[0] == pytest.approx(y[0]) and out[-1] == pytest.approx(y[-1])
+
+
+def test_lexw_binarises_a_profile_under_a_strong_envelope() -> None:
+    # A bare lamp: the stripes' brightness falls from 230 to 25 DN across the profile; a global threshold
+    # loses the dim stripes, LEXW (each window at its own mid-level) keeps them.
+    n, period, duty = 120, 11.0, 0.5
+    rows = np.arange(n)
+    envelope = 25.0 + 205.0 * np.exp(-(((rows - 30.0) / 45.0) ** 2))
+    wave = pwm_exposure_fraction(rows / period, 0.05, 1.0, duty, 0.3)
+    profile = 1.0 + envelope * wave + np.random.default_rng(1).normal(0.0, 0.8, n)
+    binary, _ = lexw_threshold(profile, 1.0, DecoderConfig(smooth_samples=1))
+    truth = wave > 0.5
+    assert np.mean(binary == truth) > 0.97
+    global_cut = profile > 0.5 * (profile.max() + profile.min())
+    assert np.mean(global_cut == truth) < 0.85
+
+
+@pytest.mark.parametrize(("period", "duty"), [(8.14, 0.3), (4.88, 0.6), (3.49, 0.4), (13.0, 0.5)])
+def test_period_duty_and_frequency_from_runs(period: float, duty: float) -> None:
+    decoder = StripeDecoder(DecoderConfig())
+    errors = []
+    for phase in np.linspace(0.0, 1.0, 9, endpoint=False):
+        profile = pwm_profile(60, period, duty, float(phase))
+        image = np.repeat(profile[:, None], 40, axis=1).astype(np.uint8)
+        features = decoder.features(image, (20.0, 30.0), 32.0, 16.0, T_ROW_EFF)
+        errors.append((features.period_px / period - 1.0, features.duty - duty))
+        assert features.frequency_hz == pytest.approx(1.0 / (features.period_px * T_ROW_EFF))
+        assert features.fft_agrees is True
+    err = np.array(errors)
+    assert np.abs(err[:, 0]).max() < 0.02
+    assert np.abs(err[:, 1]).max() < 0.08
+
+
+def test_edges_are_located_between_samples() -> None:
+    samples = np.array([10.0, 10.0, 50.0, 90.0, 90.0, 30.0, 10.0])
+    binary = samples > 50.0
+    edges, rising = stripe_edges(samples, binary, np.full(samples.size, 50.0), 0.5)
+    # The level 50 is crossed at sample 2 exactly (rising) and between samples 4 and 5 at 4 + 40/60
+    # (falling); a step of 0.5 original rows per sample halves both.
+    np.testing.assert_allclose(edges, [2.0 * 0.5, (4.0 + 40.0 / 60.0) * 0.5])
+    assert rising.tolist() == [True, False]
+
+
+def test_spectral_period_is_the_zero_padded_fft_peak() -> None:
+    rng = np.random.default_rng(2)
+    spectral = SpectralPeriod()
+    for n in (12, 25, 40, 75):
+        for period in (3.0, 5.5, 9.0):
+            profile = pwm_profile(n, period, 0.5, float(rng.uniform())) + rng.normal(0.0, 2.0, n)
+            assert spectral(profile) == pytest.approx(fft_period(profile), rel=1e-9)
+            if n >= 3 * period:
+                assert spectral(profile) == pytest.approx(period, rel=0.05)
+
+
+def test_classification_picks_the_signature_and_rejects_half_and_double_periods() -> None:
+    config = DecoderConfig()
+    signatures = (Signature("A", 2000.0, 0.5), Signature("B", 4000.0, 0.5), Signature("C", 1000.0, 0.5))
+    t_row = 20e-6
+    period_a = 1.0 / (2000.0 * t_row)  # 25 rows
+    rising = np.array([True, False, True, False, True, False])
+    edges = (
+        3.2 + np.array([0.0, 0.5, 1.0, 1.5, 2.0, 2.5]) * period_a + np.random.default_rng(3).normal(0, 0.2, 6)
+    )
+    result = classify(edges, rising, (0.0, 80.0), signatures, t_row, config)
+    assert result.id == "A"
+    assert result.confidence > 0.999
+    # B (half the period) predicts edges in between that are not there; C (twice) finds edges at the wrong
+    # phase.
+    assert result.log_likelihood[1] < result.log_likelihood[0] - 20
+    assert result.log_likelihood[2] < result.log_likelihood[0] - 20
+
+
+def test_no_edges_means_no_decision() -> None:
+    result = classify(np.empty(0), np.empty(0, dtype=np.bool_), (0.0, 30.0), ENV1, T_ROW_EFF, DecoderConfig())
+    assert result.id is None and result.confidence == 0.0
+
+
+@pytest.mark.parametrize("mode", ["row_mean", "middle_column"])
+def test_rendered_leds_are_identified(mode: str) -> None:
+    """Environment 1's four signatures, rendered at random poses: every sighting identified."""
+    leds = [
+        Led(s.id, x, y, 1.5, frequency_hz=s.frequency_hz, duty=s.duty)
+        for s, (x, y) in zip(
+            ENV1, [(-0.465, 0.495), (-0.46, -0.42), (0.46, 0.49), (0.48, -0.425)], strict=True
+        )
+    ]
+    renderer = RollingShutterRenderer(CameraModel(), leds, Mount(0.0, 0.0, 0.2), seed=4)
+    decoder = StripeDecoder(DecoderConfig(mode=mode))
+    rng = np.random.default_rng(5)
+    seen = right = 0
+    for k in range(40):
+        x, y, yaw = rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi)
+        pose = Pose2D(float(x), float(y), float(yaw))
+        frame = renderer.render(lambda t, p=pose: p, 5.0 + 0.05 * k + float(rng.uniform(0, 0.01)))
+        for blob in find_blobs(frame.image, DetectorConfig(min_diameter_px=16.0, bridge_px=8.0)):
+            if blob.at_border:
+                continue
+            (truth,) = [t for t in frame.truth.leds if math.dist(t.centre_px, blob.centre_px) < 2.0]
+            features = decoder.features(frame.image, blob.centre_px, blob.radius_px, 16.0, T_ROW_EFF)
+            seen += 1
+            right += decoder.classify(features, ENV1, T_ROW_EFF).id == truth.id
+            if mode == "row_mean":
+                signature = next(s for s in ENV1 if s.id == truth.id)
+                assert features.frequency_hz == pytest.approx(signature.frequency_hz, rel=0.1)
+    assert seen > 80
+    assert right == seen
+
+
+def test_profile_modes_read_the_right_pixels() -> None:
+    image = np.zeros((50, 50), np.uint8)
+    image[:, 24] = 200  # one bright column
+    image[:, 20:30] += 10
+    config = DecoderConfig(row_span=0.5, band_fraction=0.25)
+    column, top = stripe_profile(image, (24.2, 25.0), 20.0, DecoderConfig(mode="middle_column", row_span=0.5))
+    assert top == 15 and column.size == 21 and np.all(column == 210)
+    band, _ = stripe_profile(image, (24.2, 25.0), 20.0, config)
+    # The band is |u - 24.2| <= 5: columns 19..29, of which 20..29 carry 10 and 24 carries 200 more.
+    assert band[0] == pytest.approx((10 * 10 + 200) / 11)
+
+
+def test_classifying_several_leds_at_once_is_classifying_each() -> None:
+    rng = np.random.default_rng(6)
+    edges, rising, spans = [], [], []
+    for _ in range(7):
+        n = int(rng.integers(0, 12))  # some LEDs without edges at all
+        edges.append(np.sort(rng.uniform(0.0, 30.0, n)))
+        rising.append(rng.random(n) < 0.5)
+        spans.append((0.0, float(rng.uniform(20.0, 35.0))))
+    config = DecoderConfig()
+    batch = classify_many(edges, rising, spans, ENV1, T_ROW_EFF, config)
+    for e, r, span, got in zip(edges, rising, spans, batch, strict=True):
+        alone = classify(e, r, span, ENV1, T_ROW_EFF, config)
+        assert got.id == alone.id
+        assert got.confidence == pytest.approx(alone.confidence, abs=1e-12)
+        np.testing.assert_allclose(got.log_likelihood, alone.log_likelihood, rtol=1e-12)
