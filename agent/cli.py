@@ -18,9 +18,12 @@ from firmware_protocol.errors import VlpAgentError
 
 # Subcommand name -> module in agent.commands, imported only when used so `--help` stays fast.
 COMMANDS: dict[str, str] = {
+    "run": "agent.commands.run",
     "sim": "agent.commands.sim",
     "devices": "agent.commands.devices",
     "fake": "agent.commands.fake",
+    "eval": "agent.commands.eval",
+    "calibrate": "agent.commands.calibrate",
 }
 
 log = logging.getLogger("vlp_agent")

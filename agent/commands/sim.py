@@ -1,24 +1,40 @@
-"""``vlp-agent sim``: the robot on the simulated world, through the real drivers and the real bytes.
+"""``vlp-agent sim``: the whole agent on the simulated robot, through the real drivers and the real bytes.
 
-Today this is the device layer end to end (VLP, SLAM and fusion have not landed): every fake device is
-served where hardware would be, the drivers open them with the same keys a robot's config uses, the world's
-route is driven with Dynamixel velocity commands, and the laser, camera, IMU, wheel odometry and RFID reads
-come back through their protocols. The reported pose is wheel odometry, compared with ground truth.
+Every fake device is served where hardware would be (``drivers.sim.harness.SimulatedRobot``), the agent is
+the same runtime ``vlp-agent run`` starts (config ``examples/sim.toml`` unless ``--config``), and the pose
+stream goes out on a pseudo-terminal that a simulated controller reads and decodes. The world's route is
+driven by a pure-pursuit autopilot that steers from the agent's *own* fused pose (never the truth), through
+the agent's velocity command, its dead-man and the Dynamixel servos; the simulated robot moves only from
+what the fake servos receive.
+
+While it runs a status line shows the pose, its error against the simulation's truth, the frame and fix
+rates and the latency from a frame's capture to the last byte of its pose on the line. At the end: a
+summary (``--json``: one JSON object), a trajectory plot and, when SLAM built one, the map.
+
+``--fault KIND@START[+DURATION]`` injects a fault at START seconds for DURATION seconds (for good without):
+``laser`` (the URG's USB cable pulled), ``camera`` (frames stop), ``servo`` (the left wheel servo stops
+answering).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
+import dataclasses
+import importlib
 import json
 import logging
 import math
+import os
+import resource
+import select
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+import tty
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -26,98 +42,266 @@ from typing import Any
 import cv2
 import numpy as np
 
-from agent.commands.worlds import resolve_world
-from drivers.camera.base import Camera
-from drivers.errors import DeviceError
-from drivers.imu.base import Imu
-from drivers.laser.base import LaserScanner
-from drivers.registry import DeviceKind, backend_class
-from drivers.rfid.base import RfidReader
-from drivers.servos.base import WheelServos
-from drivers.servos.odometry import WheelOdometry
+from agent.commands.run import SWITCH_INTERVAL_S
+from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
+from agent.runtime import Agent, ScanMapper, Written, create_agent
+from agent.runtime.mapper import save_map
+from drivers.errors import ConfigError
 from drivers.sim.harness import SimulatedRobot
 from drivers.sim.route import RouteFollower
 from drivers.sim.simulation import Simulation
-from drivers.sim.worldfile import load_world
+from firmware_protocol.pose_frame import PoseFlags, PoseFrameDecoder
 
 log = logging.getLogger(__name__)
 
-STAGE = "device layer only: VLP, SLAM and fusion are not built yet; the pose is wheel odometry"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "sim.toml"
+FAULT_KINDS = ("laser", "camera", "servo")
+_SOURCES = (PoseFlags.VLP, PoseFlags.SLAM, PoseFlags.ODOMETRY, PoseFlags.IMU)
+_AUTOPILOT_PERIOD_S = 0.05
 
 
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "sim",
-        help="run the robot on the simulated world (no hardware needed)",
-        description="Run the robot on a simulated world: fake laser, servos and RFID reader on "
+        help="run the whole agent on the simulated robot (no hardware needed)",
+        description="Run the agent on a simulated world: fake laser, servos and RFID reader on "
         "pseudo-terminals, a fake IMU behind smbus2 and the simulated rolling-shutter camera, all opened "
-        "through the real drivers. The world's route is driven with Dynamixel velocity commands. Prints a "
-        "live status line and a summary. " + STAGE + ".",
+        "through the real drivers; VLP, SLAM and fusion on them; the pose stream on a pseudo-terminal read "
+        "by a simulated controller. The world's route is driven from the agent's own pose. Prints a live "
+        "status line and a summary, and writes a trajectory plot (and the SLAM map).",
     )
-    p.add_argument("--world", metavar="FILE", help="world file (default: examples/worlds/office.toml)")
-    p.add_argument("--seconds", type=float, default=20.0, help="how long to run (default: 20)")
+    p.add_argument(
+        "--world", metavar="FILE", help="world file (default: the config's, examples/worlds/office.toml)"
+    )
+    p.add_argument(
+        "--config", metavar="FILE", help=f"agent config with [sim] (default: {DEFAULT_CONFIG.name})"
+    )
+    p.add_argument("--seconds", type=float, default=30.0, help="how long to run (default: 30)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
-    p.add_argument("--seed", type=int, default=0, help="seed for the simulated sensors' noise (default: 0)")
-    p.add_argument("--trajectory", metavar="PNG", help="also draw the true and odometry paths into PNG")
+    p.add_argument(
+        "--seed", type=int, default=None, help="seed for the simulated sensors' noise (default: config)"
+    )
+    p.add_argument(
+        "--out", metavar="DIR", default="vlp-sim-out", help="where the plots go (default: vlp-sim-out)"
+    )
+    p.add_argument(
+        "--trajectory", metavar="PNG", help="the trajectory plot's path (default: DIR/trajectory.png)"
+    )
+    p.add_argument(
+        "--output",
+        metavar="URL",
+        help="send the pose stream there (a device, a pty path, any pyserial URL) instead of the simulated "
+        "controller's pty",
+    )
+    p.add_argument(
+        "--output-format",
+        choices=[f.value for f in OutputFormat],
+        help="pose frames or MAVLink (default: config)",
+    )
+    p.add_argument(
+        "--truth",
+        metavar="CSV",
+        help="also write the simulation's true pose at the time of every pose frame written "
+        "(sequence,t_us,x_m,y_m,yaw_rad), to score a decoded stream against",
+    )
+    p.add_argument(
+        "--record",
+        metavar="JSONL",
+        help="record what the fusion takes and every pose written, for agent.runtime.recorder.replay",
+    )
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND@START[+DURATION]",
+        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s for DURATION s; repeatable",
+    )
 
 
-@dataclass
-class Counts:
-    scans: int = 0
-    frames: int = 0
-    leds_seen: list[int] = field(default_factory=list)
-    tag_reads: int = 0
-    tags: set[str] = field(default_factory=set)
-    imu_samples: int = 0
-    errors: dict[str, int] = field(default_factory=dict)
-    lock: threading.Lock = field(default_factory=threading.Lock)
+# -- faults --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Fault:
+    kind: str
+    start_s: float
+    duration_s: float | None
 
-    def error(self, device: str) -> None:
-        with self.lock:
-            self.errors[device] = self.errors.get(device, 0) + 1
-
-
-def open_devices(config: dict[str, dict[str, Any]], simulation: Simulation, seed: int) -> dict[str, Any]:
-    """Open every device from config tables, by backend name, as the agent does on a robot."""
-    devices: dict[str, Any] = {}
-    for kind in (DeviceKind.SERVOS, DeviceKind.LASER, DeviceKind.IMU, DeviceKind.RFID, DeviceKind.CAMERA):
-        table = dict(config[kind.value])
-        backend = table.pop("backend")
-        cls = backend_class(kind, backend)
-        if kind is DeviceKind.RFID:
-            table["protocol"] = backend
-        if kind is DeviceKind.CAMERA and backend == "sim":
-            table = {"simulation": simulation, "seed": seed}
-        device = cls(**table)
-        device.open()
-        devices[kind.value] = device
-    return devices
+    @classmethod
+    def parse(cls, text: str) -> Fault:
+        kind, at, when = text.partition("@")
+        if not at or kind not in FAULT_KINDS:
+            raise ConfigError(
+                "--fault", f"{text!r}: expected KIND@START[+DURATION], KIND one of {FAULT_KINDS}"
+            )
+        start, plus, duration = when.partition("+")
+        try:
+            start_s = float(start)
+            duration_s = float(duration) if plus else None
+        except ValueError as exc:
+            raise ConfigError("--fault", f"{text!r}: START and DURATION are seconds") from exc
+        if start_s < 0 or (duration_s is not None and duration_s <= 0):
+            raise ConfigError("--fault", f"{text!r}: START must be >= 0 and DURATION > 0")
+        return cls(kind, start_s, duration_s)
 
 
-def count_leds(image: np.ndarray) -> int:
-    """Bright blobs in a frame (stripes bridged by a closing): a quick look, not the VLP detector."""
-    _, binary = cv2.threshold(image, 60, 255, cv2.THRESH_BINARY)
-    binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9)))
-    n, _, stats, _ = cv2.connectedComponentsWithStats(binary)
-    return int(np.count_nonzero(stats[1:, cv2.CC_STAT_AREA] >= 30)) if n > 1 else 0
+class FaultInjector:
+    """Applies faults on schedule to the simulated robot (and the simulated camera)."""
+
+    def __init__(self, faults: list[Fault], robot: SimulatedRobot, agent: Agent) -> None:
+        self.robot = robot
+        self.agent = agent
+        self.pending = sorted(
+            [(f.start_s, f.kind, True) for f in faults]
+            + [(f.start_s + f.duration_s, f.kind, False) for f in faults if f.duration_s is not None]
+        )
+        self.applied: list[dict[str, Any]] = []
+
+    def step(self, elapsed_s: float) -> None:
+        while self.pending and self.pending[0][0] <= elapsed_s:
+            _, kind, on = self.pending.pop(0)
+            self.set(kind, on)
+            self.applied.append({"kind": kind, "on": on, "t_s": round(elapsed_s, 3)})
+            log.warning("fault %s %s at %.1f s", kind, "on" if on else "off", elapsed_s)
+
+    def set(self, kind: str, on: bool) -> None:
+        if kind == "laser":
+            (self.robot.unplug if on else self.robot.replug)("laser")
+        elif kind == "camera":
+            camera = self.agent.devices.camera
+            stall = getattr(camera, "stall", None)
+            if stall is None:
+                raise ConfigError("--fault", "the camera backend cannot be stalled (the simulated one can)")
+            stall(on)
+        elif kind == "servo":
+            self.robot.servos.mute(self.robot.world.robot.left_id, on)
 
 
-def _loop(stop: threading.Event, name: str, counts: Counts, body: Callable[[], None]) -> threading.Thread:
-    def run() -> None:
-        while not stop.is_set():
+# -- the simulated controller on the pose stream's pty --------------------------------------------------
+class Controller:
+    """Reads the pose stream from the pty master and decodes it, as controller firmware would."""
+
+    def __init__(self, master_fd: int, fmt: OutputFormat) -> None:
+        self.fd = master_fd
+        self.fmt = fmt
+        self.frames = 0
+        self.bad = 0
+        self.bytes = 0
+        self._stop = threading.Event()
+        self._decoder = PoseFrameDecoder()
+        self._mav: Any = None
+        if fmt is OutputFormat.MAVLINK:
+            os.environ.setdefault("MAVLINK20", "1")
+            common = importlib.import_module("pymavlink.dialects.v20.common")
+            self._mav = common.MAVLink(None)
+            self._mav.robust_parsing = True
+        self.thread = threading.Thread(target=self._run, name="sim-controller", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.fd], [], [], 0.1)
+            if not ready:
+                continue
             try:
-                body()
-            except DeviceError:
-                counts.error(name)
-                stop.wait(0.1)
+                data = os.read(self.fd, 4096)
+            except OSError:
+                return
+            self._take(data)
 
-    thread = threading.Thread(target=run, name=f"sim-{name}", daemon=True)
-    thread.start()
-    return thread
+    def _take(self, data: bytes) -> None:
+        self.bytes += len(data)
+        if self.fmt is OutputFormat.FRAME:
+            self.frames += len(self._decoder.feed(data))
+            self.bad = self._decoder.bad_frames
+        else:
+            for msg in self._mav.parse_buffer(data) or []:
+                if msg.get_type() == "BAD_DATA":
+                    self.bad += 1
+                else:
+                    self.frames += 1
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def stop(self) -> None:
+        """Stop reading, after taking in what is still in the pty."""
+        self._stop.set()
+        self.thread.join(1.0)
+        ready, _, _ = select.select([self.fd], [], [], 0)
+        while ready:
+            try:
+                data = os.read(self.fd, 4096)
+            except OSError:
+                return
+            if not data:
+                return
+            self._take(data)
+            ready, _, _ = select.select([self.fd], [], [], 0)
+
+
+# -- scoring against the truth --------------------------------------------------------------------------
+class Scorer:
+    """Every frame written, compared with the simulation's truth at the frame's time (off the hot path:
+    the writer only appends; :meth:`drain` runs in the main loop, well within the truth's 2 s history)."""
+
+    def __init__(self, sim: Simulation) -> None:
+        self.sim = sim
+        self._backlog: collections.deque[Written] = collections.deque()
+        self.errors_m: list[float] = []
+        self.yaw_errors_rad: list[float] = []
+        self.flags: list[int] = []
+        self.fused_path: list[tuple[float, float]] = []
+        self.truth_path: list[tuple[float, float]] = []
+        self.truth_rows: list[tuple[int, int, float, float, float]] = []
+        self.last_error_m = math.nan
+
+    def observe(self, written: Written) -> None:
+        self._backlog.append(written)
+
+    def drain(self) -> None:
+        while self._backlog:
+            w = self._backlog.popleft()
+            f = w.frame
+            truth = self.sim.pose_at(f.t_us * 1e-6)
+            err = math.hypot(f.x_m - truth.x_m, f.y_m - truth.y_m)
+            self.errors_m.append(err)
+            self.yaw_errors_rad.append(abs(math.remainder(f.yaw_rad - truth.yaw_rad, math.tau)))
+            self.flags.append(int(f.flags))
+            self.fused_path.append((f.x_m, f.y_m))
+            self.truth_path.append((truth.x_m, truth.y_m))
+            self.truth_rows.append((f.sequence, f.t_us, truth.x_m, truth.y_m, truth.yaw_rad))
+            self.last_error_m = err
+
+
+# -- the command -----------------------------------------------------------------------------------------
+def _config(args: argparse.Namespace) -> AgentConfig:
+    config = load_config(args.config or DEFAULT_CONFIG)
+    if config.sim is None:
+        raise ConfigError(
+            "sim", "vlp-agent sim needs a config with a [sim] table (see examples/sim.toml)", config.file
+        )
+    sim = config.sim
+    if args.world:
+        from agent.commands.worlds import resolve_world
+        from drivers.sim.worldfile import load_world
+
+        path = resolve_world(args.world)
+        sim = SimConfig(path, load_world(path), sim.seed)
+    if args.seed is not None:
+        sim = dataclasses.replace(sim, seed=args.seed)
+    output = config.output
+    if args.output_format:
+        output = dataclasses.replace(output, format=OutputFormat(args.output_format))
+    if args.output:
+        output = dataclasses.replace(output, url=args.output)
+    record = config.record
+    if args.record:
+        record = dataclasses.replace(record, path=Path(args.record))
+    return config.replace(sim=sim, output=output, record=record)
 
 
 def run(args: argparse.Namespace) -> int:
-    world = load_world(resolve_world(args.world))
+    faults = [Fault.parse(text) for text in args.fault]
+    config = _config(args)
+    assert config.sim is not None
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -125,54 +309,54 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     live = sys.stderr.isatty() and not args.json
-    counts = Counts()
-    with SimulatedRobot(world, seed=args.seed) as robot:
-        sim = robot.simulation
-        devices = open_devices(robot.device_config(), sim, args.seed)
-        servos: WheelServos = devices["servos"]
-        laser: LaserScanner = devices["laser"]
-        imu: Imu = devices["imu"]
-        rfid: RfidReader = devices["rfid"]
-        camera: Camera = devices["camera"]
+    out_dir = Path(args.out)
+    world = config.sim.world
+    with contextlib.ExitStack() as stack:
+        robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
+        scorer = Scorer(robot.simulation)
+        controller = None
+        url = config.output.url
+        if url == "pty":
+            master, slave = os.openpty()
+            tty.setraw(master)
+            tty.setraw(slave)
+            stack.callback(os.close, master)
+            stack.callback(os.close, slave)
+            url = os.ttyname(slave)
+            controller = Controller(master, config.output.format)
+            controller.start()
+        agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
+        injector = FaultInjector(faults, robot, agent)
+        agent.start()
+        autopilot = threading.Thread(
+            target=_autopilot,
+            args=(agent, world.route, world.route_speed_mps, stop),
+            name="sim-autopilot",
+            daemon=True,
+        )
+        autopilot.start()
+        t0 = time.monotonic()
+        t0_us = time.monotonic_ns() // 1000
         try:
-            laser.start()
-
-            def scan_once() -> None:
-                laser.read(timeout_s=1.0)
-                with counts.lock:
-                    counts.scans += 1
-
-            def frame_once() -> None:
-                frame = camera.grab(timeout_s=1.0)
-                n = count_leds(frame.image)
-                with counts.lock:
-                    counts.frames += 1
-                    counts.leds_seen.append(n)
-
-            def tag_once() -> None:
-                tag = rfid.read(timeout_s=0.5)
-                if tag is not None:
-                    with counts.lock:
-                        counts.tag_reads += 1
-                        counts.tags.add(tag.tag_id)
-
-            threads = [
-                _loop(stop, "laser", counts, scan_once),
-                _loop(stop, "camera", counts, frame_once),
-                _loop(stop, "rfid", counts, tag_once),
-            ]
-            summary = _drive(args, world.route, world.route_speed_mps, sim, servos, imu, counts, stop, live)
+            _watch(args, agent, scorer, injector, stop, t0, live)
         finally:
             stop.set()
-            with contextlib.suppress(DeviceError):
-                servos.stop()
-            for device in devices.values():
-                device.close()
-        for thread in threads:
-            thread.join(timeout=2.0)
-        summary["health"] = {name: d.health().counters for name, d in devices.items()}
-    summary["stage"] = STAGE
+            autopilot.join(1.0)
+            elapsed = time.monotonic() - t0
+            agent.stop()
+            status = agent.status()
+            slam_path = agent.mapper.trajectory() if agent.mapper is not None else np.zeros((0, 3))
+            if controller is not None:
+                controller.stop()
+            scorer.drain()
+        if live:
+            print(file=sys.stderr)
+        mapping = agent.mapper if config.slam.mode is SlamMode.MAPPING else None
+        files = _write_files(args, out_dir, robot.simulation, scorer, mapping, slam_path)
+        summary = _summary(config, elapsed, status, scorer, controller, injector, files)
+        summary["t0_us"] = t0_us
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     else:
@@ -180,108 +364,114 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _drive(
-    args: argparse.Namespace,
-    route: tuple[tuple[float, float], ...],
-    speed_mps: float,
-    sim: Simulation,
-    servos: WheelServos,
-    imu: Imu,
-    counts: Counts,
-    stop: threading.Event,
-    live: bool,
-) -> dict[str, Any]:
-    robot = sim.world.robot
-    start = robot.start
+def _autopilot(
+    agent: Agent, route: tuple[tuple[float, float], ...], speed_mps: float, stop: threading.Event
+) -> None:
+    """Pure pursuit along the route from the agent's own fused pose; nothing without a live source."""
     follower = RouteFollower(route, speed_mps)
-    odometry = WheelOdometry(robot.wheel_radius_m, robot.track_m, start.x_m, start.y_m, start.yaw_rad)
-    servos.ping()
-    servos.torque(True)
-    period_s = 0.05
-    t0 = time.monotonic()
+    sources = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
+    while not stop.wait(_AUTOPILOT_PERIOD_S):
+        estimate, flags = agent.pose()
+        if not flags & sources:
+            continue  # no pose to steer by: the dead-man stops the wheels
+        v, omega = follower.command(estimate.x_m, estimate.y_m, estimate.yaw_rad)
+        agent.command_velocity(v, omega)
+
+
+def _watch(
+    args: argparse.Namespace,
+    agent: Agent,
+    scorer: Scorer,
+    injector: FaultInjector,
+    stop: threading.Event,
+    t0: float,
+    live: bool,
+) -> None:
     next_status = t0 + 1.0
-    imu_yaw = start.yaw_rad
-    last_imu_ns: int | None = None
-    odom_errors: list[float] = []
-    truth_path: list[tuple[float, float]] = []
-    odom_path: list[tuple[float, float]] = []
-    tick = t0
-    while not stop.is_set() and time.monotonic() - t0 < args.seconds:
-        try:
-            state = servos.read()
-            odom = odometry.update(state)
-            sample = imu.read()
-            counts.imu_samples += 1
-            if last_imu_ns is not None:
-                imu_yaw += sample.gyro_radps[2] * (sample.host_time_ns - last_imu_ns) * 1e-9
-            last_imu_ns = sample.host_time_ns
-            truth = sim.pose()
-            # The autopilot steers from the true pose until VLP and SLAM give the agent its own.
-            v, omega = follower.command(truth.x_m, truth.y_m, truth.yaw_rad)
-            half = omega * robot.track_m / 2.0
-            servos.set_velocity((v - half) / robot.wheel_radius_m, (v + half) / robot.wheel_radius_m)
-        except DeviceError as exc:
-            log.warning("drive loop: %s", exc)
-            counts.error(type(exc).__name__)
-            stop.wait(0.1)
-            continue
-        err = math.hypot(odom.x_m - truth.x_m, odom.y_m - truth.y_m)
-        odom_errors.append(err)
-        truth_path.append((truth.x_m, truth.y_m))
-        odom_path.append((odom.x_m, odom.y_m))
+    last_counts: dict[str, int] = {}
+    last_t = t0
+    while not stop.is_set():
         now = time.monotonic()
+        elapsed = now - t0
+        if elapsed >= args.seconds:
+            return
+        injector.step(elapsed)
+        scorer.drain()
         if now >= next_status:
             next_status += 1.0
-            el = now - t0
-            leds = counts.leds_seen[-1] if counts.leds_seen else 0
+            status = agent.status()
+            dt = max(now - last_t, 1e-3)
+            rate = {
+                k: (status.counts.get(k, 0) - last_counts.get(k, 0)) / dt for k in ("frames", "fixes_fused")
+            }
+            last_counts, last_t = dict(status.counts), now
+            est = status.estimate
+            names = " ".join(f.name or "" for f in PoseFlags if f & status.flags) or "no source"
+            p50, p99 = (
+                agent.output.latency.percentiles(50, 99, last=60) if agent.output else (math.nan, math.nan)
+            )
             line = (
-                f"t={el:5.1f}s true=({truth.x_m:6.2f},{truth.y_m:6.2f},"
-                f"{math.degrees(truth.yaw_rad):6.1f}deg) "
-                f"odom err={100 * err:5.1f}cm scans={counts.scans / el:4.1f}/s "
-                f"frames={counts.frames / el:4.1f}/s leds={leds} imu={counts.imu_samples / el:4.0f}/s "
-                f"tags={len(counts.tags)}"
+                f"t={elapsed:5.1f}s pose=({est.x_m:6.3f},{est.y_m:6.3f},{math.degrees(est.yaw_rad):6.1f}deg) "
+                f"err={100 * scorer.last_error_m:5.2f}cm frames={rate['frames']:4.1f}/s "
+                f"fixes={rate['fixes_fused']:4.1f}/s latency p50={p50:5.1f} p99={p99:5.1f}ms [{names}]"
             )
             if live:
-                print("\r" + line, end="", file=sys.stderr, flush=True)
+                print("\r" + line + "\033[K", end="", file=sys.stderr, flush=True)
             elif not args.json:
                 print(line, file=sys.stderr, flush=True)
-        tick += period_s
-        stop.wait(max(0.0, tick - time.monotonic()))
-    if live:
-        print(file=sys.stderr)
-    elapsed = time.monotonic() - t0
-    truth = sim.pose()
-    final = odometry.odom
-    if args.trajectory and truth_path:
-        _draw(Path(args.trajectory), sim, truth_path, odom_path)
-    return {
-        "world": sim.world.name,
-        "seconds": round(elapsed, 3),
-        "distance_m": round(final.distance_m if final else 0.0, 3),
-        "scans": counts.scans,
-        "scan_rate_hz": round(counts.scans / elapsed, 2),
-        "frames": counts.frames,
-        "frame_rate_hz": round(counts.frames / elapsed, 2),
-        "leds_in_view_mean": round(float(np.mean(counts.leds_seen)), 2) if counts.leds_seen else 0.0,
-        "imu_samples": counts.imu_samples,
-        "imu_yaw_error_deg": round(math.degrees(abs(math.remainder(imu_yaw - truth.yaw_rad, math.tau))), 3),
-        "tag_reads": counts.tag_reads,
-        "tags_seen": sorted(counts.tags),
-        "odometry_error_m_final": round(odom_errors[-1], 4) if odom_errors else None,
-        "odometry_error_m_max": round(max(odom_errors), 4) if odom_errors else None,
-        "device_errors": dict(counts.errors),
-    }
+        stop.wait(min(0.05, max(0.0, args.seconds - elapsed)))
 
 
-def _draw(
-    path: Path, sim: Simulation, truth: list[tuple[float, float]], odom: list[tuple[float, float]]
-) -> None:
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """Atomically: a reader (or a SIGKILL) never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
+    if not cv2.imwrite(str(tmp), image):
+        raise OSError(f"could not write {tmp}")
+    tmp.replace(path)
+
+
+def _write_files(
+    args: argparse.Namespace,
+    out_dir: Path,
+    sim: Simulation,
+    scorer: Scorer,
+    mapper: ScanMapper | None,
+    slam_path: np.ndarray,
+) -> dict[str, str]:
+    files: dict[str, str] = {}
+    if mapper is not None:
+        saved = save_map(mapper, out_dir)
+        if saved:
+            files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
+    if args.record:
+        files["recording"] = str(Path(args.record))
+    if args.truth:
+        path = Path(args.truth)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "w", encoding="ascii") as fp:
+            fp.write("sequence,t_us,x_m,y_m,yaw_rad\n")
+            for seq, t_us, x, y, yaw in scorer.truth_rows:
+                fp.write(f"{seq},{t_us},{x!r},{y!r},{yaw!r}\n")
+        tmp.replace(path)
+        files["truth_csv"] = str(path)
+    trajectory = Path(args.trajectory) if args.trajectory else out_dir / "trajectory.png"
+    if scorer.truth_path:
+        _write_png(trajectory, _trajectory_picture(sim, scorer, slam_path))
+        files["trajectory_png"] = str(trajectory)
+    return files
+
+
+def _trajectory_picture(sim: Simulation, scorer: Scorer, slam_path: np.ndarray) -> np.ndarray:
+    """Walls, LEDs, the true path (green), the fused pose stream (red), the SLAM trajectory (blue)."""
     walls = np.array([(w.x1_m, w.y1_m, w.x2_m, w.y2_m) for w in sim.world.walls]).reshape(-1, 4)
-    pts = np.array(truth + odom)
+    truth = np.array(scorer.truth_path)
+    fused = np.array(scorer.fused_path)
+    pts = np.vstack([truth, fused, slam_path[:, :2]]) if slam_path.size else np.vstack([truth, fused])
     xs = np.concatenate([walls[:, 0], walls[:, 2], pts[:, 0]])
     ys = np.concatenate([walls[:, 1], walls[:, 3], pts[:, 1]])
-    scale = 800 / max(xs.max() - xs.min(), ys.max() - ys.min(), 1e-3)
-    h = int((ys.max() - ys.min()) * scale) + 40
+    scale = 1000 / max(float(xs.max() - xs.min()), float(ys.max() - ys.min()), 1e-3)
+    h = int((ys.max() - ys.min()) * scale) + 60
     w = int((xs.max() - xs.min()) * scale) + 40
     img = np.full((h, w, 3), 255, np.uint8)
 
@@ -292,32 +482,135 @@ def _draw(
         cv2.line(img, px(x1, y1), px(x2, y2), (0, 0, 0), 2)
     for led in sim.world.leds:
         cv2.circle(img, px(led.x_m, led.y_m), 4, (0, 200, 255), -1)
-    for line, colour in ((truth, (0, 160, 0)), (odom, (0, 0, 220))):
-        cv2.polylines(img, [np.array([px(x, y) for x, y in line], np.int32)], False, colour, 2)
+    paths = [(truth, (0, 160, 0), 3), (fused, (0, 0, 220), 1)]
+    if slam_path.shape[0] >= 2:
+        paths.append((slam_path[:, :2], (220, 80, 0), 1))
+    for line, colour, width in paths:
+        poly = np.array([px(float(x), float(y)) for x, y in line], np.int32)
+        cv2.polylines(img, [poly], False, colour, width, cv2.LINE_AA)
     cv2.putText(
-        img, "green: truth  red: wheel odometry", (20, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1
+        img,
+        "green: truth   red: fused pose stream   blue: SLAM trajectory   orange: LEDs",
+        (20, h - 5),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5,
+        (0, 0, 0),
+        1,
     )
-    tmp = path.with_name(path.name + ".tmp.png")
-    cv2.imwrite(str(tmp), img)
-    tmp.replace(path)
+    return img
+
+
+def _round(value: float, digits: int = 3) -> float | None:
+    return None if math.isnan(value) else round(value, digits)
+
+
+def _percentile(values: list[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 3) if values else None
+
+
+def _summary(
+    config: AgentConfig,
+    elapsed: float,
+    status: Any,
+    scorer: Scorer,
+    controller: Controller | None,
+    injector: FaultInjector,
+    files: dict[str, str],
+) -> dict[str, Any]:
+    assert config.sim is not None
+    errors_cm = [100 * e for e in scorer.errors_m]
+    flags = np.array(scorer.flags, dtype=np.int64)
+    truth = np.array(scorer.truth_path) if scorer.truth_path else np.zeros((0, 2))
+    distance = float(np.sum(np.hypot(*np.diff(truth, axis=0).T))) if truth.shape[0] > 1 else 0.0
+    latency_p50, latency_p99 = status.latency_ms
+    counts = status.counts
+    return {
+        "world": config.sim.world.name,
+        "seconds": round(elapsed, 3),
+        "distance_m": round(distance, 3),
+        "output_format": config.output.format.value,
+        "frames_out": int(status.output.get("frames", 0)),
+        "frames_received": controller.frames if controller is not None else None,
+        "frames_rejected_by_receiver": controller.bad if controller is not None else None,
+        "camera_frames": counts.get("frames", 0),
+        "fixes": counts.get("fixes", 0),
+        "fixes_fused": counts.get("fixes_fused", 0),
+        "fixes_rejected": counts.get("fixes_rejected", 0),
+        "no_fix": counts.get("no_fix", 0),
+        "no_fix_reasons": status.no_fix_reasons,
+        "dropped": int(sum(status.drops.values())),
+        "drops": status.drops,
+        "latency_ms_p50": None if math.isnan(latency_p50) else round(latency_p50, 3),
+        "latency_ms_p99": None if math.isnan(latency_p99) else round(latency_p99, 3),
+        "latency_definition": "camera frame capture time (mid-readout) -> last pose byte written",
+        "processing_ms_p50": _round(status.processing_ms[0]),
+        "processing_ms_p99": _round(status.processing_ms[1]),
+        "vlp_ms_p50": None if math.isnan(status.vlp_ms[0]) else round(status.vlp_ms[0], 3),
+        "vlp_ms_p99": None if math.isnan(status.vlp_ms[1]) else round(status.vlp_ms[1], 3),
+        "pose_error_cm_mean": round(float(np.mean(errors_cm)), 3) if errors_cm else None,
+        "pose_error_cm_p95": _percentile(errors_cm, 95),
+        "pose_error_cm_max": round(max(errors_cm), 3) if errors_cm else None,
+        "within_2cm": round(float(np.mean(np.array(errors_cm) <= 2.0)), 4) if errors_cm else None,
+        "yaw_error_deg_p95": _percentile([math.degrees(e) for e in scorer.yaw_errors_rad], 95),
+        "source_share": {
+            (f.name or "").lower(): round(float(np.mean((flags & int(f)) != 0)), 4) if flags.size else 0.0
+            for f in _SOURCES
+        },
+        "slam": status.mapper,
+        "fusion": status.fusion,
+        "output": status.output,
+        "devices": {
+            name: {"ok": d.ok, "reason": d.reason, "failures": d.failures, "recoveries": d.recoveries}
+            for name, d in status.devices.items()
+        },
+        "unavailable": status.unavailable,
+        "faults": injector.applied,
+        "counts": counts,
+        "files": files,
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+    }
 
 
 def _print_summary(s: dict[str, Any]) -> None:
-    print(f"vlp-agent sim on world {s['world']!r} for {s['seconds']:.1f} s ({s['stage']})")
-    print(f"  driven            {s['distance_m']:.2f} m along the route")
-    print(f"  laser             {s['scans']} scans ({s['scan_rate_hz']:.1f}/s)")
+    def num(value: Any, fmt: str) -> str:
+        return "n/a" if value is None else format(value, fmt)
+
+    print(f"vlp-agent sim on world {s['world']!r} for {s['seconds']:.1f} s: drove {s['distance_m']:.2f} m")
+    kind = "pose frames" if s["output_format"] == "frame" else "MAVLink messages"
     print(
-        f"  camera            {s['frames']} frames ({s['frame_rate_hz']:.1f}/s), "
-        f"{s['leds_in_view_mean']:.1f} LEDs in view on average"
+        f"  pose stream       {s['frames_out']} {kind} written"
+        + (f", {s['frames_received']} decoded by the controller" if s["frames_received"] is not None else "")
     )
     print(
-        f"  imu               {s['imu_samples']} samples, "
-        f"integrated yaw off by {s['imu_yaw_error_deg']:.2f} deg"
+        f"  pose error        mean {num(s['pose_error_cm_mean'], '.2f')} cm, "
+        f"p95 {num(s['pose_error_cm_p95'], '.2f')} cm, "
+        f"max {num(s['pose_error_cm_max'], '.2f')} cm; {100 * (s['within_2cm'] or 0):.1f} % within 2 cm"
     )
-    print(f"  rfid              {s['tag_reads']} reads of {len(s['tags_seen'])} tags {s['tags_seen']}")
     print(
-        f"  wheel odometry    error {100 * (s['odometry_error_m_final'] or 0):.1f} cm at the end, "
-        f"{100 * (s['odometry_error_m_max'] or 0):.1f} cm at most"
+        f"  latency           capture -> last byte p50 {num(s['latency_ms_p50'], '.1f')} ms, "
+        f"p99 {num(s['latency_ms_p99'], '.1f')} ms; frame delivered -> last byte p50 "
+        f"{num(s['processing_ms_p50'], '.1f')} ms, p99 {num(s['processing_ms_p99'], '.1f')} ms"
     )
-    errors = s["device_errors"]
-    print(f"  device errors     {errors if errors else 'none'}")
+    print(
+        f"  VLP               {s['fixes']} fixes from {s['camera_frames']} frames, {s['fixes_fused']} fused, "
+        f"{s['fixes_rejected']} gated out"
+    )
+    slam = s["slam"]
+    updates, applied = slam.get("filter_updates", 0), slam.get("fixes_applied", 0)
+    print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
+    share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
+    print(f"  sources live      {share} of frames")
+    print(f"  dropped           {s['dropped']} {s['drops'] if s['dropped'] else ''}")
+    if s["no_fix_reasons"]:
+        reasons = "; ".join(f"{n} x {r}" for r, n in s["no_fix_reasons"].items())
+        print(f"  no VLP fix        {reasons}")
+    for name, why in s["unavailable"].items():
+        print(f"  not running       {name}: {why}")
+    bad = {k: v for k, v in s["devices"].items() if v["failures"]}
+    if bad:
+        print(f"  device faults     {bad}")
+    if s["faults"]:
+        print(f"  injected          {s['faults']}")
+    print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB")
+    for path in s["files"].values():
+        print(f"  wrote             {path}")

@@ -80,6 +80,15 @@ class SimCamera(Camera):
         self._free: list[npt.NDArray[np.uint8]] = []
         self._t_open = 0.0
         self._last_sequence = -1
+        self._stalled = threading.Event()
+
+    def stall(self, stalled: bool = True) -> None:
+        """Fault switch for tests and demonstrations: while stalled no frame comes and ``fetch`` times out,
+        as from a camera whose trigger or USB transfer stopped. Frames due meanwhile count as ``dropped``."""
+        if stalled:
+            self._stalled.set()
+        else:
+            self._stalled.clear()
 
     @staticmethod
     def _model(camera: CameraModel, wanted: CameraSettings) -> CameraModel:
@@ -158,6 +167,12 @@ class SimCamera(Camera):
         deadline = time.monotonic() + timeout_s
         wanted = self._last_sequence + 1
         while True:
+            if self._stalled.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeout(f"no frame within {timeout_s:g} s (the camera is stalled)", self.name)
+                time.sleep(min(remaining, _MAX_SLEEP_S))
+                continue
             now = self.simulation.now()
             # The newest frame that is ready now; at least the one after the last delivered.
             newest = math.floor((now - self._t_open - self.start_jitter_s - renderer.readout_s) / period)

@@ -1,0 +1,138 @@
+"""``vlp-agent run --config FILE``: the agent process, as the systemd service starts it.
+
+Loads and checks the robot's config, brings the devices up (each loop keeps retrying one that is not
+there), tells systemd READY=1 once they are up and WATCHDOG=1 while every critical loop is alive, and runs
+until SIGTERM or SIGINT, then stops the wheels, closes the devices and exits 0 within about two seconds.
+A config with ``[sim]`` runs the same process on the simulated robot (nothing commands the wheels then:
+`vlp-agent sim` is the one that drives the route); there ``output.url = "pty"`` means what it means for
+`vlp-agent sim`: a pseudo-terminal this process makes and reads back as a controller would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+import tty
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from agent.config import AgentConfig, SlamMode, load_config
+from agent.runtime import create_agent
+from agent.runtime.mapper import save_map
+
+log = logging.getLogger(__name__)
+
+# The GIL hands over every 5 ms by default: a thread in a long numpy-free Python stretch (SLAM's
+# bookkeeping) would hold the hot path that long. 1 ms bounds that wait (benchmarks/agent_latency.py).
+SWITCH_INTERVAL_S = 0.001
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "run",
+        help="run the agent (the systemd service's entry point)",
+        description="Run the agent on the robot described by the config file: devices, VLP, SLAM, fusion "
+        "and the pose stream, until SIGTERM or SIGINT. Notifies systemd (READY, WATCHDOG, STATUS, STOPPING) "
+        "when started by it. Keys: docs/config.md.",
+    )
+    p.add_argument("--config", required=True, metavar="FILE", help="the robot's config (TOML)")
+    p.add_argument(
+        "--seconds", type=float, default=None, help="stop after this long (default: run until stopped)"
+    )
+    p.add_argument("--json", action="store_true", help="print the final status as one JSON object on stdout")
+
+
+def map_directory(config: AgentConfig) -> Path | None:
+    """Where the map is saved at the end: ``slam.map_dir``, else systemd's state directory (``maps/`` in the
+    first path of ``$STATE_DIRECTORY``), else nowhere."""
+    if config.slam.map_dir is not None:
+        return config.slam.map_dir
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return Path(state.split(":")[0]) / "maps"
+    return None
+
+
+def _notifier() -> Any:
+    try:
+        from agent.sdnotify import Notifier
+    except ImportError:  # not installed with this checkout: run without systemd notifications
+        return None
+    return Notifier.from_environ(unset_environment=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    notifier = _notifier()
+    with contextlib.ExitStack() as stack:
+        robot = None
+        if config.sim is not None:
+            from drivers.sim.harness import SimulatedRobot
+
+            robot = stack.enter_context(SimulatedRobot(config.sim.world, seed=config.sim.seed))
+        url = config.output.url
+        controller = None
+        if url == "pty":
+            from agent.commands.sim import Controller
+
+            master, slave = os.openpty()
+            tty.setraw(master)
+            tty.setraw(slave)
+            stack.callback(os.close, master)
+            stack.callback(os.close, slave)
+            url = os.ttyname(slave)
+            controller = Controller(master, config.output.format)
+            controller.start()
+        agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
+        agent.start()
+        try:
+            deadline = None if args.seconds is None else time.monotonic() + args.seconds
+            while not stop.is_set():
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+                stop.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
+        finally:
+            agent.stop()
+            status = agent.status()
+            map_files: list[str] = []
+            directory = map_directory(config)
+            if agent.mapper is not None and directory is not None and config.slam.mode is SlamMode.MAPPING:
+                map_files = [str(p) for p in save_map(agent.mapper, directory)]
+            if controller is not None:
+                controller.stop()
+            if notifier is not None:
+                notifier.close()
+    summary = {
+        "pose": {"x_m": status.estimate.x_m, "y_m": status.estimate.y_m, "yaw_rad": status.estimate.yaw_rad},
+        "flags": [f.name for f in type(status.flags) if f & status.flags],
+        "counts": status.counts,
+        "drops": status.drops,
+        "output": status.output,
+        "devices": {
+            k: {"ok": v.ok, "reason": v.reason, "failures": v.failures} for k, v in status.devices.items()
+        },
+        "unavailable": status.unavailable,
+        "frames_received": controller.frames if controller is not None else None,
+        "map_files": map_files,
+    }
+    if args.json:
+        print(json.dumps(summary, sort_keys=True))
+    else:
+        print(f"vlp-agent run stopped: {agent.status_line()}")
+    return 0

@@ -1,0 +1,1120 @@
+"""The robot's config file: one TOML file per robot, checked whole on load (the keys are ``docs/config.md``).
+
+``load_config(path)`` returns an :class:`AgentConfig` or raises :class:`~drivers.errors.ConfigError` naming
+the file and the exact key (``servos.baudrate``, ``vlp.leds[3].duty``), with a "did you mean" for a
+misspelt key. Nothing is opened here: device paths are only checked for type, because a device may be
+plugged in after the config is written; files the config points at (a LED map, a camera_info, a
+calibration, a world) are read now, so that a wrong path fails at start-up and not an hour later.
+
+Device tables (``[camera]``, ``[laser]``, ``[servos]``, ``[imu]``, ``[rfid]``) say ``backend = "..."`` and
+give that backend's options under the driver's own argument names. The options a backend takes, and their
+types, are read from the driver class's signature (``drivers.registry.backend_class``), so the config can
+never drift from the drivers. With a ``[sim]`` table the devices are the simulated robot's
+(``drivers.sim.harness.SimulatedRobot``): where they are (ports, buses) comes from the simulation, the
+tables may still set the other options, and the VLP camera model and LED map default to the world's
+(the nominal calibration and the surveyed map, i.e. what a calibrated robot would believe).
+
+Angles may be given in degrees wherever a key ends in ``_rad`` (``yaw_deg = 90``), as in world files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import enum
+import inspect
+import math
+import os
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import BackendUnavailable, ConfigError
+from drivers.registry import BACKENDS, DeviceKind, backend_class
+from drivers.sim.world import World
+
+__all__ = [
+    "AgentConfig",
+    "ControlConfig",
+    "DeviceConfig",
+    "FusionConfig",
+    "HealthConfig",
+    "IntrinsicsConfig",
+    "LedConfig",
+    "MountConfig",
+    "OutputConfig",
+    "OutputFormat",
+    "RecordConfig",
+    "SimConfig",
+    "SlamConfig",
+    "SlamMode",
+    "VlpConfig",
+    "load_config",
+    "parse_config",
+    "read_camera_info",
+    "read_led_map",
+]
+
+# Arguments a device table never sets: the registry name, objects the agent passes itself, and the
+# camera's settings (given as flat keys, see CAMERA_SETTINGS).
+_NOT_OPTIONS = {"self", "name", "settings", "simulation", "capture_factory"}
+CAMERA_SETTINGS = ("width", "height", "pixel_format", "exposure_s", "gain_db", "frame_rate_hz")
+# Keys the simulated robot sets: where each device is.
+SIM_LOCATION_KEYS: dict[DeviceKind, tuple[str, ...]] = {
+    DeviceKind.LASER: ("url",),
+    DeviceKind.SERVOS: ("port",),
+    DeviceKind.RFID: ("url",),
+    DeviceKind.IMU: ("bus",),
+    DeviceKind.CAMERA: (),
+}
+# In the simulation these come from the world and may not be set in the config (they would disagree).
+_SIM_WORLD_KEYS: dict[DeviceKind, tuple[str, ...]] = {
+    DeviceKind.SERVOS: ("left_id", "right_id", "wheel_radius_m", "track_m"),
+}
+_SECTIONS = (
+    "sim",
+    *(k.value for k in DeviceKind),
+    "vlp",
+    "slam",
+    "fusion",
+    "output",
+    "control",
+    "health",
+    "record",
+)
+# pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
+_NETWORK_SCHEMES = ("socket", "rfc2217")
+# Devices whose loops the watchdog waits for by default (a robot localizes without its IMU or RFID reader).
+_CRITICAL = (DeviceKind.CAMERA, DeviceKind.LASER, DeviceKind.SERVOS)
+# The serial line carries 10 bits per byte (8N1); the pose stream may use at most this share of it.
+_LINE_SHARE = 0.8
+
+
+class OutputFormat(enum.StrEnum):
+    FRAME = "frame"
+    MAVLINK = "mavlink"
+
+
+class SlamMode(enum.StrEnum):
+    MAPPING = "mapping"  # build a map (RBPF SLAM)
+    LOCALIZATION = "localization"  # localize on a saved map (MCL)
+
+
+# -- the configuration, as the agent uses it -----------------------------------------------------------
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated robot: which world (its file and what was read from it), and the seed of its sensors'
+    noise."""
+
+    world_file: Path
+    world: World
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """One device: its backend and the keyword arguments for the backend's class (already checked)."""
+
+    kind: DeviceKind
+    backend: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+    critical: bool = True
+
+
+@dataclass(frozen=True)
+class MountConfig:
+    """Where a sensor sits on the base (x forward, y left, z up; metres) and how it is turned (radians)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    z_m: float = 0.0
+    yaw_rad: float = 0.0
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class IntrinsicsConfig:
+    """The camera as calibrated, at the resolution of the frames the agent gets, plus its rolling shutter.
+
+    ``sensor_width_px``/``sensor_height_px``: the sensor's size when frames are resized from it with nearest
+    neighbour (0: frames are full sensor resolution)."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    t_row_s: float
+    exposure_s: float = 20e-6
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    sensor_width_px: int = 0
+    sensor_height_px: int = 0
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class LedConfig:
+    id: str
+    x_m: float
+    y_m: float
+    z_m: float
+    frequency_hz: float
+    duty: float
+    diameter_m: float = 0.086
+
+
+@dataclass(frozen=True)
+class VlpConfig:
+    """``intrinsics``/``leds``/``mount``: None means "the simulated world's" (only with ``[sim]``).
+    ``calibration``: the text of a VLP calibration file (``agent.vlp.calibration``), already checked."""
+
+    enabled: bool = True
+    intrinsics: IntrinsicsConfig | None = None
+    leds: tuple[LedConfig, ...] | None = None
+    mount: MountConfig | None = None
+    calibration: str | None = None
+    calibration_file: str | None = None
+    sigma_floor_m: float = 0.005
+    sigma_floor_yaw_rad: float = math.radians(0.5)
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    enabled: bool = True
+    mode: SlamMode = SlamMode.MAPPING
+    map: Path | None = None  # the saved map (map_server YAML) to localize on
+    particles: int = 30
+    map_mode: str = "per_particle"
+    resolution_m: float = 0.05
+    linear_update_m: float = 0.25
+    angular_update_rad: float = 0.2
+    laser_mount: MountConfig | None = None
+    queue_size: int = 4
+    map_dir: Path | None = None
+    sigma_xy_m: float = 0.03
+    sigma_yaw_rad: float = math.radians(1.0)
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """EKF tuning (``agent.fusion``) and how long each source counts as live after its last measurement."""
+
+    initial_pose: tuple[float, float, float] | None = None
+    initial_sigma_xy_m: float = 0.05
+    initial_sigma_yaw_rad: float = math.radians(2.0)
+    odometry_sigma_m_per_m: float = 0.02
+    odometry_yaw_rate_sigma_radps: float = 0.02
+    gyro_sigma_radps: float = 0.005
+    yaw_rate_walk_radps2: float = 2.0
+    gyro_bias_walk_radps: float = 1e-4
+    gate_probability: float = 0.999
+    history_s: float = 1.0
+    vlp_timeout_s: float = 0.5
+    slam_timeout_s: float = 2.0
+    odometry_timeout_s: float = 0.3
+    imu_timeout_s: float = 0.3
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """``url``: where the pose stream goes (a device path, a pty, any pyserial URL); ``"pty"`` under
+    ``[sim]`` means a pseudo-terminal the simulator makes and reads as a controller would."""
+
+    format: OutputFormat = OutputFormat.FRAME
+    url: str | None = None
+    baud: int = 115200
+    rate_hz: float = 20.0
+    write_timeout_s: float = 0.005
+    mavlink_message: str = "vision_position_estimate"
+    mavlink_sysid: int = 1
+    mavlink_compid: int = 197
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    deadman_timeout_s: float = 0.5
+    recovery_hold_s: float = 0.5
+    loop_rate_hz: float = 50.0
+    max_speed_mps: float = 0.22
+    max_turn_radps: float = 2.0
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    watchdog: bool = True
+    loop_timeout_s: float = 3.0
+    status_interval_s: float = 2.0
+    camera_stall_s: float = 0.5
+    laser_lost_s: float = 0.5
+    servo_fault_s: float = 0.2
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """Where the fusion's inputs and outputs are recorded (``agent.runtime.recorder``); None: nowhere."""
+
+    path: Path | None = None
+    max_mb: float = 200.0
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    file: str
+    devices: Mapping[DeviceKind, DeviceConfig]
+    sim: SimConfig | None = None
+    vlp: VlpConfig = VlpConfig()
+    slam: SlamConfig = SlamConfig()
+    fusion: FusionConfig = FusionConfig()
+    output: OutputConfig = OutputConfig()
+    control: ControlConfig = ControlConfig()
+    health: HealthConfig = HealthConfig()
+    record: RecordConfig = RecordConfig()
+
+    def replace(self, **changes: Any) -> AgentConfig:
+        return dataclasses.replace(self, **changes)
+
+
+# -- entry points --------------------------------------------------------------------------------------
+def load_config(path: str | os.PathLike[str]) -> AgentConfig:
+    """Read and check a config file. Raises ConfigError (with the file and the key) on any mistake."""
+    file = os.fspath(path)
+    try:
+        with open(file, "rb") as fp:
+            data = tomllib.load(fp)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("", f"not valid TOML: {exc}", file) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError("", f"not UTF-8 text: {exc.reason} at byte {exc.start}", file) from exc
+    except OSError as exc:
+        raise ConfigError("", f"cannot read the config file: {exc.strerror or exc}", file) from exc
+    return parse_config(data, file)
+
+
+def parse_config(data: Mapping[str, Any] | str, file: str = "<config>") -> AgentConfig:
+    """Build a config from TOML text or a parsed table; relative paths are taken from ``file``'s folder."""
+    if isinstance(data, str):
+        try:
+            data = tomllib.loads(data)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError("", f"not valid TOML: {exc}", file) from exc
+    return _Reader(dict(data), file).read()
+
+
+# -- reading tables ------------------------------------------------------------------------------------
+def _type_name(value: object) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int):
+        return "an integer"
+    if isinstance(value, float):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "an array"
+    if isinstance(value, dict):
+        return "a table"
+    return type(value).__name__
+
+
+class _Table:
+    """One TOML table and its dotted path; remembers what was read, to reject unknown keys."""
+
+    def __init__(self, data: Mapping[str, Any], path: str, file: str) -> None:
+        self.data = data
+        self.path = path
+        self.file = file
+        self.used: set[str] = set()
+        self.known: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def error(self, name: str, reason: str) -> ConfigError:
+        return ConfigError(self.key(name), reason, self.file)
+
+    def has(self, name: str) -> bool:
+        self.known.add(name)
+        return name in self.data
+
+    def take(self, name: str) -> Any:
+        self.known.add(name)
+        self.used.add(name)
+        return self.data[name]
+
+    def finish(self) -> None:
+        for name in self.data:
+            if name not in self.used:
+                close = difflib.get_close_matches(name, sorted(self.known), n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise self.error(name, f"unknown key{hint}")
+
+    # typed getters ---------------------------------------------------------------------------------
+    def number(
+        self, name: str, default: float, check: tuple[typing.Callable[[float], bool], str] | None = None
+    ) -> float:
+        if not self.has(name):
+            return default
+        value = self.take(name)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(name, f"must be a number, not {_type_name(value)}")
+        number = float(value)
+        if not math.isfinite(number):
+            raise self.error(name, f"must be finite, got {value}")
+        if check is not None and not check[0](number):
+            raise self.error(name, f"{check[1]}, got {value}")
+        return number
+
+    def angle(self, name: str, default: float, limit_rad: float | None = None) -> float:
+        """``<name>_rad`` or ``<name>_deg`` (not both); ``name`` is given without the suffix."""
+        rad, deg = f"{name}_rad", f"{name}_deg"
+        self.known.update((rad, deg))
+        if rad in self.data and deg in self.data:
+            raise self.error(deg, f"give {rad} or {deg}, not both")
+        if deg in self.data:
+            value = math.radians(self.number(deg, 0.0))
+            key = deg
+        else:
+            value = self.number(rad, default)
+            key = rad
+        if limit_rad is not None and not abs(value) <= limit_rad:
+            raise self.error(key, f"must be within +-{math.degrees(limit_rad):g} degrees")
+        return value
+
+    def integer(
+        self, name: str, default: int, check: tuple[typing.Callable[[int], bool], str] | None = None
+    ) -> int:
+        if not self.has(name):
+            return default
+        value = self.take(name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(name, f"must be an integer, not {_type_name(value)}")
+        if check is not None and not check[0](value):
+            raise self.error(name, f"{check[1]}, got {value}")
+        return value
+
+    def string(self, name: str, default: str | None = None) -> str | None:
+        if not self.has(name):
+            return default
+        value = self.take(name)
+        if not isinstance(value, str):
+            raise self.error(name, f"must be a string, not {_type_name(value)}")
+        if not value.strip():
+            raise self.error(name, "must not be empty")
+        return value
+
+    def required_string(self, name: str, what: str) -> str:
+        value = self.string(name)
+        if value is None:
+            raise self.error(name, f"missing ({what})")
+        return value
+
+    def choice(self, name: str, default: str, choices: typing.Iterable[str]) -> str:
+        options = list(choices)
+        value = self.string(name, default)
+        assert value is not None
+        if value not in options:
+            close = difflib.get_close_matches(value, options, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise self.error(name, f"must be one of {options}, got {value!r}{hint}")
+        return value
+
+    def boolean(self, name: str, default: bool) -> bool:
+        if not self.has(name):
+            return default
+        value = self.take(name)
+        if not isinstance(value, bool):
+            raise self.error(name, f"must be true or false, not {_type_name(value)}")
+        return value
+
+    def numbers(self, name: str, n: int) -> tuple[float, ...] | None:
+        if not self.has(name):
+            return None
+        value = self.take(name)
+        if not isinstance(value, list) or len(value) != n:
+            raise self.error(name, f"must be an array of {n} numbers, not {_type_name(value)}")
+        out = []
+        for i, v in enumerate(value):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
+                raise ConfigError(f"{self.key(name)}[{i}]", f"must be a finite number, got {v!r}", self.file)
+            out.append(float(v))
+        return tuple(out)
+
+    def table(self, name: str) -> _Table | None:
+        if not self.has(name):
+            return None
+        value = self.take(name)
+        if not isinstance(value, dict):
+            raise self.error(name, f"must be a table ([{self.key(name)}]), not {_type_name(value)}")
+        return _Table(value, self.key(name), self.file)
+
+    def tables(self, name: str) -> list[_Table] | None:
+        if not self.has(name):
+            return None
+        value = self.take(name)
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            raise self.error(
+                name, f"must be an array of tables ([[{self.key(name)}]]), not {_type_name(value)}"
+            )
+        return [_Table(v, f"{self.key(name)}[{i}]", self.file) for i, v in enumerate(value)]
+
+    def path_value(self, name: str, base: Path) -> Path | None:
+        text = self.string(name)
+        if text is None:
+            return None
+        path = Path(os.path.expandvars(os.path.expanduser(text)))
+        return path if path.is_absolute() else base / path
+
+
+_POSITIVE = (lambda v: v > 0, "must be > 0")
+_NON_NEGATIVE = (lambda v: v >= 0, "must be >= 0")
+_PROBABILITY = (lambda v: 0 < v < 1, "must be strictly between 0 and 1")
+_BYTE = (lambda v: 0 <= v <= 255, "must be 0..255")
+
+
+# -- device options from driver signatures -------------------------------------------------------------
+@dataclass(frozen=True)
+class _Option:
+    name: str
+    accepts: tuple[type, ...]  # int, float, str, bool, tuple (of ints), an Enum subclass
+    required: bool
+
+    def describe(self) -> str:
+        names = {
+            int: "an integer",
+            float: "a number",
+            str: "a string",
+            bool: "true or false",
+            tuple: "an array of integers",
+        }
+        parts = []
+        for t in self.accepts:
+            if isinstance(t, type) and issubclass(t, enum.Enum):
+                parts.append(f"one of {[m.value for m in t]}")
+            else:
+                parts.append(names.get(t, t.__name__))
+        return " or ".join(dict.fromkeys(parts))
+
+
+def _accepted_types(hint: Any) -> tuple[type, ...] | None:
+    """What TOML values an annotation takes; None when a config file cannot express it."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        out: list[type] = []
+        for arg in typing.get_args(hint):
+            if arg is type(None):
+                continue
+            sub = _accepted_types(arg)
+            if sub is None:
+                return None
+            out.extend(sub)
+        return tuple(out) or None
+    if origin is tuple:
+        args = typing.get_args(hint)
+        return (tuple,) if args and all(a in (int, Ellipsis) for a in args) else None
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        return (hint,)
+    if hint in (int, float, str, bool):
+        return (hint,)
+    return None
+
+
+def backend_options(kind: DeviceKind, backend: str) -> dict[str, _Option]:
+    """The options a device table may give for ``backend``, from its class's ``__init__`` signature."""
+    cls = backend_class(kind, backend)
+    signature = inspect.signature(cls.__init__)
+    hints = typing.get_type_hints(cls.__init__)
+    options: dict[str, _Option] = {}
+    for name, param in signature.parameters.items():
+        if name in _NOT_OPTIONS or param.kind in (param.VAR_POSITIONAL, param.VAR_KEYWORD):
+            continue
+        if kind is DeviceKind.RFID and name == "protocol":
+            continue  # the backend name is the protocol
+        accepts = _accepted_types(hints.get(name, Any))
+        if accepts is None:
+            continue
+        options[name] = _Option(name, accepts, param.default is inspect.Parameter.empty)
+    return options
+
+
+def _convert_option(option: _Option, value: Any, table: _Table) -> Any:
+    key = option.name
+    for t in option.accepts:
+        if t is bool:
+            if isinstance(value, bool):
+                return value
+        elif t is int:
+            if isinstance(value, int) and not isinstance(value, bool):
+                return value
+        elif t is float:
+            if isinstance(value, int | float) and not isinstance(value, bool):
+                if not math.isfinite(float(value)):
+                    raise table.error(key, f"must be finite, got {value}")
+                return float(value)
+        elif t is str:
+            if isinstance(value, str):
+                if not value.strip():
+                    raise table.error(key, "must not be empty")
+                return value
+        elif t is tuple:
+            if isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+                return tuple(value)
+        elif issubclass(t, enum.Enum) and isinstance(value, str):
+            try:
+                return t(value)
+            except ValueError:
+                continue
+    raise table.error(key, f"must be {option.describe()}, not {_type_name(value)} ({value!r})")
+
+
+# -- external files ------------------------------------------------------------------------------------
+def read_camera_info(path: Path, key: str, file: str) -> IntrinsicsConfig:
+    """Width, height, camera matrix and distortion from a ROS ``camera_info`` YAML file.
+
+    ``t_row_s`` is not in camera_info: it is set to 0 here and must come from the config."""
+    import cv2
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(key, f"cannot read camera_info {path}: {exc}", file) from exc
+    # OpenCV's YAML reader wants its directive; ROS writes plain YAML 1.1 without one.
+    body = text if text.lstrip().startswith("%YAML") else "%YAML:1.0\n---\n" + text
+    try:
+        storage = cv2.FileStorage(body, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError) as exc:
+        raise ConfigError(key, f"{path} is not a camera_info YAML file: {exc}", file) from exc
+
+    def numbers(name: str, n: int) -> list[float]:
+        node = storage.getNode(name)
+        data = node.getNode("data") if not node.empty() else node
+        if node.empty() or data.empty() or data.size() != n:
+            raise ConfigError(key, f"{path}: {name}.data must hold {n} numbers", file)
+        return [float(data.at(i).real()) for i in range(n)]
+
+    def integer(name: str) -> int:
+        node = storage.getNode(name)
+        if node.empty() or not node.isInt() or node.real() <= 0:
+            raise ConfigError(key, f"{path}: {name} must be a positive integer", file)
+        return int(node.real())
+
+    width, height = integer("image_width"), integer("image_height")
+    k = numbers("camera_matrix", 9)
+    dist_node = storage.getNode("distortion_coefficients")
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    if not dist_node.empty():
+        data = dist_node.getNode("data")
+        values = [float(data.at(i).real()) for i in range(data.size())] if not data.empty() else []
+        if len(values) not in (0, 4, 5):
+            raise ConfigError(key, f"{path}: distortion_coefficients must hold 5 numbers (plumb_bob)", file)
+        values += [0.0] * (5 - len(values))
+        dist = (values[0], values[1], values[2], values[3], values[4])
+    model = storage.getNode("distortion_model")
+    if not model.empty() and model.string() not in ("plumb_bob", "rational_polynomial", ""):
+        raise ConfigError(
+            key, f"{path}: distortion_model {model.string()!r} is not supported (plumb_bob)", file
+        )
+    if not (k[0] > 0 and k[4] > 0):
+        raise ConfigError(key, f"{path}: camera_matrix has non-positive focal lengths {k[0]}, {k[4]}", file)
+    return IntrinsicsConfig(width, height, k[0], k[4], k[2], k[5], 0.0, distortion=dist, source=str(path))
+
+
+def _led(t: _Table) -> LedConfig:
+    led_id = t.string("id")
+    if led_id is None:
+        value = t.data.get("id")
+        if isinstance(value, int) and not isinstance(value, bool):
+            t.take("id")
+            led_id = str(value)
+        else:
+            raise t.error("id", "missing (a string naming the LED's signature)")
+    led = LedConfig(
+        led_id,
+        t.number("x_m", math.nan),
+        t.number("y_m", math.nan),
+        t.number("z_m", math.nan),
+        t.number("frequency_hz", math.nan, _POSITIVE),
+        t.number("duty", math.nan, _PROBABILITY),
+        t.number("diameter_m", 0.086, _POSITIVE),
+    )
+    for name in ("x_m", "y_m", "z_m", "frequency_hz", "duty"):
+        if math.isnan(getattr(led, name)):
+            raise t.error(name, "missing (every LED needs id, x_m, y_m, z_m, frequency_hz and duty)")
+    t.finish()
+    return led
+
+
+def _leds(tables: list[_Table], key: str, file: str) -> tuple[LedConfig, ...]:
+    leds = tuple(_led(t) for t in tables)
+    if not leds:
+        raise ConfigError(key, "the LED map is empty", file)
+    signatures: dict[str, tuple[float, float]] = {}
+    for i, led in enumerate(leds):
+        known = signatures.setdefault(led.id, (led.frequency_hz, led.duty))
+        if known != (led.frequency_hz, led.duty):
+            raise ConfigError(
+                f"{key}[{i}]",
+                f"LED id {led.id!r} appears with two signatures: {known} and {(led.frequency_hz, led.duty)}",
+                file,
+            )
+    return leds
+
+
+def read_led_map(path: Path, key: str, file: str) -> tuple[LedConfig, ...]:
+    """A surveyed LED map: TOML with ``[[leds]]`` tables (id, x_m, y_m, z_m, frequency_hz, duty,
+    diameter_m). Errors name the map file and the LED."""
+    try:
+        with open(path, "rb") as fp:
+            data = tomllib.load(fp)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("", f"not valid TOML: {exc}", str(path)) from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(key, f"cannot read the LED map {path}: {exc}", file) from exc
+    top = _Table(data, "", str(path))
+    tables = top.tables("leds")
+    if tables is None:
+        raise ConfigError("leds", "missing: an LED map is an array of [[leds]] tables", str(path))
+    leds = _leds(tables, "leds", str(path))
+    top.finish()
+    return leds
+
+
+# -- the reader ----------------------------------------------------------------------------------------
+class _Reader:
+    def __init__(self, data: dict[str, Any], file: str) -> None:
+        self.top = _Table(data, "", file)
+        self.file = file
+        self.base = Path(file).resolve().parent if not file.startswith("<") else Path.cwd()
+
+    def read(self) -> AgentConfig:
+        top = self.top
+        top.known.update(_SECTIONS)
+        sim = self._sim()
+        devices: dict[DeviceKind, DeviceConfig] = {}
+        for kind in DeviceKind:
+            device = self._device(kind, sim)
+            if device is not None:
+                devices[kind] = device
+        vlp = self._vlp(sim, DeviceKind.CAMERA in devices)
+        slam = self._slam(DeviceKind.LASER in devices)
+        fusion = self._fusion()
+        output = self._output(sim)
+        control = self._control()
+        health = self._health()
+        record = self._record()
+        top.finish()
+        if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
+            raise ConfigError(
+                "", "no pose source: configure [servos] (wheel odometry) or [camera] with [vlp]", self.file
+            )
+        return AgentConfig(self.file, devices, sim, vlp, slam, fusion, output, control, health, record)
+
+    # [sim] ---------------------------------------------------------------------------------------
+    def _sim(self) -> SimConfig | None:
+        t = self.top.table("sim")
+        if t is None:
+            return None
+        world = t.path_value("world", self.base)
+        if world is None:
+            raise t.error("world", "missing (the world file the simulated robot lives in, docs/world.md)")
+        if not world.is_file():
+            raise t.error("world", f"no such world file: {world}")
+        seed = t.integer("seed", 0, _NON_NEGATIVE)
+        t.finish()
+        from drivers.sim.worldfile import load_world
+
+        return SimConfig(world, load_world(world), seed)
+
+    # devices -------------------------------------------------------------------------------------
+    def _device(self, kind: DeviceKind, sim: SimConfig | None) -> DeviceConfig | None:
+        t = self.top.table(kind.value)
+        if t is None:
+            if sim is None:
+                return None
+            t = _Table({}, kind.value, self.file)
+        if not t.boolean("enabled", True):
+            return None  # the other keys of a disabled device are kept for later, not checked
+        simulated = _sim_backend(kind, sim.world) if sim is not None else None
+        if t.has("backend"):
+            backend = t.choice("backend", "", BACKENDS[kind])
+        elif simulated is not None:
+            backend = simulated
+        else:
+            raise t.error("backend", f"missing (one of {sorted(BACKENDS[kind])})")
+        if simulated is not None and backend != simulated:
+            raise t.error("backend", f"the simulated robot's {kind.value} is backend = {simulated!r}")
+        critical = t.boolean("critical", kind in _CRITICAL)
+        try:
+            known = backend_options(kind, backend)
+        except BackendUnavailable as exc:
+            raise t.error("backend", str(exc)) from exc
+        options: dict[str, Any] = {}
+        location = SIM_LOCATION_KEYS[kind] if sim is not None else ()
+        world_keys = _SIM_WORLD_KEYS.get(kind, ()) if sim is not None else ()
+        settings: dict[str, Any] = {}
+        t.known.update(known)
+        if kind is DeviceKind.CAMERA:
+            t.known.update(CAMERA_SETTINGS)
+        for name in list(t.data):
+            if name in ("backend", "enabled", "critical"):
+                continue
+            if kind is DeviceKind.CAMERA and name in CAMERA_SETTINGS:
+                settings[name] = t.take(name)
+                continue
+            if name not in known:
+                continue  # finish() reports it, with a suggestion
+            if name in location:
+                raise t.error(name, "is set by the simulated robot ([sim]); remove it")
+            if name in world_keys:
+                raise t.error(name, "comes from the world file under [sim]; set it there ([robot])")
+            options[name] = _convert_option(known[name], t.take(name), t)
+        t.finish()
+        for name, option in known.items():
+            if option.required and name not in options and name not in location:
+                raise t.error(name, f"missing ({option.describe()}; required by the {backend!r} backend)")
+        if settings:
+            options["settings"] = self._camera_settings(settings, t)
+        return DeviceConfig(kind, backend, options, critical)
+
+    def _camera_settings(self, values: dict[str, Any], t: _Table) -> Any:
+        from drivers.camera.base import CameraSettings
+
+        converted: dict[str, Any] = {}
+        for name, value in values.items():
+            if name == "pixel_format":
+                if not isinstance(value, str):
+                    raise t.error(name, f"must be a string, not {_type_name(value)}")
+                converted[name] = value
+            elif name in ("width", "height"):
+                if isinstance(value, bool) or not isinstance(value, int):
+                    raise t.error(name, f"must be an integer, not {_type_name(value)}")
+                converted[name] = value
+            else:
+                if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                    raise t.error(name, f"must be a finite number, not {value!r}")
+                converted[name] = float(value)
+        settings = CameraSettings(**converted)
+        try:
+            settings.validate(t.path)
+        except ConfigError as exc:
+            raise ConfigError(exc.key, exc.reason, self.file) from exc
+        return settings
+
+    # [vlp] ---------------------------------------------------------------------------------------
+    def _mount(self, t: _Table | None, default_z_m: float) -> MountConfig | None:
+        if t is None:
+            return None
+        tilt_limit = math.radians(20.0)
+        mount = MountConfig(
+            t.number("x_m", 0.0),
+            t.number("y_m", 0.0),
+            t.number("z_m", default_z_m),
+            t.angle("yaw", 0.0, math.pi),
+            t.angle("roll", 0.0, tilt_limit),
+            t.angle("pitch", 0.0, tilt_limit),
+        )
+        t.finish()
+        return mount
+
+    def _vlp(self, sim: SimConfig | None, has_camera: bool) -> VlpConfig:
+        t = self.top.table("vlp") or _Table({}, "vlp", self.file)
+        enabled = t.boolean("enabled", has_camera)
+        if enabled and not has_camera:
+            raise t.error("enabled", "VLP needs a [camera]")
+        intrinsics = self._intrinsics(t)
+        leds: tuple[LedConfig, ...] | None = None
+        map_path = t.path_value("led_map", self.base)
+        inline = t.tables("leds")
+        if map_path is not None and inline is not None:
+            raise t.error("leds", "give led_map (a file) or [[vlp.leds]], not both")
+        if map_path is not None:
+            leds = read_led_map(map_path, t.key("led_map"), self.file)
+        elif inline is not None:
+            leds = _leds(inline, t.key("leds"), self.file)
+        mount = self._mount(t.table("mount"), 0.2)
+        calibration_path = t.path_value("calibration", self.base)
+        calibration: str | None = None
+        if calibration_path is not None:
+            calibration = self._calibration(calibration_path, t.key("calibration"))
+        d = VlpConfig()
+        floor_m = t.number("sigma_floor_m", d.sigma_floor_m, _NON_NEGATIVE)
+        floor_yaw = t.angle("sigma_floor_yaw", d.sigma_floor_yaw_rad)
+        if floor_yaw < 0:
+            raise t.error("sigma_floor_yaw_rad", "must be >= 0")
+        t.finish()
+        if enabled and sim is None:
+            if intrinsics is None:
+                raise t.error(
+                    "camera_info",
+                    'missing: the camera\'s calibration (camera_info = "file.yaml" '
+                    "or a [vlp.intrinsics] table)",
+                )
+            if leds is None:
+                raise t.error(
+                    "led_map", 'missing: the surveyed LED map (led_map = "file.toml" or [[vlp.leds]])'
+                )
+        return VlpConfig(
+            enabled,
+            intrinsics,
+            leds,
+            mount,
+            calibration,
+            str(calibration_path) if calibration_path else None,
+            floor_m,
+            floor_yaw,
+        )
+
+    def _calibration(self, path: Path, key: str) -> str:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(key, f"cannot read the VLP calibration {path}: {exc}", self.file) from exc
+        try:
+            from agent.vlp.calibration import parse_calibration
+        except ImportError as exc:  # the VLP package is not installed or broken
+            raise ConfigError(key, f"cannot check the VLP calibration: {exc}", self.file) from exc
+        parse_calibration(text, str(path))  # raises ConfigError naming that file and its key
+        return text
+
+    def _intrinsics(self, t: _Table) -> IntrinsicsConfig | None:
+        info_path = t.path_value("camera_info", self.base)
+        inline = t.table("intrinsics")
+        if info_path is not None and inline is not None:
+            raise t.error("intrinsics", "give camera_info (a file) or [vlp.intrinsics], not both")
+        rolling = t.table("rolling_shutter")
+        if info_path is None and inline is None:
+            if rolling is not None:
+                raise t.error("rolling_shutter", "needs camera_info or [vlp.intrinsics] beside it")
+            return None
+        if info_path is not None:
+            base = read_camera_info(info_path, t.key("camera_info"), self.file)
+        else:
+            assert inline is not None
+            dist = inline.numbers("distortion", 5) or (0.0, 0.0, 0.0, 0.0, 0.0)
+            base = IntrinsicsConfig(
+                inline.integer("width_px", 0, _POSITIVE),
+                inline.integer("height_px", 0, _POSITIVE),
+                inline.number("fx_px", 0.0, _POSITIVE),
+                inline.number("fy_px", 0.0, _POSITIVE),
+                inline.number("cx_px", math.nan),
+                inline.number("cy_px", math.nan),
+                0.0,
+                distortion=(dist[0], dist[1], dist[2], dist[3], dist[4]),
+                source=inline.path,
+            )
+            for name in ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px"):
+                value = getattr(base, name)
+                if value == 0 or (isinstance(value, float) and math.isnan(value)):
+                    raise inline.error(name, "missing (width_px, height_px, fx_px, fy_px, cx_px, cy_px)")
+            inline.finish()
+        r = rolling or _Table({}, t.key("rolling_shutter"), self.file)
+        if not r.has("t_row_s"):
+            raise r.error("t_row_s", "missing: the sensor's row time (the stripes' clock)")
+        t_row_s = r.number("t_row_s", 0.0, _POSITIVE)
+        exposure_s = r.number("exposure_s", 20e-6, _POSITIVE)
+        sensor_w = r.integer("sensor_width_px", 0, _NON_NEGATIVE)
+        sensor_h = r.integer("sensor_height_px", 0, _NON_NEGATIVE)
+        if (sensor_w == 0) != (sensor_h == 0):
+            raise r.error("sensor_height_px", "give both sensor_width_px and sensor_height_px, or neither")
+        if sensor_w and (sensor_w < base.width_px or sensor_h < base.height_px):
+            raise r.error(
+                "sensor_width_px",
+                f"the sensor ({sensor_w}x{sensor_h}) is smaller than the frames "
+                f"({base.width_px}x{base.height_px})",
+            )
+        r.finish()
+        return dataclasses.replace(
+            base, t_row_s=t_row_s, exposure_s=exposure_s, sensor_width_px=sensor_w, sensor_height_px=sensor_h
+        )
+
+    # [slam] --------------------------------------------------------------------------------------
+    def _slam(self, has_laser: bool) -> SlamConfig:
+        t = self.top.table("slam") or _Table({}, "slam", self.file)
+        enabled = t.boolean("enabled", has_laser)
+        if enabled and not has_laser:
+            raise t.error("enabled", "SLAM needs a [laser]")
+        d = SlamConfig()
+        mode = SlamMode(t.choice("mode", d.mode.value, [m.value for m in SlamMode]))
+        saved = t.path_value("map", self.base)
+        if mode is SlamMode.LOCALIZATION and enabled:
+            if saved is None:
+                raise t.error("map", "missing: localization needs the saved map (a map_server .yaml)")
+            if not saved.is_file():
+                raise t.error("map", f"no such map file: {saved}")
+        elif saved is not None:
+            raise t.error("map", 'only used with mode = "localization"')
+        slam = SlamConfig(
+            enabled=enabled,
+            mode=mode,
+            map=saved,
+            particles=t.integer("particles", d.particles, (lambda v: 1 <= v <= 1000, "must be 1..1000")),
+            map_mode=t.choice("map_mode", d.map_mode, ("per_particle", "shared")),
+            resolution_m=t.number(
+                "resolution_m", d.resolution_m, (lambda v: 0.01 <= v <= 0.5, "must be 0.01..0.5")
+            ),
+            linear_update_m=t.number("linear_update_m", d.linear_update_m, _POSITIVE),
+            angular_update_rad=t.angle("angular_update", d.angular_update_rad),
+            laser_mount=self._mount(t.table("laser_mount"), 0.18),
+            queue_size=t.integer("queue_size", d.queue_size, (lambda v: 1 <= v <= 64, "must be 1..64")),
+            map_dir=t.path_value("map_dir", self.base),
+            sigma_xy_m=t.number("sigma_xy_m", d.sigma_xy_m, _POSITIVE),
+            sigma_yaw_rad=t.angle("sigma_yaw", d.sigma_yaw_rad),
+            seed=t.integer("seed", d.seed, _NON_NEGATIVE),
+        )
+        if not slam.angular_update_rad > 0:
+            raise t.error("angular_update_rad", "must be > 0")
+        if not slam.sigma_yaw_rad > 0:
+            raise t.error("sigma_yaw_rad", "must be > 0")
+        t.finish()
+        return slam
+
+    # [fusion] ------------------------------------------------------------------------------------
+    def _fusion(self) -> FusionConfig:
+        t = self.top.table("fusion") or _Table({}, "fusion", self.file)
+        d = FusionConfig()
+        pose: tuple[float, float, float] | None = None
+        start = t.table("initial_pose")
+        if start is not None:
+            for name in ("x_m", "y_m"):
+                if not start.has(name):
+                    raise start.error(name, "missing (initial_pose needs x_m, y_m and yaw_rad or yaw_deg)")
+            pose = (start.number("x_m", 0.0), start.number("y_m", 0.0), start.angle("yaw", 0.0, math.pi))
+            start.finish()
+        fusion = FusionConfig(
+            initial_pose=pose,
+            initial_sigma_xy_m=t.number("initial_sigma_xy_m", d.initial_sigma_xy_m, _POSITIVE),
+            initial_sigma_yaw_rad=t.angle("initial_sigma_yaw", d.initial_sigma_yaw_rad),
+            odometry_sigma_m_per_m=t.number("odometry_sigma_m_per_m", d.odometry_sigma_m_per_m, _POSITIVE),
+            odometry_yaw_rate_sigma_radps=t.number(
+                "odometry_yaw_rate_sigma_radps", d.odometry_yaw_rate_sigma_radps, _POSITIVE
+            ),
+            gyro_sigma_radps=t.number("gyro_sigma_radps", d.gyro_sigma_radps, _POSITIVE),
+            yaw_rate_walk_radps2=t.number("yaw_rate_walk_radps2", d.yaw_rate_walk_radps2, _POSITIVE),
+            gyro_bias_walk_radps=t.number("gyro_bias_walk_radps", d.gyro_bias_walk_radps, _POSITIVE),
+            gate_probability=t.number("gate_probability", d.gate_probability, _PROBABILITY),
+            history_s=t.number("history_s", d.history_s, (lambda v: 0.1 <= v <= 10, "must be 0.1..10")),
+            vlp_timeout_s=t.number("vlp_timeout_s", d.vlp_timeout_s, _POSITIVE),
+            slam_timeout_s=t.number("slam_timeout_s", d.slam_timeout_s, _POSITIVE),
+            odometry_timeout_s=t.number("odometry_timeout_s", d.odometry_timeout_s, _POSITIVE),
+            imu_timeout_s=t.number("imu_timeout_s", d.imu_timeout_s, _POSITIVE),
+        )
+        for name in ("initial_sigma_yaw_rad",):
+            if not getattr(fusion, name) > 0:
+                raise t.error(name, "must be > 0")
+        t.finish()
+        return fusion
+
+    # [output] ------------------------------------------------------------------------------------
+    def _output(self, sim: SimConfig | None) -> OutputConfig:
+        t = self.top.table("output") or _Table({}, "output", self.file)
+        d = OutputConfig()
+        fmt = OutputFormat(t.choice("format", d.format.value, [f.value for f in OutputFormat]))
+        url = t.string("url")
+        if url is None and sim is None:
+            raise t.error("url", 'missing (the serial port the pose goes out on, e.g. "/dev/ttyS0")')
+        if url == "pty" and sim is None:
+            raise t.error("url", '"pty" (a simulator-made pseudo-terminal) only exists under [sim]')
+        from firmware_protocol.mavlink_out import MavlinkMessage
+
+        output = OutputConfig(
+            format=fmt,
+            url=url or ("pty" if sim is not None else None),
+            baud=t.integer("baud", d.baud, (lambda v: 1200 <= v <= 12_000_000, "must be 1200..12000000 bps")),
+            rate_hz=t.number("rate_hz", d.rate_hz, (lambda v: 0 < v <= 1000, "must be in (0, 1000]")),
+            write_timeout_s=t.number("write_timeout_s", d.write_timeout_s, _POSITIVE),
+            mavlink_message=t.choice("mavlink_message", d.mavlink_message, [m.value for m in MavlinkMessage]),
+            mavlink_sysid=t.integer(
+                "mavlink_sysid", d.mavlink_sysid, (lambda v: 1 <= v <= 255, "must be 1..255")
+            ),
+            mavlink_compid=t.integer("mavlink_compid", d.mavlink_compid, _BYTE),
+        )
+        if fmt is OutputFormat.FRAME:
+            for name in ("mavlink_message", "mavlink_sysid", "mavlink_compid"):
+                if name in t.data:
+                    raise t.error(name, 'only applies to format = "mavlink"')
+        t.finish()
+        # The line must carry the stream: bytes per pose x 10 bits at the rate, within a share of the baud.
+        frame_bytes = _frame_bytes(output)
+        need = frame_bytes * 10 * output.rate_hz
+        if need > _LINE_SHARE * output.baud:
+            raise ConfigError(
+                "output.rate_hz",
+                f"{output.rate_hz:g} poses/s of {frame_bytes} bytes need {need:.0f} bit/s, more than "
+                f"{_LINE_SHARE:.0%} of {output.baud} baud: lower the rate or raise output.baud",
+                self.file,
+            )
+        return output
+
+    # [control], [health] -------------------------------------------------------------------------
+    def _control(self) -> ControlConfig:
+        t = self.top.table("control") or _Table({}, "control", self.file)
+        d = ControlConfig()
+        control = ControlConfig(
+            deadman_timeout_s=t.number("deadman_timeout_s", d.deadman_timeout_s, _POSITIVE),
+            recovery_hold_s=t.number("recovery_hold_s", d.recovery_hold_s, _NON_NEGATIVE),
+            loop_rate_hz=t.number(
+                "loop_rate_hz", d.loop_rate_hz, (lambda v: 1 <= v <= 500, "must be 1..500")
+            ),
+            max_speed_mps=t.number("max_speed_mps", d.max_speed_mps, _POSITIVE),
+            max_turn_radps=t.number("max_turn_radps", d.max_turn_radps, _POSITIVE),
+        )
+        t.finish()
+        if control.deadman_timeout_s < 2.0 / control.loop_rate_hz:
+            raise ConfigError(
+                "control.deadman_timeout_s",
+                f"{control.deadman_timeout_s:g} s is shorter than two servo loop periods "
+                f"({2.0 / control.loop_rate_hz:g} s at loop_rate_hz = {control.loop_rate_hz:g})",
+                self.file,
+            )
+        return control
+
+    def _record(self) -> RecordConfig:
+        t = self.top.table("record") or _Table({}, "record", self.file)
+        record = RecordConfig(
+            path=t.path_value("path", self.base),
+            max_mb=t.number("max_mb", RecordConfig().max_mb, _POSITIVE),
+        )
+        t.finish()
+        return record
+
+    def _health(self) -> HealthConfig:
+        t = self.top.table("health") or _Table({}, "health", self.file)
+        d = HealthConfig()
+        health = HealthConfig(
+            watchdog=t.boolean("watchdog", d.watchdog),
+            loop_timeout_s=t.number("loop_timeout_s", d.loop_timeout_s, _POSITIVE),
+            status_interval_s=t.number("status_interval_s", d.status_interval_s, _POSITIVE),
+            camera_stall_s=t.number("camera_stall_s", d.camera_stall_s, _POSITIVE),
+            laser_lost_s=t.number("laser_lost_s", d.laser_lost_s, _POSITIVE),
+            servo_fault_s=t.number("servo_fault_s", d.servo_fault_s, _POSITIVE),
+        )
+        t.finish()
+        return health
+
+
+def _sim_backend(kind: DeviceKind, world: World) -> str:
+    """The backend each simulated device needs (the fake reader speaks the world's RFID protocol)."""
+    return {
+        DeviceKind.CAMERA: "sim",
+        DeviceKind.LASER: "urg",
+        DeviceKind.SERVOS: "dynamixel",
+        DeviceKind.IMU: "mpu6050",
+        DeviceKind.RFID: world.rfid.protocol,
+    }[kind]
+
+
+def _frame_bytes(output: OutputConfig) -> int:
+    """Bytes one pose takes on the line (the largest a message can be)."""
+    if output.format is OutputFormat.FRAME:
+        from firmware_protocol.pose_frame import WIRE_LENGTH
+
+        return WIRE_LENGTH
+    # MAVLink 2: 12 header/CRC bytes + the payload before trailing-zero truncation.
+    return 12 + (117 if output.mavlink_message == "vision_position_estimate" else 233)

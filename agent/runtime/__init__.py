@@ -1,0 +1,106 @@
+"""The agent process's runtime: device loops, the hot path, SLAM beside it, fusion, pose output, health.
+
+:func:`create_agent` wires an :class:`~agent.runtime.agent.Agent` from a config: the devices by backend
+name (on the simulated robot when the config has ``[sim]``), VLP and SLAM through their adapters when
+their packages are usable (when not, the agent runs without them and says why), and the pose stream.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from agent.config import AgentConfig
+from agent.runtime.agent import Agent, AgentStatus, DeviceState, laser_mount_for
+from agent.runtime.devices import Devices, build_devices
+from agent.runtime.health import HealthMonitor, NotifierLike
+from agent.runtime.localizer import FrameLocalizer, make_localizer
+from agent.runtime.mapper import ScanMapper, make_mapper
+from agent.runtime.output import PoseOutput, Written
+from agent.runtime.recorder import Recorder, replay
+
+__all__ = [
+    "Agent",
+    "AgentStatus",
+    "DeviceState",
+    "Devices",
+    "FrameLocalizer",
+    "HealthMonitor",
+    "PoseOutput",
+    "Recorder",
+    "ScanMapper",
+    "Written",
+    "create_agent",
+    "replay",
+]
+
+log = logging.getLogger(__name__)
+
+
+def create_agent(
+    config: AgentConfig,
+    *,
+    robot: Any | None = None,
+    notifier: NotifierLike | None = None,
+    output_url: str | None = None,
+    observer: Callable[[Written], None] | None = None,
+    devices: Devices | None = None,
+) -> Agent:
+    """An agent for ``config``, not started.
+
+    ``robot``: the started ``SimulatedRobot`` under ``[sim]``. ``output_url``: where the pose stream goes
+    (default: the config's ``output.url``; the sim command passes the pty it made for ``"pty"``).
+    ``observer``: called with every frame written (the simulator measures its error against the truth).
+    ``devices``: injected devices (tests); default: built from the config.
+    """
+    world = config.sim.world if config.sim is not None else None
+    if devices is None:
+        devices = build_devices(config, robot)
+    unavailable: dict[str, str] = {}
+    localizer: FrameLocalizer | None = None
+    if devices.camera is not None:
+        size = None
+        settings = config.devices[_camera_kind()].options.get("settings")
+        if settings is not None and settings.width and settings.height:
+            size = (settings.width, settings.height)
+        elif world is not None:
+            size = (world.camera.output_width_px, world.camera.output_height_px)
+        localizer, why = make_localizer(config.vlp, world, size)
+        if localizer is None:
+            unavailable["vlp"] = why
+            log.warning("running without VLP: %s", why)
+    url = output_url if output_url is not None else config.output.url
+    output = None
+    if url is not None and url != "pty":
+        output = PoseOutput(config.output, url, observer=observer)
+    initial = None
+    if world is not None:
+        initial = (world.robot.start.x_m, world.robot.start.y_m, world.robot.start.yaw_rad)
+    recorder = None
+    if config.record.path is not None:
+        recorder = Recorder(config.record.path, int(config.record.max_mb * 1e6))
+    agent = Agent(
+        config,
+        devices,
+        localizer=localizer,
+        output=output,
+        notifier=notifier,
+        initial_pose=initial,
+        unavailable=unavailable,
+        recorder=recorder,
+    )
+    if devices.laser is not None:
+        mapper, why = make_mapper(config.slam, laser_mount_for(config, world), agent.slam_start_pose)
+        if mapper is None:
+            unavailable["slam"] = why
+            agent.unavailable["slam"] = why
+            log.warning("running without SLAM: %s", why)
+        agent.mapper = mapper
+    return agent
+
+
+def _camera_kind() -> Any:
+    from drivers.registry import DeviceKind
+
+    return DeviceKind.CAMERA

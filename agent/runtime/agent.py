@@ -1,0 +1,854 @@
+"""The agent process's runtime: device threads, the hot path, SLAM beside it, fusion, output, health.
+
+Threads (each beats its own heartbeat; the critical ones gate the systemd watchdog)::
+
+    camera   grab -> LatestMailbox ------------------------------+
+    vlp      (hot path) take the newest frame -> VLP fix -> fuse -> pose bytes written
+    laser    read scan -> BoundedQueue --------------------------+
+    slam     scan + odometry at its time -> RBPF -> fuse the pose of each filter update
+    servos   read wheels -> odometry -> fuse; send the velocity command (dead-man: zero when stale)
+    imu      read -> gyro yaw rate -> fuse; accelerometer -> tilt for VLP
+    rfid     read tags (kept for the status; person following and landmarks come later)
+    output   keeps the pose stream at rate_hz when nothing else writes (camera stalled, no fix)
+    monitor  heartbeats -> READY / WATCHDOG / STATUS / STOPPING
+
+A device that fails is reported (pose flags, status, log) and its loop keeps trying: the drivers that
+reconnect by themselves (laser, servos, RFID) are left to it, the others are closed and reopened. The
+rest carry on. Nothing here prints, installs signal handlers or configures logging: the commands do.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.config import AgentConfig, MountConfig
+from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
+from agent.runtime.devices import Devices
+from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
+from agent.runtime.localizer import FrameLocalizer
+from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
+from agent.runtime.mapper import ScanMapper
+from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator, wheel_speeds
+from agent.runtime.output import PoseOutput
+from agent.runtime.recorder import Recorder
+from agent.runtime.types import AbsoluteFix, NoFix, Prior
+from drivers.device import Device
+from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
+from drivers.samples import Frame, Scan, TagRead, WheelState
+from drivers.servos.odometry import WheelOdometry
+from firmware_protocol.pose_frame import PoseFlags
+
+__all__ = ["Agent", "AgentStatus", "DeviceState"]
+
+log = logging.getLogger(__name__)
+
+_SOURCE_FLAGS = {
+    Source.VLP: PoseFlags.VLP,
+    Source.SLAM: PoseFlags.SLAM,
+    Source.ODOMETRY: PoseFlags.ODOMETRY,
+    Source.IMU: PoseFlags.IMU,
+}
+_FAULT_FLAGS = PoseFlags.LASER_LOST | PoseFlags.CAMERA_STALLED | PoseFlags.SERVO_FAULT
+# A VLP prior is never tighter than this: the filter may be confident and wrong.
+_MIN_PRIOR_SIGMA_XY_M = 0.05
+_MIN_PRIOR_SIGMA_YAW_RAD = math.radians(3.0)
+# SLAM starts its map only once the fused pose is known this well (the map frame is the fused frame).
+_SLAM_START_SIGMA_M = 0.25
+# At most one VLP fix per this interval goes to SLAM: the filter multiplies every fix it is given into its
+# weights at the next update, and thirty nearly identical fixes would count as thirty independent ones.
+_SLAM_FIX_INTERVAL_NS = 500_000_000
+_IMU_PERIOD_S = 0.01
+# The IMU tilt is only learnt while odometry this recent says the base stands still.
+_TILT_ODOMETRY_AGE_NS = 60_000_000
+_READY_GRACE_S = 15.0
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceState:
+    name: str
+    ok: bool
+    reason: str
+    since_ns: int
+    failures: int
+    recoveries: int
+
+
+class _DeviceWatch:
+    """One device's state as its loop sees it: transitions are logged once, not every failed read."""
+
+    def __init__(self, name: str, clock_ns: Callable[[], int]) -> None:
+        self.name = name
+        self.clock_ns = clock_ns
+        self.ok = False
+        self.opened_once = False
+        self.reason = "not opened yet"
+        self.since_ns = clock_ns()
+        self.last_good_ns = 0
+        self.failures = 0
+        self.recoveries = 0
+        self._lock = threading.Lock()
+
+    def good(self) -> bool:
+        """A successful operation; True when this ends a fault (a recovery)."""
+        now = self.clock_ns()
+        with self._lock:
+            self.last_good_ns = now
+            if self.ok:
+                return False
+            recovered = self.opened_once
+            self.ok, self.reason, self.since_ns = True, "", now
+            self.opened_once = True
+            if recovered:
+                self.recoveries += 1
+        if recovered:
+            log.warning("%s: recovered", self.name)
+        else:
+            log.info("%s: up", self.name)
+        return recovered
+
+    def bad(self, reason: str) -> None:
+        now = self.clock_ns()
+        with self._lock:
+            self.failures += 1
+            first = self.ok or not self.reason or self.reason == "not opened yet"
+            if self.ok:
+                self.since_ns = now
+            self.ok, self.reason = False, reason
+        if first:
+            log.warning("%s: %s", self.name, reason)
+        else:
+            log.debug("%s: %s", self.name, reason)
+
+    def state(self) -> DeviceState:
+        with self._lock:
+            return DeviceState(self.name, self.ok, self.reason, self.since_ns, self.failures, self.recoveries)
+
+
+@dataclass(frozen=True)
+class AgentStatus:
+    """A snapshot for the status line, the sim's summary and tests."""
+
+    t_ns: int
+    estimate: Estimate
+    flags: PoseFlags
+    devices: dict[str, DeviceState]
+    counts: dict[str, int]
+    drops: dict[str, int]
+    latency_ms: tuple[float, float]  # capture -> last pose byte: p50, p99
+    processing_ms: tuple[float, float]  # frame handed over by the driver -> last pose byte: p50, p99
+    vlp_ms: tuple[float, float]  # VLP processing per frame: p50, p99
+    no_fix_reasons: dict[str, int]
+    fusion: dict[str, int]
+    mapper: dict[str, int]
+    output: dict[str, int]
+    unavailable: dict[str, str] = field(default_factory=dict)
+    ready: bool = False
+
+
+class Agent:
+    """The whole loop, on injected devices. ``start()`` then ``stop()``; everything in between is threads.
+
+    Args:
+        config: the robot's config.
+        devices: built, not necessarily opened (the loops open them).
+        localizer: VLP (None: no VLP; ``unavailable`` says why, for the status).
+        mapper: SLAM (None: no SLAM).
+        output: the pose stream (None: none, e.g. a test that reads poses directly).
+        notifier: systemd's (``agent.sdnotify.Notifier``) or None.
+        initial_pose: where the base starts (x_m, y_m, yaw_rad) when the config does not say.
+        laser_mount: where the laser sits (SLAM), when the config does not say.
+    """
+
+    def __init__(
+        self,
+        config: AgentConfig,
+        devices: Devices,
+        *,
+        localizer: FrameLocalizer | None = None,
+        mapper: ScanMapper | None = None,
+        output: PoseOutput | None = None,
+        notifier: NotifierLike | None = None,
+        initial_pose: tuple[float, float, float] | None = None,
+        unavailable: dict[str, str] | None = None,
+        recorder: Recorder | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.config = config
+        self.devices = devices
+        self.localizer = localizer
+        self.mapper = mapper
+        self.output = output
+        self.clock_ns = clock_ns
+        self.unavailable = dict(unavailable or {})
+        self.recorder = recorder
+        fc = config.fusion
+        x0 = fc.initial_pose or initial_pose or (0.0, 0.0, 0.0)
+        P0 = np.diag([fc.initial_sigma_xy_m**2, fc.initial_sigma_xy_m**2, fc.initial_sigma_yaw_rad**2])
+        self.fusion = PoseFilter(
+            np.asarray(x0, dtype=np.float64),
+            P0,
+            clock_ns(),
+            FilterNoise(
+                odometry_sigma_m_per_m=fc.odometry_sigma_m_per_m,
+                odometry_yaw_rate_sigma_radps=fc.odometry_yaw_rate_sigma_radps,
+                gyro_sigma_radps=fc.gyro_sigma_radps,
+                yaw_rate_walk_radps2=fc.yaw_rate_walk_radps2,
+                gyro_bias_walk_radps=fc.gyro_bias_walk_radps,
+            ),
+            gate_probability=fc.gate_probability,
+            history_s=fc.history_s,
+            odometry_hold_s=fc.odometry_timeout_s,
+            observer=recorder.record_input if recorder is not None else None,
+        )
+        self.timeouts_ns = {
+            Source.VLP: int(fc.vlp_timeout_s * 1e9),
+            Source.SLAM: int(fc.slam_timeout_s * 1e9),
+            Source.ODOMETRY: int(fc.odometry_timeout_s * 1e9),
+            Source.IMU: int(fc.imu_timeout_s * 1e9),
+        }
+        self.frames: LatestMailbox[tuple[Frame, int]] = LatestMailbox()
+        self.scans: BoundedQueue[Scan] = BoundedQueue(config.slam.queue_size)
+        self.slam_fixes: BoundedQueue[AbsoluteFix] = BoundedQueue(4)
+        self.odometry_track = OdometryTrack(hold_s=fc.odometry_timeout_s)
+        cc = config.control
+        self.drive = DriveCommand(
+            cc.deadman_timeout_s, cc.recovery_hold_s, cc.max_speed_mps, cc.max_turn_radps
+        )
+        self.tilt = TiltEstimator()
+        self.health = HealthMonitor(
+            notifier,
+            self.status_line,
+            status_interval_s=config.health.status_interval_s,
+            watchdog=config.health.watchdog,
+        )
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._watch: dict[str, _DeviceWatch] = {name: _DeviceWatch(name, clock_ns) for name in devices.all()}
+        self._counts: collections.Counter[str] = collections.Counter()
+        self._counts_lock = threading.Lock()
+        self._no_fix: collections.Counter[str] = collections.Counter()
+        self._vlp_ms: collections.deque[float] = collections.deque(maxlen=2000)
+        self._last_frame_ns = 0
+        self._last_scan_ns = 0
+        self._slam_good = False  # the last SLAM filter update matched and was fused
+        self._last_slam_fix_ns = 0
+        self._hardware_error = (0, 0)
+        self.still = StillDetector()
+        self._tags: collections.deque[TagRead] = collections.deque(maxlen=64)
+        self._started_ns = 0
+        self._stopped = False
+
+    # -- public -------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start every loop. Devices are opened by their loops; the output is opened now if it can be."""
+        self._started_ns = self.clock_ns()
+        if self.recorder is not None:
+            self.recorder.start(self.fusion.parameters)
+        if self.output is not None:
+            try:
+                self.output.open()
+            except DeviceError as exc:
+                log.warning("%s (retrying as poses come)", exc)
+        d = self.devices
+        timeout = self.config.health.loop_timeout_s
+        if d.camera is not None:
+            self._spawn("camera", self._critical("camera"), timeout, self._camera_loop)
+            self._spawn("vlp", self._critical("camera"), timeout, self._vlp_loop)
+        if d.laser is not None:
+            self._spawn("laser", self._critical("laser"), timeout, self._laser_loop)
+            self._spawn("slam", self._critical("laser"), max(timeout, 5.0), self._slam_loop)
+        if d.servos is not None:
+            self._spawn("servos", self._critical("servos"), timeout, self._servo_loop)
+        if d.imu is not None:
+            self._spawn("imu", self._critical("imu"), timeout, self._imu_loop)
+        if d.rfid is not None:
+            self._spawn("rfid", self._critical("rfid"), timeout, self._rfid_loop)
+        if self.output is not None:
+            self._spawn("output", True, timeout, self._output_loop)
+        monitor = threading.Thread(target=self._monitor_loop, name="agent-monitor", daemon=True)
+        monitor.start()
+        self._threads.append(monitor)
+
+    def stop(self, timeout_s: float = 1.5) -> None:
+        """Stop the loops, command zero, close the devices and the output. Safe to call twice."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self.health.stopping("stopping: wheels to zero, closing devices")
+        self._stop.set()
+        self.frames.close()
+        self.scans.close()
+        self.slam_fixes.close()
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+            if thread.is_alive():
+                log.warning("thread %s did not stop in time", thread.name)
+        servos = self.devices.servos
+        if servos is not None and servos.is_open:
+            try:
+                servos.stop()
+            except DeviceError as exc:
+                log.warning("could not command zero velocity while stopping: %s", exc)
+        for name, device in self.devices.all().items():
+            try:
+                device.close()
+            except DeviceError as exc:
+                log.warning("%s: close failed: %s", name, exc)
+        if self.output is not None:
+            self.output.close()
+        if self.recorder is not None:
+            self.recorder.close()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def command_velocity(self, v_mps: float, omega_radps: float) -> None:
+        """A velocity command for the base; it must be repeated within the dead-man timeout."""
+        self.drive.set(v_mps, omega_radps, self.clock_ns())
+
+    def pose(self) -> tuple[Estimate, PoseFlags]:
+        """The fused pose after the newest measurement, and the status word."""
+        now = self.clock_ns()
+        return self.fusion.estimate(), self.flags(now)
+
+    def flags(self, now_ns: int | None = None) -> PoseFlags:
+        """The status word: live sources (bits 0-7) and faults (bits 8-15)."""
+        now = self.clock_ns() if now_ns is None else now_ns
+        flags = PoseFlags(0)
+        live = self.fusion.live(now, self.timeouts_ns)
+        for source in (Source.VLP, Source.ODOMETRY, Source.IMU):
+            if source in live:
+                flags |= _SOURCE_FLAGS[source]
+        if self._slam_live(now):
+            flags |= PoseFlags.SLAM
+        hc = self.config.health
+        d = self.devices
+        if d.laser is not None and (
+            now - self._last_scan_ns > hc.laser_lost_s * 1e9 or not self._watch["laser"].ok
+        ):
+            flags |= PoseFlags.LASER_LOST
+        if d.camera is not None and now - self._last_frame_ns > hc.camera_stall_s * 1e9:
+            flags |= PoseFlags.CAMERA_STALLED
+        if d.servos is not None:
+            watch = self._watch["servos"]
+            if not watch.ok or now - watch.last_good_ns > hc.servo_fault_s * 1e9 or any(self._hardware_error):
+                flags |= PoseFlags.SERVO_FAULT
+        if (flags & _FAULT_FLAGS) or (self._expected_sources() & ~flags):
+            flags |= PoseFlags.DEGRADED
+        return flags
+
+    def status(self) -> AgentStatus:
+        now = self.clock_ns()
+        with self._counts_lock:
+            counts = dict(self._counts)
+            no_fix = dict(self._no_fix.most_common(8))
+            vlp = list(self._vlp_ms)
+        drops = {
+            "camera_mailbox": self.frames.dropped,
+            "scan_queue": self.scans.dropped,
+            "slam_fix_queue": self.slam_fixes.dropped,
+        }
+        for name, device in self.devices.all().items():
+            counters = device.health().counters
+            for key in ("dropped", "scans_dropped"):
+                if counters.get(key):
+                    drops[f"{name}_{key}"] = counters[key]
+        latency = processing = (math.nan, math.nan)
+        output: dict[str, int] = {}
+        if self.output is not None:
+            p50, p99 = self.output.latency.percentiles(50, 99)
+            latency = (p50, p99)
+            q50, q99 = self.output.processing.percentiles(50, 99)
+            processing = (q50, q99)
+            output = dict(self.output.counts)
+            if output.get("write_timeouts"):
+                drops["output_write_timeouts"] = output["write_timeouts"]
+        vlp_ms = tuple(float(v) for v in np.percentile(vlp, (50, 99))) if vlp else (math.nan, math.nan)
+        return AgentStatus(
+            now,
+            self.fusion.estimate(),
+            self.flags(now),
+            {name: w.state() for name, w in self._watch.items()},
+            counts,
+            drops,
+            latency,
+            processing,
+            (vlp_ms[0], vlp_ms[1]),
+            no_fix,
+            self.fusion.counters(),
+            self.mapper.counters() if self.mapper is not None else {},
+            output,
+            dict(self.unavailable),
+            self.health.is_ready,
+        )
+
+    def status_line(self) -> str:
+        """One line for STATUS= and logs."""
+        est = self.fusion.estimate()
+        flags = self.flags()
+        names = [f.name for f in PoseFlags if f & flags and f.name] or ["no source"]
+        latency = ""
+        if self.output is not None and len(self.output.latency):
+            p50, p99 = self.output.latency.percentiles(50, 99, last=300)
+            latency = f" latency p50 {p50:.1f} ms p99 {p99:.1f} ms"
+        return (
+            f"pose ({est.x_m:.3f}, {est.y_m:.3f}, {math.degrees(est.yaw_rad):.1f} deg) "
+            f"+-{100 * est.sigma_xy_m:.1f} cm [{' '.join(names)}]{latency}"
+        )
+
+    def tags(self) -> list[TagRead]:
+        return list(self._tags)
+
+    # -- helpers -----------------------------------------------------------------------------------
+    def _count(self, what: str, n: int = 1) -> None:
+        with self._counts_lock:
+            self._counts[what] += n
+
+    def _critical(self, name: str) -> bool:
+        """Whether the watchdog waits for this device's loops (the config says; an injected device the
+        config does not list: the default for its kind)."""
+        device = self.config.devices.get(_kind(name))
+        return device.critical if device is not None else name in ("camera", "laser", "servos")
+
+    def _expected_sources(self) -> PoseFlags:
+        expected = PoseFlags(0)
+        if self.localizer is not None:
+            expected |= PoseFlags.VLP
+        if self.mapper is not None:
+            expected |= PoseFlags.SLAM
+        if self.devices.servos is not None:
+            expected |= PoseFlags.ODOMETRY
+        if self.devices.imu is not None:
+            expected |= PoseFlags.IMU
+        return expected
+
+    def _slam_live(self, now_ns: int) -> bool:
+        """SLAM counts as live while scans reach it and its last filter update matched and was fused
+        (between updates, every 0.25 m, it has nothing new to say; that is not a fault)."""
+        if self.mapper is None or not self._slam_good:
+            return False
+        return now_ns - self._last_scan_ns <= self.timeouts_ns[Source.SLAM] and self._watch["laser"].ok
+
+    def _spawn(self, name: str, critical: bool, timeout_s: float, body: Callable[[Heartbeat], None]) -> None:
+        beat = self.health.register(name, critical, timeout_s)
+
+        def run() -> None:
+            try:
+                body(beat)
+            except MailboxClosed:
+                pass
+            except Exception:  # a bug: log it; the stopped heartbeat withholds the watchdog
+                log.exception("loop %r died", name)
+
+        thread = threading.Thread(target=run, name=f"agent-{name}", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def _open(self, name: str, device: Device, after: Callable[[], None] | None = None) -> bool:
+        """Open ``device`` if it is closed; False (and reported) when it cannot be yet."""
+        if device.is_open:
+            return True
+        try:
+            device.open()
+            if after is not None:
+                after()
+        except DeviceError as exc:
+            self._watch[name].bad(f"cannot open: {exc}")
+            with contextlib.suppress(DeviceError):
+                device.close()
+            return False
+        self._watch[name].good()
+        return True
+
+    def _retry_wait(self, beat: Heartbeat, seconds: float) -> None:
+        """Wait before the next attempt, beating while waiting."""
+        end = time.monotonic() + seconds
+        while not self._stop.is_set():
+            beat.beat()
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                return
+            self._stop.wait(min(remaining, 0.25))
+
+    def _prior(self, t_ns: int) -> Prior:
+        est = self.fusion.estimate_at(t_ns)
+        c, s = math.cos(est.yaw_rad), math.sin(est.yaw_rad)
+        return Prior(
+            est.x_m,
+            est.y_m,
+            est.yaw_rad,
+            max(est.sigma_xy_m, _MIN_PRIOR_SIGMA_XY_M),
+            max(est.sigma_yaw_rad, _MIN_PRIOR_SIGMA_YAW_RAD),
+            est.v_mps * c,
+            est.v_mps * s,
+            est.omega_radps,
+        )
+
+    def _vlp_covariance(self, fix: AbsoluteFix) -> np.ndarray:
+        """The fix's covariance plus the floor the config sets for what it leaves out (the LED survey's and
+        the calibration's errors, the same for every frame under the same LEDs)."""
+        vc = self.config.vlp
+        cov = np.array(fix.covariance, dtype=np.float64)
+        cov[0, 0] += vc.sigma_floor_m**2
+        cov[1, 1] += vc.sigma_floor_m**2
+        if fix.yaw_rad is not None and cov.shape[0] == 3:
+            cov[2, 2] += vc.sigma_floor_yaw_rad**2
+        return cov
+
+    def _publish(self, trigger_ns: int | None, arrival_ns: int | None = None) -> None:
+        if self.output is None:
+            return
+        estimate, flags = self.fusion.estimate(), self.flags()
+        written = self.output.publish(estimate, flags, trigger_ns, arrival_ns)
+        if written is not None and self.recorder is not None:
+            self.recorder.record_output(estimate, int(flags))
+
+    # -- camera and the hot path --------------------------------------------------------------------
+    def _camera_loop(self, beat: Heartbeat) -> None:
+        camera = self.devices.camera
+        assert camera is not None
+        timeout_s = self.config.health.camera_stall_s
+        while not self._stop.is_set():
+            beat.beat()
+            if not self._open("camera", camera):
+                self._retry_wait(beat, 1.0)
+                continue
+            try:
+                frame = camera.grab(timeout_s=timeout_s)
+            except DeviceTimeout as exc:
+                self._watch["camera"].bad(f"stalled: {exc}")
+                continue
+            except DeviceError as exc:
+                self._watch["camera"].bad(f"failed: {exc}; reopening")
+                with contextlib.suppress(DeviceError):
+                    camera.close()
+                self._retry_wait(beat, 0.5)
+                continue
+            self._watch["camera"].good()
+            arrival = self.clock_ns()
+            self._last_frame_ns = arrival
+            self._count("frames")
+            self.frames.put((frame, arrival))
+
+    def _vlp_loop(self, beat: Heartbeat) -> None:
+        while not self._stop.is_set():
+            beat.beat()
+            item = self.frames.take(0.25)
+            if item is None or self.localizer is None:
+                continue
+            self._locate(*item)
+
+    def _locate(self, frame: Frame, arrival_ns: int) -> None:
+        """The hot path: frame -> fix -> fusion -> pose bytes written."""
+        t = frame.host_time_ns
+        tilt = self.tilt.tilt() if self.devices.imu is not None else None
+        assert self.localizer is not None
+        t0 = time.perf_counter()
+        result = self.localizer.process(frame, tilt, self._prior(t))
+        elapsed_ms = 1e3 * (time.perf_counter() - t0)
+        with self._counts_lock:
+            self._vlp_ms.append(elapsed_ms)
+            if isinstance(result, NoFix):
+                self._no_fix[result.reason] += 1
+                self._counts["no_fix"] += 1
+                return
+            self._counts["fixes"] += 1
+        fused = self.fusion.add_pose(
+            Source.VLP,
+            result.t_ns,
+            result.x_m,
+            result.y_m,
+            result.yaw_rad,
+            self._vlp_covariance(result),
+            arrival_ns=self.clock_ns(),
+            relocalize=True,
+        )
+        if fused.relocalized:
+            log.warning("fusion relocalized on VLP (reset counter %d)", self.fusion.reset_counter)
+            self._count("relocalizations")
+        if not fused.accepted:
+            self._count("fixes_rejected")
+            return
+        self._count("fixes_fused")
+        self._publish(trigger_ns=t, arrival_ns=arrival_ns)
+        if self.mapper is not None and t - self._last_slam_fix_ns >= _SLAM_FIX_INTERVAL_NS:
+            self._last_slam_fix_ns = t
+            with contextlib.suppress(MailboxClosed):
+                self.slam_fixes.put(result)
+
+    # -- laser and SLAM -----------------------------------------------------------------------------
+    def _laser_loop(self, beat: Heartbeat) -> None:
+        laser = self.devices.laser
+        assert laser is not None
+        watch = self._watch["laser"]
+        while not self._stop.is_set():
+            beat.beat()
+            if not self._open("laser", laser, laser.start):
+                self._retry_wait(beat, 1.0)
+                continue
+            try:
+                scan = laser.read(timeout_s=0.25)
+            except DeviceDisconnected as exc:
+                # The driver reconnects by itself while it is open; wait for it.
+                watch.bad(f"lost: {exc}")
+                self._slam_good = False
+                self._retry_wait(beat, 0.1)
+                continue
+            except DeviceTimeout:
+                if self.clock_ns() - self._last_scan_ns > self.config.health.laser_lost_s * 1e9:
+                    watch.bad("no scan within the timeout")
+                continue
+            except DeviceError as exc:
+                watch.bad(f"failed: {exc}")
+                self._retry_wait(beat, 0.25)
+                continue
+            watch.good()
+            self._last_scan_ns = self.clock_ns()
+            self._count("scans")
+            if self.mapper is not None:
+                self.scans.put(scan)
+
+    def _odometry_at(self, t_ns: int) -> tuple[float, float, float] | None:
+        if self.devices.servos is not None:
+            return self.odometry_track.at(t_ns)
+        est = self.fusion.estimate_at(t_ns)  # no wheels: the fused pose is the best motion guess
+        return (est.x_m, est.y_m, est.yaw_rad)
+
+    def slam_start_pose(self, t_ns: int) -> tuple[float, float, float] | None:
+        """Where SLAM starts its map: the fused pose at ``t_ns`` once it is known well enough, else None."""
+        est = self.fusion.estimate_at(t_ns)
+        if est.sigma_xy_m > _SLAM_START_SIGMA_M:
+            return None
+        return (est.x_m, est.y_m, est.yaw_rad)
+
+    def _slam_loop(self, beat: Heartbeat) -> None:
+        mapper = self.mapper
+        while not self._stop.is_set():
+            beat.beat()
+            scan = self.scans.get(0.25)
+            if scan is None or mapper is None:
+                continue
+            for fix in self.slam_fixes.drain():
+                odom = self._odometry_at(fix.t_ns)
+                if odom is not None:
+                    mapper.add_fix(fix, odom)
+            odom = self._odometry_at(scan.host_time_ns)
+            if odom is None:
+                self._count("slam_scans_without_odometry")
+                continue
+            step = mapper.update(scan, odom)
+            self._count(f"slam_{step.kind}")
+            if step.kind == "updated":
+                if step.fix is None:
+                    self._slam_good = False
+                    continue
+                fix = step.fix
+                result = self.fusion.add_pose(
+                    Source.SLAM,
+                    fix.t_ns,
+                    fix.x_m,
+                    fix.y_m,
+                    fix.yaw_rad,
+                    fix.covariance,
+                    arrival_ns=self.clock_ns(),
+                )
+                self._slam_good = result.accepted
+                self._count("slam_fused" if result.accepted else "slam_rejected")
+
+    # -- servos: odometry in, velocity out ------------------------------------------------------------
+    def _servo_loop(self, beat: Heartbeat) -> None:
+        servos = self.devices.servos
+        assert servos is not None
+        watch = self._watch["servos"]
+        period_s = 1.0 / self.config.control.loop_rate_hz
+        radius = float(getattr(servos, "wheel_radius_m", 0.0))
+        track = float(getattr(servos, "track_m", 0.0))
+        if not (radius > 0 and track > 0):
+            raise DeviceError("the servo backend does not say its wheel radius and track", "servos")
+        odometry = WheelOdometry(radius, track)
+        previous: WheelState | None = None
+        merged = False
+        # Twice what the base can do, plus slack: beyond this an odometry interval's timing is wrong.
+        cc = self.config.control
+        max_ds_per_s = 2.0 * cc.max_speed_mps + 0.1
+        max_dyaw_per_s = 2.0 * cc.max_turn_radps + 0.5
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            beat.beat()
+            if not self._open("servos", servos):
+                previous = None
+                self._retry_wait(beat, 1.0)
+                continue
+            try:
+                state = servos.read()
+            except DeviceError as exc:
+                watch.bad(f"silent: {exc}")
+                previous = None
+                merged = False
+                # Whatever still listens stops; a silent servo keeps its last goal until it hears again.
+                with contextlib.suppress(DeviceError):
+                    servos.set_velocity(0.0, 0.0)
+                self._stop.wait(period_s)
+                continue
+            now = self.clock_ns()
+            if watch.good():
+                # Back from a fault: zero first, and hold zero a moment whatever the command says.
+                self.drive.hold(now)
+                self._count("servo_recoveries")
+                try:
+                    servos.set_velocity(0.0, 0.0)
+                    self._count("zero_on_recovery")
+                    log.warning("servos answer again: zero velocity commanded")
+                except DeviceError as exc:
+                    watch.bad(f"zero velocity after recovery failed: {exc}")
+                    continue
+            self._hardware_error = state.hardware_error
+            if any(state.hardware_error):
+                self._count("servo_hardware_error_reads")
+            deferred = False
+            if previous is not None and state.host_time_ns > previous.host_time_ns:
+                dl = state.position_rad[0] - previous.position_rad[0]
+                dr = state.position_rad[1] - previous.position_rad[1]
+                # ds = r (dphi_l + dphi_r) / 2, dyaw = r (dphi_r - dphi_l) / track
+                ds = radius * (dl + dr) / 2.0
+                dyaw = radius * (dr - dl) / track
+                dt = (state.host_time_ns - previous.host_time_ns) * 1e-9
+                if not merged and (abs(ds) > max_ds_per_s * dt or abs(dyaw) > max_dyaw_per_s * dt):
+                    # Faster than the base can go: the read's host time is earlier than when the servos
+                    # sampled (a reply that waited for a busy bus or CPU). The distance is right, the stamp
+                    # is not: leave this sample out and let the next interval span both.
+                    deferred = merged = True
+                    self._count("odometry_merged")
+                else:
+                    merged = False
+                    self.fusion.add_odometry(
+                        previous.host_time_ns, state.host_time_ns, ds, dyaw, arrival_ns=now
+                    )
+            elif previous is None and odometry.odom is not None:
+                # A new reference after a fault: the odometry frame continues from where it was.
+                last = odometry.odom
+                odometry.reset(last.x_m, last.y_m, last.yaw_rad)
+            odom = odometry.update(state)
+            if previous is None:
+                self.still.reset()
+            self.still.update(state.host_time_ns, (odom.x_m, odom.y_m, odom.yaw_rad))
+            self.odometry_track.add(state.host_time_ns, (odom.x_m, odom.y_m, odom.yaw_rad))
+            if not deferred:
+                previous = state
+            self._count("wheel_reads")
+            command = self.drive.current(self.clock_ns())
+            left, right = wheel_speeds(command.v_mps, command.omega_radps, radius, track)
+            try:
+                servos.set_velocity(left, right)
+            except DeviceError as exc:
+                watch.bad(f"velocity command failed: {exc}")
+            t_next += period_s
+            now_s = time.monotonic()
+            if t_next < now_s:
+                t_next = now_s
+            self._stop.wait(t_next - now_s)
+
+    # -- IMU, RFID ------------------------------------------------------------------------------------
+    def _imu_loop(self, beat: Heartbeat) -> None:
+        imu = self.devices.imu
+        assert imu is not None
+        watch = self._watch["imu"]
+        t_next = time.monotonic()
+        while not self._stop.is_set():
+            beat.beat()
+            if not self._open("imu", imu):
+                self._retry_wait(beat, 1.0)
+                continue
+            try:
+                sample = imu.read()
+            except DeviceError as exc:
+                watch.bad(f"failed: {exc}")
+                self._retry_wait(beat, 0.1)
+                continue
+            watch.good()
+            self._count("imu_samples")
+            now = self.clock_ns()
+            self.fusion.add_gyro(sample.host_time_ns, sample.gyro_radps[2], arrival_ns=now)
+            if self.still.still_at(sample.host_time_ns, _TILT_ODOMETRY_AGE_NS):
+                # Only a base that stands still feels gravity alone (see TiltEstimator).
+                self.tilt.update(sample.host_time_ns, sample.accel_mps2)
+            t_next += _IMU_PERIOD_S
+            now_s = time.monotonic()
+            if t_next < now_s:
+                t_next = now_s
+            self._stop.wait(t_next - now_s)
+
+    def _rfid_loop(self, beat: Heartbeat) -> None:
+        rfid = self.devices.rfid
+        assert rfid is not None
+        watch = self._watch["rfid"]
+        while not self._stop.is_set():
+            beat.beat()
+            if not self._open("rfid", rfid):
+                self._retry_wait(beat, 1.0)
+                continue
+            try:
+                tag = rfid.read(timeout_s=0.25)
+            except DeviceError as exc:
+                watch.bad(f"failed: {exc}")
+                self._retry_wait(beat, 0.5)
+                continue
+            if rfid.health().connected:
+                watch.good()
+            if tag is not None:
+                self._tags.append(tag)
+                self._count("tag_reads")
+
+    # -- the pose stream's floor rate, and the monitor ------------------------------------------------
+    def _output_loop(self, beat: Heartbeat) -> None:
+        output = self.output
+        assert output is not None
+        period_ns = int(1e9 / self.config.output.rate_hz)
+        while not self._stop.is_set():
+            beat.beat()
+            self._stop.wait(period_ns * 1e-9 / 4)
+            if self._stop.is_set():
+                return
+            if self.clock_ns() - output.last_publish_ns >= period_ns:
+                self._publish(trigger_ns=None)
+
+    def _monitor_loop(self) -> None:
+        grace_ns = int(_READY_GRACE_S * 1e9)
+        while not self._stop.wait(0.25):
+            if not self.health.is_ready:
+                critical = [w for name, w in self._watch.items() if self.config.devices[_kind(name)].critical]
+                if all(w.opened_once for w in critical):
+                    self.health.ready()
+                elif self.clock_ns() - self._started_ns > grace_ns:
+                    missing = [w.name for w in critical if not w.opened_once]
+                    log.warning("ready without %s after %.0f s", ", ".join(missing), _READY_GRACE_S)
+                    self.health.ready()
+            self.health.tick()
+
+
+def _kind(name: str) -> Any:
+    from drivers.registry import DeviceKind
+
+    return DeviceKind(name)
+
+
+def laser_mount_for(config: AgentConfig, world: Any | None) -> MountConfig:
+    """Where the laser sits: the config's, else the simulated world's, else on the base's centre."""
+    if config.slam.laser_mount is not None:
+        return config.slam.laser_mount
+    if world is not None:
+        m = world.robot.laser_mount
+        return MountConfig(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad)
+    return MountConfig()

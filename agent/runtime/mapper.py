@@ -1,0 +1,323 @@
+"""Laser scans + odometry -> a pose (and a map): the :class:`ScanMapper` protocol and its adapters.
+
+The SLAM thread feeds every scan with the odometry pose at the scan's time and fuses the pose of each
+*filter update* (between updates a filter only composes odometry, which the fusion has already);
+absolute fixes (VLP) are passed in so that everything stays in the map frame of the LED survey.
+
+* :class:`RbpfMapper` (``[slam] mode = "mapping"``) adapts ``agent.slam.rbpf.RbpfSlam``; it starts its map
+  at the fused pose of the first scan, so the occupancy grid, the VLP fixes and the pose output share one
+  frame.
+* :class:`MclMapper` (``mode = "localization"``) adapts ``agent.slam.mcl.MclLocalizer`` on a saved map
+  (ROS map_server files, ``agent.slam.mapio``); its particles start from the fused pose once that is known.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.config import MountConfig, SlamConfig, SlamMode
+from agent.runtime.types import AbsoluteFix
+from drivers.samples import Scan
+
+__all__ = ["MapperStep", "MclMapper", "RbpfMapper", "ScanMapper", "make_mapper", "save_map"]
+
+log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+Pose = tuple[float, float, float]
+# Filter updates of trajectory history the RBPF keeps (for the trajectory plot): bounded, so that a service
+# running for days does not grow; at one update per 0.25 m that is the last 1.25 km.
+_HISTORY_UPDATES = 5000
+
+
+@dataclass(frozen=True, slots=True)
+class MapperStep:
+    """What one scan did: ``kind`` is the filter's word (``updated``, ``gated``, ``first``, ``rejected``,
+    ``waiting``); ``fix`` is the pose to fuse (filter updates only); ``reason`` why a scan was turned away."""
+
+    kind: str
+    fix: AbsoluteFix | None = None
+    reason: str = ""
+    matched: bool = True
+
+
+class ScanMapper(Protocol):
+    """Anything that builds a map from scans. Called from the SLAM thread only."""
+
+    name: str
+
+    def update(self, scan: Scan, odom_pose: Pose) -> MapperStep: ...
+
+    def add_fix(self, fix: AbsoluteFix, odom_pose: Pose) -> None: ...
+
+    def pose(self, odom_pose: Pose | None = None) -> Pose | None: ...
+
+    def map_image(self) -> Any | None: ...
+
+    def trajectory(self) -> FloatArray: ...
+
+    def counters(self) -> dict[str, int]: ...
+
+
+class RbpfMapper:
+    """``agent.slam.rbpf.RbpfSlam`` behind :class:`ScanMapper`.
+
+    ``start_pose(t_ns)``: the fused pose at a scan's time, where the map starts (None: not known well
+    enough yet; the scan is skipped as ``waiting``). ``floor``: a lower bound on the pose covariance, since
+    the particle spread alone is optimistic (the filter was fed the same VLP fixes the fusion has).
+    """
+
+    name = "slam"
+
+    def __init__(
+        self,
+        config: SlamConfig,
+        mount: MountConfig,
+        start_pose: Callable[[int], Pose | None],
+    ) -> None:
+        from agent.slam import rbpf
+
+        self._rbpf = rbpf
+        self.config = config
+        self.mount = (mount.x_m, mount.y_m, mount.yaw_rad)
+        self.start_pose = start_pose
+        self.slam: Any = None
+        self.floor = np.diag([config.sigma_xy_m**2, config.sigma_xy_m**2, config.sigma_yaw_rad**2])
+        self._counts: dict[str, int] = {}
+
+    def _count(self, what: str) -> None:
+        self._counts[what] = self._counts.get(what, 0) + 1
+
+    def _start(self, scan: Scan, pose: Pose) -> None:
+        from agent.slam.grid import GridGeometry
+        from agent.slam.scan import LaserGeometry
+
+        rbpf = self._rbpf
+        cfg = self.config
+        geometry = LaserGeometry.from_scan(scan, self.mount)
+        self.slam = rbpf.RbpfSlam(
+            geometry,
+            rbpf.RbpfConfig(
+                particles=cfg.particles,
+                map_mode=rbpf.MapMode(cfg.map_mode),
+                grid=GridGeometry(resolution_m=cfg.resolution_m),
+                linear_update_m=cfg.linear_update_m,
+                angular_update_rad=cfg.angular_update_rad,
+                initial_pose=pose,
+                history_limit=_HISTORY_UPDATES,
+                seed=cfg.seed,
+            ),
+        )
+        log.info("SLAM map started at (%.3f, %.3f, %.1f deg)", pose[0], pose[1], math.degrees(pose[2]))
+
+    def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:
+        from agent.slam.scan import ranges_from_scan
+
+        if self.slam is None:
+            start = self.start_pose(scan.host_time_ns)
+            if start is None:
+                self._count("waiting")
+                return MapperStep("waiting", reason="no fused pose to start the map at yet")
+            self._start(scan, start)
+        rbpf = self._rbpf
+        step = self.slam.process(scan.host_time_ns * 1e-9, ranges_from_scan(scan), np.asarray(odom_pose))
+        kind = str(step.kind.value)
+        self._count(kind)
+        if step.kind is rbpf.StepKind.REJECTED:
+            return MapperStep(kind, reason=str(step.rejection.value if step.rejection else "rejected"))
+        if step.kind is not rbpf.StepKind.UPDATED:
+            return MapperStep(kind)
+        matched = step.matched > 0
+        if not matched:
+            self._count("unmatched_updates")
+            return MapperStep(kind, matched=False)
+        pose = step.pose
+        cov = self._particle_covariance(pose) + self.floor
+        fix = AbsoluteFix(
+            scan.host_time_ns,
+            float(pose[0]),
+            float(pose[1]),
+            float(pose[2]),
+            cov,
+            detail={"n_eff": step.n_eff, "matched": step.matched, "resampled": step.resampled},
+        )
+        return MapperStep(kind, fix)
+
+    def _particle_covariance(self, best: FloatArray) -> FloatArray:
+        """Weighted covariance of the particles around the best one (yaw differences wrapped)."""
+        poses = self.slam.poses
+        w = self.slam.weights
+        d = poses - best[None, :]
+        d[:, 2] = (d[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        cov: FloatArray = (w[:, None] * d).T @ d
+        return cov
+
+    def add_fix(self, fix: AbsoluteFix, odom_pose: Pose) -> None:
+        if self.slam is None:
+            return
+        self.slam.add_fix(_pose_fix(fix), np.asarray(odom_pose))
+        self._count("fixes")
+
+    def pose(self, odom_pose: Pose | None = None) -> Pose | None:
+        if self.slam is None:
+            return None
+        p = self.slam.pose(None if odom_pose is None else np.asarray(odom_pose))
+        return float(p[0]), float(p[1]), float(p[2])
+
+    def map_image(self) -> Any | None:
+        """The best particle's map as an ``agent.slam.render.OccupancyImage`` (None before the first scan)."""
+        if self.slam is None:
+            return None
+        from agent.slam.render import occupancy_image
+
+        window = self.slam.map_window()
+        if window is None:
+            return None
+        log_odds, origin = window
+        return occupancy_image(log_odds, origin, self.config.resolution_m)
+
+    def trajectory(self) -> FloatArray:
+        if self.slam is None:
+            return np.zeros((0, 3))
+        _, poses, _ = self.slam.trajectory()
+        out: FloatArray = np.asarray(poses, dtype=np.float64)
+        return out
+
+    def counters(self) -> dict[str, int]:
+        out = dict(self._counts)
+        if self.slam is not None:
+            out["filter_updates"] = int(self.slam.stats.updates)
+            out["resamples"] = int(self.slam.stats.resamples)
+            out["fixes_applied"] = int(self.slam.stats.fixes_applied)
+            out["map_bytes"] = int(self.slam.memory_bytes())
+        return out
+
+
+def _pose_fix(fix: AbsoluteFix) -> Any:
+    from agent.slam.fix import PoseFix
+
+    cov = np.asarray(fix.covariance[:2, :2] if fix.yaw_rad is None else fix.covariance, dtype=np.float64)
+    return PoseFix(fix.x_m, fix.y_m, fix.yaw_rad, 0.5 * (cov + cov.T))
+
+
+class MclMapper:
+    """``agent.slam.mcl.MclLocalizer`` on a saved map behind :class:`ScanMapper`: localization only.
+
+    The particles are drawn around the fused pose (``start_pose``) at the first scan after it is known;
+    the pose of each filter update is fused like the SLAM pose, with the particle spread as its covariance.
+    """
+
+    name = "mcl"
+
+    def __init__(
+        self, config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]
+    ) -> None:
+        from agent.slam import mapio, mcl, rbpf
+
+        if config.map is None:
+            raise ValueError("localization needs a map")
+        self._mcl = mcl
+        self._rbpf = rbpf
+        self.config = config
+        self.mount = (mount.x_m, mount.y_m, mount.yaw_rad)
+        self.start_pose = start_pose
+        self.occupancy = mapio.load_map(config.map)
+        self.localizer: Any = None
+        self.floor = np.diag([config.sigma_xy_m**2, config.sigma_xy_m**2, config.sigma_yaw_rad**2])
+        self._counts: dict[str, int] = {}
+
+    def _count(self, what: str) -> None:
+        self._counts[what] = self._counts.get(what, 0) + 1
+
+    def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:
+        from agent.slam.scan import LaserGeometry, ranges_from_scan
+
+        mcl, rbpf = self._mcl, self._rbpf
+        if self.localizer is None:
+            self.localizer = mcl.MclLocalizer(
+                LaserGeometry.from_scan(scan, self.mount),
+                self.occupancy,
+                mcl.MclConfig(particles=max(self.config.particles, 30), seed=self.config.seed),
+            )
+        if not self.localizer.initialized:
+            start = self.start_pose(scan.host_time_ns)
+            if start is None:
+                self._count("waiting")
+                return MapperStep("waiting", reason="no fused pose to start the particles from yet")
+            cov = np.diag([0.1**2, 0.1**2, math.radians(5.0) ** 2])
+            self.localizer.initialize(rbpf.PoseFix(*start, cov), np.asarray(odom_pose))
+        step = self.localizer.process(scan.host_time_ns * 1e-9, ranges_from_scan(scan), np.asarray(odom_pose))
+        kind = str(step.kind.value)
+        self._count(kind)
+        if step.kind is not rbpf.StepKind.UPDATED:
+            reason = str(step.rejection.value) if step.rejection is not None else ""
+            return MapperStep(kind, reason=reason)
+        if step.matched <= 0:
+            self._count("unmatched_updates")
+            return MapperStep(kind, matched=False)
+        pose = self.localizer.pose()
+        d = self.localizer.poses - pose[None, :]
+        d[:, 2] = (d[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        cov = (self.localizer.weights[:, None] * d).T @ d + self.floor
+        fix = AbsoluteFix(scan.host_time_ns, float(pose[0]), float(pose[1]), float(pose[2]), cov)
+        return MapperStep(kind, fix)
+
+    def add_fix(self, fix: AbsoluteFix, odom_pose: Pose) -> None:
+        if self.localizer is not None and self.localizer.initialized:
+            self.localizer.add_fix(_pose_fix(fix), np.asarray(odom_pose))
+            self._count("fixes")
+
+    def pose(self, odom_pose: Pose | None = None) -> Pose | None:
+        if self.localizer is None or not self.localizer.initialized:
+            return None
+        p = self.localizer.pose(None if odom_pose is None else np.asarray(odom_pose))
+        return float(p[0]), float(p[1]), float(p[2])
+
+    def map_image(self) -> Any | None:
+        return self.occupancy
+
+    def trajectory(self) -> FloatArray:
+        return np.zeros((0, 3))
+
+    def counters(self) -> dict[str, int]:
+        out = dict(self._counts)
+        if self.localizer is not None:
+            out["filter_updates"] = int(self.localizer.stats.updates)
+            out["fixes_applied"] = int(self.localizer.stats.fixes_applied)
+        return out
+
+
+def make_mapper(
+    config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]
+) -> tuple[ScanMapper | None, str]:
+    """The laser localizer for this config (mapping or localization on a map), or None and the reason it is
+    not available."""
+    if not config.enabled:
+        return None, "disabled in the config"
+    try:
+        if config.mode is SlamMode.LOCALIZATION:
+            return MclMapper(config, mount, start_pose), ""
+        return RbpfMapper(config, mount, start_pose), ""
+    except ImportError as exc:
+        return None, f"the SLAM package is not usable: {exc}"
+
+
+def save_map(mapper: ScanMapper, directory: Path, name: str = "map") -> list[Path]:
+    """Write the mapper's map as ROS map_server files (``name.pgm`` + ``name.yaml``; the previous pair is
+    kept as ``name.prev.*``) and a PNG picture, atomically. Nothing when there is no map (yet)."""
+    image = mapper.map_image()
+    if image is None or mapper.counters().get("filter_updates", 0) == 0:
+        return []
+    from agent.slam import mapio
+
+    files = mapio.save_map(image, directory / f"{name}.yaml", comment=f"vlp-agent {mapper.name}")
+    png = mapio.write_png(directory / f"{name}.png", image.pixels)
+    return [files.yaml, files.image, png]

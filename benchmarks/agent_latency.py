@@ -1,0 +1,108 @@
+"""The whole agent's latency and memory on the simulated robot, with SLAM running. Prints one JSON object.
+
+    python benchmarks/agent_latency.py [--seconds 30] [--world FILE] [--runs 1]
+
+Each run is a fresh ``vlp-agent sim --json`` process (so its peak RSS is the agent's alone, fakes and
+renderer included), driving the office route with VLP, SLAM, fusion and the pose stream on a pty read by
+the simulated controller. Reported per run and over all runs:
+
+* ``latency_ms_p50`` / ``_p99``: a camera frame's capture time (the driver's host time: mid-readout) to
+  the last byte of its pose written to the serial line, the issue's definition;
+* ``processing_ms_p50`` / ``_p99``: the frame handed over by the camera driver to that last byte, the
+  agent's own part (VLP, fusion, encoding, the write);
+* ``half_readout_ms``: how long after its mid-readout time a rolling-shutter frame is complete at all,
+  the floor under the first figure that no agent can remove;
+* ``peak_rss_mb``; SLAM's filter updates and map size, to show it ran; the budgets of ARCHITECTURE.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from drivers.sim.worldfile import load_world  # noqa: E402
+
+BUDGET_LATENCY_P99_MS = 10.0
+BUDGET_PEAK_RSS_MB = 250.0
+
+
+def one_run(seconds: float, world: str | None) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "agent.cli", "sim", "--seconds", str(seconds), "--json", "--out", tmp]
+        if world:
+            cmd += ["--world", world]
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"vlp-agent sim failed:\n{proc.stderr[-3000:]}")
+    s: dict[str, Any] = json.loads(proc.stdout)
+    return {
+        "latency_ms_p50": s["latency_ms_p50"],
+        "latency_ms_p99": s["latency_ms_p99"],
+        "processing_ms_p50": s["processing_ms_p50"],
+        "processing_ms_p99": s["processing_ms_p99"],
+        "vlp_ms_p50": s["vlp_ms_p50"],
+        "vlp_ms_p99": s["vlp_ms_p99"],
+        "peak_rss_mb": s["peak_rss_mb"],
+        "frames_out": s["frames_out"],
+        "fixes_fused": s["fixes_fused"],
+        "dropped": s["dropped"],
+        "pose_error_cm_p95": s["pose_error_cm_p95"],
+        "slam_filter_updates": s["slam"].get("filter_updates", 0),
+        "slam_map_bytes": s["slam"].get("map_bytes", 0),
+        "slam_share_of_frames": s["source_share"]["slam"],
+        "unavailable": s["unavailable"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--world", default=None)
+    parser.add_argument("--runs", type=int, default=1)
+    args = parser.parse_args()
+    world = load_world(args.world or REPO / "examples" / "worlds" / "office.toml")
+    cam = world.camera
+    half_readout_ms = 0.5 * ((cam.sensor_height_px - 1) * cam.t_row_s + cam.exposure_s) * 1e3
+    runs = [one_run(args.seconds, args.world) for _ in range(args.runs)]
+    worst = {
+        key: max(r[key] for r in runs)
+        for key in (
+            "latency_ms_p50",
+            "latency_ms_p99",
+            "processing_ms_p50",
+            "processing_ms_p99",
+            "peak_rss_mb",
+        )
+    }
+    result = {
+        "world": world.name,
+        "seconds": args.seconds,
+        "cpus": os.cpu_count(),
+        "half_readout_ms": round(half_readout_ms, 2),
+        **worst,
+        "budgets": {
+            "latency_ms_p99": BUDGET_LATENCY_P99_MS,
+            "peak_rss_mb": BUDGET_PEAK_RSS_MB,
+        },
+        "within_budget": {
+            "latency_ms_p99": worst["latency_ms_p99"] <= BUDGET_LATENCY_P99_MS,
+            "processing_ms_p99": worst["processing_ms_p99"] <= BUDGET_LATENCY_P99_MS,
+            "peak_rss_mb": worst["peak_rss_mb"] <= BUDGET_PEAK_RSS_MB,
+        },
+        "slam_running": all(r["slam_filter_updates"] > 0 for r in runs),
+        "runs": runs,
+    }
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

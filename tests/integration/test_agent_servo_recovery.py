@@ -1,0 +1,116 @@
+"""The motor side of the agent, in the servos' own registers (the fake XL430s behind a pty):
+
+* while a wheel servo is silent the other one is commanded to zero (the silent one cannot hear);
+* when it answers again both get zero velocity first, and zero is held for ``recovery_hold_s`` although the
+  command source never stopped;
+* a command that is not repeated within the dead-man timeout becomes zero velocity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from agent.config import parse_config
+from agent.runtime import Agent, create_agent
+from drivers.sim.harness import SimulatedRobot
+from firmware_protocol.pose_frame import PoseFlags
+
+OFFICE = Path(__file__).resolve().parents[2] / "examples" / "worlds" / "office.toml"
+CONFIG = f"""
+[sim]
+world = "{OFFICE}"
+[camera]
+enabled = false
+[laser]
+enabled = false
+[rfid]
+enabled = false
+[servos]
+latency_timer_ms = 20
+[control]
+deadman_timeout_s = 0.3
+recovery_hold_s = 0.6
+[output]
+url = "pty"
+"""
+
+
+def wait_for(what: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not what():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def running() -> Iterator[tuple[SimulatedRobot, Agent, threading.Event]]:
+    config = parse_config(CONFIG, str(OFFICE.parent / "c.toml"))
+    assert config.sim is not None
+    with SimulatedRobot(config.sim.world) as robot:
+        agent = create_agent(config, robot=robot, output_url=None)
+        agent.start()
+        commanding = threading.Event()
+        commanding.set()
+
+        def command() -> None:
+            while not agent.stopping:
+                if commanding.is_set():
+                    agent.command_velocity(0.1, 0.0)
+                time.sleep(0.05)
+
+        thread = threading.Thread(target=command, daemon=True)
+        thread.start()
+        try:
+            yield robot, agent, commanding
+        finally:
+            agent.stop()
+            thread.join(2.0)
+
+
+def goal(robot: SimulatedRobot, servo_id: int) -> int:
+    return robot.servos.register(servo_id, "Goal Velocity")
+
+
+def test_zero_velocity_is_commanded_when_a_silent_servo_answers_again(
+    running: tuple[SimulatedRobot, Agent, threading.Event],
+) -> None:
+    robot, agent, _ = running
+    left, right = robot.world.robot.left_id, robot.world.robot.right_id
+    wait_for(lambda: goal(robot, left) != 0 and goal(robot, right) != 0)  # driving
+    driving = goal(robot, left)
+
+    robot.servos.mute(left)
+    wait_for(lambda: bool(agent.flags() & PoseFlags.SERVO_FAULT))
+    wait_for(lambda: goal(robot, right) == 0)  # the one that still hears is stopped
+    assert goal(robot, left) == driving  # the silent one could not hear it
+
+    robot.servos.mute(left, False)
+    wait_for(lambda: agent.status().counts.get("zero_on_recovery", 0) >= 1)
+    recovered = time.monotonic()
+    assert goal(robot, left) == 0 and goal(robot, right) == 0
+    # Held at zero although commands keep coming...
+    while time.monotonic() - recovered < 0.4:
+        assert goal(robot, left) == 0 and goal(robot, right) == 0
+        time.sleep(0.02)
+    # ...then the commands drive again, and the fault is gone.
+    wait_for(lambda: goal(robot, left) != 0)
+    wait_for(lambda: not agent.flags() & PoseFlags.SERVO_FAULT)
+    assert agent.status().devices["servos"].recoveries >= 1
+
+
+def test_a_stale_command_stops_the_wheels(running: tuple[SimulatedRobot, Agent, threading.Event]) -> None:
+    robot, agent, commanding = running
+    left = robot.world.robot.left_id
+    wait_for(lambda: goal(robot, left) != 0)
+    commanding.clear()  # whoever commanded the base went quiet
+    wait_for(lambda: goal(robot, left) == 0)
+    # Zero because the last command is stale ("none" if a servo hiccup's recovery forgot it meanwhile).
+    assert dataclasses.asdict(agent.drive.current(time.monotonic_ns()))["reason"] in ("stale", "none")
+    time.sleep(0.3)
+    assert goal(robot, left) == 0  # and it stays stopped

@@ -1,0 +1,308 @@
+"""The robot config (agent.config): both shipped examples load, and every kind of mistake is a ConfigError
+that names the file and the key."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from agent.config import OutputFormat, load_config, parse_config
+from drivers.errors import ConfigError
+from drivers.registry import DeviceKind
+
+REPO = Path(__file__).resolve().parents[2]
+EXAMPLES = REPO / "examples"
+OFFICE = EXAMPLES / "worlds" / "office.toml"
+
+# A minimal real robot: servos only (odometry is a pose source), output on a port.
+REAL = """
+[servos]
+backend = "dynamixel"
+port = "/dev/dynamixel"
+
+[output]
+url = "/dev/ttyS0"
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "robot.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text), encoding="utf-8")
+    return path
+
+
+def sim_config(extra: str = "") -> str:
+    return f'[sim]\nworld = "{OFFICE}"\n' + textwrap.dedent(extra)
+
+
+# -- the examples ---------------------------------------------------------------------------------------
+def test_the_simulated_robot_example_loads() -> None:
+    config = load_config(EXAMPLES / "sim.toml")
+    assert config.sim is not None
+    assert config.sim.world.name == "office"
+    assert config.sim.world_file == OFFICE
+    # Every device of the simulated robot, each on the backend its fake speaks.
+    assert {k: d.backend for k, d in config.devices.items()} == {
+        DeviceKind.CAMERA: "sim",
+        DeviceKind.LASER: "urg",
+        DeviceKind.SERVOS: "dynamixel",
+        DeviceKind.IMU: "mpu6050",
+        DeviceKind.RFID: "id12la",
+    }
+    # Where the devices are comes from the simulation, not the file.
+    assert "port" not in config.devices[DeviceKind.SERVOS].options
+    assert config.devices[DeviceKind.SERVOS].options["latency_timer_ms"] == 100.0
+    assert config.vlp.enabled and config.vlp.intrinsics is None and config.vlp.leds is None
+    assert config.slam.enabled and config.slam.particles == 30
+    assert config.output.url == "pty" and config.output.format is OutputFormat.FRAME
+
+
+def test_the_turtlebot3_example_loads() -> None:
+    config = load_config(EXAMPLES / "turtlebot3.toml")
+    assert config.sim is None
+    camera = config.devices[DeviceKind.CAMERA]
+    assert camera.backend == "genicam"
+    settings = camera.options["settings"]
+    assert (settings.width, settings.height, settings.exposure_s) == (800, 600, 20e-6)
+    assert config.devices[DeviceKind.LASER].options["url"] == "/dev/urg"
+    servos = config.devices[DeviceKind.SERVOS].options
+    assert (servos["port"], servos["baudrate"]) == ("/dev/dynamixel", 1_000_000)
+    assert config.devices[DeviceKind.IMU].options["bus"] == 1
+    assert config.devices[DeviceKind.RFID].backend == "id12la"
+    assert not config.devices[DeviceKind.RFID].critical
+    assert config.vlp.intrinsics is not None and config.vlp.intrinsics.t_row_s == 32e-6
+    assert config.vlp.leds is not None and [led.id for led in config.vlp.leds] == ["L1", "L2", "L3", "L4"]
+    assert config.fusion.initial_pose == (0.0, 0.0, 0.0)
+    assert math.isclose(config.fusion.initial_sigma_yaw_rad, math.radians(20.0))
+    assert config.output.url == "/dev/opencr" and config.output.rate_hz == 30.0
+    assert config.slam.map_dir == Path("/var/lib/vlp-agent/maps")
+
+
+def test_files_the_config_names_are_read(tmp_path: Path) -> None:
+    write(
+        tmp_path,
+        """
+        image_width: 640
+        image_height: 480
+        camera_name: test
+        camera_matrix:
+          rows: 3
+          cols: 3
+          data: [500.0, 0, 319.5, 0, 501.0, 239.5, 0, 0, 1]
+        distortion_model: plumb_bob
+        distortion_coefficients:
+          rows: 1
+          cols: 5
+          data: [0.01, -0.02, 0, 0, 0]
+        """,
+        "camera_info.yaml",
+    )
+    write(
+        tmp_path,
+        """
+        [[leds]]
+        id = "A"
+        x_m = 1.0
+        y_m = 2.0
+        z_m = 2.5
+        frequency_hz = 2000.0
+        duty = 0.5
+        """,
+        "leds.toml",
+    )
+    path = write(
+        tmp_path,
+        """
+        [camera]
+        backend = "v4l2"
+        device = "/dev/video0"
+
+        [vlp]
+        camera_info = "camera_info.yaml"
+        led_map = "leds.toml"
+
+        [vlp.rolling_shutter]
+        t_row_s = 30e-6
+
+        [output]
+        url = "/dev/ttyS0"
+        """,
+    )
+    config = load_config(path)
+    intr = config.vlp.intrinsics
+    assert intr is not None
+    assert (intr.width_px, intr.height_px, intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px) == (
+        640,
+        480,
+        500.0,
+        501.0,
+        319.5,
+        239.5,
+    )
+    assert intr.distortion == (0.01, -0.02, 0.0, 0.0, 0.0) and intr.t_row_s == 30e-6
+    assert config.vlp.leds is not None and config.vlp.leds[0].diameter_m == 0.086
+
+
+def test_a_disabled_device_is_left_out_and_degrees_are_accepted(tmp_path: Path) -> None:
+    config = parse_config(
+        sim_config(
+            """
+            [rfid]
+            enabled = false
+            [fusion]
+            initial_pose = { x_m = 1.0, y_m = 2.0, yaw_deg = 90.0 }
+            """
+        ),
+        str(tmp_path / "c.toml"),
+    )
+    assert DeviceKind.RFID not in config.devices
+    assert config.fusion.initial_pose is not None
+    assert math.isclose(config.fusion.initial_pose[2], math.pi / 2)
+
+
+# -- mistakes --------------------------------------------------------------------------------------------
+BAD = [
+    # (config text, the key the error names, words of the reason)
+    ("[servos\nbackend = 1", "", "not valid TOML"),
+    (REAL + "[slma]\nenabled = true\n", "slma", "did you mean 'slam'"),
+    (
+        REAL.replace('port = "/dev/dynamixel"', 'port = "/dev/dynamixel"\nbaudrat = 57600'),
+        "servos.baudrat",
+        "baudrate",
+    ),
+    (
+        REAL.replace('port = "/dev/dynamixel"', 'port = "/dev/dynamixel"\nbaudrate = "fast"'),
+        "servos.baudrate",
+        "integer",
+    ),
+    (
+        REAL.replace('port = "/dev/dynamixel"', 'port = "/dev/dynamixel"\nleft_id = true'),
+        "servos.left_id",
+        "integer",
+    ),
+    (REAL.replace('backend = "dynamixel"', 'backend = "dynamixle"'), "servos.backend", "dynamixel"),
+    (REAL.replace('port = "/dev/dynamixel"', ""), "servos.port", "required"),
+    (
+        REAL.replace('port = "/dev/dynamixel"', 'port = "/dev/dynamixel"\nwheel_radius_m = nan'),
+        "servos.wheel_radius_m",
+        "finite",
+    ),
+    (REAL + '[laser]\nbackend = "urg"\n', "laser.url", "missing"),
+    (REAL + '[camera]\nbackend = "v4l2"\nwidth = 0\n', "camera.width", "positive"),
+    (REAL.replace('url = "/dev/ttyS0"', ""), "output.url", "missing"),
+    (REAL.replace('url = "/dev/ttyS0"', 'url = "pty"'), "output.url", "[sim]"),
+    (REAL + "rate_hz = 500.0\n", "output.rate_hz", "baud"),
+    (REAL + 'format = "mavlink"\nmavlink_message = "odometryy"\n', "output.mavlink_message", "odometry"),
+    (REAL + "mavlink_sysid = 3\n", "output.mavlink_sysid", "mavlink"),
+    (REAL + 'format = "mavlink"\nmavlink_sysid = 0\n', "output.mavlink_sysid", "1..255"),
+    (REAL + "[control]\ndeadman_timeout_s = 0.01\n", "control.deadman_timeout_s", "two servo loop periods"),
+    (REAL + "[control]\ndeadman_timeout_s = -1.0\n", "control.deadman_timeout_s", "> 0"),
+    (REAL + "[fusion]\ngate_probability = 1.5\n", "fusion.gate_probability", "between 0 and 1"),
+    (REAL + "[fusion]\ninitial_pose = { x_m = 1.0 }\n", "fusion.initial_pose.y_m", "missing"),
+    (
+        REAL + "[fusion]\ninitial_pose = { x_m = 1.0, y_m = 0.0, yaw_rad = 0.1, yaw_deg = 5.0 }\n",
+        "fusion.initial_pose.yaw_deg",
+        "not both",
+    ),
+    (REAL + "[vlp]\nenabled = true\n", "vlp.enabled", "[camera]"),
+    (REAL + "[slam]\nenabled = true\n", "slam.enabled", "[laser]"),
+    (REAL + '[slam]\nenabled = false\nmap_mode = "copy"\n', "slam.map_mode", "per_particle"),
+    (REAL + '[camera]\nbackend = "v4l2"\n', "vlp.camera_info", "calibration"),
+    (
+        REAL + '[camera]\nbackend = "v4l2"\n[vlp]\ncamera_info = "missing.yaml"\n',
+        "vlp.camera_info",
+        "cannot read",
+    ),
+    (
+        REAL
+        + '[camera]\nbackend = "v4l2"\n[vlp.intrinsics]\nwidth_px = 800\nheight_px = 600\nfx_px = 500.0\n'
+        + "fy_px = 500.0\ncx_px = 400.0\ncy_px = 300.0\n",
+        "vlp.rolling_shutter.t_row_s",
+        "row time",
+    ),
+    (
+        REAL
+        + '[camera]\nbackend = "v4l2"\n[vlp]\nled_map = "x.toml"\n[[vlp.leds]]\nid = "A"\n'
+        + "x_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n",
+        "vlp.leds",
+        "not both",
+    ),
+    (sim_config('[servos]\nport = "/dev/ttyUSB0"\n'), "servos.port", "simulated robot"),
+    (sim_config("[servos]\ntrack_m = 0.2\n"), "servos.track_m", "world file"),
+    (sim_config('[rfid]\nbackend = "rdm6300"\n'), "rfid.backend", "id12la"),
+    (sim_config('[camera]\nbackend = "v4l2"\n'), "camera.backend", "sim"),
+    ('[sim]\nworld = "no/such/world.toml"\n', "sim.world", "no such world"),
+    ("[sim]\nseed = 1\n", "sim.world", "missing"),
+    ('[output]\nurl = "/dev/ttyS0"\n', "", "no pose source"),
+]
+
+
+@pytest.mark.parametrize(("text", "key", "words"), BAD, ids=[f"{k or 'file'}:{w}" for _, k, w in BAD])
+def test_mistakes_name_the_key_and_the_file(tmp_path: Path, text: str, key: str, words: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    error = info.value
+    assert error.key == key, str(error)
+    assert error.file == str(path), str(error)
+    assert words in str(error), str(error)
+    assert str(path) in str(error)
+
+
+LED_MISTAKES = [
+    (
+        '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 1.5\n',
+        "leds[0].duty",
+    ),
+    ('[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nfrequency_hz = 1000.0\nduty = 0.5\n', "leds[0].z_m"),
+    (
+        '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+        '[[leds]]\nid = "A"\nx_m = 3.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1500.0\nduty = 0.5\n',
+        "leds[1]",
+    ),
+    (
+        '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+        "colour = 1\n",
+        "leds[0].colour",
+    ),
+    ("leds = 3\n", "leds"),
+]
+
+
+@pytest.mark.parametrize(("text", "key"), LED_MISTAKES)
+def test_led_map_mistakes_name_the_map_file_and_the_led(tmp_path: Path, text: str, key: str) -> None:
+    leds = write(tmp_path, text, "leds.toml")
+    path = write(
+        tmp_path,
+        REAL + '[camera]\nbackend = "v4l2"\n[vlp]\nled_map = "leds.toml"\n'
+        "[vlp.intrinsics]\nwidth_px = 8\nheight_px = 6\nfx_px = 5.0\nfy_px = 5.0\ncx_px = 4.0\n"
+        "cy_px = 3.0\n[vlp.rolling_shutter]\nt_row_s = 3e-5\n",
+    )
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert info.value.key == key, str(info.value)
+    assert info.value.file == str(leds)
+
+
+def test_a_camera_info_that_is_not_one_says_which_file(tmp_path: Path) -> None:
+    info = write(tmp_path, "image_width: 640\nimage_height: 480\n", "camera_info.yaml")
+    path = write(tmp_path, REAL + '[camera]\nbackend = "v4l2"\n[vlp]\ncamera_info = "camera_info.yaml"\n')
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert (
+        err.value.key == "vlp.camera_info"
+        and str(info) in str(err.value)
+        and "camera_matrix" in str(err.value)
+    )
+
+
+def test_an_unreadable_config_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "absent.toml")
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes(b'# caf\xe9\n[output]\nurl = "x"\n')
+    with pytest.raises(ConfigError, match="UTF-8"):
+        load_config(bad)
