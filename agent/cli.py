@@ -13,8 +13,14 @@ import os
 import sys
 from collections.abc import Sequence
 
-from agent import __version__
-from firmware_protocol.errors import VlpAgentError
+# The agent's latency comes from many small array operations, not big ones: a thread pool per library only
+# adds wake-ups and contention on a 2-4 core robot computer (measured: one VLP step 100x slower under load
+# with threaded BLAS). Set before numpy or OpenCV is first imported; a user's explicit setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from agent import __version__  # noqa: E402
+from firmware_protocol.errors import VlpAgentError  # noqa: E402
 
 # Subcommand name -> module in agent.commands, imported only when used so `--help` stays fast.
 COMMANDS: dict[str, str] = {
@@ -84,6 +90,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     configure_logging(logging.WARNING - 10 * min(args.verbose, 2))
+    if "cv2" in sys.modules:
+        # Same reason as the BLAS variables above: OpenCV's own pool, on by default, costs latency here.
+        sys.modules["cv2"].setNumThreads(1)
     try:
         module = importlib.import_module(COMMANDS[args.command])
     except ImportError as exc:
