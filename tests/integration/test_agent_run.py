@@ -43,12 +43,16 @@ def test_run_tells_systemd_ready_watchdog_status_and_stopping(tmp_path: Path) ->
         env=env,
     )
     messages: list[str] = []
+    ping_times: list[float] = []
     try:
         while proc.poll() is None:
             try:
-                messages.append(notify.recv(4096).decode())
+                message = notify.recv(4096).decode()
             except TimeoutError:
                 continue
+            messages.append(message)
+            if "WATCHDOG=1" in message.split("\n"):
+                ping_times.append(time.monotonic())
         stdout, stderr = proc.communicate(timeout=30)
         while True:
             try:
@@ -66,6 +70,10 @@ def test_run_tells_systemd_ready_watchdog_status_and_stopping(tmp_path: Path) ->
     pings = [i for i, f in enumerate(fields) if f == "WATCHDOG=1"]
     assert len(ready) == 1
     assert len(pings) >= 3 and min(pings) > ready[0]  # every 0.5 s once ready, for the rest of the run
+    # At the configured interval: half of WATCHDOG_USEC (1 s), as sd_watchdog_enabled(3) advises.
+    intervals = np.diff(ping_times)
+    assert 0.3 <= float(np.median(intervals)) <= 0.7, intervals
+    assert float(intervals.max()) < 1.0, intervals  # never as late as the watchdog itself
     assert any(f.startswith("STATUS=pose (") for f in fields)
     stopping = [i for i, f in enumerate(fields) if f == "STOPPING=1"]
     assert len(stopping) == 1 and stopping[0] > max(pings)
