@@ -1,0 +1,224 @@
+"""The robot's devices for a step: opened from the robot's config, or on the simulated robot.
+
+Devices are opened on first use, through the same backends and options the agent uses (``drivers.registry``
+and ``agent.config``), and closed when the step ends, whatever way it ends; the wheels are stopped first.
+:class:`Nominal` is what the robot believes before calibrating: the config's values, or the world file's
+design values on the simulated robot.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any, Self
+
+from calibration.context import StepContext
+from calibration.report import CalibrationError
+from drivers.camera.base import Camera, CameraSettings
+from drivers.errors import ConfigError, DeviceError
+from drivers.imu.base import Imu
+from drivers.laser.base import LaserScanner
+from drivers.registry import DeviceKind, backend_class
+from drivers.servos.base import WheelServos
+from drivers.sim.simulation import Simulation
+from drivers.sim.world import Mount, World
+
+__all__ = ["Nominal", "Rig"]
+
+_OPEN_ATTEMPTS = 3
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class Nominal:
+    """The robot's values before this calibration (config or design)."""
+
+    wheel_radius_m: float = 0.033
+    track_m: float = 0.160
+    camera_mount: Mount = field(default_factory=lambda: Mount(0.0, 0.0, 0.2))
+    laser_mount: Mount = field(default_factory=lambda: Mount(0.0, 0.0, 0.18))
+    fx_px: float | None = None
+    image_width_px: int | None = None
+    sensor_size_px: tuple[int, int] | None = None
+
+    def intrinsics_f_px(self, width: int) -> float:
+        if self.fx_px is not None and self.image_width_px:
+            return self.fx_px * width / self.image_width_px
+        return 0.8 * width
+
+
+def _mount(m: Any) -> Mount:
+    return Mount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad)
+
+
+class Rig:
+    """Devices of one robot for one step. Use as a context manager."""
+
+    def __init__(
+        self,
+        tables: dict[DeviceKind, tuple[str, dict[str, Any]]],
+        nominal: Nominal,
+        *,
+        simulation: Simulation | None = None,
+        robot: Any = None,
+        seed: int = 0,
+    ) -> None:
+        self._tables = tables
+        self.nominal = nominal
+        self.simulation = simulation
+        self._robot = robot  # drivers.sim.harness.SimulatedRobot, when simulated
+        self._seed = seed
+        self._open: dict[DeviceKind, Any] = {}
+        self._stack = contextlib.ExitStack()
+
+    # -- making one -------------------------------------------------------------------------------------
+    @classmethod
+    def for_context(cls, ctx: StepContext, world: World | None = None) -> Rig:
+        """The robot of ``ctx``: the simulated one (on ``world``, default the context's world) or the one the
+        config describes."""
+        if ctx.sim is not None:
+            return cls.simulated(world if world is not None else ctx.sim.load(), ctx.sim.seed)
+        if ctx.config is None:
+            raise CalibrationError("this step needs the robot: pass --config FILE or --sim")
+        return cls.from_config(ctx.config)
+
+    @classmethod
+    def simulated(cls, world: World, seed: int = 0, design: World | None = None) -> Rig:
+        """Fake devices on ``world`` (the robot as built); ``design`` (default ``world``) gives the nominal
+        values the robot believes."""
+        from drivers.sim.harness import SimulatedRobot
+        from drivers.sim.worldfile import nominal_camera
+
+        robot = SimulatedRobot(world, seed=seed)
+        robot.start()
+        tables: dict[DeviceKind, tuple[str, dict[str, Any]]] = {}
+        for name, table in robot.device_config().items():
+            table = dict(table)
+            backend = table.pop("backend")
+            kind = DeviceKind(name)
+            if kind is DeviceKind.RFID:
+                table["protocol"] = backend
+            if kind is DeviceKind.CAMERA:
+                table = {"simulation": robot.simulation, "seed": seed}
+            tables[kind] = (backend, table)
+        d = design if design is not None else world
+        cam = nominal_camera(d).focal_length_px
+        scale = d.camera.sensor_width_px / d.camera.output_width_px
+        nominal = Nominal(
+            d.robot.wheel_radius_m,
+            d.robot.track_m,
+            d.robot.camera_mount,
+            d.robot.laser_mount,
+            cam / scale,
+            d.camera.output_width_px,
+            (d.camera.sensor_width_px, d.camera.sensor_height_px),
+        )
+        rig = cls(tables, nominal, simulation=robot.simulation, robot=robot, seed=seed)
+        rig._stack.callback(robot.close)
+        return rig
+
+    @classmethod
+    def from_config(cls, path: Any) -> Rig:
+        from agent.config import load_config
+
+        config = load_config(path)
+        if config.sim is not None:
+            raise CalibrationError(
+                f"{path} describes the simulated robot ([sim]); use --sim instead of --config"
+            )
+        tables = {kind: (dev.backend, dict(dev.options)) for kind, dev in config.devices.items()}
+        servo_options = tables.get(DeviceKind.SERVOS, ("", {}))[1]
+        vlp, slam = config.vlp, config.slam
+        intr = vlp.intrinsics
+        nominal = Nominal(
+            float(servo_options.get("wheel_radius_m", 0.033)),
+            float(servo_options.get("track_m", 0.160)),
+            _mount(vlp.mount) if vlp.mount is not None else Mount(0.0, 0.0, 0.2),
+            _mount(slam.laser_mount) if slam.laser_mount is not None else Mount(0.0, 0.0, 0.18),
+            intr.fx_px if intr is not None else None,
+            intr.width_px if intr is not None else None,
+            (intr.sensor_width_px, intr.sensor_height_px)
+            if intr is not None and intr.sensor_width_px
+            else None,
+        )
+        return cls(tables, nominal)
+
+    # -- devices ----------------------------------------------------------------------------------------
+    def has(self, kind: DeviceKind) -> bool:
+        """Whether the robot has this kind of device (in its config, or the simulated robot)."""
+        return kind in self._tables
+
+    def _device(self, kind: DeviceKind, **overrides: Any) -> Any:
+        if kind in self._open:
+            return self._open[kind]
+        if kind not in self._tables:
+            raise CalibrationError(f"the robot has no [{kind.value}] device in its config")
+        backend, options = self._tables[kind]
+        options = {**options, **overrides}
+        try:
+            cls = backend_class(kind, backend)
+        except (DeviceError, ConfigError) as exc:
+            raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
+        for attempt in range(1, _OPEN_ATTEMPTS + 1):
+            try:
+                device = cls(**options)
+                device.open()
+                break
+            except ConfigError as exc:
+                raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
+            except DeviceError as exc:
+                # A missed reply at bring-up (a busy bus, an adapter still enumerating) is worth a retry.
+                if attempt == _OPEN_ATTEMPTS:
+                    raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
+                log.warning("opening the %s failed (%s); trying again", kind.value, exc)
+                time.sleep(0.3)
+        self._open[kind] = device
+        return device
+
+    def camera(self, exposure_s: float | None = None) -> Camera:
+        overrides: dict[str, Any] = {}
+        if exposure_s is not None:
+            options = self._tables.get(DeviceKind.CAMERA, ("", {}))[1]
+            settings = options.get("settings") or CameraSettings()
+            overrides["settings"] = dataclasses.replace(settings, exposure_s=exposure_s)
+        camera: Camera = self._device(DeviceKind.CAMERA, **overrides)
+        return camera
+
+    def servos(self) -> WheelServos:
+        servos: WheelServos = self._device(DeviceKind.SERVOS)
+        return servos
+
+    def laser(self) -> LaserScanner:
+        laser: LaserScanner = self._device(DeviceKind.LASER)
+        return laser
+
+    def imu(self) -> Imu:
+        imu: Imu = self._device(DeviceKind.IMU)
+        return imu
+
+    # -- lifecycle --------------------------------------------------------------------------------------
+    def close(self) -> None:
+        servos = self._open.get(DeviceKind.SERVOS)
+        if servos is not None:
+            with contextlib.suppress(DeviceError):
+                servos.stop()
+        for kind, device in reversed(list(self._open.items())):
+            try:
+                device.close()
+            except DeviceError as exc:
+                log.warning("closing the %s: %s", kind.value, exc)
+        self._open.clear()
+        self._stack.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
