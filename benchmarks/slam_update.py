@@ -19,6 +19,7 @@ core's work even on a bigger machine; a machine busy with other work inflates th
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -35,7 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agent.commands.eval_slam import DEFAULT_ALONG_SURFACE_WEIGHT
 from agent.slam.logs import read_log
+from agent.slam.proposal import ProposalConfig
 from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind
 
 REPO = Path(__file__).resolve().parents[1]
@@ -85,6 +88,12 @@ def main() -> int:
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--map-mode", default="per_particle", choices=("per_particle", "shared"))
     parser.add_argument("--max-range", type=float, default=None)
+    parser.add_argument(
+        "--along-surface-weight",
+        type=float,
+        default=None,
+        help="1 point to point, 0 point to line (default: as vlp-agent eval slam, 0 for radish, 1 otherwise)",
+    )
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -95,9 +104,13 @@ def main() -> int:
     max_range = (
         args.max_range if args.max_range is not None else (5.5 if args.format == "breezyslam" else 15.0)
     )
+    along = args.along_surface_weight
+    if along is None:
+        along = DEFAULT_ALONG_SURFACE_WEIGHT[args.format]
     config = RbpfConfig(
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
+        proposal=dataclasses.replace(ProposalConfig(), along_surface_weight=along),
         max_usable_range_m=max_range,
         seed=args.seed,
     )
@@ -110,6 +123,7 @@ def main() -> int:
         log_duration_s=round(log.duration_s, 2),
         particles=args.particles,
         map_mode=args.map_mode,
+        along_surface_weight=along,
         runs=args.runs,
         update_ms_median_all_runs=[r["update_ms_median"] for r in runs],
         peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),

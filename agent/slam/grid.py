@@ -172,8 +172,12 @@ class TiledMaps:
         while len(self._free) < count:
             old = self.pool.shape[0]
             grown = max(old, count - len(self._free))
-            self.pool = np.concatenate([self.pool, np.zeros((grown, *self.pool.shape[1:]), np.int8)])
-            self.refcount = np.concatenate([self.refcount, np.zeros(grown, np.int64)])
+            # Grown in place (realloc; for a large pool the kernel remaps its pages), not by concatenating
+            # into a new array: that briefly held the old pool and one twice its size, 3x the memory (on
+            # Intel, +75 MB at the last doubling). Safe because the pool is never handed out as a view:
+            # ``gather`` copies out of it and ``scatter`` writes into it.
+            self.pool.resize((old + grown, *self.pool.shape[1:]), refcheck=False)
+            self.refcount.resize(old + grown, refcheck=False)
             self._free.extend(range(old + grown - 1, old - 1, -1))
         ids = np.array([self._free.pop() for _ in range(count)], dtype=np.int64)
         return ids
@@ -246,11 +250,11 @@ class ScanPoints:
     """One scan prepared for integration, in the robot base frame.
 
     ``origin_xy`` is the laser's position on the base; ``hit_xy`` (H, 2) the endpoints that hit
-    something within the usable range; ``fan_xy`` (F, 2) the free end of every beam that carries free
-    space information (shortened by half a cell so the wall cell itself is not cleared), in beam order;
-    ``polygon`` (V,) the fan polygon's vertices as indices into ``fan_xy``, -1 for the laser origin: the
-    origin, the beams in angular order, and the origin again wherever a run of beams carries no
-    information (no return), so the polygon goes back along the last beam and out along the next.
+    something within the usable range, in beam order; ``fan_xy`` (F, 2) the free end of every beam that
+    carries free space information (shortened by half a cell so the wall cell itself is not cleared), in
+    beam order; ``polygon`` (V,) the fan polygon's vertices as indices into ``fan_xy``, -1 for the laser
+    origin: the origin, the beams in angular order, and the origin again wherever a run of beams carries
+    no information (no return), so the polygon goes back along the last beam and out along the next.
     """
 
     origin_xy: tuple[float, float]
@@ -303,6 +307,60 @@ def prepare_scan(
     vertices = np.concatenate([fan_ids, np.full(int(gap_before.sum()), -1, dtype=np.int64)])[order]
     polygon = np.concatenate([[-1], vertices]).astype(np.int64)
     return ScanPoints((float(mount[0]), float(mount[1])), hit_xy, fan_xy, polygon)
+
+
+def surface_normals(
+    points_xy: FloatArray,
+    subset: IntArray | None = None,
+    window: int = 8,
+    radius_m: float = 0.25,
+    min_points: int = 5,
+    max_thickness_m: float = 0.015,
+    min_length_m: float = 0.04,
+) -> FloatArray:
+    """Unit normals of the surface through a scan's endpoints (N, 2, in beam order), for the points
+    ``subset`` (indices; default all): (len(subset), 2), (0, 0) where the neighbourhood is not a line.
+
+    For point k the neighbours are the points k - ``window`` .. k + ``window`` within ``radius_m``; with
+    at least ``min_points`` of them, their scatter matrix S = (1/n) sum (p - mean)(p - mean)ᵀ has
+    eigenvalues l1 <= l2: the neighbourhood is a line when sqrt(l1) <= ``max_thickness_m`` (range noise)
+    and sqrt(l2) >= ``min_length_m`` and l2 >= 9 l1; the normal is l1's eigenvector. Corners, wall ends,
+    people and clutter get none.
+    """
+    n = points_xy.shape[0]
+    centre = np.arange(n) if subset is None else np.asarray(subset, dtype=np.int64)
+    normals = np.zeros((centre.size, 2))
+    if n < min_points or centre.size == 0:
+        return normals
+    offsets = np.arange(-window, window + 1)
+    idx = centre[:, None] + offsets[None, :]
+    inside = (idx >= 0) & (idx < n)
+    idx = np.clip(idx, 0, n - 1)
+    nb = points_xy[idx]  # (M, K, 2)
+    rel = nb - points_xy[centre][:, None, :]
+    use = inside & (rel[..., 0] ** 2 + rel[..., 1] ** 2 <= radius_m * radius_m)
+    count = use.sum(axis=1)
+    w = use / np.maximum(count, 1)[:, None]
+    mean = np.einsum("nk,nki->ni", w, rel)
+    dev = rel - mean[:, None, :]
+    sxx = np.einsum("nk,nk->n", w, dev[..., 0] ** 2)
+    syy = np.einsum("nk,nk->n", w, dev[..., 1] ** 2)
+    sxy = np.einsum("nk,nk->n", w, dev[..., 0] * dev[..., 1])
+    # Eigenvalues of [[sxx, sxy], [sxy, syy]]: m -+ sqrt(q), m = (sxx + syy)/2, q = ((sxx - syy)/2)^2 + sxy^2.
+    half_trace = (sxx + syy) / 2.0
+    root = np.sqrt(((sxx - syy) / 2.0) ** 2 + sxy**2)
+    l1 = np.maximum(half_trace - root, 0.0)
+    l2 = half_trace + root
+    line = (count >= min_points) & (l1 <= max_thickness_m**2) & (l2 >= min_length_m**2) & (l2 >= 9.0 * l1)
+    # The eigenvector of l2 is (sxy, l2 - sxx) (or (l2 - syy, sxy)); the normal is perpendicular to it.
+    ax = np.where(np.abs(sxx - l2) > np.abs(syy - l2), sxy, l2 - syy)
+    ay = np.where(np.abs(sxx - l2) > np.abs(syy - l2), l2 - sxx, sxy)
+    norm = np.hypot(ax, ay)
+    line &= norm > 0.0
+    safe = np.where(norm > 0.0, norm, 1.0)
+    normals[line, 0] = (-ay / safe)[line]
+    normals[line, 1] = (ax / safe)[line]
+    return normals
 
 
 def integrate_scans(

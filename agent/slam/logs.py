@@ -38,6 +38,7 @@ FloatArray = npt.NDArray[np.float64]
 class LogFormat(enum.StrEnum):
     BREEZYSLAM = "breezyslam"
     RADISH = "radish"
+    SIMULATED = "simulated"  # made in memory by ``agent.slam.simlog``; no file format
 
 
 class LogFormatError(ProtocolError):
@@ -234,6 +235,10 @@ def read_log(path: str | Path, log_format: LogFormat | str) -> SlamLog:
     """Read a whole log file in the given format."""
     chosen = LogFormat(log_format)
     file = Path(path)
+    if chosen is LogFormat.SIMULATED:
+        raise ConfigError(
+            "format", "simulated logs are made by agent.slam.simlog, not read from files", str(file)
+        )
     try:
         with file.open("r", encoding="ascii", errors="replace") as handle:
             lines = handle.readlines()

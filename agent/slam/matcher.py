@@ -26,18 +26,38 @@ Float32Array = npt.NDArray[np.float32]
 IntArray = npt.NDArray[np.int64]
 
 
+UNKNOWN = -1.0  # distance-field value of cells the map has not observed
+MEDIAL_REACH_CELLS = 3.0  # within this distance of a wall, distances are taken to its medial point
+
+
 @dataclass(frozen=True)
 class DistanceField:
     """Distance (metres, capped at ``cap_m``) to the nearest obstacle cell, for a stack of windows that
     share one placement. ``distance_m`` is (U, H + 2, W + 2): each window has a one-cell border holding
     ``cap_m``, so that lookups clamped to the array land on "far from everything" with zero gradient;
     ``distance_m[u, 1 + row, 1 + col]`` belongs to the cell whose lower-left corner is
-    ``origin_m + (col, row) * resolution_m``."""
+    ``origin_m + (col, row) * resolution_m``. Obstacle cells hold exactly 0, unobserved ones ``UNKNOWN``.
+
+    Sampling is bilinear, except within ``MEDIAL_REACH_CELLS`` of a straight wall, where the distance is
+    to the wall's medial line. The nearest obstacle cell is the one d |grad d|⁻¹ grad d back from the
+    sample; when its obstacle neighbours run along one axis (above and below it, or left and right, not
+    both), the wall runs along that axis, and its medial line passes through the cell centre, moved half
+    a cell towards an obstacle neighbour across the wall if it has one on that side only. A wall that
+    lies on a cell boundary is hit on both sides of it, so it is two cells thick in the map; bilinear
+    distances are 0 all across the pair, a flat-bottomed valley 5 cm wide in which matches drift with
+    odometry (the simulated office, whose walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it).
+    To the medial line the distance is |x - X| again, X the boundary. Corners, wall ends and clutter keep
+    the bilinear value.
+    """
 
     distance_m: Float32Array
     origin_m: tuple[float, float]
     resolution_m: float
     cap_m: float
+    # Per cell (same layout as distance_m): 0, or for an obstacle cell on a straight wall 1 + 3 a + k, a = 0
+    # for a wall along y (distance across it in x), 1 along x, k = 0, 1, 2 for a medial line half a cell
+    # below, at, or above the cell centre.
+    medial: npt.NDArray[np.int8]
 
     @classmethod
     def from_obstacles(
@@ -46,31 +66,58 @@ class DistanceField:
         origin_m: tuple[float, float],
         resolution_m: float,
         cap_m: float,
+        known: npt.NDArray[np.bool_] | None = None,
     ) -> DistanceField:
-        """Distance transform of the obstacle cells (U, H, W), for each window in the stack.
+        """Distance transform of the obstacle cells (U, H, W), for each window in the stack
+        (``cv2.distanceTransform``, 5x5 chamfer: exact along the axes, within 2 % otherwise).
 
-        The windows are laid one above the other in a single image, separated by obstacle-free bands at
-        least ``cap_m`` tall, so one ``cv2.distanceTransform`` call (5x5 chamfer: exact along the axes,
-        within 2 % otherwise) does them all and no window sees another's obstacles within the cap.
+        Window by window, each transform written straight into the field: one call for the whole stack
+        needed the stack again as one image, its float output, and a copy into the bordered layout (on
+        Intel's 15 m scans, 30 windows of 640 x 640 cells: 50 MB each).
+
+        ``known`` (U, H, W), if given, marks the cells the map has observed. Cells farther than one cell
+        from any of them hold ``UNKNOWN`` (negative): an endpoint there says nothing about the map, and
+        :meth:`sample_known` reports it as such instead of pulling it towards the nearest mapped wall.
+        Without this, a robot driving along a corridor sees its side walls a little beyond where its map
+        ends, and those endpoints drag every match backwards. The one-cell margin keeps endpoints that
+        range noise puts just behind a wall.
         """
         u, h, w = obstacles.shape
-        gap = int(np.ceil(cap_m / resolution_m)) + 1
-        canvas = np.ones((u, h + gap, w), dtype=np.uint8)
-        canvas[:, :h, :] = ~obstacles  # distanceTransform measures to the nearest zero pixel
-        dist = cv2.distanceTransform(canvas.reshape(u * (h + gap), w), cv2.DIST_L2, 5)
-        padded = np.full((u, h + 2, w + 2), np.float32(cap_m), dtype=np.float32)
-        inner = padded[:, 1:-1, 1:-1]
-        np.multiply(dist.reshape(u, h + gap, w)[:, :h, :], np.float32(resolution_m), out=inner)
-        np.minimum(inner, np.float32(cap_m), out=inner)
-        return cls(padded, origin_m, resolution_m, cap_m)
+        if known is not None and known.shape != obstacles.shape:
+            raise ValueError(f"known {known.shape} must match obstacles {obstacles.shape}")
+        padded = np.empty((u, h + 2, w + 2), dtype=np.float32)
+        canvas = np.ones((u, h + 2, w + 2), dtype=np.uint8)  # the border is free: it gets the cap below
+        np.logical_not(obstacles, out=canvas[:, 1:-1, 1:-1], casting="unsafe")  # DT: distance to the 0s
+        for k in range(u):
+            cv2.distanceTransform(canvas[k], cv2.DIST_L2, 5, dst=padded[k])
+        if known is not None:
+            # Dilated as one image: the windows' zero borders (two rows between windows) keep them apart.
+            canvas[...] = 0
+            canvas[:, 1:-1, 1:-1] = known
+            near_known = cv2.dilate(canvas.reshape(u * (h + 2), w + 2), np.ones((3, 3), np.uint8))
+            np.copyto(padded, np.float32(UNKNOWN / resolution_m), where=near_known.reshape(padded.shape) == 0)
+        np.multiply(padded, np.float32(resolution_m), out=padded)
+        np.minimum(padded, np.float32(cap_m), out=padded)
+        padded[:, 0, :] = padded[:, -1, :] = cap_m
+        padded[:, :, 0] = padded[:, :, -1] = cap_m
+        return cls(padded, origin_m, resolution_m, cap_m, _medial_codes(padded))
 
     def sample(
         self, window_index: IntArray, x_m: FloatArray, y_m: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Bilinear d and its gradient (dd/dx, dd/dy) at world points (P, N), x and y apart, in windows (P,).
 
-        Points outside the window get d = cap and zero gradient (through the border).
+        Points outside the window, or next to an unknown cell, get d = cap and zero gradient.
         """
+        d, ddx, ddy, _known = self.sample_known(window_index, x_m, y_m)
+        return d, ddx, ddy
+
+    def sample_known(
+        self, window_index: IntArray, x_m: FloatArray, y_m: FloatArray, medial: bool = True
+    ) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+        """:meth:`sample`, and whether each point lies among known cells (all four bilinear neighbours).
+        ``medial=False`` skips the medial-line distances near walls (plain bilinear: cheaper, for coarse
+        stages that do not need sub-cell precision)."""
         _u, hp, wp = self.distance_m.shape
         inv_res = 1.0 / self.resolution_m
         # Cell centres sit at integer coordinates c = (x - x0) / res - 1/2, plus 1 for the border.
@@ -95,7 +142,56 @@ class DistanceField:
         d = top + fy * vertical
         ddx = (d_top + fy * (d_bottom - d_top)) * inv_res
         ddy = vertical * inv_res
-        return d, ddx, ddy
+        known = np.minimum(np.minimum(f00, f01), np.minimum(f10, f11)) >= 0.0
+        if not known.all():
+            d = np.where(known, d, self.cap_m)
+            ddx = np.where(known, ddx, 0.0)
+            ddy = np.where(known, ddy, 0.0)
+        # Near straight walls: the distance to the wall's medial line (see the class docstring).
+        near = known & (d < MEDIAL_REACH_CELLS * self.resolution_m)
+        if medial and near.any():
+            g = np.hypot(ddx, ddy)
+            step = np.where(g > 1e-9, d * inv_res / np.maximum(g, 1e-9), 0.0)
+            jx = np.clip(np.rint(cx - step * ddx), 1, wp - 2).astype(np.int64)
+            jy = np.clip(np.rint(cy - step * ddy), 1, hp - 2).astype(np.int64)
+            cell = (np.asarray(window_index, dtype=np.int64)[:, None] * hp + jy) * wp + jx
+            code = self.medial.reshape(-1)[cell].astype(np.int64)
+            wall = near & (code > 0)
+            along_y = code <= 3
+            shift = ((code - 1) % 3 - 1) * 0.5
+            # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
+            offset = np.where(
+                along_y,
+                x_m - ((jx - 0.5 + shift) * self.resolution_m + self.origin_m[0]),
+                y_m - ((jy - 0.5 + shift) * self.resolution_m + self.origin_m[1]),
+            )
+            sign = np.where(offset >= 0.0, 1.0, -1.0)
+            d = np.where(wall, np.abs(offset), d)
+            ddx = np.where(wall, np.where(along_y, sign, 0.0), ddx)
+            ddy = np.where(wall, np.where(along_y, 0.0, sign), ddy)
+        return d, ddx, ddy, known
+
+
+def _medial_codes(padded: Float32Array) -> npt.NDArray[np.int8]:
+    """``DistanceField.medial`` for a padded distance stack whose obstacle cells hold 0.
+
+    A cell with obstacle neighbours above and below but not both left and right lies on a wall along y
+    (and the other way round); its medial line is at its centre, or half a cell towards its one obstacle
+    neighbour across the wall (a wall two cells thick)."""
+    _u, _hp, wp = padded.shape
+    flat = padded.reshape(-1)
+    codes = np.zeros(flat.shape, dtype=np.int8)
+    cells = np.flatnonzero(flat == 0.0)  # the one-cell border holds the cap, so neighbours stay inside
+    if cells.size == 0:
+        return codes.reshape(padded.shape)
+    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
+    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
+    along_y = below & above & ~(left & right)
+    along_x = left & right & ~(below & above)
+    k_y = 1 + right.astype(np.int8) - left.astype(np.int8)  # 0, 1, 2: medial below, at, above the centre
+    k_x = 1 + above.astype(np.int8) - below.astype(np.int8)
+    codes[cells] = np.where(along_y, 1 + k_y, np.where(along_x, 4 + k_x, 0)).astype(np.int8)
+    return codes.reshape(padded.shape)
 
 
 @dataclass(frozen=True)
@@ -140,6 +236,63 @@ def world_points(
     return rx + poses[:, 0:1], ry + poses[:, 1:2], rx, ry
 
 
+@dataclass(frozen=True)
+class Residuals:
+    """Per pose and endpoint (P, N): the distance d to the nearest obstacle, the residual r the match
+    minimises, dr/d(x, y) (``jx``, ``jy``) and the endpoint rotated into the world (``rx``, ``ry``), so
+    that dr/dyaw = jy rx - jx ry."""
+
+    d: FloatArray
+    r: FloatArray
+    jx: FloatArray
+    jy: FloatArray
+    rx: FloatArray
+    ry: FloatArray
+    known: npt.NDArray[np.bool_]
+
+
+def residuals(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    poses: FloatArray,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+    medial: bool = True,
+) -> Residuals:
+    """Point-to-map residuals for endpoints (N, 2) at poses (P, 3).
+
+    Without normals (or where an endpoint's normal is (0, 0)): point to point, r = d, J = grad d.
+    With a surface normal n (``normals_xy``, the scan's own, rotated with the pose) and its tangent t:
+    v = d ĝ (ĝ = grad d / |grad d|) is the offset from the nearest obstacle to the endpoint, and
+    r = sqrt((v . n)^2 + w (v . t)^2), dr/dp = (n (v . n) + w t (v . t)) / r, w = ``along_weight``:
+    1 is point to point again, 0 point to line (only the offset across the surface counts). An endpoint
+    on a wall that the map holds in patches (cells hit here and there, as far stretches of wall seen at
+    grazing angles are) is pulled along the wall towards the mapped patches, which lie nearer the places
+    the map was seen from; w < 1 weakens that pull, and with it the slide of a match back along a
+    corridor, while keeping some of what wall ends and door frames say along the wall.
+    """
+    wx, wy, rx, ry = world_points(poses, points_xy)
+    d, gx, gy, known = field.sample_known(window_index, wx, wy, medial)
+    if normals_xy is None or along_weight == 1.0:
+        return Residuals(d, d, gx, gy, rx, ry, known)
+    c = np.cos(poses[:, 2])[:, None]
+    s = np.sin(poses[:, 2])[:, None]
+    nx = c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1]
+    ny = s * normals_xy[None, :, 0] + c * normals_xy[None, :, 1]
+    has = ((normals_xy[:, 0] != 0.0) | (normals_xy[:, 1] != 0.0))[None, :]
+    g_norm = np.hypot(gx, gy)
+    scale = np.where(g_norm > 1e-6, d / np.maximum(g_norm, 1e-6), 0.0)
+    vx, vy = gx * scale, gy * scale
+    across = vx * nx + vy * ny
+    along = vy * nx - vx * ny  # v . t, t = (-n_y, n_x)
+    r_line = np.sqrt(across * across + along_weight * along * along)
+    inv_r = np.where(r_line > 1e-9, 1.0 / np.maximum(r_line, 1e-9), 0.0)
+    jx = (nx * across - along_weight * ny * along) * inv_r
+    jy = (ny * across + along_weight * nx * along) * inv_r
+    return Residuals(d, np.where(has, r_line, d), np.where(has, jx, gx), np.where(has, jy, gy), rx, ry, known)
+
+
 def match(
     field: DistanceField,
     window_index: IntArray,
@@ -148,15 +301,19 @@ def match(
     config: MatcherConfig,
     prior_information: FloatArray | None = None,
     centre: FloatArray | None = None,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
 ) -> MatchResult:
-    """Gauss-Newton on E(x) = sum_i w_i d(T(x) p_i)^2 + (x - x0)ᵀ Λ (x - x0) for every pose of the batch.
+    """Gauss-Newton on E(x) = sum_i w_i r_i(x)^2 + (x - x0)ᵀ Λ (x - x0) for every pose of the batch.
 
-    With r_i = d(T(x) p_i) and J_i = dr_i/dx = [dd/dx, dd/dy, dd/dx (-p'_y) + dd/dy p'_x] (p' = R(yaw) p_i),
-    each step solves (sum w J Jᵀ + Λ + lambda I) delta = -(sum w J r + Λ (x - x0)), clipped to a trust
-    region. w_i is 1 for endpoints with r_i below the stage's bound, 0 otherwise (a hard robust kernel).
-    The prior Λ (``prior_information``, (P, 3, 3) or (3, 3); none by default) ties the match to
-    ``centre`` (default: the initial poses) in directions the scan does not constrain (a corridor, a scan
-    of one wall), which is where an unconstrained matcher slides off.
+    r_i is the endpoint's distance to the nearest obstacle, or with ``normals_xy`` and ``along_weight``
+    < 1 its offset from the surface with the part along the surface weighted down (:func:`residuals`);
+    J_i = dr_i/dx = [jx, jy, jy p'_x - jx p'_y] (p' = R(yaw) p_i). Each step solves
+    (sum w J Jᵀ + Λ + lambda I) delta = -(sum w J r + Λ (x - x0)), clipped to a trust region. w_i is 1 for
+    endpoints whose distance d_i is below the stage's bound, 0 otherwise (a hard robust kernel). The prior
+    Λ (``prior_information``, (P, 3, 3) or (3, 3); none by default) ties the match to ``centre``
+    (default: the initial poses) in directions the scan does not constrain (a corridor, a scan of one
+    wall), which is where an unconstrained matcher slides off.
     """
     poses = np.array(initial_poses, dtype=np.float64, copy=True)
     x0 = poses.copy() if centre is None else np.asarray(centre, dtype=np.float64)
@@ -168,19 +325,20 @@ def match(
     n = points_xy.shape[0]
     eye = np.eye(3)[None, :, :]
     info = np.zeros((poses.shape[0], 3, 3))
-    for bound_m, iterations in config.stages:
+    for stage, (bound_m, iterations) in enumerate(config.stages):
+        # Sub-cell (medial-line) distances only where the match settles: the last stage.
+        fine = stage == len(config.stages) - 1
         for _ in range(iterations):
-            wx, wy, rx, ry = world_points(poses, points_xy)
-            d, gx, gy = field.sample(window_index, wx, wy)
+            res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight, fine)
             jac = np.empty((poses.shape[0], n, 3), dtype=np.float32)
-            jac[..., 0] = gx
-            jac[..., 1] = gy
-            jac[..., 2] = gy * rx - gx * ry
-            wj = jac * (d < bound_m)[..., None]
+            jac[..., 0] = res.jx
+            jac[..., 1] = res.jy
+            jac[..., 2] = res.jy * res.rx - res.jx * res.ry
+            wj = jac * (res.d < bound_m)[..., None]
             info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
             offset = poses - x0
             offset[:, 2] = wrap_angle(offset[:, 2])
-            grad = np.matmul(wj.transpose(0, 2, 1), d[..., None])[..., 0] + np.einsum(
+            grad = np.matmul(wj.transpose(0, 2, 1), res.r[..., None])[..., 0] + np.einsum(
                 "pij,pj->pi", prior, offset
             )
             info_total = info + prior
@@ -197,13 +355,13 @@ def match(
                 np.abs(step[:, 2]) < config.converged_rad
             ):
                 break
-    wx, wy, _, _ = world_points(poses, points_xy)
-    d, _, _ = field.sample(window_index, wx, wy)
+    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
+    d = res.d
     last_bound = config.stages[-1][0]
     inliers = d < last_bound
     count = inliers.sum(axis=1)
     fraction = count / max(n, 1)
-    rms = np.sqrt(np.where(inliers, d * d, 0.0).sum(axis=1) / np.maximum(count, 1))
+    rms = np.sqrt(np.where(inliers, res.r * res.r, 0.0).sum(axis=1) / np.maximum(count, 1))
     ok = (count >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
     return MatchResult(poses, info, fraction, rms, ok)
 
@@ -255,8 +413,13 @@ def correlative_search(
     inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
     flat = field.distance_m[window].reshape(-1)
     d = np.where(inside, flat[np.clip(rows, 0, h - 1) * w + np.clip(cols, 0, w - 1)], field.cap_m)
+    # Unknown cells: the mean cost of the candidate's other points (see scan_log_likelihood).
+    known = d >= 0.0
     d = np.minimum(d, config.truncate_m)
-    cost = (d * d).sum(axis=2)  # (R, T)
+    n_points = points_xy.shape[0]
+    n_known = known.sum(axis=2)
+    cost = np.where(known, d * d, 0.0).sum(axis=2)  # (R, T)
+    cost = np.where(n_known > 0, cost * n_points / np.maximum(n_known, 1), n_points * config.truncate_m**2)
     offsets = np.stack(
         np.broadcast_arrays(sx[None, :] * res, sy[None, :] * res, (yaws - centre[2])[:, None]), axis=-1
     )  # (R, T, 3)
@@ -275,14 +438,74 @@ def scan_log_likelihood(
     poses: FloatArray,
     sigma_m: float,
     outlier_m: float,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
 ) -> FloatArray:
     """log p(z | x, m) up to a constant, for poses (P, K, 3) in windows (P,):
-    -sum_i min(d_i, outlier)^2 / (2 sigma^2). Returns (P, K); the caller tempers it (beams are not
-    independent).
+    -sum_i e_i^2 / (2 sigma^2), e_i = r_i (:func:`residuals`: the distance, or with normals the offset
+    from the surface, its part along it weighted down) where d_i < outlier, else outlier (an unexplained
+    reading). Endpoints in cells the map has not observed count as the mean e^2 of the pose's other
+    endpoints: scoring them as outliers would favour poses that keep the scan inside the mapped part (a
+    robot moving on always sees a little beyond its map, so every pose would be pulled back towards
+    where it came from), scoring them as perfect would favour poses that push it out. Returns (P, K); the
+    caller tempers it (beams are not independent).
     """
     p, k, _ = poses.shape
-    wx, wy, _, _ = world_points(poses.reshape(p * k, 3), points_xy)
-    d, _, _ = field.sample(np.repeat(np.asarray(window_index, dtype=np.int64), k), wx, wy)
-    d = np.minimum(d, outlier_m)
-    ll: FloatArray = -(d * d).sum(axis=1).reshape(p, k) / (2.0 * sigma_m * sigma_m)
+    res = residuals(
+        field,
+        np.repeat(np.asarray(window_index, dtype=np.int64), k),
+        points_xy,
+        poses.reshape(p * k, 3),
+        normals_xy,
+        along_weight,
+    )
+    e2 = np.where(res.d < outlier_m, res.r * res.r, outlier_m * outlier_m)
+    n_known = res.known.sum(axis=1)
+    known_sum = np.where(res.known, e2, 0.0).sum(axis=1)
+    total = np.where(
+        n_known > 0,
+        known_sum * points_xy.shape[0] / np.maximum(n_known, 1),
+        points_xy.shape[0] * outlier_m**2,
+    )
+    ll: FloatArray = -total.reshape(p, k) / (2.0 * sigma_m * sigma_m)
+    return ll
+
+
+def linearized_log_likelihood(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    centres: FloatArray,
+    offsets: FloatArray,
+    sigma_m: float,
+    outlier_m: float,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+) -> FloatArray:
+    """:func:`scan_log_likelihood` at poses centres (P, 3) + offsets (P, K, 3), with each endpoint's
+    residual linearised at its centre: e_i(delta) = r_i + J_i delta for the endpoints within ``outlier_m``
+    there (the others stay outliers, the unknown ones stay imputed). Then
+    sum_i e_i^2 = c + 2 bᵀ delta + deltaᵀ A delta with A = sum J Jᵀ, b = sum J r, c = sum r^2: one residual
+    evaluation per particle instead of one per grid point. Meant for offsets well inside the cell size
+    (the proposal's grid spans the match's own standard deviation, millimetres).
+    """
+    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    n = points_xy.shape[0]
+    inlier = res.known & (res.d < outlier_m)
+    w = inlier.astype(np.float64)
+    jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
+    wj = jac * w[..., None]
+    a = np.einsum("pni,pnj->pij", wj, jac)
+    b = np.einsum("pni,pn->pi", wj, res.r)
+    outliers = (res.known & ~inlier).sum(axis=1)
+    c = (w * res.r * res.r).sum(axis=1) + outliers * outlier_m**2
+    n_known = res.known.sum(axis=1)
+    scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0)
+    quadratic = (
+        c[:, None]
+        + 2.0 * np.einsum("pi,pki->pk", b, offsets)
+        + np.einsum("pki,pij,pkj->pk", offsets, a, offsets)
+    )
+    total = np.where(n_known[:, None] > 0, scale[:, None] * quadratic, n * outlier_m**2)
+    ll: FloatArray = -total / (2.0 * sigma_m * sigma_m)
     return ll

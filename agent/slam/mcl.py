@@ -2,9 +2,10 @@
 the same improved proposal as the SLAM filter, against one fixed distance field.
 
 It is the RBPF with the map frozen: per update each particle is moved by odometry, scan-matched and
-sampled around the match (``agent.slam.proposal``), weighted, weighted again by any pending absolute fixes
-(``agent.slam.fix``), and resampled when N_eff drops. Nothing is written to the map, so the field is
-computed once, for the whole map, when the localizer is made.
+sampled around the match (``agent.slam.proposal``; pending absolute fixes, ``agent.slam.fix``, join that
+proposal as they do in the SLAM filter), weighted, and resampled when N_eff drops. Sweeps are de-skewed
+and pose jumps in the odometry dropped, as in the SLAM filter. Nothing is written to the map, so the
+field is computed once, for the whole map, when the localizer is made.
 
 Global initialization is from an absolute fix (VLP): the particles are drawn from the fix's Gaussian;
 when the fix has no heading, headings are spread evenly over the circle and scan matching picks the ones
@@ -20,15 +21,22 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from agent.slam.fix import PoseFix, pending_fixes_log_likelihood
-from agent.slam.grid import prepare_scan
+from agent.slam.fix import PoseFix, fuse_fixes, pending_fixes_log_likelihood
+from agent.slam.grid import prepare_scan, surface_normals
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
-from agent.slam.pose import between, compose, wrap_angle
+from agent.slam.pose import between, compose, inverse, wrap_angle
 from agent.slam.proposal import ProposalConfig, improved_proposal
-from agent.slam.rbpf import FilterStats, StepKind, StepResult, systematic_resample, voxel_filter
+from agent.slam.rbpf import (
+    FilterStats,
+    StepKind,
+    StepResult,
+    sweep_offsets,
+    systematic_resample,
+    voxel_indices,
+)
 from agent.slam.render import OccupancyImage
-from agent.slam.scan import LaserGeometry, ScanGate
+from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -70,6 +78,9 @@ class MclLocalizer:
         # map_server images have row 0 at the top; the field wants row 0 at the lowest y.
         obstacles = occupancy.occupied_mask()[::-1]
         cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
+        # No ``known`` cells here, unlike the SLAM filter: a saved map is whole, so an endpoint off it is
+        # evidence against the pose (an outlier), not the edge of a map still being built; scored as
+        # "unknown" it would let particles walk off the map (a heading turned round in a corridor did).
         self.field = DistanceField.from_obstacles(
             np.ascontiguousarray(obstacles)[None, :, :],
             (occupancy.origin[0], occupancy.origin[1]),
@@ -82,6 +93,7 @@ class MclLocalizer:
         self.initialized = False
         self._force_update = False
         self._update_odom: FloatArray | None = None
+        self._last_odom: FloatArray | None = None  # odometry of the last accepted scan (de-skewing)
         self._pending_fixes: list[tuple[PoseFix, FloatArray]] = []
         self.stats = FilterStats()
 
@@ -139,9 +151,20 @@ class MclLocalizer:
         rejection = self.gate.check(t_s, np.asarray(ranges_m), odom)
         if not self.initialized:
             return StepResult(StepKind.UNINITIALIZED, np.full(3, np.nan), rejection)
-        if rejection is not None:
-            return StepResult(StepKind.REJECTED, self.pose(odom), rejection)
         assert self._update_odom is not None
+        if rejection is not None:
+            if rejection is Rejection.POSE_JUMP and self._last_odom is not None:
+                # As the SLAM filter: keep the motion up to the last good scan, drop the jump itself.
+                travelled = between(self._update_odom, self._last_odom)
+                self._update_odom = compose(odom, inverse(travelled))
+                self._last_odom = odom
+            return StepResult(StepKind.REJECTED, self.pose(self._last_odom), rejection)
+        beam_offsets = None
+        if self._last_odom is not None and self.gate.previous_t_s is not None:
+            beam_offsets = sweep_offsets(
+                self.laser, t_s - self.gate.previous_t_s, between(self._last_odom, odom)
+            )
+        self._last_odom = odom
         increment = between(self._update_odom, odom)
         if (
             not self._force_update
@@ -158,13 +181,23 @@ class MclLocalizer:
             self.laser.no_return_m,
             cfg.max_usable_range_m,
             self.resolution_m / 2.0,
+            beam_offsets,
         )
-        points = voxel_filter(scan.hit_xy, cfg.match_voxel_m, cfg.max_match_points)
+        kept = voxel_indices(scan.hit_xy, cfg.match_voxel_m, cfg.max_match_points)
+        points = scan.hit_xy[kept]
+        normals = None if cfg.proposal.along_surface_weight == 1.0 else surface_normals(scan.hit_xy, kept)
         window_index = np.zeros(cfg.particles, dtype=np.int64)
+        fixes_weighted = False
         if points.shape[0] < cfg.proposal.matcher.min_inliers:
             self.poses = sample_motion(self.poses, increment, cfg.noise, self.rng)
             matched = np.zeros(cfg.particles, dtype=bool)
         else:
+            measurement = None
+            if self._pending_fixes:
+                # The fixes join the proposal, as in the SLAM filter (agent.slam.proposal).
+                heading = float(compose(self.pose(), increment)[2])
+                measurement = fuse_fixes(self._pending_fixes, odom, cfg.noise, heading)
+                fixes_weighted = True
             result = improved_proposal(
                 self.field,
                 window_index,
@@ -175,15 +208,18 @@ class MclLocalizer:
                 cfg.proposal,
                 self.rng,
                 self.log_weights,
+                normals,
+                measurement,
             )
             self.poses = result.poses
             self.log_weights = self.log_weights + result.log_eta
             matched = result.matched
         self.stats.match_failures += int(np.count_nonzero(~matched))
         if self._pending_fixes:
-            self.log_weights = self.log_weights + pending_fixes_log_likelihood(
-                self.poses, self._pending_fixes, odom, cfg.noise
-            )
+            if not fixes_weighted:
+                self.log_weights = self.log_weights + pending_fixes_log_likelihood(
+                    self.poses, self._pending_fixes, odom, cfg.noise
+                )
             self.stats.fixes_applied += len(self._pending_fixes)
             self._pending_fixes.clear()
         self.log_weights -= self.log_weights.max()

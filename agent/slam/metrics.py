@@ -97,36 +97,36 @@ def wall_thickness(occupied: BoolArray, reach_cells: int = 3) -> WallThickness:
     cells lie within ``reach_cells``; across it (the perpendicular one of the four) the count c and the
     contiguous run r through the cell are taken. Thin: c <= 2 and c == r.
     """
-    occ = occupied.astype(np.int32)
+    # uint8 throughout (counts stay below 2 * reach + 2): a whole building's map is millions of cells.
+    occ = occupied.astype(np.uint8)
     h, w = occ.shape
     pad = reach_cells
     padded = np.pad(occ, pad)
 
-    def shifted(dy: int, dx: int, k: int) -> npt.NDArray[np.int32]:
+    def shifted(dy: int, dx: int, k: int) -> npt.NDArray[np.uint8]:
         return padded[pad + k * dy : pad + k * dy + h, pad + k * dx : pad + k * dx + w]
 
     directions = [(0, 1), (1, 1), (1, 0), (1, -1)]
-    sums = []
-    runs = []
-    for dy, dx in directions:
-        total = occ.copy()
-        run = occ.copy()
+    count = np.empty((4, h, w), dtype=np.uint8)
+    run_length = np.empty((4, h, w), dtype=np.uint8)
+    alive = np.empty((h, w), dtype=np.uint8)
+    for d, (dy, dx) in enumerate(directions):
+        total = count[d]
+        run = run_length[d]
+        total[...] = occ
+        run[...] = occ
         for sign in (1, -1):
-            alive = occ.copy()
+            alive[...] = occ
             for k in range(1, reach_cells + 1):
                 cell = shifted(sign * dy, sign * dx, k)
                 total += cell
-                alive = alive * cell
+                alive &= cell
                 run += alive
-        sums.append(total)
-        runs.append(run)
-    count = np.stack(sums)  # (4, h, w)
-    run_length = np.stack(runs)
     along = np.argmax(count, axis=0)
     across = (along + 2) % 4
-    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
-    c = count[across, rows, cols][occupied]
-    r = run_length[across, rows, cols][occupied]
+    rows, cols = np.nonzero(occupied)
+    c = count[across[rows, cols], rows, cols]
+    r = run_length[across[rows, cols], rows, cols]
     if c.size == 0:
         return WallThickness(0, math.nan, math.nan)
     return WallThickness(int(c.size), float(np.mean((c <= 2) & (c == r))), float(np.median(c)))

@@ -34,12 +34,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from agent.slam.fix import PoseMeasurement
 from agent.slam.matcher import (
     DistanceField,
     MatcherConfig,
     MatchResult,
     SearchConfig,
     correlative_search,
+    linearized_log_likelihood,
     match,
     scan_log_likelihood,
 )
@@ -61,6 +63,10 @@ class ProposalConfig:
     min_yaw_step_rad: float = 0.001
     max_yaw_step_rad: float = 0.05
     prior_weight: float = 1.0
+    # Weight of an endpoint's offset along its surface in the residual (agent.slam.matcher.residuals):
+    # 1 point to point (the default: it closes exp1's loop best), 0 point to line. docs/slam.md has the
+    # measurements ("Scan matching").
+    along_surface_weight: float = 1.0
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     search: SearchConfig | None = field(default_factory=SearchConfig)
 
@@ -89,8 +95,16 @@ def improved_proposal(
     config: ProposalConfig,
     rng: np.random.Generator,
     log_weights: FloatArray | None = None,
+    normals_xy: FloatArray | None = None,
+    measurement: PoseMeasurement | None = None,
 ) -> ProposalResult:
-    """Draw one new pose per particle from the improved proposal; see the module docstring."""
+    """Draw one new pose per particle from the improved proposal; see the module docstring.
+
+    ``measurement`` (absolute fixes carried to now, ``agent.slam.fix.fuse_fixes``) joins the proposal as
+    a third factor: tau(x) = p(z|m, x) p(x|x_{t-1}, u) p(z_fix|x), in the match (a second Gaussian prior)
+    and in the grid; eta then includes it. Weighting alone would not do: the proposal's spread is a few
+    millimetres, so when the whole cloud has drifted from the fixes every particle is equally wrong and
+    the weights cannot pull it back."""
     p = previous.shape[0]
     predicted = compose(previous, increment[None, :])
     # The motion prior in matcher units. The match is the mode of p(z|x)^(1/T') p(x|x', u) with T' the
@@ -109,24 +123,45 @@ def improved_proposal(
         * config.proposal_temperature
         * np.einsum("pij,jk,plk->pil", rot, local_info, rot)
     )
-    start = predicted
+    centre_prior = predicted
+    matcher_prior = prior
+    if measurement is not None:
+        # Two Gaussian priors make one: Λ = Λ_u + Λ_z, centre Λ⁻¹ (Λ_u x_u + Λ_z z) (yaw taken near x_u).
+        fix_info = config.sigma_hit_m**2 * config.proposal_temperature * measurement.information
+        z = np.broadcast_to(measurement.mean, predicted.shape).copy()
+        z[:, 2] = predicted[:, 2] + wrap_angle(z[:, 2] - predicted[:, 2])
+        matcher_prior = prior + fix_info[None, :, :]
+        rhs = np.einsum("pij,pj->pi", prior, predicted) + np.einsum("ij,pj->pi", fix_info, z)
+        centre_prior = np.linalg.solve(matcher_prior + 1e-12 * np.eye(3)[None], rhs[..., None])[..., 0]
+        centre_prior[:, 2] = wrap_angle(centre_prior[:, 2])
+    start = centre_prior
     if config.search is not None:
         # One correlative search, for the most likely particle, against its map: the correction it finds
         # (mostly odometry heading error, the same for every particle) moves all starting poses, so
         # Gauss-Newton starts inside its basin even after a large odometry error.
         lead = int(np.argmax(log_weights)) if log_weights is not None else 0
         found, _ = correlative_search(
-            field, int(window_index[lead]), points_xy, predicted[lead], config.search, prior[lead]
+            field, int(window_index[lead]), points_xy, centre_prior[lead], config.search, matcher_prior[lead]
         )
-        start = compose(predicted, between(predicted[lead], found)[None, :])
-    result = match(field, window_index, points_xy, start, config.matcher, prior, centre=predicted)
+        start = compose(centre_prior, between(centre_prior[lead], found)[None, :])
+    result = match(
+        field,
+        window_index,
+        points_xy,
+        start,
+        config.matcher,
+        matcher_prior,
+        centre=centre_prior,
+        normals_xy=normals_xy,
+        along_weight=config.along_surface_weight,
+    )
     ok = result.ok
-    centre = np.where(ok[:, None], result.poses, predicted)
+    centre = np.where(ok[:, None], result.poses, centre_prior)
     # Grid steps: the Laplace standard deviations of the match (motion model's where matching failed).
     scale = config.sigma_hit_m**2 * config.proposal_temperature
     eye = np.eye(3)[None, :, :]
-    laplace = np.linalg.inv(result.information + prior + 1e-9 * eye) * scale
-    motion_world = np.linalg.inv(prior + 1e-12 * eye) * scale
+    laplace = np.linalg.inv(result.information + matcher_prior + 1e-9 * eye) * scale
+    motion_world = np.linalg.inv(matcher_prior + 1e-12 * eye) * scale
     variances = np.where(
         ok[:, None], np.diagonal(laplace, axis1=1, axis2=2), np.diagonal(motion_world, axis1=1, axis2=2)
     )
@@ -136,10 +171,34 @@ def improved_proposal(
     offsets = _UNIT_GRID[None, :, :] * steps[:, None, :]  # (P, K, 3)
     candidates = centre[:, None, :] + offsets
     candidates[..., 2] = wrap_angle(candidates[..., 2])
-    log_lik = scan_log_likelihood(
-        field, window_index, points_xy, candidates, config.sigma_hit_m, config.outlier_m
+    # The likelihood on the grid: linearised at the match (the grid spans its standard deviation), exact
+    # around the prior where matching failed (there the grid spans the motion model's, centimetres).
+    log_lik = linearized_log_likelihood(
+        field,
+        window_index,
+        points_xy,
+        centre,
+        offsets,
+        config.sigma_hit_m,
+        config.outlier_m,
+        normals_xy,
+        config.along_surface_weight,
     )
+    if not ok.all():
+        failed = np.flatnonzero(~ok)
+        log_lik[failed] = scan_log_likelihood(
+            field,
+            window_index[failed],
+            points_xy,
+            candidates[failed],
+            config.sigma_hit_m,
+            config.outlier_m,
+            normals_xy,
+            config.along_surface_weight,
+        )
     log_motion = motion_log_density(previous, candidates, increment, noise)  # (P, K)
+    if measurement is not None:
+        log_motion = log_motion + measurement.log_likelihood(candidates)
     log_volume = np.log(steps).sum(axis=1)
     # eta (the weight) with the weight temperature ...
     log_tau = log_lik / config.temperature + log_motion
@@ -156,7 +215,9 @@ def improved_proposal(
     cov += np.einsum("pi,ij->pij", steps**2 / 12.0, np.eye(3))
     chol = np.linalg.cholesky(cov)
     draw = centre + mean_offset + np.einsum("pij,pj->pi", chol, rng.standard_normal((p, 3)))
-    fallback = sample_motion(previous, increment, noise, rng)
+    # Where matching failed: the motion model (with a measurement, the Gaussian fitted around the prior,
+    # which holds it).
+    fallback = draw if measurement is not None else sample_motion(previous, increment, noise, rng)
     poses = np.where(ok[:, None], draw, fallback)
     poses[:, 2] = wrap_angle(poses[:, 2])
     return ProposalResult(poses, log_eta, ok, result)

@@ -7,7 +7,9 @@ Per accepted scan (``process``):
    ``linear_update_m`` or ``angular_update_rad``; in between, the pose is the best particle's ⊕ odometry;
 3. proposal: each particle is scan-matched against its own map and sampled around the match
    (``agent.slam.proposal``), its weight multiplied by eta;
-4. absolute fixes (VLP) multiply the weights: w_i *= N(z_fix; x_i, Sigma_fix);
+4. absolute fixes (VLP) taken since the last update, carried forward by odometry and fused
+   (``agent.slam.fix.fuse_fixes``), join the proposal as a third factor (so eta includes them); only when
+   there is too little to match do they weight the particles alone: w_i *= N(z_fix; x_i, Sigma_fix);
 5. N_eff = 1 / sum_i w_i^2 (normalised weights); below ``resample_threshold`` * N, systematic resampling;
 6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy).
 
@@ -33,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from agent.slam.fix import PoseFix, pending_fixes_log_likelihood
+from agent.slam.fix import PoseFix, fuse_fixes, pending_fixes_log_likelihood
 from agent.slam.grid import (
     GridGeometry,
     LogOddsModel,
@@ -42,6 +44,7 @@ from agent.slam.grid import (
     TileRect,
     integrate_scans,
     prepare_scan,
+    surface_normals,
 )
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
@@ -78,7 +81,10 @@ class RbpfConfig:
     field_margin_m: float = 0.6
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     deskew: bool = True
-    history_limit: int | None = None  # updates of trajectory history kept (None: all, as for a log)
+    # Filter updates of trajectory history kept for ``trajectory()`` (about 1.2 KB each at 30 particles);
+    # the oldest go first. 10 000 updates are 2.5 km of driving at 0.25 m per update, 12 MB: bounded on
+    # board, and more than any log here needs (Intel: 897). None keeps everything.
+    history_limit: int | None = 10_000
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -86,6 +92,8 @@ class RbpfConfig:
             raise ValueError("particles must be >= 1")
         if not 0.0 < self.resample_threshold <= 1.0:
             raise ValueError("resample_threshold must be in (0, 1]")
+        if self.history_limit is not None and self.history_limit < 1:
+            raise ValueError("history_limit must be at least 1 (or None)")
 
 
 class StepKind(enum.StrEnum):
@@ -98,12 +106,16 @@ class StepKind(enum.StrEnum):
 
 @dataclass(frozen=True)
 class StepResult:
+    """What one scan did. ``odometry``: the odometry pose the filter took for the scan, with dropped pose
+    jumps taken out (continuous across them; what a pose is carried by between filter updates)."""
+
     kind: StepKind
     pose: FloatArray
     rejection: Rejection | None = None
     n_eff: float | None = None
     resampled: bool = False
     matched: int = 0
+    odometry: FloatArray | None = None
 
 
 @dataclass
@@ -137,15 +149,22 @@ def sweep_offsets(laser: LaserGeometry, dt_s: float, motion: FloatArray) -> Floa
     return offsets
 
 
-def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> FloatArray:
-    """One point per voxel (the first in beam order), then an even stride down to ``max_points``."""
+def voxel_indices(points_xy: FloatArray, voxel_m: float, max_points: int) -> IntArray:
+    """Indices of one point per voxel (the first in beam order), then an even stride down to
+    ``max_points``."""
     if points_xy.shape[0] == 0:
-        return points_xy
+        return np.zeros(0, dtype=np.int64)
     keys = np.floor(points_xy / voxel_m).astype(np.int64)
     _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
-    kept: FloatArray = points_xy[np.sort(first)]
+    kept: IntArray = np.sort(first).astype(np.int64)
     if kept.shape[0] > max_points:
         kept = kept[np.linspace(0, kept.shape[0] - 1, max_points).round().astype(np.int64)]
+    return kept
+
+
+def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> FloatArray:
+    """The points :func:`voxel_indices` keeps."""
+    kept: FloatArray = points_xy[voxel_indices(points_xy, voxel_m, max_points)]
     return kept
 
 
@@ -166,8 +185,11 @@ class RbpfSlam:
         # Particles with the same group id have identical maps (duplicates after resampling).
         self._groups: IntArray = np.zeros(n, dtype=np.int64)
         self._started = False
-        self._update_odom: FloatArray | None = None  # odometry at the last filter update
-        self._last_odom: FloatArray | None = None  # odometry of the last accepted scan
+        # Odometry as the filter sees it: C ⊕ o for the odometry o it is given, C taking out the pose jumps
+        # it dropped, so that it stays continuous.
+        self._odom_correction: FloatArray = np.zeros(3)
+        self._update_odom: FloatArray | None = None  # (corrected) odometry at the last filter update
+        self._last_odom: FloatArray | None = None  # (corrected) odometry of the last accepted scan
         self._pending_fixes: list[tuple[PoseFix, FloatArray]] = []
         # Per update: poses (P, 3) after resampling, parent index of each in the previous update, time,
         # odometry. Bounded by ``history_limit`` on board; the oldest entries go first.
@@ -191,39 +213,53 @@ class RbpfSlam:
 
     def pose(self, odom_pose: FloatArray | None = None) -> FloatArray:
         """The best particle's pose, moved on by the odometry since the last update if ``odom_pose``."""
-        best: FloatArray = self.poses[self.best_index]
-        if odom_pose is None or self._update_odom is None:
-            return best.copy()
-        return compose(best, between(self._update_odom, odom_pose))
+        if odom_pose is None:
+            return self._pose_at(None)
+        return self._pose_at(self._corrected(odom_pose))
 
     def add_fix(self, fix: PoseFix, odom_pose: FloatArray) -> None:
-        """Queue an absolute fix taken when the odometry read ``odom_pose``; it weighs the particles at
-        the next filter update, moved there by the odometry in between (with that motion's noise)."""
-        self._pending_fixes.append((fix, np.asarray(odom_pose, dtype=np.float64).copy()))
+        """Queue an absolute fix taken when the odometry read ``odom_pose``; at the next filter update it is
+        carried there by the odometry in between (with that motion's noise) and joins the proposal."""
+        self._pending_fixes.append((fix, self._corrected(odom_pose)))
+
+    def _corrected(self, odom_pose: FloatArray) -> FloatArray:
+        return compose(self._odom_correction, np.asarray(odom_pose, dtype=np.float64))
+
+    def _pose_at(self, odom: FloatArray | None) -> FloatArray:
+        best: FloatArray = self.poses[self.best_index]
+        if odom is None or self._update_odom is None:
+            return best.copy()
+        return compose(best, between(self._update_odom, odom))
 
     def process(self, t_s: float, ranges_m: FloatArray, odom_pose: FloatArray) -> StepResult:
         """One scan with the odometry pose of the robot base at the scan's time."""
         cfg = self.config
         self.stats.scans += 1
-        odom = np.asarray(odom_pose, dtype=np.float64)
-        rejection = self.gate.check(t_s, np.asarray(ranges_m), odom)
+        raw = np.asarray(odom_pose, dtype=np.float64)
+        rejection = self.gate.check(t_s, np.asarray(ranges_m), raw)
         if rejection is not None:
-            if (
-                rejection is Rejection.POSE_JUMP
-                and self._last_odom is not None
-                and self._update_odom is not None
-            ):
-                # Keep the motion accumulated up to the last good scan, drop the jump itself.
-                travelled = between(self._update_odom, self._last_odom)
-                self._update_odom = compose(odom, inverse(travelled))
-                self._last_odom = odom
-            return StepResult(StepKind.REJECTED, self.pose(self._last_odom), rejection)
+            if rejection is Rejection.POSE_JUMP and self._last_odom is not None:
+                # Drop the jump: from now on C ⊕ o continues from the last good scan's odometry.
+                self._odom_correction = compose(self._last_odom, inverse(raw))
+            odometry = self._corrected(raw)
+            return StepResult(StepKind.REJECTED, self._pose_at(odometry), rejection, odometry=odometry)
+        odom = self._corrected(raw)
         beam_offsets = None
         if cfg.deskew and self._last_odom is not None and self.gate.previous_t_s is not None:
             beam_offsets = sweep_offsets(
                 self.laser, t_s - self.gate.previous_t_s, between(self._last_odom, odom)
             )
         self._last_odom = odom
+        increment = np.zeros(3)
+        if self._started:
+            assert self._update_odom is not None
+            increment = between(self._update_odom, odom)
+            if (
+                math.hypot(increment[0], increment[1]) < cfg.linear_update_m
+                and abs(increment[2]) < cfg.angular_update_rad
+            ):
+                return StepResult(StepKind.GATED, self._pose_at(odom), odometry=odom)
+        # Only scans that reach the filter are prepared (most are gated away).
         scan = prepare_scan(
             ranges_m,
             self.laser.angles_rad,
@@ -239,14 +275,7 @@ class RbpfSlam:
             self._integrate(scan, np.zeros(cfg.particles, dtype=np.int64), fresh=True)
             self._update_odom = odom
             self._record(t_s, odom, np.arange(cfg.particles))
-            return StepResult(StepKind.FIRST, self.pose())
-        assert self._update_odom is not None
-        increment = between(self._update_odom, odom)
-        if (
-            math.hypot(increment[0], increment[1]) < cfg.linear_update_m
-            and abs(increment[2]) < cfg.angular_update_rad
-        ):
-            return StepResult(StepKind.GATED, self.pose(odom))
+            return StepResult(StepKind.FIRST, self._pose_at(None), odometry=odom)
         return self._update(t_s, scan, odom, increment)
 
     def trajectory(self) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -283,8 +312,13 @@ class RbpfSlam:
             return particles
         return np.zeros_like(particles)
 
-    def _match_points(self, scan: ScanPoints) -> FloatArray:
-        return voxel_filter(scan.hit_xy, self.config.match_voxel_m, self.config.max_match_points)
+    def _match_points(self, scan: ScanPoints) -> tuple[FloatArray, FloatArray | None]:
+        """The endpoints to match (voxel-filtered) and, unless matching is point to point, their surface
+        normals."""
+        kept = voxel_indices(scan.hit_xy, self.config.match_voxel_m, self.config.max_match_points)
+        if self.config.proposal.along_surface_weight == 1.0:
+            return scan.hit_xy[kept], None
+        return scan.hit_xy[kept], surface_normals(scan.hit_xy, kept)
 
     def _field(self, predicted: FloatArray, points_xy: FloatArray) -> tuple[DistanceField, IntArray]:
         cfg = self.config
@@ -306,16 +340,22 @@ class RbpfSlam:
         r0 = min(max(int((lo[1] - origin[1]) / res), 0), h - 1)
         c1 = min(max(int(np.ceil((hi[0] - origin[0]) / res)), c0 + 1), w)
         r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
-        obstacles = windows[:, r0:r1, c0:c1] > cfg.log_odds.counts(cfg.log_odds.occupied)
+        cropped = windows[:, r0:r1, c0:c1]
+        obstacles = cropped > cfg.log_odds.counts(cfg.log_odds.occupied)
         field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
         field = DistanceField.from_obstacles(
-            obstacles, (origin[0] + c0 * res, origin[1] + r0 * res), res, field_cap + res
+            obstacles,
+            (origin[0] + c0 * res, origin[1] + r0 * res),
+            res,
+            field_cap + res,
+            known=cropped != 0,
         )
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
 
     def _update(self, t_s: float, scan: ScanPoints, odom: FloatArray, increment: FloatArray) -> StepResult:
         cfg = self.config
-        points = self._match_points(scan)
+        points, normals = self._match_points(scan)
+        fixes_weighted = False
         if points.shape[0] < cfg.proposal.matcher.min_inliers:
             # Too little structure to match: move by the motion model only, keep the weights.
             self.poses = sample_motion(self.poses, increment, cfg.noise, self.rng)
@@ -324,6 +364,12 @@ class RbpfSlam:
         else:
             predicted = compose(self.poses, increment[None, :])
             field, window_index = self._field(predicted, points)
+            measurement = None
+            if self._pending_fixes:
+                # The fixes join the proposal (and so eta): see ``improved_proposal``.
+                heading = float(predicted[self.best_index, 2])
+                measurement = fuse_fixes(self._pending_fixes, odom, cfg.noise, heading)
+                fixes_weighted = True
             result = improved_proposal(
                 field,
                 window_index,
@@ -334,6 +380,8 @@ class RbpfSlam:
                 cfg.proposal,
                 self.rng,
                 self.log_weights,
+                normals,
+                measurement,
             )
             self.poses = result.poses
             proposal_log_eta = result.log_eta
@@ -341,9 +389,10 @@ class RbpfSlam:
         self.stats.match_failures += int(np.count_nonzero(~matched))
         self.log_weights = self.log_weights + proposal_log_eta
         if self._pending_fixes:
-            self.log_weights = self.log_weights + pending_fixes_log_likelihood(
-                self.poses, self._pending_fixes, odom, cfg.noise
-            )
+            if not fixes_weighted:
+                self.log_weights = self.log_weights + pending_fixes_log_likelihood(
+                    self.poses, self._pending_fixes, odom, cfg.noise
+                )
             self.stats.fixes_applied += len(self._pending_fixes)
             self._pending_fixes.clear()
         self.log_weights -= self.log_weights.max()
@@ -365,7 +414,13 @@ class RbpfSlam:
         self._record(t_s, odom, parents)
         self.stats.updates += 1
         return StepResult(
-            StepKind.UPDATED, self.pose(), None, n_eff, resampled, int(np.count_nonzero(matched))
+            StepKind.UPDATED,
+            self._pose_at(None),
+            None,
+            n_eff,
+            resampled,
+            int(np.count_nonzero(matched)),
+            odom,
         )
 
     def _integrate(self, scan: ScanPoints, parents: IntArray, fresh: bool) -> None:

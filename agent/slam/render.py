@@ -55,10 +55,13 @@ def occupancy_image(
 ) -> OccupancyImage:
     """Three-valued map image from log-odds (rows = increasing y): occupied where p > occupied_thresh,
     free where p < free_thresh, unknown otherwise."""
-    p = 1.0 - 1.0 / (1.0 + np.exp(log_odds.astype(np.float64)))
+    # p = 1 - 1 / (1 + exp(l)) is monotonic in l: compare the log-odds with the thresholds' log-odds
+    # instead of converting a whole building's map to probabilities.
+    log_odds_free = float(np.log(free_thresh / (1.0 - free_thresh)))
+    log_odds_occupied = float(np.log(occupied_thresh / (1.0 - occupied_thresh)))
     pixels = np.full(log_odds.shape, UNKNOWN_VALUE, dtype=np.uint8)
-    pixels[p < free_thresh] = FREE_VALUE
-    pixels[p > occupied_thresh] = OCCUPIED_VALUE
+    pixels[log_odds < log_odds_free] = FREE_VALUE
+    pixels[log_odds > log_odds_occupied] = OCCUPIED_VALUE
     return OccupancyImage(
         np.ascontiguousarray(pixels[::-1]),
         resolution_m,

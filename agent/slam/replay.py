@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
+from agent.slam.fix import TimedFix
 from agent.slam.logs import SlamLog
 from agent.slam.pose import between, compose
 from agent.slam.rbpf import RbpfConfig, RbpfSlam, StepKind
@@ -26,10 +27,13 @@ Progress = Callable[[int, int, "RbpfSlam"], None]
 @dataclass(frozen=True)
 class ReplayResult:
     """``poses`` (N, 3): the pose of every record of the log along the final best particle's ancestry
-    (its pose at each filter update, carried between updates by odometry); ``update_ms``: the time of
-    each filter update (the scans that were not gated away), ``scan_ms`` of every scan."""
+    (its pose at each filter update, carried between updates by odometry): the trajectory the final map
+    was built from; ``online_poses`` (N, 3): the pose the filter reported right after each record (what
+    a robot would have used then); ``update_ms``: the time of each filter update (the scans that were
+    not gated away), ``scan_ms`` of every scan."""
 
     poses: FloatArray
+    online_poses: FloatArray
     update_ms: FloatArray
     scan_ms: FloatArray
     kinds: tuple[StepKind, ...]
@@ -47,11 +51,17 @@ def replay(
     config: RbpfConfig,
     progress: Progress | None = None,
     progress_every_s: float = 2.0,
+    fixes: Sequence[TimedFix] = (),
 ) -> ReplayResult:
-    """Run the whole log; see :class:`ReplayResult`."""
+    """Run the whole log; see :class:`ReplayResult`. ``fixes`` (in time order) are handed to the filter
+    (``RbpfSlam.add_fix``) as soon as a record's time reaches theirs; their handling is timed with the
+    record's."""
     slam = RbpfSlam(log.geometry, config)
     n = len(log.records)
     scan_ms = np.zeros(n)
+    online = np.zeros((n, 3))
+    odometry = log.odometry_poses()  # as the filter took it (dropped pose jumps taken out)
+    next_fix = 0
     kinds: list[StepKind] = []
     update_records: list[int] = []
     last_progress = time.perf_counter()
@@ -59,9 +69,15 @@ def replay(
     start_cpu = time.process_time()
     for i, record in enumerate(log.records):
         t0 = time.perf_counter()
+        while next_fix < len(fixes) and fixes[next_fix].t_s <= record.t_s:
+            slam.add_fix(fixes[next_fix].fix, fixes[next_fix].odom_pose)
+            next_fix += 1
         result = slam.process(record.t_s, record.ranges_m, record.odom_pose)
         t1 = time.perf_counter()
         scan_ms[i] = (t1 - t0) * 1e3
+        online[i] = result.pose
+        if result.odometry is not None:
+            odometry[i] = result.odometry
         kinds.append(result.kind)
         if result.kind in (StepKind.FIRST, StepKind.UPDATED):
             update_records.append(i)
@@ -74,7 +90,8 @@ def replay(
         progress(n, n, slam)
     update_ms = np.array([scan_ms[i] for i, kind in enumerate(kinds) if kind is StepKind.UPDATED])
     return ReplayResult(
-        trajectory_per_record(log, slam, update_records),
+        trajectory_per_record(odometry, slam, update_records),
+        online,
         update_ms,
         scan_ms,
         tuple(kinds),
@@ -84,15 +101,16 @@ def replay(
     )
 
 
-def trajectory_per_record(log: SlamLog, slam: RbpfSlam, update_records: list[int]) -> FloatArray:
-    """One pose per record: the final best particle's pose at the last update at or before the record,
-    moved on by the odometry since (x_i = x_k ⊕ (o_k⁻¹ ⊕ o_i)). Records before the first accepted scan
-    get the odometry itself."""
+def trajectory_per_record(odometry: FloatArray, slam: RbpfSlam, update_records: list[int]) -> FloatArray:
+    """One pose per record, given each record's odometry (N, 3) as the filter took it: the final best
+    particle's pose at the last update at or before the record, moved on by the odometry since
+    (x_i = x_k ⊕ (o_k⁻¹ ⊕ o_i)). Records before the first accepted scan get the odometry itself."""
     _, update_poses, update_odom = slam.trajectory()
-    odometry = log.odometry_poses()
     poses = odometry.copy()
     if not update_records:
         return poses
+    # With a bounded history only the last updates are kept: line them up with the newest records.
+    update_records = update_records[len(update_records) - update_poses.shape[0] :]
     k = -1
     for i in range(odometry.shape[0]):
         while k + 1 < len(update_records) and update_records[k + 1] <= i:

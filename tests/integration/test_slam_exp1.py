@@ -102,12 +102,9 @@ def test_at_the_revisit_slam_beats_odometry(run: tuple[SlamLog, ReplayResult]) -
     assert slam_m < 0.75 * odometry_m
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known gap: at the revisit the SLAM pose is still ~0.2 m / ~6 deg off the direct registration "
-    "(odometry ~0.3 m); the loop does not close to within 0.1 m / 2 deg yet (docs/slam.md, Open problems)",
-)
 def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
+    # 0.095 m / 0.45 deg with seed 0; seeds 1-3 give 0.086, 0.045 and 0.219 m (docs/slam.md): the loop
+    # closes for three seeds in four, so this guards the seed the other checks use, not every seed.
     log, result = run
     slam_m, slam_deg, _ = loop_closure_errors(log, result.poses)
     assert slam_m < 0.1

@@ -14,15 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.slam.fix import PoseFix, fix_log_likelihood, pending_fixes_log_likelihood
+from agent.slam.fix import PoseFix, fix_log_likelihood, fuse_fixes, pending_fixes_log_likelihood
 from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
+from agent.slam.logs import LogFormat, LogRecord, SlamLog
 from agent.slam.mapio import load_map, save_map
 from agent.slam.mcl import MclConfig, MclLocalizer
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
-from agent.slam.pose import between, compose
+from agent.slam.pose import between, compose, inverse
 from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind, systematic_resample
 from agent.slam.render import occupancy_image
+from agent.slam.replay import replay
 from agent.slam.scan import LaserGeometry, Rejection
 from drivers.sim.raycast import cast_rays
 
@@ -200,22 +202,73 @@ def test_fix_is_moved_along_odometry() -> None:
     assert ll[1] < ll[2] < ll[0]
 
 
-def test_fixes_pick_the_particle_that_agrees(loop: tuple[np.ndarray, ...]) -> None:
+def test_a_fix_pulls_the_particles_to_it(loop: tuple[np.ndarray, ...]) -> None:
     times, truth, odometry, ranges = loop
     start = tuple(float(v) for v in truth[0])
-    slam = RbpfSlam(LASER, RbpfConfig(particles=12, initial_pose=start, resample_threshold=1e-6, seed=4))
+    slam = RbpfSlam(LASER, RbpfConfig(particles=12, initial_pose=start, seed=4))
     for i in range(60):
         slam.process(float(times[i]), ranges[i], odometry[i])
-    # A tight fix (1 mm), 4 cm away from the truth: it outweighs what the scans say about the particles.
+    # A tight fix (1 mm), 4 cm away from where the scans put the robot: it joins the proposal, so the
+    # particles move to it (weighting alone could not: every particle is about 4 cm from it).
     fix = PoseFix(float(truth[59, 0]) + 0.04, float(truth[59, 1]), None, np.diag([1e-6, 1e-6]))
+
+    def distance_to_fix(poses: np.ndarray, now: np.ndarray) -> np.ndarray:
+        at_fix = compose(poses, inverse(between(odometry[59], now))[None, :])
+        return np.hypot(at_fix[:, 0] - fix.x_m, at_fix[:, 1] - fix.y_m)
+
+    assert distance_to_fix(slam.poses, odometry[59]).min() > 0.02
     slam.add_fix(fix, odometry[59])
     for i in range(60, 80):
         result = slam.process(float(times[i]), ranges[i], odometry[i])
         if result.kind is StepKind.UPDATED:
             break
     assert slam.stats.fixes_applied == 1
-    agreement = pending_fixes_log_likelihood(slam.poses, [(fix, odometry[59])], odometry[i], OdometryNoise())
-    assert np.ptp(agreement) > 5.0  # the particles differ enough for the fix to tell them apart
+    assert np.median(distance_to_fix(slam.poses, odometry[i])) < 0.01
+
+
+def test_fixes_carried_forward_fuse_into_one_measurement() -> None:
+    noise = OdometryNoise()
+    # Two fixes of a robot driving along x, 0.1 m apart by odometry; now it is 0.2 m past the first.
+    cov = np.diag([0.005**2, 0.005**2, math.radians(0.3) ** 2])
+    fixes = [
+        (PoseFix(1.0, 2.0, 0.0, cov), np.array([10.0, 0.0, 0.0])),
+        (PoseFix(1.1, 2.0, 0.0, cov), np.array([10.1, 0.0, 0.0])),
+    ]
+    measurement = fuse_fixes(fixes, np.array([10.2, 0.0, 0.0]), noise, 0.0)
+    np.testing.assert_allclose(measurement.mean, [1.2, 2.0, 0.0], atol=1e-9)
+    covariance = np.linalg.inv(measurement.information)
+    # Tighter than one fix carried 0.2 m by odometry, looser than the two fixes' own noise averaged.
+    assert covariance[0, 0] < 0.005**2 + (noise.srr * 0.2) ** 2
+    assert covariance[0, 0] > 0.005**2 / 2
+    # A fix without yaw gives a position-only measurement, carried along the filter's heading.
+    position_only = fuse_fixes(
+        [(PoseFix(1.0, 2.0, None, cov[:2, :2]), np.array([10.0, 0.0, 0.0]))],
+        np.array([10.0, 0.2, math.pi / 2]),
+        noise,
+        math.pi / 2,
+    )
+    np.testing.assert_allclose(position_only.mean[:2], [1.0, 2.2], atol=1e-9)
+    assert position_only.information[2, 2] == 0.0
+    assert position_only.log_likelihood(np.array([1.0, 2.2, 3.0])) == pytest.approx(0.0)
+
+
+def test_without_structure_to_match_fixes_still_weigh(loop: tuple[np.ndarray, ...]) -> None:
+    times, truth, odometry, ranges = loop
+    start = tuple(float(v) for v in truth[0])
+    slam = RbpfSlam(LASER, RbpfConfig(particles=12, initial_pose=start, resample_threshold=1e-6, seed=4))
+    for i in range(60):
+        slam.process(float(times[i]), ranges[i], odometry[i])
+    fix = PoseFix(float(truth[59, 0]) + 0.04, float(truth[59, 1]), None, np.diag([1e-6, 1e-6]))
+    slam.add_fix(fix, odometry[59])
+    # A scan with barely any returns (above the gate's minimum, below the matcher's): the particles move
+    # by the motion model, and the fix can only reweight them.
+    sparse = np.zeros_like(ranges[60])
+    sparse[::25] = ranges[60][::25]
+    far = compose(odometry[59], np.array([0.3, 0.0, 0.0]))
+    result = slam.process(float(times[60]), sparse, far)
+    assert result.kind is StepKind.UPDATED and result.matched == 0
+    agreement = pending_fixes_log_likelihood(slam.poses, [(fix, odometry[59])], far, OdometryNoise())
+    assert np.ptp(agreement) > 1.0
     assert slam.best_index == int(np.argmax(agreement))
 
 
@@ -264,3 +317,26 @@ def test_history_can_be_bounded_for_long_runs(loop: tuple[np.ndarray, ...]) -> N
     assert slam.stats.updates > 5
     assert poses.shape == (5, 3) and times.shape == (5,) and odometry.shape == (5, 3)
     np.testing.assert_allclose(poses[-1], slam.poses[slam.best_index])
+
+
+def test_replay_with_a_bounded_history(loop: tuple[np.ndarray, ...]) -> None:
+    times, truth, odometry, ranges = loop
+    records = tuple(
+        LogRecord(i + 1, float(t), r, o, p)
+        for i, (t, r, o, p) in enumerate(
+            zip(times[:150], ranges[:150], odometry[:150], truth[:150], strict=True)
+        )
+    )
+    log = SlamLog("synthetic", LogFormat.SIMULATED, LASER, records)
+    start = tuple(float(v) for v in truth[0])
+    assert RbpfConfig().history_limit is not None  # bounded by default, for the robot
+    full = replay(log, RbpfConfig(particles=3, initial_pose=start, history_limit=None))
+    short = replay(log, RbpfConfig(particles=3, initial_pose=start, history_limit=4))
+    assert full.slam.stats.updates > 10 and len(short.slam.history_poses) == 4
+    # The last updates' records are placed the same way; the ones before the kept history fall back
+    # to the odometry.
+    last_kept = len(records) - 1
+    np.testing.assert_allclose(short.poses[last_kept], full.poses[last_kept])
+    np.testing.assert_allclose(short.poses[1], odometry[1])
+    with pytest.raises(ValueError, match="history_limit"):
+        RbpfConfig(history_limit=0)

@@ -1,0 +1,360 @@
+"""Laser logs with ground truth from the simulated world: the robot drives the world's route on a fake clock.
+
+:func:`simulate_log` runs a :class:`~drivers.sim.simulation.Simulation` as fast as it goes (no ptys, no
+threads: a fake clock advanced in 10 ms ticks), steering along ``world.route`` with the
+:class:`~drivers.sim.route.RouteFollower` autopilot from the true pose, and records what the robot would
+have logged:
+
+* **Scans** of the world's :class:`~drivers.sim.world.LaserModel` (a URG-04LX by default): each beam is
+  cast at its own time of the sweep (``Simulation.laser_ranges_m`` at the pose of the moment; beams are
+  cast in chunks small enough that the laser turns < 0.1 deg and moves < 3 mm within one), with the
+  model's Gaussian range noise and dropout, rounded to millimetres, out-of-range readings as "no return"
+  (0). A scan's timestamp is its last beam, as for the BreezySLAM logs.
+* **Wheel odometry** as the robot's own would be, from the simulated wheel angles through a
+  :class:`WheelErrorModel`: wheels whose real radii differ from the nominal one, an effective track wider
+  than the nominal one (turns are over-counted), random slip growing with the distance rolled, and
+  4096-tick encoders, integrated at 100 Hz with the nominal geometry. The simulation's truth is untouched.
+* **VLP fixes** (a :class:`VlpFixModel`): a simulated stand-in for the camera pipeline, not
+  ``agent.vlp`` itself (rendering and decoding 3000 frames would take minutes). At 10 Hz, when at least
+  two ceiling LEDs project inside the upward camera's sensor at the true pose, the fix is the true base
+  pose plus the mean survey error of the LEDs in view (the agent's LED map is the world's, bent by
+  ``[errors] led_survey_error_m``) plus Gaussian noise (5 mm per axis, 0.3 deg).
+* **Ground truth**: the true base pose at every scan's timestamp (as the log records' reference pose).
+
+No files, no printing; the randomness is seeded.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.slam.fix import PoseFix, TimedFix
+from agent.slam.logs import LogFormat, LogRecord, SlamLog
+from agent.slam.motion import OdometryNoise
+from agent.slam.pose import between, compose
+from agent.slam.scan import LaserGeometry
+from drivers.sim.route import RouteFollower
+from drivers.sim.simulation import Simulation
+from drivers.sim.world import LaserModel, Led, Pose2D, World
+from drivers.sim.worldfile import surveyed_leds
+
+FloatArray = npt.NDArray[np.float64]
+
+TICK_S = 0.01  # odometry sampling and the fake clock's step
+AUTOPILOT_EVERY = 5  # ticks between autopilot commands (20 Hz, as ``vlp-agent sim``)
+MAX_CHUNK_YAW_RAD = math.radians(0.1)
+MAX_CHUNK_MOVE_M = 0.003
+
+
+@dataclass(frozen=True)
+class WheelErrorModel:
+    """How the robot's wheel odometry differs from its true motion.
+
+    ``left_scale`` / ``right_scale``: distance the odometry counts per metre a wheel really rolls (real
+    radius against the nominal one). ``track_scale``: the effective track (where the tyres' contact
+    patches turn the robot) over the nominal one the odometry divides by; > 1 over-counts turns.
+    ``slip_m_per_sqrt_m``: random slip per wheel, a random walk whose standard deviation grows with the
+    square root of the distance the wheel rolled. ``ticks_per_turn``: encoder resolution (XL430: 4096)."""
+
+    left_scale: float = 1.006
+    right_scale: float = 1.004
+    track_scale: float = 1.01
+    slip_m_per_sqrt_m: float = 0.002
+    ticks_per_turn: int = 4096
+
+
+# The filter's motion model for the simulated robot (GMapping's srr, srt, str, stt). Its odometry
+# (WheelErrorModel's defaults) errs by 0.5 % in distance, 0.2 % between the wheels (0.7 deg per metre)
+# and 1 % in turns, plus slip; these are three to ten times that. GMapping's defaults (0.1 0.2 0.1 0.2:
+# 10 % of the distance, 11 deg per metre) are for a robot whose odometry nobody has looked at: on the
+# simulated office they let the particles wander along corridors, where the scans say little about the
+# distance driven (docs/slam.md).
+MOTION_NOISE = OdometryNoise(0.03, 0.05, 0.03, 0.05)
+
+
+@dataclass(frozen=True)
+class VlpFixModel:
+    """Simulated VLP fixes: rate, noise, and the minimum LEDs in the camera's view."""
+
+    rate_hz: float = 10.0
+    sigma_xy_m: float = 0.005
+    sigma_yaw_rad: float = math.radians(0.3)
+    min_leds: int = 2
+
+    def covariance(self) -> FloatArray:
+        return np.diag([self.sigma_xy_m**2, self.sigma_xy_m**2, self.sigma_yaw_rad**2])
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """A log whose records carry the true base pose as their reference pose, with the fixes beside it."""
+
+    log: SlamLog
+    fixes: tuple[TimedFix, ...]
+    fix_leds: tuple[int, ...]  # LEDs in view for each fix
+    fix_truth: FloatArray  # (F, 3) the true base pose at each fix
+    distance_m: float  # true distance driven
+    turned_rad: float  # true heading change, summed in absolute value
+    frames_without_fix: int  # camera instants with fewer than ``min_leds`` LEDs in view
+
+    @property
+    def truth(self) -> FloatArray:
+        reference = self.log.reference_poses()
+        assert reference is not None
+        return reference
+
+    def start_pose(self, from_fix: bool) -> tuple[float, float, float]:
+        """Where a filter should start its map: at the first fix carried by odometry to the first scan
+        (the LED frame), or, without fixes, at the true start (the only frame there is then)."""
+        if not from_fix:
+            truth = self.truth[0]
+            return (float(truth[0]), float(truth[1]), float(truth[2]))
+        if not self.fixes:
+            raise ValueError("no fixes to start from")
+        first = self.fixes[0]
+        if first.fix.yaw_rad is None:
+            raise ValueError("the first fix has no heading to start a map with")
+        at_fix = np.array([first.fix.x_m, first.fix.y_m, first.fix.yaw_rad])
+        start = compose(at_fix, between(first.odom_pose, self.log.records[0].odom_pose))
+        return (float(start[0]), float(start[1]), float(start[2]))
+
+    def odometry_in_world(self) -> FloatArray:
+        """Raw odometry started at the true start pose, for comparison with the truth."""
+        odometry = self.log.odometry_poses()
+        return compose(self.truth[0], between(odometry[0][None, :], odometry))
+
+
+def laser_geometry(world: World) -> LaserGeometry:
+    """The filter's view of the world's laser: its beams, range limits, mount and beam timing (each beam's
+    time relative to the scan's timestamp, the last beam)."""
+    lm = world.laser
+    steps = np.arange(lm.first_step, lm.last_step + 1, dtype=np.float64)
+    step_s = 60.0 / lm.scan_rpm / lm.steps_per_rev
+    mount = world.robot.laser_mount
+    return LaserGeometry(
+        (steps - lm.front_step) * (2.0 * math.pi / lm.steps_per_rev),
+        lm.min_range_mm / 1000.0,
+        (lm.max_range_mm + 1) / 1000.0,
+        (mount.x_m, mount.y_m, mount.yaw_rad),
+        (steps - lm.last_step) * step_s,
+    )
+
+
+def leds_in_view(world: World, base: Pose2D, leds: tuple[Led, ...]) -> list[int]:
+    """Indices of the LEDs that project inside the upward camera's sensor (pinhole, no tilt) with the base at
+    ``base``.
+
+    The camera frame (``drivers/sim/render.py``): x_c along the camera's heading psi = base yaw + mount
+    yaw, y_c to its left; u = cx + f (d . x_c) / H, v = cy + f (d . y_c) / H, d the LED's horizontal
+    offset from the lens and H its height above it. An LED counts when its whole disk is on the sensor."""
+    cam = world.camera
+    mount = world.robot.camera_mount
+    lens = Simulation.mount_pose(base, mount.x_m, mount.y_m, mount.yaw_rad)
+    c, s = math.cos(lens.yaw_rad), math.sin(lens.yaw_rad)
+    f_px = cam.focal_length_px
+    cx, cy = cam.principal_point_px
+    seen = []
+    for i, led in enumerate(leds):
+        height = led.z_m - mount.z_m
+        if height <= 0.0:
+            continue
+        dx, dy = led.x_m - lens.x_m, led.y_m - lens.y_m
+        u = cx + f_px * (dx * c + dy * s) / height
+        v = cy + f_px * (-dx * s + dy * c) / height
+        r = f_px * led.diameter_m / 2.0 / height
+        if r <= u <= cam.sensor_width_px - 1 - r and r <= v <= cam.sensor_height_px - 1 - r:
+            seen.append(i)
+    return seen
+
+
+class _Odometry:
+    """Wheel odometry through a :class:`WheelErrorModel`, integrated with the nominal geometry."""
+
+    def __init__(
+        self, world: World, errors: WheelErrorModel, start: tuple[float, float], rng: np.random.Generator
+    ) -> None:
+        self.radius_m = world.robot.wheel_radius_m
+        self.track_m = world.robot.track_m
+        self.errors = errors
+        self.rng = rng
+        self.true_last = start
+        self.measured = [0.0, 0.0]  # what the encoders would read, radians (before quantization)
+        self.ticks_last = (0, 0)
+        self.pose = np.zeros(3)
+
+    def update(self, wheel_rad: tuple[float, float]) -> None:
+        e = self.errors
+        for i, scale in ((0, e.left_scale), (1, e.right_scale)):
+            rolled_rad = wheel_rad[i] - self.true_last[i]
+            slip_m = (
+                e.slip_m_per_sqrt_m * math.sqrt(abs(rolled_rad) * self.radius_m) * self.rng.standard_normal()
+            )
+            self.measured[i] += rolled_rad * scale + slip_m / self.radius_m
+        self.true_last = wheel_rad
+        per_rad = e.ticks_per_turn / (2.0 * math.pi)
+        ticks = (math.floor(self.measured[0] * per_rad), math.floor(self.measured[1] * per_rad))
+        d_left = (ticks[0] - self.ticks_last[0]) / per_rad * self.radius_m
+        d_right = (ticks[1] - self.ticks_last[1]) / per_rad * self.radius_m
+        self.ticks_last = ticks
+        # Differential drive with the nominal geometry, midpoint rule: d = (dl + dr) / 2,
+        # dyaw = (dr - dl) / nominal track, the nominal track being the simulation's (the effective one)
+        # over ``track_scale``.
+        d = (d_left + d_right) / 2.0
+        dyaw = (d_right - d_left) * self.errors.track_scale / self.track_m
+        x, y, yaw = self.pose
+        self.pose = np.array(
+            [
+                x + d * math.cos(yaw + dyaw / 2.0),
+                y + d * math.sin(yaw + dyaw / 2.0),
+                math.atan2(math.sin(yaw + dyaw), math.cos(yaw + dyaw)),
+            ]
+        )
+
+
+class _FakeClock:
+    def __init__(self) -> None:
+        self.t_s = 0.0
+
+    def __call__(self) -> float:
+        return self.t_s
+
+
+@dataclass
+class _Scanner:
+    """Sweeps of the world's laser, each beam cast at its own time."""
+
+    sim: Simulation
+    laser: LaserModel
+    geometry: LaserGeometry
+    rng: np.random.Generator
+
+    def ranges(self, stamp_s: float) -> FloatArray:
+        g = self.geometry
+        assert g.beam_time_s is not None
+        times = stamp_s + g.beam_time_s
+        first, last = self.sim.pose_at(float(times[0])), self.sim.pose_at(float(times[-1]))
+        turned = abs(
+            math.atan2(math.sin(last.yaw_rad - first.yaw_rad), math.cos(last.yaw_rad - first.yaw_rad))
+        )
+        moved = math.hypot(last.x_m - first.x_m, last.y_m - first.y_m)
+        n = g.beams
+        chunks = int(
+            min(max(math.ceil(turned / MAX_CHUNK_YAW_RAD), math.ceil(moved / MAX_CHUNK_MOVE_M), 1), n)
+        )
+        true_m = np.empty(n)
+        for part in np.array_split(np.arange(n), chunks):
+            t_mid = float(times[part].mean())
+            true_m[part] = self.sim.laser_ranges_m(g.angles_rad[part], t_mid)
+        lm = self.laser
+        noisy_mm = np.rint(
+            np.where(np.isfinite(true_m), true_m * 1000.0, 0.0) + self.rng.normal(0.0, lm.range_noise_mm, n)
+        )
+        valid = np.isfinite(true_m) & (noisy_mm >= lm.min_range_mm) & (noisy_mm <= lm.max_range_mm)
+        if lm.dropout > 0.0:
+            valid &= self.rng.random(n) >= lm.dropout
+        out: FloatArray = np.where(valid, noisy_mm / 1000.0, 0.0)
+        return out
+
+
+def simulate_log(
+    world: World,
+    seconds: float,
+    *,
+    wheel_errors: WheelErrorModel | None = None,
+    fixes: VlpFixModel | None = None,
+    seed: int = 0,
+) -> SimulatedRun:
+    """Drive ``world.route`` for ``seconds`` of simulated time; see the module docstring."""
+    if not world.route:
+        raise ValueError(f"world {world.name!r} has no route to drive")
+    if seconds <= 0.0:
+        raise ValueError("seconds must be positive")
+    wheel_errors = wheel_errors or WheelErrorModel()
+    fix_model = fixes or VlpFixModel()
+    rng = np.random.default_rng(seed)
+    clock = _FakeClock()
+    sim = Simulation(world, clock=clock, seed=seed)
+    geometry = laser_geometry(world)
+    scanner = _Scanner(sim, world.laser, geometry, np.random.default_rng(rng.integers(1 << 32)))
+    odometry = _Odometry(
+        world, wheel_errors, sim.wheels().position_rad, np.random.default_rng(rng.integers(1 << 32))
+    )
+    fix_rng = np.random.default_rng(rng.integers(1 << 32))
+    follower = RouteFollower(world.route, world.route_speed_mps)
+    # The agent's LED map is the world's bent by the survey error; a fix inherits the mean error of the
+    # LEDs it was solved from (same order: ``surveyed_leds`` moves each LED of ``world.leds``).
+    survey_error_m = np.array(
+        [(s.x_m - t.x_m, s.y_m - t.y_m) for t, s in zip(world.leds, surveyed_leds(world), strict=True)]
+    ).reshape(-1, 2)
+    scan_period_s = 60.0 / world.laser.scan_rpm
+    scan_every = max(round(scan_period_s / TICK_S), 1)
+    fix_every = max(round(1.0 / fix_model.rate_hz / TICK_S), 1)
+    # The first scan is stamped once a whole sweep has been measured.
+    first_scan_tick = (
+        math.ceil(-float(geometry.beam_time_s[0]) / TICK_S) if geometry.beam_time_s is not None else 0
+    )
+    records: list[LogRecord] = []
+    found: list[TimedFix] = []
+    found_leds: list[int] = []
+    found_truth: list[tuple[float, float, float]] = []
+    misses = 0
+    distance_m = turned_rad = 0.0
+    last_truth = sim.pose()
+    ticks = round(seconds / TICK_S)
+    for tick in range(ticks + 1):
+        clock.t_s = tick * TICK_S
+        truth = sim.pose()
+        distance_m += math.hypot(truth.x_m - last_truth.x_m, truth.y_m - last_truth.y_m)
+        turned_rad += abs(
+            math.atan2(
+                math.sin(truth.yaw_rad - last_truth.yaw_rad), math.cos(truth.yaw_rad - last_truth.yaw_rad)
+            )
+        )
+        last_truth = truth
+        odometry.update(sim.wheels().position_rad)
+        if tick >= first_scan_tick and (tick - first_scan_tick) % scan_every == 0:
+            ranges = scanner.ranges(clock.t_s)
+            records.append(
+                LogRecord(
+                    len(records) + 1,
+                    clock.t_s,
+                    ranges,
+                    odometry.pose.copy(),
+                    np.array([truth.x_m, truth.y_m, truth.yaw_rad]),
+                )
+            )
+        if tick % fix_every == 0:
+            visible = leds_in_view(world, truth, world.leds)
+            if len(visible) >= fix_model.min_leds:
+                bias = survey_error_m[visible].mean(axis=0)
+                noise = fix_rng.standard_normal(3) * np.array(
+                    [fix_model.sigma_xy_m, fix_model.sigma_xy_m, fix_model.sigma_yaw_rad]
+                )
+                yaw = math.atan2(math.sin(truth.yaw_rad + noise[2]), math.cos(truth.yaw_rad + noise[2]))
+                fix = PoseFix(
+                    truth.x_m + bias[0] + noise[0],
+                    truth.y_m + bias[1] + noise[1],
+                    yaw,
+                    fix_model.covariance(),
+                )
+                found.append(TimedFix(clock.t_s, fix, odometry.pose.copy()))
+                found_leds.append(len(visible))
+                found_truth.append((truth.x_m, truth.y_m, truth.yaw_rad))
+            else:
+                misses += 1
+        if tick % AUTOPILOT_EVERY == 0:
+            sim.set_body_velocity(*follower.command(truth.x_m, truth.y_m, truth.yaw_rad))
+    log = SlamLog(f"simulated:{world.name}", LogFormat.SIMULATED, geometry, tuple(records))
+    return SimulatedRun(
+        log,
+        tuple(found),
+        tuple(found_leds),
+        np.array(found_truth, dtype=np.float64).reshape(-1, 3),
+        distance_m,
+        turned_rad,
+        misses,
+    )

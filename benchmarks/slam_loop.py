@@ -1,0 +1,71 @@
+"""How well the SLAM filter closes exp1's loop, seed by seed (BreezySLAM exp1.dat, first 365 scans).
+
+The measures are the ones ``tests/integration/test_slam_exp1.py`` checks for seed 0 (imported from it, so
+the two cannot drift apart): at the place where the rover passes its start again, the SLAM pose against a
+direct registration of that scan on a map of the first scans (metres, degrees; raw odometry's metres
+beside it), the share of the way-back endpoints that land within 5 cm of the first map's walls, and the
+share of thin walls. One JSON object per seed, then a summary line.
+
+    python benchmarks/slam_loop.py
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --along-surface-weight 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agent.slam.logs import read_log
+from agent.slam.metrics import wall_thickness
+from agent.slam.proposal import ProposalConfig
+from agent.slam.rbpf import RbpfConfig
+from agent.slam.replay import replay
+from tests.conftest import DATA
+from tests.integration.test_slam_exp1 import MODEL, RECORDS, fraction_on_walls, loop_closure_errors
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
+    parser.add_argument("--particles", type=int, default=30)
+    parser.add_argument(
+        "--along-surface-weight", type=float, default=1.0, help="1 point to point (default), 0 point to line"
+    )
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
+    closed = []
+    for seed in args.seeds:
+        proposal = dataclasses.replace(ProposalConfig(), along_surface_weight=args.along_surface_weight)
+        result = replay(log, RbpfConfig(particles=args.particles, proposal=proposal, seed=seed))
+        slam_m, slam_deg, odometry_m = loop_closure_errors(log, result.poses)
+        window = result.slam.map_window()
+        assert window is not None
+        row = {
+            "seed": seed,
+            "loop_error_m": round(slam_m, 3),
+            "loop_error_deg": round(slam_deg, 2),
+            "odometry_loop_error_m": round(odometry_m, 3),
+            "return_on_first_map": round(fraction_on_walls(log, result.poses), 3),
+            "wall_thin_fraction": round(wall_thickness(window[0] > MODEL.occupied).thin_fraction, 3),
+            "update_ms_median": round(float(np.median(result.update_ms)), 1),
+        }
+        closed.append(slam_m < 0.1 and slam_deg < 2.0)
+        print(json.dumps(row, sort_keys=True), flush=True)
+    print(json.dumps({"seeds": len(closed), "closed_within_0.1m_2deg": int(sum(closed))}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
