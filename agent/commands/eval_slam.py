@@ -29,10 +29,11 @@ FORMATS = ("breezyslam", "radish")
 # than this add little and cost window area.
 DEFAULT_MAX_RANGE_M = {"breezyslam": 5.5, "radish": 15.0, "simulated": 5.5}
 # Weight of an endpoint's offset along its surface in the scan match (ProposalConfig.along_surface_weight):
-# point to line for the radish SICK logs (1 deg beams out to 15 m: far walls are sampled sparsely, at
-# grazing angles, and pull point-to-point matches along themselves; Intel 0.038-0.047 m / 0.6-1.0 deg
-# instead of 0.06-0.067 m / 1.3-2.0 deg), point to point for the URG logs and the simulated robot (exp1
-# closes its loop for 3 seeds in 6 instead of 0, the office is as good). docs/slam.md has the runs.
+# point to line for the radish SICK logs (1 deg beams out to 15 m sample far walls sparsely and at grazing
+# angles, and those pull point-to-point matches along themselves: Intel 0.045-0.058 m / 0.9-1.5 deg
+# instead of 0.056-0.067 m / 1.1-2.0 deg over three seeds), point to point for the URG logs and the
+# simulated robot (exp1 closes its loop for 3 seeds in 6, none with point to line; the office's ATE is
+# lower). docs/slam.md has the runs.
 DEFAULT_ALONG_SURFACE_WEIGHT = {"breezyslam": 1.0, "radish": 0.0, "simulated": 1.0}
 
 
