@@ -144,8 +144,8 @@ class AgentStatus:
     devices: dict[str, DeviceState]
     counts: dict[str, int]
     drops: dict[str, int]
-    latency_ms: tuple[float, float]  # capture -> last pose byte: p50, p99
-    processing_ms: tuple[float, float]  # frame handed over by the driver -> last pose byte: p50, p99
+    latency_ms: tuple[float, float]  # frame captured (handed over by its driver) -> last pose byte: p50, p99
+    exposure_age_ms: tuple[float, float]  # the frame's mid-exposure -> last pose byte: p50, p99
     vlp_ms: tuple[float, float]  # VLP processing per frame: p50, p99
     no_fix_reasons: dict[str, int]
     fusion: dict[str, int]
@@ -365,13 +365,13 @@ class Agent:
             for key in ("dropped", "scans_dropped"):
                 if counters.get(key):
                     drops[f"{name}_{key}"] = counters[key]
-        latency = processing = (math.nan, math.nan)
+        latency = exposure_age = (math.nan, math.nan)
         output: dict[str, int] = {}
         if self.output is not None:
             p50, p99 = self.output.latency.percentiles(50, 99)
             latency = (p50, p99)
-            q50, q99 = self.output.processing.percentiles(50, 99)
-            processing = (q50, q99)
+            q50, q99 = self.output.exposure_age.percentiles(50, 99)
+            exposure_age = (q50, q99)
             output = dict(self.output.counts)
             if output.get("write_timeouts"):
                 drops["output_write_timeouts"] = output["write_timeouts"]
@@ -384,7 +384,7 @@ class Agent:
             counts,
             drops,
             latency,
-            processing,
+            exposure_age,
             (vlp_ms[0], vlp_ms[1]),
             no_fix,
             self.fusion.counters(),

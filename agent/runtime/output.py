@@ -113,8 +113,12 @@ class PoseOutput:
         self._next_open_s = 0.0
         self._sequence = 0
         self._encode: Callable[[PoseFrame, PoseFlags], bytes] = self._make_encoder()
-        self.latency = LatencyStats()  # capture of the triggering measurement -> last byte written
-        self.processing = LatencyStats()  # the measurement handed over by its driver -> last byte written
+        # The latency budget's measure: the triggering frame captured by this computer (handed over
+        # complete by its driver) -> last byte written.
+        self.latency = LatencyStats()
+        # The triggering measurement's own time (a frame: the middle of its exposure) -> last byte written:
+        # the latency plus the camera's readout and transfer, which no agent can shorten.
+        self.exposure_age = LatencyStats()
         self.age = LatencyStats()  # the pose's own time (its newest measurement) -> last byte written
         self.counts: collections.Counter[str] = collections.Counter()
         self.last_publish_ns = 0
@@ -209,8 +213,8 @@ class PoseOutput:
     ) -> Written | None:
         """Write ``estimate`` with ``flags``; None when the port is down or the write was cut (counted).
 
-        ``trigger_ns``: capture time of the measurement this pose answers (a camera frame's host time);
-        ``arrival_ns``: when its driver handed it over. Latencies are measured from both."""
+        ``trigger_ns``: the time of the measurement this pose answers (a camera frame's exposure);
+        ``arrival_ns``: when its driver handed it over complete. Latencies are measured from both."""
         with self._lock:
             if self._port is None:
                 if time.monotonic() < self._next_open_s:
@@ -254,10 +258,10 @@ class PoseOutput:
             self.last_publish_ns = done_ns
             self.counts["frames"] += 1
         written = Written(frame, done_ns, trigger_ns, len(data), arrival_ns)
-        if trigger_ns is not None:
-            self.latency.add((done_ns - trigger_ns) * 1e-6)
         if arrival_ns is not None:
-            self.processing.add((done_ns - arrival_ns) * 1e-6)
+            self.latency.add((done_ns - arrival_ns) * 1e-6)
+        if trigger_ns is not None:
+            self.exposure_age.add((done_ns - trigger_ns) * 1e-6)
         self.age.add((done_ns - estimate.t_ns) * 1e-6)
         if self.observer is not None:
             self.observer(written)

@@ -538,9 +538,7 @@ class FakeUrg:
         values = self._cluster(self._ranges(k)[first : last + 1], cluster)
         if nchars == 2:
             values = np.where(values > 4095, ERR_NO_ECHO, values)
-        frame = scip.encode_reply(
-            echo, status, timestamp_ms=ts, payload=scip.encode_values(values.tolist(), nchars)
-        )
+        frame = scip.encode_reply(echo, status, timestamp_ms=ts, payload=_encode_values(values, nchars))
         self.emitted.append(EmittedScan(step0, ts, echo.decode("ascii", "replace")))
         if self._corrupt > 0:
             self._corrupt -= 1
@@ -613,6 +611,17 @@ class FakeUrg:
         full = self._full_scan(values)
         self._cache = {k: full}
         return full
+
+
+def _encode_values(values: npt.NDArray[np.int64], nchars: int) -> bytes:
+    """``scip.encode_values`` for a whole scan at once, vectorised (the fake serves 10 scans a second from
+    a thread of the agent's own process under ``vlp-agent sim``; the per-value Python loop cost ~1 ms)."""
+    v = np.asarray(values, dtype=np.int64)
+    if v.size and (int(v.min()) < 0 or int(v.max()) >= 1 << (6 * nchars)):
+        raise ValueError(f"a value does not fit in {nchars} SCIP characters")
+    shifts = np.arange(6 * (nchars - 1), -1, -6, dtype=np.int64)
+    chars = 0x30 + ((v[:, None] >> shifts[None, :]) & 0x3F)
+    return chars.astype(np.uint8).tobytes()
 
 
 def _break_first_block(frame: bytes) -> bytes:

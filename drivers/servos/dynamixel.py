@@ -26,9 +26,11 @@ driver reads Hardware Error Status (70), which latches until a reboot, and repor
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
+import select
 import termios
 import threading
 import time
@@ -113,6 +115,8 @@ _REVERSE_BIT = 0x01
 # What the port raises when the device goes away: pyserial's SerialException (an OSError), plain OSError
 # (EIO from a hung-up tty), termios.error from the SDK's tcflush before every packet.
 _PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, termios.error)
+# Longest single wait for reply bytes in ``_PortHandler.readPort``.
+_MAX_READ_WAIT_MS = 5.0
 
 
 class _PortHandler(PortHandler):  # type: ignore[misc]  # the SDK is untyped
@@ -134,6 +138,23 @@ class _PortHandler(PortHandler):  # type: ignore[misc]  # the SDK is untyped
 
     def getCurrentTime(self) -> float:  # milliseconds, as the SDK expects
         return time.monotonic() * 1000.0
+
+    def readPort(self, length: int) -> bytes:  # overrides the SDK (its naming)
+        """Wait (GIL released, in ``select``) until the port has bytes or the reply deadline passes, then
+        read what is there.
+
+        The SDK opens the port with ``timeout=0`` and polls ``readPort`` in a loop until a status packet
+        is complete or the deadline passes: a busy spin that holds a core and, in a Python process with
+        other threads, the interpreter lock for the whole reply time. Each wait is capped at
+        ``_MAX_READ_WAIT_MS`` so that the SDK's own deadline check keeps running.
+        """
+        ser = self.ser
+        left_ms = self.packet_timeout - (self.getCurrentTime() - self.packet_start_time)
+        if left_ms > 0.0:
+            with contextlib.suppress(ValueError):  # a closed port: the read below says so
+                select.select([ser.fileno()], [], [], min(left_ms, _MAX_READ_WAIT_MS) * 1e-3)
+        data: bytes = ser.read(length)
+        return data
 
 
 class _Unwrapper:

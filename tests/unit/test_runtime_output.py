@@ -61,7 +61,7 @@ def test_frames_decode_in_order_after_the_leading_zero(pty: tuple[int, str]) -> 
     assert frames[0].flags == LIVE
     assert frames[0].sigma_xy_m == pytest.approx(0.003, abs=1e-4)
     assert [w.frame.sequence for w in written] == [0, 1, 2, 3, 4]
-    assert len(out.latency) == 5 and len(out.processing) == 5
+    assert len(out.latency) == 5 and len(out.exposure_age) == 5
     assert out.counts["frames"] == 5
 
 
