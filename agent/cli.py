@@ -62,7 +62,21 @@ def configure_logging(level: int) -> None:
     logging.basicConfig(level=level, handlers=[handler])
 
 
-def build_parser() -> argparse.ArgumentParser:
+def chosen_command(argv: Sequence[str], names: Sequence[str]) -> tuple[str | None, list[str]]:
+    """The subcommand ``argv`` names (its first positional token, when it is one of ``names``) and the
+    tokens after it; (None, []) otherwise. The options before a command (``-v``, ``--version``,
+    ``--help``) take no value, so the first token not starting with ``-`` is the command."""
+    for i, token in enumerate(argv):
+        if not token.startswith("-"):
+            return (token, list(argv[i + 1 :])) if token in names else (None, [])
+    return None, []
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. With ``argv`` naming a command, only that command's module is imported
+    (its parser holds everything it needs); the others get bare entries. Each command brings its own
+    libraries (the VLP pipeline, SLAM, the simulator), and a process that runs one of them should carry
+    only its memory (``vlp-agent eval slam`` on a large building is near the 250 MB budget)."""
     parser = argparse.ArgumentParser(
         prog="vlp-agent",
         description="On-board localization for indoor mobile robots: visible light positioning from ceiling "
@@ -72,19 +86,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"vlp-agent {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    chosen, rest = chosen_command(sys.argv[1:] if argv is None else argv, list(COMMANDS))
     for name, module_name in COMMANDS.items():
+        if chosen is not None and name != chosen:
+            sub.add_parser(name)
+            continue
         try:
             module = importlib.import_module(module_name)
         except ImportError as exc:
             # One broken command must not take the others down: say why it is unavailable.
             sub.add_parser(name, help=f"(unavailable: {exc})")
             continue
-        module.add_parser(sub)
+        module.add_parser(sub, rest)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()

@@ -17,6 +17,7 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
 from typing import Any, TextIO
@@ -67,7 +68,7 @@ def _add_common(p: argparse.ArgumentParser, *, in_step: bool) -> None:
     )
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "calibrate",
         help="calibrate the robot: camera, mounts, LED survey, VLP error, laser, wheels, servos",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import textwrap
+from collections.abc import Sequence
 
 from drivers.discovery import (
     KNOWN_DEVICES,
@@ -49,7 +50,9 @@ def _recognized_ids() -> str:
     return "\n".join(lines)
 
 
-def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(
+    subparsers: argparse._SubParsersAction[argparse.ArgumentParser], argv: Sequence[str] = ()
+) -> None:
     parser = subparsers.add_parser(
         "devices",
         help="list serial ports, USB devices, I2C buses and cameras, and name the robot's hardware",

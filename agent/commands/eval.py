@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
 
@@ -23,7 +24,9 @@ def _module(name: str) -> ModuleType:
     return importlib.import_module(EVALUATIONS[name])
 
 
-def add_parser(subparsers: Any) -> None:
+def add_parser(subparsers: Any, argv: Sequence[str] = ()) -> None:
+    """The ``eval`` parser; with ``argv`` (the tokens after ``eval``) naming an evaluation, only that
+    evaluation's module is imported (``eval slam`` does not load the VLP pipeline and the renderer)."""
     parser: argparse.ArgumentParser = subparsers.add_parser(
         "eval",
         help="evaluate an algorithm offline on recorded or simulated data (speed, accuracy)",
@@ -31,7 +34,11 @@ def add_parser(subparsers: Any) -> None:
         "simulated data, and report its speed and accuracy.",
     )
     sub = parser.add_subparsers(dest="evaluation", metavar="WHAT")
+    chosen = next((token for token in argv if not token.startswith("-")), None)
     for name in EVALUATIONS:
+        if chosen in EVALUATIONS and name != chosen:
+            sub.add_parser(name)
+            continue
         try:
             module = _module(name)
         except ImportError as exc:

@@ -12,6 +12,7 @@ import argparse
 import signal
 import sys
 import threading
+from collections.abc import Sequence
 from types import FrameType
 from typing import Any
 
@@ -27,7 +28,7 @@ DEVICES = {
 }
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "fake",
         help="serve one fake device on a pseudo-terminal",

@@ -34,6 +34,7 @@ import sys
 import threading
 import time
 import tty
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -65,7 +66,7 @@ LATENCY_DEFINITION = (
 )
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "sim",
         help="run the whole agent on the simulated robot (no hardware needed)",
