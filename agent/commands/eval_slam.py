@@ -7,8 +7,9 @@ consecutive reference poses); writes the map as ROS map_server PGM + YAML, a PNG
 trajectory over the map.
 
 With ``--world`` the log is made by driving the simulated robot along the world's route
-(``agent.slam.simlog``: scans with the world's laser noise, wheel odometry with its errors, optionally
-simulated VLP fixes), and the report adds the absolute trajectory error against the simulation's truth.
+(``agent.slam.simlog``: scans with the world's laser noise, wheel odometry with its errors, optionally VLP
+fixes from rendered frames through the VLP pipeline, ``agent.commands.sim_fixes``), and the report adds the
+absolute trajectory error against the simulation's truth.
 """
 
 from __future__ import annotations
@@ -70,8 +71,16 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument(
         "--vlp-fixes",
         action="store_true",
-        help="with --world: simulated VLP fixes (5 mm, 0.3 deg, 10 Hz when two LEDs are in view) as absolute "
-        "measurements in the filter; the map starts at the first fix",
+        help="with --world: VLP fixes at 10 Hz as absolute measurements in the filter; the map starts at "
+        "the first fix (where they come from: --fix-source)",
+    )
+    p.add_argument(
+        "--fix-source",
+        choices=("pipeline", "model"),
+        default="pipeline",
+        help="with --vlp-fixes: 'pipeline' (default) renders the camera's frames and runs the VLP pipeline "
+        "on them, the world's errors included; 'model' takes the true pose plus the LED survey error and "
+        "Gaussian noise (5 mm, 0.3 deg, when two LEDs are in view), much faster",
     )
     p.add_argument("--particles", type=int, default=30, help="number of particles (default: 30)")
     p.add_argument(
@@ -115,6 +124,12 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
 
 
+def _fix_error(simulated: Any) -> float:
+    """Mean distance of the fixes from the true base pose at their own times (metres)."""
+    xy = np.array([(f.fix.x_m, f.fix.y_m) for f in simulated.fixes])
+    return float(np.mean(np.hypot(*(xy - simulated.fix_truth[:, :2]).T)))
+
+
 def _progress(done: int, total: int, slam: Any) -> None:
     print(f"  scan {done}/{total}, {slam.stats.updates} updates", file=sys.stderr, flush=True)
 
@@ -150,7 +165,12 @@ def run(args: argparse.Namespace) -> int:
         world = load_world(args.world)
         if not world.route:
             raise ConfigError("route", "the world has no route for the robot to drive", args.world)
-        simulated = simulate_log(world, args.seconds, seed=args.seed)
+        source = None
+        if args.vlp_fixes and args.fix_source == "pipeline":
+            from agent.commands.sim_fixes import PipelineFixes
+
+            source = PipelineFixes(world, seed=args.seed)
+        simulated = simulate_log(world, args.seconds, fixes=source, seed=args.seed)
         log: SlamLog = simulated.log
         source_format = "simulated"
         source_name = str(args.world)
@@ -258,7 +278,17 @@ def run(args: argparse.Namespace) -> int:
             distance_m=_round(simulated.distance_m),
             vlp_fixes=bool(fixes),
             fixes_used=slam.stats.fixes_applied,
-            fix_source="simulated (agent.slam.simlog.VlpFixModel: 5 mm, 0.3 deg, 10 Hz, >= 2 LEDs in view)",
+            fix_source=(
+                "pipeline (rendered frames through agent.vlp, 10 Hz)"
+                if args.fix_source == "pipeline"
+                else "model (agent.slam.simlog.VlpFixModel: 5 mm, 0.3 deg, 10 Hz, >= 2 LEDs in view)"
+            )
+            if fixes
+            else None,
+            fixes_offered=len(simulated.fixes),
+            fix_error_m_mean=_round(_fix_error(simulated), 4) if simulated.fixes else None,
+            camera_instants_without_fix=simulated.frames_without_fix,
+            no_fix_reasons=simulated.no_fix_reasons,
             ate_m=_round(absolute_trajectory_error(truth, result.poses), 4),
             ate_online_m=_round(absolute_trajectory_error(truth, result.online_poses), 4),
             ate_max_m=_round(float(position_error.max()), 4),
@@ -324,7 +354,11 @@ def _print_table(s: dict[str, Any]) -> None:
     rejected = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items())) or "none"
     print(f"  rejected scans     {rejected}")
     if "ate_m" in s:
-        fixes = f"{s['fixes_used']} simulated VLP fixes" if s["vlp_fixes"] else "no VLP fixes"
+        fixes = (
+            f"{s['fixes_used']} VLP fixes ({s['fix_source']}; mean error {s['fix_error_m_mean']} m)"
+            if s["vlp_fixes"]
+            else "no VLP fixes"
+        )
         print(f"  simulated drive    {s['seconds']} s, {s['distance_m']} m, {fixes}")
         print(
             f"  trajectory error   ATE {s['ate_m']} m (online {s['ate_online_m']} m, max {s['ate_max_m']} m, "

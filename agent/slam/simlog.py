@@ -14,11 +14,14 @@ have logged:
   :class:`WheelErrorModel`: wheels whose real radii differ from the nominal one, an effective track wider
   than the nominal one (turns are over-counted), random slip growing with the distance rolled, and
   4096-tick encoders, integrated at 100 Hz with the nominal geometry. The simulation's truth is untouched.
-* **VLP fixes** (a :class:`VlpFixModel`): a simulated stand-in for the camera pipeline, not
-  ``agent.vlp`` itself (rendering and decoding 3000 frames would take minutes). At 10 Hz, when at least
+* **VLP fixes** from a :class:`FixSource`, asked at its rate: the camera pipeline itself on rendered
+  frames (``agent.commands.eval_slam`` plugs ``agent.vlp`` and the rolling-shutter renderer in here; this
+  package does not import them), or a :class:`VlpFixModel`, a stand-in for it: at 10 Hz, when at least
   two ceiling LEDs project inside the upward camera's sensor at the true pose, the fix is the true base
   pose plus the mean survey error of the LEDs in view (the agent's LED map is the world's, bent by
-  ``[errors] led_survey_error_m``) plus Gaussian noise (5 mm per axis, 0.3 deg).
+  ``[errors] led_survey_error_m``) plus Gaussian noise (5 mm per axis, 0.3 deg). Each fix is paired with
+  the odometry pose at the fix's own time (interpolated over the last ticks: a camera fix refers to the
+  middle of its frame's exposure, before the moment it is asked for).
 * **Ground truth**: the true base pose at every scan's timestamp (as the log records' reference pose).
 
 No files, no printing; the randomness is seeded.
@@ -26,8 +29,10 @@ No files, no printing; the randomness is seeded.
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -89,17 +94,81 @@ class VlpFixModel:
         return np.diag([self.sigma_xy_m**2, self.sigma_xy_m**2, self.sigma_yaw_rad**2])
 
 
+class FixSource(Protocol):
+    """Where a simulated drive's VLP fixes come from. Called ``rate_hz`` times a simulated second with the
+    simulation (advanced to ``t_s``) and the robot's odometry pose then (its own frame, as the robot knows
+    it); returns (the fix's own time, the fix, LEDs it used), or a reason why there is none."""
+
+    rate_hz: float
+
+    def __call__(
+        self, sim: Simulation, t_s: float, odometry: FloatArray
+    ) -> tuple[float, PoseFix, int] | str: ...
+
+
+class _ModelledFixes:
+    """A :class:`VlpFixModel` as a :class:`FixSource`: the true pose, the survey error, Gaussian noise."""
+
+    def __init__(self, world: World, model: VlpFixModel, rng: np.random.Generator) -> None:
+        self.world = world
+        self.model = model
+        self.rate_hz = model.rate_hz
+        self.rng = rng
+        # The agent's LED map is the world's bent by the survey error; a fix inherits the mean error of
+        # the LEDs it was solved from (same order: ``surveyed_leds`` moves each LED of ``world.leds``).
+        self.survey_error_m = np.array(
+            [(s.x_m - t.x_m, s.y_m - t.y_m) for t, s in zip(world.leds, surveyed_leds(world), strict=True)]
+        ).reshape(-1, 2)
+
+    def __call__(self, sim: Simulation, t_s: float, odometry: FloatArray) -> tuple[float, PoseFix, int] | str:
+        truth = sim.pose()
+        visible = leds_in_view(self.world, truth, self.world.leds)
+        if len(visible) < self.model.min_leds:
+            return f"fewer than {self.model.min_leds} LEDs in view"
+        bias = self.survey_error_m[visible].mean(axis=0)
+        m = self.model
+        noise = self.rng.standard_normal(3) * np.array([m.sigma_xy_m, m.sigma_xy_m, m.sigma_yaw_rad])
+        yaw = math.atan2(math.sin(truth.yaw_rad + noise[2]), math.cos(truth.yaw_rad + noise[2]))
+        fix = PoseFix(truth.x_m + bias[0] + noise[0], truth.y_m + bias[1] + noise[1], yaw, m.covariance())
+        return t_s, fix, len(visible)
+
+
+class _OdometryHistory:
+    """The odometry pose over the last ``span`` ticks, interpolated at a past time."""
+
+    def __init__(self, span: int = 64) -> None:
+        self._times: collections.deque[float] = collections.deque(maxlen=span)
+        self._poses: collections.deque[FloatArray] = collections.deque(maxlen=span)
+
+    def add(self, t_s: float, pose: FloatArray) -> None:
+        self._times.append(t_s)
+        self._poses.append(pose.copy())
+
+    def at(self, t_s: float) -> FloatArray:
+        times, poses = self._times, self._poses
+        if t_s >= times[-1]:
+            return poses[-1].copy()
+        if t_s <= times[0]:
+            return poses[0].copy()
+        i = next(k for k in range(len(times) - 1, 0, -1) if times[k - 1] <= t_s)
+        w = (t_s - times[i - 1]) / (times[i] - times[i - 1])
+        a, b = poses[i - 1], poses[i]
+        dyaw = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
+        return np.array([a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * dyaw])
+
+
 @dataclass(frozen=True)
 class SimulatedRun:
     """A log whose records carry the true base pose as their reference pose, with the fixes beside it."""
 
     log: SlamLog
     fixes: tuple[TimedFix, ...]
-    fix_leds: tuple[int, ...]  # LEDs in view for each fix
-    fix_truth: FloatArray  # (F, 3) the true base pose at each fix
+    fix_leds: tuple[int, ...]  # LEDs used by each fix
+    fix_truth: FloatArray  # (F, 3) the true base pose at each fix's own time
     distance_m: float  # true distance driven
     turned_rad: float  # true heading change, summed in absolute value
-    frames_without_fix: int  # camera instants with fewer than ``min_leds`` LEDs in view
+    frames_without_fix: int  # camera instants that gave no fix
+    no_fix_reasons: dict[str, int]  # why, counted
 
     @property
     def truth(self) -> FloatArray:
@@ -265,7 +334,7 @@ def simulate_log(
     seconds: float,
     *,
     wheel_errors: WheelErrorModel | None = None,
-    fixes: VlpFixModel | None = None,
+    fixes: VlpFixModel | FixSource | None = None,
     seed: int = 0,
 ) -> SimulatedRun:
     """Drive ``world.route`` for ``seconds`` of simulated time; see the module docstring."""
@@ -274,7 +343,6 @@ def simulate_log(
     if seconds <= 0.0:
         raise ValueError("seconds must be positive")
     wheel_errors = wheel_errors or WheelErrorModel()
-    fix_model = fixes or VlpFixModel()
     rng = np.random.default_rng(seed)
     clock = _FakeClock()
     sim = Simulation(world, clock=clock, seed=seed)
@@ -284,15 +352,16 @@ def simulate_log(
         world, wheel_errors, sim.wheels().position_rad, np.random.default_rng(rng.integers(1 << 32))
     )
     fix_rng = np.random.default_rng(rng.integers(1 << 32))
+    source: FixSource = (
+        _ModelledFixes(world, fixes or VlpFixModel(), fix_rng)
+        if fixes is None or isinstance(fixes, VlpFixModel)
+        else fixes
+    )
     follower = RouteFollower(world.route, world.route_speed_mps)
-    # The agent's LED map is the world's bent by the survey error; a fix inherits the mean error of the
-    # LEDs it was solved from (same order: ``surveyed_leds`` moves each LED of ``world.leds``).
-    survey_error_m = np.array(
-        [(s.x_m - t.x_m, s.y_m - t.y_m) for t, s in zip(world.leds, surveyed_leds(world), strict=True)]
-    ).reshape(-1, 2)
+    odometry_history = _OdometryHistory()
     scan_period_s = 60.0 / world.laser.scan_rpm
     scan_every = max(round(scan_period_s / TICK_S), 1)
-    fix_every = max(round(1.0 / fix_model.rate_hz / TICK_S), 1)
+    fix_every = max(round(1.0 / source.rate_hz / TICK_S), 1)
     # The first scan is stamped once a whole sweep has been measured.
     first_scan_tick = (
         math.ceil(-float(geometry.beam_time_s[0]) / TICK_S) if geometry.beam_time_s is not None else 0
@@ -301,7 +370,7 @@ def simulate_log(
     found: list[TimedFix] = []
     found_leds: list[int] = []
     found_truth: list[tuple[float, float, float]] = []
-    misses = 0
+    misses: collections.Counter[str] = collections.Counter()
     distance_m = turned_rad = 0.0
     last_truth = sim.pose()
     ticks = round(seconds / TICK_S)
@@ -316,6 +385,7 @@ def simulate_log(
         )
         last_truth = truth
         odometry.update(sim.wheels().position_rad)
+        odometry_history.add(clock.t_s, odometry.pose)
         if tick >= first_scan_tick and (tick - first_scan_tick) % scan_every == 0:
             ranges = scanner.ranges(clock.t_s)
             records.append(
@@ -328,24 +398,15 @@ def simulate_log(
                 )
             )
         if tick % fix_every == 0:
-            visible = leds_in_view(world, truth, world.leds)
-            if len(visible) >= fix_model.min_leds:
-                bias = survey_error_m[visible].mean(axis=0)
-                noise = fix_rng.standard_normal(3) * np.array(
-                    [fix_model.sigma_xy_m, fix_model.sigma_xy_m, fix_model.sigma_yaw_rad]
-                )
-                yaw = math.atan2(math.sin(truth.yaw_rad + noise[2]), math.cos(truth.yaw_rad + noise[2]))
-                fix = PoseFix(
-                    truth.x_m + bias[0] + noise[0],
-                    truth.y_m + bias[1] + noise[1],
-                    yaw,
-                    fix_model.covariance(),
-                )
-                found.append(TimedFix(clock.t_s, fix, odometry.pose.copy()))
-                found_leds.append(len(visible))
-                found_truth.append((truth.x_m, truth.y_m, truth.yaw_rad))
+            got = source(sim, clock.t_s, odometry.pose)
+            if isinstance(got, str):
+                misses[got] += 1
             else:
-                misses += 1
+                t_fix, fix, n_leds = got
+                at = sim.pose_at(t_fix)
+                found.append(TimedFix(t_fix, fix, odometry_history.at(t_fix)))
+                found_leds.append(n_leds)
+                found_truth.append((at.x_m, at.y_m, at.yaw_rad))
         if tick % AUTOPILOT_EVERY == 0:
             sim.set_body_velocity(*follower.command(truth.x_m, truth.y_m, truth.yaw_rad))
     log = SlamLog(f"simulated:{world.name}", LogFormat.SIMULATED, geometry, tuple(records))
@@ -356,5 +417,6 @@ def simulate_log(
         np.array(found_truth, dtype=np.float64).reshape(-1, 3),
         distance_m,
         turned_rad,
-        misses,
+        misses.total(),
+        dict(misses),
     )

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from agent.cli import main
+from agent.commands.sim_fixes import PipelineFixes
 from agent.slam.logs import LogRecord, SlamLog
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.pose import compose
@@ -32,6 +33,13 @@ SECONDS = 60.0
 @pytest.fixture(scope="module")
 def drive() -> SimulatedRun:
     return simulate_log(load_world(OFFICE), SECONDS, seed=0)
+
+
+@pytest.fixture(scope="module")
+def camera_drive() -> SimulatedRun:
+    """The same drive with its fixes from rendered frames through the VLP pipeline."""
+    world = load_world(OFFICE)
+    return simulate_log(world, SECONDS, fixes=PipelineFixes(world, seed=0), seed=0)
 
 
 def run_filter(drive: SimulatedRun, log: SlamLog | None = None, with_fixes: bool = False) -> ReplayResult:
@@ -57,6 +65,22 @@ def test_with_vlp_fixes_the_trajectory_stays_within_15_mm(drive: SimulatedRun) -
     assert 0 <= len(drive.fixes) - result.slam.stats.fixes_applied < 20
     assert absolute_trajectory_error(drive.truth, result.poses) < 0.015
     assert absolute_trajectory_error(drive.truth, result.online_poses) < 0.015
+
+
+def test_with_fixes_from_the_camera_pipeline_the_trajectory_stays_within_15_mm(
+    camera_drive: SimulatedRun,
+) -> None:
+    # The office repeats LED ids: the pipeline tells them apart by the prior (the last fix carried by
+    # odometry), so every fix must land where the robot was, none at another place with the same ids.
+    fixes = camera_drive.fixes
+    assert len(fixes) > 450  # 600 camera instants; one LED in view leaves some without a fix
+    xy = np.array([(f.fix.x_m, f.fix.y_m) for f in fixes])
+    fix_error = np.hypot(*(xy - camera_drive.fix_truth[:, :2]).T)
+    assert np.mean(fix_error) < 0.008 and np.max(fix_error) < 0.03
+    assert sum(camera_drive.no_fix_reasons.values()) == camera_drive.frames_without_fix
+    result = run_filter(camera_drive, with_fixes=True)
+    assert absolute_trajectory_error(camera_drive.truth, result.poses) < 0.015
+    assert absolute_trajectory_error(camera_drive.truth, result.online_poses) < 0.015
 
 
 def test_bad_scans_are_rejected_and_the_filter_carries_on(drive: SimulatedRun) -> None:
@@ -101,7 +125,10 @@ def test_the_command_reports_ate_with_and_without_fixes(
         assert 0.0 < s["ate_m"] < s["odometry_ate_m"]
         assert s["update_ms_median"] > 0 and s["peak_rss_mb"] > 0
     assert plain["vlp_fixes"] is False and plain["fixes_used"] == 0
-    assert fixed["vlp_fixes"] is True and 130 < fixed["fixes_used"] <= 151  # 10 Hz, a few still pending
+    # 10 Hz from the camera pipeline (the default source); a few still pending, a few instants with one
+    # LED in view.
+    assert fixed["vlp_fixes"] is True and fixed["fix_source"].startswith("pipeline")
+    assert 100 < fixed["fixes_used"] <= 151 and fixed["fix_error_m_mean"] < 0.01
     assert fixed["ate_m"] < 0.015
 
 

@@ -94,7 +94,9 @@ def test_odometry_errs_as_its_model_says(world) -> None:  # type: ignore[no-unty
 
 def test_fixes_have_the_stated_noise_where_two_leds_are_seen(world, run) -> None:  # type: ignore[no-untyped-def]
     model = VlpFixModel()
-    assert len(run.fixes) == 201 and run.frames_without_fix == 0  # 10 Hz; two LEDs always in view here
+    assert (
+        len(run.fixes) == 201 and run.frames_without_fix == 0 and run.no_fix_reasons == {}
+    )  # 10 Hz; two LEDs always in view
     assert min(run.fix_leds) >= 2
     times = np.array([f.t_s for f in run.fixes])
     poses = np.array([[f.fix.x_m, f.fix.y_m, f.fix.yaw_rad] for f in run.fixes], dtype=np.float64)
@@ -123,6 +125,7 @@ def test_an_led_counts_only_inside_the_sensor(world) -> None:  # type: ignore[no
 def test_no_fix_without_enough_leds(world) -> None:  # type: ignore[no-untyped-def]
     blind = simulate_log(world, 3.0, fixes=VlpFixModel(min_leds=99), seed=1)
     assert blind.fixes == () and blind.frames_without_fix == 31
+    assert blind.no_fix_reasons == {"fewer than 99 LEDs in view": 31}
 
 
 def test_a_world_without_a_route_is_refused(world) -> None:  # type: ignore[no-untyped-def]
