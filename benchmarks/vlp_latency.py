@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.commands.eval_vlp import agent_view
+from agent.sim_view import agent_view
 from agent.vlp.model import VlpFix
 from agent.vlp.pipeline import VlpPipeline
 from drivers.sim.render import RollingShutterRenderer

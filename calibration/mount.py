@@ -289,24 +289,12 @@ def _camera_info(ctx: StepContext, options: argparse.Namespace, world: Any) -> t
     if options.camera_info:
         raise CalibrationError(f"no such camera_info file: {path}")
     if world is not None:
-        from agent.vlp.model import CameraIntrinsics
-        from drivers.sim.worldfile import nominal_camera
+        from agent.sim_view import nominal_intrinsics
 
-        cam = nominal_camera(world)
-        cx, cy = cam.principal_point_px
-        intr = CameraIntrinsics.from_sensor(
-            sensor_width_px=cam.sensor_width_px,
-            sensor_height_px=cam.sensor_height_px,
-            output_width_px=cam.output_width_px,
-            output_height_px=cam.output_height_px,
-            focal_length_px=cam.focal_length_px,
-            cx_sensor_px=cx,
-            cy_sensor_px=cy,
-            t_row_s=cam.t_row_s,
-        )
+        intr = nominal_intrinsics(world)
         k = np.array([[intr.fx_px, 0, intr.cx_px], [0, intr.fy_px, intr.cy_px], [0, 0, 1.0]])
         return CameraInfo.from_matrices(
-            intr.width_px, intr.height_px, k, np.array(cam.distortion)
+            intr.width_px, intr.height_px, k, np.array(intr.distortion)
         ), "the nominal camera"
     raise CalibrationError(
         f"no camera calibration: run `vlp-agent calibrate intrinsics` first (it writes {path}) or pass "

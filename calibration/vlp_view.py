@@ -11,17 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
+from agent.sim_view import nominal_intrinsics
 from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap, MapLed
 from calibration.camera_info import parse_camera_info
 from calibration.context import StepContext
 from calibration.report import CalibrationError
 from drivers.errors import ConfigError
-from drivers.sim.render import nearest_indices
-from drivers.sim.world import World
 
-__all__ = ["VlpView", "intrinsics_from_sensor", "led_map_from_toml", "view_for"]
+__all__ = ["VlpView", "led_map_from_toml", "view_for"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,33 +27,6 @@ class VlpView:
     led_map: LedMap | None
     mount: CameraMount
     source: str
-
-
-def _line(src: int, dst: int) -> tuple[float, float]:
-    """Sensor index = a * output index + b for a nearest-neighbour resize (least squares)."""
-    if src == dst or src <= 0:
-        return 1.0, 0.0
-    a, b = np.polyfit(np.arange(dst, dtype=np.float64), nearest_indices(src, dst).astype(np.float64), 1)
-    return float(a), float(b)
-
-
-def intrinsics_from_sensor(world: World) -> CameraIntrinsics:
-    from drivers.sim.worldfile import nominal_camera
-
-    cam = nominal_camera(world)
-    cx, cy = cam.principal_point_px
-    return CameraIntrinsics.from_sensor(
-        sensor_width_px=cam.sensor_width_px,
-        sensor_height_px=cam.sensor_height_px,
-        output_width_px=cam.output_width_px,
-        output_height_px=cam.output_height_px,
-        focal_length_px=cam.focal_length_px,
-        cx_sensor_px=cx,
-        cy_sensor_px=cy,
-        t_row_s=cam.t_row_s,
-        exposure_s=cam.exposure_s,
-        distortion=cam.distortion,
-    )
 
 
 def _with_camera_info(base: CameraIntrinsics, path: Path) -> CameraIntrinsics:
@@ -108,7 +78,7 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
         world = ctx.sim.load()
         from drivers.sim.worldfile import surveyed_leds
 
-        intrinsics = intrinsics_from_sensor(world)
+        intrinsics = nominal_intrinsics(world)
         leds: LedMap | None = LedMap(
             tuple(
                 MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m)
@@ -133,24 +103,21 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
                 f"{ctx.config} has no camera calibration ([vlp] camera_info or [vlp.intrinsics])"
             )
         c = vlp.intrinsics
-        a, b = _line(c.sensor_height_px, c.height_px)
         if not c.t_row_s > 0:
             raise CalibrationError(
                 f"{ctx.config}: [vlp.rolling_shutter] t_row_s is needed to read LED stripes"
             )
-        intrinsics = CameraIntrinsics(
-            c.width_px,
-            c.height_px,
-            c.fx_px,
-            c.fy_px,
-            c.cx_px,
-            c.cy_px,
-            c.t_row_s,
-            a,
-            b,
-            c.sensor_height_px,
-            c.exposure_s,
-            c.distortion,
+        intrinsics = CameraIntrinsics.from_output(
+            width_px=c.width_px,
+            height_px=c.height_px,
+            fx_px=c.fx_px,
+            fy_px=c.fy_px,
+            cx_px=c.cx_px,
+            cy_px=c.cy_px,
+            t_row_s=c.t_row_s,
+            sensor_height_px=c.sensor_height_px,
+            exposure_s=c.exposure_s,
+            distortion=c.distortion,
         )
         leds = None
         if vlp.leds is not None:

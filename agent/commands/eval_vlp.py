@@ -46,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.commands.worlds import EXAMPLES
+from agent.sim_view import agent_view
 from agent.vlp.calibration import (
     VlpCalibration,
     fit_residual_correction,
@@ -54,10 +55,6 @@ from agent.vlp.calibration import (
     parse_calibration,
 )
 from agent.vlp.model import (
-    CameraIntrinsics,
-    CameraMount,
-    LedMap,
-    MapLed,
     PosePrior,
     VlpFix,
     VlpResult,
@@ -66,7 +63,7 @@ from agent.vlp.pipeline import VlpPipeline
 from drivers.errors import ConfigError
 from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer
 from drivers.sim.world import Pose2D, World
-from drivers.sim.worldfile import load_world, nominal_camera, surveyed_leds
+from drivers.sim.worldfile import load_world
 
 log = logging.getLogger(__name__)
 
@@ -116,40 +113,6 @@ def add_parser(sub: Any) -> None:
         metavar=("X0", "Y0", "X1", "Y1"),
         help="test area in metres (default: the LED map's bounding box)",
     )
-
-
-# -- the agent's view of a world -----------------------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class AgentView:
-    intrinsics: CameraIntrinsics
-    led_map: LedMap
-    mount: CameraMount
-
-
-def agent_view(world: World) -> AgentView:
-    """What the robot is told: the nominal camera, the surveyed LED map, the nominal mount (no tilt error)."""
-    cam = nominal_camera(world)
-    cx, cy = cam.principal_point_px
-    intrinsics = CameraIntrinsics.from_sensor(
-        sensor_width_px=cam.sensor_width_px,
-        sensor_height_px=cam.sensor_height_px,
-        output_width_px=cam.output_width_px,
-        output_height_px=cam.output_height_px,
-        focal_length_px=cam.focal_length_px,
-        cx_sensor_px=cx,
-        cy_sensor_px=cy,
-        t_row_s=cam.t_row_s,
-        exposure_s=cam.exposure_s,
-        distortion=cam.distortion,
-    )
-    leds = LedMap(
-        tuple(
-            MapLed(led.id, led.x_m, led.y_m, led.z_m, led.frequency_hz, led.duty, led.diameter_m)
-            for led in surveyed_leds(world)
-        )
-    )
-    m = world.robot.camera_mount
-    return AgentView(intrinsics, leds, CameraMount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad))
 
 
 def default_area(world: World) -> tuple[float, float, float, float]:

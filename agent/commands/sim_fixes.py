@@ -25,8 +25,8 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from agent.commands.eval_vlp import agent_view
 from agent.config import VlpConfig
+from agent.sim_view import agent_view
 from agent.slam.fix import PoseFix
 from agent.slam.pose import between, compose
 from agent.vlp.model import PosePrior, VlpFix

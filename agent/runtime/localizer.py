@@ -34,17 +34,6 @@ class FrameLocalizer(Protocol):
     def process(self, frame: Frame, tilt: Tilt | None, prior: Prior | None) -> AbsoluteFix | NoFix: ...
 
 
-def _nearest_line(src: int, dst: int) -> tuple[float, float]:
-    """Sensor index = a * output index + b: the least-squares line through the indices OpenCV's
-    nearest-neighbour resize keeps (index = min(floor(x * src / dst), src - 1))."""
-    if src == dst or src <= 0:
-        return 1.0, 0.0
-    x = np.arange(dst, dtype=np.float64)
-    chosen = np.minimum(np.floor(x * (1.0 / (dst / src))), src - 1)
-    a, b = np.polyfit(x, chosen, 1)
-    return float(a), float(b)
-
-
 class VlpLocalizer:
     """``agent.vlp.pipeline.VlpPipeline`` behind the :class:`FrameLocalizer` protocol."""
 
@@ -93,8 +82,7 @@ class VlpLocalizer:
 def _intrinsics_from_config(c: IntrinsicsConfig) -> Any:
     from agent.vlp.model import CameraIntrinsics
 
-    a_y, b_y = _nearest_line(c.sensor_height_px, c.height_px) if c.sensor_height_px else (1.0, 0.0)
-    return CameraIntrinsics(
+    return CameraIntrinsics.from_output(
         width_px=c.width_px,
         height_px=c.height_px,
         fx_px=c.fx_px,
@@ -102,32 +90,9 @@ def _intrinsics_from_config(c: IntrinsicsConfig) -> Any:
         cx_px=c.cx_px,
         cy_px=c.cy_px,
         t_row_s=c.t_row_s,
-        sensor_rows_per_row=a_y,
-        sensor_row_offset=b_y,
         sensor_height_px=c.sensor_height_px,
         exposure_s=c.exposure_s,
         distortion=c.distortion,
-    )
-
-
-def _world_intrinsics(world: World) -> Any:
-    """The simulated camera as the agent's calibration knows it (``nominal_camera``)."""
-    from agent.vlp.model import CameraIntrinsics
-    from drivers.sim.worldfile import nominal_camera
-
-    cam = nominal_camera(world)
-    cx, cy = cam.principal_point_px
-    return CameraIntrinsics.from_sensor(
-        sensor_width_px=cam.sensor_width_px,
-        sensor_height_px=cam.sensor_height_px,
-        output_width_px=cam.output_width_px,
-        output_height_px=cam.output_height_px,
-        focal_length_px=cam.focal_length_px,
-        cx_sensor_px=cx,
-        cy_sensor_px=cy,
-        t_row_s=cam.t_row_s,
-        exposure_s=cam.exposure_s,
-        distortion=cam.distortion,
     )
 
 
@@ -151,7 +116,9 @@ def make_localizer(
     if config.intrinsics is not None:
         intrinsics = _intrinsics_from_config(config.intrinsics)
     elif world is not None:
-        intrinsics = _world_intrinsics(world)
+        from agent.sim_view import nominal_intrinsics
+
+        intrinsics = nominal_intrinsics(world)
     else:
         return None, "no camera calibration"
     if config.leds is not None:

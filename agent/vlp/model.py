@@ -115,6 +115,42 @@ class CameraIntrinsics:
             distortion=distortion,
         )
 
+    @classmethod
+    def from_output(
+        cls,
+        *,
+        width_px: int,
+        height_px: int,
+        fx_px: float,
+        fy_px: float,
+        cx_px: float,
+        cy_px: float,
+        t_row_s: float,
+        sensor_height_px: int = 0,
+        exposure_s: float = 20e-6,
+        distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    ) -> CameraIntrinsics:
+        """Intrinsics calibrated at output resolution (a camera_info file, a config) of frames resized
+        with nearest neighbour from ``sensor_height_px`` rows (0: not resized): the sensor row of each
+        output row is worked out as in :meth:`from_sensor`."""
+        a_y, b_y = (
+            _nearest_neighbour_line(sensor_height_px, height_px) if sensor_height_px > 0 else (1.0, 0.0)
+        )
+        return cls(
+            width_px=width_px,
+            height_px=height_px,
+            fx_px=fx_px,
+            fy_px=fy_px,
+            cx_px=cx_px,
+            cy_px=cy_px,
+            t_row_s=t_row_s,
+            sensor_rows_per_row=a_y,
+            sensor_row_offset=b_y,
+            sensor_height_px=sensor_height_px,
+            exposure_s=exposure_s,
+            distortion=distortion,
+        )
+
     @property
     def t_row_eff_s(self) -> float:
         """Time between consecutive output rows: t_row * sensor rows per output row."""

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from agent.commands.eval_vlp import agent_view
+from agent.sim_view import agent_view
 from agent.vlp.model import VlpFix
 from agent.vlp.pipeline import VlpPipeline
 from drivers.sim.render import LedCover, RollingShutterRenderer

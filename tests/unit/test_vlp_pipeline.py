@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.commands.eval_vlp import agent_view
+from agent.sim_view import agent_view
 from agent.vlp.calibration import ResidualCorrection, VlpCalibration
 from agent.vlp.model import NoFix, PosePrior, VlpFix
 from agent.vlp.pipeline import VlpPipeline
