@@ -129,11 +129,26 @@ _FTDI_LATENCY = (
 )
 _DXL_CONFIG = '[servos]\nbackend = "dynamixel"\nurl = "{path}"\nbaudrate = %d'
 
+
 # Sources: ../shared/reference/devices.md sections 1, 2, 4 and 7 (udev rules of Hokuyo users, Interbotix,
 # ROBOTIS turtlebot3 `turtlebot3_bringup/script/99-turtlebot3-cdc.rules`); USB3 Vision interface codes
 # from Aravis `src/arvuvinterfaceprivate.h` (class 0xEF, subclass 0x05; protocol 0 control, 1 event,
 # 2 streaming); UVC is the USB-IF Video class 0x0E, subclass 1 = VideoControl.
 # The first matching row wins, so exact ids come before vendor-wide rows and those before class rules.
+def _mindvision(key: str, vendor_id: int) -> KnownDevice:
+    return KnownDevice(
+        key=key,
+        name="MindVision camera",
+        detail="vendor SDK only (libMVSDK.so + mvsdk.py): not UVC/V4L2, not GenTL",
+        match=UsbMatch(vendor_id, None),
+        transport=Transport.USB,
+        kind=DeviceKind.CAMERA,
+        backend="mvsdk",
+        config='[camera]\nbackend = "mvsdk"',
+        notes=("needs the MindVision Linux SDK and its udev rule 88-mvusb.rules",),
+    )
+
+
 KNOWN_DEVICES: tuple[KnownDevice, ...] = (
     KnownDevice(
         key="hokuyo-urg",
@@ -226,28 +241,8 @@ KNOWN_DEVICES: tuple[KnownDevice, ...] = (
         kernel_driver="cp210x",
         generic_id=True,
     ),
-    KnownDevice(
-        key="mindvision",
-        name="MindVision camera",
-        detail="vendor SDK only (libMVSDK.so + mvsdk.py): not UVC/V4L2, not GenTL",
-        match=UsbMatch(0xF622, None),
-        transport=Transport.USB,
-        kind=DeviceKind.CAMERA,
-        backend="mvsdk",
-        config='[camera]\nbackend = "mvsdk"',
-        notes=("needs the MindVision Linux SDK and its udev rule 88-mvusb.rules",),
-    ),
-    KnownDevice(
-        key="mindvision-080b",
-        name="MindVision camera",
-        detail="vendor SDK only (libMVSDK.so + mvsdk.py): not UVC/V4L2, not GenTL",
-        match=UsbMatch(0x080B, None),
-        transport=Transport.USB,
-        kind=DeviceKind.CAMERA,
-        backend="mvsdk",
-        config='[camera]\nbackend = "mvsdk"',
-        notes=("needs the MindVision Linux SDK and its udev rule 88-mvusb.rules",),
-    ),
+    # MindVision ships under two USB vendor ids.
+    *(_mindvision(key, vendor) for key, vendor in (("mindvision", 0xF622), ("mindvision-080b", 0x080B))),
     KnownDevice(
         key="usb3vision",
         name="USB3 Vision camera",
