@@ -36,6 +36,7 @@ from typing import Any
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import BACKENDS, DeviceKind, backend_class
 from drivers.sim.world import World
+from drivers.toml_table import TomlTable, type_name
 
 __all__ = [
     "AgentConfig",
@@ -308,53 +309,8 @@ def parse_config(data: Mapping[str, Any] | str, file: str = "<config>") -> Agent
 
 
 # -- reading tables ------------------------------------------------------------------------------------
-def _type_name(value: object) -> str:
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int):
-        return "an integer"
-    if isinstance(value, float):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, list):
-        return "an array"
-    if isinstance(value, dict):
-        return "a table"
-    return type(value).__name__
-
-
-class _Table:
-    """One TOML table and its dotted path; remembers what was read, to reject unknown keys."""
-
-    def __init__(self, data: Mapping[str, Any], path: str, file: str) -> None:
-        self.data = data
-        self.path = path
-        self.file = file
-        self.used: set[str] = set()
-        self.known: set[str] = set()
-
-    def key(self, name: str) -> str:
-        return f"{self.path}.{name}" if self.path else name
-
-    def error(self, name: str, reason: str) -> ConfigError:
-        return ConfigError(self.key(name), reason, self.file)
-
-    def has(self, name: str) -> bool:
-        self.known.add(name)
-        return name in self.data
-
-    def take(self, name: str) -> Any:
-        self.known.add(name)
-        self.used.add(name)
-        return self.data[name]
-
-    def finish(self) -> None:
-        for name in self.data:
-            if name not in self.used:
-                close = difflib.get_close_matches(name, sorted(self.known), n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise self.error(name, f"unknown key{hint}")
+class _Table(TomlTable):
+    """One table of a config file (see :class:`drivers.toml_table.TomlTable`) with the config's getters."""
 
     # typed getters ---------------------------------------------------------------------------------
     def number(
@@ -364,7 +320,7 @@ class _Table:
             return default
         value = self.take(name)
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.error(name, f"must be a number, not {_type_name(value)}")
+            raise self.error(name, f"must be a number, not {type_name(value)}")
         number = float(value)
         if not math.isfinite(number):
             raise self.error(name, f"must be finite, got {value}")
@@ -395,7 +351,7 @@ class _Table:
             return default
         value = self.take(name)
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(name, f"must be an integer, not {_type_name(value)}")
+            raise self.error(name, f"must be an integer, not {type_name(value)}")
         if check is not None and not check[0](value):
             raise self.error(name, f"{check[1]}, got {value}")
         return value
@@ -405,7 +361,7 @@ class _Table:
             return default
         value = self.take(name)
         if not isinstance(value, str):
-            raise self.error(name, f"must be a string, not {_type_name(value)}")
+            raise self.error(name, f"must be a string, not {type_name(value)}")
         if not value.strip():
             raise self.error(name, "must not be empty")
         return value
@@ -426,20 +382,12 @@ class _Table:
             raise self.error(name, f"must be one of {options}, got {value!r}{hint}")
         return value
 
-    def boolean(self, name: str, default: bool) -> bool:
-        if not self.has(name):
-            return default
-        value = self.take(name)
-        if not isinstance(value, bool):
-            raise self.error(name, f"must be true or false, not {_type_name(value)}")
-        return value
-
     def numbers(self, name: str, n: int) -> tuple[float, ...] | None:
         if not self.has(name):
             return None
         value = self.take(name)
         if not isinstance(value, list) or len(value) != n:
-            raise self.error(name, f"must be an array of {n} numbers, not {_type_name(value)}")
+            raise self.error(name, f"must be an array of {n} numbers, not {type_name(value)}")
         out = []
         for i, v in enumerate(value):
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
@@ -452,7 +400,7 @@ class _Table:
             return None
         value = self.take(name)
         if not isinstance(value, dict):
-            raise self.error(name, f"must be a table ([{self.key(name)}]), not {_type_name(value)}")
+            raise self.error(name, f"must be a table ([{self.key(name)}]), not {type_name(value)}")
         return _Table(value, self.key(name), self.file)
 
     def tables(self, name: str) -> list[_Table] | None:
@@ -461,7 +409,7 @@ class _Table:
         value = self.take(name)
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
             raise self.error(
-                name, f"must be an array of tables ([[{self.key(name)}]]), not {_type_name(value)}"
+                name, f"must be an array of tables ([[{self.key(name)}]]), not {type_name(value)}"
             )
         return [_Table(v, f"{self.key(name)}[{i}]", self.file) for i, v in enumerate(value)]
 
@@ -571,7 +519,7 @@ def _convert_option(option: _Option, value: Any, table: _Table) -> Any:
                 return t(value)
             except ValueError:
                 continue
-    raise table.error(key, f"must be {option.describe()}, not {_type_name(value)} ({value!r})")
+    raise table.error(key, f"must be {option.describe()}, not {type_name(value)} ({value!r})")
 
 
 # -- external files ------------------------------------------------------------------------------------
@@ -790,11 +738,11 @@ class _Reader:
         for name, value in values.items():
             if name == "pixel_format":
                 if not isinstance(value, str):
-                    raise t.error(name, f"must be a string, not {_type_name(value)}")
+                    raise t.error(name, f"must be a string, not {type_name(value)}")
                 converted[name] = value
             elif name in ("width", "height"):
                 if isinstance(value, bool) or not isinstance(value, int):
-                    raise t.error(name, f"must be an integer, not {_type_name(value)}")
+                    raise t.error(name, f"must be an integer, not {type_name(value)}")
                 converted[name] = value
             else:
                 if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):

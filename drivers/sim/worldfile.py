@@ -17,7 +17,6 @@ the readout cannot keep up with) are logged as warnings.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import itertools
 import logging
 import math
@@ -42,6 +41,7 @@ from drivers.sim.world import (
     Wall,
     World,
 )
+from drivers.toml_table import TomlTable, as_float, as_int, type_name
 
 __all__ = ["load_world", "nominal_camera", "parse_world", "surveyed_leds"]
 
@@ -189,40 +189,8 @@ def nominal_camera(world: World) -> CameraModel:
 
 
 # -- a table being read --------------------------------------------------------------------------------------
-class _Table:
-    """One TOML table and its dotted key path; remembers which keys were read to report unknown ones."""
-
-    def __init__(self, data: Mapping[str, Any], path: str, file: str | None) -> None:
-        self.data = data
-        self.path = path
-        self.file = file
-        self.used: set[str] = set()
-        self.expected: set[str] = set()
-
-    def key(self, name: str) -> str:
-        return f"{self.path}.{name}" if self.path else name
-
-    def error(self, name: str, reason: str) -> ConfigError:
-        return ConfigError(self.key(name), reason, self.file)
-
-    def has(self, name: str) -> bool:
-        return name in self.data
-
-    def take(self, name: str) -> Any:
-        self.used.add(name)
-        return self.data[name]
-
-    def finish(self) -> None:
-        """Reject keys nobody read, suggesting the closest known one."""
-        for name in self.data:
-            if name not in self.used:
-                close = difflib.get_close_matches(name, sorted(self.expected | self.used), n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise self.error(name, f"unknown key{hint}")
-
-    def expect(self, *names: str) -> None:
-        """Names the reader knows, for the 'did you mean' hint even when they were absent."""
-        self.expected.update(names)
+class _Table(TomlTable):
+    """One table of a world file (see :class:`drivers.toml_table.TomlTable`) with the world's getters."""
 
     # typed getters ---------------------------------------------------------------------------------
     def number(self, name: str, default: float | None = None, *, required: bool = False) -> float:
@@ -230,14 +198,14 @@ class _Table:
             if required or default is None:
                 raise self.error(name, "missing (a number is required)")
             return default
-        return _as_float(self.take(name), self.key(name), self.file)
+        return as_float(self.take(name), self.key(name), self.file)
 
     def integer(self, name: str, default: int | None = None) -> int:
         if not self.has(name):
             if default is None:
                 raise self.error(name, "missing (an integer is required)")
             return default
-        return _as_int(self.take(name), self.key(name), self.file)
+        return as_int(self.take(name), self.key(name), self.file)
 
     def string(self, name: str, default: str | None = None, *, allow_int: bool = False) -> str:
         if not self.has(name):
@@ -248,17 +216,9 @@ class _Table:
         if allow_int and isinstance(value, int) and not isinstance(value, bool):
             return str(value)
         if not isinstance(value, str):
-            raise self.error(name, f"must be a string, not {_type_name(value)}")
+            raise self.error(name, f"must be a string, not {type_name(value)}")
         if not value.strip():
             raise self.error(name, "must not be empty")
-        return value
-
-    def boolean(self, name: str, default: bool) -> bool:
-        if not self.has(name):
-            return default
-        value = self.take(name)
-        if not isinstance(value, bool):
-            raise self.error(name, f"must be true or false, not {_type_name(value)}")
         return value
 
     def points(self, name: str, *, minimum: int = 1, required: bool = True) -> tuple[Point, ...]:
@@ -268,7 +228,7 @@ class _Table:
             return ()
         value = self.take(name)
         if not isinstance(value, list):
-            raise self.error(name, f"must be a list of [x, y] points, not {_type_name(value)}")
+            raise self.error(name, f"must be a list of [x, y] points, not {type_name(value)}")
         pts = tuple(_as_point(p, f"{self.key(name)}[{i}]", self.file) for i, p in enumerate(value))
         if len(pts) < minimum:
             raise self.error(
@@ -283,7 +243,7 @@ class _Table:
         value = self.take(name)
         if not isinstance(value, dict):
             raise ConfigError(
-                path, f"must be a table ([{path}] or {{...}}), not {_type_name(value)}", self.file
+                path, f"must be a table ([{path}] or {{...}}), not {type_name(value)}", self.file
             )
         return _Table(value, path, self.file)
 
@@ -294,46 +254,15 @@ class _Table:
         path = self.key(name)
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
             raise ConfigError(
-                path, f"must be an array of tables ([[{path}]]), not {_type_name(value)}", self.file
+                path, f"must be an array of tables ([[{path}]]), not {type_name(value)}", self.file
             )
         return [_Table(v, f"{path}[{i}]", self.file) for i, v in enumerate(value)]
-
-
-def _type_name(value: object) -> str:
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int):
-        return "an integer"
-    if isinstance(value, float):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, list):
-        return "an array"
-    if isinstance(value, dict):
-        return "a table"
-    return type(value).__name__
-
-
-def _as_float(value: object, key: str, file: str | None) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError(key, f"must be a number, not {_type_name(value)}", file)
-    result = float(value)
-    if not math.isfinite(result):
-        raise ConfigError(key, f"must be finite, not {value}", file)
-    return result
-
-
-def _as_int(value: object, key: str, file: str | None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(key, f"must be an integer, not {_type_name(value)}", file)
-    return value
 
 
 def _as_point(value: object, key: str, file: str | None) -> Point:
     if not isinstance(value, list) or len(value) != 2:
         raise ConfigError(key, f"must be a point [x, y] in metres, not {value!r}", file)
-    return _as_float(value[0], f"{key}[0]", file), _as_float(value[1], f"{key}[1]", file)
+    return as_float(value[0], f"{key}[0]", file), as_float(value[1], f"{key}[1]", file)
 
 
 # -- dataclasses from tables, field by field -----------------------------------------------------------------
@@ -384,26 +313,26 @@ def _convert(tp: Any, table: _Table, name: str, scale: float) -> Any:
         return value
     raw = table.take(name)
     if tp is float:
-        return _as_float(raw, key, table.file) * scale
+        return as_float(raw, key, table.file) * scale
     if tp is int:
-        return _as_int(raw, key, table.file)
+        return as_int(raw, key, table.file)
     if tp is str:
         if not isinstance(raw, str):
-            raise ConfigError(key, f"must be a string, not {_type_name(raw)}", table.file)
+            raise ConfigError(key, f"must be a string, not {type_name(raw)}", table.file)
         return raw
     if tp is bool:
         if not isinstance(raw, bool):
-            raise ConfigError(key, f"must be true or false, not {_type_name(raw)}", table.file)
+            raise ConfigError(key, f"must be true or false, not {type_name(raw)}", table.file)
         return raw
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(raw, list):
-            raise ConfigError(key, f"must be an array, not {_type_name(raw)}", table.file)
+            raise ConfigError(key, f"must be an array, not {type_name(raw)}", table.file)
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_as_point(p, f"{key}[{i}]", table.file) for i, p in enumerate(raw))
         if len(raw) != len(args):
             raise ConfigError(key, f"must be an array of {len(args)} numbers, got {len(raw)}", table.file)
-        return tuple(_as_float(v, f"{key}[{i}]", table.file) * scale for i, v in enumerate(raw))
+        return tuple(as_float(v, f"{key}[{i}]", table.file) * scale for i, v in enumerate(raw))
     raise ConfigError(key, f"cannot be set from a world file (type {tp})", table.file)
 
 
