@@ -65,6 +65,7 @@ FloatArray = npt.NDArray[np.float64]
 
 N_STATE = 5
 IX, IY, IYAW, IOMEGA, IBIAS = range(N_STATE)
+_EYE = np.eye(N_STATE)
 _H_POSE = np.eye(3, N_STATE)
 _H_POSITION = np.eye(2, N_STATE)
 _H_ODOMETRY_RATE = np.array([[0.0, 0.0, 0.0, 1.0, 0.0]])
@@ -158,25 +159,25 @@ def ekf_predict(
     x_pred[IY] += ds_m * s
     x_pred[IYAW] = _wrap(yaw + omega * dt_s)
     # F = df/dx at x_k-1|k-1
-    F = np.eye(N_STATE)
+    F = _EYE.copy()
     F[IX, IYAW] = -ds_m * s
     F[IX, IOMEGA] = -ds_m * s * 0.5 * dt_s
     F[IY, IYAW] = ds_m * c
     F[IY, IOMEGA] = ds_m * c * 0.5 * dt_s
     F[IYAW, IOMEGA] = dt_s
-    # Q = G_along var_along G_along^T + G_across var_across G_across^T + random walks
-    Q = np.zeros((N_STATE, N_STATE))
+    # P_k|k-1 = F P F^T + Q, with Q = G_along var G_along^T + G_across var G_across^T + random walks. The
+    # along and across unit vectors are orthonormal, so their outer products sum to the identity: the
+    # wheel noise adds sigma^2 to x and y alike.
+    P_pred = F @ P @ F.T
     if odometry_known:
         sigma = noise.odometry_sigma_m_per_m * abs(ds_m) + noise.odometry_floor_m * (ds_m != 0.0)
-        along = np.array([c, s])
-        across = np.array([-s, c])
-        Q[:2, :2] = sigma**2 * (np.outer(along, along) + np.outer(across, across))
+        q_xy = sigma * sigma
     else:
-        Q[IX, IX] = Q[IY, IY] = noise.unseen_speed_mps**2 * dt_s
-    Q[IOMEGA, IOMEGA] = noise.yaw_rate_walk_radps2**2 * dt_s
-    Q[IBIAS, IBIAS] = noise.gyro_bias_walk_radps**2 * dt_s
-    # P_k|k-1 = F P F^T + Q
-    P_pred = F @ P @ F.T + Q
+        q_xy = noise.unseen_speed_mps**2 * dt_s
+    P_pred[IX, IX] += q_xy
+    P_pred[IY, IY] += q_xy
+    P_pred[IOMEGA, IOMEGA] += noise.yaw_rate_walk_radps2**2 * dt_s
+    P_pred[IBIAS, IBIAS] += noise.gyro_bias_walk_radps**2 * dt_s
     return x_pred, P_pred
 
 
@@ -194,6 +195,8 @@ def ekf_update(
     ``yaw_row``: the row of ``z`` that is an angle (its innovation is wrapped). Returns the new x, P, the
     squared Mahalanobis distance of the innovation and whether the measurement was fused.
     """
+    if H.shape[0] == 1:
+        return _ekf_update_scalar(x, P, float(z[0]), H[0], float(R[0, 0]), gate_d2)
     # y = z - H x (innovation; angles wrapped)
     y = z - H @ x
     if yaw_row is not None:
@@ -214,6 +217,24 @@ def ekf_update(
     I_KH = np.eye(N_STATE) - K @ H
     P_new = I_KH @ P @ I_KH.T + K @ R @ K.T
     return x_new, 0.5 * (P_new + P_new.T), d2, True
+
+
+def _ekf_update_scalar(
+    x: FloatArray, P: FloatArray, z: float, h: FloatArray, r: float, gate_d2: float
+) -> tuple[FloatArray, FloatArray, float, bool]:
+    """:func:`ekf_update` for one scalar measurement z = h . x + v (the yaw rates, many times a second).
+
+    With S = h P h^T + r a scalar and K = P h^T / S, the Joseph form (I - K h) P (I - K h)^T + K r K^T
+    reduces exactly to P - (P h^T)(P h^T)^T / S: symmetric by construction, no matrix inverse."""
+    ph = P @ h
+    s = float(h @ ph) + r
+    y = z - float(h @ x)
+    d2 = y * y / s
+    if not d2 <= gate_d2:
+        return x, P, d2, False
+    x_new = x + ph * (y / s)
+    x_new[IYAW] = _wrap(float(x_new[IYAW]))
+    return x_new, P - np.outer(ph, ph) * (1.0 / s), d2, True
 
 
 # -- the filter over time ------------------------------------------------------------------------------
@@ -248,6 +269,10 @@ class _Segment:
     t0_ns: int
     t1_ns: int
     ds_m: float
+
+
+def _segment_end(segment: _Segment) -> int:
+    return segment.t1_ns
 
 
 @dataclass
@@ -555,12 +580,18 @@ class PoseFilter:
             return 0.0, False
         ds = 0.0
         covered_ns = 0
-        for seg in self._segments:
-            lo, hi = max(a_ns, seg.t0_ns), min(b_ns, seg.t1_ns)
+        segments = self._segments
+        # The segments are in time order: start at the first one that ends after a_ns.
+        for k in range(bisect.bisect_right(segments, a_ns, key=_segment_end), len(segments)):
+            seg = segments[k]
+            if seg.t0_ns >= b_ns:
+                break
+            lo = a_ns if a_ns > seg.t0_ns else seg.t0_ns
+            hi = b_ns if b_ns < seg.t1_ns else seg.t1_ns
             if hi > lo:
                 ds += seg.ds_m * (hi - lo) / (seg.t1_ns - seg.t0_ns)
                 covered_ns += hi - lo
-        last = self._segments[-1]
+        last = segments[-1]
         lo, hi = max(a_ns, last.t1_ns), min(b_ns, last.t1_ns + self.hold_ns)
         if hi > lo:
             ds += self._speed_before(last.t1_ns) * (hi - lo) * 1e-9
