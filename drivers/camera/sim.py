@@ -29,6 +29,7 @@ from drivers.camera.base import Camera, CameraSettings
 from drivers.errors import ConfigError, DeviceError, DeviceTimeout
 from drivers.samples import Frame
 from drivers.sim.render import FrameTruth, RollingShutterRenderer
+from drivers.sim.render_worker import RenderWorker
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import CameraModel
 
@@ -52,6 +53,8 @@ class SimCamera(Camera):
         seed: seeds the renderer (LED phases, noise) and the frame-start jitter.
         start_jitter_s: each frame's start is delayed by a uniform draw in [0, start_jitter_s).
         truth_history: how many recent frames keep their ground truth.
+        render_process: draw the frames in a child process (:mod:`drivers.sim.render_worker`), as a real
+            camera delivers them without loading the process that reads them; the same frames.
     """
 
     def __init__(
@@ -62,6 +65,7 @@ class SimCamera(Camera):
         seed: int = 0,
         start_jitter_s: float = 1e-3,
         truth_history: int = 64,
+        render_process: bool = False,
         name: str = "sim-camera",
     ) -> None:
         super().__init__(name, settings)
@@ -72,7 +76,8 @@ class SimCamera(Camera):
         self.start_jitter_s = start_jitter_s
         self.model = self._model(simulation.world.camera, self.requested)
         self._gain_db = 0.0 if self.requested.gain_db is None else self.requested.gain_db
-        self._renderer: RollingShutterRenderer | None = None
+        self.render_process = render_process
+        self._renderer: RollingShutterRenderer | RenderWorker | None = None
         self._rng = np.random.default_rng(seed)
         self._truths: collections.OrderedDict[int, FrameTruth] = collections.OrderedDict()
         self._truth_history = truth_history
@@ -113,7 +118,8 @@ class SimCamera(Camera):
     # -- lifecycle ---------------------------------------------------------------------------------------
     def _open(self) -> None:
         world = self.simulation.world
-        self._renderer = RollingShutterRenderer(
+        kind = RenderWorker if self.render_process else RollingShutterRenderer
+        self._renderer = kind(
             self.model,
             world.leds,
             world.robot.camera_mount,
@@ -129,6 +135,8 @@ class SimCamera(Camera):
             self._truths.clear()
 
     def _close(self) -> None:
+        if isinstance(self._renderer, RenderWorker):
+            self._renderer.close()
         self._renderer = None
         self._free = []
 
@@ -140,7 +148,7 @@ class SimCamera(Camera):
         )
 
     @property
-    def renderer(self) -> RollingShutterRenderer:
+    def renderer(self) -> RollingShutterRenderer | RenderWorker:
         if self._renderer is None:
             raise DeviceError("camera is not open", self.name)
         return self._renderer

@@ -39,6 +39,7 @@ from drivers.errors import (
     DeviceTimeout,
 )
 from drivers.registry import DeviceKind, backend_class
+from drivers.sim.render_worker import RenderWorker
 from drivers.sim.simulation import Simulation
 from drivers.sim.worldfile import load_world
 
@@ -463,3 +464,41 @@ def test_sim_settings_change_what_is_rendered() -> None:
         assert applied == CameraSettings(1280, 960, "Mono8", 40e-6, 6.0, 10.0)
         assert cam.grab(timeout_s=2.0).image.shape == (960, 1280)
         assert cam.model.led_peak_dn == pytest.approx(2 * world.camera.led_peak_dn)
+
+
+def test_sim_render_process_draws_the_same_frames() -> None:
+    # The renderer in a child process (what `vlp-agent sim` uses) against the one in this process: the
+    # same frames pixel for pixel, and the same truth, from the same seed and clock.
+    frames = {}
+    for in_child in (False, True):
+        clock = ManualClock()
+        cam = SimCamera(
+            Simulation(load_world(ENV1), clock=clock), seed=5, start_jitter_s=0.0, render_process=in_child
+        )
+        with cam:
+            got = []
+            for _ in range(3):
+                clock.t += 1.0 / cam.model.frame_rate_hz + cam.renderer.readout_s
+                frame = cam.grab(timeout_s=0.5)
+                got.append((frame.image, cam.truth(frame.sequence)))
+        frames[in_child] = got
+    for (image, truth), (image_child, truth_child) in zip(frames[False], frames[True], strict=True):
+        assert np.array_equal(image, image_child)
+        assert truth == truth_child
+    assert frames[True][0][0].max() > 100  # LEDs drawn, not an empty frame
+
+
+def test_sim_render_process_that_dies_is_a_disconnect_and_reopening_starts_another() -> None:
+    clock = FastClock()
+    cam = SimCamera(Simulation(load_world(ENV1), clock=clock), render_process=True)
+    with cam:
+        cam.grab(timeout_s=2.0)
+        worker = cam.renderer
+        assert isinstance(worker, RenderWorker)
+        worker._process.kill()
+        worker._process.join(2.0)
+        with pytest.raises(DeviceDisconnected):
+            cam.grab(timeout_s=2.0)
+        cam.close()
+        cam.open()
+        assert cam.grab(timeout_s=2.0).image.max() > 100
