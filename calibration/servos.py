@@ -352,7 +352,7 @@ def _sim_bus(ctx: StepContext) -> Iterator[tuple[str, Watcher, dict[str, int]]]:
     57600 bps, position mode), the right one a spare from another robot (id 3, 1 Mbps, extended position).
     Yields the port, a function telling which wheel a servo turned (the simulation's truth, as someone
     watching would), and the world's left/right ids."""
-    from calibration.sim import BaudAwareDynamixelBus
+    from drivers.fakes.dynamixel import BaudAwareDynamixelBus
     from drivers.fakes.pty import PtyServer
     from drivers.sim.simulation import Simulation
 

@@ -7,18 +7,13 @@
   track, where the laser and camera sit); a real robot differs from it by a worn tyre, a bracket a degree off.
   Each step's simulated robot is built with such deviations (seeded) in what that step measures, so the
   calibration has something to find, and the report compares the estimate with the truth.
-* :class:`BaudAwareDynamixelBus`: the fake servo bus with each servo listening at its own Baud Rate
-  register, so a bus scan finds servos at the rates they are set to, and writing Baud Rate moves a servo.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import math
-import os
-import termios
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -26,16 +21,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from drivers.fakes.dynamixel import FakeDynamixelBus
-from drivers.servos.control_table import BAUD_RATES
 from drivers.sim.raycast import cast_rays, walls_array
-from drivers.sim.simulation import Simulation
 from drivers.sim.targets import Target, TargetLighting, TargetRenderer
 from drivers.sim.world import CameraModel, Mount, Pose2D, World
 
 __all__ = [
     "AsBuilt",
-    "BaudAwareDynamixelBus",
     "BoardHelper",
     "as_built",
     "corner_viewpoint",
@@ -261,77 +252,3 @@ def corner_viewpoint(world: World, distance_m: float = 1.3) -> Pose2D:
     if best is None:
         raise ValueError("the world has no room corner the robot can face from there")
     return best[1]
-
-
-# -- servos -------------------------------------------------------------------------------------------------
-_TERMIOS_BAUD = {
-    getattr(termios, f"B{rate}"): rate for rate in BAUD_RATES.values() if hasattr(termios, f"B{rate}")
-}
-
-
-class BaudAwareDynamixelBus(FakeDynamixelBus):
-    """The fake bus with baud rates: a servo hears (and answers) only when the port runs at the rate its Baud
-    Rate register (8) selects, and an ID written to a servo takes effect on the bus at once, as on the real
-    thing. The port's rate is read from the pty's terminal settings, which the client sets; call
-    :meth:`attach` with the pty path once it is served."""
-
-    def __init__(self, simulation: Simulation | None = None, ids: tuple[int, ...] = ()) -> None:
-        super().__init__(simulation, ids)
-        self._fd: int | None = None
-        self._path: str | None = None
-
-    def attach(self, path: str) -> None:
-        self._path = path
-
-    def close(self) -> None:
-        if self._fd is not None:
-            with contextlib.suppress(OSError):
-                os.close(self._fd)
-            self._fd = None
-
-    def set_servo(
-        self,
-        servo_id: int,
-        *,
-        new_id: int | None = None,
-        baud_index: int | None = None,
-        mode: int | None = None,
-    ) -> None:
-        """Put a servo in a state (as it came from the factory, or from another robot)."""
-        servo = self.servo(servo_id)
-        table = servo.table
-        for name, value in (("Baud Rate", baud_index), ("Operating Mode", mode), ("ID", new_id)):
-            if value is not None:
-                item = table[name]
-                servo.regs[item.address : item.end] = item.encode(value)
-        self._rekey()
-
-    def line_rate(self) -> int | None:
-        """The rate the client set on the port (None when unknown)."""
-        if self._path is None:
-            return None
-        try:
-            if self._fd is None:
-                self._fd = os.open(self._path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-            speed = termios.tcgetattr(self._fd)[5]
-        except (OSError, termios.error):
-            self.close()
-            return None
-        return _TERMIOS_BAUD.get(speed)
-
-    def _rekey(self) -> None:
-        servos = self._servos
-        for key, servo in list(servos.items()):
-            if servo.id != key:
-                del servos[key]
-                servos[servo.id] = servo
-
-    def receive(self, data: bytes, now: float) -> bytes:
-        rate = self.line_rate()
-        if rate is not None:
-            for servo_id in self.ids:
-                servo = self.servo(servo_id)
-                servo.muted = BAUD_RATES.get(servo.get("Baud Rate")) != rate
-        reply = super().receive(data, now)
-        self._rekey()
-        return reply

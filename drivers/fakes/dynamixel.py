@@ -29,13 +29,17 @@ reply) and :meth:`~FakeDynamixelBus.corrupt_next_reply`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Protocol
 
 from drivers.servos.control_table import (
+    BAUD_RATES,
     RAD_PER_TICK,
     RADPS_PER_VELOCITY_UNIT,
     TICKS_PER_REV,
@@ -75,7 +79,15 @@ from firmware_protocol.dynamixel import (
     parse_command,
 )
 
-__all__ = ["FakeDynamixelBus", "FakeXl430", "FreeMotor", "Motor", "SimulatedWheelMotor", "SimulatedWheels"]
+__all__ = [
+    "BaudAwareDynamixelBus",
+    "FakeDynamixelBus",
+    "FakeXl430",
+    "FreeMotor",
+    "Motor",
+    "SimulatedWheelMotor",
+    "SimulatedWheels",
+]
 
 log = logging.getLogger(__name__)
 
@@ -480,7 +492,17 @@ class FakeDynamixelBus:
                 if isinstance(packet, InstructionPacket):
                     self.instructions += 1
                     self._handle(packet, now, replies)
+                    # An ID written takes effect at once: the servo answers to its new ID from the next
+                    # packet on (EEPROM, so only with the torque off, which the servo itself checks).
+                    self._rekey()
             return self._wire(replies)
+
+    def _rekey(self) -> None:
+        servos = self._servos
+        for key, servo in list(servos.items()):
+            if servo.id != key:
+                del servos[key]
+                servos[servo.id] = servo
 
     def _wire(self, replies: list[bytes]) -> bytes:
         if not replies:
@@ -636,3 +658,70 @@ class FakeDynamixelBus:
             items.append(FastReadItem(servo.id, servo.status_error(number), data.ljust(length, b"\x00")))
         if items:
             replies.append(encode_fast_read_status(items))
+
+
+# -- a bus with baud rates -----------------------------------------------------------------------------------
+_TERMIOS_BAUD = {
+    getattr(termios, f"B{rate}"): rate for rate in BAUD_RATES.values() if hasattr(termios, f"B{rate}")
+}
+
+
+class BaudAwareDynamixelBus(FakeDynamixelBus):
+    """The fake bus with baud rates: a servo hears (and answers) only when the port runs at the rate its Baud
+    Rate register (8) selects, as on the real thing, so a bus scan finds servos at the rates they are set
+    to and writing Baud Rate moves a servo to another rate. The port's rate is read from the pty's
+    terminal settings, which the client sets; call :meth:`attach` with the pty path once it is served.
+    (Muting, the fault switch of :class:`FakeDynamixelBus`, is taken over by the baud rates here.)"""
+
+    def __init__(self, simulation: Simulation | None = None, ids: tuple[int, ...] = ()) -> None:
+        super().__init__(simulation, ids)
+        self._fd: int | None = None
+        self._path: str | None = None
+
+    def attach(self, path: str) -> None:
+        self._path = path
+
+    def close(self) -> None:
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = None
+
+    def set_servo(
+        self,
+        servo_id: int,
+        *,
+        new_id: int | None = None,
+        baud_index: int | None = None,
+        mode: int | None = None,
+    ) -> None:
+        """Put a servo in a state (as it came from the factory, or from another robot)."""
+        servo = self.servo(servo_id)
+        table = servo.table
+        for name, value in (("Baud Rate", baud_index), ("Operating Mode", mode), ("ID", new_id)):
+            if value is not None:
+                item = table[name]
+                servo.regs[item.address : item.end] = item.encode(value)
+        with self._lock:
+            self._rekey()
+
+    def line_rate(self) -> int | None:
+        """The rate the client set on the port (None when unknown)."""
+        if self._path is None:
+            return None
+        try:
+            if self._fd is None:
+                self._fd = os.open(self._path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            speed = termios.tcgetattr(self._fd)[5]
+        except (OSError, termios.error):
+            self.close()
+            return None
+        return _TERMIOS_BAUD.get(speed)
+
+    def receive(self, data: bytes, now: float) -> bytes:
+        rate = self.line_rate()
+        if rate is not None:
+            for servo_id in self.ids:
+                servo = self.servo(servo_id)
+                servo.muted = BAUD_RATES.get(servo.get("Baud Rate")) != rate
+        return super().receive(data, now)

@@ -13,8 +13,8 @@ from typing import Any
 import pytest
 
 from calibration.servos import Bus, apply, plan_changes, scan
-from calibration.sim import BaudAwareDynamixelBus
 from drivers.errors import DeviceNotFound
+from drivers.fakes.dynamixel import BaudAwareDynamixelBus
 from drivers.fakes.pty import PtyServer
 from drivers.servos.control_table import OperatingMode
 from drivers.servos.dynamixel import DynamixelWheels

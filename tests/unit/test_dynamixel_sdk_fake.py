@@ -108,6 +108,18 @@ def test_ping_finds_two_xl430(rig: Rig) -> None:
     assert result == COMM_RX_TIMEOUT
 
 
+def test_an_id_written_takes_effect_at_once(rig: Rig) -> None:
+    # ID (7) is EEPROM: writable with the torque off (as after power-on). The servo answers that very
+    # write from its new id already (which the SDK, waiting for id 2, does not take: sent without waiting
+    # here), and from then on it answers to the new id only.
+    assert rig.ph.write1ByteTxOnly(rig.port, 2, 7, 9) == COMM_SUCCESS
+    assert wait_for(lambda: rig.bus.ids == (1, 9))
+    model, result, error = rig.ph.ping(rig.port, 9)
+    ok(result, error)
+    assert model == 1060
+    assert rig.ph.ping(rig.port, 2)[1] == COMM_RX_TIMEOUT
+
+
 def test_broadcast_ping_lists_both_servos(rig: Rig) -> None:
     found, result = rig.ph.broadcastPing(rig.port)
     assert result == COMM_SUCCESS
