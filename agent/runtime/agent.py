@@ -35,6 +35,7 @@ from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
 from agent.runtime.devices import Devices
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
+from agent.runtime.hotpath import HotPath
 from agent.runtime.localizer import FrameLocalizer
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
@@ -217,6 +218,9 @@ class Agent:
             Source.IMU: int(fc.imu_timeout_s * 1e9),
         }
         self.frames: LatestMailbox[tuple[Frame, int]] = LatestMailbox()
+        # SLAM gives way (between particles) while a frame waits for or is on the hot path.
+        frames = self.frames
+        self.hot_path = HotPath(lambda: frames.pending)
         self.scans: BoundedQueue[Scan] = BoundedQueue(config.slam.queue_size)
         self.slam_fixes: BoundedQueue[AbsoluteFix] = BoundedQueue(4)
         self.odometry_track = OdometryTrack(hold_s=fc.odometry_timeout_s)
@@ -548,7 +552,8 @@ class Agent:
             item = self.frames.take(0.25)
             if item is None or self.localizer is None:
                 continue
-            self._locate(*item)
+            with self.hot_path.busy():
+                self._locate(*item)
 
     def _locate(self, frame: Frame, arrival_ns: int) -> None:
         """The hot path: frame -> fix -> fusion -> pose bytes written."""

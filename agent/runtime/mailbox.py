@@ -47,6 +47,11 @@ class LatestMailbox(Generic[T]):
             self._cond.notify()
             return replaced
 
+    @property
+    def pending(self) -> bool:
+        """An item is waiting (read without the lock: a snapshot, for polling)."""
+        return self._full
+
     def take(self, timeout_s: float) -> T | None:
         """The newest item, waiting up to ``timeout_s``; None on timeout. Raises MailboxClosed."""
         deadline = time.monotonic() + timeout_s
