@@ -29,8 +29,10 @@ The chain (``reference/vlp.md`` §1.4, the reference paper's Fig. 1(b)):
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -45,6 +47,7 @@ ImageU8 = npt.NDArray[np.uint8]
 __all__ = [
     "Classification",
     "DecoderConfig",
+    "LedRequest",
     "SpectralPeriod",
     "SplineInterpolator",
     "StripeDecoder",
@@ -59,6 +62,10 @@ __all__ = [
 ]
 
 MODES = ("row_mean", "middle_column")
+
+# One LED to decode: (centre_px, radius_px, background_dn, fft_check), as the arguments of
+# StripeDecoder.features.
+LedRequest = tuple[tuple[float, float], float, float, bool]
 
 
 @dataclass(frozen=True, slots=True)
@@ -215,14 +222,21 @@ def lexw_threshold(
     ``smoothed``: the samples already went through the ``smooth_samples`` box filter."""
     n = samples.size
     smooth = samples if smoothed else box_smooth(samples, config.smooth_samples)
-    lo_all, hi_all = float(smooth.min()), float(smooth.max())
-    global_level = 0.5 * (max(lo_all, background_dn) + hi_all)
+    if n < 2:
+        level = 0.5 * (max(float(smooth.min()), background_dn) + float(smooth.max())) if n else 0.0
+        thresholds = np.full(n, level)
+        return samples > thresholds, thresholds
     # Local extrema: where the sign of the first difference changes (XOR of the binarised difference with
     # its shift), plus both ends.
     rising = smooth[1:] > smooth[:-1]
-    turns = (rising[1:] != rising[:-1]).nonzero()[0] + 1
-    ext = np.concatenate(([0], turns, [n - 1]))
-    a, b = smooth[ext[:-1]], smooth[ext[1:]]
+    turn = np.empty(n, dtype=np.bool_)
+    turn[0] = turn[-1] = True
+    np.not_equal(rising[1:], rising[:-1], out=turn[1:-1])
+    ext = turn.nonzero()[0]
+    values = smooth[ext]
+    # The profile's extremes are among its local extrema and ends.
+    lo_all, hi_all = float(values.min()), float(values.max())
+    a, b = values[:-1], values[1:]
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     lo = np.where(lo < background_dn + config.dark_margin_dn, background_dn + config.dark_compensation_dn, lo)
     # A window is a stripe edge when it swings most of the way down to the dark level: by more than
@@ -235,18 +249,20 @@ def lexw_threshold(
     edge = hi - lo > np.maximum(floor, config.min_swing_fraction * (hi - background_dn))
     if edge.size >= 2:
         edge[0] = edge[-1] = False
-    levels = 0.5 * (lo + hi)
     good = edge.nonzero()[0]
     if good.size == 0:
+        global_level = 0.5 * (max(lo_all, background_dn) + hi_all)
         window_level = np.full(edge.size, global_level)
     else:
-        # Each non-edge window takes the level of the edge window before it (the first ones: the first).
-        source = np.maximum.accumulate(np.where(edge, np.arange(edge.size), -1))
-        source[source < 0] = good[0]
-        window_level = levels[source]
+        # Each non-edge window takes the level of the edge window before it (the first ones: the first):
+        # the k-th edge window's level for every window after k edge windows (counted inclusively).
+        levels = 0.5 * (lo[good] + hi[good])
+        count = edge.cumsum()
+        count[count == 0] = 1
+        window_level = levels[count - 1]
     lengths = ext[1:] - ext[:-1]
     lengths[-1] += 1
-    thresholds = np.repeat(window_level, lengths)
+    thresholds = window_level.repeat(lengths)
     return samples > thresholds, thresholds
 
 
@@ -257,10 +273,13 @@ def stripe_edges(
     change = (binary[1:] != binary[:-1]).nonzero()[0]
     if change.size == 0:
         return np.empty(0), np.empty(0, dtype=np.bool_)
-    s0, s1 = samples[change], samples[change + 1]
-    frac = (thresholds[change] - s0) / np.where(s1 != s0, s1 - s0, 1.0)
+    after = change + 1
+    s0 = samples[change]
+    rise = samples[after] - s0
+    rise[rise == 0.0] = 1.0
+    frac = (thresholds[change] - s0) / rise
     positions: FloatArray = (change + np.minimum(np.maximum(frac, 0.0), 1.0)) * step
-    return positions, binary[change + 1]
+    return positions, binary[after]
 
 
 def fft_period(profile: FloatArray, min_period: float = 2.0, window: FloatArray | None = None) -> float:
@@ -424,53 +443,222 @@ def classify_many(
     if batch and signatures:
         if table is None:
             table = signature_table(signatures, t_row_eff_s)
-        period, duty = table
-        inv_p = 1.0 / period
-        cap2 = config.edge_cap_px**2
-        counts = np.array([edges_px[i].size for i in batch])
-        starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-        seg = np.repeat(np.arange(len(batch)), counts)
-        edges = np.concatenate([edges_px[i] for i in batch])
-        up = np.concatenate([rising[i] for i in batch])
-        lo = np.array([spans_px[i][0] for i in batch]) + config.end_margin_px
-        hi = np.array([spans_px[i][1] for i in batch]) - config.end_margin_px
-        phase = edges[None, :] * inv_p[:, None] - np.where(up, 0.0, duty[:, None])
-        angle = (2.0 * math.pi) * phase
-        phi = np.arctan2(
-            np.add.reduceat(np.sin(angle), starts, axis=1), np.add.reduceat(np.cos(angle), starts, axis=1)
-        ) * (0.5 / math.pi)
-        resid = (np.mod(phase - phi[:, seg] + 0.5, 1.0) - 0.5) * period[:, None]
-        sq = resid * resid
-        misfit = np.add.reduceat(np.minimum(sq, cap2), starts, axis=1)
-        inside = (edges >= lo[seg] - config.edge_cap_px) & (edges <= hi[seg] + config.edge_cap_px)
-        matched = (sq <= cap2) & inside
-        matched_r = np.add.reduceat(matched & up, starts, axis=1)
-        matched_f = np.add.reduceat(matched, starts, axis=1) - matched_r
-        lo_c = lo[None, :] * inv_p[:, None] - phi
-        hi_c = hi[None, :] * inv_p[:, None] - phi
-        pred_r = np.floor(hi_c) - np.ceil(lo_c) + 1.0
-        pred_f = np.floor(hi_c - duty[:, None]) - np.ceil(lo_c - duty[:, None]) + 1.0
-        missing = np.maximum(pred_r - matched_r, 0.0) + np.maximum(pred_f - matched_f, 0.0)
-        chi2 = (misfit + missing * cap2) * (1.0 / config.edge_sigma_px**2)
-        loglik = -0.5 * chi2
-        best = loglik.argmax(axis=0)
-        cols = np.arange(len(batch))
-        confidence = 1.0 / np.exp(loglik - loglik[best, cols]).sum(axis=0)
-        best_chi2 = chi2[best, cols]
-        rows = loglik.T.tolist()
-        for j, i in enumerate(batch):
-            n_edges = int(counts[j])
-            ok = n_edges >= 2 and float(best_chi2[j]) <= config.max_misfit_per_edge**2 * n_edges
-            conf = float(confidence[j])
-            chosen = signatures[int(best[j])].id if (conf >= config.min_confidence and ok) else None
-            out[i] = Classification(chosen, conf if ok else 0.0, tuple(rows[j]))
+        results = _classify_batch(
+            np.concatenate([edges_px[i] for i in batch]),
+            np.concatenate([rising[i] for i in batch]),
+            [edges_px[i].size for i in batch],
+            [spans_px[i] for i in batch],
+            signatures,
+            config,
+            table,
+        )
+        for i, result in zip(batch, results, strict=True):
+            out[i] = result
     return [c if c is not None else Classification(None, 0.0, ()) for c in out]
+
+
+_CONSTANTS: list[tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray]]] = []
+
+
+def _signature_constants(period: FloatArray, duty: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """1 / P_k and the phase shift of each edge kind, (0, D_k) as a (2, K, 1) array, of a signature table;
+    the last table's are kept (a decoder keeps its table between frames)."""
+    if _CONSTANTS and _CONSTANTS[0][0] is period and _CONSTANTS[0][1] is duty:
+        return _CONSTANTS[0][2]
+    constants = (1.0 / period, np.multiply.outer((0.0, 1.0), duty)[:, :, None])
+    _CONSTANTS[:] = [(period, duty, constants)]
+    return constants
+
+
+def _classify_batch(
+    edges_px: FloatArray,
+    rising: npt.NDArray[np.bool_],
+    counts: list[int],
+    spans_px: list[tuple[float, float]],
+    signatures: tuple[Signature, ...],
+    config: DecoderConfig,
+    table: tuple[FloatArray, FloatArray],
+    *,
+    within_spans: bool = False,
+) -> list[Classification]:
+    """The classification of LEDs that all have edges (``counts[i]`` >= 1 of them, laid end to end in
+    ``edges_px``), as :func:`classify` (module docstring, step 6), on (K signatures) x (all edges) arrays
+    with per-LED segment sums. ``within_spans``: every edge is known to lie in its LED's span (the
+    decoder's own edges do), so when the cap reaches past the end margins no edge can be outside.
+
+    Per edge e under signature k the phase in cycles is e / P_k - [falling] D_k (D_k times 0 or 1, so a
+    rising edge's phase is exactly e / P_k). Per LED and signature the predicted rising edges in [lo, hi]
+    are floor(hi / P - phi) - ceil(lo / P - phi) + 1, and the falling ones the same with phi + D: both
+    kinds are one (2, K, LEDs) array, as are the matched counts.
+    """
+    period, duty = table
+    inv_p, kind_shift = _signature_constants(period, duty)
+    cap = config.edge_cap_px
+    cap2 = cap * cap
+    starts = [0] * len(counts)
+    for j in range(1, len(counts)):
+        starts[j] = starts[j - 1] + counts[j - 1]
+    # Per LED [lo, hi]: the span less the end margins; per edge, its LED's, widened by the cap (an edge just
+    # outside still matches).
+    span = np.array(
+        [[s0 + config.end_margin_px for s0, _ in spans_px], [s1 - config.end_margin_px for _, s1 in spans_px]]
+    )
+    # The decoder's edges are within [0, length - 1] up to rounding (hence the 1e-6 px of slack).
+    if within_spans and cap >= config.end_margin_px + 1e-6:
+        inside: npt.NDArray[np.bool_] | bool = True
+    else:
+        lo_e, hi_e = span.repeat(counts, axis=1)
+        inside = (edges_px >= lo_e - cap) & (edges_px <= hi_e + cap)
+    kinds = np.array([rising, ~rising])
+    phase = np.multiply.outer(inv_p, edges_px)
+    phase -= np.multiply.outer(duty, kinds[1])
+    angle = (2.0 * math.pi) * phase
+    sums = np.add.reduceat(np.array([np.sin(angle), np.cos(angle)]), starts, axis=2)
+    phi = np.arctan2(sums[0], sums[1]) * (0.5 / math.pi)
+    resid = (np.mod(phase - phi.repeat(counts, axis=1) + 0.5, 1.0) - 0.5) * period[:, None]
+    sq = resid * resid
+    misfit = np.add.reduceat(np.minimum(sq, cap2), starts, axis=1)
+    matched = (sq <= cap2) & inside
+    # Matched edges of each kind per LED, (2, K, LEDs), rising first.
+    matched_kinds = np.add.reduceat(matched[None, :, :] & kinds[:, None, :], starts, axis=2)
+    # The span's ends in cycles after the phase, (2 ends, K, LEDs), then per kind (the falling edges shifted
+    # by D): (2 ends, 2 kinds, K, LEDs).
+    ends = (span[:, None, :] * inv_p[:, None] - phi)[:, None] - kind_shift
+    predicted = np.floor(ends[1]) - np.ceil(ends[0]) + 1.0
+    missing = np.maximum(predicted - matched_kinds, 0.0).sum(axis=0)
+    chi2 = (misfit + missing * cap2) * (1.0 / config.edge_sigma_px**2)
+    loglik = (-0.5 * chi2).T.tolist()
+    out = []
+    limit = config.max_misfit_per_edge**2
+    for n_edges, ll, c2 in zip(counts, loglik, chi2.T.tolist(), strict=True):
+        best = ll.index(max(ll))
+        top = ll[best]
+        confidence = 1.0 / math.fsum([math.exp(v - top) for v in ll])
+        ok = n_edges >= 2 and c2[best] <= limit * n_edges
+        chosen = signatures[best].id if (confidence >= config.min_confidence and ok) else None
+        out.append(Classification(chosen, confidence if ok else 0.0, tuple(ll)))
+    return out
+
+
+class _EdgeBatch(NamedTuple):
+    """The edges of several profiles found together: flat arrays in profile order, with ``bounds[i]`` to
+    ``bounds[i + 1]`` the edges of profile i (positions in its own samples, fractional)."""
+
+    positions: FloatArray
+    rising: npt.NDArray[np.bool_]
+    bounds: list[int]
+
+
+def _lexw_edges_batch(
+    samples: list[FloatArray], backgrounds: list[float], steps: list[float], config: DecoderConfig
+) -> _EdgeBatch:
+    """:func:`lexw_threshold` (on already smoothed samples) and :func:`stripe_edges` of several profiles
+    (each of 2 samples or more) at once: the profiles are laid end to end and every array operation runs
+    once for all of them. The arithmetic per sample, window and edge is that of the single-profile
+    functions; what the concatenation adds is kept out explicitly:
+
+    - each profile's first and last sample are extrema (as the ends of a single profile are);
+    - the "window" from one profile's last extremum to the next one's first is a seam, never an edge, and
+      its one sample (the profile's last) takes the level of the profile's last window, as the single
+      version's last window covers the last sample;
+    - a window takes the level of the edge window before it *within its profile* (the first edge window's
+      for those before it; the profile's global level when it has none);
+    - the binary change across a seam is no edge.
+    """
+    count = len(samples)
+    flat = samples[0] if count == 1 else np.concatenate(samples)
+    total = flat.size
+    starts = [0] * count
+    for i in range(1, count):
+        starts[i] = starts[i - 1] + samples[i - 1].size
+    ends = [s + p.size - 1 for s, p in zip(starts, samples, strict=True)]
+    # Local extrema: where the sign of the first difference changes, plus every profile's two ends.
+    rising = flat[1:] > flat[:-1]
+    turn = np.empty(total, dtype=np.bool_)
+    np.not_equal(rising[1:], rising[:-1], out=turn[1:-1])
+    turn[starts + ends] = True
+    ext = turn.nonzero()[0]
+    values = flat[ext]
+    # Extremum index where each profile's extrema start; window j runs from extremum j to j + 1.
+    first_ext = ext.searchsorted(starts).tolist()
+    hi_all = np.maximum.reduceat(values, first_ext).tolist()
+    n_ext = [b - a for a, b in itertools.pairwise([*first_ext, ext.size])]
+    # Windows per profile: its own (n_ext - 1) plus the seam after it (none after the last profile).
+    n_win = list(n_ext)
+    n_win[-1] -= 1
+    per_profile = []
+    for bg, top in zip(backgrounds, hi_all, strict=True):
+        per_profile.append(
+            (
+                bg,
+                bg + config.dark_margin_dn,
+                bg + config.dark_compensation_dn,
+                max(config.min_swing_dn, config.min_swing_global * (top - bg)),
+            )
+        )
+    bg_w, dark_w, comp_w, floor_w = np.array(per_profile).T.repeat(n_win, axis=1)
+    a, b = values[:-1], values[1:]
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    lo = np.where(lo < dark_w, comp_w, lo)
+    # A window is a stripe edge when it swings most of the way down to the dark level (see
+    # lexw_threshold); the first and last window of a profile with two or more are not, nor are seams.
+    edge = hi - lo > np.maximum(floor_w, config.min_swing_fraction * (hi - bg_w))
+    never = []
+    for i in range(count):
+        own = n_ext[i] - 1
+        if own >= 2:
+            never += [first_ext[i], first_ext[i] + own - 1]
+        if i < count - 1:
+            never.append(first_ext[i] + own)
+    if never:
+        edge[never] = False
+    good = edge.nonzero()[0]
+    # Window levels: the edge windows' own. Edge windows up to and including each window; a window takes
+    # the last of them in its profile, or the profile's first when none precedes it.
+    table = 0.5 * (lo[good] + hi[good])
+    seen = edge.cumsum()
+    before = [0, *seen[[first_ext[i] - 1 for i in range(1, count)]].tolist()]
+    after = [*before[1:], good.size]
+    source = np.maximum(seen - 1, np.array(before).repeat(n_win))
+    bare = [i for i in range(count) if after[i] == before[i]]
+    if bare:
+        # Profiles without an edge window: their global level, appended to the table.
+        lo_all = np.minimum.reduceat(values, first_ext).tolist()
+        levels = [0.5 * (max(lo_all[i], backgrounds[i]) + hi_all[i]) for i in bare]
+        table = np.concatenate((table, levels))
+        for k, i in enumerate(bare):
+            w0 = first_ext[i]
+            source[w0 : w0 + n_win[i]] = good.size + k
+    lengths = ext[1:] - ext[:-1]
+    lengths[-1] += 1
+    thresholds = table[source].repeat(lengths)
+    binary = flat > thresholds
+    # Transitions of the binary profiles (not across a seam), interpolated between samples.
+    change_mask = binary[1:] != binary[:-1]
+    if count > 1:
+        change_mask[ends[:-1]] = False
+    change = change_mask.nonzero()[0]
+    bounds = change.searchsorted([*starts, total]).tolist()
+    if change.size == 0:
+        return _EdgeBatch(np.empty(0), np.empty(0, dtype=np.bool_), bounds)
+    n_changes = [b1 - b0 for b0, b1 in itertools.pairwise(bounds)]
+    offset = np.array(starts).repeat(n_changes)
+    step = np.array(steps).repeat(n_changes)
+    after_c = change + 1
+    s0 = flat[change]
+    rise = flat[after_c] - s0
+    rise[rise == 0.0] = 1.0
+    frac = (thresholds[change] - s0) / rise
+    positions: FloatArray = ((change - offset) + np.minimum(np.maximum(frac, 0.0), 1.0)) * step
+    return _EdgeBatch(positions, binary[after_c], bounds)
 
 
 class StripeDecoder:
     """Profile -> spline -> LEXW -> edges, runs, period, frequency, duty, FFT check -> classification.
 
-    Keeps the spline operators between frames (hence a class); otherwise stateless.
+    Keeps the spline operators between frames (hence a class); otherwise stateless. Several LEDs of one
+    frame are decoded together (:meth:`decode_many`): their profiles go through LEXW, the edge search and
+    the classification as one batch of array operations, which costs little more than one LED.
     """
 
     def __init__(self, config: DecoderConfig = DecoderConfig()) -> None:
@@ -493,32 +681,132 @@ class StripeDecoder:
         """The stripe features of the LED at ``centre_px`` (steps 1-5 of the module docstring). Without
         ``fft_check`` the FFT cross-check is skipped (``fft_period_px`` NaN, ``fft_agrees`` None): a tracker
         runs it on every few frames of a settled LED."""
+        return self.features_many(image, [(centre_px, radius_px, background_dn, fft_check)], t_row_eff_s)[0]
+
+    def features_many(
+        self, image: ImageU8, leds: list[LedRequest], t_row_eff_s: float
+    ) -> list[StripeFeatures]:
+        """:meth:`features` of several LEDs of one frame, each given as (centre_px, radius_px,
+        background_dn, fft_check)."""
+        return self._features(image, leds, t_row_eff_s)[0]
+
+    def decode_many(
+        self,
+        image: ImageU8,
+        leds: list[LedRequest],
+        signatures: tuple[Signature, ...],
+        t_row_eff_s: float,
+    ) -> list[tuple[StripeFeatures, Classification]]:
+        """:meth:`features_many` and :meth:`classify_many` in one go (the edges stay in the batch's arrays
+        between the two)."""
+        features, batch, members = self._features(image, leds, t_row_eff_s)
+        table = self._signature_table(signatures, t_row_eff_s)
+        classes: list[Classification | None] = [None] * len(leds)
+        if batch is not None and signatures:
+            counts = [batch.bounds[j + 1] - batch.bounds[j] for j in range(len(members))]
+            with_edges = [j for j, c in enumerate(counts) if c > 0]
+            if with_edges:
+                keep = [k for j in with_edges for k in range(batch.bounds[j], batch.bounds[j + 1])]
+                everything = len(keep) == batch.positions.size
+                positions = batch.positions if everything else batch.positions[keep]
+                rising = batch.rising if everything else batch.rising[keep]
+                used = [counts[j] for j in with_edges]
+                # The edges as the features hold them (image rows) and back, as classify_many sees them.
+                rows = np.array([features[members[j]].first_row for j in with_edges]).repeat(used)
+                results = _classify_batch(
+                    (positions + rows) - rows,
+                    rising,
+                    used,
+                    [(0.0, float(features[members[j]].length_px - 1)) for j in with_edges],
+                    signatures,
+                    self.config,
+                    table,
+                    within_spans=True,
+                )
+                for j, result in zip(with_edges, results, strict=True):
+                    classes[members[j]] = result
+        out = []
+        for f, c in zip(features, classes, strict=True):
+            if c is None:
+                c = classify(
+                    np.empty(0),
+                    np.empty(0, dtype=np.bool_),
+                    (0.0, float(f.length_px - 1)),
+                    signatures,
+                    t_row_eff_s,
+                    self.config,
+                    table,
+                )
+            out.append((f, c))
+        return out
+
+    def _features(
+        self, image: ImageU8, leds: list[LedRequest], t_row_eff_s: float
+    ) -> tuple[list[StripeFeatures], _EdgeBatch | None, list[int]]:
+        """The features of every LED, the edge batch of those with a profile long enough to decode, and
+        which LEDs those are (in batch order)."""
         cfg = self.config
-        profile, first_row = stripe_profile(image, centre_px, radius_px, cfg)
-        n = profile.size
         nan = math.nan
-        if n < 4:
-            return StripeFeatures(first_row, n, (), (), (), (), nan, nan, nan, nan, None, 0.0)
-        samples, step = self._spline(profile)
-        binary, thresholds = lexw_threshold(samples, background_dn, cfg, smoothed=True)
-        edge_arr, rising_arr = stripe_edges(samples, binary, thresholds, step)
-        contrast = float(profile.max() - profile.min())
-        edges = (edge_arr + first_row).tolist()
-        rising = rising_arr.tolist()
+        profiles: list[tuple[FloatArray, int]] = []
+        members: list[int] = []
+        samples: list[FloatArray] = []
+        steps: list[float] = []
+        backgrounds: list[float] = []
+        for i, (centre_px, radius_px, background_dn, _) in enumerate(leds):
+            profile, first_row = stripe_profile(image, centre_px, radius_px, cfg)
+            profiles.append((profile, first_row))
+            if profile.size >= 4:
+                up, step = self._spline(profile)
+                members.append(i)
+                samples.append(up)
+                steps.append(step)
+                backgrounds.append(background_dn)
+        batch = _lexw_edges_batch(samples, backgrounds, steps, cfg) if members else None
+        out = [
+            StripeFeatures(first_row, profile.size, (), (), (), (), nan, nan, nan, nan, None, 0.0)
+            for profile, first_row in profiles
+        ]
+        if batch is not None:
+            positions = batch.positions.tolist()
+            rising = batch.rising.tolist()
+            for j, i in enumerate(members):
+                b0, b1 = batch.bounds[j], batch.bounds[j + 1]
+                profile, first_row = profiles[i]
+                out[i] = self._summarise(
+                    profile, first_row, positions[b0:b1], rising[b0:b1], t_row_eff_s, leds[i][3]
+                )
+        return out, batch, members
+
+    def _summarise(
+        self,
+        profile: FloatArray,
+        first_row: int,
+        at: list[float],
+        rising: list[bool],
+        t_row_eff_s: float,
+        fft_check: bool,
+    ) -> StripeFeatures:
+        """Runs, period, duty, frequency and the FFT check of one profile from its edges (``at``: in the
+        profile's samples)."""
+        nan = math.nan
+        lowest, highest, _, _ = cv2.minMaxLoc(profile)
+        contrast = float(highest - lowest)
+        edges = [e + first_row for e in at]
         # Interior runs: between consecutive edges; the runs before the first and after the last edge are
-        # cut by the disk outline and say nothing about the period.
-        runs = edge_arr[1:] - edge_arr[:-1]
-        starts_bright = rising_arr[:-1]
-        bright = runs[starts_bright].tolist()
-        dark = runs[~starts_bright].tolist()
+        # cut by the disk outline and say nothing about the period. (A dozen edges: plain floats.)
+        bright: list[float] = []
+        dark: list[float] = []
+        for k in range(len(at) - 1):
+            (bright if rising[k] else dark).append(at[k + 1] - at[k])
         # Period: the complete periods the runs make up, counted between edges of the same kind (from the
         # first to the last rising edge, and likewise falling): sum of spans / number of periods. This is
         # the mean of (bright + dark) over complete periods, each period counted once.
         span, periods = 0.0, 0
-        for same in (rising_arr.nonzero()[0], (~rising_arr).nonzero()[0]):
-            if same.size >= 2:
-                span += float(edge_arr[same[-1]] - edge_arr[same[0]])
-                periods += same.size - 1
+        for kind in (True, False):
+            same = [k for k, r in enumerate(rising) if r is kind]
+            if len(same) >= 2:
+                span += at[same[-1]] - at[same[0]]
+                periods += len(same) - 1
         if periods and bright:
             period = span / periods
             duty = min(sum(bright) / len(bright) / period, 1.0)
@@ -532,7 +820,7 @@ class StripeDecoder:
             p_fft, agrees = self._fft_check(profile, period)
         return StripeFeatures(
             first_row,
-            n,
+            profile.size,
             tuple(edges),
             tuple(rising),
             tuple(bright),
@@ -561,14 +849,20 @@ class StripeDecoder:
             return p_fft, abs(p_fft - period) <= 0.15 * period
         return (p_fft if n >= 2.5 * p_fft else math.nan), None
 
+    def _signature_table(
+        self, signatures: tuple[Signature, ...], t_row_eff_s: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """:func:`signature_table`, kept while the signatures and the row time stay the same."""
+        key = (signatures, t_row_eff_s)
+        if self._table is None or self._table_key != key:
+            self._table_key = key
+            self._table = signature_table(signatures, t_row_eff_s)
+        return self._table
+
     def classify_many(
         self, features: list[StripeFeatures], signatures: tuple[Signature, ...], t_row_eff_s: float
     ) -> list[Classification]:
         """:meth:`classify` of several LEDs' features in one batch."""
-        key = (signatures, t_row_eff_s)
-        if self._table_key != key:
-            self._table_key = key
-            self._table = signature_table(signatures, t_row_eff_s)
         return classify_many(
             [np.asarray(f.edges_px, dtype=np.float64) - f.first_row for f in features],
             [np.asarray(f.rising, dtype=np.bool_) for f in features],
@@ -576,7 +870,7 @@ class StripeDecoder:
             signatures,
             t_row_eff_s,
             self.config,
-            self._table,
+            self._signature_table(signatures, t_row_eff_s),
         )
 
     def classify(
@@ -585,8 +879,5 @@ class StripeDecoder:
         edges = np.asarray(features.edges_px, dtype=np.float64) - features.first_row
         rising = np.asarray(features.rising, dtype=np.bool_)
         span = (0.0, float(features.length_px - 1))
-        key = (signatures, t_row_eff_s)
-        if self._table_key != key:
-            self._table_key = key
-            self._table = signature_table(signatures, t_row_eff_s)
-        return classify(edges, rising, span, signatures, t_row_eff_s, self.config, self._table)
+        table = self._signature_table(signatures, t_row_eff_s)
+        return classify(edges, rising, span, signatures, t_row_eff_s, self.config, table)

@@ -22,8 +22,10 @@ Steps for a whole frame (the reference's Otsu + 20x20 closing + ``bwareaopen``, 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -32,23 +34,33 @@ import numpy.typing as npt
 ImageU8 = npt.NDArray[np.uint8]
 FloatArray = npt.NDArray[np.float64]
 
-# Columns around a rough edge, from outside to inside: left edges (c - 1, c, c + 1), right (c + 1, c, c - 1).
-_LEFT = np.array([-1, 0, 1])
-_RIGHT = np.array([1, 0, -1])
+# Columns around a rough edge, from outside to inside: left edges (c - 1, c, c + 1), right (c + 1, c, c - 1);
+# and the direction into the disk from each (+1 on the left, -1 on the right).
+_AROUND = np.array([[[-1, 0, 1]], [[1, 0, -1]]], dtype=np.intp)
+_INWARD = np.array([[1], [-1]], dtype=np.intp)
 # Below this many outline points the radius is taken from what is known of the LED when that is given.
 _FEW_POINTS = 20
+# Circle fits of this many LEDs or more are done as one batch (fewer: one by one).
+_BATCH_FITS = 3
 # Tukey scale floor: edge points scatter ~0.1-0.3 px about the rim, so a residual of a pixel is an outlier.
 _MIN_SCALE_PX = 0.3
+
+# A tracked LED to measure: (its closed window, centre_px, radius_px, background), as measure_tracked's.
+TrackedLed = tuple[ImageU8, tuple[float, float], float, float]
+# A tracked LED's disk window: (pixels, top-left pixel, box, bridged area, peak).
+_TrackedWindow = tuple[ImageU8, tuple[int, int], tuple[int, int, int, int], int, float]
 
 __all__ = [
     "Blob",
     "DetectorConfig",
+    "TrackedLed",
     "background_level",
     "close_rows",
     "find_blobs",
     "fit_circle",
     "measure_blob",
     "measure_tracked",
+    "measure_tracked_many",
     "refine_circle",
 ]
 
@@ -136,13 +148,20 @@ def fit_circle(x: FloatArray, y: FloatArray) -> tuple[float, float, float]:
     xc, yc = x - mx, y - my
     zz = xc * xc + yc * yc
     sxx, syy, sxy = float(xc @ xc), float(yc @ yc), float(xc @ yc)
-    bx, by = -float(xc @ zz), -float(yc @ zz)
+    return _kasa_solve(mx, my, n, sxx, syy, sxy, -float(xc @ zz), -float(yc @ zz), float(zz.sum()))
+
+
+def _kasa_solve(
+    mx: float, my: float, n: float, sxx: float, syy: float, sxy: float, bx: float, by: float, sz: float
+) -> tuple[float, float, float]:
+    """The Kasa circle from the centred sums of :func:`fit_circle` (points' mean (mx, my), n points,
+    S_xx, S_yy, S_xy, b = -(S_xz, S_yz), S_z): (D, E) by Cramer's rule, F = -S_z / n."""
     det = sxx * syy - sxy * sxy
     if det <= 1e-12:
         return mx, my, 0.0
     d = (bx * syy - by * sxy) / det
     e = (sxx * by - sxy * bx) / det
-    f = -float(zz.sum()) / n
+    f = -sz / n
     cx, cy = -0.5 * d, -0.5 * e
     r2 = cx * cx + cy * cy - f
     return cx + mx, cy + my, math.sqrt(max(r2, 0.0))
@@ -251,45 +270,106 @@ def refine_circle(
     return cx, cy, r, rms, float(inliers.mean())
 
 
+class _EdgeRows(NamedTuple):
+    """Sub-pixel disk edges of several sub-windows found together (:func:`_edge_rows`): for every row used,
+    its left edge ``xs[0]``, right edge ``xs[1]`` and the row ``ys`` (each in its own sub-window's
+    coordinates); rows ``bounds[i]`` to ``bounds[i + 1]`` are sub-window i's, top to bottom."""
+
+    xs: FloatArray
+    ys: FloatArray
+    bounds: list[int]
+
+    def points(self, i: int, origin: tuple[int, int]) -> tuple[FloatArray, FloatArray]:
+        """Sub-window i's edge points in the image (its top-left pixel at ``origin``): its rows' left edges,
+        then their right edges."""
+        b0, b1 = self.bounds[i], self.bounds[i + 1]
+        if b1 == b0:
+            empty = np.empty(0)
+            return empty, empty
+        y = self.ys[b0:b1]
+        xs: FloatArray = self.xs[:, b0:b1].ravel() + origin[0]
+        ys: FloatArray = np.concatenate((y, y)) + origin[1]
+        return xs, ys
+
+
 def _edge_points(sub: ImageU8, background: float, peak: float) -> tuple[FloatArray, FloatArray]:
     """Sub-pixel left and right edges of the disk on its bright rows, in ``sub`` coordinates (the
-    component's rows, its columns plus a margin; unclosed pixels).
+    component's rows, its columns plus a margin; unclosed pixels): :func:`_edge_rows` of one sub-window.
+
+    Returns (x, y): the left edges of the rows used, top to bottom, then their right edges.
+    """
+    return _edge_rows([sub], [background], [peak]).points(0, (0, 0))
+
+
+def _edge_rows(subs: list[ImageU8], backgrounds: list[float], peaks: list[float]) -> _EdgeRows:
+    """The disk edges of every sub-window (each with its blob's background and peak level), all rows of all
+    sub-windows in one set of array operations.
 
     A row is used when its brightest pixel reaches half the blob's peak above the background (dark stripe
     rows and their transitions are skipped) and it is not among the top and bottom 15 % of rows, where the
     rim runs nearly along the row and a horizontal crossing is ill-defined. The edge is where the row
     crosses half-way between the background and the value just inside that edge (not the row's peak: the
     disk's radial fall-off would pull the crossing inwards), interpolated linearly between pixels.
+
+    Rows of different widths are stacked zero-padded on the right: padding is never above a threshold, so
+    it changes neither a row's maximum nor its first and last pixel above half of it.
     """
-    h, w = sub.shape
-    if h < 3 or w < 6:
-        empty = np.empty(0)
-        return empty, empty
-    plateau = sub.max(axis=1)
-    # Central rows only: |r - (h - 1)/2| <= 0.425 h.
-    r_lo = max(math.ceil(0.5 * (h - 1) - 0.425 * h), 0)
-    r_hi = min(math.floor(0.5 * (h - 1) + 0.425 * h), h - 1)
-    rows = (plateau[r_lo : r_hi + 1] >= background + 0.5 * (peak - background)).nonzero()[0] + r_lo
+    centrals: list[ImageU8] = []
+    params: list[tuple[float, float, int, int]] = []
+    offset = 0
+    for sub, background, peak in zip(subs, backgrounds, peaks, strict=True):
+        h, w = sub.shape
+        if h < 3 or w < 6:
+            central = sub[:0]
+            r_lo = 0
+        else:
+            # Central rows only: |r - (h - 1)/2| <= 0.425 h.
+            r_lo = max(math.ceil(0.5 * (h - 1) - 0.425 * h), 0)
+            r_hi = min(math.floor(0.5 * (h - 1) + 0.425 * h), h - 1)
+            central = sub[r_lo : r_hi + 1]
+        centrals.append(central)
+        # Per sub-window: the row level that counts as bright, half the background, the last column an
+        # edge may sit on (one inside, so that the three columns read exist), and stacked row -> sub row.
+        params.append((background + 0.5 * (peak - background), 0.5 * background, w - 2, offset - r_lo))
+        offset += central.shape[0]
+    heights = [c.shape[0] for c in centrals]
+    starts = [0] * len(heights)
+    for i in range(1, len(heights)):
+        starts[i] = starts[i - 1] + heights[i - 1]
+    if len(centrals) == 1:
+        stack = centrals[0]
+    else:
+        stack = np.zeros((offset, max(c.shape[1] for c in centrals)), dtype=np.uint8)
+        for c, s in zip(centrals, starts, strict=True):
+            stack[s : s + c.shape[0], : c.shape[1]] = c
+    width = stack.shape[1]
+    per_row = np.array(params).T.repeat(heights, axis=1)
+    plateau = stack.max(axis=1) if offset else np.empty(0)
+    rows = (plateau >= per_row[0]).nonzero()[0]
+    bounds = rows.searchsorted([*starts, offset]).tolist()
     n = rows.size
     if n == 0:
-        empty = np.empty(0)
-        return empty, empty
-    block = sub[rows].astype(np.float64)
+        return _EdgeRows(np.empty((2, 0)), np.empty(0), bounds)
+    block = stack[rows]
+    half_bg, last_col, shift = per_row[1:, rows]
     # The first and last pixels above half the row's peak; the crossing is then refined around them.
-    above = block > (0.5 * background + 0.5 * plateau[rows])[:, None]
-    # Kept one pixel inside the sub-window so that the three columns read below exist.
-    first = np.minimum(np.maximum(above.argmax(axis=1), 1), w - 2)
-    last = np.minimum(np.maximum((w - 1) - above[:, ::-1].argmax(axis=1), 1), w - 2)
-    # Left edges: columns (first - 1, first, first + 1) = outside, edge, inside; right edges mirrored.
-    cols = np.concatenate((first[:, None] + _LEFT, last[:, None] + _RIGHT))
-    vals = block[np.tile(np.arange(n), 2)[:, None], cols]
-    out, edge = vals[:, 0], vals[:, 1]
-    level = 0.5 * background + 0.5 * np.maximum(edge, vals[:, 2])
+    above = block > (half_bg + 0.5 * plateau[rows])[:, None]
+    cols = np.empty((2, n), dtype=np.intp)
+    cols[0] = above.argmax(axis=1)
+    cols[1] = above[:, ::-1].argmax(axis=1)
+    cols[1] = (width - 1) - cols[1]
+    np.minimum(np.maximum(cols, 1, out=cols), last_col.astype(np.intp), out=cols)
+    # Per edge, the pixels outside, at and inside it ((c - 1, c, c + 1) on the left, mirrored on the
+    # right), read from the rows' pixels by flat index (``block`` is a fresh C-ordered copy).
+    flat = (cols + np.arange(0, n * width, width))[:, :, None] + _AROUND
+    vals = block.take(flat).astype(np.float64)
+    out, edge = vals[:, :, 0], vals[:, :, 1]
+    level = half_bg + 0.5 * np.maximum(edge, vals[:, :, 2])
     frac = np.minimum(np.maximum((level - out) / np.maximum(edge - out, 1e-9), 0.0), 1.0)
-    xs: FloatArray = np.concatenate((first - 1 + frac[:n], last + 1 - frac[n:]))
-    r = rows.astype(np.float64)
-    ys: FloatArray = np.concatenate((r, r))
-    return xs, ys
+    # Left: (c - 1) + frac; right: (c + 1) - frac.
+    xs: FloatArray = (cols - _INWARD) + _INWARD * frac
+    ys: FloatArray = rows - shift
+    return _EdgeRows(xs, ys, bounds)
 
 
 def measure_blob(
@@ -379,6 +459,86 @@ def measure_tracked(
     rows are centre +- radius and its columns the same with the edge margin, so no component search is
     needed. ``closed`` is the tracker's closed window around the LED (for the bridged area only). With
     ``radius_hint`` the fit keeps that radius (a partly covered LED)."""
+    window = _tracked_window(image, closed, centre_px, radius_px, background, config)
+    if window is None:
+        return None
+    sub, origin, box, area, peak = window
+    return _outline_blob(
+        sub,
+        origin,
+        box,
+        area,
+        peak,
+        background,
+        (image.shape[1], image.shape[0]),
+        config,
+        radius_hint=radius_hint,
+        centre_hint=centre_px,
+        radius_prior=radius_px,
+    )
+
+
+def measure_tracked_many(image: ImageU8, leds: list[TrackedLed], config: DetectorConfig) -> list[Blob | None]:
+    """:func:`measure_tracked` (without a radius hint) of several LEDs of one frame, each given as
+    (closed window, centre_px, radius_px, background): their edge points and algebraic circle fits are
+    computed together (:func:`_edge_rows`, :func:`_kasa_many`); an LED whose fit needs more (few points,
+    points off the rim, a radius outside the map's range) goes on alone as in :func:`measure_tracked`."""
+    size = (image.shape[1], image.shape[0])
+    out: list[Blob | None] = [None] * len(leds)
+    found: list[tuple[int, _TrackedWindow]] = []
+    for i, (closed, centre, radius, background) in enumerate(leds):
+        window = _tracked_window(image, closed, centre, radius, background, config)
+        if window is not None:
+            found.append((i, window))
+    if not found:
+        return out
+    rows = _edge_rows([w[0] for _, w in found], [leds[i][3] for i, _ in found], [w[4] for _, w in found])
+    counts = [rows.bounds[j + 1] - rows.bounds[j] for j in range(len(found))]
+    # The free fits together when there are a few (for one or two the batch costs more than it saves);
+    # fitted in each sub-window's own coordinates, the centre moved to the image after.
+    free = [j for j, c in enumerate(counts) if 2 * c >= _FEW_POINTS]
+    fits = dict(zip(free, _kasa_many(rows, free), strict=True)) if len(free) >= _BATCH_FITS else {}
+    for j, (i, (_, origin, box, area, peak)) in enumerate(found):
+        _, centre, radius, background = leds[i]
+        fit = fits.get(j)
+        if fit is not None:
+            fit = (fit[0] + origin[0], fit[1] + origin[1], *fit[2:])
+            if _free_fit_is_final(fit, config):
+                out[i] = _make_blob((*fit[:4], 1.0), 2 * counts[j], box, area, peak, background, size, config)
+                continue
+        ex, ey = rows.points(j, origin)
+        if fit is not None:
+            ox, oy, bx1, by1 = box
+            circle = _robust_free_fit(ex, ey, fit, (0.5 * (ox + bx1 - 1), 0.5 * (oy + by1 - 1)), config)
+            out[i] = _make_blob(circle, int(ex.size), box, area, peak, background, size, config)
+            continue
+        out[i] = _outline_from_points(
+            ex,
+            ey,
+            box,
+            area,
+            peak,
+            background,
+            size,
+            config,
+            radius_hint=None,
+            centre_hint=centre,
+            radius_prior=radius,
+        )
+    return out
+
+
+def _tracked_window(
+    image: ImageU8,
+    closed: ImageU8,
+    centre_px: tuple[float, float],
+    radius_px: float,
+    background: float,
+    config: DetectorConfig,
+) -> _TrackedWindow | None:
+    """The window of a tracked LED's disk (rows centre +- radius, columns the same plus the edge margin):
+    (pixels, their top-left pixel in the image, the disk's box, the bridged area above a quarter of the
+    peak in ``closed``, the peak); None when it is too small or not brighter than the background."""
     height, width = image.shape
     u, v = centre_px
     r = radius_px
@@ -393,19 +553,7 @@ def measure_tracked(
     level = background + max(0.25 * (peak - background), 0.5 * config.min_contrast_dn)
     area = int(cv2.countNonZero(cv2.threshold(closed, level, 1, cv2.THRESH_BINARY)[1]))
     box = (max(round(u - r), 0), y0, min(round(u + r) + 1, width), y1)
-    return _outline_blob(
-        sub,
-        (x0, y0),
-        box,
-        area,
-        peak,
-        background,
-        (width, height),
-        config,
-        radius_hint=radius_hint,
-        centre_hint=centre_px,
-        radius_prior=radius_px,
-    )
+    return sub, (x0, y0), box, area, peak
 
 
 def _outline_blob(
@@ -423,16 +571,44 @@ def _outline_blob(
     radius_prior: float | None,
 ) -> Blob | None:
     """Edge points of the disk in ``sub`` (its top-left pixel at ``origin`` in the image) and the circle
-    through them: free (Kasa, robust when points are off the rim, the radius clamped into the map's range),
-    with ``radius_hint`` fixed and robust from ``centre_hint`` (a cover), or, with few points, fixed at
-    ``radius_prior``."""
-    width, height = size
+    through them (:func:`_outline_from_points`)."""
+    ex, ey = _edge_rows([sub], [background], [peak]).points(0, origin)
+    return _outline_from_points(
+        ex,
+        ey,
+        box,
+        area,
+        peak,
+        background,
+        size,
+        config,
+        radius_hint=radius_hint,
+        centre_hint=centre_hint,
+        radius_prior=radius_prior,
+    )
+
+
+def _outline_from_points(
+    ex: FloatArray,
+    ey: FloatArray,
+    box: tuple[int, int, int, int],
+    area: int,
+    peak: float,
+    background: float,
+    size: tuple[int, int],
+    config: DetectorConfig,
+    *,
+    radius_hint: float | None,
+    centre_hint: tuple[float, float] | None,
+    radius_prior: float | None,
+) -> Blob | None:
+    """The circle through a disk's edge points (image coordinates): free (Kasa, robust when points are off
+    the rim, the radius clamped into the map's range), with ``radius_hint`` fixed and robust from
+    ``centre_hint`` (a cover), or, with few points, fixed at ``radius_prior``. Fewer than 6 points: the
+    box's centre, with an infinite rms."""
     ox, oy, bx1, by1 = box
-    ex, ey = _edge_points(sub, background, peak)
     box_centre = (0.5 * (ox + bx1 - 1), 0.5 * (oy + by1 - 1))
     if ex.size >= 6:
-        ex += origin[0]
-        ey += origin[1]
         if radius_hint is None and radius_prior is not None and ex.size < _FEW_POINTS:
             # A whole disk crossed by few stripes: the known radius, the centre by least squares from the
             # algebraic one (a cut outline would show as a large rms and be measured again by the caller).
@@ -453,27 +629,121 @@ def _outline_blob(
             cx, cy, r = fit_circle(ex, ey)
             resid = np.hypot(ex - cx, ey - cy) - r
             rms = math.sqrt(float(resid @ resid) / resid.size)
-            inl = 1.0
-            # The algebraic fit is the geometric one for a well-covered circle without outliers; only when
-            # some edge point is far off the rim (a cover, a reflection) is the robust refinement needed.
-            if max(float(resid.max()), -float(resid.min())) > max(4.0 * rms, 1.0):
-                cx, cy, r, rms, inl = refine_circle(ex, ey, (cx, cy), r)
-            if config.radius_range_px is not None:
-                lo, hi = config.radius_range_px
-                if not 0.85 * lo <= r <= 1.15 * hi:
-                    start = (cx, cy) if math.isfinite(cx) and math.isfinite(cy) else box_centre
-                    r_known = min(max(r, lo), hi) if math.isfinite(r) else 0.5 * (lo + hi)
-                    cx, cy, r, rms, inl = refine_circle(ex, ey, start, r_known, fixed_radius=True)
+            cx, cy, r, rms, inl = _robust_free_fit(
+                ex, ey, (cx, cy, r, rms, max(float(resid.max()), -float(resid.min()))), box_centre, config
+            )
         points = int(ex.size)
     else:
         cx, cy = box_centre
         r = 0.25 * (bx1 - ox + by1 - oy)
         rms, inl, points = math.inf, 0.0, int(ex.size)
+    return _make_blob((cx, cy, r, rms, inl), points, box, area, peak, background, size, config)
+
+
+def _free_fit_is_final(fit: tuple[float, float, float, float, float], config: DetectorConfig) -> bool:
+    """Whether the algebraic fit (cx, cy, r, rms, largest |residual|) stands as it is: no edge point far
+    off the rim and the radius within the map's range (else :func:`_robust_free_fit` refines it)."""
+    _, _, r, rms, worst = fit
+    if worst > max(4.0 * rms, 1.0):
+        return False
+    if config.radius_range_px is not None:
+        lo, hi = config.radius_range_px
+        return 0.85 * lo <= r <= 1.15 * hi
+    return True
+
+
+def _robust_free_fit(
+    ex: FloatArray,
+    ey: FloatArray,
+    fit: tuple[float, float, float, float, float],
+    box_centre: tuple[float, float],
+    config: DetectorConfig,
+) -> tuple[float, float, float, float, float]:
+    """The free circle from the algebraic fit (cx, cy, r, rms, largest |residual|): (cx, cy, r, rms, inlier
+    fraction), refined robustly when an edge point is far off the rim, and at a fixed radius when the radius
+    is outside the map's range."""
+    cx, cy, r, rms, worst = fit
+    inl = 1.0
+    # The algebraic fit is the geometric one for a well-covered circle without outliers; only when some
+    # edge point is far off the rim (a cover, a reflection) is the robust refinement needed.
+    if worst > max(4.0 * rms, 1.0):
+        cx, cy, r, rms, inl = refine_circle(ex, ey, (cx, cy), r)
+    if config.radius_range_px is not None:
+        lo, hi = config.radius_range_px
+        if not 0.85 * lo <= r <= 1.15 * hi:
+            start = (cx, cy) if math.isfinite(cx) and math.isfinite(cy) else box_centre
+            r_known = min(max(r, lo), hi) if math.isfinite(r) else 0.5 * (lo + hi)
+            cx, cy, r, rms, inl = refine_circle(ex, ey, start, r_known, fixed_radius=True)
+    return cx, cy, r, rms, inl
+
+
+def _make_blob(
+    circle: tuple[float, float, float, float, float],
+    points: int,
+    box: tuple[int, int, int, int],
+    area: int,
+    peak: float,
+    background: float,
+    size: tuple[int, int],
+    config: DetectorConfig,
+) -> Blob | None:
+    """The blob of a fitted circle (cx, cy, r, rms, inlier fraction); None when the circle is not finite;
+    flagged when its box is within ``border_fraction`` of the image width of a border."""
+    cx, cy, r, rms, inl = circle
     if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(r)) or r <= 0:
         return None
+    width, height = size
+    ox, oy, bx1, by1 = box
     margin = config.border_fraction * width
     at_border = ox < margin or oy < margin or bx1 > width - margin or by1 > height - margin
     return Blob((cx, cy), r, box, area, peak, background, rms, points, inl, bool(at_border))
+
+
+@functools.lru_cache(maxsize=64)
+def _identity(n: int) -> FloatArray:
+    """The n x n identity (kept: ``np.eye`` is a Python-level call)."""
+    eye: FloatArray = np.eye(n)
+    eye.flags.writeable = False
+    return eye
+
+
+def _kasa_many(rows: _EdgeRows, which: list[int]) -> list[tuple[float, float, float, float, float]]:
+    """:func:`fit_circle` of the edge points of sub-windows ``which`` (each with at least one row, in its
+    own coordinates), with the rms and the largest |residual| of the points about the circle: (cx, cy, r,
+    rms, largest). All sub-windows' sums come from products with the rows' membership matrix (rows x
+    sub-windows, 1 where the row is the sub-window's), each row's two edge points summed first."""
+    counts = [rows.bounds[i + 1] - rows.bounds[i] for i in which]
+    if len(which) == len(rows.bounds) - 1:
+        x, y = rows.xs, rows.ys
+    else:
+        keep = np.concatenate([np.arange(rows.bounds[i], rows.bounds[i + 1]) for i in which])
+        x, y = rows.xs[:, keep], rows.ys[keep]
+    member = _identity(len(which)).repeat(counts, axis=0)
+    n = [2.0 * c for c in counts]
+    sx, sy = (np.array([x[0] + x[1], y]) @ member).tolist()
+    mx = [s / k for s, k in zip(sx, n, strict=True)]
+    my = [2.0 * s / k for s, k in zip(sy, n, strict=True)]
+    centre = member @ np.array([mx, my]).T
+    xc = x - centre[:, 0]
+    yc = y - centre[:, 1]
+    zz = xc * xc + yc * yc
+    zsum = zz.sum(axis=0)
+    per_row = np.array(
+        [(xc * xc).sum(axis=0), 2.0 * yc * yc, (xc[0] + xc[1]) * yc, (xc * zz).sum(axis=0), yc * zsum, zsum]
+    )
+    sxx, syy, sxy, sxz, syz, sz = (per_row @ member).tolist()
+    fits = [
+        _kasa_solve(mx[j], my[j], n[j], sxx[j], syy[j], sxy[j], -sxz[j], -syz[j], sz[j])
+        for j in range(len(which))
+    ]
+    circle = member @ np.array(fits)
+    resid = np.hypot(x - circle[:, 0], y - circle[:, 1]) - circle[:, 2]
+    sq = ((resid * resid).sum(axis=0) @ member).tolist()
+    starts = [0] * len(counts)
+    for j in range(1, len(counts)):
+        starts[j] = starts[j - 1] + counts[j - 1]
+    worst = np.maximum.reduceat(np.abs(resid).max(axis=0), starts).tolist()
+    return [(cx, cy, r, math.sqrt(s / k), w) for (cx, cy, r), s, k, w in zip(fits, sq, n, worst, strict=True)]
 
 
 def find_blobs(

@@ -23,7 +23,13 @@ from agent.vlp.model import CameraIntrinsics, CameraMount, Tilt
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["lens_offset_level", "level_plane_coordinates", "level_rotation", "normalised_coordinates"]
+__all__ = [
+    "lens_offset_level",
+    "level_plane_coordinates",
+    "level_plane_points",
+    "level_rotation",
+    "normalised_coordinates",
+]
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
 
@@ -85,3 +91,29 @@ def level_plane_coordinates(xy: FloatArray, r_level: FloatArray) -> FloatArray:
     m = r_level[:, 0:1].T * xy[:, 0:1] + r_level[:, 1:2].T * xy[:, 1:2] + r_level[:, 2]
     q: FloatArray = m[:, :2] / m[:, 2:3]
     return q
+
+
+def level_plane_points(
+    uv_px: list[tuple[float, float]], intrinsics: CameraIntrinsics, r_level: FloatArray
+) -> list[tuple[float, float]]:
+    """``level_plane_coordinates(normalised_coordinates(uv_px))`` for a few points, as plain floats.
+
+    Without distortion each point is x = (u - cx) / fx, y = (v - cy) / fy, m = R_level (x, y, 1),
+    q = (m_x / m_z, m_y / m_z): a dozen float operations, done here without building arrays (the same
+    operations in the same order, so the same numbers). With distortion the undistortion goes through
+    OpenCV as in :func:`normalised_coordinates`.
+    """
+    if not uv_px:
+        return []
+    if any(k != 0.0 for k in intrinsics.distortion):
+        q = level_plane_coordinates(normalised_coordinates(np.array(uv_px), intrinsics), r_level)
+        return [(a, b) for a, b in q.tolist()]
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r_level.tolist()
+    cx, cy, fx, fy = intrinsics.cx_px, intrinsics.cy_px, intrinsics.fx_px, intrinsics.fy_px
+    out = []
+    for u, v in uv_px:
+        x = (u - cx) / fx
+        y = (v - cy) / fy
+        mz = r20 * x + r21 * y + r22
+        out.append(((r00 * x + r01 * y + r02) / mz, (r10 * x + r11 * y + r12) / mz))
+    return out

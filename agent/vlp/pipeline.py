@@ -23,14 +23,9 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.vlp.calibration import VlpCalibration
-from agent.vlp.decode import DecoderConfig, StripeDecoder, StripeFeatures
-from agent.vlp.detect import DetectorConfig, background_level, find_blobs, measure_blob
-from agent.vlp.geometry import (
-    lens_offset_level,
-    level_plane_coordinates,
-    level_rotation,
-    normalised_coordinates,
-)
+from agent.vlp.decode import DecoderConfig, LedRequest, StripeDecoder
+from agent.vlp.detect import Blob, DetectorConfig, background_level, find_blobs, measure_blob
+from agent.vlp.geometry import lens_offset_level, level_plane_points, level_rotation
 from agent.vlp.model import (
     CameraIntrinsics,
     CameraMount,
@@ -50,6 +45,10 @@ from agent.vlp.track import FULL, LedTrack, LedTracker, TrackerConfig
 log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
+Covariance3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+# The stage timings of a result before the frame's are filled in (immutable, so one serves every frame).
+_NO_TIMINGS = StageTimings()
 
 __all__ = ["VlpConfig", "VlpPipeline"]
 
@@ -130,6 +129,7 @@ class VlpPipeline:
         self._last: _LastFix | None = None
         self._given: tuple[float, PosePrior] | None = None
         self._r_level: tuple[Tilt | None, FloatArray] | None = None
+        self._offset: tuple[Tilt | None, FloatArray] | None = None
 
     def _detector_for_map(self) -> DetectorConfig:
         """Detection tuned to the map: disks from half the smallest the camera can see (a partial cover) to
@@ -242,7 +242,8 @@ class VlpPipeline:
         t0 = time.perf_counter()
         t_eff = self.intrinsics.t_row_eff_s
         features: dict[int, tuple[float, float, int]] = {}
-        decoded: list[tuple[LedTrack, StripeFeatures]] = []
+        chosen: list[tuple[LedTrack, Blob]] = []
+        requests: list[LedRequest] = []
         for track in self.tracker.tracks:
             blob = track.blob
             if track.visibility != FULL or blob is None:
@@ -250,14 +251,13 @@ class VlpPipeline:
             # The track's radius (smoothed over frames) places the profile rows better than one frame's fit.
             # The FFT cross-check of the period: on every frame until the id settles, then every few.
             check = track.id_index is None or track.age % max(cfg.fft_check_interval, 1) == 0
-            feat = self.decoder.features(
-                image, blob.centre_px, track.radius_px, blob.background_dn, t_eff, fft_check=check
-            )
-            decoded.append((track, feat))
-            features[track.track_id] = (feat.frequency_hz, feat.duty, blob.area_px)
-        if decoded:
-            classes = self.decoder.classify_many([f for _, f in decoded], self.signatures, t_eff)
-            for (track, _), cls in zip(decoded, classes, strict=True):
+            requests.append((blob.centre_px, track.radius_px, blob.background_dn, check))
+            chosen.append((track, blob))
+        if chosen:
+            # All LEDs of the frame in one batch: features, then every LED's vote.
+            decoded = self.decoder.decode_many(image, requests, self.signatures, t_eff)
+            for (track, blob), (feat, cls) in zip(chosen, decoded, strict=True):
+                features[track.track_id] = (feat.frequency_hz, feat.duty, blob.area_px)
                 track.vote(cls, cfg.tracker)
         t_decode = time.perf_counter() - t0
 
@@ -388,7 +388,11 @@ class VlpPipeline:
             return (0.0, 0.0, 0.0)
         return (vx, vy, w)
 
-    def _observation(self, track: LedTrack, feature: tuple[float, float, int] | None) -> LedObservation:
+    def _observation(
+        self, track: LedTrack, feature: tuple[float, float, int] | None, map_index: int | None = None
+    ) -> LedObservation:
+        """What the frame says about one track; ``map_index``: the map LED the solver matched it to (the
+        observation is then marked used)."""
         blob = track.blob
         frame = track.frame if track.visibility == FULL else None
         centre = blob.centre_px if blob is not None else track.kf.position
@@ -407,7 +411,28 @@ class VlpPipeline:
             freq,
             duty,
             area,
+            map_index,
+            map_index is not None,
         )
+
+    def _observations(
+        self, features: dict[int, tuple[float, float, int]], matched: dict[int, int] | None = None
+    ) -> list[LedObservation]:
+        """Every track's observation; ``matched`` maps a track's index to the map LED it was matched to
+        (unmatched tracks, and negative indices, are not used)."""
+        tracks = self.tracker.tracks
+        if not matched:
+            return [self._observation(t, features.get(t.track_id)) for t in tracks]
+        return [
+            self._observation(t, features.get(t.track_id), _map_index(matched.get(k)))
+            for k, t in enumerate(tracks)
+        ]
+
+    def _lens_offset(self, tilt: Tilt | None) -> FloatArray:
+        """The lens offset in the level frame for this frame's tilt, kept while the tilt does not change."""
+        if self._offset is None or self._offset[0] != tilt:
+            self._offset = (tilt, lens_offset_level(self.mount, tilt))
+        return self._offset[1]
 
     def _solve(
         self,
@@ -419,26 +444,25 @@ class VlpPipeline:
         reason_if_none: str,
     ) -> VlpFix | NoFix:
         tracks = self.tracker.tracks
-        observations = [self._observation(t, features.get(t.track_id)) for t in tracks]
         usable = [
             k for k, t in enumerate(tracks) if t.centre_ok and t.blob is not None and t.id_index is not None
         ]
-        empty = StageTimings()
+        empty = _NO_TIMINGS
         if not usable:
+            seen = tuple(self._observations(features))
             if not tracks:
-                return NoFix(time_s, reason_if_none, tuple(observations), empty)
+                return NoFix(time_s, reason_if_none, seen, empty)
             if not any(t.centre_ok for t in tracks):
-                return NoFix(
-                    time_s, "no LED fully visible (covered or at the border)", tuple(observations), empty
-                )
-            return NoFix(time_s, "no LED identified yet", tuple(observations), empty)
+                return NoFix(time_s, "no LED fully visible (covered or at the border)", seen, empty)
+            return NoFix(time_s, "no LED identified yet", seen, empty)
 
         intr = self.intrinsics
         blobs = [b for b in (tracks[k].blob for k in usable) if b is not None]
-        uv = np.array([b.centre_px for b in blobs])
-        r_level = self._level_rotation(tilt)
-        q = level_plane_coordinates(normalised_coordinates(uv, intr), r_level)
+        uv = [b.centre_px for b in blobs]
+        q = level_plane_points(uv, intr, self._level_rotation(tilt))
         f_px = min(intr.fx_px, intr.fy_px)
+        sigma_floor = self.config.measurement_sigma_px
+        outline_sigma = self.config.outline_sigma_px
         rays = []
         for row, k in enumerate(usable):
             track = tracks[k]
@@ -447,31 +471,30 @@ class VlpPipeline:
             # The centre's standard deviation falls as 1/sqrt(edge points): a disk crossed by one or two
             # bright stripes (few points, all near its middle rows) is placed less well across them.
             points = max(blob.outline_points if blob is not None else 0, 1)
-            sigma_px = max(self.config.measurement_sigma_px, self.config.outline_sigma_px / math.sqrt(points))
+            sigma_px = max(sigma_floor, outline_sigma / math.sqrt(points))
             rays.append(
                 LedRay(
-                    (float(q[row, 0]), float(q[row, 1])),
+                    q[row],
                     self.led_map.candidates(led_id),
                     sigma_px / f_px,
-                    intr.row_time_from_mid_s(float(uv[row, 1])),
+                    intr.row_time_from_mid_s(float(uv[row][1])),
                 )
             )
-        lens_offset = lens_offset_level(self.mount, tilt)
+        lens_offset = self._lens_offset(tilt)
         lens_z = float(lens_offset[2])
         lens_prior = self._lens_prior(time_s, prior)
         if len(rays) == 1:
-            return self._single(time_s, rays[0], usable[0], observations, lens_prior, lens_z, lens_offset)
+            return self._single(time_s, rays[0], usable[0], features, lens_prior, lens_z, lens_offset)
 
         velocity = self._lens_velocity(time_s, motion)
         solution = solve_pose(
             rays, self.led_map.xyz_m, lens_z, velocity=velocity, prior=lens_prior, config=self.config.solver
         )
         if isinstance(solution, str):
-            return NoFix(time_s, solution, tuple(observations), empty)
+            return NoFix(time_s, solution, tuple(self._observations(features)), empty)
 
         flags: list[str] = []
-        for k, a in zip(usable, solution.assignment, strict=True):
-            observations[k] = _with_map(observations[k], a)
+        observations = self._observations(features, dict(zip(usable, solution.assignment, strict=True)))
         if solution.dropped:
             flags.append("outlier-dropped")
         if any(not t.centre_ok for t in tracks):
@@ -496,15 +519,16 @@ class VlpPipeline:
         time_s: float,
         ray: LedRay,
         track_index: int,
-        observations: list[LedObservation],
+        features: dict[int, tuple[float, float, int]],
         lens_prior: tuple[float, float, float, float, float] | None,
         lens_z: float,
         lens_offset: FloatArray,
     ) -> VlpFix | NoFix:
         """One LED: a degraded fix from the prior's yaw (the SLO-VLP solver), or no fix without a prior."""
-        empty = StageTimings()
+        empty = _NO_TIMINGS
+        observations = tuple(self._observations(features))
         if lens_prior is None:
-            return NoFix(time_s, "one LED in view and no yaw prior", tuple(observations), empty)
+            return NoFix(time_s, "one LED in view and no yaw prior", observations, empty)
         px, py, yaw, sxy, syaw = lens_prior
         own = self._last
         if own is not None and 0.0 <= time_s - own.time_s <= self.config.prior_max_age_s:
@@ -521,7 +545,7 @@ class VlpPipeline:
             return NoFix(
                 time_s,
                 f"one LED in view and the yaw not known to {limit:.0f} deg",
-                tuple(observations),
+                observations,
                 empty,
             )
         xyz = self.led_map.xyz_m
@@ -533,18 +557,18 @@ class VlpPipeline:
             default=None,
         )
         if best is None:
-            return NoFix(time_s, "one LED in view, not in the map", tuple(observations), empty)
+            return NoFix(time_s, "one LED in view, not in the map", observations, empty)
         x, y = single_led_position(
             ray.q, (float(xyz[best, 0]), float(xyz[best, 1]), float(xyz[best, 2])), lens_z, yaw
         )
         if math.hypot(x - px, y - py) > 4.0 * sxy + 0.1:
-            return NoFix(time_s, "one LED in view, far from the prior", tuple(observations), empty)
+            return NoFix(time_s, "one LED in view, far from the prior", observations, empty)
         h = float(xyz[best, 2]) - lens_z
         reach = h * math.hypot(*ray.q)
         var_xy = (h * ray.sigma) ** 2 + (self.config.solver.map_sigma_m) ** 2 + (reach * syaw) ** 2
         cov = np.diag([var_xy, var_xy, syaw**2])
-        observations[track_index] = _with_map(observations[track_index], best)
-        return self._finish(time_s, (x, y, yaw), cov, observations, lens_offset, True, ["single-led"], 0.0)
+        matched = self._observations(features, {track_index: best})
+        return self._finish(time_s, (x, y, yaw), cov, matched, lens_offset, True, ["single-led"], 0.0)
 
     def _finish(
         self,
@@ -564,8 +588,7 @@ class VlpPipeline:
         x = lens[0] - (c * ox - s * oy)
         y = lens[1] - (s * ox + c * oy)
         # d base / d psi = -R'(psi) o, R'(psi) = [[-s, -c], [c, -s]].
-        jac = np.array([[1.0, 0.0, s * ox + c * oy], [0.0, 1.0, -c * ox + s * oy], [0.0, 0.0, 1.0]])
-        cov = jac @ cov_lens @ jac.T
+        cov_t = _moved_covariance(cov_lens, s * ox + c * oy, -c * ox + s * oy)
         if self.calibration is not None and self.calibration.residual is not None:
             x, y = self.calibration.residual.apply(x, y)
         if not degraded:
@@ -573,11 +596,6 @@ class VlpPipeline:
             previous = (self._last.time_s, self._last.lens) if self._last is not None else None
             self._last = _LastFix(time_s, lens, (x, y, yaw_base), previous)
         ids = tuple(o.id for o in observations if o.used and o.id is not None)
-        cov_t = (
-            (float(cov[0, 0]), float(cov[0, 1]), float(cov[0, 2])),
-            (float(cov[1, 0]), float(cov[1, 1]), float(cov[1, 2])),
-            (float(cov[2, 0]), float(cov[2, 1]), float(cov[2, 2])),
-        )
         return VlpFix(
             time_s,
             x,
@@ -589,28 +607,26 @@ class VlpPipeline:
             rms,
             degraded,
             tuple(flags),
-            StageTimings(),
+            _NO_TIMINGS,
         )
 
 
-def _with_map(obs: LedObservation, map_index: int) -> LedObservation:
-    if map_index < 0:
-        return obs
-    return LedObservation(
-        obs.track_id,
-        obs.centre_px,
-        obs.radius_px,
-        obs.visibility,
-        obs.bhattacharyya,
-        obs.frame_id,
-        obs.frame_confidence,
-        obs.id,
-        obs.id_confidence,
-        obs.frequency_hz,
-        obs.duty,
-        obs.area_px,
-        map_index,
-        True,
+def _map_index(index: int | None) -> int | None:
+    """The solver's map index of a ray, None when it was not used (-1) or not solved for."""
+    return index if index is not None and index >= 0 else None
+
+
+def _moved_covariance(cov_lens: FloatArray, jx: float, jy: float) -> Covariance3:
+    """J C J^T for J = [[1, 0, jx], [0, 1, jy], [0, 0, 1]] (the pose moved from the lens to the base,
+    whose position depends on the yaw by (jx, jy)), written out for plain floats: J C adds jx, jy times
+    C's last row to its first two, and (J C) J^T does the same with the columns."""
+    (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = np.asarray(cov_lens, dtype=np.float64).tolist()
+    m00, m01, m02 = c00 + jx * c20, c01 + jx * c21, c02 + jx * c22
+    m10, m11, m12 = c10 + jy * c20, c11 + jy * c21, c12 + jy * c22
+    return (
+        (m00 + m02 * jx, m01 + m02 * jy, m02),
+        (m10 + m12 * jx, m11 + m12 * jy, m12),
+        (c20 + c22 * jx, c21 + c22 * jy, c22),
     )
 
 

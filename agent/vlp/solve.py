@@ -23,6 +23,10 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
+# A Cholesky pivot at or below this fraction of its diagonal entry: the normal matrix is singular to working
+# precision (the pose is not determined by the rays, e.g. one LED without the height held fixed).
+_PIVOT_EPS = 1e-13
+
 __all__ = [
     "LedRay",
     "PoseSolution",
@@ -139,53 +143,186 @@ def gauss_newton_pose(
 
     Returns (p, covariance of p (4x4, or 3x3 without dh), whitened residuals (n, 2)).
     """
+    q_list = np.asarray(q, dtype=np.float64).reshape(-1, 2).tolist()
+    xyz_list = np.asarray(leds_xyz, dtype=np.float64).reshape(-1, 3).tolist()
+    p, cov, res = _gauss_newton(
+        [(a, b) for a, b in q_list],
+        [(a, b, c) for a, b, c in xyz_list],
+        np.asarray(sigma, dtype=np.float64).ravel().tolist(),
+        np.asarray(dt_s, dtype=np.float64).ravel().tolist(),
+        lens_z_m,
+        initial,
+        velocity,
+        height_sigma_m,
+        max_iterations,
+    )
+    whitened: FloatArray = np.array(res, dtype=np.float64).reshape(-1, 2)
+    return np.array(p, dtype=np.float64), np.array(cov, dtype=np.float64), whitened
+
+
+def _gauss_newton(
+    q: list[tuple[float, float]],
+    leds: list[tuple[float, float, float]],
+    sigma: list[float],
+    dt_s: list[float],
+    lens_z_m: float,
+    initial: tuple[float, float, float, float],
+    velocity: tuple[float, float, float],
+    height_sigma_m: float,
+    max_iterations: int,
+) -> tuple[tuple[float, float, float, float], list[list[float]], list[tuple[float, float]]]:
+    """:func:`gauss_newton_pose` on plain floats: (p, covariance, whitened residuals per ray).
+
+    Ray i gives two whitened residuals r = (q_i - qhat_i) / sigma_i, qhat = R(-psi_i)(L_i - c_i) / h_i, and
+    with a = cos(psi_i) / (h_i sigma_i), b = sin(psi_i) / (h_i sigma_i) its two Jacobian rows over
+    (x, y, psi, dh) are
+
+        (-a, -b,  qhat_y / sigma, -qhat_x / (h sigma))
+        ( b, -a, -qhat_x / sigma, -qhat_y / (h sigma))
+
+    so the normal equations J^T J and J^T r are sums of a few products per ray, accumulated directly (no
+    Jacobian matrix), plus the dh prior's row (0, 0, 0, 1 / height_sigma) with residual -dh / height_sigma.
+    They are solved by Cholesky; the covariance is (J^T J)^-1 at the last linearisation.
+    """
     vx, vy, omega = velocity
-    n = q.shape[0]
     free_h = height_sigma_m > 0.0
-    n_par = 4 if free_h else 3
-    p = np.array(initial, dtype=np.float64)
+    x, y, psi, dh = (float(v) for v in initial)
     if not free_h:
-        p[3] = 0.0
-    lx, ly, lz = leds_xyz[:, 0], leds_xyz[:, 1], leds_xyz[:, 2]
-    w = 1.0 / sigma
-    jac = np.zeros((2 * n + (1 if free_h else 0), n_par))
-    res = np.zeros(jac.shape[0])
+        dh = 0.0
+    rays = [
+        (lx, ly, lz - lens_z_m, dt, qx, qy, 1.0 / sg)
+        for (qx, qy), (lx, ly, lz), sg, dt in zip(q, leds, sigma, dt_s, strict=True)
+    ]
+    inv_hs = 1.0 / height_sigma_m if free_h else 0.0
+    low = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0)
+    residuals: list[tuple[float, float]] = []
     for _ in range(max_iterations):
-        psi = p[2] + omega * dt_s
-        c, s = np.cos(psi), np.sin(psi)
-        dx = lx - (p[0] + vx * dt_s)
-        dy = ly - (p[1] + vy * dt_s)
-        h = lz - lens_z_m + p[3]
-        inv_h = 1.0 / h
-        # Predicted q = R(-psi)(L - c) / h; R(-psi) = [[c, s], [-s, c]].
-        px = (c * dx + s * dy) * inv_h
-        py = (-s * dx + c * dy) * inv_h
-        res[0 : 2 * n : 2] = (q[:, 0] - px) * w
-        res[1 : 2 * n : 2] = (q[:, 1] - py) * w
-        # d q / d (x, y, psi, dh): -R(-psi)/h, (py, -px), -q/h.
-        jac[0 : 2 * n : 2, 0] = -c * inv_h * w
-        jac[0 : 2 * n : 2, 1] = -s * inv_h * w
-        jac[0 : 2 * n : 2, 2] = py * w
-        jac[1 : 2 * n : 2, 0] = s * inv_h * w
-        jac[1 : 2 * n : 2, 1] = -c * inv_h * w
-        jac[1 : 2 * n : 2, 2] = -px * w
+        a00 = a02 = a03 = a12 = a13 = a22 = a23 = a33 = 0.0
+        b0 = b1 = b2 = b3 = 0.0
+        residuals = []
+        for lx, ly, hz, dt, qx, qy, w in rays:
+            ps = psi + omega * dt
+            c, s = math.cos(ps), math.sin(ps)
+            dx = lx - (x + vx * dt)
+            dy = ly - (y + vy * dt)
+            inv_h = 1.0 / (hz + dh)
+            # Predicted q = R(-psi)(L - c) / h; R(-psi) = [[c, s], [-s, c]].
+            px = (c * dx + s * dy) * inv_h
+            py = (-s * dx + c * dy) * inv_h
+            r0 = (qx - px) * w
+            r1 = (qy - py) * w
+            ca, sb = c * inv_h * w, s * inv_h * w
+            pxw, pyw = px * w, py * w
+            pxh, pyh = pxw * inv_h, pyw * inv_h
+            residuals.append((r0, r1))
+            a00 += ca * ca + sb * sb
+            a02 -= ca * pyw + sb * pxw
+            a03 += ca * pxh - sb * pyh
+            a12 += ca * pxw - sb * pyw
+            a13 += sb * pxh + ca * pyh
+            a22 += pyw * pyw + pxw * pxw
+            a23 += pxw * pyh - pyw * pxh
+            a33 += pxh * pxh + pyh * pyh
+            b0 += sb * r1 - ca * r0
+            b1 -= sb * r0 + ca * r1
+            b2 += pyw * r0 - pxw * r1
+            b3 -= pxh * r0 + pyh * r1
+        # The x-y cross term is -a b + b a = 0 for every ray, and the x and y diagonals are equal. Without
+        # the height unknown its row and column are those of the identity (the step in it is then 0).
         if free_h:
-            jac[0 : 2 * n : 2, 3] = -px * inv_h * w
-            jac[1 : 2 * n : 2, 3] = -py * inv_h * w
-            res[-1] = -p[3] / height_sigma_m
-            jac[-1, 3] = 1.0 / height_sigma_m
-        normal = jac.T @ jac
-        step = np.linalg.solve(normal, jac.T @ res)
-        p[:n_par] += step
+            a33 += inv_hs * inv_hs
+            b3 += inv_hs * (-dh * inv_hs)
+        else:
+            a03 = a13 = a23 = b3 = 0.0
+            a33 = 1.0
+        low = _pose_cholesky(a00, a02, a03, a12, a13, a22, a23, a33)
+        s0, s1, s2, s3 = _pose_solve(low, b0, b1, b2, b3)
+        x += s0
+        y += s1
+        psi += s2
+        dh += s3
         # Gauss-Newton converges quadratically here (small residuals): after a step below 50 um and 50 urad
         # what is left is of the order of its square, nanometres. From the closed-form start (a few mm off)
         # that is two iterations.
-        if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 5e-5:
+        if abs(s0) + abs(s1) < 5e-5 and abs(s2) < 5e-5:
             break
     # The covariance at the solution: (J^T W J)^-1 (J barely moves in the last, tiny step).
-    covariance: FloatArray = np.linalg.inv(normal)
-    whitened: FloatArray = res[: 2 * n].reshape(n, 2)
-    return p, covariance, whitened
+    inverse = _pose_inverse(low)
+    covariance = [row[:3] for row in inverse[:3]] if not free_h else inverse
+    return (x, y, psi, dh), covariance, residuals
+
+
+_PoseFactor = tuple[float, float, float, float, float, float, float, float]
+
+
+def _pose_cholesky(
+    a00: float, a02: float, a03: float, a12: float, a13: float, a22: float, a23: float, a33: float
+) -> _PoseFactor:
+    """Cholesky factor L (L L^T = A) of the pose's normal matrix
+
+        A = [[a00, 0, a02, a03], [0, a00, a12, a13], [a02, a12, a22, a23], [a03, a13, a23, a33]]
+
+    (x and y decouple: their cross term is 0 and their diagonals are equal), written out for plain floats
+    (a LAPACK call costs many times the arithmetic). Returns (l00, l20, l30, l21, l31, l22, l32, l33); the
+    other entries are l10 = 0 and l11 = l00. Raises ``np.linalg.LinAlgError`` when a pivot is not positive
+    (relative to its diagonal entry): A is singular to working precision, as ``np.linalg.solve`` would
+    report."""
+    if not a00 > 0.0:
+        raise np.linalg.LinAlgError("Singular matrix")
+    l00 = math.sqrt(a00)
+    l20, l30 = a02 / l00, a03 / l00
+    l21, l31 = a12 / l00, a13 / l00
+    p22 = a22 - l20 * l20 - l21 * l21
+    if not p22 > _PIVOT_EPS * abs(a22):
+        raise np.linalg.LinAlgError("Singular matrix")
+    l22 = math.sqrt(p22)
+    l32 = (a23 - l30 * l20 - l31 * l21) / l22
+    p33 = a33 - l30 * l30 - l31 * l31 - l32 * l32
+    if not p33 > _PIVOT_EPS * abs(a33):
+        raise np.linalg.LinAlgError("Singular matrix")
+    return l00, l20, l30, l21, l31, l22, l32, math.sqrt(p33)
+
+
+def _pose_solve(
+    low: _PoseFactor, b0: float, b1: float, b2: float, b3: float
+) -> tuple[float, float, float, float]:
+    """x with L L^T x = b (:func:`_pose_cholesky`): forward substitution L y = b, then back substitution
+    L^T x = y."""
+    l00, l20, l30, l21, l31, l22, l32, l33 = low
+    y0 = b0 / l00
+    y1 = b1 / l00
+    y2 = (b2 - l20 * y0 - l21 * y1) / l22
+    y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
+    x3 = y3 / l33
+    x2 = (y2 - l32 * x3) / l22
+    x1 = (y1 - l21 * x2 - l31 * x3) / l00
+    x0 = (y0 - l20 * x2 - l30 * x3) / l00
+    return x0, x1, x2, x3
+
+
+def _pose_inverse(low: _PoseFactor) -> list[list[float]]:
+    """A^-1 = M^T M with M = L^-1 (lower triangular, :func:`_pose_cholesky`'s L inverted column by
+    column)."""
+    l00, l20, l30, l21, l31, l22, l32, l33 = low
+    m00 = m11 = 1.0 / l00
+    m22 = 1.0 / l22
+    m33 = 1.0 / l33
+    m20 = -(l20 * m00) / l22
+    m21 = -(l21 * m11) / l22
+    m32 = -(l32 * m22) / l33
+    m30 = -(l30 * m00 + l32 * m20) / l33
+    m31 = -(l31 * m11 + l32 * m21) / l33
+    i00 = m00 * m00 + m20 * m20 + m30 * m30
+    i01 = m20 * m21 + m30 * m31
+    i02 = m20 * m22 + m30 * m32
+    i03 = m30 * m33
+    i11 = m11 * m11 + m21 * m21 + m31 * m31
+    i12 = m21 * m22 + m31 * m32
+    i13 = m31 * m33
+    i22 = m22 * m22 + m32 * m32
+    i23 = m32 * m33
+    i33 = m33 * m33
+    return [[i00, i01, i02, i03], [i01, i11, i12, i13], [i02, i12, i22, i23], [i03, i13, i23, i33]]
 
 
 def single_led_position(
@@ -197,54 +334,58 @@ def single_led_position(
     return led_xyz[0] - h * (c * q[0] - s * q[1]), led_xyz[1] - h * (s * q[0] + c * q[1])
 
 
+_Points = list[tuple[float, float, float]]
+
+
 def _weights(
-    rays: list[LedRay], leds: list[int], xyz: FloatArray, lens_z_m: float, map_sigma_m: float
-) -> FloatArray:
+    rays: list[LedRay], leds: list[int], xyz: _Points, lens_z_m: float, map_sigma_m: float
+) -> list[float]:
     """Per-ray sigma in q units: image noise plus the survey error seen from the lens, sigma_map / h."""
-    out = np.empty(len(rays))
-    for k, (ray, idx) in enumerate(zip(rays, leds, strict=True)):
-        h = max(float(xyz[idx, 2]) - lens_z_m, 1e-3)
-        out[k] = math.hypot(ray.sigma, map_sigma_m / h)
-    return out
+    return [
+        math.hypot(ray.sigma, map_sigma_m / max(xyz[idx][2] - lens_z_m, 1e-3))
+        for ray, idx in zip(rays, leds, strict=True)
+    ]
 
 
 def _hypotheses(
     rays: list[LedRay],
-    xyz: FloatArray,
+    xyz: _Points,
     lens_z_m: float,
     prior: tuple[float, float, float, float, float] | None,
     config: SolverConfig,
 ) -> list[tuple[int, ...]]:
     """Assignments of rays to map LEDs worth solving: gated by the prior (each candidate must be near where
     the prior pose says its ray points) and by pairwise distances (|q_i h_i - q_j h_j| = |L_i - L_j|)."""
-    options: list[list[int]] = []
+    options: list[tuple[int, ...]] = []
     for ray in rays:
-        cands = list(ray.candidates)
+        cands = ray.candidates
         if prior is not None and len(cands) > 1:
             px, py, pyaw, sxy, syaw = prior
             c, s = math.cos(pyaw), math.sin(pyaw)
             kept = []
             for idx in cands:
-                h = float(xyz[idx, 2]) - lens_z_m
+                lx, ly, lz = xyz[idx]
+                h = lz - lens_z_m
                 # Where the ray says the LED is, seen from the prior pose: c + h R(psi) q.
-                ex = px + h * (c * ray.q[0] - s * ray.q[1]) - float(xyz[idx, 0])
-                ey = py + h * (s * ray.q[0] + c * ray.q[1]) - float(xyz[idx, 1])
+                ex = px + h * (c * ray.q[0] - s * ray.q[1]) - lx
+                ey = py + h * (s * ray.q[0] + c * ray.q[1]) - ly
                 reach = h * math.hypot(*ray.q)
                 gate = config.prior_gate_sigmas * math.hypot(sxy, syaw * reach) + 0.05
                 if math.hypot(ex, ey) <= gate:
                     kept.append(idx)
-            cands = kept
+            cands = tuple(kept)
+        if not cands:
+            return []
         options.append(cands)
-    if any(not o for o in options):
-        return []
-    count = 1
-    for o in options:
-        count *= len(o)
+    if all(len(o) == 1 for o in options):
+        # One candidate each (ids unique in the map): the one assignment, if no LED is used twice.
+        combo = tuple(o[0] for o in options)
+        return [combo] if len(set(combo)) == len(combo) else []
     out: list[tuple[int, ...]] = []
     for combo in itertools.product(*options):
         if len(set(combo)) < len(combo):
             continue
-        if count > 1 and not _pairs_consistent(rays, combo, xyz, lens_z_m, config):
+        if not _pairs_consistent(rays, combo, xyz, lens_z_m, config):
             continue
         out.append(combo)
         if len(out) >= config.max_hypotheses:
@@ -253,21 +394,23 @@ def _hypotheses(
 
 
 def _pairs_consistent(
-    rays: list[LedRay], combo: tuple[int, ...], xyz: FloatArray, lens_z_m: float, config: SolverConfig
+    rays: list[LedRay], combo: tuple[int, ...], xyz: _Points, lens_z_m: float, config: SolverConfig
 ) -> bool:
     for i in range(len(rays)):
-        hi = float(xyz[combo[i], 2]) - lens_z_m
+        xi, yi, zi = xyz[combo[i]]
+        hi = zi - lens_z_m
         for j in range(i + 1, len(rays)):
-            hj = float(xyz[combo[j], 2]) - lens_z_m
+            xj, yj, zj = xyz[combo[j]]
+            hj = zj - lens_z_m
             seen = math.hypot(rays[i].q[0] * hi - rays[j].q[0] * hj, rays[i].q[1] * hi - rays[j].q[1] * hj)
-            true = math.hypot(xyz[combo[i], 0] - xyz[combo[j], 0], xyz[combo[i], 1] - xyz[combo[j], 1])
+            true = math.hypot(xi - xj, yi - yj)
             if abs(seen - true) > config.pair_tolerance * true + config.pair_tolerance_m:
                 return False
     return True
 
 
 def _initial(
-    rays: list[LedRay], combo: tuple[int, ...], xyz: FloatArray, lens_z_m: float
+    rays: list[LedRay], combo: tuple[int, ...] | list[int], xyz: _Points, lens_z_m: float
 ) -> tuple[float, float, float, float]:
     """The 2-LED closed form on the pair farthest apart in the image (the best conditioned)."""
     best, pair = -1.0, (0, 1)
@@ -277,10 +420,10 @@ def _initial(
             if d > best:
                 best, pair = d, (i, j)
     i, j = pair
-    x, y, yaw, height = two_led_closed_form(
-        rays[i].q, rays[j].q, (xyz[combo[i], 0], xyz[combo[i], 1]), (xyz[combo[j], 0], xyz[combo[j], 1])
-    )
-    surveyed_h = 0.5 * (xyz[combo[i], 2] + xyz[combo[j], 2]) - lens_z_m
+    xi, yi, zi = xyz[combo[i]]
+    xj, yj, zj = xyz[combo[j]]
+    x, y, yaw, height = two_led_closed_form(rays[i].q, rays[j].q, (xi, yi), (xj, yj))
+    surveyed_h = 0.5 * (zi + zj) - lens_z_m
     return x, y, yaw, height - surveyed_h
 
 
@@ -300,12 +443,15 @@ def solve_pose(
     """
     if len(rays) < 2:
         return "fewer than two identified LEDs"
-    hypotheses = _hypotheses(rays, xyz, lens_z_m, prior, config)
+    # The map as plain floats: the solver's arithmetic is on a handful of numbers, where numpy costs more
+    # per call than the work.
+    points: _Points = [(a, b, c) for a, b, c in np.asarray(xyz, dtype=np.float64).reshape(-1, 3).tolist()]
+    hypotheses = _hypotheses(rays, points, lens_z_m, prior, config)
     if not hypotheses:
         return "no placement of the seen LED ids fits the map" + (" near the pose prior" if prior else "")
     scored: list[tuple[float, PoseSolution]] = []
     for combo in hypotheses:
-        solution = _solve_assignment(rays, list(combo), xyz, lens_z_m, velocity, config)
+        solution = _solve_assignment(rays, list(combo), points, lens_z_m, velocity, config)
         if solution is None:
             continue
         # chi^2 of the rays used, plus a dropped ray's worth (the outlier threshold squared) for each ray an
@@ -332,7 +478,7 @@ def solve_pose(
 def _solve_assignment(
     rays: list[LedRay],
     combo: list[int],
-    xyz: FloatArray,
+    xyz: _Points,
     lens_z_m: float,
     velocity: tuple[float, float, float],
     config: SolverConfig,
@@ -343,49 +489,48 @@ def _solve_assignment(
         sub = [rays[k] for k in active]
         idx = [combo[k] for k in active]
         try:
-            init = _initial(sub, tuple(idx), xyz, lens_z_m)
+            init = _initial(sub, idx, xyz, lens_z_m)
         except ValueError:
             return None
-        q = np.array([r.q for r in sub], dtype=np.float64)
         sigma = _weights(sub, idx, xyz, lens_z_m, config.map_sigma_m)
-        dt = np.array([r.dt_s for r in sub], dtype=np.float64)
         try:
-            p, cov, whitened = gauss_newton_pose(
-                q,
-                xyz[idx],
+            p, cov, whitened = _gauss_newton(
+                [r.q for r in sub],
+                [xyz[i] for i in idx],
                 sigma,
-                dt,
+                [r.dt_s for r in sub],
                 lens_z_m,
                 init,
-                velocity=velocity,
-                height_sigma_m=config.height_sigma_m,
-                max_iterations=config.max_iterations,
+                velocity,
+                config.height_sigma_m,
+                config.max_iterations,
             )
         except np.linalg.LinAlgError:
             return None
-        if not np.all(np.isfinite(p)):
+        if not all(math.isfinite(v) for v in p):
             return None
-        norms = np.hypot(whitened[:, 0], whitened[:, 1])
-        worst = int(np.argmax(norms))
+        norms = [math.hypot(r0, r1) for r0, r1 in whitened]
+        # The first of the largest, as argmax.
+        worst = max(range(len(norms)), key=norms.__getitem__)
         if len(active) >= 3 and norms[worst] > config.outlier_sigmas:
             del active[worst]
             dropped += 1
             continue
-        dof = max(2 * len(active) - cov.shape[0] + (1 if config.height_sigma_m > 0 else 0), 0)
-        chi2 = float(np.sum(whitened**2))
+        dof = max(2 * len(active) - len(cov) + (1 if config.height_sigma_m > 0 else 0), 0)
+        chi2 = math.fsum(r0 * r0 + r1 * r1 for r0, r1 in whitened)
         # With redundancy, inflate the covariance when the residuals say the noise is larger than modelled.
         scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
         assignment = [-1] * len(rays)
         residuals = [math.nan] * len(rays)
         for k, a in enumerate(active):
             assignment[a] = combo[a]
-            residuals[a] = float(norms[k])
+            residuals[a] = norms[k]
         return PoseSolution(
-            float(p[0]),
-            float(p[1]),
-            _wrap(float(p[2])),
-            float(p[3]),
-            cov[:3, :3] * scale,
+            p[0],
+            p[1],
+            _wrap(p[2]),
+            p[3],
+            np.array([row[:3] for row in cov[:3]], dtype=np.float64) * scale,
             tuple(assignment),
             tuple(residuals),
             math.sqrt(chi2 / max(2 * len(active), 1)),

@@ -32,13 +32,22 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 from agent.vlp.decode import Classification
-from agent.vlp.detect import Blob, DetectorConfig, close_rows, measure_blob, measure_tracked
+from agent.vlp.detect import (
+    Blob,
+    DetectorConfig,
+    TrackedLed,
+    close_rows,
+    measure_blob,
+    measure_tracked,
+    measure_tracked_many,
+)
 
 FloatArray = npt.NDArray[np.float64]
 ImageU8 = npt.NDArray[np.uint8]
@@ -200,16 +209,20 @@ class LedTrack:
         -``vote_clip``; the tally's spread is then bounded by ``vote_span``. The id settles (or changes) when
         one posterior reaches ``settle_posterior`` after ``settle_frames`` votes."""
         self.frame = classification
-        ll = np.asarray(classification.log_likelihood, dtype=np.float64)
-        if ll.size != self.tally.size or not np.isfinite(ll).all():
+        # A handful of signatures: plain floats (a numpy call costs more than the arithmetic here).
+        ll = classification.log_likelihood
+        tally = self.tally.tolist()
+        if len(ll) != len(tally) or not all(math.isfinite(v) for v in ll):
             return
-        tally = self.tally + np.maximum(ll - ll.max(), -config.vote_clip)
-        top = tally.max()
-        self.tally = np.maximum(tally - top, -config.vote_span)
+        top_ll, clip, span = max(ll), -config.vote_clip, -config.vote_span
+        added = [t + max(v - top_ll, clip) for t, v in zip(tally, ll, strict=True)]
+        top = max(added)
+        tally = [max(t - top, span) for t in added]
+        self.tally = np.array(tally, dtype=np.float64)
         self.votes += 1
-        best = int(self.tally.argmax())
+        best = tally.index(max(tally))
         # Posterior of the best: 1 / sum_k exp(tally_k - tally_best), the best's own tally being 0.
-        self._best_posterior = (best, 1.0 / float(np.exp(self.tally).sum()))
+        self._best_posterior = (best, 1.0 / math.fsum(math.exp(t) for t in tally))
         if self.votes >= config.settle_frames and self._best_posterior[1] >= config.settle_posterior:
             self.id_index = best
 
@@ -235,6 +248,29 @@ def _normalised_bins(background: float, level: float, bins: int) -> npt.NDArray[
     g = np.arange(256, dtype=np.float64)
     x = (g - background) / max(1.25 * (level - background), 1.0)
     return np.clip(np.floor(x * bins), 0, bins - 1).astype(np.uint8)
+
+
+class _Found(NamedTuple):
+    """What :meth:`LedTracker._find` found of a track this frame: its predicted centre, radius, rho and the
+    two histograms (q, p), where to measure the outline (``box`` in the image, ``hint`` CamShift's centre)
+    and, when the LED lies inside the tracking window, that window's closed pixels (else None)."""
+
+    track: LedTrack
+    predicted: tuple[float, float]
+    radius: float
+    rho: float
+    q: FloatArray
+    p: FloatArray
+    box: tuple[int, int, int, int]
+    hint: tuple[float, float]
+    closed: ImageU8 | None
+
+
+def _usable(blob: Blob | None) -> Blob | None:
+    """A measured blob whose outline fit worked (a finite rms), else None."""
+    if blob is None or not math.isfinite(blob.outline_rms_px):
+        return None
+    return blob
 
 
 class LedTracker:
@@ -284,8 +320,9 @@ class LedTracker:
             return np.zeros(self.config.bins)
         weights = k[r0 - cv_ + half : r1 - cv_ + half, c0 - cu + half : c1 - cu + half]
         bins = cv2.LUT(closed[r0:r1, c0:c1], bins_lut)
-        hist = np.bincount(bins.ravel(), weights=weights.ravel(), minlength=self.config.bins).astype(
-            np.float64
+        # With weights, bincount counts in float64.
+        hist = np.asarray(
+            np.bincount(bins.ravel(), weights=weights.ravel(), minlength=self.config.bins), dtype=np.float64
         )
         total = float(hist.sum())
         result: FloatArray = hist * (1.0 / total) if total > 0 else hist
@@ -295,15 +332,37 @@ class LedTracker:
     def step(self, image: ImageU8, time_s: float) -> None:
         """Predict every track, find it with CamShift in its window, tell full / partial / covered by the
         Bhattacharyya coefficient, and measure its centre. Drops tracks that left the image or stayed
-        covered too long."""
+        covered too long.
+
+        The tracks are independent, so this runs in three passes over them: find each LED (CamShift and
+        the histograms), measure the outlines of all LEDs found inside their windows together
+        (:func:`measure_tracked_many`), then judge and update each track."""
         cfg = self.config
         height, width = image.shape
-        kept: list[LedTrack] = []
+        found: list[_Found] = []
         for track in self.tracks:
             track.kf.predict(time_s - track.time_s, cfg.accel_sigma_pxps2)
             track.time_s = time_s
             track.age += 1
-            self._locate(image, track)
+            located = self._find(image, track)
+            if located is not None:
+                found.append(located)
+        # The outlines of the LEDs found inside their tracking windows, all at once; the others alone.
+        requests: list[TrackedLed] = []
+        slots: list[int] = []
+        for k, f in enumerate(found):
+            if f.closed is not None:
+                requests.append((f.closed, f.hint, f.track.radius_px, f.track.background_dn))
+                slots.append(k)
+        first: list[Blob | None] = [None] * len(found)
+        for k, blob in zip(slots, measure_tracked_many(image, requests, self.detector), strict=True):
+            first[k] = _usable(blob)
+        for k, f in enumerate(found):
+            if f.closed is None:
+                first[k] = self._measure(image, f.box, f.track, f.hint, None, None)
+            self._conclude(image, f, first[k])
+        kept: list[LedTrack] = []
+        for track in self.tracks:
             u, v = track.kf.position
             inside = (
                 -track.radius_px < u < width + track.radius_px
@@ -313,7 +372,9 @@ class LedTracker:
                 kept.append(track)
         self.tracks = kept
 
-    def _locate(self, image: ImageU8, track: LedTrack) -> None:
+    def _find(self, image: ImageU8, track: LedTrack) -> _Found | None:
+        """CamShift in the track's predicted window and the Bhattacharyya test of what it found: where to
+        measure the outline, or None when the track coasts (covered, or nothing like the LED there)."""
         cfg = self.config
         height, width = image.shape
         u, v = track.kf.position
@@ -324,7 +385,7 @@ class LedTracker:
         track.blob = None
         if x1 - x0 < 4 or y1 - y0 < 4:
             self._coast(track)
-            return
+            return None
         window = image[y0:y1, x0:x1]
         closed = close_rows(window, self._kernel)
         peak = float(cv2.minMaxLoc(closed)[1])
@@ -332,13 +393,13 @@ class LedTracker:
             # Nothing near the LED's brightness in the window: covered (or gone).
             track.rho = 0.0
             self._coast(track)
-            return
+            return None
         bins_lut = track.bins_lut(peak, cfg.bins)
         q = track.q if track.q is not None else self._histogram(closed, (u - x0, v - y0), r, bins_lut)
         lut = track.back_projection(q, bins_lut, self._led_bins)
         if lut is None:
             self._coast(track)
-            return
+            return None
         prob = cv2.LUT(closed, lut)
         ww, wh = x1 - x0, y1 - y0
         sx = int(min(max(round(u - x0 - r), 0), ww - 2))
@@ -347,7 +408,7 @@ class LedTracker:
         sh = max(min(round(2 * r) + 1, wh - sy), 2)
         if cv2.countNonZero(prob) == 0:
             self._coast(track)
-            return
+            return None
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.2)
         rotated, _ = cv2.CamShift(prob, (sx, sy, sw, sh), criteria)
         (cu, cv_), _, _ = rotated
@@ -356,24 +417,28 @@ class LedTracker:
         track.rho = rho
         if rho < cfg.coast_rho:
             self._coast(track)
-            return
+            return None
         hint = (x0 + cu, y0 + cv_)
         reach = r + 2.0
         if cu - reach >= 0 and cv_ - reach >= 0 and cu + reach < ww and cv_ + reach < wh:
-            box, reuse = (x0, y0, x1, y1), closed
-        else:
-            # CamShift found the LED near the window's edge: measure it in a window around it instead.
-            m = r + cfg.search_margin_px
-            box = (int(hint[0] - m), int(hint[1] - m), int(hint[0] + m) + 2, int(hint[1] + m) + 2)
-            reuse = None
-        # The outline decides whether the centre can be trusted: a clean circle of the track's size (a
-        # cover along the rows leaves whole chords, and the right circle). A cut outline is measured again
-        # with the known radius, the cover's edge dropping out of the robust fit.
-        blob = self._measure(image, box, track, hint, None, reuse)
+            return _Found(track, (u, v), r, rho, q, p, (x0, y0, x1, y1), hint, closed)
+        # CamShift found the LED near the window's edge: measure it in a window around it instead.
+        m = r + cfg.search_margin_px
+        box = (int(hint[0] - m), int(hint[1] - m), int(hint[0] + m) + 2, int(hint[1] + m) + 2)
+        return _Found(track, (u, v), r, rho, q, p, box, hint, None)
+
+    def _conclude(self, image: ImageU8, found: _Found, blob: Blob | None) -> None:
+        """Judge the outline measured at CamShift's centre and update the track.
+
+        The outline decides whether the centre can be trusted: a clean circle of the track's size (a cover
+        along the rows leaves whole chords, and the right circle). A cut outline is measured again with
+        the known radius, the cover's edge dropping out of the robust fit."""
+        cfg = self.config
+        track, r, rho = found.track, found.radius, found.rho
         whole = blob is not None and self._whole(blob, r)
         if not whole:
             # Start from the prediction: CamShift's centroid of a half-covered disk is half a radius off.
-            blob = self._measure(image, box, track, (u, v), r, reuse)
+            blob = self._measure(image, found.box, track, found.predicted, r, found.closed)
         if blob is None:
             self._coast(track)
             return
@@ -392,7 +457,7 @@ class LedTracker:
             track.radius_px += 0.3 * (blob.radius_px - r)
             track.level_dn += 0.3 * (blob.peak_dn - track.level_dn)
             if rho >= cfg.adapt_rho and track.age % cfg.adapt_every == 0:
-                track.q = (1.0 - cfg.hist_adapt) * q + cfg.hist_adapt * p
+                track.q = (1.0 - cfg.hist_adapt) * found.q + cfg.hist_adapt * found.p
 
     def _whole(self, blob: Blob, radius: float) -> bool:
         """Is the measured outline the LED's whole circle? Its radius within 25 % of the track's and its edge
@@ -430,9 +495,7 @@ class LedTracker:
                 centre_hint=hint,
                 radius_prior=track.radius_px,
             )
-        if blob is None or not math.isfinite(blob.outline_rms_px):
-            return None
-        return blob
+        return _usable(blob)
 
     def _target_model(self, image: ImageU8, track: LedTrack) -> FloatArray:
         """q: the kernel-weighted histogram of the closed pixels around the track's centre."""

@@ -15,6 +15,7 @@ from agent.vlp.decode import (
     SpectralPeriod,
     SplineInterpolator,
     StripeDecoder,
+    _lexw_edges_batch,
     classify,
     classify_many,
     fft_period,
@@ -190,3 +191,72 @@ def test_classifying_several_leds_at_once_is_classifying_each() -> None:
         assert got.id == alone.id
         assert got.confidence == pytest.approx(alone.confidence, abs=1e-12)
         np.testing.assert_allclose(got.log_likelihood, alone.log_likelihood, rtol=1e-12)
+
+
+def random_profiles(rng: np.random.Generator) -> list[FloatArray]:
+    """Profiles of every shape LEXW meets: striped, striped under an envelope, flat, monotonic, noise only,
+    and short ones."""
+    profiles = []
+    for _ in range(6):
+        n = int(rng.integers(4, 140))
+        period = float(rng.uniform(3.0, 30.0))
+        kind = int(rng.integers(0, 6))
+        if kind == 0:
+            p = pwm_profile(n, period, float(rng.uniform(0.2, 0.8)), float(rng.uniform(0, 1)))
+        elif kind == 1:
+            p = pwm_profile(n, period, 0.5, 0.3) * np.linspace(1.0, 0.4, n)
+        elif kind == 2:
+            p = np.full(n, 100.0)
+        elif kind == 3:
+            p = np.linspace(20.0, 200.0, n)
+        elif kind == 4:
+            p = 16.0 + rng.normal(0.0, 1.0, n)
+        else:
+            p = pwm_profile(n, period, 0.4, 0.0)
+        profiles.append(p + rng.normal(0.0, 0.5, n))
+    return profiles
+
+
+def test_batched_lexw_edges_are_those_of_each_profile() -> None:
+    """_lexw_edges_batch gives, bit for bit, lexw_threshold + stripe_edges of every profile on its own."""
+    rng = np.random.default_rng(11)
+    config = DecoderConfig()
+    for _ in range(60):
+        profiles = random_profiles(rng)[: int(rng.integers(1, 7))]
+        backgrounds = [float(rng.uniform(10.0, 30.0)) for _ in profiles]
+        steps = [float(rng.uniform(0.2, 1.0)) for _ in profiles]
+        batch = _lexw_edges_batch(profiles, backgrounds, steps, config)
+        for i, (p, bg, step) in enumerate(zip(profiles, backgrounds, steps, strict=True)):
+            binary, thresholds = lexw_threshold(p, bg, config, smoothed=True)
+            edges, rising = stripe_edges(p, binary, thresholds, step)
+            b0, b1 = batch.bounds[i], batch.bounds[i + 1]
+            np.testing.assert_array_equal(batch.positions[b0:b1], edges)
+            np.testing.assert_array_equal(batch.rising[b0:b1], rising)
+
+
+def test_decoding_several_leds_at_once_is_decoding_each() -> None:
+    """decode_many: the features of each LED alone and classify_many of them."""
+    leds = [
+        Led(s.id, x, y, 1.5, frequency_hz=s.frequency_hz, duty=s.duty)
+        for s, (x, y) in zip(
+            ENV1, [(-0.465, 0.495), (-0.46, -0.42), (0.46, 0.49), (0.48, -0.425)], strict=True
+        )
+    ]
+    renderer = RollingShutterRenderer(CameraModel(), leds, Mount(0.0, 0.0, 0.2), seed=8)
+    decoder = StripeDecoder()
+    rng = np.random.default_rng(9)
+    for k in range(6):
+        pose = Pose2D(float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-3, 3)))
+        frame = renderer.render(lambda t, p=pose: p, 5.0 + 0.05 * k)
+        blobs = find_blobs(frame.image, DetectorConfig(min_diameter_px=16.0, bridge_px=8.0))
+        # Also a profile too short to decode and one on a dark patch (no edges).
+        requests: list[tuple[tuple[float, float], float, float, bool]] = [
+            (b.centre_px, b.radius_px, 16.0, bool(j % 2)) for j, b in enumerate(blobs)
+        ]
+        requests += [((5.0, 5.0), 1.5, 16.0, True), ((400.0, 2.0), 20.0, 16.0, True)]
+        together = decoder.decode_many(frame.image, requests, ENV1, T_ROW_EFF)
+        alone = [decoder.features(frame.image, c, r, bg, T_ROW_EFF, fft_check=f) for c, r, bg, f in requests]
+        classes = decoder.classify_many(alone, ENV1, T_ROW_EFF)
+        for (feat, cls), f, c in zip(together, alone, classes, strict=True):
+            assert feat == f
+            assert cls == c

@@ -11,10 +11,15 @@ import pytest
 
 from agent.vlp.detect import (
     DetectorConfig,
+    _edge_rows,
+    _kasa_many,
     background_level,
+    close_rows,
     find_blobs,
     fit_circle,
     measure_blob,
+    measure_tracked,
+    measure_tracked_many,
     refine_circle,
 )
 from drivers.sim.render import LedCover, RollingShutterRenderer
@@ -168,3 +173,81 @@ def test_a_half_covered_led_measured_with_its_known_radius() -> None:
 )
 def test_nothing_is_found_in_frames_without_leds(image: np.ndarray) -> None:  # type: ignore[type-arg]
     assert find_blobs(image, CONFIG) == []
+
+
+def test_edge_rows_of_several_windows_are_those_of_each() -> None:
+    """_edge_rows stacks windows of different sizes (zero-padded): each window's edges come out bit for bit
+    as when it is alone."""
+    renderer = RollingShutterRenderer(CameraModel(), ENV1, MOUNT, seed=12)
+    rng = np.random.default_rng(13)
+    for k in range(8):
+        pose = still(*rng.uniform(-0.3, 0.3, 2), float(rng.uniform(-math.pi, math.pi)))
+        image = renderer.render(pose, 30.0 + 0.05 * k).image
+        blobs = [b for b in find_blobs(image, CONFIG) if not b.at_border]
+        subs = []
+        for j, b in enumerate(blobs):
+            x0, y0, x1, y1 = b.box
+            # Windows of several widths and heights, one too small to have edges.
+            subs.append(image[y0 : y1 + j % 2, max(x0 - 3 - j, 0) : x1 + 3])
+        subs.append(image[10:12, 10:40])
+        backgrounds = [16.0] * len(subs)
+        peaks = [float(s.max()) for s in subs]
+        rows = _edge_rows(subs, backgrounds, peaks)
+        for j, (sub, peak) in enumerate(zip(subs, peaks, strict=True)):
+            alone = _edge_rows([sub], [16.0], [peak]).points(0, (7, 9))
+            together = rows.points(j, (7, 9))
+            np.testing.assert_array_equal(together[0], alone[0])
+            np.testing.assert_array_equal(together[1], alone[1])
+
+
+def test_batched_circle_fits_are_fit_circle() -> None:
+    rng = np.random.default_rng(14)
+    subs, truths = [], []
+    for _ in range(5):
+        image = np.full((60, 60), 16, np.uint8)
+        cx, cy, r = rng.uniform(25, 35), rng.uniform(25, 35), rng.uniform(10, 18)
+        yy, xx = np.mgrid[0:60, 0:60]
+        image[np.hypot(xx - cx, yy - cy) <= r] = 200
+        subs.append(image)
+        truths.append((cx, cy, r))
+    rows = _edge_rows(subs, [16.0] * 5, [200.0] * 5)
+    which = [0, 2, 3, 4]
+    for j, (cx, cy, r, rms, worst) in zip(which, _kasa_many(rows, which), strict=True):
+        x, y = rows.points(j, (0, 0))
+        assert (cx, cy, r) == pytest.approx(fit_circle(x, y), abs=1e-9)
+        resid = np.hypot(x - cx, y - cy) - r
+        assert rms == pytest.approx(math.sqrt(float(np.mean(resid**2))), abs=1e-9)
+        assert worst == pytest.approx(float(np.abs(resid).max()), abs=1e-9)
+        assert (cx, cy, r) == pytest.approx(truths[j], abs=0.3)
+
+
+def test_measuring_tracked_leds_together_is_measuring_each() -> None:
+    renderer = RollingShutterRenderer(CameraModel(), ENV1, MOUNT, seed=15)
+    rng = np.random.default_rng(16)
+    kernel = np.ones((CONFIG.bridge, 1), np.uint8)
+    for k in range(6):
+        pose = still(*rng.uniform(-0.3, 0.3, 2), float(rng.uniform(-math.pi, math.pi)))
+        image = renderer.render(pose, 40.0 + 0.05 * k).image
+        leds = []
+        for b in find_blobs(image, CONFIG):
+            u, v = b.centre_px
+            x0, y0 = max(int(u - 30), 0), max(int(v - 30), 0)
+            closed = close_rows(image[y0 : int(v + 30), x0 : int(u + 30)], kernel)
+            leds.append((closed, (u + 0.3, v - 0.2), b.radius_px, 16.0))
+        together = measure_tracked_many(image, leds, CONFIG)
+        for (closed, centre, radius, background), blob in zip(leds, together, strict=True):
+            alone = measure_tracked(image, closed, centre, radius, background, CONFIG)
+            assert (blob is None) == (alone is None)
+            if blob is not None and alone is not None:
+                assert blob.centre_px == pytest.approx(alone.centre_px, abs=1e-9)
+                assert blob.radius_px == pytest.approx(alone.radius_px, abs=1e-9)
+                assert (
+                    dataclasses.replace(
+                        blob,
+                        centre_px=alone.centre_px,
+                        radius_px=alone.radius_px,
+                        outline_rms_px=alone.outline_rms_px,
+                    )
+                    == alone
+                )
+                assert blob.outline_rms_px == pytest.approx(alone.outline_rms_px, abs=1e-9)

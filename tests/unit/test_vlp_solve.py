@@ -13,6 +13,7 @@ import pytest
 from agent.vlp.geometry import (
     lens_offset_level,
     level_plane_coordinates,
+    level_plane_points,
     level_rotation,
     normalised_coordinates,
 )
@@ -194,3 +195,80 @@ def test_gauss_newton_rejects_nothing_silently_on_degenerate_input() -> None:
         gauss_newton_pose(
             np.zeros((1, 2)), leds[:1], np.ones(1), np.zeros(1), 0.2, (0, 0, 0, 0), height_sigma_m=0.0
         )
+
+
+def numpy_gauss_newton(
+    q: FloatArray,
+    leds: FloatArray,
+    sigma: FloatArray,
+    dt: FloatArray,
+    lens_z: float,
+    initial,
+    velocity,
+    hs: float,
+):  # type: ignore[no-untyped-def]
+    """The textbook Gauss-Newton the solver writes out: the Jacobian as a matrix, np.linalg.solve."""
+    vx, vy, omega = velocity
+    n = q.shape[0]
+    n_par = 4 if hs > 0 else 3
+    p = np.array(initial, dtype=np.float64)
+    if hs == 0:
+        p[3] = 0.0
+    w = 1.0 / sigma
+    for _ in range(12):
+        psi = p[2] + omega * dt
+        c, s = np.cos(psi), np.sin(psi)
+        dx, dy = leds[:, 0] - (p[0] + vx * dt), leds[:, 1] - (p[1] + vy * dt)
+        inv_h = 1.0 / (leds[:, 2] - lens_z + p[3])
+        px, py = (c * dx + s * dy) * inv_h, (-s * dx + c * dy) * inv_h
+        jac = np.zeros((2 * n + (hs > 0), n_par))
+        res = np.zeros(jac.shape[0])
+        res[0 : 2 * n : 2], res[1 : 2 * n : 2] = (q[:, 0] - px) * w, (q[:, 1] - py) * w
+        jac[0 : 2 * n : 2, :3] = np.column_stack((-c * inv_h * w, -s * inv_h * w, py * w))
+        jac[1 : 2 * n : 2, :3] = np.column_stack((s * inv_h * w, -c * inv_h * w, -px * w))
+        if hs > 0:
+            jac[0 : 2 * n : 2, 3], jac[1 : 2 * n : 2, 3] = -px * inv_h * w, -py * inv_h * w
+            res[-1], jac[-1, 3] = -p[3] / hs, 1.0 / hs
+        normal = jac.T @ jac
+        step = np.linalg.solve(normal, jac.T @ res)
+        p[:n_par] += step
+        if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 5e-5:
+            break
+    return p, np.linalg.inv(normal), res[: 2 * n].reshape(n, 2)
+
+
+@pytest.mark.parametrize("height_sigma", [0.05, 0.0])
+def test_the_written_out_gauss_newton_is_the_textbook_one(height_sigma: float) -> None:
+    """The plain-float normal equations and Cholesky give what the Jacobian matrix and LAPACK give."""
+    rng = np.random.default_rng(21)
+    for _ in range(100):
+        n = int(rng.integers(2, 7))
+        leds = np.column_stack((rng.uniform(-2, 2, (n, 2)), rng.uniform(2.3, 2.7, n)))
+        x, y, yaw = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)
+        q = level_q(leds, x, y, yaw, 0.2) + rng.normal(0.0, 2e-4, (n, 2))
+        sigma = rng.uniform(1e-4, 3e-4, n)
+        dt = rng.uniform(-0.02, 0.02, n)
+        start = (x + 0.003, y - 0.002, yaw + 0.004, 0.01)
+        velocity = (0.1, -0.05, 0.3)
+        got = gauss_newton_pose(
+            q, leds, sigma, dt, 0.2, start, velocity=velocity, height_sigma_m=height_sigma
+        )
+        want = numpy_gauss_newton(q, leds, sigma, dt, 0.2, start, velocity, height_sigma)
+        np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-7, atol=1e-16)
+        np.testing.assert_allclose(got[2], want[2], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("distortion", [(0.0, 0.0, 0.0, 0.0, 0.0), (-0.12, 0.05, 1e-3, -5e-4, 0.0)])
+def test_level_plane_points_are_the_array_functions(
+    distortion: tuple[float, float, float, float, float],
+) -> None:
+    """level_plane_points (plain floats, for a few points) is
+    level_plane_coordinates(normalised_coordinates(...))."""
+    intrinsics = CameraIntrinsics(800, 600, 500.0, 505.0, 401.0, 299.0, 32e-6, distortion=distortion)
+    r_level = level_rotation(CameraMount(0.03, 0.0, 0.2, roll_rad=0.02), Tilt(0.03, -0.02))
+    uv = [(12.5, 40.0), (400.0, 300.0), (790.3, 580.9)]
+    want = level_plane_coordinates(normalised_coordinates(np.array(uv), intrinsics), r_level)
+    got = level_plane_points(uv, intrinsics, r_level)
+    np.testing.assert_array_equal(np.array(got), want)
+    assert level_plane_points([], intrinsics, r_level) == []
