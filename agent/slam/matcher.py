@@ -509,3 +509,36 @@ def linearized_log_likelihood(
     total = np.where(n_known[:, None] > 0, scale[:, None] * quadratic, n * outlier_m**2)
     ll: FloatArray = -total / (2.0 * sigma_m * sigma_m)
     return ll
+
+
+def log_likelihood_quadratic(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    centres: FloatArray,
+    sigma_m: float,
+    outlier_m: float,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`linearized_log_likelihood` as the quadratic itself: log p(z | centre + delta) =
+    l0 + gᵀ delta - 1/2 deltaᵀ H delta for poses centres (P, 3); returns l0 (P,), g (P, 3), H (P, 3, 3)
+    (l0 = -s c / 2 sigma^2, g = -s b / sigma^2, H = s A / sigma^2 with A, b, c and the imputation scale s
+    = N / N_known as there)."""
+    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    n = points_xy.shape[0]
+    inlier = res.known & (res.d < outlier_m)
+    w = inlier.astype(np.float64)
+    jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
+    wj = jac * w[..., None]
+    a = np.einsum("pni,pnj->pij", wj, jac)
+    b = np.einsum("pni,pn->pi", wj, res.r)
+    outliers = (res.known & ~inlier).sum(axis=1)
+    c = (w * res.r * res.r).sum(axis=1) + outliers * outlier_m**2
+    n_known = res.known.sum(axis=1)
+    scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0) / (sigma_m * sigma_m)
+    # No known endpoint at all: every endpoint counts as an outlier, flat in delta.
+    l0: FloatArray = np.where(n_known > 0, -0.5 * scale * c, -n * outlier_m**2 / (2.0 * sigma_m * sigma_m))
+    grad: FloatArray = -scale[:, None] * b
+    hess: FloatArray = scale[:, None, None] * a
+    return l0, grad, hess

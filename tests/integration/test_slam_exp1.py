@@ -103,8 +103,9 @@ def test_at_the_revisit_slam_beats_odometry(run: tuple[SlamLog, ReplayResult]) -
 
 
 def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
-    # 0.095 m / 0.45 deg with seed 0; seeds 1-3 give 0.086, 0.045 and 0.219 m (docs/slam.md): the loop
-    # closes for three seeds in four, so this guards the seed the other checks use, not every seed.
+    # 0.095 m / 0.45 deg with seed 0; seeds 1-5 give 0.086, 0.045, 0.219, 0.507 and 0.482 m, and over
+    # seeds 0-23 the loop closes for 5 of 24 (docs/slam.md, "Open problems"): this guards the seed the
+    # other checks use, not every seed.
     log, result = run
     slam_m, slam_deg, _ = loop_closure_errors(log, result.poses)
     assert slam_m < 0.1

@@ -22,6 +22,7 @@ from agent.slam.mcl import MclConfig, MclLocalizer
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
 from agent.slam.pose import between, compose, inverse
+from agent.slam.proposal import ProposalConfig, laplace_log_eta
 from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind, systematic_resample
 from agent.slam.render import occupancy_image
 from agent.slam.replay import replay
@@ -171,6 +172,37 @@ def test_motion_model_spread_and_density() -> None:
         np.zeros((1, 3)), np.array([[increment, increment + np.array([0.07, 0.0, 0.0])]]), increment, noise
     )
     np.testing.assert_allclose(density[0], [0.0, -0.5])
+
+
+def test_closed_form_eta_is_the_integral() -> None:
+    """``eta_integral="laplace"``: log ∫ exp(l(x) / T) p(x | x', u) dx in closed form, against a dense
+    grid sum of the same integrand (the likelihood a quadratic around the match, as the proposal has it)."""
+    noise = OdometryNoise()
+    previous = np.array([[0.3, -0.2, 0.4]])
+    increment = np.array([0.3, 0.02, 0.1])
+    # A match 4 cm short of odometry and 1 degree off: the motion model's tail, as after a wheel slip.
+    centre = compose(previous[0], increment + np.array([-0.04, 0.005, 0.017]))[None, :]
+    l0 = np.array([-30.0])
+    l_grad = np.array([[40.0, -25.0, 10.0]])
+    l_hess = np.array([[[4.0e4, 5.0e3, 0.0], [5.0e3, 2.0e3, 1.0e3], [0.0, 1.0e3, 9.0e4]]])  # a corridor in y
+    temperature = 40.0
+    closed = laplace_log_eta(previous, centre, increment, noise, l0, l_grad, l_hess, temperature, None)
+    axes = [np.linspace(-0.25, 0.25, 101), np.linspace(-0.25, 0.25, 101), np.linspace(-0.2, 0.2, 81)]
+    delta = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    log_lik = l0[0] + delta @ l_grad[0] - 0.5 * np.einsum("ki,ij,kj->k", delta, l_hess[0], delta)
+    log_motion = motion_log_density(previous, (centre[0] + delta)[None], increment, noise)[0]
+    log_f = log_lik / temperature + log_motion
+    volume = float(np.prod([a[1] - a[0] for a in axes]))
+    numeric = log_f.max() + np.log(np.exp(log_f - log_f.max()).sum() * volume)
+    assert closed[0] == pytest.approx(numeric, abs=0.02)
+
+
+def test_slam_with_closed_form_eta(loop: tuple[np.ndarray, ...]) -> None:
+    _times, truth, _odometry, _ = loop
+    proposal = ProposalConfig(eta_integral="laplace")
+    config = RbpfConfig(particles=8, proposal=proposal, initial_pose=tuple(float(v) for v in truth[0]))
+    _slam, estimate = run_filter(loop, config)
+    assert absolute_trajectory_error(truth, estimate) < 0.05
 
 
 # -- absolute fixes -------------------------------------------------------------------------------------
