@@ -16,7 +16,7 @@ from agent.runtime.agent import Agent, AgentStatus, DeviceState, laser_mount_for
 from agent.runtime.devices import Devices, build_devices
 from agent.runtime.health import HealthMonitor, NotifierLike
 from agent.runtime.localizer import FrameLocalizer, make_localizer
-from agent.runtime.mapper import ScanMapper, make_mapper
+from agent.runtime.mapper import RbpfMapper, ScanMapper, make_mapper
 from agent.runtime.output import PoseOutput, Written
 from agent.runtime.recorder import Recorder, replay
 
@@ -96,6 +96,8 @@ def create_agent(
             unavailable["slam"] = why
             agent.unavailable["slam"] = why
             log.warning("running without SLAM: %s", why)
+        if isinstance(mapper, RbpfMapper):
+            mapper.give_way = agent.hot_path.give_way
         agent.mapper = mapper
     return agent
 

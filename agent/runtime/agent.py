@@ -645,6 +645,7 @@ class Agent:
             scan = self.scans.get(0.25)
             if scan is None or mapper is None:
                 continue
+            self.hot_path.give_way()
             for fix in self.slam_fixes.drain():
                 odom = self._odometry_at(fix.t_ns)
                 if odom is not None:
@@ -696,6 +697,7 @@ class Agent:
                 previous = None
                 self._retry_wait(beat, 1.0)
                 continue
+            self.hot_path.give_way()
             try:
                 state = servos.read()
             except DeviceError as exc:
@@ -776,6 +778,7 @@ class Agent:
             if not self._open("imu", imu):
                 self._retry_wait(beat, 1.0)
                 continue
+            self.hot_path.give_way()
             try:
                 sample = imu.read()
             except DeviceError as exc:

@@ -92,6 +92,8 @@ class RbpfMapper:
         self.slam: Any = None
         self.floor = np.diag([config.sigma_xy_m**2, config.sigma_xy_m**2, config.sigma_yaw_rad**2])
         self._counts: dict[str, int] = {}
+        # Between the stages of an update the filter lets the hot path go first (Agent sets this).
+        self.give_way: Callable[[], None] = lambda: None
 
     def _count(self, what: str) -> None:
         self._counts[what] = self._counts.get(what, 0) + 1
@@ -116,6 +118,7 @@ class RbpfMapper:
                 seed=cfg.seed,
             ),
         )
+        self.slam.give_way = self.give_way
         log.info("SLAM map started at (%.3f, %.3f, %.1f deg)", pose[0], pose[1], math.degrees(pose[2]))
 
     def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:

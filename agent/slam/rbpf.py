@@ -30,6 +30,7 @@ import collections
 import enum
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -168,6 +169,10 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
     return kept
 
 
+def _no_wait() -> None:
+    return None
+
+
 class RbpfSlam:
     """The filter. Feed it scans with their odometry; read the pose, the map and the trajectory."""
 
@@ -198,6 +203,9 @@ class RbpfSlam:
         self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        # Called between the stages of a filter update (the distance field, the proposal, the map): where
+        # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath).
+        self.give_way: Callable[[], None] = _no_wait
         self.stats = FilterStats()
 
     # -- public API --------------------------------------------------------------------------------------
@@ -364,6 +372,7 @@ class RbpfSlam:
         else:
             predicted = compose(self.poses, increment[None, :])
             field, window_index = self._field(predicted, points)
+            self.give_way()
             measurement = None
             if self._pending_fixes:
                 # The fixes join the proposal (and so eta): see ``improved_proposal``.
@@ -386,6 +395,7 @@ class RbpfSlam:
             self.poses = result.poses
             proposal_log_eta = result.log_eta
             matched = result.matched
+            self.give_way()
         self.stats.match_failures += int(np.count_nonzero(~matched))
         self.log_weights = self.log_weights + proposal_log_eta
         if self._pending_fixes:

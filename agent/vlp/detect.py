@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -751,11 +752,15 @@ def find_blobs(
     config: DetectorConfig = DetectorConfig(),
     *,
     background: tuple[float, float] | None = None,
+    known: Sequence[tuple[float, float, float]] = (),
 ) -> list[Blob]:
     """All LED-like blobs in a frame, brightest first, border ones included but flagged.
 
     ``background`` (median, sigma) may be passed when already known; otherwise it is estimated from the
-    coarse copy.
+    coarse copy. ``known``: LEDs already held (centre u, v and radius in pixels, as a tracker predicts
+    them): a candidate region that is one of them (its box holds the centre and is no bigger than that
+    disk) is not measured, since only new LEDs are wanted, which makes the periodic search while tracking
+    cost the coarse pass alone.
     """
     # Halve with INTER_AREA while the LEDs stay >= ~5 coarse pixels across: OpenCV's 2x2 area path is SIMD,
     # other factors are many times slower.
@@ -790,6 +795,11 @@ def find_blobs(
         if w < min_side_c or h < min_side_c:
             continue
         box = (x * s - pad, y * s - pad, (x + w) * s + pad, (y + h) * s + pad)
+        size = max(box[2] - box[0], box[3] - box[1])
+        limit = size - 4 * pad
+        held = (box[0] <= u < box[2] and box[1] <= v < box[3] and limit <= 3.0 * r for u, v, r in known)
+        if any(held):
+            continue
         blob = measure_blob(image, box, bg, noise, config)
         if blob is None:
             continue

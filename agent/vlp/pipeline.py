@@ -291,7 +291,8 @@ class VlpPipeline:
     # -- acquisition ---------------------------------------------------------------------------------------
     def _search(self, image: npt.NDArray[np.uint8], time_s: float) -> str | None:
         """Full-frame search; returns a reason when the frame itself is unusable."""
-        blobs = find_blobs(image, self.detector)
+        held = [(*t.kf.position, t.radius_px) for t in self.tracker.tracks if t.missed == 0]
+        blobs = find_blobs(image, self.detector, known=held)
         if not blobs and not self.tracker.tracks:
             bg, _ = background_level(image)
             hist_bright = float(np.count_nonzero(image[::4, ::4] >= 250)) / image[::4, ::4].size

@@ -85,8 +85,16 @@ class SimulatedRobot:
         from drivers.fakes.imu import FakeI2cBus, FakeMpu6050
 
         self._dir = Path(tempfile.mkdtemp(prefix="vlp-sim-"))
-        for name, device in (("laser", self.urg), ("servos", self.servos), ("rfid", self.rfid)):
-            server = PtyServer(device, link=self._dir / name)
+        # How often each fake is polled for output of its own: the URG streams scans on its clock (2 ms
+        # keeps their timing), a tag reader reports every few tens of milliseconds, the servos only ever
+        # answer (a reply goes out as soon as a request arrives, whatever the interval). The simulated
+        # hardware shares the agent's process and interpreter lock: it polls no more than it must.
+        for name, device, poll_s in (
+            ("laser", self.urg, 0.002),
+            ("servos", self.servos, 0.05),
+            ("rfid", self.rfid, 0.02),
+        ):
+            server = PtyServer(device, link=self._dir / name, poll_interval_s=poll_s)
             server.start()
             self.servers[name] = server
         self._imu = FakeI2cBus(directory=self._dir)

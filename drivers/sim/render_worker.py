@@ -6,11 +6,13 @@ interpreter lock released: the agent's own threads (VLP, fusion, SLAM) never que
 simulated camera draws each frame in Python and numpy (a few milliseconds per frame for the MV-UB300
 model); done in the agent's process under ``vlp-agent sim`` it would compete with the very threads whose
 latency the simulation is there to show. :class:`RenderWorker` keeps a
-:class:`~drivers.sim.render.RollingShutterRenderer` in a child process (started with ``spawn``, never
-``fork``: the agent is threaded) and has the same ``render(pose_at, t0_s, out)`` call: the parent samples
-the three poses the renderer needs (first, middle and last row), the child draws the frame and sends back
-its ground truth and its pixels, which land straight in the caller's buffer. The parent waits in the
-pipe, the interpreter lock released, as it would in a camera driver.
+:class:`~drivers.sim.render.RollingShutterRenderer` in a child process (a fresh interpreter running
+``python -m drivers.sim.render_worker FD``: never a ``fork`` of the threaded agent, and not
+``multiprocessing``'s spawn, which re-imports the parent's main script) and has the same
+``render(pose_at, t0_s, out)`` call: the parent samples the three poses the renderer needs (first, middle
+and last row), the child draws the frame and sends back its ground truth and its pixels, which land
+straight in the caller's buffer. They talk over a socketpair (AF_UNIX, no network). The parent waits on
+it, the interpreter lock released, as it would in a camera driver.
 
 Same seed, same frames as the in-process renderer (the child's renderer is built from the same
 arguments and draws the same sequence). If the child dies, ``render`` raises
@@ -21,9 +23,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import multiprocessing
 import multiprocessing.connection
+import os
+import socket
+import subprocess
+import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -41,10 +47,10 @@ log = logging.getLogger(__name__)
 _REPLY_TIMEOUT_S = 5.0
 
 
-def _serve(
-    conn: multiprocessing.connection.Connection, args: tuple[Any, ...], kwargs: dict[str, Any]
-) -> None:
-    """The child: draw every frame asked for until the parent hangs up."""
+def _serve(conn: multiprocessing.connection.Connection) -> None:
+    """The child: build the renderer from the first message, then draw every frame asked for until the
+    parent hangs up."""
+    args, kwargs = conn.recv()
     renderer = RollingShutterRenderer(*args, **kwargs)
     cam = renderer.camera
     image = np.empty((cam.output_height_px, cam.output_width_px), dtype=np.uint8)
@@ -66,6 +72,16 @@ def _serve(
         conn.send_bytes(image.data.cast("B"))
 
 
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m drivers.sim.render_worker FD``: serve the connection on file descriptor FD."""
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1 or not args[0].isdigit():
+        print("usage: python -m drivers.sim.render_worker FD (started by RenderWorker)", file=sys.stderr)
+        return 2
+    _serve(multiprocessing.connection.Connection(int(args[0])))
+    return 0
+
+
 class RenderWorker:
     """A :class:`RollingShutterRenderer` (same arguments) drawing in a child process."""
 
@@ -82,13 +98,22 @@ class RenderWorker:
         self.camera = camera
         self._args = (camera, tuple(leds), mount)
         self._kwargs: dict[str, Any] = {"tilt_rad": tilt_rad, "gain_db": gain_db, "seed": seed}
-        context = multiprocessing.get_context("spawn")
-        self._conn, child = context.Pipe(duplex=True)
-        self._process = context.Process(
-            target=_serve, args=(child, self._args, self._kwargs), name="vlp-sim-render", daemon=True
-        )
-        self._process.start()
-        child.close()
+        ours, theirs = socket.socketpair()
+        # The child finds this package where the parent found it, installed or not.
+        root = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "drivers.sim.render_worker", str(theirs.fileno())],
+                pass_fds=(theirs.fileno(),),
+                stdin=subprocess.DEVNULL,
+                env=env,
+            )
+        finally:
+            theirs.close()
+        self._conn = multiprocessing.connection.Connection(ours.detach())
+        self._conn.send((self._args, self._kwargs))
 
     @property
     def readout_s(self) -> float:
@@ -125,12 +150,17 @@ class RenderWorker:
 
     def close(self) -> None:
         """Stop the child (idempotent)."""
-        if self._process.is_alive():
+        if self._process.poll() is None:
             with contextlib.suppress(OSError):
                 self._conn.send(None)
-            self._process.join(2.0)
-            if self._process.is_alive():
-                log.warning("the render process did not stop; terminating it")
-                self._process.terminate()
-                self._process.join(1.0)
+            try:
+                self._process.wait(2.0)
+            except subprocess.TimeoutExpired:
+                log.warning("the render process did not stop; killing it")
+                self._process.kill()
+                self._process.wait(1.0)
         self._conn.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -496,7 +496,7 @@ def test_sim_render_process_that_dies_is_a_disconnect_and_reopening_starts_anoth
         worker = cam.renderer
         assert isinstance(worker, RenderWorker)
         worker._process.kill()
-        worker._process.join(2.0)
+        worker._process.wait(2.0)
         with pytest.raises(DeviceDisconnected):
             cam.grab(timeout_s=2.0)
         cam.close()
