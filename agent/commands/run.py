@@ -111,6 +111,10 @@ def run(args: argparse.Namespace) -> int:
             controller = Controller(master, config.output.format)
             controller.start()
         agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
+        if robot is not None:
+            robot.give_way_to(agent.hot_path.give_way)
+        if controller is not None:
+            controller.give_way = agent.hot_path.give_way
         agent.start()
         settle_heap()
         try:

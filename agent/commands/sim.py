@@ -34,7 +34,7 @@ import sys
 import threading
 import time
 import tty
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -199,6 +199,9 @@ class Controller:
             common = importlib.import_module("pymavlink.dialects.v20.common")
             self._mav = common.MAVLink(None)
             self._mav.robust_parsing = True
+        # The controller is another chip on the robot; here it shares the agent's process, and waits while
+        # the agent's hot path runs (set once the agent exists).
+        self.give_way: Callable[[], None] = lambda: None
         self.thread = threading.Thread(target=self._run, name="sim-controller", daemon=True)
 
     def _run(self) -> None:
@@ -206,6 +209,7 @@ class Controller:
             ready, _, _ = select.select([self.fd], [], [], 0.1)
             if not ready:
                 continue
+            self.give_way()
             try:
                 data = os.read(self.fd, 4096)
             except OSError:
@@ -334,6 +338,9 @@ def run(args: argparse.Namespace) -> int:
             controller = Controller(master, config.output.format)
             controller.start()
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
+        robot.give_way_to(agent.hot_path.give_way)
+        if controller is not None:
+            controller.give_way = agent.hot_path.give_way
         injector = FaultInjector(faults, robot, agent)
         agent.start()
         autopilot = threading.Thread(

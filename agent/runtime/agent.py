@@ -544,6 +544,7 @@ class Agent:
             arrival = self.clock_ns()
             self._last_frame_ns = arrival
             self._count("frames")
+            self.hot_path.frame_queued()
             self.frames.put((frame, arrival))
 
     def _vlp_loop(self, beat: Heartbeat) -> None:
@@ -551,6 +552,7 @@ class Agent:
             beat.beat()
             item = self.frames.take(0.25)
             if item is None or self.localizer is None:
+                self.hot_path.settle()
                 continue
             with self.hot_path.busy():
                 self._locate(*item)

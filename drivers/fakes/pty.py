@@ -17,6 +17,7 @@ import select
 import threading
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
@@ -36,6 +37,10 @@ class ByteDevice(Protocol):
         ...
 
 
+def _no_wait() -> None:
+    return None
+
+
 class PtyServer:
     """Runs a :class:`ByteDevice` on a pty in a background thread."""
 
@@ -53,6 +58,10 @@ class PtyServer:
         self._lock = threading.Lock()
         self.bytes_in = 0
         self.bytes_out = 0
+        # Called before the device handles bytes or is polled. A fake shares the process of the program
+        # it serves under ``vlp-agent sim``, where real hardware would not: the simulation sets this so
+        # that the fake waits while the agent's hot path runs (agent.runtime.hotpath).
+        self.give_way: Callable[[], None] = _no_wait
 
     # -- lifecycle ---------------------------------------------------------------------------------
     @property
@@ -146,6 +155,7 @@ class PtyServer:
                 ready, _, _ = select.select([master], [], [], self.poll_interval_s)
             except (OSError, ValueError):
                 return
+            self.give_way()
             now = time.monotonic()
             try:
                 if ready:

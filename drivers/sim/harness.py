@@ -13,6 +13,7 @@ import contextlib
 import logging
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
@@ -102,6 +103,13 @@ class SimulatedRobot:
         self.imu = FakeMpu6050(self.simulation, seed=self.seed)
         self._imu.attach(0x68, self.imu)
         log.info("simulated robot up in %s", self._dir)
+
+    def give_way_to(self, hot_path: Callable[[], None]) -> None:
+        """Make every fake wait while ``hot_path`` says the program under test is busy (see
+        ``PtyServer.give_way``): the simulated hardware must not take the agent's interpreter lock from
+        its latency-critical path, as real hardware could not."""
+        for server in self.servers.values():
+            server.give_way = hot_path
 
     def close(self) -> None:
         for server in self.servers.values():

@@ -18,6 +18,7 @@ def test_background_work_waits_until_the_frame_is_done() -> None:
     pending = threading.Event()
     pending.set()
     hot = HotPath(pending.is_set, max_wait_s=5.0)
+    hot.frame_queued()
     done_at: list[float] = []
 
     def frame() -> None:
@@ -37,6 +38,7 @@ def test_background_work_waits_until_the_frame_is_done() -> None:
 
 def test_a_stuck_hot_path_delays_background_work_by_the_bound_only() -> None:
     hot = HotPath(lambda: True, max_wait_s=0.02)
+    hot.frame_queued()
     start = time.monotonic()
     hot.give_way()
     assert 0.015 < time.monotonic() - start < 0.5
