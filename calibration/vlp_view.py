@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from agent.runtime.localizer import intrinsics_from_config
 from agent.sim_view import nominal_intrinsics
 from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap, MapLed
 from calibration.camera_info import parse_camera_info
@@ -107,18 +108,7 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
             raise CalibrationError(
                 f"{ctx.config}: [vlp.rolling_shutter] t_row_s is needed to read LED stripes"
             )
-        intrinsics = CameraIntrinsics.from_output(
-            width_px=c.width_px,
-            height_px=c.height_px,
-            fx_px=c.fx_px,
-            fy_px=c.fy_px,
-            cx_px=c.cx_px,
-            cy_px=c.cy_px,
-            t_row_s=c.t_row_s,
-            sensor_height_px=c.sensor_height_px,
-            exposure_s=c.exposure_s,
-            distortion=c.distortion,
-        )
+        intrinsics = intrinsics_from_config(c)
         leds = None
         if vlp.leds is not None:
             leds = LedMap(

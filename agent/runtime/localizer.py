@@ -79,7 +79,8 @@ class VlpLocalizer:
         )
 
 
-def _intrinsics_from_config(c: IntrinsicsConfig) -> Any:
+def intrinsics_from_config(c: IntrinsicsConfig) -> Any:
+    """The ``[vlp.intrinsics]`` of a config as the pipeline's ``CameraIntrinsics``."""
     from agent.vlp.model import CameraIntrinsics
 
     return CameraIntrinsics.from_output(
@@ -114,7 +115,7 @@ def make_localizer(
     except ImportError as exc:
         return None, f"the VLP package is not usable: {exc}"
     if config.intrinsics is not None:
-        intrinsics = _intrinsics_from_config(config.intrinsics)
+        intrinsics = intrinsics_from_config(config.intrinsics)
     elif world is not None:
         from agent.sim_view import nominal_intrinsics
 

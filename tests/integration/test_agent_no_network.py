@@ -82,7 +82,7 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
         "WATCHDOG_USEC": "2000000",
     }
     proc = subprocess.Popen(
-        vlp_agent("run", "--config", str(config), "--seconds", "8"),
+        vlp_agent("run", "--config", str(config), "--seconds", "5"),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
