@@ -33,6 +33,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from drivers.sim.render import readout_time_s  # noqa: E402
 from drivers.sim.worldfile import load_world  # noqa: E402
 
 BUDGET_LATENCY_P99_MS = 10.0
@@ -74,8 +75,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=1)
     args = parser.parse_args()
     world = load_world(args.world or REPO / "examples" / "worlds" / "office.toml")
-    cam = world.camera
-    half_readout_ms = 0.5 * ((cam.sensor_height_px - 1) * cam.t_row_s + cam.exposure_s) * 1e3
+    half_readout_ms = 0.5 * readout_time_s(world.camera) * 1e3
     runs = [one_run(args.seconds, args.world) for _ in range(args.runs)]
     worst = {
         key: max(r[key] for r in runs)

@@ -203,6 +203,27 @@ def _quadratic_weights(s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArra
     return 0.5 * s * (s - 1.0), 1.0 - s * s, 0.5 * s * (s + 1.0)
 
 
+def readout_time_s(camera: CameraModel) -> float:
+    """From the first row's exposure start to the last row's exposure end."""
+    return (camera.sensor_height_px - 1) * camera.t_row_s + camera.exposure_s
+
+
+def row_time_s(camera: CameraModel, t0_s: float, v_sensor: float) -> float:
+    """Exposure centre of (continuous) sensor row ``v_sensor`` in a frame starting at ``t0_s``."""
+    return t0_s + v_sensor * camera.t_row_s + 0.5 * camera.exposure_s
+
+
+def pose_times_s(camera: CameraModel, t0_s: float) -> tuple[float, float, float]:
+    """The times the renderer takes the robot's pose at: the exposure centres of the first, middle and last
+    sensor rows (rows in between are interpolated quadratically)."""
+    rows = camera.sensor_height_px
+    return (
+        row_time_s(camera, t0_s, 0.0),
+        row_time_s(camera, t0_s, (rows - 1) / 2.0),
+        row_time_s(camera, t0_s, rows - 1.0),
+    )
+
+
 class RollingShutterRenderer:
     """Renders frames of one camera looking at one set of LEDs.
 
@@ -299,7 +320,7 @@ class RollingShutterRenderer:
     @property
     def readout_s(self) -> float:
         """From the first row's exposure start to the last row's exposure end."""
-        return (self.camera.sensor_height_px - 1) * self.camera.t_row_s + self.camera.exposure_s
+        return readout_time_s(self.camera)
 
     @property
     def selected_rows(self) -> IndexArray:
@@ -314,7 +335,7 @@ class RollingShutterRenderer:
 
     def row_time_s(self, t0_s: float, v_sensor: float) -> float:
         """Exposure centre of (continuous) sensor row ``v_sensor`` in a frame starting at ``t0_s``."""
-        return t0_s + v_sensor * self.camera.t_row_s + 0.5 * self.camera.exposure_s
+        return row_time_s(self.camera, t0_s, v_sensor)
 
     # -- set-up ----------------------------------------------------------------------------------------
     def _ray_grid(self) -> tuple[Float32Array, Float32Array, Float32Array, Float32Array]:
@@ -415,11 +436,8 @@ class RollingShutterRenderer:
             # PWM phase is computed relative to this epoch so large clock values keep float precision.
             self._t_epoch = t0_s
 
-        n_rows = cam.sensor_height_px
-        t_mid = self.row_time_s(t0_s, (n_rows - 1) / 2.0)
-        p_first = pose_at(self.row_time_s(t0_s, 0.0))
-        p_mid = pose_at(t_mid)
-        p_last = pose_at(self.row_time_s(t0_s, n_rows - 1.0))
+        t_first, t_mid, t_last = pose_times_s(cam, t0_s)
+        p_first, p_mid, p_last = pose_at(t_first), pose_at(t_mid), pose_at(t_last)
         knots = self._camera_knots(p_first, p_mid, p_last)
 
         self._draw_background(out)

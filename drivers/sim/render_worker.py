@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.errors import DeviceDisconnected
-from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer
+from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer, pose_times_s, readout_time_s
 from drivers.sim.world import CameraModel, Led, Mount, Pose2D
 
 __all__ = ["RenderWorker"]
@@ -118,11 +118,7 @@ class RenderWorker:
     @property
     def readout_s(self) -> float:
         """From the first row's exposure start to the last row's exposure end (as the renderer's)."""
-        return (self.camera.sensor_height_px - 1) * self.camera.t_row_s + self.camera.exposure_s
-
-    def row_time_s(self, t0_s: float, v_sensor: float) -> float:
-        """Exposure centre of sensor row ``v_sensor`` in a frame starting at ``t0_s`` (as the renderer's)."""
-        return t0_s + v_sensor * self.camera.t_row_s + 0.5 * self.camera.exposure_s
+        return readout_time_s(self.camera)
 
     def render(
         self, pose_at: Callable[[float], Pose2D], t0_s: float, out: npt.NDArray[np.uint8] | None = None
@@ -134,8 +130,7 @@ class RenderWorker:
             out = np.empty(shape, dtype=np.uint8)
         elif out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
             raise ValueError(f"out must be C-contiguous uint8 of shape {shape}, got {out.dtype} {out.shape}")
-        rows = cam.sensor_height_px
-        times = [self.row_time_s(t0_s, v) for v in (0.0, (rows - 1) / 2.0, rows - 1.0)]
+        times = pose_times_s(cam, t0_s)
         try:
             self._conn.send((t0_s, [(t, pose_at(t)) for t in times]))
             if not self._conn.poll(_REPLY_TIMEOUT_S):
