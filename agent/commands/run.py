@@ -20,7 +20,6 @@ import signal
 import sys
 import threading
 import time
-import tty
 from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
@@ -97,24 +96,11 @@ def run(args: argparse.Namespace) -> int:
             from drivers.sim.harness import SimulatedRobot
 
             robot = stack.enter_context(SimulatedRobot(config.sim.world, seed=config.sim.seed))
-        url = config.output.url
-        controller = None
-        if url == "pty":
-            from agent.commands.sim import Controller
+        from agent.commands.sim import give_way_to_agent, serve_pose_stream
 
-            master, slave = os.openpty()
-            tty.setraw(master)
-            tty.setraw(slave)
-            stack.callback(os.close, master)
-            stack.callback(os.close, slave)
-            url = os.ttyname(slave)
-            controller = Controller(master, config.output.format)
-            controller.start()
+        url, controller = serve_pose_stream(stack, config)
         agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
-        if robot is not None:
-            robot.give_way_to(agent.hot_path.give_way)
-        if controller is not None:
-            controller.give_way = agent.hot_path.give_way
+        give_way_to_agent(agent, robot, controller)
         agent.start()
         settle_heap()
         try:

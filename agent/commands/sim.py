@@ -182,6 +182,33 @@ class FaultInjector:
 
 
 # -- the simulated controller on the pose stream's pty --------------------------------------------------
+def serve_pose_stream(
+    stack: contextlib.ExitStack, config: AgentConfig
+) -> tuple[str | None, Controller | None]:
+    """With ``[output] url = "pty"``: a pseudo-terminal for the pose stream and a simulated controller
+    reading it (closed with ``stack``); the URL the agent writes to, and that controller (None otherwise)."""
+    url = config.output.url
+    if url != "pty":
+        return url, None
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    stack.callback(os.close, master)
+    stack.callback(os.close, slave)
+    controller = Controller(master, config.output.format)
+    controller.start()
+    return os.ttyname(slave), controller
+
+
+def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None, controller: Controller | None) -> None:
+    """The simulated hardware and controller, threads of the agent's process here, wait while a frame is on
+    the agent's hot path (see ``agent.runtime.hotpath``)."""
+    if robot is not None:
+        robot.give_way_to(agent.hot_path.give_way)
+    if controller is not None:
+        controller.give_way = agent.hot_path.give_way
+
+
 class Controller:
     """Reads the pose stream from the pty master and decodes it, as controller firmware would."""
 
@@ -326,21 +353,9 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack:
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation)
-        controller = None
-        url = config.output.url
-        if url == "pty":
-            master, slave = os.openpty()
-            tty.setraw(master)
-            tty.setraw(slave)
-            stack.callback(os.close, master)
-            stack.callback(os.close, slave)
-            url = os.ttyname(slave)
-            controller = Controller(master, config.output.format)
-            controller.start()
+        url, controller = serve_pose_stream(stack, config)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
-        robot.give_way_to(agent.hot_path.give_way)
-        if controller is not None:
-            controller.give_way = agent.hot_path.give_way
+        give_way_to_agent(agent, robot, controller)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
         autopilot = threading.Thread(
