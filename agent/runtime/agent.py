@@ -359,6 +359,10 @@ class Agent:
             counts = dict(self._counts)
             no_fix = dict(self._no_fix.most_common(8))
             vlp = list(self._vlp_ms)
+        # How often background loops waited for the hot path, and waits cut at the bound (a hot path
+        # stuck for longer than max_wait_s).
+        counts["hot_path_waits"] = self.hot_path.waits
+        counts["hot_path_wait_timeouts"] = self.hot_path.timeouts
         drops = {
             "camera_mailbox": self.frames.dropped,
             "scan_queue": self.scans.dropped,
