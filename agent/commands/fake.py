@@ -9,14 +9,12 @@ tags of the people walking by.
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
 from collections.abc import Sequence
-from types import FrameType
 from typing import Any
 
 from agent.commands.worlds import resolve_world
+from agent.runtime.shutdown import ShutdownRequest
 from drivers.fakes.pty import ByteDevice, PtyServer
 from drivers.sim.simulation import Simulation
 from drivers.sim.worldfile import load_world
@@ -69,14 +67,7 @@ def run(args: argparse.Namespace) -> int:
     world = load_world(resolve_world(args.world))
     simulation = Simulation(world)
     device = make_device(args.device, simulation, args.rfid_protocol)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    with PtyServer(device, link=args.link) as server:
+    with ShutdownRequest() as shutdown, PtyServer(device, link=args.link) as server:
         print(server.path, flush=True)
         print(
             f"serving a fake {args.device} ({DEVICES[args.device]}) over world {world.name!r}; "
@@ -84,8 +75,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
             flush=True,
         )
-        while not stop.is_set():
+        while not shutdown.requested:
             # Keep the world moving even when nobody reads it, so scans and tags stay current.
             simulation.advance()
-            stop.wait(0.05)
+            shutdown.wait(0.05)
     return 0

@@ -16,18 +16,16 @@ import gc
 import json
 import logging
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.mapper import save_map
+from agent.runtime.shutdown import ShutdownRequest
 
 log = logging.getLogger(__name__)
 
@@ -81,16 +79,10 @@ def _notifier() -> Any:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     notifier = _notifier()
     with contextlib.ExitStack() as stack:
+        shutdown = stack.enter_context(ShutdownRequest())
         robot = None
         if config.sim is not None:
             from drivers.sim.harness import SimulatedRobot
@@ -105,10 +97,10 @@ def run(args: argparse.Namespace) -> int:
         settle_heap()
         try:
             deadline = None if args.seconds is None else time.monotonic() + args.seconds
-            while not stop.is_set():
+            while not shutdown.requested:
                 if deadline is not None and time.monotonic() >= deadline:
                     break
-                stop.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
+                shutdown.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
         finally:
             agent.stop()
             status = agent.status()

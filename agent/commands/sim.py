@@ -29,7 +29,6 @@ import math
 import os
 import resource
 import select
-import signal
 import sys
 import threading
 import time
@@ -37,7 +36,6 @@ import tty
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import cv2
@@ -47,6 +45,7 @@ from agent.commands.run import SWITCH_INTERVAL_S, settle_heap
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, Written, create_agent
 from agent.runtime.mapper import save_map
+from agent.runtime.shutdown import ShutdownRequest
 from drivers.errors import ConfigError
 from drivers.sim.harness import SimulatedRobot
 from drivers.sim.route import RouteFollower
@@ -339,18 +338,13 @@ def run(args: argparse.Namespace) -> int:
     faults = [Fault.parse(text) for text in args.fault]
     config = _config(args)
     assert config.sim is not None
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    stop = threading.Event()  # set from ordinary code only, never from a signal handler
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     live = sys.stderr.isatty() and not args.json
     out_dir = Path(args.out)
     world = config.sim.world
     with contextlib.ExitStack() as stack:
+        shutdown = stack.enter_context(ShutdownRequest())
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation)
         url, controller = serve_pose_stream(stack, config)
@@ -369,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         t0_us = time.monotonic_ns() // 1000
         try:
-            _watch(args, agent, scorer, injector, stop, t0, live)
+            _watch(args, agent, scorer, injector, shutdown, t0, live)
         finally:
             stop.set()
             autopilot.join(1.0)
@@ -412,14 +406,14 @@ def _watch(
     agent: Agent,
     scorer: Scorer,
     injector: FaultInjector,
-    stop: threading.Event,
+    shutdown: ShutdownRequest,
     t0: float,
     live: bool,
 ) -> None:
     next_status = t0 + 1.0
     last_counts: dict[str, int] = {}
     last_t = t0
-    while not stop.is_set():
+    while not shutdown.requested:
         now = time.monotonic()
         elapsed = now - t0
         if elapsed >= args.seconds:
@@ -448,7 +442,7 @@ def _watch(
                 print("\r" + line + "\033[K", end="", file=sys.stderr, flush=True)
             elif not args.json:
                 print(line, file=sys.stderr, flush=True)
-        stop.wait(min(0.05, max(0.0, args.seconds - elapsed)))
+        shutdown.wait(min(0.05, max(0.0, args.seconds - elapsed)))
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

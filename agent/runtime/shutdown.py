@@ -1,0 +1,80 @@
+"""SIGTERM / SIGINT turned into a request the main loop waits on, without a lock in the handler.
+
+A Python signal handler runs in the main thread between two bytecodes, possibly while that thread holds a
+lock. ``threading.Event.set`` takes the event's lock, so a handler that sets an event the main thread is
+waiting on can deadlock the process (the main thread inside ``Event.wait`` before it releases the
+condition's lock): a service that never stops on SIGTERM. :class:`ShutdownRequest` only stores the signal
+number and writes one byte to a non-blocking self-pipe, both safe at any point; :meth:`ShutdownRequest.wait`
+selects on the pipe, so the main loop wakes at once.
+
+The main loop then stops its threads from ordinary code, where taking locks is safe::
+
+    with ShutdownRequest() as shutdown:
+        while not shutdown.wait(0.2):
+            ...
+        stop_event.set()
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+from collections.abc import Callable, Iterable
+from types import FrameType, TracebackType
+from typing import Any
+
+__all__ = ["ShutdownRequest"]
+
+_Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
+
+
+class ShutdownRequest:
+    """Installs handlers for ``signals`` on enter and restores the previous ones on exit."""
+
+    def __init__(self, signals: Iterable[signal.Signals] = (signal.SIGTERM, signal.SIGINT)) -> None:
+        self.signals = tuple(signals)
+        self.signum: int | None = None
+        self._read_fd = -1
+        self._write_fd = -1
+        self._previous: dict[signal.Signals, _Handler] = {}
+
+    @property
+    def requested(self) -> bool:
+        """Whether one of the signals arrived."""
+        return self.signum is not None
+
+    def wait(self, timeout_s: float) -> bool:
+        """Sleep up to ``timeout_s``, waking at once on a signal; returns :attr:`requested`."""
+        if self.signum is None and timeout_s > 0.0:
+            if self._read_fd < 0:
+                raise RuntimeError("ShutdownRequest.wait outside its with-block")
+            # The handler runs while select waits (EINTR, PEP 475): its byte makes the retried select return.
+            with contextlib.suppress(InterruptedError):
+                select.select([self._read_fd], [], [], timeout_s)
+        return self.signum is not None
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.signum = signum
+        with contextlib.suppress(OSError):  # a full pipe already wakes the reader
+            os.write(self._write_fd, b"\0")
+
+    def __enter__(self) -> ShutdownRequest:
+        self._read_fd, self._write_fd = os.pipe()
+        os.set_blocking(self._read_fd, False)
+        os.set_blocking(self._write_fd, False)
+        for signum in self.signals:
+            self._previous[signum] = signal.signal(signum, self._on_signal)
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+        self._previous.clear()
+        for fd in (self._read_fd, self._write_fd):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._read_fd = self._write_fd = -1
