@@ -439,7 +439,8 @@ def solve_pose(
     """The pose from two or more rays, or the reason there is none.
 
     ``prior`` is (x, y, yaw, sigma_xy, sigma_yaw) of the *lens*: it gates which map LED a repeated id is,
-    and breaks ties between assignments that fit equally well; it does not pull the fix itself.
+    and breaks ties between assignments that fit equally well; it does not pull the fix itself. When no
+    placement fits near the prior, the fix is made without it if the map alone allows only one placement.
     """
     if len(rays) < 2:
         return "fewer than two identified LEDs"
@@ -447,8 +448,15 @@ def solve_pose(
     # per call than the work.
     points: _Points = [(a, b, c) for a, b, c in np.asarray(xyz, dtype=np.float64).reshape(-1, 3).tolist()]
     hypotheses = _hypotheses(rays, points, lens_z_m, prior, config)
+    if not hypotheses and prior is not None:
+        # The prior can be what is wrong (a pose carried on odometry through a camera stall, a robot carried
+        # elsewhere): the map alone then decides, and only where the seen ids fit it in one place.
+        alone = solve_pose(rays, xyz, lens_z_m, velocity=velocity, prior=None, config=config)
+        if isinstance(alone, PoseSolution):
+            return alone
+        return f"no placement of the seen LED ids fits the map near the pose prior ({alone})"
     if not hypotheses:
-        return "no placement of the seen LED ids fits the map" + (" near the pose prior" if prior else "")
+        return "no placement of the seen LED ids fits the map"
     scored: list[tuple[float, PoseSolution]] = []
     for combo in hypotheses:
         solution = _solve_assignment(rays, list(combo), points, lens_z_m, velocity, config)

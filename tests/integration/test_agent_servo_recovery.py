@@ -93,7 +93,8 @@ def test_zero_velocity_is_commanded_when_a_silent_servo_answers_again(
     robot.servos.mute(left, False)
     wait_for(lambda: agent.status().counts.get("zero_on_recovery", 0) >= 1)
     recovered = time.monotonic()
-    assert goal(robot, left) == 0 and goal(robot, right) == 0
+    # The zero was written (a sync write has no reply); the fake takes it off its pty a moment later.
+    wait_for(lambda: goal(robot, left) == 0 and goal(robot, right) == 0, timeout_s=0.2)
     # Held at zero although commands keep coming...
     while time.monotonic() - recovered < 0.4:
         assert goal(robot, left) == 0 and goal(robot, right) == 0

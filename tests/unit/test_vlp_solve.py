@@ -177,7 +177,25 @@ def test_repeated_ids_need_the_pose_prior() -> None:
     assert solution.assignment == (8, 9)
     assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
     far = solve_pose(rays, leds, 0.2, prior=(20.0, 20.0, 0.0, 0.3, 0.2))
-    assert isinstance(far, str) and "prior" in far
+    assert isinstance(far, str) and "prior" in far and "ambiguous" in far
+
+
+def test_a_wrong_prior_gives_way_to_a_placement_the_map_fixes_alone() -> None:
+    # Three LEDs whose ids occur together in one place only: the map alone fixes the pose, so a prior that
+    # drifted away (odometry through a camera stall) must not keep VLP from coming back.
+    leds = grid_map()
+    ids = [(ix + 2 * iy) % 4 for iy in range(4) for ix in range(6)]
+    ids[14] = 7  # one LED of its own
+    candidates = {k: tuple(i for i, v in enumerate(ids) if v == k) for k in set(ids)}
+    truth = (5.1, 3.2, 0.4)
+    seen = [8, 9, 14]
+    q = level_q(leds[seen], *truth, 0.2)
+    rays = [LedRay(tuple(q[j]), candidates[ids[i]], 2e-4) for j, i in enumerate(seen)]
+    for prior in [(5.3, 3.1, 0.45, 0.01, 0.01), (6.5, 1.5, 1.0, 0.05, 0.05)]:  # near, and 2 m off
+        solution = solve_pose(rays, leds, 0.2, prior=prior)
+        assert not isinstance(solution, str), solution
+        assert solution.assignment == (8, 9, 14)
+        assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
 
 
 def test_single_led_with_a_known_yaw() -> None:
