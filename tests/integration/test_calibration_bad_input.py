@@ -14,6 +14,7 @@ import pytest
 from agent.cli import main
 from drivers.sim.targets import Chessboard, TargetRenderer
 from drivers.sim.world import CameraModel
+from tests.integration.terminal import press_ctrl_c, signal_state
 
 REPO = Path(__file__).resolve().parents[2]
 PREVIOUS = "# the calibration that works\n"
@@ -129,8 +130,10 @@ def test_ctrl_c_in_the_middle_of_a_step(tmp_path: Path) -> None:
     )
     try:
         child.expect(r"views [1-9]\d*/40")
-        child.sendintr()
-        child.expect("interrupted; no calibration file was written \\(previous files kept\\)")
+        press_ctrl_c(child)
+        state = signal_state(child)
+        pattern = "interrupted; no calibration file was written \\(previous files kept\\)"
+        assert child.expect([pattern, pexpect.EOF]) == 0, state
         child.expect(pexpect.EOF)
     finally:
         child.close()

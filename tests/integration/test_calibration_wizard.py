@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from calibration.camera_info import parse_camera_info
+from tests.integration.terminal import press_ctrl_c, signal_state
 
 pexpect = pytest.importorskip("pexpect")
 
@@ -94,11 +95,12 @@ def test_ctrl_c_in_a_step_writes_nothing_and_returns_to_the_menu(tmp_path: Path)
         child.expect(r"start \(yes/no\)")
         child.sendline("")
         child.expect(r"views [1-9]\d*/40", timeout=60)
-        child.sendintr()
-        child.expect("intrinsics: interrupted; no calibration file was written")
+        press_ctrl_c(child)
+        state = signal_state(child)
+        assert child.expect(["intrinsics: interrupted; no calibration file was written", MENU]) == 0, state
         child.expect(MENU)
         assert "status: interrupted" in child.before
-        child.sendintr()  # at the menu, Ctrl-C leaves
+        press_ctrl_c(child)  # at the menu, Ctrl-C leaves
         child.expect("interrupted at the menu")
         child.expect(pexpect.EOF)
     finally:
