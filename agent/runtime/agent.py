@@ -290,6 +290,7 @@ class Agent:
         self._stopped = True
         self.health.stopping("stopping: wheels to zero, closing devices")
         self._stop.set()
+        self.hot_path.close()
         self.frames.close()
         self.scans.close()
         self.slam_fixes.close()

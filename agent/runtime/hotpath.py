@@ -32,18 +32,27 @@ class HotPath:
         self._idle = threading.Event()
         self._idle.set()
         self._lock = threading.Lock()
+        self._closed = False
         self.waits = 0  # give_way calls that waited
         self.waited_s = 0.0
         self.timeouts = 0  # waits cut at max_wait_s
 
     def frame_queued(self) -> None:
         """A frame is about to be handed to the hot path: background work should wait."""
-        self._idle.clear()
+        if not self._closed:
+            self._idle.clear()
+
+    def close(self) -> None:
+        """The hot path is stopping: nobody waits for it any more (a frame left in the mailbox would
+        otherwise hold every background loop at the bound until the process ends)."""
+        self._closed = True
+        self._idle.set()
 
     @contextmanager
     def busy(self) -> Iterator[None]:
         """Around one frame's processing on the hot path."""
-        self._idle.clear()
+        if not self._closed:
+            self._idle.clear()
         try:
             yield
         finally:
@@ -51,7 +60,7 @@ class HotPath:
 
     def settle(self) -> None:
         """The hot path is done with its frame: idle again unless another one is already waiting."""
-        if not self._pending():
+        if self._closed or not self._pending():
             self._idle.set()
 
     def active(self) -> bool:

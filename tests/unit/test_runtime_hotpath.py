@@ -43,3 +43,17 @@ def test_a_stuck_hot_path_delays_background_work_by_the_bound_only() -> None:
     hot.give_way()
     assert 0.015 < time.monotonic() - start < 0.5
     assert hot.timeouts == 1
+
+
+def test_a_closed_hot_path_holds_nobody_up_even_with_a_frame_left_behind() -> None:
+    hot = HotPath(lambda: True, max_wait_s=5.0)
+    hot.frame_queued()  # a frame handed over just before the agent stopped; nobody will process it
+    hot.close()
+    start = time.monotonic()
+    hot.give_way()
+    hot.frame_queued()
+    with hot.busy():
+        pass
+    hot.give_way()
+    assert time.monotonic() - start < 0.5
+    assert hot.timeouts == 0 and not hot.active()
