@@ -604,20 +604,28 @@ def _outline_from_points(
     radius_prior: float | None,
 ) -> Blob | None:
     """The circle through a disk's edge points (image coordinates): free (Kasa, robust when points are off
-    the rim, the radius clamped into the map's range), with ``radius_hint`` fixed and robust from
-    ``centre_hint`` (a cover), or, with few points, fixed at ``radius_prior``. Fewer than 6 points: the
-    box's centre, with an infinite rms."""
+        the rim, the radius clamped into the map's range), with ``radius_hint`` fixed and robust from
+        ``centre_hint`` (a cover), or, with few points, fixed at ``radius_prior`` (unless the free circle fits
+    them much better). Fewer than 6 points: the
+        box's centre, with an infinite rms."""
     ox, oy, bx1, by1 = box
     box_centre = (0.5 * (ox + bx1 - 1), 0.5 * (oy + by1 - 1))
     if ex.size >= 6:
         if radius_hint is None and radius_prior is not None and ex.size < _FEW_POINTS:
             # A whole disk crossed by few stripes: the known radius, the centre by least squares from the
             # algebraic one (a cut outline would show as a large rms and be measured again by the caller).
-            fx, fy, _ = fit_circle(ex, ey)
+            fx, fy, fr = fit_circle(ex, ey)
             cx, cy = _centre_for_radius(ex, ey, (fx, fy), radius_prior)
             r = radius_prior
             resid = np.hypot(ex - cx, ey - cy) - r
             rms = math.sqrt(float(resid @ resid) / resid.size)
+            if math.isfinite(fr) and abs(fr - radius_prior) <= 0.25 * radius_prior:
+                # The known radius can be what is off (a track started from a poor first look at the LED):
+                # the free circle stands when it fits the points much better.
+                free = np.hypot(ex - fx, ey - fy) - fr
+                free_rms = math.sqrt(float(free @ free) / free.size)
+                if free_rms < 0.5 * rms:
+                    cx, cy, r, resid, rms = fx, fy, fr, free, free_rms
             inl = 1.0 if max(float(resid.max()), -float(resid.min())) < max(4.0 * rms, 1.0) else 0.5
         elif radius_hint is not None:
             if centre_hint is not None:

@@ -266,6 +266,28 @@ class _Found(NamedTuple):
     closed: ImageU8 | None
 
 
+def _without_duplicates(tracks: list[LedTrack]) -> list[LedTrack]:
+    """One track per LED. A track that coasted off its LED can be joined there by a new one (started by a
+    full-frame search while the first was not held); when two end up on one LED, the one measured this frame,
+    with a settled id, fully visible, older, is kept."""
+    if len(tracks) < 2:
+        return tracks
+    drop: set[int] = set()
+    for i, a in enumerate(tracks):
+        for b in tracks[i + 1 :]:
+            if id(a) in drop or id(b) in drop:
+                continue
+            if math.dist(a.kf.position, b.kf.position) >= max(a.radius_px, b.radius_px):
+                continue
+            worse = min((a, b), key=_track_rank)
+            drop.add(id(worse))
+    return [t for t in tracks if id(t) not in drop] if drop else tracks
+
+
+def _track_rank(track: LedTrack) -> tuple[bool, bool, bool, int]:
+    return (track.missed == 0, track.id_index is not None, track.visibility == FULL, track.age)
+
+
 def _usable(blob: Blob | None) -> Blob | None:
     """A measured blob whose outline fit worked (a finite rms), else None."""
     if blob is None or not math.isfinite(blob.outline_rms_px):
@@ -370,7 +392,7 @@ class LedTracker:
             )
             if inside and track.missed <= cfg.max_coast_frames:
                 kept.append(track)
-        self.tracks = kept
+        self.tracks = _without_duplicates(kept)
 
     def _find(self, image: ImageU8, track: LedTrack) -> _Found | None:
         """CamShift in the track's predicted window and the Bhattacharyya test of what it found: where to
@@ -452,12 +474,26 @@ class LedTracker:
         else:
             track.visibility = FULL if full else PARTIAL
         track.kf.update(blob.centre_px, cfg.measurement_sigma_px if whole else cfg.partial_sigma_px)
-        if full:
-            # Follow slow changes of size and brightness, and of the histogram (vignetting, distance).
+        if whole:
+            # The outline is the LED's whole circle: its size is right whatever the histogram says.
             track.radius_px += 0.3 * (blob.radius_px - r)
+        if full:
+            # Follow slow changes of brightness, and of the histogram (vignetting, distance).
             track.level_dn += 0.3 * (blob.peak_dn - track.level_dn)
             if rho >= cfg.adapt_rho and track.age % cfg.adapt_every == 0:
                 track.q = (1.0 - cfg.hist_adapt) * found.q + cfg.hist_adapt * found.p
+        elif (
+            whole
+            and track.id_index is None
+            and not blob.at_border
+            and blob.area_px >= cfg.min_area_ratio * math.pi * r * r
+        ):
+            # A new LED whose model q was taken from a poor first look (entering the image at its edge,
+            # half in a stripe): the outline and the bridged area say it is whole now, so q is taken again
+            # from what is there. Without this it never counts as fully visible, never adapts, and never
+            # gets an id. Not once the id is settled: a cover must not become the model.
+            track.q = found.p
+            track.level_dn = blob.peak_dn
 
     def _whole(self, blob: Blob, radius: float) -> bool:
         """Is the measured outline the LED's whole circle? Its radius within 25 % of the track's and its edge
