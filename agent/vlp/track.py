@@ -269,7 +269,7 @@ class _Found(NamedTuple):
 def _without_duplicates(tracks: list[LedTrack]) -> list[LedTrack]:
     """One track per LED. A track that coasted off its LED can be joined there by a new one (started by a
     full-frame search while the first was not held); when two end up on one LED, the one measured this frame,
-    with a settled id, fully visible, older, is kept."""
+    with a settled id, fully visible, older (the first started), is kept."""
     if len(tracks) < 2:
         return tracks
     drop: set[int] = set()
@@ -284,8 +284,8 @@ def _without_duplicates(tracks: list[LedTrack]) -> list[LedTrack]:
     return [t for t in tracks if id(t) not in drop] if drop else tracks
 
 
-def _track_rank(track: LedTrack) -> tuple[bool, bool, bool, int]:
-    return (track.missed == 0, track.id_index is not None, track.visibility == FULL, track.age)
+def _track_rank(track: LedTrack) -> tuple[bool, bool, bool, int, int]:
+    return (track.missed == 0, track.id_index is not None, track.visibility == FULL, track.age, -track.track_id)
 
 
 def _usable(blob: Blob | None) -> Blob | None:
@@ -401,7 +401,12 @@ class LedTracker:
         height, width = image.shape
         u, v = track.kf.position
         r = track.radius_px
-        half = r + cfg.search_margin_px + 3.0 * track.kf.position_sigma_px
+        # A track without a settled id may have its radius from a poor first look (an LED entering at the
+        # image edge): its window leaves room for a disk larger than it thinks, or the outline is cut. Not
+        # while it is at the border, where it is cut anyway and is not used.
+        unsure = track.id_index is None and track.visibility != BORDER
+        reach = 1.6 * r if unsure else r
+        half = reach + cfg.search_margin_px + 3.0 * track.kf.position_sigma_px
         x0, y0 = max(int(u - half), 0), max(int(v - half), 0)
         x1, y1 = min(int(u + half) + 2, width), min(int(v + half) + 2, height)
         track.blob = None
@@ -441,6 +446,10 @@ class LedTracker:
             self._coast(track)
             return None
         hint = (x0 + cu, y0 + cv_)
+        if unsure:
+            # Its radius may be off: measured by a search for the disk in the whole window, not in a window
+            # of the radius it thinks (which would cut a larger disk's outline).
+            return _Found(track, (u, v), r, rho, q, p, (x0, y0, x1, y1), hint, None)
         reach = r + 2.0
         if cu - reach >= 0 and cv_ - reach >= 0 and cu + reach < ww and cv_ + reach < wh:
             return _Found(track, (u, v), r, rho, q, p, (x0, y0, x1, y1), hint, closed)
@@ -457,7 +466,7 @@ class LedTracker:
         the known radius, the cover's edge dropping out of the robust fit."""
         cfg = self.config
         track, r, rho = found.track, found.radius, found.rho
-        whole = blob is not None and self._whole(blob, r)
+        whole = blob is not None and self._whole(blob, r, settled=track.id_index is not None)
         if not whole:
             # Start from the prediction: CamShift's centroid of a half-covered disk is half a radius off.
             blob = self._measure(image, found.box, track, found.predicted, r, found.closed)
@@ -494,13 +503,24 @@ class LedTracker:
             # gets an id. Not once the id is settled: a cover must not become the model.
             track.q = found.p
             track.level_dn = blob.peak_dn
+            track.radius_px = blob.radius_px
 
-    def _whole(self, blob: Blob, radius: float) -> bool:
-        """Is the measured outline the LED's whole circle? Its radius within 25 % of the track's and its edge
-        points on it (rms within ``max_outline_rms_px``, none dropped as outliers)."""
+    def _whole(self, blob: Blob, radius: float, settled: bool = True) -> bool:
+        """Is the measured outline the LED's whole circle? Its radius within 25 % of the track's (for a track
+        whose id is not settled yet, within the map's range of LED sizes: its radius may come from a poor
+        first look) and its edge points on it (rms within ``max_outline_rms_px``, none dropped as
+        outliers)."""
         cfg = self.config
-        if not math.isfinite(blob.outline_rms_px) or abs(blob.radius_px - radius) > max(0.25 * radius, 2.0):
+        if not math.isfinite(blob.outline_rms_px):
             return False
+        if settled:
+            if abs(blob.radius_px - radius) > max(0.25 * radius, 2.0):
+                return False
+        else:
+            det = self.detector
+            lo, hi = det.radius_range_px or (0.5 * det.min_diameter_px, 0.5 * det.max_diameter_px)
+            if not 0.85 * lo <= blob.radius_px <= 1.15 * hi:
+                return False
         return (
             blob.outline_rms_px <= max(cfg.max_outline_rms_px, 0.05 * radius) and blob.inlier_fraction >= 0.9
         )

@@ -10,7 +10,16 @@ import pytest
 
 from agent.vlp.decode import Classification
 from agent.vlp.detect import DetectorConfig, find_blobs
-from agent.vlp.track import FULL, OCCLUDED, PARTIAL, KalmanCV, LedTracker, TrackerConfig, bhattacharyya
+from agent.vlp.track import (
+    FULL,
+    OCCLUDED,
+    PARTIAL,
+    KalmanCV,
+    LedTrack,
+    LedTracker,
+    TrackerConfig,
+    bhattacharyya,
+)
 from drivers.sim.render import LedCover, RollingShutterRenderer
 from drivers.sim.world import CameraModel, Led, Mount, Pose2D
 
@@ -131,3 +140,31 @@ def test_a_settled_id_does_not_flip_on_a_few_bad_frames() -> None:
     for _ in range(10):
         track.vote(says_b, config)
     assert track.id_index == 1
+
+
+def test_a_track_started_from_a_poor_first_look_becomes_fully_visible() -> None:
+    # The first look at L2 is half covered (an LED entering at the image edge looks like this): the target
+    # histogram and the radius taken from it are wrong. Once the LED shows whole, the track must take its
+    # model again and count it as fully visible, or it is never decoded and never identified.
+    def covers(k: int) -> list[LedCover]:
+        return [LedCover(1, 0.0, 0.5)] if k == 0 else []
+
+    states = []
+    for frame, tracker in run(lambda t: Pose2D(0.02, -0.01, 0.4), covers, frames=12):
+        truth = next(t for t in frame.truth.leds if t.id == "L2")
+        track = track_of(tracker, truth.centre_px)
+        states.append((track.visibility, track.centre_ok, abs(track.radius_px - truth.radius_px)))
+    assert all(s[0] == FULL and s[1] for s in states[4:]), states
+    assert states[-1][2] < 0.5
+
+
+def test_two_tracks_on_one_led_are_merged() -> None:
+    frames = run(lambda t: Pose2D(0.0, 0.0, 0.2), frames=3)
+    _, tracker = next(frames)
+    first = tracker.tracks[0]
+    ghost = LedTrack(999, first.blob, first.time_s, 4, tracker.config)  # a second track on the same LED
+    ghost.kf.update(first.blob.centre_px, 0.15)
+    tracker.tracks.append(ghost)
+    _, tracker = next(frames)
+    assert len(tracker.tracks) == 3
+    assert all(t.track_id != 999 for t in tracker.tracks)  # the younger one went
