@@ -285,7 +285,8 @@ def _without_duplicates(tracks: list[LedTrack]) -> list[LedTrack]:
 
 
 def _track_rank(track: LedTrack) -> tuple[bool, bool, bool, int, int]:
-    return (track.missed == 0, track.id_index is not None, track.visibility == FULL, track.age, -track.track_id)
+    settled = track.id_index is not None
+    return (track.missed == 0, settled, track.visibility == FULL, track.age, -track.track_id)
 
 
 def _usable(blob: Blob | None) -> Blob | None:
