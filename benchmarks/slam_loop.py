@@ -13,6 +13,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --along-surface-weight 0
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --proposal-temperature 3 --eta-integral laplace
+    python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
 """
 
 from __future__ import annotations
@@ -66,9 +67,17 @@ def main() -> int:
         metavar=("SRR", "SRT", "STR", "STT"),
         default=[defaults.noise.srr, defaults.noise.srt, defaults.noise.str, defaults.noise.stt],
     )
+    parser.add_argument(
+        "--odometry-shift",
+        type=float,
+        default=0.0,
+        metavar="R",
+        help="read each record's odometry R records later (negative: earlier), interpolated",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
+    log = log.odometry_shifted(args.odometry_shift)
     proposal = dataclasses.replace(
         ProposalConfig(),
         along_surface_weight=args.along_surface_weight,

@@ -19,6 +19,7 @@ Formats (``reference/slam.md`` §1.1, ``data/README.md``):
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections.abc import Iterable
@@ -92,6 +93,25 @@ class SlamLog:
 
     def sliced(self, start: int = 0, stop: int | None = None) -> SlamLog:
         return SlamLog(self.source, self.format, self.geometry, self.records[start:stop])
+
+    def odometry_shifted(self, records: float) -> SlamLog:
+        """The log with each record's odometry read ``records`` records later (earlier when negative),
+        interpolated linearly between neighbouring records (the heading unwrapped) and held at the ends:
+        for checking whether a log's odometry was sampled at another moment than its scans (a record written
+        once the scan has arrived holds odometry about half a sweep later than the sweep's middle)."""
+        if len(self.records) < 2 or records == 0.0:
+            return self
+        poses = self.odometry_poses()
+        index = np.arange(len(self.records), dtype=np.float64)
+        at = index + records
+        x = np.interp(at, index, poses[:, 0])
+        y = np.interp(at, index, poses[:, 1])
+        yaw = np.interp(at, index, np.unwrap(poses[:, 2]))
+        shifted = tuple(
+            dataclasses.replace(r, odom_pose=np.array([x[k], y[k], yaw[k]]))
+            for k, r in enumerate(self.records)
+        )
+        return SlamLog(self.source, self.format, self.geometry, shifted)
 
 
 # -- BreezySLAM ------------------------------------------------------------------------------------------

@@ -200,3 +200,21 @@ def test_garbage_raises_only_log_format_error(extra: list[str], cut: int, junk: 
     for parse, line in ((parse_breezyslam, mangled_breezy), (parse_radish, mangled_radish)):
         with contextlib.suppress(LogFormatError):
             parse([line, *extra])
+
+
+def test_odometry_shifted_interpolates_between_records_and_holds_at_the_ends() -> None:
+    from agent.slam.logs import LogRecord, SlamLog
+    from agent.slam.scan import LaserGeometry
+
+    geometry = LaserGeometry(np.radians(np.linspace(-90.0, 90.0, 5)), 0.02, 5.6, (0.0, 0.0, 0.0))
+    yaws = [3.0, -3.0, -2.8]  # across the +-pi seam: unwrapped before interpolating
+    records = tuple(
+        LogRecord(k, 0.1 * k, np.ones(5), np.array([float(k), 2.0 * k, yaws[k]])) for k in range(3)
+    )
+    log = SlamLog("test", LogFormat.BREEZYSLAM, geometry, records)
+    shifted = log.odometry_shifted(-0.5).odometry_poses()
+    assert shifted[0] == pytest.approx([0.0, 0.0, 3.0])  # held at the start
+    assert shifted[1][:2] == pytest.approx([0.5, 1.0])
+    unwrapped = 3.0 + 0.5 * (2.0 * math.pi - 6.0)
+    assert shifted[1][2] == pytest.approx(unwrapped)
+    assert log.odometry_shifted(0.0) is log
