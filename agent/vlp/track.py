@@ -19,6 +19,10 @@ Per track and frame (``reference/vlp.md`` §1.3, the group's "improved CamShift-
    when, besides a whole outline, rho >= ``full_rho`` and its bridged area is that of a whole disk;
    otherwise it is *partial*: a cover along the rows leaves a whole outline but darkens rows, which would
    corrupt the stripes.
+   A track whose id has not settled may carry the radius and histogram of a poor first look (an LED
+   entering at the image edge): it is measured by a disk search in a wider window, any radius the map
+   allows counts as whole, and a whole outline with a whole disk's area gives it its model afresh. Two
+   tracks on one LED are merged.
 4. **Voting.** Each fully visible frame adds its per-signature log-likelihoods (each clipped at
    -``vote_clip`` relative to the frame's best, so one bad frame counts for little) to the track's tally; the
    id settles when its posterior passes ``settle_posterior`` and then changes only if another id passes it
