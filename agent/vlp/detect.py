@@ -293,13 +293,16 @@ class _EdgeRows(NamedTuple):
         return xs, ys
 
 
-def _edge_points(sub: ImageU8, background: float, peak: float) -> tuple[FloatArray, FloatArray]:
-    """Sub-pixel left and right edges of the disk on its bright rows, in ``sub`` coordinates (the
-    component's rows, its columns plus a margin; unclosed pixels): :func:`_edge_rows` of one sub-window.
+def _edge_points(
+    sub: ImageU8, origin: tuple[int, int], background: float, peak: float
+) -> tuple[FloatArray, FloatArray]:
+    """Sub-pixel left and right edges of the disk on its bright rows (``sub``: the component's rows, its
+    columns plus a margin; unclosed pixels), in the image (``sub``'s top-left pixel at ``origin``):
+    :func:`_edge_rows` of one sub-window.
 
     Returns (x, y): the left edges of the rows used, top to bottom, then their right edges.
     """
-    return _edge_rows([sub], [background], [peak]).points(0, (0, 0))
+    return _edge_rows([sub], [background], [peak]).points(0, origin)
 
 
 def _edge_rows(subs: list[ImageU8], backgrounds: list[float], peaks: list[float]) -> _EdgeRows:
@@ -431,9 +434,10 @@ def measure_blob(
     # The edges are searched a few pixels beyond the component's box: its outermost pixels are above the
     # threshold, the half-level crossing lies outside them.
     sx0, sx1 = max(bx - 3, 0), min(bx + bw + 3, x1 - x0)
-    return _outline_blob(
-        roi[by : by + bh, sx0:sx1],
-        (x0 + sx0, y0 + by),
+    ex, ey = _edge_points(roi[by : by + bh, sx0:sx1], (x0 + sx0, y0 + by), background, peak)
+    return _outline_from_points(
+        ex,
+        ey,
         (x0 + bx, y0 + by, x0 + bx + bw, y0 + by + bh),
         area,
         peak,
@@ -464,9 +468,10 @@ def measure_tracked(
     if window is None:
         return None
     sub, origin, box, area, peak = window
-    return _outline_blob(
-        sub,
-        origin,
+    ex, ey = _edge_points(sub, origin, background, peak)
+    return _outline_from_points(
+        ex,
+        ey,
         box,
         area,
         peak,
@@ -557,38 +562,6 @@ def _tracked_window(
     return sub, (x0, y0), box, area, peak
 
 
-def _outline_blob(
-    sub: ImageU8,
-    origin: tuple[int, int],
-    box: tuple[int, int, int, int],
-    area: int,
-    peak: float,
-    background: float,
-    size: tuple[int, int],
-    config: DetectorConfig,
-    *,
-    radius_hint: float | None,
-    centre_hint: tuple[float, float] | None,
-    radius_prior: float | None,
-) -> Blob | None:
-    """Edge points of the disk in ``sub`` (its top-left pixel at ``origin`` in the image) and the circle
-    through them (:func:`_outline_from_points`)."""
-    ex, ey = _edge_rows([sub], [background], [peak]).points(0, origin)
-    return _outline_from_points(
-        ex,
-        ey,
-        box,
-        area,
-        peak,
-        background,
-        size,
-        config,
-        radius_hint=radius_hint,
-        centre_hint=centre_hint,
-        radius_prior=radius_prior,
-    )
-
-
 def _outline_from_points(
     ex: FloatArray,
     ey: FloatArray,
@@ -604,10 +577,9 @@ def _outline_from_points(
     radius_prior: float | None,
 ) -> Blob | None:
     """The circle through a disk's edge points (image coordinates): free (Kasa, robust when points are off
-        the rim, the radius clamped into the map's range), with ``radius_hint`` fixed and robust from
-        ``centre_hint`` (a cover), or, with few points, fixed at ``radius_prior`` (unless the free circle fits
-    them much better). Fewer than 6 points: the
-        box's centre, with an infinite rms."""
+    the rim, the radius clamped into the map's range), with ``radius_hint`` fixed and robust from
+    ``centre_hint`` (a cover), or, with few points, fixed at ``radius_prior`` (unless the free circle fits
+    them much better). Fewer than 6 points: the box's centre, with an infinite rms."""
     ox, oy, bx1, by1 = box
     box_centre = (0.5 * (ox + bx1 - 1), 0.5 * (oy + by1 - 1))
     if ex.size >= 6:
