@@ -471,6 +471,31 @@ def scan_log_likelihood(
     return ll
 
 
+def _linearized_sums(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    centres: FloatArray,
+    outlier_m: float,
+    normals_xy: FloatArray | None,
+    along_weight: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, IntArray]:
+    """The endpoints' residuals linearised at poses centres (P, 3): A = sum J Jᵀ (P, 3, 3), b = sum J r
+    (P, 3) over the endpoints within ``outlier_m``, c = sum r^2 (P,) with each known endpoint beyond it
+    counting outlier_m^2, and the number of known endpoints (P,)."""
+    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    inlier = res.known & (res.d < outlier_m)
+    w = inlier.astype(np.float64)
+    jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
+    wj = jac * w[..., None]
+    a = np.einsum("pni,pnj->pij", wj, jac)
+    b = np.einsum("pni,pn->pi", wj, res.r)
+    outliers = (res.known & ~inlier).sum(axis=1)
+    c = (w * res.r * res.r).sum(axis=1) + outliers * outlier_m**2
+    n_known = res.known.sum(axis=1)
+    return a, b, c, n_known
+
+
 def linearized_log_likelihood(
     field: DistanceField,
     window_index: IntArray,
@@ -489,17 +514,10 @@ def linearized_log_likelihood(
     evaluation per particle instead of one per grid point. Meant for offsets well inside the cell size
     (the proposal's grid spans the match's own standard deviation, millimetres).
     """
-    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    a, b, c, n_known = _linearized_sums(
+        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight
+    )
     n = points_xy.shape[0]
-    inlier = res.known & (res.d < outlier_m)
-    w = inlier.astype(np.float64)
-    jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
-    wj = jac * w[..., None]
-    a = np.einsum("pni,pnj->pij", wj, jac)
-    b = np.einsum("pni,pn->pi", wj, res.r)
-    outliers = (res.known & ~inlier).sum(axis=1)
-    c = (w * res.r * res.r).sum(axis=1) + outliers * outlier_m**2
-    n_known = res.known.sum(axis=1)
     scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0)
     quadratic = (
         c[:, None]
@@ -525,17 +543,10 @@ def log_likelihood_quadratic(
     l0 + gᵀ delta - 1/2 deltaᵀ H delta for poses centres (P, 3); returns l0 (P,), g (P, 3), H (P, 3, 3)
     (l0 = -s c / 2 sigma^2, g = -s b / sigma^2, H = s A / sigma^2 with A, b, c and the imputation scale s
     = N / N_known as there)."""
-    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    a, b, c, n_known = _linearized_sums(
+        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight
+    )
     n = points_xy.shape[0]
-    inlier = res.known & (res.d < outlier_m)
-    w = inlier.astype(np.float64)
-    jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
-    wj = jac * w[..., None]
-    a = np.einsum("pni,pnj->pij", wj, jac)
-    b = np.einsum("pni,pn->pi", wj, res.r)
-    outliers = (res.known & ~inlier).sum(axis=1)
-    c = (w * res.r * res.r).sum(axis=1) + outliers * outlier_m**2
-    n_known = res.known.sum(axis=1)
     scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0) / (sigma_m * sigma_m)
     # No known endpoint at all: every endpoint counts as an outlier, flat in delta.
     l0: FloatArray = np.where(n_known > 0, -0.5 * scale * c, -n * outlier_m**2 / (2.0 * sigma_m * sigma_m))
