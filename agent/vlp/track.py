@@ -410,8 +410,8 @@ class LedTracker:
         # image edge): its window leaves room for a disk larger than it thinks, or the outline is cut. Not
         # while it is at the border, where it is cut anyway and is not used.
         unsure = track.id_index is None and track.visibility != BORDER
-        reach = 1.6 * r if unsure else r
-        half = reach + cfg.search_margin_px + 3.0 * track.kf.position_sigma_px
+        disk_r = 1.6 * r if unsure else r
+        half = disk_r + cfg.search_margin_px + 3.0 * track.kf.position_sigma_px
         x0, y0 = max(int(u - half), 0), max(int(v - half), 0)
         x1, y1 = min(int(u + half) + 2, width), min(int(v + half) + 2, height)
         track.blob = None
