@@ -51,8 +51,7 @@ class ShutdownRequest:
             if self._read_fd < 0:
                 raise RuntimeError("ShutdownRequest.wait outside its with-block")
             # The handler runs while select waits (EINTR, PEP 475): its byte makes the retried select return.
-            with contextlib.suppress(InterruptedError):
-                select.select([self._read_fd], [], [], timeout_s)
+            select.select([self._read_fd], [], [], timeout_s)
         return self.signum is not None
 
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
