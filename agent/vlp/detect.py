@@ -63,6 +63,7 @@ __all__ = [
     "measure_tracked",
     "measure_tracked_many",
     "refine_circle",
+    "search_bands",
 ]
 
 
@@ -733,6 +734,7 @@ def find_blobs(
     *,
     background: tuple[float, float] | None = None,
     known: Sequence[tuple[float, float, float]] = (),
+    rows: tuple[int, int] | None = None,
 ) -> list[Blob]:
     """All LED-like blobs in a frame, brightest first, border ones included but flagged.
 
@@ -741,7 +743,19 @@ def find_blobs(
     them): a candidate region that is one of them (its box holds the centre and is no bigger than that
     disk) is not measured, since only new LEDs are wanted, which makes the periodic search while tracking
     cost the coarse pass alone.
+
+    ``rows`` = (y0, y1) searches that band of rows only (a search spread over frames, see
+    :func:`search_bands`): a candidate cut by a band edge inside the image is left to the neighbouring band,
+    which holds it whole when the bands overlap by an LED's diameter; what is found is measured, and flagged
+    at the border, in the whole image.
     """
+    full, y_off = image, 0
+    band_top = band_bottom = False
+    if rows is not None:
+        y0, y1 = max(rows[0], 0), min(rows[1], full.shape[0])
+        if y1 - y0 < 8:
+            return []
+        image, y_off, band_top, band_bottom = full[y0:y1], y0, y0 > 0, y1 < full.shape[0]
     # Halve with INTER_AREA while the LEDs stay >= ~5 coarse pixels across: OpenCV's 2x2 area path is SIMD,
     # other factors are many times slower.
     coarse, s = image, 1
@@ -771,16 +785,20 @@ def find_blobs(
     bg = bg_c if background is None else background[0]
     blobs: list[Blob] = []
     pad = s + 2
+    h_c = coarse.shape[0]
     for x, y, w, h in rects[: 4 * config.max_blobs]:
         if w < min_side_c or h < min_side_c:
             continue
-        box = (x * s - pad, y * s - pad, (x + w) * s + pad, (y + h) * s + pad)
+        # Cut by a band edge (or a stripe gap away from it, its rest dark there): the next band has it whole.
+        if (band_top and y <= gap) or (band_bottom and y + h >= h_c - gap):
+            continue
+        box = (x * s - pad, y * s + y_off - pad, (x + w) * s + pad, (y + h) * s + y_off + pad)
         size = max(box[2] - box[0], box[3] - box[1])
         limit = size - 4 * pad
         held = (box[0] <= u < box[2] and box[1] <= v < box[3] and limit <= 3.0 * r for u, v, r in known)
         if any(held):
             continue
-        blob = measure_blob(image, box, bg, noise, config)
+        blob = measure_blob(full, box, bg, noise, config)
         if blob is None:
             continue
         if any(
@@ -792,3 +810,16 @@ def find_blobs(
             break
     blobs.sort(key=lambda b: -b.peak_dn)
     return blobs
+
+
+def search_bands(height: int, bands: int, overlap: int) -> list[tuple[int, int]]:
+    """``bands`` bands of rows covering ``height`` rows, each overlapping the next by ``overlap`` rows (at
+    least an LED's diameter, so every LED lies whole in one band): the parts of a full-frame search spread
+    over ``bands`` frames (:func:`find_blobs` with ``rows``)."""
+    if bands <= 1:
+        return [(0, height)]
+    step = math.ceil(height / bands)
+    return [
+        (max(k * step - overlap // 2, 0), min((k + 1) * step + overlap - overlap // 2, height))
+        for k in range(bands)
+    ]

@@ -1,12 +1,13 @@
 """The VLP pipeline: frame in, pose of the robot base (or the reason there is none) out.
 
 Per frame: track the known LEDs in their windows (``agent.vlp.track``), look for new ones when needed
-(``agent.vlp.detect``: on start, when fewer than two LEDs are held, every ``redetect_interval`` frames, and
-at the places the map says an LED should have come into view), decode the stripes of every fully visible LED
-and vote for its id (``agent.vlp.decode``), turn the centres into level rays (``agent.vlp.geometry``: the
-calibrated principal point, undistortion, tilt from the mount and the IMU), and solve the pose
-(``agent.vlp.solve``: closed form, then Gauss-Newton with the rolling-shutter row times). The lens pose is
-moved to the base with the mount, and the calibration's residual correction is applied.
+(``agent.vlp.detect``: the whole frame when no LED is held; while fewer than two are usable, and every
+``redetect_interval`` frames, one band of rows a frame, the search spread over frames so that no frame pays
+for all of it; and at the places the map says an LED should have come into view), decode the stripes of
+every fully visible LED and vote for its id (``agent.vlp.decode``), turn the centres into level rays
+(``agent.vlp.geometry``: the calibrated principal point, undistortion, tilt from the mount and the IMU), and
+solve the pose (``agent.vlp.solve``: closed form, then Gauss-Newton with the rolling-shutter row times).
+The lens pose is moved to the base with the mount, and the calibration's residual correction is applied.
 
 A bad frame never raises: wrong size or type, black, saturated, no LED, one LED each give a ``NoFix`` with a
 reason (or, with one LED and a yaw prior, a fix flagged ``degraded``).
@@ -24,7 +25,14 @@ import numpy.typing as npt
 
 from agent.vlp.calibration import VlpCalibration
 from agent.vlp.decode import DecoderConfig, LedRequest, StripeDecoder
-from agent.vlp.detect import Blob, DetectorConfig, background_level, find_blobs, measure_blob
+from agent.vlp.detect import (
+    Blob,
+    DetectorConfig,
+    background_level,
+    find_blobs,
+    measure_blob,
+    search_bands,
+)
 from agent.vlp.geometry import lens_offset_level, level_plane_points, level_rotation
 from agent.vlp.model import (
     CameraIntrinsics,
@@ -56,7 +64,9 @@ __all__ = ["VlpConfig", "VlpPipeline"]
 @dataclass(frozen=True, slots=True)
 class VlpConfig:
     """``detector``: None derives it from the map (the smallest and largest LED disk the camera can see).
-    ``redetect_interval``: frames between full-frame searches while tracking; ``predict_interval``: frames
+    ``redetect_interval``: frames between full-frame searches while tracking, each spread over
+    ``search_bands`` frames (one band of rows a frame; also while fewer than two LEDs are usable, in a
+    cycle; a frame with no LED tracked is searched whole); ``predict_interval``: frames
     between looks at where the map says an untracked LED should have come into view (0: never);
     ``fft_check_interval``: frames between FFT cross-checks of a settled LED's period.
     ``prior_max_age_s``: how long the last fix (or a given prior) serves as the prior (its uncertainty grows
@@ -73,6 +83,7 @@ class VlpConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     redetect_interval: int = 30
+    search_bands: int = 4
     predict_interval: int = 4
     fft_check_interval: int = 4
     estimate_motion: bool = True
@@ -130,6 +141,7 @@ class VlpPipeline:
         self._given: tuple[float, PosePrior] | None = None
         self._r_level: tuple[Tilt | None, FloatArray] | None = None
         self._offset: tuple[Tilt | None, FloatArray] | None = None
+        self._bands_for: tuple[int, list[tuple[int, int]]] | None = None
 
     def _detector_for_map(self) -> DetectorConfig:
         """Detection tuned to the map: disks from half the smallest the camera can see (a partial cover) to
@@ -229,10 +241,15 @@ class VlpPipeline:
         # map's predictions in between.
         t0 = time.perf_counter()
         usable = sum(1 for t in self.tracker.tracks if t.centre_ok)
-        full_search = usable < 2 or self._frames % max(cfg.redetect_interval, 1) == 0
+        bands = max(cfg.search_bands, 1)
+        phase = self._frames % max(cfg.redetect_interval, bands)
         reason_if_none = "no LED in view"
-        if full_search:
+        if not self.tracker.tracks:
             reason_if_none = self._search(image, time_s) or reason_if_none
+        elif usable < 2 or phase < bands:
+            # New LEDs come into view while others are held: the search is spread over frames, one band of
+            # rows each (so no frame pays for a whole search), continuously while fewer than two are usable.
+            self._search(image, time_s, self._bands(image.shape[0])[self._frames % bands])
         elif cfg.predict_interval > 0 and self._last is not None and self._frames % cfg.predict_interval == 0:
             self._search_predicted(image, time_s)
         self._frames += 1
@@ -289,10 +306,24 @@ class VlpPipeline:
         return NoFix(result.time_s, result.reason, result.leds, timings)
 
     # -- acquisition ---------------------------------------------------------------------------------------
-    def _search(self, image: npt.NDArray[np.uint8], time_s: float) -> str | None:
-        """Full-frame search; returns a reason when the frame itself is unusable."""
+    def _bands(self, height: int) -> list[tuple[int, int]]:
+        """The bands of rows a search spread over frames looks at, overlapping by the largest LED disk the
+        map allows, a stripe gap on either side and the coarse pass's padding (so each LED lies whole in one
+        band, away from its edges)."""
+        if self._bands_for is None or self._bands_for[0] != height:
+            det = self.detector
+            largest = 2.0 * det.radius_range_px[1] if det.radius_range_px else det.max_diameter_px
+            overlap = math.ceil(largest) + 2 * det.bridge + 4 * det.coarse_factor + 8
+            self._bands_for = (height, search_bands(height, max(self.config.search_bands, 1), overlap))
+        return self._bands_for[1]
+
+    def _search(
+        self, image: npt.NDArray[np.uint8], time_s: float, rows: tuple[int, int] | None = None
+    ) -> str | None:
+        """Search the frame (or the band ``rows`` of it) for LEDs not yet tracked; returns a reason when the
+        frame itself is unusable."""
         held = [(*t.kf.position, t.radius_px) for t in self.tracker.tracks if t.missed == 0]
-        blobs = find_blobs(image, self.detector, known=held)
+        blobs = find_blobs(image, self.detector, known=held, rows=rows)
         if not blobs and not self.tracker.tracks:
             bg, _ = background_level(image)
             hist_bright = float(np.count_nonzero(image[::4, ::4] >= 250)) / image[::4, ::4].size

@@ -4,6 +4,7 @@ border rejection, row-gap bridging, and frames with nothing to find."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -21,6 +22,7 @@ from agent.vlp.detect import (
     measure_tracked,
     measure_tracked_many,
     refine_circle,
+    search_bands,
 )
 from drivers.sim.render import LedCover, RollingShutterRenderer
 from drivers.sim.world import CameraModel, Led, Mount, Pose2D
@@ -99,6 +101,34 @@ def test_every_led_in_view_is_found_with_its_centre_from_the_outline() -> None:
     assert np.abs(err.mean(axis=0)).max() < 0.05
     assert err.std(axis=0).max() < 0.15
     assert np.abs(err).max() < 0.5
+
+
+def test_a_search_spread_over_bands_finds_each_led_once_as_the_whole_search() -> None:
+    # Bands overlapping by a disk (32 px here), a bridged stripe gap (8 px) either side and padding: an LED on
+    # a band edge lies whole in the next band and is found there, measured in the whole image as by the
+    # whole search.
+    renderer = RollingShutterRenderer(CameraModel(), ENV1, MOUNT, seed=3)
+    rng = np.random.default_rng(5)
+    bands = search_bands(600, 4, 70)
+    assert bands[0][0] == 0 and bands[-1][1] == 600
+    assert all(a[1] - b[0] >= 70 for a, b in itertools.pairwise(bands))
+    on_an_edge = 0
+    for k in range(12):
+        pose = still(*rng.uniform(-0.3, 0.3, 2), float(rng.uniform(-math.pi, math.pi)))
+        frame = renderer.render(pose, 10.0 + 0.05 * k)
+        whole = find_blobs(frame.image, CONFIG)
+        parts = [b for rows in bands for b in find_blobs(frame.image, CONFIG, rows=rows)]
+        for blob in whole:
+            same = [b for b in parts if math.dist(b.centre_px, blob.centre_px) < 1.0]
+            assert len(same) in (1, 2), f"frame {k}: {blob.centre_px} found {len(same)} times"
+            for b in same:
+                # The band's own background estimate and coarse grid may move the fit by a hair.
+                assert math.dist(b.centre_px, blob.centre_px) < 0.1
+                assert b.radius_px == pytest.approx(blob.radius_px, abs=0.2)
+                assert b.at_border == blob.at_border
+            on_an_edge += any(y0 < blob.centre_px[1] < y0 + 20 for y0, _ in bands[1:])
+        assert len({(round(b.centre_px[0]), round(b.centre_px[1])) for b in parts}) == len(whole)
+    assert on_an_edge > 0
 
 
 def test_the_box_centre_of_the_stripes_would_be_biased() -> None:
