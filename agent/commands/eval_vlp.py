@@ -157,6 +157,7 @@ class Tally:
     no_fix: Counter[str] = field(default_factory=Counter)
     degraded_errors_m: list[float] = field(default_factory=list)
     ids_seen: int = 0
+    ids_decoded: int = 0
     ids_frame_ok: int = 0
     ids_settled: int = 0
     ids_track_ok: int = 0
@@ -198,7 +199,11 @@ class Tally:
                 continue
             lt = near[0]
             self.ids_seen += 1
-            self.ids_frame_ok += int(obs.frame_id == lt.id)
+            if obs.frame_id is not None or obs.id is None:
+                # Decoded on this frame (a settled track is only verified every few frames); an undecided
+                # frame of an unsettled track counts as wrong.
+                self.ids_decoded += 1
+                self.ids_frame_ok += int(obs.frame_id == lt.id)
             if obs.id is not None:
                 self.ids_settled += 1
                 self.ids_track_ok += int(obs.id == lt.id)
@@ -501,11 +506,12 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "uncalibrated_median_error_cm": _summary_errors(uncal_tally.errors_m)["median_error_cm"],
         "uncalibrated_p90_error_cm": _summary_errors(uncal_tally.errors_m)["p90_error_cm"],
         "uncalibrated_max_error_cm": _summary_errors(uncal_tally.errors_m)["max_error_cm"],
-        "id_accuracy_frame": _ratio(cal_tally.ids_frame_ok, cal_tally.ids_seen),
+        "id_accuracy_frame": _ratio(cal_tally.ids_frame_ok, cal_tally.ids_decoded),
         "id_accuracy_track": _ratio(cal_tally.ids_track_ok, cal_tally.ids_settled),
         "id_unsettled_fraction": _ratio(cal_tally.ids_seen - cal_tally.ids_settled, cal_tally.ids_seen),
         "id_tracks_correct": f"{tracks_ok}/{len(cal_tally.tracks_final)}",
         "id_observations": cal_tally.ids_seen,
+        "id_frames_decoded": cal_tally.ids_decoded,
         "association_accuracy": _ratio(cal_tally.assoc_ok, cal_tally.assoc_seen),
         "dispersion_offset_cm": disp_cal["offset_cm"],
         "dispersion_radius_cm": disp_cal["radius_cm"],

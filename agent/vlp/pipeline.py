@@ -68,7 +68,9 @@ class VlpConfig:
     ``search_bands`` frames (one band of rows a frame; also while fewer than two LEDs are usable, in a
     cycle; a frame with no LED tracked is searched whole); ``predict_interval``: frames
     between looks at where the map says an untracked LED should have come into view (0: never);
-    ``fft_check_interval``: frames between FFT cross-checks of a settled LED's period.
+    ``verify_interval``: a fully visible LED whose settled id its last decoded frame confirmed is decoded
+    every this many frames (1: every frame); one that is not settled, or whose stripes last disagreed, on
+    every frame. ``fft_check_interval``: decoded frames between FFT cross-checks of a settled LED's period.
     ``prior_max_age_s``: how long the last fix (or a given prior) serves as the prior (its uncertainty grows
     at ``prior_growth_mps``).
     ``motion_max_gap_s``: the velocity for the rolling-shutter correction is taken from the last two fixes
@@ -86,6 +88,7 @@ class VlpConfig:
     search_bands: int = 4
     predict_interval: int = 4
     fft_check_interval: int = 4
+    verify_interval: int = 3
     estimate_motion: bool = True
     motion_max_gap_s: float = 0.2
     max_speed_mps: float = 2.0
@@ -261,13 +264,26 @@ class VlpPipeline:
         features: dict[int, tuple[float, float, int]] = {}
         chosen: list[tuple[LedTrack, Blob]] = []
         requests: list[LedRequest] = []
+        verify = max(cfg.verify_interval, 1)
         for track in self.tracker.tracks:
             blob = track.blob
             if track.visibility != FULL or blob is None:
                 continue
+            # A settled id that the last decoded frame, at most a few frames ago, agreed with is verified
+            # every few frames (the tracks' turns staggered, so each frame decodes a share); a new LED, one
+            # back from a cover, or one whose stripes last said otherwise, is decoded on every frame.
+            last = track.frame
+            agreed = (
+                last is not None
+                and track.age - track.voted_at < verify
+                and last.id is not None
+                and last.id == self._settled_id(track)
+            )
+            if agreed and (track.age + track.track_id) % verify != 0:
+                continue
             # The track's radius (smoothed over frames) places the profile rows better than one frame's fit.
             # The FFT cross-check of the period: on every frame until the id settles, then every few.
-            check = track.id_index is None or track.age % max(cfg.fft_check_interval, 1) == 0
+            check = track.id_index is None or track.votes % max(cfg.fft_check_interval, 1) == 0
             requests.append((blob.centre_px, track.radius_px, blob.background_dn, check))
             chosen.append((track, blob))
         if chosen:
@@ -426,7 +442,8 @@ class VlpPipeline:
         """What the frame says about one track; ``map_index``: the map LED the solver matched it to (the
         observation is then marked used)."""
         blob = track.blob
-        frame = track.frame if track.visibility == FULL else None
+        # The frame's own classification, only when its stripes were decoded on this frame.
+        frame = track.frame if track.visibility == FULL and feature is not None else None
         centre = blob.centre_px if blob is not None else track.kf.position
         settled = self.signatures[track.id_index].id if track.id_index is not None else None
         freq, duty, area = feature if feature is not None else (math.nan, math.nan, 0)
@@ -446,6 +463,9 @@ class VlpPipeline:
             map_index,
             map_index is not None,
         )
+
+    def _settled_id(self, track: LedTrack) -> str | None:
+        return self.signatures[track.id_index].id if track.id_index is not None else None
 
     def _observations(
         self, features: dict[int, tuple[float, float, int]], matched: dict[int, int] | None = None

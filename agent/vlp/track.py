@@ -175,6 +175,8 @@ class LedTrack:
         self.votes = 0
         self.id_index: int | None = None
         self.frame: Classification | None = None
+        # The track's age at its last vote (its last decoded frame).
+        self.voted_at = -1
         self._best_posterior: tuple[int, float] = (-1, 0.0)
         self._bins_key: tuple[int, int, int] | None = None
         self._bins = np.zeros(256, dtype=np.uint8)
@@ -213,6 +215,7 @@ class LedTrack:
         -``vote_clip``; the tally's spread is then bounded by ``vote_span``. The id settles (or changes) when
         one posterior reaches ``settle_posterior`` after ``settle_frames`` votes."""
         self.frame = classification
+        self.voted_at = self.age
         # A handful of signatures: plain floats (a numpy call costs more than the arithmetic here).
         ll = classification.log_likelihood
         tally = self.tally.tolist()
