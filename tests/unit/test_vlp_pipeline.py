@@ -159,3 +159,32 @@ def test_losing_all_but_one_led_carries_on_from_the_last_fix(perfect_env1) -> No
         assert isinstance(result, VlpFix), (k, result)
         assert math.hypot(result.x_m - pose.x_m, result.y_m - pose.y_m) < 3e-3
         assert result.degraded == (k >= 5)
+
+
+def test_settled_ids_are_verified_every_few_frames_and_a_disagreement_every_frame(perfect_env1) -> None:  # type: ignore[no-untyped-def]
+    view = agent_view(perfect_env1)
+    pipeline = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+    decoded_per_frame = []
+    stream = frames(perfect_env1, Pose2D(0.02, 0.01, 0.4), 17)
+    for _, frame in zip(range(16), stream, strict=False):
+        result = pipeline.process(frame.image, frame.truth.t_mid_s)
+        assert isinstance(result, VlpFix), result
+        assert set(result.ids) == {"L1", "L2", "L3", "L4"}
+        # Decoded on this frame: the frame's own classification and stripe features are reported.
+        decoded = [o for o in result.leds if o.frame_id is not None]
+        assert all(o.frame_id == o.id and math.isfinite(o.frequency_hz) for o in decoded)
+        assert all(o.frame_id is None and math.isnan(o.frequency_hz) for o in result.leds if o not in decoded)
+        decoded_per_frame.append(len(decoded))
+    # The first frames decode every LED; once settled and confirmed, each LED every third frame, in turns.
+    assert decoded_per_frame[0] == 4
+    steady = decoded_per_frame[4:]
+    assert sum(steady) == pytest.approx(4 * len(steady) / 3, abs=2)
+    assert max(steady) <= 3
+    # Stripes that disagree with the settled id: that LED is decoded on every frame until they agree.
+    # (an LED whose turn the next frame is not)
+    track = next(t for t in pipeline.tracks if (t.age + 1 + t.track_id) % 3 != 0)
+    assert track.frame is not None
+    track.frame = dataclasses.replace(track.frame, id="L9")
+    for frame in stream:
+        result = pipeline.process(frame.image, frame.truth.t_mid_s)
+        assert any(o.track_id == track.track_id and o.frame_id is not None for o in result.leds)
