@@ -458,8 +458,15 @@ class LedTracker:
             # Its radius may be off: measured by a search for the disk in the whole window, not in a window
             # of the radius it thinks (which would cut a larger disk's outline).
             return _Found(track, (u, v), r, rho, q, p, (x0, y0, x1, y1), hint, None)
+        # The LED lies inside the window (on a side where the window ends at the image's edge, it is cut by
+        # the image anyway, and a wider window would hold no more of it).
         reach = r + 2.0
-        if cu - reach >= 0 and cv_ - reach >= 0 and cu + reach < ww and cv_ + reach < wh:
+        if (
+            (cu - reach >= 0 or x0 == 0)
+            and (cv_ - reach >= 0 or y0 == 0)
+            and (cu + reach < ww or x1 == width)
+            and (cv_ + reach < wh or y1 == height)
+        ):
             return _Found(track, (u, v), r, rho, q, p, (x0, y0, x1, y1), hint, closed)
         # CamShift found the LED near the window's edge: measure it in a window around it instead.
         m = r + cfg.search_margin_px
