@@ -201,6 +201,7 @@ class SlamConfig:
     sigma_xy_m: float = 0.03
     sigma_yaw_rad: float = math.radians(1.0)
     seed: int = 0
+    process: bool = True  # the filter in a child process (agent.runtime.slam_worker), not the agent's
 
 
 @dataclass(frozen=True)
@@ -915,6 +916,7 @@ class _Reader:
             sigma_xy_m=t.number("sigma_xy_m", d.sigma_xy_m, _POSITIVE),
             sigma_yaw_rad=t.angle("sigma_yaw", d.sigma_yaw_rad),
             seed=t.integer("seed", d.seed, _NON_NEGATIVE),
+            process=t.boolean("process", d.process),
         )
         if not slam.angular_update_rad > 0:
             raise t.error("angular_update_rad", "must be > 0")

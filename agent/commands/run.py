@@ -92,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
 
         url, controller = serve_pose_stream(stack, config)
         agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
+        if agent.mapper is not None:
+            # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
+            stack.callback(agent.mapper.close)
         give_way_to_agent(agent, robot, controller)
         agent.start()
         settle_heap()

@@ -349,6 +349,9 @@ def run(args: argparse.Namespace) -> int:
         scorer = Scorer(robot.simulation)
         url, controller = serve_pose_stream(stack, config)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
+        if agent.mapper is not None:
+            # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
+            stack.callback(agent.mapper.close)
         give_way_to_agent(agent, robot, controller)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
@@ -541,6 +544,8 @@ def _summary(
     files: dict[str, str],
 ) -> dict[str, Any]:
     assert config.sim is not None
+    own_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    slam_mb = status.mapper.get("worker_peak_rss_kb", 0) / 1024.0
     errors_cm = [100 * e for e in scorer.errors_m]
     flags = np.array(scorer.flags, dtype=np.int64)
     truth = np.array(scorer.truth_path) if scorer.truth_path else np.zeros((0, 2))
@@ -590,7 +595,10 @@ def _summary(
         "faults": injector.applied,
         "counts": counts,
         "files": files,
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        # The agent's processes: its own peak and its SLAM process's (an upper bound of their sum). The
+        # simulated camera's renderer is the simulated hardware's, not the agent's.
+        "peak_rss_mb": round(own_mb + slam_mb, 1),
+        "peak_rss_mb_parts": {"agent": round(own_mb, 1), "slam_process": round(slam_mb, 1)},
     }
 
 

@@ -66,6 +66,8 @@ class ScanMapper(Protocol):
 
     def counters(self) -> dict[str, int]: ...
 
+    def close(self) -> None: ...
+
 
 class RbpfMapper:
     """``agent.slam.rbpf.RbpfSlam`` behind :class:`ScanMapper`.
@@ -203,6 +205,9 @@ class RbpfMapper:
             out["map_bytes"] = int(self.slam.memory_bytes())
         return out
 
+    def close(self) -> None:
+        """Nothing to release (the filter lives in this process)."""
+
 
 def _pose_fix(fix: AbsoluteFix) -> Any:
     from agent.slam.fix import PoseFix
@@ -297,20 +302,29 @@ class MclMapper:
             out["fixes_applied"] = int(self.localizer.stats.fixes_applied)
         return out
 
+    def close(self) -> None:
+        """Nothing to release (the filter lives in this process)."""
+
 
 def make_mapper(
     config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]
 ) -> tuple[ScanMapper | None, str]:
     """The laser localizer for this config (mapping or localization on a map), or None and the reason it is
-    not available."""
+    not available; with ``config.process``, run in a child process (``agent.runtime.slam_worker``)."""
     if not config.enabled:
         return None, "disabled in the config"
     try:
+        if config.process:
+            from agent.runtime.slam_worker import ProcessMapper
+
+            return ProcessMapper(config, mount, start_pose), ""
         if config.mode is SlamMode.LOCALIZATION:
             return MclMapper(config, mount, start_pose), ""
         return RbpfMapper(config, mount, start_pose), ""
     except ImportError as exc:
         return None, f"the SLAM package is not usable: {exc}"
+    except ValueError as exc:
+        return None, str(exc)
 
 
 def save_map(mapper: ScanMapper, directory: Path, name: str = "map") -> list[Path]:
