@@ -5,12 +5,14 @@ notification socket set so that the one socket it *should* open, AF_UNIX for sd_
 
 * a ``sitecustomize`` installs a ``sys.addaudithook`` before any of the agent's code runs and logs every
   ``socket.__new__``: only AF_UNIX may appear (and it must, or the hook saw nothing);
-* while it runs, every socket among ``/proc/<pid>/fd`` is looked up in ``/proc/<pid>/net/{tcp,udp,raw}{,6}``:
-  none may be an IP socket.
+* while it runs, every socket among ``/proc/<pid>/fd`` of the agent and its child processes (the SLAM
+  process, the simulated camera's renderer) is looked up in ``/proc/<pid>/net/{tcp,udp,raw}{,6}``: none may
+  be an IP socket.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import socket
@@ -64,6 +66,18 @@ def ip_socket_inodes(pid: int) -> set[int]:
     return inodes
 
 
+def family(pid: int) -> list[int]:
+    """``pid`` and its descendants (from ``/proc/<pid>/task/<tid>/children``)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
 def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
     (tmp_path / "hook").mkdir()
     (tmp_path / "hook" / "sitecustomize.py").write_text(HOOK)
@@ -91,15 +105,18 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
     )
     seen_sockets: set[int] = set()
     ip_in_use: set[int] = set()
+    pids_seen: set[int] = set()
     try:
         deadline = time.monotonic() + 30
         while proc.poll() is None and time.monotonic() < deadline:
-            try:
-                ours = socket_inodes(proc.pid)
-                seen_sockets |= ours
-                ip_in_use |= ours & ip_socket_inodes(proc.pid)
-            except FileNotFoundError:  # the process ended between two reads
-                break
+            for pid in family(proc.pid):
+                try:
+                    ours = socket_inodes(pid)
+                    seen_sockets |= ours
+                    ip_in_use |= ours & ip_socket_inodes(pid)
+                except FileNotFoundError:  # the process ended between two reads
+                    continue
+                pids_seen.add(pid)
             time.sleep(0.2)
         _, stderr = proc.communicate(timeout=30)
     finally:
@@ -109,9 +126,10 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
         notify.close()
     assert proc.returncode == 0, stderr[-2000:]
     lines = log.read_text().splitlines()
-    # One "hook" line per process that started (the agent, and the simulated camera's render process
-    # with render_process = true, which the hook watches too).
-    assert lines[0] == "hook"
+    # One "hook" line per process that started: the agent, its SLAM process and the simulated camera's
+    # render process (render_process = true), which both checks watch too.
+    assert lines[0] == "hook" and lines.count("hook") >= 3
+    assert len(pids_seen) >= 3
     families = {int(line.split()[0]) for line in lines if line != "hook"}
     # The positive control: sd_notify's AF_UNIX datagram socket was seen, by both checks.
     assert int(socket.AF_UNIX) in families and seen_sockets
