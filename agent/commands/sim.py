@@ -642,6 +642,8 @@ def _print_summary(s: dict[str, Any]) -> None:
         print(f"  device faults     {bad}")
     if s["faults"]:
         print(f"  injected          {s['faults']}")
-    print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB")
+    parts = s.get("peak_rss_mb_parts", {})
+    split = f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f})" if parts else ""
+    print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB{split}")
     for path in s["files"].values():
         print(f"  wrote             {path}")
