@@ -11,7 +11,7 @@ busy core the hot path goes first; on the robot's four cores it has one to itsel
 
 The child ignores SIGINT and SIGTERM (a terminal's Ctrl-C and systemd's stop reach every process of the
 group) and ends when the agent hangs up, after it has saved the map through it. The child is a fresh
-interpreter (``python -m agent.runtime.slam_worker FD``: never a ``fork`` of the
+interpreter (``drivers.child_process``: ``python -m agent.runtime.slam_worker FD``, never a ``fork`` of the
 threaded agent, and not ``multiprocessing``'s spawn, which re-imports the parent's main script); the two
 talk over a socketpair (AF_UNIX, no network) with ``multiprocessing.connection`` framing: one request, one
 reply, always from the SLAM thread (the agent's summary reads the counters kept from the last reply).
@@ -32,13 +32,11 @@ import multiprocessing.connection
 import os
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -47,6 +45,7 @@ import numpy.typing as npt
 from agent.config import MountConfig, SlamConfig
 from agent.runtime.mapper import MapperStep, Pose, make_mapper
 from agent.runtime.types import AbsoluteFix
+from drivers.child_process import start_child, stop_child
 from drivers.samples import Scan
 
 __all__ = ["ProcessMapper"]
@@ -163,22 +162,8 @@ class ProcessMapper:
 
     # -- the child's life ------------------------------------------------------------------------------
     def _spawn(self) -> None:
-        ours, theirs = socket.socketpair()
-        # The child finds this package where the parent found it, installed or not.
-        root = str(Path(__file__).resolve().parents[2])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-        env.setdefault("OPENBLAS_NUM_THREADS", "1")
-        try:
-            self._process = subprocess.Popen(
-                [sys.executable, "-m", "agent.runtime.slam_worker", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                stdin=subprocess.DEVNULL,
-                env=env,
-            )
-        finally:
-            theirs.close()
-        self._conn = multiprocessing.connection.Connection(ours.detach())
+        blas = {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
+        self._process, self._conn = start_child("agent.runtime.slam_worker", blas)
         self._started = False
         ok, why, name = self._exchange((self.config, self.mount))
         if not ok:
@@ -219,7 +204,6 @@ class ProcessMapper:
                 self._next_spawn_s = time.monotonic() + _RESTART_AFTER_S
                 self._stop_child()
                 raise
-        counters["worker_restarts"] = self.restarts
         with self._counters_lock:
             self._counters = counters
         self._started = bool(started)
@@ -237,18 +221,8 @@ class ProcessMapper:
         process, conn = self._process, self._conn
         self._process = self._conn = None
         self._started = False  # a new child's filter starts afresh
-        if process is not None and process.poll() is None:
-            if conn is not None:
-                with contextlib.suppress(OSError):
-                    conn.send(None)
-            try:
-                process.wait(2.0)
-            except subprocess.TimeoutExpired:
-                log.warning("the SLAM process did not stop; killing it")
-                process.kill()
-                process.wait(1.0)
-        if conn is not None:
-            conn.close()
+        if process is not None and conn is not None:
+            stop_child(process, conn, "SLAM")
 
     # -- ScanMapper ------------------------------------------------------------------------------------
     def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:

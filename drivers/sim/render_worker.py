@@ -21,20 +21,16 @@ arguments and draws the same sequence). If the child dies, ``render`` raises
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import multiprocessing.connection
-import os
-import socket
-import subprocess
 import sys
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from drivers.child_process import start_child, stop_child
 from drivers.errors import DeviceDisconnected
 from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer, pose_times_s, readout_time_s
 from drivers.sim.world import CameraModel, Led, Mount, Pose2D
@@ -98,21 +94,7 @@ class RenderWorker:
         self.camera = camera
         self._args = (camera, tuple(leds), mount)
         self._kwargs: dict[str, Any] = {"tilt_rad": tilt_rad, "gain_db": gain_db, "seed": seed}
-        ours, theirs = socket.socketpair()
-        # The child finds this package where the parent found it, installed or not.
-        root = str(Path(__file__).resolve().parents[2])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH", "")) if p)
-        try:
-            self._process = subprocess.Popen(
-                [sys.executable, "-m", "drivers.sim.render_worker", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),),
-                stdin=subprocess.DEVNULL,
-                env=env,
-            )
-        finally:
-            theirs.close()
-        self._conn = multiprocessing.connection.Connection(ours.detach())
+        self._process, self._conn = start_child("drivers.sim.render_worker")
         self._conn.send((self._args, self._kwargs))
 
     @property
@@ -145,16 +127,7 @@ class RenderWorker:
 
     def close(self) -> None:
         """Stop the child (idempotent)."""
-        if self._process.poll() is None:
-            with contextlib.suppress(OSError):
-                self._conn.send(None)
-            try:
-                self._process.wait(2.0)
-            except subprocess.TimeoutExpired:
-                log.warning("the render process did not stop; killing it")
-                self._process.kill()
-                self._process.wait(1.0)
-        self._conn.close()
+        stop_child(self._process, self._conn, "render")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,62 @@
+"""A worker in a child process, talked to over a socketpair: how the simulated camera's renderer and the
+agent's SLAM filter run off the agent's interpreter lock.
+
+The child is a fresh interpreter (``python -m MODULE FD``: never a ``fork`` of the threaded agent, and not
+``multiprocessing``'s spawn, which re-imports the parent's main script) serving the connection on file
+descriptor FD with ``multiprocessing.connection`` framing; AF_UNIX only, no network. By convention a
+``None`` message asks it to stop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing.connection
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+
+__all__ = ["start_child", "stop_child"]
+
+log = logging.getLogger(__name__)
+
+
+def start_child(
+    module: str, env: Mapping[str, str] | None = None
+) -> tuple[subprocess.Popen[bytes], multiprocessing.connection.Connection]:
+    """Start ``python -m module FD`` with the other end of a socketpair on FD (``env``: variables set for it
+    on top of this process's); returns the process and this end of the connection."""
+    ours, theirs = socket.socketpair()
+    # The child finds this package where the parent found it, installed or not.
+    root = str(Path(__file__).resolve().parents[1])
+    child_env = {**os.environ, **(env or {})}
+    child_env["PYTHONPATH"] = os.pathsep.join(p for p in (root, child_env.get("PYTHONPATH", "")) if p)
+    try:
+        process = subprocess.Popen(
+            [sys.executable, "-m", module, str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),),
+            stdin=subprocess.DEVNULL,
+            env=child_env,
+        )
+    finally:
+        theirs.close()
+    return process, multiprocessing.connection.Connection(ours.detach())
+
+
+def stop_child(
+    process: subprocess.Popen[bytes], conn: multiprocessing.connection.Connection, what: str
+) -> None:
+    """Ask the child to stop (``None``), wait 2 s, kill it if it did not, and close the connection."""
+    if process.poll() is None:
+        with contextlib.suppress(OSError):
+            conn.send(None)
+        try:
+            process.wait(2.0)
+        except subprocess.TimeoutExpired:
+            log.warning("the %s process did not stop; killing it", what)
+            process.kill()
+            process.wait(1.0)
+    conn.close()
