@@ -445,7 +445,7 @@ class VlpPipeline:
         # The frame's own classification, only when its stripes were decoded on this frame.
         frame = track.frame if track.visibility == FULL and feature is not None else None
         centre = blob.centre_px if blob is not None else track.kf.position
-        settled = self.signatures[track.id_index].id if track.id_index is not None else None
+        settled = self._settled_id(track)
         freq, duty, area = feature if feature is not None else (math.nan, math.nan, 0)
         return LedObservation(
             track.track_id,
@@ -519,7 +519,7 @@ class VlpPipeline:
         for row, k in enumerate(usable):
             track = tracks[k]
             blob = track.blob
-            led_id = self.signatures[track.id_index].id if track.id_index is not None else ""
+            led_id = self._settled_id(track) or ""
             # The centre's standard deviation falls as 1/sqrt(edge points): a disk crossed by one or two
             # bright stripes (few points, all near its middle rows) is placed less well across them.
             points = max(blob.outline_points if blob is not None else 0, 1)
