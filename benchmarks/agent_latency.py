@@ -33,6 +33,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from cpu_share import CpuShare  # noqa: E402
+
 from drivers.sim.render import readout_time_s  # noqa: E402
 from drivers.sim.worldfile import load_world  # noqa: E402
 
@@ -45,7 +47,8 @@ def one_run(seconds: float, world: str | None) -> dict[str, Any]:
         cmd = [sys.executable, "-m", "agent.cli", "sim", "--seconds", str(seconds), "--json", "--out", tmp]
         if world:
             cmd += ["--world", world]
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, check=False)
+        with CpuShare() as share:
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, check=False)
     if proc.returncode != 0:
         raise SystemExit(f"vlp-agent sim failed:\n{proc.stderr[-3000:]}")
     s: dict[str, Any] = json.loads(proc.stdout)
@@ -56,6 +59,9 @@ def one_run(seconds: float, world: str | None) -> dict[str, Any]:
         "exposure_age_ms_p99": s["exposure_age_ms_p99"],
         "vlp_ms_p50": s["vlp_ms_p50"],
         "vlp_ms_p99": s["vlp_ms_p99"],
+        "hot_path_cpu_ms_p50": s["hot_path_cpu_ms_p50"],
+        "hot_path_cpu_ms_p99": s["hot_path_cpu_ms_p99"],
+        "cpu_share": share.result(),
         "peak_rss_mb": s["peak_rss_mb"],
         "frames_out": s["frames_out"],
         "fixes_fused": s["fixes_fused"],

@@ -39,6 +39,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cpu_share import CpuShare
+
 from agent.sim_view import agent_view
 from agent.vlp.model import VlpFix
 from agent.vlp.pipeline import VlpPipeline
@@ -88,6 +90,7 @@ class RoundResult:
     latency_ms_median: float
     cpu_ms_median: float
     numpy_small_op_us: float
+    cpu_share: dict[str, float]
     stages_ms_median: dict[str, float]
     plain_pass_ms_median: dict[str, float]
     leds_seen_median: float
@@ -118,6 +121,7 @@ class Case:
         total, cpu, minmax, npsum, seen = [], [], [], [], []
         stages: dict[str, list[float]] = {"acquire": [], "track": [], "decode": [], "solve": []}
         fixes = 0
+        share = CpuShare().start()
         for k, (image, t) in enumerate(self.frames):
             c0 = time.thread_time()
             t0 = time.perf_counter()
@@ -144,12 +148,14 @@ class Case:
                 stages[name].append(value)
             seen.append(sum(1 for o in result.leds if o.visibility == "full"))
             fixes += isinstance(result, VlpFix)
+        share.stop()
         self.total += total
         self.rounds.append(
             RoundResult(
                 latency_ms_median=statistics.median(total),
                 cpu_ms_median=statistics.median(cpu),
                 numpy_small_op_us=small_op_us(),
+                cpu_share=share.result(),
                 stages_ms_median={name: statistics.median(v) for name, v in stages.items()},
                 plain_pass_ms_median={
                     "cv2.minMaxLoc": statistics.median(minmax),

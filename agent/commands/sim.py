@@ -575,6 +575,8 @@ def _summary(
         "exposure_age_ms_p99": _round(status.exposure_age_ms[1]),
         "vlp_ms_p50": None if math.isnan(status.vlp_ms[0]) else round(status.vlp_ms[0], 3),
         "vlp_ms_p99": None if math.isnan(status.vlp_ms[1]) else round(status.vlp_ms[1], 3),
+        "hot_path_cpu_ms_p50": _round(status.hot_path_cpu_ms[0]),
+        "hot_path_cpu_ms_p99": _round(status.hot_path_cpu_ms[1]),
         "pose_error_cm_mean": round(float(np.mean(errors_cm)), 3) if errors_cm else None,
         "pose_error_cm_p95": _percentile(errors_cm, 95),
         "pose_error_cm_max": round(max(errors_cm), 3) if errors_cm else None,

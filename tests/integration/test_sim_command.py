@@ -51,6 +51,9 @@ def test_sim_runs_the_whole_agent_and_ends_with_the_summary(tmp_path: Path) -> N
     assert s["fixes_fused"] >= 0.8 * s["camera_frames"]
     assert s["within_2cm"] >= 0.9
     assert s["latency_ms_p50"] > 0 and s["latency_ms_p99"] >= s["latency_ms_p50"]
+    # The hot path's own CPU time per frame: part of the latency, which also holds the waits.
+    assert 0 < s["hot_path_cpu_ms_p50"] <= s["hot_path_cpu_ms_p99"]
+    assert s["hot_path_cpu_ms_p50"] <= s["latency_ms_p50"]
     assert 0 < s["peak_rss_mb"] < 1000
     # The robot drove the route from the agent's own pose, through the servos.
     assert s["distance_m"] > 0.6
