@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import gc
 import json
 import logging
 import os
@@ -32,15 +31,6 @@ log = logging.getLogger(__name__)
 # The GIL hands over every 5 ms by default: a thread in a long numpy-free Python stretch (SLAM's
 # bookkeeping) would hold the hot path that long. 1 ms bounds that wait (benchmarks/agent_latency.py).
 SWITCH_INTERVAL_S = 0.001
-
-
-def settle_heap() -> None:
-    """Once the agent is up: collect, then freeze what survived (``gc.freeze``), so that the collector's
-    later full passes do not walk the long-lived objects (modules, config, caches, the fusion history).
-    A collection holds the interpreter lock wherever it starts; without the freeze a full pass took tens of
-    milliseconds in the middle of a run, on the hot path's clock."""
-    gc.collect()
-    gc.freeze()
 
 
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
@@ -97,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(agent.mapper.close)
         give_way_to_agent(agent, robot, controller)
         agent.start()
-        settle_heap()
+        agent.settle_heap()
         try:
             deadline = None if args.seconds is None else time.monotonic() + args.seconds
             while not shutdown.requested:

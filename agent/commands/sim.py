@@ -41,7 +41,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from agent.commands.run import SWITCH_INTERVAL_S, settle_heap
+from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, Written, create_agent
 from agent.runtime.mapper import save_map
@@ -362,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
             daemon=True,
         )
         autopilot.start()
-        settle_heap()
+        agent.settle_heap()
         t0 = time.monotonic()
         t0_us = time.monotonic_ns() // 1000
         try:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import gc
 import logging
 import math
 import threading
@@ -33,6 +34,7 @@ import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
+from agent.runtime.collector import IdleCollector
 from agent.runtime.devices import Devices
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
@@ -224,6 +226,8 @@ class Agent:
         # SLAM gives way (between particles) while a frame waits for or is on the hot path.
         frames = self.frames
         self.hot_path = HotPath(lambda: frames.pending)
+        # Off until settle_heap(): the collector then runs between frames on the hot path's thread.
+        self.collector = IdleCollector()
         self.scans: BoundedQueue[Scan] = BoundedQueue(config.slam.queue_size)
         self.slam_fixes: BoundedQueue[AbsoluteFix] = BoundedQueue(4)
         self.odometry_track = OdometryTrack(hold_s=fc.odometry_timeout_s)
@@ -287,6 +291,16 @@ class Agent:
         monitor.start()
         self._threads.append(monitor)
 
+    def settle_heap(self) -> None:
+        """Once started: collect, freeze what survived (``gc.freeze``: later full passes skip the long-lived
+        objects), and, when there is a hot path, run the collector between its frames from now on instead
+        of in whichever thread allocates (``agent.runtime.collector``) until :meth:`stop`."""
+        if self.devices.camera is not None:
+            self.collector.start()
+        else:
+            gc.collect()
+            gc.freeze()
+
     def stop(self, timeout_s: float = 1.5) -> None:
         """Stop the loops, command zero, close the devices and the output. Safe to call twice."""
         if self._stopped:
@@ -303,6 +317,7 @@ class Agent:
             thread.join(max(0.0, deadline - time.monotonic()))
             if thread.is_alive():
                 log.warning("thread %s did not stop in time", thread.name)
+        self.collector.stop()
         servos = self.devices.servos
         if servos is not None and servos.is_open:
             try:
@@ -369,6 +384,9 @@ class Agent:
         # stuck for longer than max_wait_s).
         counts["hot_path_waits"] = self.hot_path.waits
         counts["hot_path_wait_timeouts"] = self.hot_path.timeouts
+        # Garbage collections run between frames (agent.runtime.collector), by generation.
+        for generation, n in enumerate(self.collector.collections):
+            counts[f"gc_between_frames_{generation}"] = n
         drops = {
             "camera_mailbox": self.frames.dropped,
             "scan_queue": self.scans.dropped,
@@ -567,6 +585,7 @@ class Agent:
             item = self.frames.take(0.25)
             if item is None or self.localizer is None:
                 self.hot_path.settle()
+                self.collector.collect_if_due()
                 continue
             with self.hot_path.busy():
                 c0 = time.thread_time()
@@ -576,6 +595,8 @@ class Agent:
                     cpu_ms = 1e3 * (time.thread_time() - c0)
                     with self._counts_lock:
                         self._hot_cpu_ms.append(cpu_ms)
+            # The pose is written: the garbage of this frame (and of every other thread) goes now.
+            self.collector.collect_if_due()
 
     def _locate(self, frame: Frame, arrival_ns: int) -> None:
         """The hot path: frame -> fix -> fusion -> pose bytes written."""
