@@ -179,6 +179,13 @@ def test_crc_bitwise_reference_agrees_with_the_table() -> None:
         assert crc16_ccitt_false(data[:n]) == bitwise(data[:n])
 
 
+@given(st.binary(max_size=300))
+def test_the_pose_frame_crc_is_the_generic_table_crc(data: bytes) -> None:
+    # crc16_ccitt_false is binascii.crc_hqx from 0xFFFF; the parametrised table walk is the independent one.
+    assert crc16_ccitt_false(data) == CRC16_CCITT_FALSE.crc(data)
+    assert crc16_ccitt_false(memoryview(data)) == crc16_ccitt_false(bytearray(data))
+
+
 def test_devices_md_example_frame() -> None:
     payload = bytes.fromhex("01020003")
     assert crc16_ccitt_false(payload) == 0xAC77
