@@ -14,6 +14,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --along-surface-weight 0
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --proposal-temperature 3 --eta-integral laplace
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
+    python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates 1
 """
 
 from __future__ import annotations
@@ -68,6 +69,13 @@ def main() -> int:
         default=[defaults.noise.srr, defaults.noise.srt, defaults.noise.str, defaults.noise.stt],
     )
     parser.add_argument(
+        "--search-updates",
+        type=int,
+        default=defaults.search_updates,
+        metavar="N",
+        help="the correlative search at the first N filter updates only (default: at every update)",
+    )
+    parser.add_argument(
         "--odometry-shift",
         type=float,
         default=0.0,
@@ -94,6 +102,7 @@ def main() -> int:
             proposal=proposal,
             noise=OdometryNoise(*args.odometry_noise),
             resample_threshold=args.resample_threshold,
+            search_updates=args.search_updates,
             seed=seed,
         )
         result = replay(log, config)

@@ -372,3 +372,20 @@ def test_replay_with_a_bounded_history(loop: tuple[np.ndarray, ...]) -> None:
     np.testing.assert_allclose(short.poses[1], odometry[1])
     with pytest.raises(ValueError, match="history_limit"):
         RbpfConfig(history_limit=0)
+
+
+def test_the_correlative_search_runs_where_it_is_due() -> None:
+    # Every update by default; with search_updates=1 only the first and after a large odometry increment.
+    searched: list[bool] = []
+    every = RbpfSlam(LASER, RbpfConfig(particles=4))
+    first = RbpfSlam(LASER, RbpfConfig(particles=4, search_updates=1))
+    step = np.array([0.3, 0.0, 0.05])
+    for slam in (every, first):
+        for updates, increment in ((0, step), (1, step), (5, step), (5, np.array([1.2, 0.0, 0.0]))):
+            slam.stats.updates = updates
+            searched.append(slam._proposal_for(increment).search is not None)
+        slam.stats.updates = 5
+        searched.append(slam._proposal_for(np.array([0.0, 0.0, -0.6])).search is not None)
+    assert searched == [True] * 5 + [True, False, False, True, True]
+    # The search-free settings are the filter's own otherwise.
+    assert first._proposal_for(step).matcher == first.config.proposal.matcher
