@@ -201,22 +201,49 @@ def ekf_update(
     y = z - H @ x
     if yaw_row is not None:
         y[yaw_row] = _wrap(float(y[yaw_row]))
-    # S = H P H^T + R (innovation covariance)
-    S = H @ P @ H.T + R
-    S_inv = np.linalg.inv(S)
+    # S = H P H^T + R (innovation covariance), P H^T kept for the gain
+    PHt = P @ H.T
+    S = H @ PHt + R
+    S_inv = _inverse_small(S)
     # d^2 = y^T S^-1 y (squared Mahalanobis distance)
-    d2 = float(y @ S_inv @ y)
+    S_inv_y = S_inv @ y
+    d2 = float(y @ S_inv_y)
     if not d2 <= gate_d2:
         return x, P, d2, False
-    # K = P H^T S^-1 (Kalman gain)
-    K = P @ H.T @ S_inv
-    # x = x + K y
-    x_new = x + K @ y
+    # K = P H^T S^-1 (Kalman gain); x = x + K y
+    K = PHt @ S_inv
+    x_new = x + PHt @ S_inv_y
     x_new[IYAW] = _wrap(float(x_new[IYAW]))
     # P = (I - K H) P (I - K H)^T + K R K^T (Joseph form: stays symmetric and positive definite)
-    I_KH = np.eye(N_STATE) - K @ H
+    I_KH = _EYE - K @ H
     P_new = I_KH @ P @ I_KH.T + K @ R @ K.T
     return x_new, 0.5 * (P_new + P_new.T), d2, True
+
+
+def _inverse_small(S: FloatArray) -> FloatArray:
+    """The inverse of a symmetric 2x2 or 3x3 innovation covariance by cofactors (``np.linalg.inv``'s
+    LAPACK call costs several times more at this size); larger ones through ``np.linalg.inv``."""
+    n = S.shape[0]
+    if n == 2:
+        (a, b), (c, d) = S.tolist()
+        det = a * d - b * c
+        if det != 0.0 and math.isfinite(det):
+            return np.array([[d / det, -b / det], [-c / det, a / det]])
+    elif n == 3:
+        (a, b, c), (d, e, f), (g, h, i) = S.tolist()
+        c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+        det = a * c00 + b * c01 + c * c02
+        if det != 0.0 and math.isfinite(det):
+            inv = 1.0 / det
+            return np.array(
+                [
+                    [c00 * inv, (c * h - b * i) * inv, (b * f - c * e) * inv],
+                    [c01 * inv, (a * i - c * g) * inv, (c * d - a * f) * inv],
+                    [c02 * inv, (b * g - a * h) * inv, (a * e - b * d) * inv],
+                ]
+            )
+    inverse: FloatArray = np.asarray(np.linalg.inv(S), dtype=np.float64)
+    return inverse
 
 
 def _ekf_update_scalar(

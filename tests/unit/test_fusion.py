@@ -10,10 +10,13 @@ import pytest
 from scipy.stats import chi2
 
 from agent.fusion import (
+    _H_POSE,
+    _H_POSITION,
     N_STATE,
     FilterNoise,
     PoseFilter,
     Source,
+    _inverse_small,
     ekf_predict,
     ekf_update,
     gate_threshold,
@@ -279,3 +282,28 @@ def test_position_only_fixes_and_bad_input() -> None:
     assert not f.add_odometry(50 * MS, 40 * MS, 0.1, 0.0).accepted
     with pytest.raises(ValueError):
         PoseFilter(np.zeros(4), np.eye(3), 0)
+
+
+def test_update_matches_the_textbook_formulas() -> None:
+    # ekf_update inverts S by cofactors and reuses P H^T: the same numbers as the formulas written out.
+    rng = np.random.default_rng(7)
+    for H in (_H_POSE, _H_POSITION):
+        m = H.shape[0]
+        for _ in range(20):
+            a = rng.normal(size=(5, 5))
+            P = a @ a.T * 0.01 + 1e-4 * np.eye(5)
+            b = rng.normal(size=(m, m))
+            R = b @ b.T * 1e-3 + 1e-5 * np.eye(m)
+            x = rng.normal(size=5)
+            z = H @ x + rng.normal(size=m) * 0.01
+            S = H @ P @ H.T + R
+            assert np.allclose(_inverse_small(S), np.linalg.inv(S), rtol=1e-9, atol=0.0)
+            K = P @ H.T @ np.linalg.inv(S)
+            y = z - H @ x
+            I_KH = np.eye(5) - K @ H
+            P_ref = I_KH @ P @ I_KH.T + K @ R @ K.T
+            x_new, P_new, d2, ok = ekf_update(x, P, z, H, R, 1e9)
+            assert ok
+            assert d2 == pytest.approx(float(y @ np.linalg.inv(S) @ y), rel=1e-9)
+            assert np.allclose(x_new[[0, 1, 3, 4]], (x + K @ y)[[0, 1, 3, 4]], rtol=1e-9, atol=1e-12)
+            assert np.allclose(P_new, 0.5 * (P_ref + P_ref.T), rtol=1e-9, atol=1e-15)
