@@ -887,6 +887,7 @@ class Agent:
                     log.warning("ready without %s after %.0f s", ", ".join(missing), _READY_GRACE_S)
                     self.health.ready()
             self.health.tick()
+            self.collector.check()
 
 
 def _kind(name: str) -> Any:

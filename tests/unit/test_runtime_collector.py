@@ -64,3 +64,22 @@ def test_generations_follow_the_thresholds_and_full_passes_are_paced() -> None:
         assert g == 2
     finally:
         collector.stop()
+
+
+def test_an_absent_hot_path_hands_collection_back() -> None:
+    was_enabled = gc.isenabled()
+    now = [0.0]
+    collector = IdleCollector(max_absence_s=2.0, clock=lambda: now[0])
+    collector.start()
+    try:
+        now[0] = 1.5
+        assert not collector.check() and collector.active
+        collector.collect_if_due()  # the hot path came by at 1.5 s
+        now[0] = 3.0
+        assert not collector.check()
+        now[0] = 3.6  # 2.1 s since: its loop died or hangs
+        assert collector.check()
+        assert not collector.active and gc.isenabled() == was_enabled
+        assert collector.collect_if_due() is None
+    finally:
+        collector.stop()
