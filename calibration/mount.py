@@ -227,13 +227,20 @@ def board_pose(camera: BoardCamera, detector: BoardDetector, info: CameraInfo, v
     return BoardPose(rotation, np.mean(translations, axis=0), float(np.mean(errors)))
 
 
+_MIN_REST_SAMPLES = 10
+_REST_PATIENCE = 4.0
+
+
 def imu_at_rest(imu: Imu, seconds: float, status: Callable[[str], None]) -> tuple[FloatArray, float]:
     """Mean specific force over ``seconds`` of fresh samples, and how much |f| varied (m/s^2). Reads are paced
-    so each new sample is taken once (a part sampling at 100 Hz repeats its registers between samples)."""
+    so each new sample is taken once (a part sampling at 100 Hz repeats its registers between samples).
+    Fewer than ``_MIN_REST_SAMPLES`` by then (a slow bus, a busy computer): it reads on, up to
+    ``_REST_PATIENCE`` times as long, before giving up."""
     values: list[tuple[float, float, float]] = []
-    deadline = time.monotonic() + seconds
+    start = time.monotonic()
+    deadline, give_up = start + seconds, start + _REST_PATIENCE * seconds
     last: tuple[float, float, float] | None = None
-    while time.monotonic() < deadline:
+    while (now := time.monotonic()) < deadline or (len(values) < _MIN_REST_SAMPLES and now < give_up):
         try:
             accel = imu.read().accel_mps2
         except DeviceError as exc:
@@ -244,8 +251,11 @@ def imu_at_rest(imu: Imu, seconds: float, status: Callable[[str], None]) -> tupl
             last = accel
         status(f"  IMU at rest: {len(values)} samples")
         time.sleep(0.004)
-    if len(values) < 10:
-        raise CalibrationError("the IMU gave fewer than 10 samples; check it (vlp-agent devices)")
+    if len(values) < _MIN_REST_SAMPLES:
+        raise CalibrationError(
+            f"the IMU gave {len(values)} fresh samples in {time.monotonic() - start:.1f} s, fewer than "
+            f"{_MIN_REST_SAMPLES}; check it (vlp-agent devices)"
+        )
     a = np.array(values)
     return a.mean(axis=0), float(np.std(np.linalg.norm(a, axis=1)))
 
