@@ -5,7 +5,8 @@ there), tells systemd READY=1 once they are up and WATCHDOG=1 while every critic
 until SIGTERM or SIGINT, then stops the wheels, closes the devices and exits 0 within about two seconds.
 A config with ``[sim]`` runs the same process on the simulated robot (nothing commands the wheels then:
 `vlp-agent sim` is the one that drives the route); there ``output.url = "pty"`` means what it means for
-`vlp-agent sim`: a pseudo-terminal this process makes and reads back as a controller would.
+`vlp-agent sim`: a pseudo-terminal that a simulated controller (a child process) makes and reads as a
+controller would.
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
-        give_way_to_agent(agent, robot, controller)
+        give_way_to_agent(agent, robot)
         agent.start()
         agent.settle_heap()
         try:

@@ -22,18 +22,15 @@ import argparse
 import collections
 import contextlib
 import dataclasses
-import importlib
 import json
 import logging
 import math
 import os
 import resource
-import select
 import sys
 import threading
 import time
-import tty
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,10 +44,11 @@ from agent.runtime import Agent, ScanMapper, Written, create_agent
 from agent.runtime.mapper import save_map
 from agent.runtime.shutdown import ShutdownRequest
 from drivers.errors import ConfigError
+from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
 from drivers.sim.route import RouteFollower
 from drivers.sim.simulation import Simulation
-from firmware_protocol.pose_frame import PoseFlags, PoseFrameDecoder
+from firmware_protocol.pose_frame import PoseFlags
 
 log = logging.getLogger(__name__)
 
@@ -183,94 +181,23 @@ class FaultInjector:
 # -- the simulated controller on the pose stream's pty --------------------------------------------------
 def serve_pose_stream(
     stack: contextlib.ExitStack, config: AgentConfig
-) -> tuple[str | None, Controller | None]:
+) -> tuple[str | None, SimulatedController | None]:
     """With ``[output] url = "pty"``: a pseudo-terminal for the pose stream and a simulated controller
-    reading it (closed with ``stack``); the URL the agent writes to, and that controller (None otherwise)."""
+    reading it, in a process of its own (``drivers.sim.controller``; ended with ``stack``); the URL the
+    agent writes to, and that controller (None otherwise)."""
     url = config.output.url
     if url != "pty":
         return url, None
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    stack.callback(os.close, master)
-    stack.callback(os.close, slave)
-    controller = Controller(master, config.output.format)
-    controller.start()
-    return os.ttyname(slave), controller
+    controller = SimulatedController(mavlink=config.output.format is OutputFormat.MAVLINK)
+    stack.callback(controller.stop)
+    return controller.url, controller
 
 
-def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None, controller: Controller | None) -> None:
-    """The simulated hardware and controller, threads of the agent's process here, wait while a frame is on
-    the agent's hot path (see ``agent.runtime.hotpath``)."""
+def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None) -> None:
+    """The simulated hardware, threads of the agent's process here, waits while a frame is on the agent's
+    hot path (see ``agent.runtime.hotpath``)."""
     if robot is not None:
         robot.give_way_to(agent.hot_path.give_way)
-    if controller is not None:
-        controller.give_way = agent.hot_path.give_way
-
-
-class Controller:
-    """Reads the pose stream from the pty master and decodes it, as controller firmware would."""
-
-    def __init__(self, master_fd: int, fmt: OutputFormat) -> None:
-        self.fd = master_fd
-        self.fmt = fmt
-        self.frames = 0
-        self.bad = 0
-        self.bytes = 0
-        self._stop = threading.Event()
-        self._decoder = PoseFrameDecoder()
-        self._mav: Any = None
-        if fmt is OutputFormat.MAVLINK:
-            os.environ.setdefault("MAVLINK20", "1")
-            common = importlib.import_module("pymavlink.dialects.v20.common")
-            self._mav = common.MAVLink(None)
-            self._mav.robust_parsing = True
-        # The controller is another chip on the robot; here it shares the agent's process, and waits while
-        # the agent's hot path runs (set once the agent exists).
-        self.give_way: Callable[[], None] = lambda: None
-        self.thread = threading.Thread(target=self._run, name="sim-controller", daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.fd], [], [], 0.1)
-            if not ready:
-                continue
-            self.give_way()
-            try:
-                data = os.read(self.fd, 4096)
-            except OSError:
-                return
-            self._take(data)
-
-    def _take(self, data: bytes) -> None:
-        self.bytes += len(data)
-        if self.fmt is OutputFormat.FRAME:
-            self.frames += len(self._decoder.feed(data))
-            self.bad = self._decoder.bad_frames
-        else:
-            for msg in self._mav.parse_buffer(data) or []:
-                if msg.get_type() == "BAD_DATA":
-                    self.bad += 1
-                else:
-                    self.frames += 1
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def stop(self) -> None:
-        """Stop reading, after taking in what is still in the pty."""
-        self._stop.set()
-        self.thread.join(1.0)
-        ready, _, _ = select.select([self.fd], [], [], 0)
-        while ready:
-            try:
-                data = os.read(self.fd, 4096)
-            except OSError:
-                return
-            if not data:
-                return
-            self._take(data)
-            ready, _, _ = select.select([self.fd], [], [], 0)
 
 
 # -- scoring against the truth --------------------------------------------------------------------------
@@ -352,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
-        give_way_to_agent(agent, robot, controller)
+        give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
         autopilot = threading.Thread(
@@ -539,7 +466,7 @@ def _summary(
     elapsed: float,
     status: Any,
     scorer: Scorer,
-    controller: Controller | None,
+    controller: SimulatedController | None,
     injector: FaultInjector,
     files: dict[str, str],
 ) -> dict[str, Any]:
