@@ -86,11 +86,14 @@ _SECTIONS = (
     "control",
     "health",
     "record",
+    "scheduling",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
 # Devices whose loops the watchdog waits for by default (a robot localizes without its IMU or RFID reader).
 _CRITICAL = (DeviceKind.CAMERA, DeviceKind.LASER, DeviceKind.SERVOS)
+# SCHED_FIFO priorities allowed for the hot path: the kernel's IRQ threads (50) and watchdogs (99) stay above.
+MAX_REALTIME_PRIORITY = 49
 # The serial line carries 10 bits per byte (8N1); the pose stream may use at most this share of it.
 _LINE_SHARE = 0.8
 
@@ -267,6 +270,14 @@ class RecordConfig:
 
 
 @dataclass(frozen=True)
+class SchedulingConfig:
+    """``realtime_priority``: SCHED_FIFO priority of the camera and hot-path threads where the system
+    permits it (``agent.runtime.priority``); 0: leave them time-shared."""
+
+    realtime_priority: int = 10
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     file: str
     devices: Mapping[DeviceKind, DeviceConfig]
@@ -278,6 +289,7 @@ class AgentConfig:
     control: ControlConfig = ControlConfig()
     health: HealthConfig = HealthConfig()
     record: RecordConfig = RecordConfig()
+    scheduling: SchedulingConfig = SchedulingConfig()
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -658,12 +670,15 @@ class _Reader:
         control = self._control()
         health = self._health()
         record = self._record()
+        scheduling = self._scheduling()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
                 "", "no pose source: configure [servos] (wheel odometry) or [camera] with [vlp]", self.file
             )
-        return AgentConfig(self.file, devices, sim, vlp, slam, fusion, output, control, health, record)
+        return AgentConfig(
+            self.file, devices, sim, vlp, slam, fusion, output, control, health, record, scheduling
+        )
 
     # [sim] ---------------------------------------------------------------------------------------
     def _sim(self) -> SimConfig | None:
@@ -1033,6 +1048,19 @@ class _Reader:
         )
         t.finish()
         return record
+
+    def _scheduling(self) -> SchedulingConfig:
+        t = self.top.table("scheduling") or _Table({}, "scheduling", self.file)
+        priority = t.number(
+            "realtime_priority",
+            SchedulingConfig().realtime_priority,
+            (
+                lambda v: v == int(v) and 0 <= v <= MAX_REALTIME_PRIORITY,
+                f"must be a whole number 0..{MAX_REALTIME_PRIORITY} (0: no real-time scheduling)",
+            ),
+        )
+        t.finish()
+        return SchedulingConfig(realtime_priority=int(priority))
 
     def _health(self) -> HealthConfig:
         t = self.top.table("health") or _Table({}, "health", self.file)

@@ -1,6 +1,6 @@
 """The whole agent's latency and memory on the simulated robot, with SLAM running. Prints one JSON object.
 
-    python benchmarks/agent_latency.py [--seconds 30] [--world FILE] [--runs 1]
+    python benchmarks/agent_latency.py [--seconds 30] [--world FILE] [--config FILE] [--runs 1]
 
 Each run is a fresh ``vlp-agent sim --json`` process (so its peak RSS is the agent's alone, fakes and
 renderer included), driving the office route with VLP, SLAM, fusion and the pose stream on a pty read by
@@ -16,7 +16,9 @@ the simulated controller. Reported per run and over all runs:
 * ``half_readout_ms``: how long after its mid-exposure time a rolling-shutter frame is complete at all,
   the floor under the second figure that no agent can remove (the MV-UB300's full 1536-row readout at
   t_row = 32 us takes 49 ms);
-* ``peak_rss_mb``; SLAM's filter updates and map size, to show it ran; the budgets of ARCHITECTURE.md.
+* ``peak_rss_mb``; SLAM's filter updates and map size, to show it ran; the budgets of ARCHITECTURE.md;
+* ``hot_path_realtime``: whether the hot path's thread ran under SCHED_FIFO (``[scheduling]``: default
+  yes where permitted; ``--config`` with ``realtime_priority = 0`` measures it time-shared).
 """
 
 from __future__ import annotations
@@ -42,11 +44,13 @@ BUDGET_LATENCY_P99_MS = 10.0
 BUDGET_PEAK_RSS_MB = 250.0
 
 
-def one_run(seconds: float, world: str | None) -> dict[str, Any]:
+def one_run(seconds: float, world: str | None, config: str | None = None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "agent.cli", "sim", "--seconds", str(seconds), "--json", "--out", tmp]
         if world:
             cmd += ["--world", world]
+        if config:
+            cmd += ["--config", config]
         with CpuShare() as share:
             proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, check=False)
     if proc.returncode != 0:
@@ -61,6 +65,7 @@ def one_run(seconds: float, world: str | None) -> dict[str, Any]:
         "vlp_ms_p99": s["vlp_ms_p99"],
         "hot_path_cpu_ms_p50": s["hot_path_cpu_ms_p50"],
         "hot_path_cpu_ms_p99": s["hot_path_cpu_ms_p99"],
+        "hot_path_realtime": bool(s["counts"].get("hot_path_realtime", 0)),
         "cpu_share": share.result(),
         "peak_rss_mb": s["peak_rss_mb"],
         "frames_out": s["frames_out"],
@@ -78,11 +83,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--world", default=None)
+    parser.add_argument("--config", default=None, help="agent config (default: examples/sim.toml)")
     parser.add_argument("--runs", type=int, default=1)
     args = parser.parse_args()
     world = load_world(args.world or REPO / "examples" / "worlds" / "office.toml")
     half_readout_ms = 0.5 * readout_time_s(world.camera) * 1e3
-    runs = [one_run(args.seconds, args.world) for _ in range(args.runs)]
+    runs = [one_run(args.seconds, args.world, args.config) for _ in range(args.runs)]
     worst = {
         key: max(r[key] for r in runs)
         for key in (

@@ -43,6 +43,7 @@ from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator, wheel_speeds
 from agent.runtime.output import PoseOutput
+from agent.runtime.priority import realtime_thread
 from agent.runtime.recorder import Recorder
 from agent.runtime.types import AbsoluteFix, NoFix, Prior
 from drivers.device import Device
@@ -552,9 +553,21 @@ class Agent:
             self.recorder.record_output(estimate, int(flags))
 
     # -- camera and the hot path --------------------------------------------------------------------
+    def _realtime(self, loop: str) -> None:
+        """Put the calling loop's thread under real-time scheduling when configured and permitted."""
+        priority = self.config.scheduling.realtime_priority
+        refused = realtime_thread(priority)
+        with self._counts_lock:
+            self._counts[f"{loop}_realtime"] = int(refused is None)
+        if refused is None:
+            log.info("%s thread at SCHED_FIFO priority %d", loop, priority)
+        elif priority:
+            log.warning("%s thread time-shared: real-time scheduling %s", loop, refused)
+
     def _camera_loop(self, beat: Heartbeat) -> None:
         camera = self.devices.camera
         assert camera is not None
+        self._realtime("camera")
         timeout_s = self.config.health.camera_stall_s
         while not self._stop.is_set():
             beat.beat()
@@ -580,6 +593,7 @@ class Agent:
             self.frames.put((frame, arrival))
 
     def _vlp_loop(self, beat: Heartbeat) -> None:
+        self._realtime("hot_path")
         while not self._stop.is_set():
             beat.beat()
             item = self.frames.take(0.25)

@@ -237,6 +237,9 @@ BAD = [
     ('[sim]\nworld = "no/such/world.toml"\n', "sim.world", "no such world"),
     ("[sim]\nseed = 1\n", "sim.world", "missing"),
     ('[output]\nurl = "/dev/ttyS0"\n', "", "no pose source"),
+    (REAL + "[scheduling]\nrealtime_priority = 60\n", "scheduling.realtime_priority", "0..49"),
+    (REAL + "[scheduling]\nrealtime_priority = 2.5\n", "scheduling.realtime_priority", "whole number"),
+    (REAL + "[scheduling]\npriority = 5\n", "scheduling.priority", "unknown"),
 ]
 
 

@@ -1,0 +1,64 @@
+"""Real-time scheduling for the latency-critical threads, where the system allows it.
+
+The camera thread and the hot path (frame -> VLP fix -> fusion -> pose bytes) are a few milliseconds of work
+thirty times a second. Under the default time-sharing policy any other runnable task on their core (the
+SLAM worker, a device loop, another program on the robot's computer) can run first when a frame arrives,
+or take the core in the middle of one, and the frame's pose waits. ``SCHED_FIFO`` at a modest priority
+makes the kernel run these two threads as soon as they are runnable and leave them alone until they block
+again, which they do between frames (the mailbox, the camera driver's wait). It is the usual policy of the
+control threads of robot software; the kernel's real-time throttling (``sched_rt_runtime_us``, 95 % of each
+second by default) keeps a runaway thread from taking a core for good.
+
+A process may set it when it runs as root, has ``CAP_SYS_NICE``, or has an ``RLIMIT_RTPRIO`` at least the
+priority asked for (systemd: ``LimitRTPRIO=``; PAM: ``rtprio`` in ``limits.conf``). Where none holds, the
+thread stays as it was and the agent says so once: the agent works the same, with a longer latency tail.
+
+Only the calling thread changes (Linux schedules threads on their own; the thread id is the ``pid``
+``sched_setscheduler`` takes), so the SLAM thread and the device loops stay time-shared, and so does any
+process the thread starts (``SCHED_RESET_ON_FORK``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from agent.config import MAX_REALTIME_PRIORITY
+
+__all__ = ["realtime_thread"]
+
+
+def realtime_thread(priority: int) -> str | None:
+    """Put the calling thread under ``SCHED_FIFO`` at ``priority`` (1..49: the kernel's IRQ threads, at
+    50, stay above).
+
+    Returns None when it took, else why not (not permitted, no such policy on this system). ``priority``
+    0 asks for nothing and returns "off".
+    """
+    if priority == 0:
+        return "off"
+    if not 1 <= priority <= MAX_REALTIME_PRIORITY:
+        raise ValueError(f"real-time priority must be 1..{MAX_REALTIME_PRIORITY}, got {priority}")
+    if not hasattr(os, "sched_setscheduler") or not hasattr(os, "SCHED_FIFO"):
+        return "this system has no SCHED_FIFO"
+    tid = threading.get_native_id()
+    try:
+        # SCHED_RESET_ON_FORK: a process this thread starts (a camera SDK's helper, the simulator's renderer
+        # when the camera is opened here) begins time-shared, not real-time.
+        policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+        os.sched_setscheduler(tid, policy, os.sched_param(priority))
+    except PermissionError:
+        return (
+            f"not permitted (RLIMIT_RTPRIO {_rtprio_limit()}, needs {priority}: run with CAP_SYS_NICE, or "
+            "systemd's LimitRTPRIO= / limits.conf rtprio)"
+        )
+    except OSError as exc:
+        return f"refused: {exc.strerror or exc}"
+    return None
+
+
+def _rtprio_limit() -> str:
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
