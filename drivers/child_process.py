@@ -16,10 +16,10 @@ import os
 import socket
 import subprocess
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["start_child", "stop_child"]
+__all__ = ["child_connection", "start_child", "stop_child"]
 
 log = logging.getLogger(__name__)
 
@@ -60,3 +60,15 @@ def stop_child(
             process.kill()
             process.wait(1.0)
     conn.close()
+
+
+def child_connection(
+    module: str, started_by: str, argv: Sequence[str] | None = None
+) -> multiprocessing.connection.Connection | None:
+    """In the child (``python -m module FD``): the connection on the descriptor its command line names, or
+    None, with a usage line on stderr, when the command line is not one descriptor number."""
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1 or not args[0].isdigit():
+        print(f"usage: python -m {module} FD (started by {started_by})", file=sys.stderr)
+        return None
+    return multiprocessing.connection.Connection(int(args[0]))

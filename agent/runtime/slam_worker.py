@@ -45,7 +45,7 @@ import numpy.typing as npt
 from agent.config import MountConfig, SlamConfig
 from agent.runtime.mapper import MapperStep, Pose, make_mapper
 from agent.runtime.types import AbsoluteFix
-from drivers.child_process import start_child, stop_child
+from drivers.child_process import child_connection, start_child, stop_child
 from drivers.samples import Scan
 
 __all__ = ["ProcessMapper"]
@@ -118,9 +118,8 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m agent.runtime.slam_worker FD``: serve the connection on file descriptor FD."""
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1 or not args[0].isdigit():
-        print("usage: python -m agent.runtime.slam_worker FD (started by ProcessMapper)", file=sys.stderr)
+    conn = child_connection("agent.runtime.slam_worker", "ProcessMapper", argv)
+    if conn is None:
         return 2
     # Ctrl-C reaches the whole foreground process group, and systemd's stop every process of the unit: the
     # child stays until the agent, which saves the map through it while stopping, hangs up.
@@ -128,7 +127,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.nice(_NICE)
-    _serve(multiprocessing.connection.Connection(int(args[0])))
+    _serve(conn)
     return 0
 
 

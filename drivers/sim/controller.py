@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.child_process import start_child, stop_child
+from drivers.child_process import child_connection, start_child, stop_child
 from drivers.errors import DeviceDisconnected
 
 __all__ = ["ControllerCounts", "SimulatedController"]
@@ -127,11 +127,10 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m drivers.sim.controller FD``: serve the connection on file descriptor FD."""
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1 or not args[0].isdigit():
-        print("usage: python -m drivers.sim.controller FD (started by SimulatedController)", file=sys.stderr)
+    conn = child_connection("drivers.sim.controller", "SimulatedController", argv)
+    if conn is None:
         return 2
-    _serve(multiprocessing.connection.Connection(int(args[0])))
+    _serve(conn)
     return 0
 
 

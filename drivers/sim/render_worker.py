@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.child_process import start_child, stop_child
+from drivers.child_process import child_connection, start_child, stop_child
 from drivers.errors import DeviceDisconnected
 from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer, pose_times_s, readout_time_s
 from drivers.sim.world import CameraModel, Led, Mount, Pose2D
@@ -70,11 +70,10 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m drivers.sim.render_worker FD``: serve the connection on file descriptor FD."""
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1 or not args[0].isdigit():
-        print("usage: python -m drivers.sim.render_worker FD (started by RenderWorker)", file=sys.stderr)
+    conn = child_connection("drivers.sim.render_worker", "RenderWorker", argv)
+    if conn is None:
         return 2
-    _serve(multiprocessing.connection.Connection(int(args[0])))
+    _serve(conn)
     return 0
 
 
