@@ -42,7 +42,7 @@ from agent.runtime.localizer import FrameLocalizer
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator, wheel_speeds
-from agent.runtime.output import PoseOutput
+from agent.runtime.output import LatencyStats, PoseOutput
 from agent.runtime.priority import realtime_thread
 from agent.runtime.recorder import Recorder
 from agent.runtime.types import AbsoluteFix, NoFix, Prior
@@ -249,8 +249,8 @@ class Agent:
         self._counts: collections.Counter[str] = collections.Counter()
         self._counts_lock = threading.Lock()
         self._no_fix: collections.Counter[str] = collections.Counter()
-        self._vlp_ms: collections.deque[float] = collections.deque(maxlen=2000)
-        self._hot_cpu_ms: collections.deque[float] = collections.deque(maxlen=2000)
+        self._vlp_ms = LatencyStats(keep=2000)
+        self._hot_cpu_ms = LatencyStats(keep=2000)
         self._last_frame_ns = 0
         self._last_scan_ns = 0
         self._slam_good = False  # the last SLAM filter update matched and was fused
@@ -379,8 +379,6 @@ class Agent:
         with self._counts_lock:
             counts = dict(self._counts)
             no_fix = dict(self._no_fix.most_common(8))
-            vlp = list(self._vlp_ms)
-            hot_cpu = list(self._hot_cpu_ms)
         # How often background loops waited for the hot path, and waits cut at the bound (a hot path
         # stuck for longer than max_wait_s).
         counts["hot_path_waits"] = self.hot_path.waits
@@ -408,10 +406,8 @@ class Agent:
             output = dict(self.output.counts)
             if output.get("write_timeouts"):
                 drops["output_write_timeouts"] = output["write_timeouts"]
-        vlp_ms = tuple(float(v) for v in np.percentile(vlp, (50, 99))) if vlp else (math.nan, math.nan)
-        cpu_ms = (
-            tuple(float(v) for v in np.percentile(hot_cpu, (50, 99))) if hot_cpu else (math.nan, math.nan)
-        )
+        vlp_ms = self._vlp_ms.percentiles(50, 99)
+        cpu_ms = self._hot_cpu_ms.percentiles(50, 99)
         return AgentStatus(
             now,
             self.fusion.estimate(),
@@ -606,9 +602,7 @@ class Agent:
                 try:
                     self._locate(*item)
                 finally:
-                    cpu_ms = 1e3 * (time.thread_time() - c0)
-                    with self._counts_lock:
-                        self._hot_cpu_ms.append(cpu_ms)
+                    self._hot_cpu_ms.add(1e3 * (time.thread_time() - c0))
             # The pose is written: the garbage of this frame (and of every other thread) goes now.
             self.collector.collect_if_due()
 
@@ -620,8 +614,8 @@ class Agent:
         t0 = time.perf_counter()
         result = self.localizer.process(frame, tilt, self._prior(t))
         elapsed_ms = 1e3 * (time.perf_counter() - t0)
+        self._vlp_ms.add(elapsed_ms)
         with self._counts_lock:
-            self._vlp_ms.append(elapsed_ms)
             if isinstance(result, NoFix):
                 self._no_fix[result.reason] += 1
                 self._counts["no_fix"] += 1
