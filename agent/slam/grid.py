@@ -41,6 +41,9 @@ BoolArray = npt.NDArray[np.bool_]
 log = logging.getLogger(__name__)
 
 UNKNOWN_TILE = 0
+# The tile pool grows by a quarter of its size (at least this many tiles) when it runs out of free slots.
+_GROWTH_DIVISOR = 4
+_MIN_GROWTH_TILES = 64
 _SHIFT = 4  # cv2.fillPoly fixed-point fraction bits: vertices to 1/16 of a cell
 
 
@@ -171,11 +174,13 @@ class TiledMaps:
     def _allocate(self, count: int) -> IntArray:
         while len(self._free) < count:
             old = self.pool.shape[0]
-            grown = max(old, count - len(self._free))
+            grown = max(old // _GROWTH_DIVISOR, _MIN_GROWTH_TILES, count - len(self._free))
             # Grown in place (realloc; for a large pool the kernel remaps its pages), not by concatenating
             # into a new array: that briefly held the old pool and one twice its size, 3x the memory (on
             # Intel, +75 MB at the last doubling). Safe because the pool is never handed out as a view:
-            # ``gather`` copies out of it and ``scatter`` writes into it.
+            # ``gather`` copies out of it and ``scatter`` writes into it. By a quarter, not doubled: resize
+            # zero-fills the new slots, so every free slot is resident memory, and a doubling left up to
+            # half the pool free (remapping, not copying, makes the more frequent growth cheap).
             self.pool.resize((old + grown, *self.pool.shape[1:]), refcheck=False)
             self.refcount.resize(old + grown, refcheck=False)
             self._free.extend(range(old + grown - 1, old - 1, -1))
