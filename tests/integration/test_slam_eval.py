@@ -29,6 +29,8 @@ def test_eval_slam_json_on_radish(
             "5",
             "--scans",
             "60",
+            "--span",
+            "20",
             "--out",
             str(out),
             "--json",
@@ -44,6 +46,11 @@ def test_eval_slam_json_on_radish(
     assert summary["trans_error_m_mean"] < summary["odometry_trans_error_m_mean"]
     assert summary["rot_error_deg_mean"] < summary["odometry_rot_error_deg_mean"]
     assert summary["trans_error_m_mean"] < 0.1
+    # Pairs 20 scans apart: Intel's raw odometry is metres and tens of degrees off over them (6.4 m,
+    # 56 deg), the filter a few decimetres.
+    assert summary["span_scans"] == 20
+    assert summary["span_trans_error_m_mean"] < 0.1 * summary["odometry_span_trans_error_m_mean"]
+    assert summary["span_rot_error_deg_mean"] < 0.1 * summary["odometry_span_rot_error_deg_mean"]
     image = load_map(out / "map.yaml")
     assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
@@ -122,3 +129,13 @@ def test_eval_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[
 def test_eval_without_what_says_what(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval"]) == 2
     assert "slam" in capsys.readouterr().out
+
+
+def test_eval_span_must_be_a_scan_or_more(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "tiny_scans.txt"
+    ranges = " ".join(["2.0"] * 180)
+    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out")]
+    assert main([*args, "--span", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "--span: must be at least 1 scan, got 0" in err and "Traceback" not in err
