@@ -21,9 +21,12 @@ import resource
 import sys
 import textwrap
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from agent.slam.metrics import RelativePoseError
 
 FORMATS = ("breezyslam", "radish")
 # Usable range per format: the URG-04LX reaches 5.6 m; the radish SICK logs reach far, but beams longer
@@ -270,28 +273,24 @@ def run(args: argparse.Namespace) -> int:
         "rejected": dict(result.rejections),
     }
     if reference is not None:
+        odometry = log.odometry_poses()
         error = relative_pose_error(reference, result.poses)
-        odometry_error = relative_pose_error(reference, log.odometry_poses())
         summary.update(
             relations=error.n,
-            trans_error_m_mean=_round(error.trans_error_m_mean, 4),
             trans_error_m_std=_round(error.trans_error_m_std, 4),
-            rot_error_deg_mean=_round(error.rot_error_deg_mean, 3),
             rot_error_deg_std=_round(error.rot_error_deg_std, 3),
-            odometry_trans_error_m_mean=_round(odometry_error.trans_error_m_mean, 4),
-            odometry_rot_error_deg_mean=_round(odometry_error.rot_error_deg_mean, 3),
+            **_relation_means("", error, relative_pose_error(reference, odometry)),
         )
         if len(log) > args.span:
             first = np.arange(len(log) - args.span)
             pairs = np.stack([first, first + args.span], axis=1)
-            span_error = relative_pose_error(reference, result.poses, pairs)
-            span_odometry = relative_pose_error(reference, log.odometry_poses(), pairs)
             summary.update(
                 span_scans=args.span,
-                span_trans_error_m_mean=_round(span_error.trans_error_m_mean, 4),
-                span_rot_error_deg_mean=_round(span_error.rot_error_deg_mean, 3),
-                odometry_span_trans_error_m_mean=_round(span_odometry.trans_error_m_mean, 4),
-                odometry_span_rot_error_deg_mean=_round(span_odometry.rot_error_deg_mean, 3),
+                **_relation_means(
+                    "span_",
+                    relative_pose_error(reference, result.poses, pairs),
+                    relative_pose_error(reference, odometry, pairs),
+                ),
             )
     if simulated is not None:
         truth = simulated.truth[: len(log)]
@@ -351,6 +350,19 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_table(summary)
     return 0
+
+
+def _relation_means(
+    prefix: str, slam: RelativePoseError, odometry: RelativePoseError
+) -> dict[str, float | None]:
+    """The mean translational and rotational errors of the filter's and raw odometry's relations, keyed
+    ``{prefix}trans_error_m_mean`` ... ``odometry_{prefix}rot_error_deg_mean``."""
+    return {
+        f"{prefix}trans_error_m_mean": _round(slam.trans_error_m_mean, 4),
+        f"{prefix}rot_error_deg_mean": _round(slam.rot_error_deg_mean, 3),
+        f"odometry_{prefix}trans_error_m_mean": _round(odometry.trans_error_m_mean, 4),
+        f"odometry_{prefix}rot_error_deg_mean": _round(odometry.rot_error_deg_mean, 3),
+    }
 
 
 def _round(value: float, digits: int = 2) -> float | None:
