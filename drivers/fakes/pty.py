@@ -37,6 +37,20 @@ class ByteDevice(Protocol):
         ...
 
 
+class ScheduledByteDevice(ByteDevice, Protocol):
+    """A device that knows when its next unsolicited output falls due: the server then sleeps until then
+    (or until bytes arrive) instead of polling it every ``poll_interval_s``."""
+
+    def next_output_in(self, now: float) -> float | None:
+        """Seconds from monotonic time ``now`` until :meth:`poll` has bytes to send (0: now), or None when
+        nothing is scheduled."""
+        ...
+
+
+# How long after a scheduled device's output falls due the server wakes for it.
+_SCHEDULE_SLACK_S = 0.0005
+
+
 def _no_wait() -> None:
     return None
 
@@ -47,7 +61,10 @@ class PtyServer:
     def __init__(
         self, device: ByteDevice, link: str | os.PathLike[str] | None = None, poll_interval_s: float = 0.002
     ) -> None:
+        """``poll_interval_s``: how often the device is polled for output of its own; for a
+        :class:`ScheduledByteDevice`, the longest the server sleeps (it wakes when the output falls due)."""
         self.device = device
+        self._schedule: Callable[[float], float | None] | None = getattr(device, "next_output_in", None)
         self.link = Path(link) if link is not None else None
         self.poll_interval_s = poll_interval_s
         self._master: int | None = None
@@ -151,8 +168,14 @@ class PtyServer:
         master = self._master
         assert master is not None
         while not self._stop.is_set():
+            timeout = self.poll_interval_s
+            if self._schedule is not None:
+                due_in = self._schedule(time.monotonic())
+                if due_in is not None:
+                    # Just past the due time: woken a hair early, the device would have nothing yet.
+                    timeout = min(max(due_in, 0.0) + _SCHEDULE_SLACK_S, timeout)
             try:
-                ready, _, _ = select.select([master], [], [], self.poll_interval_s)
+                ready, _, _ = select.select([master], [], [], timeout)
             except (OSError, ValueError):
                 return
             self.give_way()

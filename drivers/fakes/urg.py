@@ -249,6 +249,20 @@ class FakeUrg:
             self._advance(t)
             return b"" if self._silent else self._drain(t)
 
+    def next_output_in(self, now: float) -> float | None:
+        """Seconds until the next reply or streamed scan is due (``ScheduledByteDevice``), None when
+        nothing is queued and no scan stream runs. In the fake's clock, which is monotonic time in
+        ``vlp-agent sim``."""
+        with self._lock:
+            t = self._time(now)
+            dues = []
+            if self._outq:
+                dues.append(self._outq[0][0])
+            s = self._stream
+            if s is not None:
+                dues.append(self._step0(s.next_k) + self._done_after_s(s.last))
+            return max(min(dues) - t, 0.0) if dues and not self._silent else None
+
     def _enqueue(self, due: float, item: bytes | Callable[[], bytes]) -> None:
         # Replies leave in command order even when one of them waits for a scan.
         due = max(due, self._last_due)

@@ -86,12 +86,14 @@ class SimulatedRobot:
         from drivers.fakes.imu import FakeI2cBus, FakeMpu6050
 
         self._dir = Path(tempfile.mkdtemp(prefix="vlp-sim-"))
-        # How often each fake is polled for output of its own: the URG streams scans on its clock (2 ms
-        # keeps their timing), a tag reader reports every few tens of milliseconds, the servos only ever
-        # answer (a reply goes out as soon as a request arrives, whatever the interval). The simulated
-        # hardware shares the agent's process and interpreter lock: it polls no more than it must.
+        # How often each fake is polled for output of its own: the URG says when its next scan or reply
+        # falls due and its server sleeps until then (at most the interval given), a tag reader reports
+        # every few tens of milliseconds, the servos only ever answer (a reply goes out as soon as a
+        # request arrives, whatever the interval). The simulated hardware shares the agent's process and
+        # interpreter lock: every wake-up of a fake's thread takes the lock, so it wakes no more than it
+        # must (a 2 ms poll of the URG was 500 wake-ups a second, one or two inside every camera frame).
         for name, device, poll_s in (
-            ("laser", self.urg, 0.002),
+            ("laser", self.urg, 0.05),
             ("servos", self.servos, 0.05),
             ("rfid", self.rfid, 0.02),
         ):
