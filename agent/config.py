@@ -94,6 +94,8 @@ _NETWORK_SCHEMES = ("socket", "rfc2217")
 _CRITICAL = (DeviceKind.CAMERA, DeviceKind.LASER, DeviceKind.SERVOS)
 # SCHED_FIFO priorities allowed for the hot path: the kernel's IRQ threads (50) and watchdogs (99) stay above.
 MAX_REALTIME_PRIORITY = 49
+# The PM QoS request is a signed 32-bit value; a second is far beyond any C-state's exit latency.
+MAX_CPU_LATENCY_US = 1_000_000
 # The serial line carries 10 bits per byte (8N1); the pose stream may use at most this share of it.
 _LINE_SHARE = 0.8
 
@@ -272,9 +274,12 @@ class RecordConfig:
 @dataclass(frozen=True)
 class SchedulingConfig:
     """``realtime_priority``: SCHED_FIFO priority of the camera and hot-path threads where the system
-    permits it (``agent.runtime.priority``); 0: leave them time-shared."""
+    permits it (``agent.runtime.priority``); 0: leave them time-shared. ``cpu_latency_us``: the CPU
+    wake-up latency the agent asks the kernel for while it runs (PM QoS, ``/dev/cpu_dma_latency``;
+    0: idle cores poll instead of sleeping); -1: no request."""
 
     realtime_priority: int = 10
+    cpu_latency_us: int = 0
 
 
 @dataclass(frozen=True)
@@ -1059,8 +1064,16 @@ class _Reader:
                 f"must be a whole number 0..{MAX_REALTIME_PRIORITY} (0: no real-time scheduling)",
             ),
         )
+        latency = t.number(
+            "cpu_latency_us",
+            SchedulingConfig().cpu_latency_us,
+            (
+                lambda v: v == int(v) and -1 <= v <= MAX_CPU_LATENCY_US,
+                f"must be a whole number of microseconds 0..{MAX_CPU_LATENCY_US} (-1: no request)",
+            ),
+        )
         t.finish()
-        return SchedulingConfig(realtime_priority=int(priority))
+        return SchedulingConfig(realtime_priority=int(priority), cpu_latency_us=int(latency))
 
     def _health(self) -> HealthConfig:
         t = self.top.table("health") or _Table({}, "health", self.file)

@@ -19,6 +19,9 @@ the simulated controller. Reported per run and over all runs:
 * ``peak_rss_mb``; SLAM's filter updates and map size, to show it ran; the budgets of ARCHITECTURE.md;
 * ``hot_path_realtime``: whether the hot path's thread ran under SCHED_FIFO (``[scheduling]``: default
   yes where permitted; ``--config`` with ``realtime_priority = 0`` measures it time-shared).
+* ``cpu_latency_held``: whether the agent held its CPU latency QoS request (``[scheduling]
+  cpu_latency_us``, default 0: idle cores poll instead of sleeping; ``-1`` in a ``--config`` copy measures
+  without it).
 """
 
 from __future__ import annotations
@@ -66,6 +69,7 @@ def one_run(seconds: float, world: str | None, config: str | None = None) -> dic
         "hot_path_cpu_ms_p50": s["hot_path_cpu_ms_p50"],
         "hot_path_cpu_ms_p99": s["hot_path_cpu_ms_p99"],
         "hot_path_realtime": bool(s["counts"].get("hot_path_realtime", 0)),
+        "cpu_latency_held": bool(s["counts"].get("cpu_latency_held", 0)),
         "cpu_share": share.result(),
         "peak_rss_mb": s["peak_rss_mb"],
         "frames_out": s["frames_out"],

@@ -272,11 +272,11 @@ do_install() {
     install_file "$rules_src" "$RULES" 0644
     install_config
 
-    # udev first: the rules name groups (i2c) that may have just been created.
+    # udev first: the rules name groups (i2c, vlp-agent) that may have just been created.
     if [[ -n "$DESTDIR" ]] || command -v udevadm >/dev/null; then
         host_try udevadm control --reload-rules
         host_try udevadm trigger --action=add --subsystem-match=tty --subsystem-match=usb \
-            --subsystem-match=i2c-dev
+            --subsystem-match=i2c-dev --subsystem-match=misc
     else
         note "warning: udevadm not found: the rules apply from the next boot"
     fi

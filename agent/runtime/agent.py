@@ -43,7 +43,7 @@ from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator, wheel_speeds
 from agent.runtime.output import LatencyStats, PoseOutput
-from agent.runtime.priority import realtime_thread
+from agent.runtime.priority import CpuLatencyRequest, realtime_thread
 from agent.runtime.recorder import Recorder
 from agent.runtime.types import AbsoluteFix, NoFix, Prior
 from drivers.device import Device
@@ -260,11 +260,13 @@ class Agent:
         self._tags: collections.deque[TagRead] = collections.deque(maxlen=64)
         self._started_ns = 0
         self._stopped = False
+        self._cpu_latency: CpuLatencyRequest | None = None
 
     # -- public -------------------------------------------------------------------------------------
     def start(self) -> None:
         """Start every loop. Devices are opened by their loops; the output is opened now if it can be."""
         self._started_ns = self.clock_ns()
+        self._hold_cpu_latency()
         if self.recorder is not None:
             self.recorder.start(self.fusion.parameters)
         if self.output is not None:
@@ -334,6 +336,8 @@ class Agent:
             self.output.close()
         if self.recorder is not None:
             self.recorder.close()
+        if self._cpu_latency is not None:
+            self._cpu_latency.release()
 
     @property
     def stopping(self) -> bool:
@@ -549,6 +553,22 @@ class Agent:
             self.recorder.record_output(estimate, int(flags))
 
     # -- camera and the hot path --------------------------------------------------------------------
+    def _hold_cpu_latency(self) -> None:
+        """Ask the kernel to keep idle cores out of deep sleep while the agent runs, when configured: a
+        frame that has to wake a sleeping core starts cold (``agent.runtime.priority.CpuLatencyRequest``)."""
+        latency_us = self.config.scheduling.cpu_latency_us
+        if latency_us < 0 or self.devices.camera is None:
+            return
+        request = CpuLatencyRequest(latency_us)
+        refused = request.acquire()
+        with self._counts_lock:
+            self._counts["cpu_latency_held"] = int(refused is None)
+        if refused is None:
+            self._cpu_latency = request
+            log.info("CPU wake-up latency limited to %d us while running (PM QoS)", latency_us)
+        else:
+            log.warning("CPU wake-up latency not limited: %s", refused)
+
     def _realtime(self, loop: str) -> None:
         """Put the calling loop's thread under real-time scheduling when configured and permitted."""
         priority = self.config.scheduling.realtime_priority
@@ -877,7 +897,10 @@ class Agent:
         period_ns = int(1e9 / self.config.output.rate_hz)
         while not self._stop.is_set():
             beat.beat()
-            self._stop.wait(period_ns * 1e-9 / 4)
+            # Asleep until the floor rate calls for a pose (the camera's poses keep moving that time on):
+            # a thread that wakes takes the interpreter lock, from the hot path if a frame is on it.
+            due_ns = output.last_publish_ns + period_ns - self.clock_ns()
+            self._stop.wait(min(max(due_ns, period_ns // 8), period_ns) * 1e-9)
             if self._stop.is_set():
                 return
             if self.clock_ns() - output.last_publish_ns >= period_ns:

@@ -21,11 +21,15 @@ process the thread starts (``SCHED_RESET_ON_FORK``).
 from __future__ import annotations
 
 import os
+import struct
 import threading
 
 from agent.config import MAX_REALTIME_PRIORITY
 
-__all__ = ["realtime_thread"]
+__all__ = ["CPU_LATENCY_DEVICE", "CpuLatencyRequest", "realtime_thread"]
+
+# The kernel's CPU latency QoS request (Documentation/power/pm_qos_interface.rst).
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
 
 
 def realtime_thread(priority: int) -> str | None:
@@ -62,3 +66,56 @@ def _rtprio_limit() -> str:
 
     soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
     return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
+
+
+class CpuLatencyRequest:
+    """A CPU wake-up latency limit for the whole system, held while the agent runs: the kernel's PM QoS
+    request through ``/dev/cpu_dma_latency`` (the file held open with a 32-bit target in microseconds
+    written to it; closing it withdraws the request), as ``cyclictest`` and the real-time tuning guides
+    do.
+
+    An idle core goes to sleep: into a deep C-state on a PC, halted by the hypervisor in a virtual
+    machine. The frame that wakes it then starts cold and slow (on the development VM, 45 ms of sleep
+    between frames took the VLP median from 1.0 to 2.0 ms of CPU: docs/benchmarks.md). With a limit of 0
+    the cores idle in a polling loop instead (as ``idle=poll``, while the request is held), at the cost
+    of the idle power the sleep states would have saved; 1 allows the shallowest halt. Needs write access
+    to the device (root only by default; ``systemd/99-vlp-agent.rules`` gives it to the service's
+    group)."""
+
+    def __init__(self, latency_us: int, path: str = CPU_LATENCY_DEVICE) -> None:
+        if latency_us < 0:
+            raise ValueError(f"a CPU latency limit is >= 0 us, got {latency_us}")
+        self.latency_us = latency_us
+        self.path = path
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def acquire(self) -> str | None:
+        """Make the request; None when it holds, else why not (the system has no such device, not
+        permitted). Idempotent."""
+        if self._fd is not None:
+            return None
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CLOEXEC)
+        except FileNotFoundError:
+            return f"this system has no {self.path} (no CPU latency QoS)"
+        except PermissionError:
+            return f"not permitted to open {self.path} (root, or the group the udev rule gives it to)"
+        except OSError as exc:
+            return f"{self.path}: {exc.strerror or exc}"
+        try:
+            os.write(fd, struct.pack("=i", self.latency_us))
+        except OSError as exc:
+            os.close(fd)
+            return f"{self.path} refused the value {self.latency_us}: {exc.strerror or exc}"
+        self._fd = fd
+        return None
+
+    def release(self) -> None:
+        """Withdraw the request (closing the file does it). Idempotent."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)

@@ -240,6 +240,8 @@ BAD = [
     (REAL + "[scheduling]\nrealtime_priority = 60\n", "scheduling.realtime_priority", "0..49"),
     (REAL + "[scheduling]\nrealtime_priority = 2.5\n", "scheduling.realtime_priority", "whole number"),
     (REAL + "[scheduling]\npriority = 5\n", "scheduling.priority", "unknown"),
+    (REAL + "[scheduling]\ncpu_latency_us = -2\n", "scheduling.cpu_latency_us", "-1: no request"),
+    (REAL + "[scheduling]\ncpu_latency_us = 0.5\n", "scheduling.cpu_latency_us", "whole number"),
 ]
 
 

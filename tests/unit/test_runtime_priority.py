@@ -1,18 +1,22 @@
 """Real-time scheduling of the calling thread (agent.runtime.priority): it takes where permitted, says why
-not where it is refused, touches no other thread, and does not pass to a process the thread starts."""
+not where it is refused, touches no other thread, and does not pass to a process the thread starts. The
+CPU latency QoS request: the kernel's 32-bit value written to a file held open, withdrawn by closing it."""
 
 from __future__ import annotations
 
 import os
+import stat
+import struct
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import pytest
 
 from agent.config import parse_config
 from agent.runtime import priority
-from agent.runtime.priority import realtime_thread
+from agent.runtime.priority import CPU_LATENCY_DEVICE, CpuLatencyRequest, realtime_thread
 
 linux_only = pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="needs Linux scheduling policies")
 
@@ -87,3 +91,63 @@ def test_the_config_key_defaults_to_ten_and_zero_turns_it_off() -> None:
     assert parse_config(base).scheduling.realtime_priority == 10
     off = parse_config(base + "[scheduling]\nrealtime_priority = 0\n")
     assert off.scheduling.realtime_priority == 0
+
+
+def test_the_config_key_cpu_latency_defaults_to_zero_and_minus_one_turns_it_off() -> None:
+    base = '[servos]\nbackend = "dynamixel"\nport = "/dev/dynamixel"\n[output]\nurl = "/dev/ttyS0"\n'
+    assert parse_config(base).scheduling.cpu_latency_us == 0
+    assert parse_config(base + "[scheduling]\ncpu_latency_us = -1\n").scheduling.cpu_latency_us == -1
+    assert parse_config(base + "[scheduling]\ncpu_latency_us = 20\n").scheduling.cpu_latency_us == 20
+
+
+def test_the_request_writes_the_kernels_32_bit_value_and_holds_the_file_until_released(
+    tmp_path: Path,
+) -> None:
+    # A FIFO stands in for the device: what the request writes can be read back byte for byte, and the
+    # reader sees end-of-file exactly when the request lets go of it.
+    path = os.path.join(str(tmp_path), "cpu_dma_latency")
+    os.mkfifo(path)
+    reader = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    request = CpuLatencyRequest(7, path)
+    try:
+        assert request.acquire() is None and request.held
+        assert request.acquire() is None  # idempotent: one request, one open file
+        assert os.read(reader, 16) == struct.pack("=i", 7)
+        with pytest.raises(BlockingIOError):
+            os.read(reader, 16)  # still held open: no end-of-file
+        request.release()
+        assert not request.held
+        assert os.read(reader, 16) == b""  # withdrawn
+        request.release()  # idempotent
+    finally:
+        os.close(reader)
+        request.release()
+
+
+def test_a_request_that_cannot_be_made_says_why(tmp_path: Path) -> None:
+    missing = CpuLatencyRequest(0, os.path.join(str(tmp_path), "nope"))
+    answer = missing.acquire()
+    assert answer is not None and "no " in answer and "QoS" in answer and not missing.held
+    if os.geteuid() != 0:
+        locked = os.path.join(str(tmp_path), "locked")
+        open(locked, "w").close()
+        os.chmod(locked, stat.S_IRUSR)
+        answer = CpuLatencyRequest(0, locked).acquire()
+        assert answer is not None and "not permitted" in answer
+    with pytest.raises(ValueError):
+        CpuLatencyRequest(-1)
+
+
+@pytest.mark.skipif(not os.path.exists(CPU_LATENCY_DEVICE), reason="no CPU latency QoS device here")
+def test_the_real_device_takes_the_request_where_permitted() -> None:
+    request = CpuLatencyRequest(0)
+    answer = request.acquire()
+    if answer is not None:
+        assert "not permitted" in answer
+        pytest.skip(answer)
+    try:
+        # Reading the device gives the system's effective target: ours is the strictest there can be.
+        with open(CPU_LATENCY_DEVICE, "rb") as device:
+            assert struct.unpack("=i", device.read(4))[0] == 0
+    finally:
+        request.release()

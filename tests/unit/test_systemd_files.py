@@ -169,12 +169,18 @@ DEVICE_MAJORS = {4: "ttyS", 166: "ttyACM", 188: "ttyUSB", 81: "video4linux", 89:
 def test_device_allow_list_is_closed_and_covers_serial_video_i2c_usb(unit: Unit) -> None:
     assert one(unit, "Service", "DevicePolicy") == "closed"
     allowed = {}
+    paths = {}
     for value in unit["Service"]["DeviceAllow"]:
         spec, access = value.split()
+        if spec.startswith("/dev/"):
+            paths[spec] = access
+            continue
         match = re.fullmatch(r"char-(\d+)", spec)
         assert match, f"DeviceAllow={value}: use the fixed major number (see the unit's comment)"
         allowed[int(match.group(1))] = access
     assert allowed == dict.fromkeys(DEVICE_MAJORS, "rw")
+    # One node by path, write only: the CPU latency QoS request (a class would be all of misc).
+    assert paths == {"/dev/cpu_dma_latency": "w"}
 
 
 def test_device_majors_match_this_kernel_where_it_has_the_driver() -> None:
@@ -306,7 +312,7 @@ def test_mindvision_usb_node_goes_to_group_video(
 def test_rules_only_use_the_services_groups_and_never_world_writable(
     unit: Unit, rules: list[list[tuple[str, str | None, str, str]]]
 ) -> None:
-    groups = set(words(unit, "Service", "SupplementaryGroups"))
+    groups = set(words(unit, "Service", "SupplementaryGroups")) | {one(unit, "Service", "Group")}
     for rule in rules:
         for key, _attr, _op, value in rule:
             if key == "GROUP":
