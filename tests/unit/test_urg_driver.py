@@ -248,6 +248,39 @@ def test_md_streaming_timestamps_and_alignment(fake: FakeUrg, laser: UrgLaser) -
             laser.read(0.2)
 
 
+def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
+    sim: Simulation, tmp_path: Path
+) -> None:
+    # The fake says when its next scan is due (next_output_in) and its server sleeps until then: with a
+    # poll interval of 5 s every scan still arrives within a few milliseconds of its completion.
+    fake = FakeUrg(sim, seed=0)
+    assert fake.next_output_in(time.monotonic()) is None  # nothing queued, no stream
+    with PtyServer(fake, link=tmp_path / "urg", poll_interval_s=5.0) as srv:
+        laser = UrgLaser(srv.path, timeout_s=0.5)
+        laser.open()
+        try:
+            laser.start()
+            due_in = fake.next_output_in(time.monotonic())
+            assert due_in is not None and 0.0 <= due_in <= 0.2  # the next scan, within two revolutions
+            scans, read_at = [], []
+            for _ in range(6):
+                scans.append(laser.read(1.0))
+                read_at.append(time.monotonic())
+            steps = [device_ms(b) - device_ms(a) for a, b in itertools.pairwise(scans)]
+            assert steps == [100] * 5  # none skipped, none waiting for the 5 s poll
+            # In the driver's hands soon after the sweep ended (step 0 plus at most one revolution): the
+            # transfer and the scheduling of a loaded test machine, not a poll interval.
+            step0 = {e.device_time_ms: e.step0_time_s for e in fake.emitted}
+            late_ms = [
+                (t - (step0[device_ms(s) % WRAP] + fake.period_s)) * 1e3
+                for s, t in zip(scans, read_at, strict=True)
+            ]
+            assert max(late_ms) < 60.0, late_ms
+            laser.stop()
+        finally:
+            laser.close()
+
+
 def test_device_clock_wrap_is_unwrapped(sim: Simulation, tmp_path: Path) -> None:
     fake = FakeUrg(sim, clock_start_ms=WRAP - 500)
     with PtyServer(fake, link=tmp_path / "urg") as srv, UrgLaser(srv.path, timeout_s=0.5) as laser:
