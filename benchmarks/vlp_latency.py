@@ -13,13 +13,20 @@ The cases run in ``--rounds`` interleaved rounds (a busy spell of a shared machi
 alike); the median and percentiles are over all rounds' frames, and each round's own medians are listed,
 with the quietest round's (the smallest ``numpy_small_op_us``) set apart.
 
+The frames above come back to back. A camera delivers them at its frame rate, and a core that idles
+between frames starts the next one cold (docs/benchmarks.md, "Idle cores"): ``paced`` per case is one more
+pass with the frames handed over at the camera's 20 Hz, the thread asleep in between, under the same
+CPU latency QoS request the agent holds (``--cpu-latency-us``, default 0 as the agent's ``[scheduling]``;
+-1: none; ``paced_cpu_latency_held`` says whether the system granted it). ``--paced-frames 0`` skips it.
+
 One core: OpenCV's thread pool is limited to one thread (``cv2.setNumThreads(1)``). Prints one JSON
 object; budgets (ARCHITECTURE.md): median <= 2 ms at 800x600 and <= 6 ms at 2048x1536. Besides the wall time
 (``latency_ms_*``) the thread's CPU time per frame is reported (``cpu_ms_median``): on a shared machine the
 wall time includes waiting for a core, the CPU time does not; ``numpy_small_op_us`` (one tiny numpy
 operation, measured right after each case) shows how fast the machine was running.
 
-    .venv/bin/python benchmarks/vlp_latency.py [--frames N] [--rounds R] [--seed S]
+    .venv/bin/python benchmarks/vlp_latency.py [--frames N] [--rounds R] [--seed S] [--paced-frames N]
+        [--cpu-latency-us US]
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cpu_share import CpuShare
 
+from agent.runtime.priority import CpuLatencyRequest
 from agent.sim_view import agent_view
 from agent.vlp.model import VlpFix
 from agent.vlp.pipeline import VlpPipeline
@@ -108,6 +116,8 @@ class Case:
         renderer = RollingShutterRenderer.for_world(world, seed=seed)
         rng = np.random.default_rng(seed)
         fps = world.camera.frame_rate_hz
+        self.frame_period_s = 1.0 / fps
+        self.paced: dict[str, float] = {}
         self.frames = []
         for k in range(frames + WARMUP_FRAMES):
             frame = renderer.render(pose_at, 100.0 + k / fps + float(rng.uniform(0.0, 1e-3)))
@@ -167,6 +177,30 @@ class Case:
             )
         )
 
+    def run_paced(self, frames: int) -> None:
+        """A fresh pipeline over the first ``frames`` timed frames, each handed over one camera period
+        after the one before (the thread asleep in between), the warm-up frames back to back first."""
+        pipeline = VlpPipeline(self.view.intrinsics, self.view.led_map, self.view.mount)
+        for image, t in self.frames[:WARMUP_FRAMES]:
+            pipeline.process(image, t)
+        total, cpu = [], []
+        due = time.perf_counter()
+        for image, t in self.frames[WARMUP_FRAMES : WARMUP_FRAMES + frames]:
+            due += self.frame_period_s
+            time.sleep(max(due - time.perf_counter(), 0.0))
+            c0 = time.thread_time()
+            t0 = time.perf_counter()
+            pipeline.process(image, t)
+            total.append(1e3 * (time.perf_counter() - t0))
+            cpu.append(1e3 * (time.thread_time() - c0))
+        total.sort()
+        self.paced = {
+            "latency_ms_median": statistics.median(total),
+            "latency_ms_p99": total[int(0.99 * (len(total) - 1))],
+            "cpu_ms_median": statistics.median(cpu),
+            "frames": len(total),
+        }
+
     def report(self) -> dict[str, object]:
         ordered = sorted(self.total)
         quietest = min(self.rounds, key=lambda r: r.numpy_small_op_us)
@@ -179,6 +213,7 @@ class Case:
             "latency_ms_p99": ordered[int(0.99 * (len(ordered) - 1))],
             "quietest_round": dataclasses.asdict(quietest),
             "rounds": [dataclasses.asdict(r) for r in self.rounds],
+            "paced": self.paced,
         }
 
 
@@ -191,7 +226,21 @@ def main() -> int:
         "--rounds", type=int, default=3, help="rounds over all cases, interleaved (default 3)"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--paced-frames",
+        type=int,
+        default=60,
+        help="frames per case handed over at the camera's frame rate after the rounds (default 60; 0: none)",
+    )
+    parser.add_argument(
+        "--cpu-latency-us",
+        type=int,
+        default=0,
+        help="the CPU latency QoS request held during the paced pass, as the agent's (default 0; -1: none)",
+    )
     args = parser.parse_args()
+    if args.frames < 1 or args.rounds < 1 or args.paced_frames < 0 or args.cpu_latency_us < -1:
+        parser.error("--frames and --rounds must be >= 1, --paced-frames >= 0, --cpu-latency-us >= -1")
     cv2.setNumThreads(1)
     cases = [
         Case(width, height, n_leds, args.frames, args.seed)
@@ -201,6 +250,19 @@ def main() -> int:
     for _ in range(args.rounds):
         for case in cases:
             case.run_round()
+    held: bool | None = None
+    if args.paced_frames:
+        request = CpuLatencyRequest(args.cpu_latency_us) if args.cpu_latency_us >= 0 else None
+        refused = request.acquire() if request is not None else "not asked for"
+        held = refused is None
+        if refused is not None:
+            print(f"vlp_latency: paced pass without a CPU latency request: {refused}", file=sys.stderr)
+        try:
+            for case in cases:
+                case.run_paced(args.paced_frames)
+        finally:
+            if request is not None:
+                request.release()
     budgets = {"800x600": 2.0, "2048x1536": 6.0}
     reports = [case.report() for case in cases]
     medians = {(str(r["resolution"]), float(str(r["latency_ms_median"]))) for r in reports}
@@ -212,6 +274,7 @@ def main() -> int:
         "budget_ms_median": budgets,
         "cases": reports,
         "within_budget": all(median <= budgets[resolution] for resolution, median in medians),
+        "paced_cpu_latency_held": held,
     }
     print(json.dumps(report, indent=2))
     return 0
