@@ -20,7 +20,7 @@ import tty
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,7 @@ class ByteDevice(Protocol):
         ...
 
 
+@runtime_checkable
 class ScheduledByteDevice(ByteDevice, Protocol):
     """A device that knows when its next unsolicited output falls due: the server then sleeps until then
     (or until bytes arrive) instead of polling it every ``poll_interval_s``."""
@@ -64,7 +65,7 @@ class PtyServer:
         """``poll_interval_s``: how often the device is polled for output of its own; for a
         :class:`ScheduledByteDevice`, the longest the server sleeps (it wakes when the output falls due)."""
         self.device = device
-        self._schedule: Callable[[float], float | None] | None = getattr(device, "next_output_in", None)
+        self._schedule = device.next_output_in if isinstance(device, ScheduledByteDevice) else None
         self.link = Path(link) if link is not None else None
         self.poll_interval_s = poll_interval_s
         self._master: int | None = None

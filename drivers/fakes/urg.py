@@ -255,13 +255,15 @@ class FakeUrg:
         ``vlp-agent sim``."""
         with self._lock:
             t = self._time(now)
+            if self._silent:
+                return None
             dues = []
             if self._outq:
                 dues.append(self._outq[0][0])
             s = self._stream
             if s is not None:
                 dues.append(self._step0(s.next_k) + self._done_after_s(s.last))
-            return max(min(dues) - t, 0.0) if dues and not self._silent else None
+            return max(min(dues) - t, 0.0) if dues else None
 
     def _enqueue(self, due: float, item: bytes | Callable[[], bytes]) -> None:
         # Replies leave in command order even when one of them waits for a scan.
