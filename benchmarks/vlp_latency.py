@@ -91,6 +91,11 @@ def small_op_us() -> float:
     return 1e6 * best
 
 
+def _rank(ordered: list[float], q: float) -> float:
+    """The ``q`` quantile of sorted values, the element at rank q (n - 1) rounded down."""
+    return ordered[int(q * (len(ordered) - 1))]
+
+
 @dataclasses.dataclass(frozen=True)
 class RoundResult:
     """One round of one case: medians over its frames, and how fast the machine was just after it."""
@@ -196,7 +201,7 @@ class Case:
         total.sort()
         self.paced = {
             "latency_ms_median": statistics.median(total),
-            "latency_ms_p99": total[int(0.99 * (len(total) - 1))],
+            "latency_ms_p99": _rank(total, 0.99),
             "cpu_ms_median": statistics.median(cpu),
             "frames": len(total),
         }
@@ -209,8 +214,8 @@ class Case:
             "leds": self.n_leds,
             "frames": len(ordered),
             "latency_ms_median": statistics.median(ordered),
-            "latency_ms_p90": ordered[int(0.9 * (len(ordered) - 1))],
-            "latency_ms_p99": ordered[int(0.99 * (len(ordered) - 1))],
+            "latency_ms_p90": _rank(ordered, 0.9),
+            "latency_ms_p99": _rank(ordered, 0.99),
             "quietest_round": dataclasses.asdict(quietest),
             "rounds": [dataclasses.asdict(r) for r in self.rounds],
             "paced": self.paced,
