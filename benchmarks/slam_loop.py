@@ -76,6 +76,20 @@ def main() -> int:
         help="the correlative search at the first N filter updates only (default: at every update)",
     )
     parser.add_argument(
+        "--max-match-points",
+        type=int,
+        default=defaults.max_match_points,
+        metavar="N",
+        help="scan endpoints matched per update, at most",
+    )
+    parser.add_argument(
+        "--match-voxel",
+        type=float,
+        default=defaults.match_voxel_m,
+        metavar="M",
+        help="one matched endpoint per voxel of this size (metres)",
+    )
+    parser.add_argument(
         "--odometry-shift",
         type=float,
         default=0.0,
@@ -103,6 +117,8 @@ def main() -> int:
             noise=OdometryNoise(*args.odometry_noise),
             resample_threshold=args.resample_threshold,
             search_updates=args.search_updates,
+            max_match_points=args.max_match_points,
+            match_voxel_m=args.match_voxel,
             seed=seed,
         )
         result = replay(log, config)
