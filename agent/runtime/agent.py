@@ -256,6 +256,10 @@ class Agent:
         self._slam_good = False  # the last SLAM filter update matched and was fused
         self._last_slam_fix_ns = 0
         self._hardware_error = (0, 0)
+        # When the wheel read in progress started (agent clock), 0 between reads: a read that hangs is a
+        # servo fault, a loop that is merely late (the machine stalled) is not.
+        self._servo_read_since_ns = 0
+        self._beats: dict[str, Heartbeat] = {}
         self.still = StillDetector()
         self._tags: collections.deque[TagRead] = collections.deque(maxlen=64)
         self._started_ns = 0
@@ -370,13 +374,25 @@ class Agent:
             flags |= PoseFlags.LASER_LOST
         if d.camera is not None and now - self._last_frame_ns > hc.camera_stall_s * 1e9:
             flags |= PoseFlags.CAMERA_STALLED
-        if d.servos is not None:
-            watch = self._watch["servos"]
-            if not watch.ok or now - watch.last_good_ns > hc.servo_fault_s * 1e9 or any(self._hardware_error):
-                flags |= PoseFlags.SERVO_FAULT
+        if d.servos is not None and self._servo_fault(now):
+            flags |= PoseFlags.SERVO_FAULT
         if (flags & _FAULT_FLAGS) or (self._expected_sources() & ~flags):
             flags |= PoseFlags.DEGRADED
         return flags
+
+    def _servo_fault(self, now_ns: int) -> bool:
+        """The servos, not the machine, are at fault: the last wheel read (or the port's opening) failed, a
+        servo reports hardware error bits, a wheel read has been hanging for ``health.servo_fault_s``, or
+        the servo loop itself has stopped (its heartbeat past the loop timeout). A loop that is only late
+        (the whole agent stalled for a moment) is not a servo fault: the ODOMETRY bit going off says that."""
+        watch = self._watch["servos"]
+        if not watch.ok or any(self._hardware_error):
+            return True
+        since = self._servo_read_since_ns
+        if since and now_ns - since > self.config.health.servo_fault_s * 1e9:
+            return True
+        beat = self._beats.get("servos")
+        return beat is not None and not beat.alive()
 
     def status(self) -> AgentStatus:
         now = self.clock_ns()
@@ -480,6 +496,7 @@ class Agent:
 
     def _spawn(self, name: str, critical: bool, timeout_s: float, body: Callable[[Heartbeat], None]) -> None:
         beat = self.health.register(name, critical, timeout_s)
+        self._beats[name] = beat
 
         def run() -> None:
             try:
@@ -769,9 +786,11 @@ class Agent:
                 self._retry_wait(beat, 1.0)
                 continue
             self.hot_path.give_way()
+            self._servo_read_since_ns = self.clock_ns()
             try:
                 state = servos.read()
             except DeviceError as exc:
+                self._servo_read_since_ns = 0
                 watch.bad(f"silent: {exc}")
                 previous = None
                 merged = False
@@ -780,6 +799,7 @@ class Agent:
                     servos.set_velocity(0.0, 0.0)
                 self._stop.wait(period_s)
                 continue
+            self._servo_read_since_ns = 0
             now = self.clock_ns()
             if watch.good():
                 # Back from a fault: zero first, and hold zero a moment whatever the command says.

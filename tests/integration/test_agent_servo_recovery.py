@@ -115,3 +115,50 @@ def test_a_stale_command_stops_the_wheels(running: tuple[SimulatedRobot, Agent, 
     assert dataclasses.asdict(agent.drive.current(time.monotonic_ns()))["reason"] in ("stale", "none")
     time.sleep(0.3)
     assert goal(robot, left) == 0  # and it stays stopped
+
+
+def _once_in_servo_loop(pause_s: float, then: Callable[[], object], armed: threading.Event) -> object:
+    """``then()``, after a pause of ``pause_s`` the first time the servo loop calls it once ``armed``."""
+    if armed.is_set() and threading.current_thread().name == "agent-servos":
+        armed.clear()
+        time.sleep(pause_s)
+    return then()
+
+
+def _flags_while(armed: threading.Event, agent: Agent, seconds: float) -> list[PoseFlags]:
+    armed.set()
+    seen = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        seen.append(agent.flags())
+        time.sleep(0.01)
+    return seen
+
+
+def test_a_late_servo_loop_is_not_a_servo_fault_but_a_hanging_wheel_read_is(
+    running: tuple[SimulatedRobot, Agent, threading.Event],
+) -> None:
+    _, agent, _ = running
+    servos = agent.devices.servos
+    assert servos is not None
+    wait_for(lambda: bool(agent.flags() & PoseFlags.ODOMETRY) and not agent.flags() & PoseFlags.SERVO_FAULT)
+
+    # The loop is 0.6 s late for its next read (what a stalled machine looks like to it): the odometry goes
+    # stale, which the ODOMETRY bit says, but the servos answer every read they get: no SERVO_FAULT.
+    late = threading.Event()
+    give_way = agent.hot_path.give_way
+    agent.hot_path.give_way = lambda: _once_in_servo_loop(0.6, give_way, late)  # type: ignore[method-assign]
+    seen = _flags_while(late, agent, 0.8)
+    assert any(not f & PoseFlags.ODOMETRY for f in seen), "the loop was not late"
+    assert not any(f & PoseFlags.SERVO_FAULT for f in seen), seen
+    agent.hot_path.give_way = give_way  # type: ignore[method-assign]
+    wait_for(lambda: bool(agent.flags() & PoseFlags.ODOMETRY))
+
+    # A wheel read that hangs for 0.6 s (a bus that holds the reply back): SERVO_FAULT after
+    # health.servo_fault_s (0.2 s), gone once the read returns.
+    hanging = threading.Event()
+    read = servos.read
+    servos.read = lambda: _once_in_servo_loop(0.6, read, hanging)  # type: ignore[method-assign]
+    seen = _flags_while(hanging, agent, 0.8)
+    assert any(f & PoseFlags.SERVO_FAULT for f in seen), seen
+    wait_for(lambda: not agent.flags() & PoseFlags.SERVO_FAULT)
