@@ -121,7 +121,9 @@ class Blob:
 def close_rows(roi: ImageU8, kernel: ImageU8) -> ImageU8:
     """Grey closing with a vertical kernel: every dark gap between brighter rows shorter than the kernel
     takes the level of the rows around it (the stripes of an LED bridged into a disk)."""
-    closed: ImageU8 = np.asarray(cv2.morphologyEx(roi, cv2.MORPH_CLOSE, kernel), dtype=np.uint8)
+    # erode(dilate(roi)), which is what MORPH_CLOSE computes, without morphologyEx's dispatch (~4 us a call
+    # on a tracking window).
+    closed: ImageU8 = np.asarray(cv2.erode(cv2.dilate(roi, kernel), kernel), dtype=np.uint8)
     return closed
 
 
