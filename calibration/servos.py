@@ -79,7 +79,11 @@ class Found:
 
 
 class Bus:
-    """One Dynamixel Protocol 2.0 bus on a serial port, at a rate that can be changed."""
+    """One Dynamixel Protocol 2.0 bus on a serial port, at a rate that can be changed. A read, or a write
+    that does not move the servo, whose reply does not come within ``reply_timeout_s`` is sent again, up to
+    ``RETRIES`` times."""
+
+    RETRIES = 2
 
     def __init__(self, port: str, reply_timeout_s: float = 0.05) -> None:
         self.port = port
@@ -149,27 +153,45 @@ class Bus:
             found.append((ping.id, ping.model_number, ping.firmware_version))
         return sorted(set(found))
 
-    def _unicast(self, packet: bytes, servo_id: int, what: str, also_from: int | None = None) -> StatusPacket:
+    def _unicast(
+        self, packet: bytes, servo_id: int, what: str, also_from: int | None = None, retries: int = 0
+    ) -> StatusPacket:
+        """Send one instruction and return its status packet; sent again up to ``retries`` times while no
+        reply comes (a reply lost to noise on a half-duplex bus, or late on a busy host)."""
         ids = {servo_id} if also_from is None else {servo_id, also_from}
-        replies = [r for r in self._exchange(packet, self.reply_timeout_s, 1) if r.id in ids]
+        for attempt in range(retries + 1):
+            replies = [r for r in self._exchange(packet, self.reply_timeout_s, 1) if r.id in ids]
+            if replies:
+                break
+            if attempt < retries:
+                log.info("servo %d: no reply to %s at %d bps; asking again", servo_id, what, self.baud)
         if not replies:
-            raise CalibrationError(f"servo {servo_id} did not answer {what} at {self.baud} bps")
+            tries = f" ({retries + 1} tries)" if retries else ""
+            raise CalibrationError(f"servo {servo_id} did not answer {what} at {self.baud} bps{tries}")
         status = replies[0].status
         if status.failed:
             raise CalibrationError(f"servo {servo_id} refused {what}: {status.describe()}")
         return replies[0]
 
     def read(self, servo_id: int, item: ControlItem) -> int:
-        reply = self._unicast(encode_read(servo_id, item.address, item.size), servo_id, f"READ {item.name}")
+        packet = encode_read(servo_id, item.address, item.size)
+        reply = self._unicast(packet, servo_id, f"READ {item.name}", retries=self.RETRIES)
         if len(reply.params) != item.size:
             raise CalibrationError(f"servo {servo_id}: READ {item.name} gave {len(reply.params)} bytes")
         return item.decode(reply.params)
 
     def write(self, servo_id: int, item: ControlItem, value: int) -> None:
-        # A servo answers a write to its ID register from its new id.
+        # A servo answers a write to its ID register from its new id. Writing the same value again is
+        # harmless, except to ID and Baud Rate: once either has taken, the servo no longer listens where
+        # the write is sent again, so those are sent once (the step, run again, scans afresh).
         new_id = value if item is _ID else None
+        retries = 0 if item is _ID or item is _BAUD else self.RETRIES
         self._unicast(
-            encode_write(servo_id, item.address, item.encode(value)), servo_id, f"WRITE {item.name}", new_id
+            encode_write(servo_id, item.address, item.encode(value)),
+            servo_id,
+            f"WRITE {item.name}",
+            new_id,
+            retries,
         )
 
 

@@ -12,11 +12,12 @@ from typing import Any
 
 import pytest
 
+from calibration.report import CalibrationError
 from calibration.servos import Bus, apply, plan_changes, scan
 from drivers.errors import DeviceNotFound
 from drivers.fakes.dynamixel import BaudAwareDynamixelBus
 from drivers.fakes.pty import PtyServer
-from drivers.servos.control_table import OperatingMode
+from drivers.servos.control_table import XL430_W250, OperatingMode
 from drivers.servos.dynamixel import DynamixelWheels
 from drivers.sim.simulation import Simulation
 from drivers.sim.worldfile import load_world
@@ -151,6 +152,35 @@ def test_servos_step_with_a_robot_config(tmp_path: Path) -> None:
         # Servo 9 (the left wheel) is now id 1, servo 4 is id 2.
         assert fake.servo(1).get("ID") == 1 and fake.servo(2).get("ID") == 2
         assert fake.register(1, "Baud Rate") == 3 and fake.register(2, "Operating Mode") == 1
+    finally:
+        server.close()
+        fake.close()
+
+
+def test_a_lost_reply_is_asked_for_again_but_a_moving_write_is_sent_once() -> None:
+    fake = BaudAwareDynamixelBus(None, ids=(4,))
+    fake.set_servo(4, baud_index=1)  # 57600
+    server = PtyServer(fake)
+    server.start()
+    fake.attach(server.path)
+    mode = XL430_W250["Operating Mode"]
+    try:
+        with Bus(server.path) as bus:
+            bus.set_baud(57600)
+            # Two replies lost (their CRC broken on the way): the third try is answered.
+            fake.corrupt_next_reply(2)
+            assert bus.read(4, mode) == fake.register(4, "Operating Mode")
+            fake.corrupt_next_reply(2)
+            bus.write(4, XL430_W250["Torque Enable"], 0)
+            # Lost every time: the error says how often it asked.
+            fake.corrupt_next_reply(Bus.RETRIES + 1)
+            with pytest.raises(CalibrationError, match=r"did not answer READ Operating Mode .*\(3 tries\)"):
+                bus.read(4, mode)
+            # A write to ID takes even when its reply is lost; sent again it would go to an id that is gone.
+            fake.corrupt_next_reply(1)
+            with pytest.raises(CalibrationError, match=r"did not answer WRITE ID at 57600 bps$"):
+                bus.write(4, XL430_W250["ID"], 6)
+            assert fake.ids == (6,)
     finally:
         server.close()
         fake.close()
