@@ -14,7 +14,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --along-surface-weight 0
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --proposal-temperature 3 --eta-integral laplace
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
-    python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates 1
+    python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
 """
 
 from __future__ import annotations
@@ -70,10 +70,11 @@ def main() -> int:
     )
     parser.add_argument(
         "--search-updates",
-        type=int,
+        type=lambda text: None if text == "every" else int(text),
         default=defaults.search_updates,
-        metavar="N",
-        help="the correlative search at the first N filter updates only (default: at every update)",
+        metavar="N|every",
+        help=f"the correlative search at the first N filter updates only (default {defaults.search_updates}),"
+        " or at every update",
     )
     parser.add_argument(
         "--max-match-points",

@@ -375,10 +375,12 @@ def test_replay_with_a_bounded_history(loop: tuple[np.ndarray, ...]) -> None:
 
 
 def test_the_correlative_search_runs_where_it_is_due() -> None:
-    # Every update by default; with search_updates=1 only the first and after a large odometry increment.
+    # By default (search_updates=1) only at the first update and after a large odometry increment; with
+    # None at every update.
     searched: list[bool] = []
-    every = RbpfSlam(LASER, RbpfConfig(particles=4))
-    first = RbpfSlam(LASER, RbpfConfig(particles=4, search_updates=1))
+    every = RbpfSlam(LASER, RbpfConfig(particles=4, search_updates=None))
+    first = RbpfSlam(LASER, RbpfConfig(particles=4))
+    assert first.config.search_updates == 1
     step = np.array([0.3, 0.0, 0.05])
     for slam in (every, first):
         for updates, increment in ((0, step), (1, step), (5, step), (5, np.array([1.2, 0.0, 0.0]))):
