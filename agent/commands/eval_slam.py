@@ -156,7 +156,12 @@ def run(args: argparse.Namespace) -> int:
     from agent.slam.fix import TimedFix
     from agent.slam.logs import SlamLog, read_log
     from agent.slam.mapio import save_map, write_png
-    from agent.slam.metrics import absolute_trajectory_error, relative_pose_error, wall_thickness
+    from agent.slam.metrics import (
+        absolute_trajectory_error,
+        aligned_trajectory_error,
+        relative_pose_error,
+        wall_thickness,
+    )
     from agent.slam.motion import OdometryNoise
     from agent.slam.pose import between, compose
     from agent.slam.rbpf import MapMode, RbpfConfig
@@ -314,6 +319,7 @@ def run(args: argparse.Namespace) -> int:
             camera_instants_without_fix=simulated.frames_without_fix,
             no_fix_reasons=simulated.no_fix_reasons,
             ate_m=_round(absolute_trajectory_error(truth, result.poses), 4),
+            ate_aligned_m=_round(aligned_trajectory_error(truth, result.poses), 4),
             ate_online_m=_round(absolute_trajectory_error(truth, result.online_poses), 4),
             ate_max_m=_round(float(position_error.max()), 4),
             final_error_m=_round(float(position_error[-1]), 4),
@@ -401,6 +407,7 @@ def _print_table(s: dict[str, Any]) -> None:
             f"  trajectory error   ATE {s['ate_m']} m (online {s['ate_online_m']} m, max {s['ate_max_m']} m, "
             f"final {s['final_error_m']} m; raw odometry {s['odometry_ate_m']} m)"
         )
+        print(f"                     {s['ate_aligned_m']} m after a rigid alignment onto the truth")
     if "trans_error_m_mean" in s:
         print(
             f"  relative error     {s['trans_error_m_mean']} ± {s['trans_error_m_std']} m, "

@@ -79,6 +79,33 @@ def absolute_trajectory_error(truth: FloatArray, estimate: FloatArray) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1)))) if d.size else math.nan
 
 
+def rigid_alignment(truth: FloatArray, estimate: FloatArray) -> tuple[float, float, float]:
+    """The rotation and translation (dx, dy, angle) that move the estimate's positions onto the truth's
+    in least squares (Horn's closed form in the plane, no scale): what the ATE of the TUM RGB-D benchmark
+    aligns before it measures."""
+    a, b = estimate[:, :2], truth[:, :2]
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    h = (a - ma).T @ (b - mb)
+    angle = math.atan2(float(h[0, 1] - h[1, 0]), float(h[0, 0] + h[1, 1]))
+    c, s = math.cos(angle), math.sin(angle)
+    tx = float(mb[0] - (c * ma[0] - s * ma[1]))
+    ty = float(mb[1] - (s * ma[0] + c * ma[1]))
+    return tx, ty, angle
+
+
+def aligned_trajectory_error(truth: FloatArray, estimate: FloatArray) -> float:
+    """:func:`absolute_trajectory_error` after :func:`rigid_alignment`: how well the trajectory holds
+    together, whatever frame it was built in (without absolute fixes, a map's frame is only as good as its
+    first metres)."""
+    if estimate.shape[0] == 0:
+        return math.nan
+    tx, ty, angle = rigid_alignment(truth, estimate)
+    c, s = math.cos(angle), math.sin(angle)
+    x, y = estimate[:, 0], estimate[:, 1]
+    moved = np.stack([c * x - s * y + tx, s * x + c * y + ty], axis=1)
+    return absolute_trajectory_error(truth, moved)
+
+
 @dataclass(frozen=True)
 class WallThickness:
     """For every occupied cell, the occupied cells on the line through it across the wall, within

@@ -125,6 +125,7 @@ def test_the_command_reports_ate_with_and_without_fixes(
         # Over these 15 s (2 m) odometry is still within 2 cm, and the filter without fixes about as good:
         # that it beats odometry four times over is checked on the 60 s drive above.
         assert 0.0 < s["ate_m"] < 0.05 and s["odometry_ate_m"] > 0.0
+        assert 0.0 < s["ate_aligned_m"] <= s["ate_m"]  # the best rigid alignment is at least no alignment
         assert s["update_ms_median"] > 0 and s["peak_rss_mb"] > 0
     assert plain["vlp_fixes"] is False and plain["fixes_used"] == 0
     # 10 Hz from the camera pipeline (the default source); a few still pending, a few instants with one
