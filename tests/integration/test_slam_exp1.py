@@ -113,6 +113,18 @@ def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
     assert slam_deg < 2.0
 
 
+def test_the_loop_closes_for_most_seeds(run: tuple[SlamLog, ReplayResult]) -> None:
+    # Not one lucky seed: seeds 0-5 close for 5 of 6 (seed 1 misses by 0.427 m); with the correlative
+    # search at every update, the former default, they closed for 3 of 6 and seeds 0-23 for 5 of 24.
+    log, result = run
+    closed = []
+    for seed in range(6):
+        poses = result.poses if seed == 0 else replay(log, RbpfConfig(particles=30, seed=seed)).poses
+        slam_m, slam_deg, _ = loop_closure_errors(log, poses)
+        closed.append(slam_m < 0.1 and slam_deg < 2.0)
+    assert sum(closed) >= 4, closed
+
+
 def test_walls_are_thin_lines(run: tuple[SlamLog, ReplayResult]) -> None:
     log, result = run
     window = result.slam.map_window()
