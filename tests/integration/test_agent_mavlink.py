@@ -54,4 +54,10 @@ def test_pymavlink_decodes_the_stream(tmp_path: Path, message: str) -> None:
         for t, e in zip(times, errors, strict=True)
         if e > 0.02
     ]
-    assert sum(e <= 0.02 for e in errors) / len(errors) >= 0.95, f"(s after the first, cm) over 2 cm: {off}"
+    # On failure, also what the agent fused and dropped: a stall of the machine (late odometry and frames)
+    # and a SLAM pose fused off the VLP track look alike in the error alone.
+    keys = ("fixes", "fixes_fused", "fixes_rejected", "no_fix_reasons", "counts")
+    diagnosis = {k: summary.get(k) for k in keys}
+    assert sum(e <= 0.02 for e in errors) / len(errors) >= 0.95, (
+        f"(s after the first, cm) over 2 cm: {off}; {diagnosis}"
+    )
