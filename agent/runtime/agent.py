@@ -259,7 +259,6 @@ class Agent:
         # When the wheel read in progress started (agent clock), 0 between reads: a read that hangs is a
         # servo fault, a loop that is merely late (the machine stalled) is not.
         self._servo_read_since_ns = 0
-        self._beats: dict[str, Heartbeat] = {}
         self.still = StillDetector()
         self._tags: collections.deque[TagRead] = collections.deque(maxlen=64)
         self._started_ns = 0
@@ -391,7 +390,7 @@ class Agent:
         since = self._servo_read_since_ns
         if since and now_ns - since > self.config.health.servo_fault_s * 1e9:
             return True
-        beat = self._beats.get("servos")
+        beat = self.health.heartbeat("servos")
         return beat is not None and not beat.alive()
 
     def status(self) -> AgentStatus:
@@ -496,7 +495,6 @@ class Agent:
 
     def _spawn(self, name: str, critical: bool, timeout_s: float, body: Callable[[Heartbeat], None]) -> None:
         beat = self.health.register(name, critical, timeout_s)
-        self._beats[name] = beat
 
         def run() -> None:
             try:

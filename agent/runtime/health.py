@@ -110,6 +110,11 @@ class HealthMonitor:
             self._beats[name] = beat
             return beat
 
+    def heartbeat(self, name: str) -> Heartbeat | None:
+        """The heartbeat registered as ``name``, if any."""
+        with self._lock:
+            return self._beats.get(name)
+
     @property
     def heartbeats(self) -> list[Heartbeat]:
         with self._lock:

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import numpy.typing as npt
 
-from agent.slam.pose import between, compose, inverse
+from agent.slam.pose import between, compose, inverse, transform_points
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -99,10 +99,7 @@ def aligned_trajectory_error(truth: FloatArray, estimate: FloatArray) -> float:
     first metres)."""
     if estimate.shape[0] == 0:
         return math.nan
-    tx, ty, angle = rigid_alignment(truth, estimate)
-    c, s = math.cos(angle), math.sin(angle)
-    x, y = estimate[:, 0], estimate[:, 1]
-    moved = np.stack([c * x - s * y + tx, s * x + c * y + ty], axis=1)
+    moved = transform_points(rigid_alignment(truth, estimate), estimate[:, :2])
     return absolute_trajectory_error(truth, moved)
 
 
