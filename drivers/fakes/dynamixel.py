@@ -49,7 +49,7 @@ from drivers.servos.control_table import (
     ControlTable,
     OperatingMode,
 )
-from drivers.sim.simulation import Simulation
+from drivers.sim.simulation import Simulation, WheelTruth
 from firmware_protocol.dynamixel import (
     BROADCAST_ID,
     CLEAR_MULTI_TURN_KEY,
@@ -140,11 +140,26 @@ class FreeMotor:
 
 
 class SimulatedWheels:
-    """Both drive wheels of a :class:`Simulation`; the simulation takes both goals at once."""
+    """Both drive wheels of a :class:`Simulation`; the simulation takes both goals at once.
+
+    The wheels are sampled once per instruction (:meth:`at`): every servo a Sync Read asks answers with
+    its position at the same instant, as servos that all hear the instruction at once do (on the real
+    bus the replies follow each other within a packet's time). Sampling each servo when its reply is
+    built would let another thread of the process run between the two replies, and the left wheel's
+    position would then be milliseconds older than the right's: a turn the robot never made, in
+    odometry made from them."""
 
     def __init__(self, simulation: Simulation) -> None:
         self.simulation = simulation
         self._goal = [0.0, 0.0]
+        self._sampled: tuple[float, WheelTruth] | None = None
+
+    def at(self, now: float) -> WheelTruth:
+        """The wheels as they were when the instruction received at ``now`` arrived (sampled on the first
+        call for that instruction)."""
+        if self._sampled is None or self._sampled[0] != now:
+            self._sampled = (now, self.simulation.wheels())
+        return self._sampled[1]
 
     def set_goal(self, index: int, wheel_radps: float) -> None:
         self._goal[index] = wheel_radps
@@ -161,7 +176,7 @@ class SimulatedWheelMotor:
         self.mount_sign = mount_sign
 
     def shaft(self, now: float) -> tuple[float, float]:
-        truth = self.wheels.simulation.wheels()
+        truth = self.wheels.at(now)
         return (
             self.mount_sign * truth.position_rad[self.index],
             self.mount_sign * truth.velocity_radps[self.index],

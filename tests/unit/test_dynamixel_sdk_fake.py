@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import dynamixel_sdk.port_handler
+import numpy as np
 import pytest
 from dynamixel_sdk import (
     BROADCAST_ID,
@@ -316,3 +317,45 @@ def test_junk_before_an_instruction_and_a_damaged_instruction(rig: Rig) -> None:
     assert result == COMM_SUCCESS
     assert reply[4] == 1 and reply[8] == ErrorNumber.CRC  # the e-Manual's CRC Error status
     assert ph.ping(port, 1) == (1060, COMM_SUCCESS, 0)
+
+
+def test_a_sync_read_samples_both_wheels_at_the_same_instant(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Servos that hear one Sync Read answer with their positions of that moment, however long the fake
+    takes between the two replies (here the simulation's clock moves 1-9 ms whenever it is read). Sampled
+    one after the other, a robot driving straight would show turns in its odometry."""
+    monkeypatch.setattr(dynamixel_sdk.port_handler, "LATENCY_TIMER", 50)
+    rng = np.random.default_rng(0)
+    t = [0.0]
+
+    def clock() -> float:
+        t[0] += float(rng.uniform(0.001, 0.009))
+        return t[0]
+
+    sim = Simulation(World("sdk-fake"), clock=clock)
+    bus = FakeDynamixelBus(sim)
+    with PtyServer(bus) as server:
+        port = PortHandler(server.path)
+        assert port.setBaudRate(57600)
+        try:
+            rig = Rig(sim, bus, server, port, PacketHandler(2.0))
+            velocity_mode_torque_on(rig)
+            sync_write_goal_velocity(rig, {1: 120, 2: -120})  # straight ahead (the right servo mirrored)
+            group = GroupSyncRead(port, rig.ph, ADDR_PRESENT_VELOCITY, 8)
+            assert group.addParam(1) and group.addParam(2)
+
+            def read() -> tuple[list[int], list[int]]:
+                assert group.txRxPacket() == COMM_SUCCESS
+                return (
+                    [signed32(group.getData(i, ADDR_PRESENT_VELOCITY, 4)) for i in (1, 2)],
+                    [signed32(group.getData(i, ADDR_PRESENT_POSITION, 4)) for i in (1, 2)],
+                )
+
+            assert wait_for(lambda: read()[0] == [120, -120])
+            # At one speed both wheels roll alike: left minus right (mirrored) is the same at every read.
+            differences = []
+            for _ in range(10):
+                position = read()[1]
+                differences.append(position[0] + position[1])
+            assert max(differences) - min(differences) <= 1, differences
+        finally:
+            port.closePort()
