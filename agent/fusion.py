@@ -12,9 +12,10 @@ State (map frame, SI units)::
 
   The odometry's errors enter as input noise along and across the heading (standard deviation
   ``odometry_sigma_m_per_m`` per metre rolled), the yaw rate and the gyro bias as random walks.
-* **Yaw rate**, two measurements of ``omega``: the wheels' (``z = dyaw_odom / dt`` over the odometry
-  interval about to be predicted, ``H = [0 0 0 1 0]``) and the gyro's (``z = omega + b``,
-  ``H = [0 0 0 1 1]``), which makes the bias observable whenever both are there.
+* **Yaw rate**, two measurements of ``omega``: the wheels' (``z = dyaw_odom / dt``, the mean rate over
+  an odometry interval, taken at the interval's middle where it equals the rate of a steadily changing
+  turn, ``H = [0 0 0 1 0]``) and the gyro's (``z = omega + b``, ``H = [0 0 0 1 1]``), which makes the
+  bias observable whenever both are there.
 * **Pose**, from VLP and SLAM: ``z = (x, y, yaw)`` with the source's covariance, ``H = [I3 0]``; the yaw
   residual is wrapped to [-pi, pi).
 * **Gating**: every update's innovation ``y`` with covariance ``S = H P H^T + R`` is tested by its squared
@@ -266,7 +267,7 @@ def _ekf_update_scalar(
 
 # -- the filter over time ------------------------------------------------------------------------------
 class _Kind(enum.IntEnum):
-    # At equal times: the yaw rate for the coming odometry interval first, then the rest.
+    # At equal times: the wheels' yaw rate first, then the rest.
     ODOMETRY_RATE = 0
     GYRO = 1
     POSE = 2
@@ -431,11 +432,20 @@ class PoseFilter:
                 self._segments.pop()
             self._segments.append(_Segment(t0_ns, t1_ns, ds_m))
             sigma = self.noise.odometry_yaw_rate_sigma_radps
+            # The mean rate over the interval is the rate at its middle (exactly so for a rate that
+            # changes linearly); taken at t0 it would lead the gyro through every change of the turn and
+            # the difference would be learnt as gyro bias.
             event = self._new_event(
-                t0_ns, _Kind.ODOMETRY_RATE, Source.ODOMETRY, np.array([rate]), np.array([[sigma**2]])
+                (t0_ns + t1_ns) // 2,
+                _Kind.ODOMETRY_RATE,
+                Source.ODOMETRY,
+                np.array([rate]),
+                np.array([[sigma**2]]),
             )
             # The interval changes every prediction after t0: re-run from there.
-            result = self._insert(event, arrival_ns if arrival_ns is not None else t1_ns)
+            result = self._insert(
+                event, arrival_ns if arrival_ns is not None else t1_ns, replay_from_ns=t0_ns
+            )
             self._prune(t1_ns)
             return result
 
@@ -644,15 +654,20 @@ class PoseFilter:
         event.accepted, event.d2 = ok, d2
         return x, P
 
-    def _insert(self, event: _Event, arrival_ns: int) -> UpdateResult:
+    def _insert(self, event: _Event, arrival_ns: int, replay_from_ns: int | None = None) -> UpdateResult:
+        """Put ``event`` in its place and re-run the filter from it, or from the first event after
+        ``replay_from_ns`` when that is earlier (new odometry changes the predictions from its start)."""
         if event.t_ns < self._base[0]:
             self._count(f"{event.source}_too_old")
             return UpdateResult(event.source, False, math.nan, too_old=True)
         i = bisect.bisect_left(self._keys, event.key)
         self._events.insert(i, event)
         self._keys.insert(i, event.key)
-        del self._states[i:]
-        self._replay(i)
+        start = i
+        if replay_from_ns is not None:
+            start = min(i, bisect.bisect_right(self._keys, (replay_from_ns, len(_Kind), 0)))
+        del self._states[start:]
+        self._replay(start)
         if event.accepted:
             self.last_accepted_ns[event.source] = max(self.last_accepted_ns.get(event.source, 0), arrival_ns)
             self._count(f"{event.source}_fused")
