@@ -38,6 +38,7 @@ def test_pymavlink_decodes_the_stream(tmp_path: Path, message: str) -> None:
     assert all(m.get_srcSystem() == 42 and m.get_srcComponent() == 197 for m in messages)
     truth = read_truth(tmp_path / "truth.csv")
     errors = []
+    yaw_errors = []
     times = []
     # MAVLink's 8-bit header sequence wraps: match the messages to the truth by their time stamps.
     by_time = {t_us: (x, y, yaw) for t_us, x, y, yaw in truth.values()}
@@ -48,7 +49,7 @@ def test_pymavlink_decodes_the_stream(tmp_path: Path, message: str) -> None:
         errors.append(math.hypot(m.x - x, m.y + y))
         times.append(t_us)
         mav_yaw = m.yaw if message == "vision_position_estimate" else 2.0 * math.atan2(m.q[3], m.q[0])
-        assert abs(math.remainder(mav_yaw + yaw, math.tau)) < math.radians(2.0)
+        yaw_errors.append(abs(math.remainder(mav_yaw + yaw, math.tau)))
     off = [
         (round((t - times[0]) * 1e-6, 2), round(100 * e, 1))
         for t, e in zip(times, errors, strict=True)
@@ -61,3 +62,9 @@ def test_pymavlink_decodes_the_stream(tmp_path: Path, message: str) -> None:
     assert sum(e <= 0.02 for e in errors) / len(errors) >= 0.95, (
         f"(s after the first, cm) over 2 cm: {off}; {diagnosis}"
     )
+    yaw_off = [
+        (round((t - times[0]) * 1e-6, 2), round(math.degrees(e), 2))
+        for t, e in zip(times, yaw_errors, strict=True)
+        if e >= math.radians(2.0)
+    ]
+    assert not yaw_off, f"(s after the first, deg) yaw 2 deg or more off: {yaw_off}; {diagnosis}"
