@@ -56,7 +56,14 @@ def add_parser(subparsers: Any) -> None:
             consecutive scans (trans_error_m_*, rot_error_deg_*), next to raw odometry's, and over
             pairs --span scans apart (span_*: whether the trajectory holds together over a building,
             which the consecutive pairs cannot show). Writes map.pgm + map.yaml (ROS map_server),
-            map.png and trajectory.png into --out."""
+            map.png and trajectory.png into --out.
+
+            With --world, drives the simulated robot along the world's route and reports the absolute
+            trajectory error against the simulation's truth (ate_m), with VLP fixes in the filter or
+            without. The simulated wheels err like real ones; by default their odometry is that of a
+            robot through `vlp-agent calibrate wheels` (the step's runs simulated on the same wheels and
+            fitted by its own fit), and ate_uncalibrated_m gives the same drive with the design's
+            geometry (--wheels nominal: that one only)."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -88,6 +95,15 @@ def add_parser(subparsers: Any) -> None:
         help="with --vlp-fixes: 'pipeline' (default) renders the camera's frames and runs the VLP pipeline "
         "on them, the world's errors included; 'model' takes the true pose plus the LED survey error and "
         "Gaussian noise (5 mm, 0.3 deg, when two LEDs are in view), much faster",
+    )
+    p.add_argument(
+        "--wheels",
+        choices=("calibrated", "nominal"),
+        default="calibrated",
+        help="with --world: the odometry's wheel radius and track. 'calibrated' (default): what "
+        "`vlp-agent calibrate wheels` finds for the simulated robot's wheels (its runs simulated, measured "
+        "to the millimetre and the tenth of a degree); the run is then replayed with the nominal ones too "
+        "(ate_uncalibrated_m). 'nominal': the design's, as an uncalibrated robot",
     )
     p.add_argument("--particles", type=int, default=30, help="number of particles (default: 30)")
     p.add_argument(
@@ -174,7 +190,14 @@ def run(args: argparse.Namespace) -> int:
     simulated = None
     fixes: tuple[TimedFix, ...] = ()
     if args.world is not None:
-        from agent.slam.simlog import simulate_log
+        from agent.slam.simlog import (
+            WheelErrorModel,
+            WheelGeometry,
+            simulate_log,
+            wheel_calibration_runs,
+        )
+        from calibration.wheels import Run as WheelRun
+        from calibration.wheels import fit_wheels
         from drivers.sim.worldfile import load_world
 
         if args.format is not None:
@@ -189,7 +212,15 @@ def run(args: argparse.Namespace) -> int:
             from agent.commands.sim_fixes import PipelineFixes
 
             source = PipelineFixes(world, seed=args.seed)
-        simulated = simulate_log(world, args.seconds, fixes=source, seed=args.seed)
+        errors = WheelErrorModel()
+        geometry = None
+        if args.wheels == "calibrated":
+            runs = wheel_calibration_runs(world, errors, np.random.default_rng(args.seed))
+            fit = fit_wheels([WheelRun(*r) for r in runs])
+            geometry = WheelGeometry(fit.wheel_radius_m, fit.track_m)
+        simulated = simulate_log(
+            world, args.seconds, wheel_errors=errors, wheel_geometry=geometry, fixes=source, seed=args.seed
+        )
         log: SlamLog = simulated.log
         source_format = "simulated"
         source_name = str(args.world)
@@ -324,7 +355,19 @@ def run(args: argparse.Namespace) -> int:
             ate_max_m=_round(float(position_error.max()), 4),
             final_error_m=_round(float(position_error[-1]), 4),
             odometry_ate_m=_round(absolute_trajectory_error(truth, odometry_world), 4),
+            wheels=args.wheels,
+            wheel_radius_m=_round(simulated.geometry.radius_m, 6),
+            wheel_track_m=_round(simulated.geometry.track_m, 6),
         )
+        if args.wheels == "calibrated":
+            # The same drive as an uncalibrated robot would have logged it (same scans and wheel readings,
+            # the nominal geometry), through the same filter.
+            nominal_fixes = simulated.nominal_fixes if fixes else ()
+            nominal_config = dataclasses.replace(
+                config, initial_pose=simulated.start_pose(from_fix=bool(fixes), nominal=True)
+            )
+            nominal = replay(simulated.with_nominal_odometry(), nominal_config, fixes=nominal_fixes)
+            summary["ate_uncalibrated_m"] = _round(absolute_trajectory_error(truth, nominal.poses), 4)
 
     window = slam.map_window()
     default_out = f"eval-slam-{Path(source_name).stem}" + ("-vlp" if fixes else "")
@@ -408,6 +451,10 @@ def _print_table(s: dict[str, Any]) -> None:
             f"final {s['final_error_m']} m; raw odometry {s['odometry_ate_m']} m)"
         )
         print(f"                     {s['ate_aligned_m']} m after a rigid alignment onto the truth")
+        wheels = f"{s['wheels']} wheels (radius {s['wheel_radius_m']} m, track {s['wheel_track_m']} m)"
+        if s.get("ate_uncalibrated_m") is not None:
+            wheels += f"; with the nominal ones ATE {s['ate_uncalibrated_m']} m"
+        print(f"  odometry           {wheels}")
     if "trans_error_m_mean" in s:
         print(
             f"  relative error     {s['trans_error_m_mean']} ± {s['trans_error_m_std']} m, "

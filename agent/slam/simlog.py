@@ -13,7 +13,11 @@ have logged:
 * **Wheel odometry** as the robot's own would be, from the simulated wheel angles through a
   :class:`WheelErrorModel`: wheels whose real radii differ from the nominal one, an effective track wider
   than the nominal one (turns are over-counted), random slip growing with the distance rolled, and
-  4096-tick encoders, integrated at 100 Hz with the nominal geometry. The simulation's truth is untouched.
+  4096-tick encoders, integrated at 100 Hz with the wheel radius and track the robot's odometry uses:
+  the nominal ones, or those ``vlp-agent calibrate wheels`` finds for these wheels
+  (:func:`wheel_calibration_runs` simulates its manoeuvres; ``calibration.wheels.fit_wheels`` fits them).
+  The odometry with the nominal geometry is kept beside it (``SimulatedRun.nominal_odometry``). The
+  simulation's truth is untouched.
 * **VLP fixes** from a :class:`FixSource`, asked at its rate: the camera pipeline itself on rendered
   frames (``agent.commands.eval_slam`` plugs ``agent.vlp`` and the rolling-shutter renderer in here; this
   package does not import them), or a :class:`VlpFixModel`, a stand-in for it: at 10 Hz, when at least
@@ -30,6 +34,7 @@ No files, no printing; the randomness is seeded.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -70,6 +75,58 @@ class WheelErrorModel:
     track_scale: float = 1.01
     slip_m_per_sqrt_m: float = 0.002
     ticks_per_turn: int = 4096
+
+    def counted_rad(
+        self, rolled_rad: float, scale: float, radius_m: float, rng: np.random.Generator
+    ) -> float:
+        """What one wheel's encoder counts (rad, before quantization) while it really rolls ``rolled_rad``."""
+        slip_m = self.slip_m_per_sqrt_m * math.sqrt(abs(rolled_rad) * radius_m) * rng.standard_normal()
+        return rolled_rad * scale + slip_m / radius_m
+
+
+@dataclass(frozen=True)
+class WheelGeometry:
+    """The wheel radius and track a robot's odometry computes with."""
+
+    radius_m: float
+    track_m: float
+
+
+def nominal_geometry(world: World, errors: WheelErrorModel) -> WheelGeometry:
+    """The design's geometry, which an uncalibrated robot uses: the world's wheel radius (the encoders'
+    scale errors stand for the real radii's difference from it) and the effective track over
+    ``track_scale``."""
+    return WheelGeometry(world.robot.wheel_radius_m, world.robot.track_m / errors.track_scale)
+
+
+def wheel_calibration_runs(
+    world: World,
+    errors: WheelErrorModel,
+    rng: np.random.Generator,
+    distance_m: float = 1.0,
+    turns: float = 2.0,
+) -> list[tuple[str, float, float, float]]:
+    """The manoeuvres of ``vlp-agent calibrate wheels`` done with these wheels, as that step records them:
+    ``(kind, left encoder angle rad, right encoder angle rad, measured)`` for a straight run of
+    ``distance_m`` forward and one back, and ``turns`` turns in place one way and then the other (the
+    step's defaults). The
+    encoders count through the error model (scale and slip) what the wheels really roll; the tape measure
+    reads the true distance to the millimetre, the true turn to a tenth of a degree (the step's own
+    simulation does the same). Fit them with ``calibration.wheels.fit_wheels``."""
+    r, track = world.robot.wheel_radius_m, world.robot.track_m
+    runs: list[tuple[str, float, float, float]] = []
+    for sign in (1.0, -1.0):
+        rolled = sign * distance_m / r
+        left = errors.counted_rad(rolled, errors.left_scale, r, rng)
+        right = errors.counted_rad(rolled, errors.right_scale, r, rng)
+        runs.append(("straight", left, right, round(distance_m, 3)))
+    for sign in (1.0, -1.0):
+        turned = sign * turns * 2.0 * math.pi
+        rolled = turned * track / 2.0 / r  # the right wheel forward for a counter-clockwise turn
+        left = errors.counted_rad(-rolled, errors.left_scale, r, rng)
+        right = errors.counted_rad(rolled, errors.right_scale, r, rng)
+        runs.append(("turn", left, right, round(math.degrees(turned), 1) * math.pi / 180.0))
+    return runs
 
 
 # The filter's motion model for the simulated robot (GMapping's srr, srt, str, stt). Its odometry
@@ -169,6 +226,20 @@ class SimulatedRun:
     turned_rad: float  # true heading change, summed in absolute value
     frames_without_fix: int  # camera instants that gave no fix
     no_fix_reasons: dict[str, int]  # why, counted
+    # (N, 3) per record: the odometry the same wheels give with the nominal geometry (the records' own
+    # is with ``geometry``), and the fixes paired with that odometry
+    nominal_odometry: FloatArray
+    nominal_fixes: tuple[TimedFix, ...]
+    geometry: WheelGeometry
+
+    def with_nominal_odometry(self) -> SlamLog:
+        """The log as an uncalibrated robot would have recorded it: the same scans, the same wheel
+        readings, odometry computed with the nominal geometry."""
+        records = tuple(
+            dataclasses.replace(r, odom_pose=pose)
+            for r, pose in zip(self.log.records, self.nominal_odometry, strict=True)
+        )
+        return dataclasses.replace(self.log, records=records)
 
     @property
     def truth(self) -> FloatArray:
@@ -176,19 +247,22 @@ class SimulatedRun:
         assert reference is not None
         return reference
 
-    def start_pose(self, from_fix: bool) -> tuple[float, float, float]:
+    def start_pose(self, from_fix: bool, nominal: bool = False) -> tuple[float, float, float]:
         """Where a filter should start its map: at the first fix carried by odometry to the first scan
-        (the LED frame), or, without fixes, at the true start (the only frame there is then)."""
+        (the LED frame), or, without fixes, at the true start (the only frame there is then).
+        ``nominal``: carried by the nominal geometry's odometry (for :meth:`with_nominal_odometry`)."""
         if not from_fix:
             truth = self.truth[0]
             return (float(truth[0]), float(truth[1]), float(truth[2]))
-        if not self.fixes:
+        fixes = self.nominal_fixes if nominal else self.fixes
+        if not fixes:
             raise ValueError("no fixes to start from")
-        first = self.fixes[0]
+        first = fixes[0]
         if first.fix.yaw_rad is None:
             raise ValueError("the first fix has no heading to start a map with")
         at_fix = np.array([first.fix.x_m, first.fix.y_m, first.fix.yaw_rad])
-        start = compose(at_fix, between(first.odom_pose, self.log.records[0].odom_pose))
+        odometry = self.nominal_odometry[0] if nominal else self.log.records[0].odom_pose
+        start = compose(at_fix, between(first.odom_pose, odometry))
         return (float(start[0]), float(start[1]), float(start[2]))
 
     def odometry_in_world(self) -> FloatArray:
@@ -240,48 +314,58 @@ def leds_in_view(world: World, base: Pose2D, leds: tuple[Led, ...]) -> list[int]
     return seen
 
 
+def _integrate(pose: FloatArray, d: float, dyaw: float) -> FloatArray:
+    """Differential drive, midpoint rule."""
+    x, y, yaw = pose
+    return np.array(
+        [
+            x + d * math.cos(yaw + dyaw / 2.0),
+            y + d * math.sin(yaw + dyaw / 2.0),
+            math.atan2(math.sin(yaw + dyaw), math.cos(yaw + dyaw)),
+        ]
+    )
+
+
 class _Odometry:
-    """Wheel odometry through a :class:`WheelErrorModel`, integrated with the nominal geometry."""
+    """Wheel odometry through a :class:`WheelErrorModel`: ``pose`` integrated with ``geometry``,
+    ``nominal_pose`` from the same encoder readings with the nominal geometry."""
 
     def __init__(
-        self, world: World, errors: WheelErrorModel, start: tuple[float, float], rng: np.random.Generator
+        self,
+        world: World,
+        errors: WheelErrorModel,
+        geometry: WheelGeometry,
+        start: tuple[float, float],
+        rng: np.random.Generator,
     ) -> None:
         self.radius_m = world.robot.wheel_radius_m
-        self.track_m = world.robot.track_m
         self.errors = errors
+        self.geometry = geometry
+        self.nominal = nominal_geometry(world, errors)
         self.rng = rng
         self.true_last = start
         self.measured = [0.0, 0.0]  # what the encoders would read, radians (before quantization)
         self.ticks_last = (0, 0)
         self.pose = np.zeros(3)
+        self.nominal_pose = np.zeros(3)
 
     def update(self, wheel_rad: tuple[float, float]) -> None:
         e = self.errors
         for i, scale in ((0, e.left_scale), (1, e.right_scale)):
-            rolled_rad = wheel_rad[i] - self.true_last[i]
-            slip_m = (
-                e.slip_m_per_sqrt_m * math.sqrt(abs(rolled_rad) * self.radius_m) * self.rng.standard_normal()
+            self.measured[i] += e.counted_rad(
+                wheel_rad[i] - self.true_last[i], scale, self.radius_m, self.rng
             )
-            self.measured[i] += rolled_rad * scale + slip_m / self.radius_m
         self.true_last = wheel_rad
         per_rad = e.ticks_per_turn / (2.0 * math.pi)
         ticks = (math.floor(self.measured[0] * per_rad), math.floor(self.measured[1] * per_rad))
-        d_left = (ticks[0] - self.ticks_last[0]) / per_rad * self.radius_m
-        d_right = (ticks[1] - self.ticks_last[1]) / per_rad * self.radius_m
+        a_left = (ticks[0] - self.ticks_last[0]) / per_rad
+        a_right = (ticks[1] - self.ticks_last[1]) / per_rad
         self.ticks_last = ticks
-        # Differential drive with the nominal geometry, midpoint rule: d = (dl + dr) / 2,
-        # dyaw = (dr - dl) / nominal track, the nominal track being the simulation's (the effective one)
-        # over ``track_scale``.
-        d = (d_left + d_right) / 2.0
-        dyaw = (d_right - d_left) * self.errors.track_scale / self.track_m
-        x, y, yaw = self.pose
-        self.pose = np.array(
-            [
-                x + d * math.cos(yaw + dyaw / 2.0),
-                y + d * math.sin(yaw + dyaw / 2.0),
-                math.atan2(math.sin(yaw + dyaw), math.cos(yaw + dyaw)),
-            ]
-        )
+        # d = r (dphi_l + dphi_r) / 2, dyaw = r (dphi_r - dphi_l) / track
+        for name, g in (("pose", self.geometry), ("nominal_pose", self.nominal)):
+            d = g.radius_m * (a_left + a_right) / 2.0
+            dyaw = g.radius_m * (a_right - a_left) / g.track_m
+            setattr(self, name, _integrate(getattr(self, name), d, dyaw))
 
 
 class _FakeClock:
@@ -334,10 +418,13 @@ def simulate_log(
     seconds: float,
     *,
     wheel_errors: WheelErrorModel | None = None,
+    wheel_geometry: WheelGeometry | None = None,
     fixes: VlpFixModel | FixSource | None = None,
     seed: int = 0,
 ) -> SimulatedRun:
-    """Drive ``world.route`` for ``seconds`` of simulated time; see the module docstring."""
+    """Drive ``world.route`` for ``seconds`` of simulated time; see the module docstring.
+    ``wheel_geometry``: what the odometry computes with (default: the nominal geometry, an uncalibrated
+    robot)."""
     if not world.route:
         raise ValueError(f"world {world.name!r} has no route to drive")
     if seconds <= 0.0:
@@ -348,8 +435,9 @@ def simulate_log(
     sim = Simulation(world, clock=clock, seed=seed)
     geometry = laser_geometry(world)
     scanner = _Scanner(sim, world.laser, geometry, np.random.default_rng(rng.integers(1 << 32)))
+    wheels = wheel_geometry or nominal_geometry(world, wheel_errors)
     odometry = _Odometry(
-        world, wheel_errors, sim.wheels().position_rad, np.random.default_rng(rng.integers(1 << 32))
+        world, wheel_errors, wheels, sim.wheels().position_rad, np.random.default_rng(rng.integers(1 << 32))
     )
     fix_rng = np.random.default_rng(rng.integers(1 << 32))
     source: FixSource = (
@@ -359,6 +447,7 @@ def simulate_log(
     )
     follower = RouteFollower(world.route, world.route_speed_mps)
     odometry_history = _OdometryHistory()
+    nominal_history = _OdometryHistory()
     scan_period_s = 60.0 / world.laser.scan_rpm
     scan_every = max(round(scan_period_s / TICK_S), 1)
     fix_every = max(round(1.0 / source.rate_hz / TICK_S), 1)
@@ -367,6 +456,8 @@ def simulate_log(
         math.ceil(-float(geometry.beam_time_s[0]) / TICK_S) if geometry.beam_time_s is not None else 0
     )
     records: list[LogRecord] = []
+    nominal_odometry: list[FloatArray] = []
+    nominal_fixes: list[TimedFix] = []
     found: list[TimedFix] = []
     found_leds: list[int] = []
     found_truth: list[tuple[float, float, float]] = []
@@ -386,6 +477,7 @@ def simulate_log(
         last_truth = truth
         odometry.update(sim.wheels().position_rad)
         odometry_history.add(clock.t_s, odometry.pose)
+        nominal_history.add(clock.t_s, odometry.nominal_pose)
         if tick >= first_scan_tick and (tick - first_scan_tick) % scan_every == 0:
             ranges = scanner.ranges(clock.t_s)
             records.append(
@@ -397,6 +489,7 @@ def simulate_log(
                     np.array([truth.x_m, truth.y_m, truth.yaw_rad]),
                 )
             )
+            nominal_odometry.append(odometry.nominal_pose.copy())
         if tick % fix_every == 0:
             got = source(sim, clock.t_s, odometry.pose)
             if isinstance(got, str):
@@ -405,6 +498,7 @@ def simulate_log(
                 t_fix, fix, n_leds = got
                 at = sim.pose_at(t_fix)
                 found.append(TimedFix(t_fix, fix, odometry_history.at(t_fix)))
+                nominal_fixes.append(TimedFix(t_fix, fix, nominal_history.at(t_fix)))
                 found_leds.append(n_leds)
                 found_truth.append((at.x_m, at.y_m, at.yaw_rad))
         if tick % AUTOPILOT_EVERY == 0:
@@ -419,4 +513,7 @@ def simulate_log(
         turned_rad,
         misses.total(),
         dict(misses),
+        np.array(nominal_odometry, dtype=np.float64).reshape(-1, 3),
+        tuple(nominal_fixes),
+        wheels,
     )

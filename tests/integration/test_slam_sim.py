@@ -127,6 +127,10 @@ def test_the_command_reports_ate_with_and_without_fixes(
         assert 0.0 < s["ate_m"] < 0.05 and s["odometry_ate_m"] > 0.0
         assert 0.0 < s["ate_aligned_m"] <= s["ate_m"]  # the best rigid alignment is at least no alignment
         assert s["update_ms_median"] > 0 and s["peak_rss_mb"] > 0
+        # The odometry of a robot through `calibrate wheels` (the wheels over-count 0.5 % on average), and
+        # the same drive replayed with the design's geometry beside it.
+        assert s["wheels"] == "calibrated" and s["wheel_radius_m"] == pytest.approx(0.033 / 1.005, rel=1e-3)
+        assert s["ate_uncalibrated_m"] > 0.0
     assert plain["vlp_fixes"] is False and plain["fixes_used"] == 0
     # 10 Hz from the camera pipeline (the default source); a few still pending, a few instants with one
     # LED in view.
