@@ -109,10 +109,9 @@ def wheel_calibration_runs(
     """The manoeuvres of ``vlp-agent calibrate wheels`` done with these wheels, as that step records them:
     ``(kind, left encoder angle rad, right encoder angle rad, measured)`` for a straight run of
     ``distance_m`` forward and one back, and ``turns`` turns in place one way and then the other (the
-    step's defaults). The
-    encoders count through the error model (scale and slip) what the wheels really roll; the tape measure
-    reads the true distance to the millimetre, the true turn to a tenth of a degree (the step's own
-    simulation does the same). Fit them with ``calibration.wheels.fit_wheels``."""
+    step's defaults). The encoders count through the error model (scale and slip) what the wheels really
+    roll; the tape measure reads the true distance to the millimetre, the true turn to a tenth of a degree
+    (the step's own simulation does the same). Fit them with ``calibration.wheels.fit_wheels``."""
     r, track = world.robot.wheel_radius_m, world.robot.track_m
     runs: list[tuple[str, float, float, float]] = []
     for sign in (1.0, -1.0):
@@ -314,8 +313,11 @@ def leds_in_view(world: World, base: Pose2D, leds: tuple[Led, ...]) -> list[int]
     return seen
 
 
-def _integrate(pose: FloatArray, d: float, dyaw: float) -> FloatArray:
-    """Differential drive, midpoint rule."""
+def _integrate(pose: FloatArray, geometry: WheelGeometry, left_rad: float, right_rad: float) -> FloatArray:
+    """``pose`` moved by the wheels turning ``left_rad`` and ``right_rad``: differential drive,
+    d = r (dphi_l + dphi_r) / 2, dyaw = r (dphi_r - dphi_l) / track, midpoint rule."""
+    d = geometry.radius_m * (left_rad + right_rad) / 2.0
+    dyaw = geometry.radius_m * (right_rad - left_rad) / geometry.track_m
     x, y, yaw = pose
     return np.array(
         [
@@ -361,11 +363,8 @@ class _Odometry:
         a_left = (ticks[0] - self.ticks_last[0]) / per_rad
         a_right = (ticks[1] - self.ticks_last[1]) / per_rad
         self.ticks_last = ticks
-        # d = r (dphi_l + dphi_r) / 2, dyaw = r (dphi_r - dphi_l) / track
-        for name, g in (("pose", self.geometry), ("nominal_pose", self.nominal)):
-            d = g.radius_m * (a_left + a_right) / 2.0
-            dyaw = g.radius_m * (a_right - a_left) / g.track_m
-            setattr(self, name, _integrate(getattr(self, name), d, dyaw))
+        self.pose = _integrate(self.pose, self.geometry, a_left, a_right)
+        self.nominal_pose = _integrate(self.nominal_pose, self.nominal, a_left, a_right)
 
 
 class _FakeClock:
