@@ -139,6 +139,18 @@ def test_the_command_reports_ate_with_and_without_fixes(
     assert fixed["ate_m"] < 0.015 and fixed["ate_m"] < fixed["odometry_ate_m"]
 
 
+def test_the_command_maps_with_the_design_wheels_on_request(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["eval", "slam", "--world", str(OFFICE), "--seconds", "5", "--json", "--out", str(tmp_path)]
+    assert main([*args, "--wheels", "nominal"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    # The design's radius, and the track the odometry divides by (the effective one is 1 % wider).
+    assert s["wheels"] == "nominal" and s["wheel_radius_m"] == pytest.approx(0.033)
+    assert s["wheel_track_m"] == pytest.approx(0.16 / 1.01, abs=1e-6)
+    assert "ate_uncalibrated_m" not in s and s["ate_m"] > 0.0
+
+
 def test_the_command_refuses_mixed_sources(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["eval", "slam", "--world", str(OFFICE), "--format", "radish", "--out", str(tmp_path)]) == 1
     assert "--format" in capsys.readouterr().err
