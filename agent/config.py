@@ -218,6 +218,7 @@ class FusionConfig:
     initial_sigma_yaw_rad: float = math.radians(2.0)
     odometry_sigma_m_per_m: float = 0.02
     odometry_yaw_rate_sigma_radps: float = 0.02
+    odometry_time_sigma_s: float = 0.002
     gyro_sigma_radps: float = 0.005
     yaw_rate_walk_radps2: float = 2.0
     gyro_bias_walk_radps: float = 1e-4
@@ -965,6 +966,7 @@ class _Reader:
             odometry_yaw_rate_sigma_radps=t.number(
                 "odometry_yaw_rate_sigma_radps", d.odometry_yaw_rate_sigma_radps, _POSITIVE
             ),
+            odometry_time_sigma_s=t.number("odometry_time_sigma_s", d.odometry_time_sigma_s, _NON_NEGATIVE),
             gyro_sigma_radps=t.number("gyro_sigma_radps", d.gyro_sigma_radps, _POSITIVE),
             yaw_rate_walk_radps2=t.number("yaw_rate_walk_radps2", d.yaw_rate_walk_radps2, _POSITIVE),
             gyro_bias_walk_radps=t.number("gyro_bias_walk_radps", d.gyro_bias_walk_radps, _POSITIVE),

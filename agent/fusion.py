@@ -85,11 +85,17 @@ class Source(enum.StrEnum):
 @dataclass(frozen=True, slots=True)
 class FilterNoise:
     """Noise model. ``unseen_speed_mps``: how fast the base may move unobserved when no odometry covers
-    an interval (random walk on x and y, variance ``unseen_speed_mps**2 * dt``)."""
+    an interval (random walk on x and y, variance ``unseen_speed_mps**2 * dt``).
+    ``odometry_time_sigma_s``: how far the host time of a wheel read may be from when the servos sampled
+    (a reply that waited for a busy bus or CPU). An interval ``dt`` stamped off by e0 and e1 at its ends
+    gives a yaw rate off by ``rate (e1 - e0) / dt``: the wheels' rate has variance
+    ``odometry_yaw_rate_sigma_radps**2 + 2 (rate odometry_time_sigma_s / dt)**2``, so in a turn the gyro
+    beside it counts for more."""
 
     odometry_sigma_m_per_m: float = 0.02
     odometry_floor_m: float = 1e-4
     odometry_yaw_rate_sigma_radps: float = 0.02
+    odometry_time_sigma_s: float = 0.002
     gyro_sigma_radps: float = 0.005
     yaw_rate_walk_radps2: float = 2.0
     gyro_bias_walk_radps: float = 1e-4
@@ -431,7 +437,9 @@ class PoseFilter:
                 # A restarted odometry (a reconnect) overlapping the last interval: the newer one wins.
                 self._segments.pop()
             self._segments.append(_Segment(t0_ns, t1_ns, ds_m))
-            sigma = self.noise.odometry_yaw_rate_sigma_radps
+            noise = self.noise
+            timing = rate * noise.odometry_time_sigma_s / ((t1_ns - t0_ns) * 1e-9)
+            variance = noise.odometry_yaw_rate_sigma_radps**2 + 2.0 * timing * timing
             # The mean rate over the interval is the rate at its middle (exactly so for a rate that
             # changes linearly); taken at t0 it would lead the gyro through every change of the turn and
             # the difference would be learnt as gyro bias.
@@ -440,7 +448,7 @@ class PoseFilter:
                 _Kind.ODOMETRY_RATE,
                 Source.ODOMETRY,
                 np.array([rate]),
-                np.array([[sigma**2]]),
+                np.array([[variance]]),
             )
             # The interval changes every prediction after t0: re-run from there.
             result = self._insert(

@@ -208,6 +208,7 @@ class Agent:
             FilterNoise(
                 odometry_sigma_m_per_m=fc.odometry_sigma_m_per_m,
                 odometry_yaw_rate_sigma_radps=fc.odometry_yaw_rate_sigma_radps,
+                odometry_time_sigma_s=fc.odometry_time_sigma_s,
                 gyro_sigma_radps=fc.gyro_sigma_radps,
                 yaw_rate_walk_radps2=fc.yaw_rate_walk_radps2,
                 gyro_bias_walk_radps=fc.gyro_bias_walk_radps,
