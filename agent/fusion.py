@@ -427,7 +427,8 @@ class PoseFilter:
                 self._observe(record)
                 self._count("odometry_time_reversals")
             return UpdateResult(Source.ODOMETRY, False, math.nan)
-        rate = dyaw_rad / ((t1_ns - t0_ns) * 1e-9)
+        dt_s = (t1_ns - t0_ns) * 1e-9
+        rate = dyaw_rad / dt_s
         with self._lock:
             self._observe(record)
             if t0_ns < self._base[0]:
@@ -438,7 +439,7 @@ class PoseFilter:
                 self._segments.pop()
             self._segments.append(_Segment(t0_ns, t1_ns, ds_m))
             noise = self.noise
-            timing = rate * noise.odometry_time_sigma_s / ((t1_ns - t0_ns) * 1e-9)
+            timing = rate * noise.odometry_time_sigma_s / dt_s
             variance = noise.odometry_yaw_rate_sigma_radps**2 + 2.0 * timing * timing
             # The mean rate over the interval is the rate at its middle (exactly so for a rate that
             # changes linearly); taken at t0 it would lead the gyro through every change of the turn and

@@ -124,7 +124,7 @@ def wheel_calibration_runs(
         rolled = turned * track / 2.0 / r  # the right wheel forward for a counter-clockwise turn
         left = errors.counted_rad(-rolled, errors.left_scale, r, rng)
         right = errors.counted_rad(rolled, errors.right_scale, r, rng)
-        runs.append(("turn", left, right, round(math.degrees(turned), 1) * math.pi / 180.0))
+        runs.append(("turn", left, right, math.radians(round(math.degrees(turned), 1))))
     return runs
 
 

@@ -96,13 +96,17 @@ def test_gate_thresholds_are_chi_square_quantiles_and_outliers_are_refused() -> 
 
 # -- the filter over time --------------------------------------------------------------------------------
 class Run:
-    """A seeded drive: a base on a curving path, odometry every 20 ms (with noise and timestamp jitter),
-    a gyro every 10 ms, and VLP fixes every 33 ms that arrive ``vlp_delay`` later."""
+    """A seeded drive: a base on a curving path, odometry every 20 ms (with noise, and host times off by
+    ``stamp_jitter_ns``, one standard deviation), a gyro every 10 ms, and VLP fixes every 33 ms that arrive
+    ``vlp_delay`` later."""
 
-    def __init__(self, seed: int = 0, gyro_bias: float = 0.0, vlp_sigma: float = 0.004) -> None:
+    def __init__(
+        self, seed: int = 0, gyro_bias: float = 0.0, vlp_sigma: float = 0.004, stamp_jitter_ns: int = 2 * MS
+    ) -> None:
         self.rng = np.random.default_rng(seed)
         self.gyro_bias = gyro_bias
         self.vlp_sigma = vlp_sigma
+        self.stamp_jitter_ns = stamp_jitter_ns
         self.dt_ns = 2 * MS
 
     def truth(self, seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +126,7 @@ class Run:
         out: list[tuple[int, str, tuple[float, ...]]] = []
         step = 10  # odometry every 20 ms
         for k in range(step, len(t), step):
-            jitter = int(self.rng.normal(0, 2 * MS))  # the host time of a read is late or early
+            jitter = int(self.rng.normal(0, self.stamp_jitter_ns))  # the host time of a read is late or early
             t0 = int(t[k - step]) + (out[-1][2][1] - t[k - step] if out and out[-1][1] == "odo" else 0)
             t1 = int(t[k]) + jitter
             ds = (s[k, 4] - s[k - step, 4]) * (1 + self.rng.normal(0, 0.01))
@@ -263,24 +267,11 @@ def test_wheel_reads_stamped_late_or_early_in_a_turn_do_not_throw_the_heading(se
     yaw rate is off by rate x (e1 - e0) / dt, tenths of a rad/s. Weighed as such against the gyro
     (``odometry_time_sigma_s``) they leave the heading within 0.3 deg; taken at the wheels' flat 0.02 rad/s
     they pulled it 0.4-0.6 deg off."""
-    run = Run(seed=seed)
+    run = Run(seed=seed, stamp_jitter_ns=4 * MS)
     t, truth = run.truth(10.0)
-    rng = np.random.default_rng(seed)
-    events: list[tuple[int, str, tuple[float, ...]]] = []
-    t0 = int(t[0])
-    for k in range(10, len(t), 10):
-        t1 = int(t[k]) + int(rng.normal(0, 4 * MS))
-        ds, dyaw = truth[k, 4] - truth[k - 10, 4], truth[k, 2] - truth[k - 10, 2]
-        events.append((t1 + 3 * MS, "odo", (float(t0), float(t1), float(ds), float(dyaw))))
-        t0 = t1
-    for k in range(0, len(t), 5):
-        events.append((int(t[k]) + MS, "gyro", (float(t[k]), float(truth[k, 3] + rng.normal(0, 0.003)))))
-    for k in range(0, len(t), 17):
-        z = truth[k, :3] + rng.normal(0, run.vlp_sigma, 3) * np.array([1, 1, 0.5])
-        events.append((int(t[k]) + 30 * MS, "vlp", (float(t[k]), *map(float, z))))
     f = new_filter()
     worst = 0.0
-    for event in sorted(events, key=lambda e: e[0]):
+    for event in run.events(10.0):
         run.feed(f, [event])
         if event[1] == "gyro" and event[0] > 1e9:
             est = f.estimate()
