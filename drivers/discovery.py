@@ -50,6 +50,7 @@ __all__ = [
     "list_video_devices",
     "match_known",
     "recognize",
+    "render_config",
 ]
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,7 @@ _FTDI_LATENCY = (
     'set the FTDI latency timer to 1 ms (udev: ATTR{device/latency_timer}="1"); at the default 16 ms '
     "every Dynamixel reply waits up to 16 ms in the adapter"
 )
-_DXL_CONFIG = '[servos]\nbackend = "dynamixel"\nurl = "{path}"\nbaudrate = %d'
+_DXL_CONFIG = '[servos]\nbackend = "dynamixel"\nport = "{path}"\nbaudrate = %d'
 
 
 # Sources: ../shared/reference/devices.md sections 1, 2, 4 and 7 (udev rules of Hokuyo users, Interbotix,
@@ -136,6 +137,8 @@ _DXL_CONFIG = '[servos]\nbackend = "dynamixel"\nurl = "{path}"\nbaudrate = %d'
 # 2 streaming); UVC is the USB-IF Video class 0x0E, subclass 1 = VideoControl.
 # The first matching row wins, so exact ids come before vendor-wide rows and those before class rules.
 def _mindvision(key: str, vendor_id: int) -> KnownDevice:
+    # No config snippet: vlp-agent has no backend for the MindVision SDK, and no MindVision GenTL producer
+    # is known (../shared/reference/devices.md section 4), so no [camera] table would drive this camera.
     return KnownDevice(
         key=key,
         name="MindVision camera",
@@ -143,9 +146,10 @@ def _mindvision(key: str, vendor_id: int) -> KnownDevice:
         match=UsbMatch(vendor_id, None),
         transport=Transport.USB,
         kind=DeviceKind.CAMERA,
-        backend="mvsdk",
-        config='[camera]\nbackend = "mvsdk"',
-        notes=("needs the MindVision Linux SDK and its udev rule 88-mvusb.rules",),
+        notes=(
+            "vlp-agent has no backend for the MindVision SDK: use a USB3 Vision camera (backend "
+            '"genicam", through its maker\'s GenTL producer) or a UVC camera (backend "v4l2")',
+        ),
     )
 
 
@@ -251,8 +255,8 @@ KNOWN_DEVICES: tuple[KnownDevice, ...] = (
         transport=Transport.USB,
         kind=DeviceKind.CAMERA,
         backend="genicam",
-        config='[camera]\nbackend = "genicam"\n# GenTL producer: the camera maker\'s .cti; '
-        'this camera\'s serial number: "{serial}"',
+        config='[camera]\nbackend = "genicam"\ncti = "<the camera maker\'s GenTL producer, a .cti file>"\n'
+        'serial = "{serial}"',
     ),
     KnownDevice(
         key="uvc",
@@ -810,7 +814,8 @@ def _notes(known: KnownDevice, *, via_usb_only: bool, access: Access | None) -> 
     return tuple(notes)
 
 
-def _render(known: KnownDevice, path: str | None, serial: str | None) -> str | None:
+def render_config(known: KnownDevice, path: str | None, serial: str | None) -> str | None:
+    """The config snippet `vlp-agent devices` prints for ``known``, with placeholders for unknown values."""
     if known.config is None:
         return None
     return known.config.format(path=path or UNKNOWN_PATH, serial=serial or UNKNOWN_SERIAL)
@@ -848,7 +853,7 @@ def recognize(
                 port.pid,
                 port.serial_number,
                 port.location,
-                _render(known, path, port.serial_number),
+                render_config(known, path, port.serial_number),
                 _notes(known, via_usb_only=False, access=port.access),
             )
         )
@@ -869,7 +874,7 @@ def recognize(
                 node.pid,
                 None,
                 node.location,
-                _render(known, path, None),
+                render_config(known, path, None),
                 notes,
             )
         )
@@ -894,7 +899,7 @@ def recognize(
                 dev.pid,
                 dev.serial_number,
                 dev.location,
-                _render(known, None, dev.serial_number),
+                render_config(known, None, dev.serial_number),
                 _notes(known, via_usb_only=True, access=usb_access),
             )
         )

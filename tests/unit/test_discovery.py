@@ -28,8 +28,10 @@ from serial.tools.list_ports_common import ListPortInfo
 
 from agent import cli
 from agent.commands import devices as devices_command
+from agent.config import parse_config
 from drivers import discovery
-from drivers.discovery import KNOWN_DEVICES, Discovery, discover
+from drivers.discovery import KNOWN_DEVICES, Discovery, discover, render_config
+from drivers.registry import DeviceKind
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -293,7 +295,9 @@ def test_recognizes_the_robots_usb_devices_and_lists_the_rest_plainly(roots: tup
     camera = recognized["usb3vision"]
     assert camera.config is not None and '"22334455"' in camera.config
     assert tomllib.loads(camera.config)["camera"]["backend"] == "genicam"
-    assert recognized["mindvision"].config == '[camera]\nbackend = "mvsdk"'
+    # No backend drives a MindVision camera: no snippet, and a note that says so and what to use instead.
+    assert recognized["mindvision"].config is None
+    assert any("no backend for the MindVision SDK" in n for n in recognized["mindvision"].notes)
 
     # The hub is plumbing; the unknown HID device is listed plainly.
     assert [d.vid for d in found.usb_devices] == [0x15D1, 0x0403, 0x0483, 0x2676, 0xF622, 0x1234]
@@ -407,7 +411,7 @@ def test_serial_ports_give_the_path_and_join_with_usb(roots: tuple[Path, Path]) 
     assert urg.where == str(acm) and urg.location == "1-1.2"
     assert urg.config == f'[laser]\nbackend = "urg"\nurl = "{stable}"'
     assert tomllib.loads(found.recognized[1].config or "")["servos"]["baudrate"] == 1_000_000
-    assert tomllib.loads(found.recognized[2].config or "")["servos"]["url"] == str(dev / "ttyUSB0")
+    assert tomllib.loads(found.recognized[2].config or "")["servos"]["port"] == str(dev / "ttyUSB0")
     assert not any("kernel driver" in n for r in found.recognized for n in r.notes)
     report = devices_command.render(found)
     assert f"stable name: {stable}" in report
@@ -645,3 +649,32 @@ def test_vlp_agent_devices_as_a_process() -> None:
     as_json = _vlp_agent("devices", "--json")
     assert as_json.returncode == 0, as_json.stderr
     assert isinstance(json.loads(as_json.stdout)["serial_ports"], list)
+
+
+@pytest.mark.parametrize("known", [k for k in KNOWN_DEVICES if k.config is not None], ids=lambda k: k.key)
+@pytest.mark.parametrize("found", [("/dev/serial/by-id/usb-X-if00", "FT4NQ1"), (None, None)])
+def test_every_config_snippet_loads_in_a_robot_config(known: Any, found: tuple[Any, Any]) -> None:
+    # The snippet replaces its table in the shipped real-robot config, so a key the backend does not
+    # take, a backend that does not exist or a missing required key fails here as it would on the robot.
+    # Placeholders (no path or serial known) still make a config that loads, to be filled in.
+    snippet = render_config(known, *found)
+    assert snippet is not None
+    with open(REPO / "examples" / "turtlebot3.toml", "rb") as fp:
+        robot = tomllib.load(fp)
+    tables = tomllib.loads(snippet)
+    assert len(tables) == 1
+    ((kind, table),) = tables.items()
+    config = parse_config({**robot, **tables}, file=f"snippet {known.key}")
+    device = config.devices[DeviceKind(kind)]
+    assert device.backend == table["backend"]
+    assert known.backend in (None, device.backend)
+    if found[0] is not None and "{path}" in (known.config or ""):
+        assert found[0] in device.options.values()
+
+
+def test_the_example_robot_camera_is_one_devices_recognizes() -> None:
+    with open(REPO / "examples" / "turtlebot3.toml", "rb") as fp:
+        camera = tomllib.load(fp)["camera"]
+    backends = {k.backend for k in KNOWN_DEVICES if k.kind is DeviceKind.CAMERA and k.config is not None}
+    assert camera["backend"] in backends
+    assert "cti" in camera
