@@ -20,6 +20,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 from agent import __version__  # noqa: E402
+from agent.commands.args import UsageError, verbosity_parent  # noqa: E402
 from firmware_protocol.errors import VlpAgentError  # noqa: E402
 
 # Subcommand name -> module in agent.commands, imported only when used so `--help` stays fast.
@@ -98,6 +99,33 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=f"(unavailable: {exc})")
             continue
         module.add_parser(sub, rest)
+        _verbose_after_command(sub.choices[name])
+    return parser
+
+
+def _verbose_after_command(parser: argparse.ArgumentParser) -> None:
+    """Let ``-v`` follow the command (``vlp-agent sim -v``, ``vlp-agent calibrate leds -v``) as well as
+    precede it: the option is added to the command's parser and its nested ones (calibrate's steps). Its
+    count goes to its own ``verbose_after`` field: a subparser fills a fresh namespace, which would
+    otherwise overwrite the count given before the command."""
+    if any("-v" in action.option_strings for action in parser._actions):
+        return
+    parent = verbosity_parent()
+    for action in parent._actions:
+        if "-v" in action.option_strings:
+            parser._add_action(action)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                _verbose_after_command(child)
+
+
+def sub_parser(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+    """The parser of command ``name`` (for its usage line)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            chosen: argparse.ArgumentParser = action.choices[name]
+            return chosen
     return parser
 
 
@@ -107,7 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    configure_logging(logging.WARNING - 10 * min(args.verbose, 2))
+    verbose = args.verbose + getattr(args, "verbose_after", 0)
+    configure_logging(logging.WARNING - 10 * min(verbose, 2))
     if "cv2" in sys.modules:
         # Same reason as the BLAS variables above: OpenCV's own pool, on by default, costs latency here.
         sys.modules["cv2"].setNumThreads(1)
@@ -118,6 +147,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     try:
         return int(module.run(args))
+    except UsageError as exc:
+        # Arguments that only make sense together, found wrong once all were read: a usage error, as
+        # argparse reports one (usage line, exit status 2), not a failed run.
+        command = sub_parser(parser, args.command)
+        print(command.format_usage().rstrip(), file=sys.stderr)
+        print(f"vlp-agent {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     except VlpAgentError as exc:
         print(f"vlp-agent {args.command}: {exc}", file=sys.stderr)
         return 1

@@ -8,10 +8,10 @@ denied device are findings to report, not failures.
 from __future__ import annotations
 
 import argparse
-import json
 import textwrap
 from collections.abc import Sequence
 
+from agent.commands.args import dumps_json
 from drivers.discovery import (
     KNOWN_DEVICES,
     Access,
@@ -80,7 +80,7 @@ def add_parser(
 def run(args: argparse.Namespace) -> int:
     found = discover()
     if args.json:
-        print(json.dumps(found.to_dict(), indent=2))
+        print(dumps_json(found.to_dict(), indent=2))
     else:
         print(render(found))
     return 0

@@ -15,7 +15,6 @@ absolute trajectory error against the simulation's truth.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import resource
 import sys
@@ -24,6 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from agent.commands.args import dumps_json
 
 if TYPE_CHECKING:
     from agent.slam.metrics import RelativePoseError
@@ -395,7 +396,7 @@ def run(args: argparse.Namespace) -> int:
         ]
 
     if args.json:
-        print(json.dumps(summary, sort_keys=True))
+        print(dumps_json(summary, sort_keys=True))
     else:
         _print_table(summary)
     return 0

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import math
 import tempfile
@@ -45,6 +44,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from agent.commands.args import dumps_json
 from agent.commands.worlds import EXAMPLES
 from agent.sim_view import agent_view
 from agent.vlp.calibration import (
@@ -689,16 +689,10 @@ def _table(summary: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     summary, cal, uncal, world = evaluate(args)
     if args.json:
-        print(json.dumps(summary, indent=None, sort_keys=False, default=_json_default))
+        print(dumps_json(summary))
         return 0
     print(_table(summary))
     png = Path(args.png) if args.png else Path(f"vlp_eval_{world.name}.png")
     draw_figure(png, world, summary["area_m"], cal, uncal, summary)
     print(f"figure: {png}")
     return 0
-
-
-def _json_default(value: object) -> object:
-    if isinstance(value, np.floating | np.integer):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -69,9 +69,12 @@ def run(args: argparse.Namespace) -> int:
     device = make_device(args.device, simulation, args.rfid_protocol)
     with ShutdownRequest() as shutdown, PtyServer(device, link=args.link) as server:
         print(server.path, flush=True)
+        # The RFID fake's protocol is chosen from the world or --rfid-protocol: name that one, not the
+        # list of choices from the help text.
+        protocol = getattr(device, "protocol", None)
+        what = f"RFID reader, protocol {protocol}" if protocol else DEVICES[args.device]
         print(
-            f"serving a fake {args.device} ({DEVICES[args.device]}) over world {world.name!r}; "
-            "Ctrl-C to stop",
+            f"serving a fake {args.device} ({what}) over world {world.name!r}; Ctrl-C to stop",
             file=sys.stderr,
             flush=True,
         )

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
 import os
 import sys
@@ -22,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from agent.commands.args import dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.mapper import save_map
@@ -44,7 +44,10 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     )
     p.add_argument("--config", required=True, metavar="FILE", help="the robot's config (TOML)")
     p.add_argument(
-        "--seconds", type=float, default=None, help="stop after this long (default: run until stopped)"
+        "--seconds",
+        type=positive_seconds,
+        default=None,
+        help="stop after this long, > 0 (default: run until stopped)",
     )
     p.add_argument("--json", action="store_true", help="print the final status as one JSON object on stdout")
 
@@ -120,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         "map_files": map_files,
     }
     if args.json:
-        print(json.dumps(summary, sort_keys=True))
+        print(dumps_json(summary, sort_keys=True))
     else:
         print(f"vlp-agent run stopped: {agent.status_line()}")
     return 0

@@ -22,7 +22,6 @@ import argparse
 import collections
 import contextlib
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -38,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, Written, create_agent
@@ -76,10 +76,10 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p.add_argument(
         "--world", metavar="FILE", help="world file (default: the config's, examples/worlds/office.toml)"
     )
+    p.add_argument("--config", metavar="FILE", help=f"agent config with [sim] (default: {DEFAULT_CONFIG})")
     p.add_argument(
-        "--config", metavar="FILE", help=f"agent config with [sim] (default: {DEFAULT_CONFIG.name})"
+        "--seconds", type=positive_seconds, default=30.0, help="how long to run, > 0 (default: 30)"
     )
-    p.add_argument("--seconds", type=float, default=30.0, help="how long to run (default: 30)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
     p.add_argument(
         "--seed", type=int, default=None, help="seed for the simulated sensors' noise (default: config)"
@@ -115,9 +115,11 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p.add_argument(
         "--fault",
         action="append",
+        type=_fault_argument,
         default=[],
         metavar="KIND@START[+DURATION]",
-        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s for DURATION s; repeatable",
+        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s (within --seconds) for DURATION s; "
+        "repeatable",
     )
 
 
@@ -141,9 +143,28 @@ class Fault:
             duration_s = float(duration) if plus else None
         except ValueError as exc:
             raise ConfigError("--fault", f"{text!r}: START and DURATION are seconds") from exc
-        if start_s < 0 or (duration_s is not None and duration_s <= 0):
-            raise ConfigError("--fault", f"{text!r}: START must be >= 0 and DURATION > 0")
+        # `not x >= 0` (rather than `x < 0`) so NaN, which compares false with everything, is refused too.
+        finite = math.isfinite(start_s) and (duration_s is None or math.isfinite(duration_s))
+        if not finite or not start_s >= 0 or (duration_s is not None and not duration_s > 0):
+            raise ConfigError("--fault", f"{text!r}: START must be a finite >= 0 and DURATION a finite > 0")
         return cls(kind, start_s, duration_s)
+
+
+def _fault_argument(text: str) -> Fault:
+    try:
+        return Fault.parse(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(exc.reason) from exc
+
+
+def check_faults_within(faults: Sequence[Fault], seconds: float) -> None:
+    """A fault that starts after the run has ended would never happen: refuse it instead of ignoring it."""
+    for fault in faults:
+        if fault.start_s >= seconds:
+            raise UsageError(
+                f"argument --fault: {fault.kind}@{fault.start_s:g} starts after the run ends "
+                f"(--seconds {seconds:g})"
+            )
 
 
 class FaultInjector:
@@ -262,7 +283,8 @@ def _config(args: argparse.Namespace) -> AgentConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    faults = [Fault.parse(text) for text in args.fault]
+    faults: list[Fault] = args.fault
+    check_faults_within(faults, args.seconds)
     config = _config(args)
     assert config.sim is not None
     stop = threading.Event()  # set from ordinary code only, never from a signal handler
@@ -311,7 +333,7 @@ def run(args: argparse.Namespace) -> int:
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
         summary["t0_us"] = t0_us
     if args.json:
-        print(json.dumps(summary, sort_keys=True))
+        print(dumps_json(summary, sort_keys=True))
     else:
         _print_summary(summary)
     return 0
@@ -363,10 +385,12 @@ def _watch(
             p50, p99 = (
                 agent.output.latency.percentiles(50, 99, last=60) if agent.output else (math.nan, math.nan)
             )
+            age50 = agent.output.exposure_age.percentiles(50, last=60)[0] if agent.output else math.nan
             line = (
                 f"t={elapsed:5.1f}s pose=({est.x_m:6.3f},{est.y_m:6.3f},{math.degrees(est.yaw_rad):6.1f}deg) "
                 f"err={100 * scorer.last_error_m:5.2f}cm frames={rate['frames']:4.1f}/s "
-                f"fixes={rate['fixes_fused']:4.1f}/s latency p50={p50:5.1f} p99={p99:5.1f}ms [{names}]"
+                f"fixes={rate['fixes_fused']:4.1f}/s latency p50={p50:5.1f} p99={p99:5.1f}ms "
+                f"age p50={age50:5.1f}ms [{names}]"
             )
             if live:
                 print("\r" + line + "\033[K", end="", file=sys.stderr, flush=True)
@@ -531,6 +555,29 @@ def _summary(
     }
 
 
+def _plural(n: int, one: str, many: str) -> str:
+    return f"{n} {one if n == 1 else many}"
+
+
+def _counts_text(counts: dict[str, int]) -> str:
+    """ " (camera 2, laser 1)" for the non-zero counts; "" when there are none."""
+    parts = [f"{name} {n}" for name, n in sorted(counts.items()) if n]
+    return f" ({', '.join(parts)})" if parts else ""
+
+
+def _device_text(name: str, device: dict[str, Any]) -> str:
+    """ "laser: 1 failure, 1 recovery; now ok" (or "now down: <reason>")."""
+    now = "now ok" if device["ok"] else f"now down: {device['reason'] or 'no reason given'}"
+    recoveries = device.get("recoveries")
+    recovered = f", {_plural(recoveries, 'recovery', 'recoveries')}" if recoveries is not None else ""
+    return f"{name}: {_plural(device['failures'], 'failure', 'failures')}{recovered}; {now}"
+
+
+def _faults_text(applied: list[dict[str, Any]]) -> str:
+    """ "laser off at 10.0 s, laser back at 15.0 s": when each injected fault began and ended."""
+    return ", ".join(f"{f['kind']} {'off' if f['on'] else 'back'} at {f['t_s']:.1f} s" for f in applied)
+
+
 def _print_summary(s: dict[str, Any]) -> None:
     def num(value: Any, fmt: str) -> str:
         return "n/a" if value is None else format(value, fmt)
@@ -560,17 +607,17 @@ def _print_summary(s: dict[str, Any]) -> None:
     print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
     share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
     print(f"  sources live      {share} of frames")
-    print(f"  dropped           {s['dropped']} {s['drops'] if s['dropped'] else ''}")
+    print(f"  dropped           {s['dropped']}{_counts_text(s['drops'])}")
     if s["no_fix_reasons"]:
         reasons = "; ".join(f"{n} x {r}" for r, n in s["no_fix_reasons"].items())
         print(f"  no VLP fix        {reasons}")
     for name, why in s["unavailable"].items():
         print(f"  not running       {name}: {why}")
-    bad = {k: v for k, v in s["devices"].items() if v["failures"]}
-    if bad:
-        print(f"  device faults     {bad}")
+    for name, device in s["devices"].items():
+        if device["failures"]:
+            print(f"  device faults     {_device_text(name, device)}")
     if s["faults"]:
-        print(f"  injected          {s['faults']}")
+        print(f"  injected          {_faults_text(s['faults'])}")
     parts = s.get("peak_rss_mb_parts", {})
     split = f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f})" if parts else ""
     print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB{split}")
