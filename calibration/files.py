@@ -19,7 +19,7 @@ from pathlib import Path
 
 from calibration.report import CalibrationError, StepResult
 
-__all__ = ["SavedFile", "backup_path", "commit", "save_all", "save_atomic"]
+__all__ = ["SavedFile", "backup_path", "check_writable", "commit", "save_all", "save_atomic"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,25 @@ def _mode_for(path: Path) -> int:
         mask = os.umask(0)
         os.umask(mask)
         return 0o666 & ~mask
+
+
+def check_writable(folder: Path) -> None:
+    """Make sure files can be saved in ``folder`` (created if missing) before a step moves the robot: a
+    folder found unwritable only at the end would cost the whole procedure. A temporary file is written
+    and removed, which catches what a permission check misses (read-only file systems, full disks, root
+    squash, a file where the folder should be)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".vlp-agent-probe.", suffix=".tmp", dir=folder)
+        try:
+            os.write(fd, b"probe")
+        finally:
+            os.close(fd)
+            os.unlink(tmp)
+    except OSError as exc:
+        raise CalibrationError(
+            f"cannot write calibration files in {folder}: {exc.strerror or exc} (choose another with --dir)"
+        ) from exc
 
 
 def _write_temp(folder: Path, name: str, data: bytes, mode: int) -> Path:

@@ -29,7 +29,15 @@ from calibration import plot
 from calibration.boards import HAS_ARUCO, BoardDetector, BoardSpec, Detection
 from calibration.camera_info import CameraInfo, format_camera_info
 from calibration.context import StepContext
-from calibration.report import CalibrationError, Check, Output, StepResult, ask_choice, ask_int
+from calibration.report import (
+    CalibrationError,
+    Check,
+    Output,
+    StepResult,
+    ask_choice,
+    ask_int,
+    ask_line,
+)
 from drivers.camera.base import Camera
 from drivers.sim.render import nearest_indices
 
@@ -486,7 +494,7 @@ def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Names
             console, "views from the camera or from a folder of images", ["camera", "folder"], "camera"
         )
         if source == "folder":
-            options.images = console.ask("folder of images: ").strip() or None
+            options.images = ask_line(console, "folder of images: ").strip() or None
     if HAS_ARUCO:
         options.board = ask_choice(console, "board", ["chessboard", "charuco"], options.board)
     options.views = ask_int(

@@ -27,7 +27,16 @@ from agent.vlp.decode import StripeDecoder
 from agent.vlp.detect import DetectorConfig, find_blobs
 from calibration import plot
 from calibration.context import StepContext
-from calibration.report import CalibrationError, Check, Console, Output, StepResult, ask_float, ask_int
+from calibration.report import (
+    CalibrationError,
+    Check,
+    Console,
+    Output,
+    StepResult,
+    ask_float,
+    ask_int,
+    ask_line,
+)
 from calibration.rig import Rig
 from calibration.vlp_view import view_for
 from calibration.wheels import go_to
@@ -141,7 +150,7 @@ def type_coordinates(console: Console, count: int) -> list[LedEntry]:
     entries: list[LedEntry] = []
     z_default: float | None = None
     for k in range(1, count + 1):
-        answer = console.ask(f"LED {k} id [L{k}]: ").strip()
+        answer = ask_line(console, f"LED {k} id [L{k}]: ").strip()
         led_id = answer or f"L{k}"
         x = ask_float(console, f"  {led_id} x_m", None, minimum=-1e4, maximum=1e4)
         y = ask_float(console, f"  {led_id} y_m", None, minimum=-1e4, maximum=1e4)
@@ -212,7 +221,12 @@ def close_pairs(measured: list[Measured]) -> list[tuple[Measured, Measured, str]
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--coordinates", metavar="CSV", help="LED coordinates: id,x_m,y_m,z_m[,diameter_m]")
-    p.add_argument("--count", type=int, default=None, help="how many LEDs to type in (without --coordinates)")
+    p.add_argument(
+        "--count",
+        type=int,
+        default=None,
+        help="how many LEDs to type in (without --coordinates); --sim: survey the world's first N",
+    )
     p.add_argument("--frames", type=int, default=20, help="frames measured per LED (default 20)")
     p.add_argument(
         "--led-diameter-mm", type=float, default=86.0, help="LED diameter for typed LEDs (default 86)"
@@ -220,9 +234,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Namespace:
-    answer = ctx.console.ask("LED coordinates from a CSV file (path), or Enter to type them: ").strip()
+    if ctx.sim is not None:
+        ctx.console.say("LED coordinates: from the world file (the simulated ceiling is known)")
+        return options
+    answer = ask_line(ctx.console, "LED coordinates from a CSV file (path), or Enter to type them: ").strip()
     options.coordinates = answer or None
     return options
+
+
+def world_coordinates(ctx: StepContext, count: int | None) -> list[LedEntry]:
+    """The simulated robot's LEDs where its world file puts them: what a survey with a tape measure would
+    give on a real ceiling, so nothing is asked (the first ``count`` of them with --count)."""
+    assert ctx.sim is not None
+    leds = ctx.sim.load().leds
+    if not leds:
+        raise CalibrationError(f"the world {ctx.sim.world_file} has no LEDs to survey")
+    chosen = leds if count is None else leds[:count]
+    return [LedEntry(led.id, led.x_m, led.y_m, led.z_m, led.diameter_m) for led in chosen]
 
 
 def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
@@ -231,16 +259,17 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
     if options.frames < 3:
         raise CalibrationError("--frames must be at least 3")
     ctx.require_robot("the LED survey")
+    if options.count is not None and options.count < 1:
+        raise CalibrationError("--count must be at least 1")
     if options.coordinates:
         entries = read_coordinates(Path(options.coordinates))
+    elif ctx.sim is not None:
+        entries = world_coordinates(ctx, options.count)
+        console.say(f"  LED coordinates: {len(entries)} from the world file {ctx.sim.world_file.name}")
     else:
         count = options.count
         if count is None:
-            count = (
-                len(ctx.sim.load().leds)
-                if ctx.sim is not None
-                else ask_int(console, "how many LEDs", None, minimum=1, maximum=500)
-            )
+            count = ask_int(console, "how many LEDs", None, minimum=1, maximum=500)
         entries = type_coordinates(console, count)
     if options.led_diameter_mm != 86.0:
         entries = [LedEntry(e.id, e.x_m, e.y_m, e.z_m, options.led_diameter_mm / 1000.0) for e in entries]
@@ -273,10 +302,11 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                     status=console.status,
                 )
             else:
-                console.ask(
+                ask_line(
+                    console,
                     f"  LED {n}/{len(entries)} {entry.id}: put the robot under it (the LED near the middle "
                     "of "
-                    "the picture), then press Enter "
+                    "the picture), then press Enter ",
                 )
             frames = _grab(camera, options.frames)
             height = max(entry.z_m - mount.z_m, 0.1)

@@ -24,6 +24,7 @@ __all__ = [
     "ask_choice",
     "ask_float",
     "ask_int",
+    "ask_line",
     "ask_yes",
 ]
 
@@ -145,6 +146,17 @@ class Console(Protocol):
     def status(self, text: str) -> None: ...
 
     def ask(self, question: str) -> str: ...
+
+
+def ask_line(console: Console, question: str) -> str:
+    """One line as typed (an Enter alone gives ""). With no more input (stdin closed or at its end) the step
+    cannot go on: a CalibrationError naming the question, instead of an EOFError out of the step."""
+    try:
+        return console.ask(question)
+    except EOFError as exc:
+        raise CalibrationError(
+            f"no answer to {question.strip().rstrip(':').strip()!r}: end of input (stdin is closed)"
+        ) from exc
 
 
 def _ask(console: Console, question: str, default: str | None) -> str:

@@ -42,7 +42,16 @@ from agent.vlp.model import LedMap, VlpFix, VlpResult
 from agent.vlp.pipeline import VlpPipeline
 from calibration import plot
 from calibration.context import StepContext
-from calibration.report import CalibrationError, Check, Console, Output, StepResult, ask_float, ask_int
+from calibration.report import (
+    CalibrationError,
+    Check,
+    Console,
+    Output,
+    StepResult,
+    ask_float,
+    ask_int,
+    ask_line,
+)
 from calibration.rig import Rig
 from calibration.vlp_view import VlpView, view_for
 from calibration.wheels import drive, go_to
@@ -178,7 +187,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Namespace:
     if ctx.sim is None:
-        answer = ctx.console.ask("known points from a CSV file (x_m,y_m), or Enter to type them: ").strip()
+        answer = ask_line(
+            ctx.console, "known points from a CSV file (x_m,y_m), or Enter to type them: "
+        ).strip()
         options.points = answer or None
     return options
 
@@ -235,7 +246,7 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                 status=console.status,
             )
         else:
-            console.ask("  put the robot under two or more LEDs, with room to turn, then press Enter ")
+            ask_line(console, "  put the robot under two or more LEDs, with room to turn, then press Enter ")
 
         # 1. Rotation centre.
         tracks = Tracks()
@@ -294,13 +305,15 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                         status=console.status,
                     )
                 elif h == 0:
-                    console.ask(
-                        f"  put the robot on point {n} ({point[0]:.3f}, {point[1]:.3f}), then press Enter "
+                    ask_line(
+                        console,
+                        f"  put the robot on point {n} ({point[0]:.3f}, {point[1]:.3f}), then press Enter ",
                     )
                 else:
-                    console.ask(
+                    ask_line(
+                        console,
                         f"  turn the robot about {360 // options.headings} degrees on the point, then press "
-                        "Enter "
+                        "Enter ",
                     )
                 truth = point
                 if sim is not None:

@@ -14,7 +14,7 @@ import logging
 from dataclasses import dataclass
 
 from calibration.context import StepContext
-from calibration.files import commit
+from calibration.files import check_writable, commit
 from calibration.report import ask_yes
 from calibration.steps import STEPS, StepInfo, load
 from firmware_protocol.errors import VlpAgentError
@@ -24,6 +24,12 @@ __all__ = ["Wizard"]
 log = logging.getLogger(__name__)
 
 EXIT_INTERRUPTED = 130
+# Input ended (stdin closed, or Ctrl-D) before the user said what to do: nothing was chosen, so not a success.
+EXIT_NO_INPUT = 1
+
+
+class _InputEnded(Exception):
+    """The menu's question met the end of input."""
 
 
 @dataclass
@@ -74,7 +80,7 @@ class Wizard:
                     self.ctx.console.ask(f"step (1-{len(STEPS)}, a name, or q) [{default}]: ").strip().lower()
                 )
             except EOFError:
-                return "q"
+                raise _InputEnded from None
             answer = answer or default
             if answer in ("q", "quit", "exit"):
                 return "q"
@@ -99,6 +105,13 @@ class Wizard:
             console.say("")
             console.say("calibration wizard: interrupted at the menu; bye")
             return EXIT_INTERRUPTED
+        except _InputEnded:
+            console.say("")
+            console.say(
+                "calibration wizard: end of input (stdin is closed): the wizard needs someone to answer; "
+                "for scripts, run one step: `vlp-agent calibrate STEP`"
+            )
+            return EXIT_NO_INPUT
 
     def _options(self, step: StepInfo) -> argparse.Namespace:
         module = load(step)
@@ -121,6 +134,7 @@ class Wizard:
             return
         try:
             options = module.interactive(self.ctx, options)
+            check_writable(self.ctx.out_dir)
             if not ask_yes(console, "start", True):
                 return
             result = module.run(self.ctx, options)
@@ -135,6 +149,13 @@ class Wizard:
             console.say("")
             console.say(f"{step.name}: interrupted; no calibration file was written (previous files kept)")
             self.done[step.name] = _Done("interrupted", False)
+            return
+        except EOFError:
+            # A question asked without ask_line/ask_*: the end of input still ends the step cleanly.
+            console.status("")
+            console.say(f"{step.name}: end of input (stdin is closed)")
+            console.say("  no calibration file was written")
+            self.done[step.name] = _Done("failed: end of input", False)
             return
         except VlpAgentError as exc:
             console.status("")

@@ -12,7 +12,6 @@ written); 3 done, but the result failed its quality checks (only the PNG report 
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import signal
 import sys
@@ -22,8 +21,9 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, TextIO
 
+from agent.commands.args import dumps_json
 from calibration.context import DEFAULT_SIM_WORLD, SimOptions, StepContext, default_output_dir
-from calibration.files import commit
+from calibration.files import check_writable, commit
 from calibration.report import CalibrationError, StepResult
 from calibration.steps import STEPS, StepInfo, load
 from firmware_protocol.errors import VlpAgentError
@@ -71,6 +71,8 @@ def _add_common(p: argparse.ArgumentParser, *, in_step: bool) -> None:
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "calibrate",
+        # argparse would print "STEP ..." as if a step were required; without one the wizard runs.
+        usage="%(prog)s [options] [STEP [step options]]",
         help="calibrate the robot: camera, mounts, LED survey, VLP error, laser, wheels, servos",
         description="Without STEP: the interactive calibration wizard (a menu of steps). With STEP: that "
         "step "
@@ -172,11 +174,19 @@ def _run_step(args: argparse.Namespace, console: TerminalConsole, as_json: bool)
     try:
         ctx = _context(args, console, interactive=False)
         module = load(info)
+        check_writable(ctx.output(getattr(args, "output", None), info.writes).parent)
         result: StepResult = module.run(ctx, args)
         commit(result, force=bool(getattr(args, "force", False)))
     except VlpAgentError as exc:
         console.status("")
         print(f"vlp-agent calibrate {info.name}: {exc}", file=sys.stderr)
+        print("  no calibration file was written", file=sys.stderr)
+        return 1
+    except EOFError:
+        # Every question goes through calibration.report's ask helpers, which say which question had no
+        # answer; this is the net under a question that does not.
+        console.status("")
+        print(f"vlp-agent calibrate {info.name}: end of input (stdin is closed)", file=sys.stderr)
         print("  no calibration file was written", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
@@ -188,7 +198,7 @@ def _run_step(args: argparse.Namespace, console: TerminalConsole, as_json: bool)
         )
         return EXIT_INTERRUPTED
     if as_json:
-        print(json.dumps(result.as_json(), sort_keys=True))
+        print(dumps_json(result.as_json(), sort_keys=True))
     else:
         for line in result.text():
             console.say(line)
