@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agent.commands.args import dumps_json
+from agent.commands.args import dumps_json, positive_seconds
 
 if TYPE_CHECKING:
     from agent.slam.metrics import RelativePoseError
@@ -78,7 +78,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--format", choices=FORMATS, help="log format (with --log)")
     p.add_argument(
         "--seconds",
-        type=float,
+        type=positive_seconds,
         default=300.0,
         metavar="N",
         help="with --world: seconds of simulated driving (default: 300)",
@@ -203,8 +203,6 @@ def run(args: argparse.Namespace) -> int:
 
         if args.format is not None:
             raise ConfigError("--format", "is for --log; --world makes its own log")
-        if not args.seconds > 0.0:
-            raise ConfigError("--seconds", "must be positive")
         world = load_world(args.world)
         if not world.route:
             raise ConfigError("route", "the world has no route for the robot to drive", args.world)

@@ -23,7 +23,9 @@ def strict_loads(text: str) -> Any:
 
 
 @pytest.mark.parametrize("seconds", ["0", "-1", "nan", "inf", "-inf", "soon"])
-@pytest.mark.parametrize("command", [["sim"], ["run", "--config", "robot.toml"]])
+@pytest.mark.parametrize(
+    "command", [["sim"], ["run", "--config", "robot.toml"], ["eval", "slam", "--world", "env1.toml"]]
+)
 def test_seconds_must_be_a_finite_number_above_zero(
     command: list[str], seconds: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: Any
 ) -> None:
