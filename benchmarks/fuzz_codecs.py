@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from firmware_protocol import dynamixel, pose_frame, rfid, scip
+from firmware_protocol import command_frame, dynamixel, pose_frame, rfid, scip
 from firmware_protocol.errors import ProtocolError
 
 
@@ -115,9 +115,49 @@ def pose_corpus() -> list[bytes]:
     return [*wires, b"".join(wires)]
 
 
+def command_corpus() -> list[bytes]:
+    cf = command_frame
+    commands: list[cf.Command] = [
+        cf.VelocityCommand(1, 0.3, -0.2, 0.5),
+        cf.GoalCommand(2, 7, 3.5, -1.25, 1.0, 0.05, 0.05),
+        cf.GoalCommand(3, 8, -12.0, 0.0, None, allow_unknown=True),
+        cf.CancelCommand(4, 7),
+        cf.StopCommand(5),
+        cf.ResumeCommand(6),
+    ]
+    wires = [cf.encode_command(c) for c in commands]
+    return [*wires, b"".join(wires)]
+
+
+def goal_status_corpus() -> list[bytes]:
+    cf = command_frame
+    statuses = [
+        cf.GoalStatus(1, 2, 7, cf.GoalState.ACCEPTED),
+        cf.GoalStatus(2, cf.NO_SEQUENCE, 7, cf.GoalState.ACTIVE, remaining_m=3.2),
+        cf.GoalStatus(3, 9, 8, cf.GoalState.REJECTED, cf.GoalReason.UNREACHABLE),
+    ]
+    wires = [cf.encode_goal_status(s) for s in statuses]
+    pose = pose_frame.encode_pose(pose_frame.PoseFrame(1, 1000, 1.0, 2.0, 0.5))
+    return [*wires, pose + b"".join(wires)]
+
+
 CODECS: dict[str, Codec] = {
     "pose": Codec(
         "pose", pose_frame.PoseFrameError, pose_frame.PoseFrameDecoder, pose_frame.decode_pose, pose_corpus
+    ),
+    "command": Codec(
+        "command",
+        command_frame.CommandFrameError,
+        command_frame.CommandDecoder,
+        command_frame.decode_command,
+        command_corpus,
+    ),
+    "goal-status": Codec(
+        "goal-status",
+        command_frame.CommandFrameError,
+        command_frame.GoalStatusDecoder,
+        command_frame.decode_goal_status,
+        goal_status_corpus,
     ),
     "scip": Codec("scip", scip.ScipError, scip.ScipDecoder, scip.parse_reply, scip_corpus),
     "dynamixel": Codec(

@@ -84,7 +84,7 @@ class MavlinkEncodeError(ProtocolError):
 
 
 @functools.cache
-def _dialect() -> types.ModuleType:
+def mavlink_dialect() -> types.ModuleType:
     os.environ.setdefault("MAVLINK20", "1")
     try:
         module = importlib.import_module("pymavlink.dialects.v20.common")
@@ -132,7 +132,7 @@ class MavlinkPoseEncoder:
         self.sysid = _u8(sysid, "sysid")
         self.compid = _u8(compid, "compid")
         self.estimator_type = _u8(estimator_type, "estimator_type")
-        self._mav: Any = _dialect().MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
+        self._mav: Any = mavlink_dialect().MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
 
     def encode(self, pose: PoseFrame, quality: int = 0) -> bytes:
         """One complete MAVLink 2 frame (unsigned) for ``pose``."""
@@ -147,7 +147,7 @@ class MavlinkPoseEncoder:
         x, y, yaw = pose.x_m, -pose.y_m, -pose.yaw_rad  # map (z up, CCW) -> FRD (z down)
         yaw = math.remainder(yaw, math.tau)
         cov = pose_covariance(pose)
-        dialect = _dialect()
+        dialect = mavlink_dialect()
         if self.message is MavlinkMessage.VISION_POSITION_ESTIMATE:
             msg = dialect.MAVLink_vision_position_estimate_message(
                 pose.t_us, x, y, 0.0, 0.0, 0.0, yaw, cov, reset

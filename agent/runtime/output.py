@@ -204,6 +204,45 @@ class PoseOutput:
                 return sent
             select.select([], [fd], [], remaining)
 
+    def read_available(self) -> bytes:
+        """The bytes the controller has sent since the last call (commands); b"" when none or port down.
+
+        Reads do not take the write lock: the port is opened non-blocking (``timeout=0``), and reading and
+        writing one descriptor from two threads is safe."""
+        port = self._port
+        if port is None:
+            return b""
+        try:
+            waiting = port.in_waiting
+            return bytes(port.read(waiting)) if waiting else b""
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError / AttributeError: the port was closed under us by a failing write.
+            log.debug("pose output %s: read failed: %s", self.url, exc)
+            return b""
+
+    def send(self, data: bytes) -> bool:
+        """Write one whole message other than a pose (a goal status) between pose frames; False if it did
+        not go out complete (counted in ``message_write_failures``)."""
+        with self._lock:
+            if self._port is None:
+                self.counts["message_write_failures"] += 1
+                return False
+            if self._cut:
+                data = b"\x00" + data
+            try:
+                sent = self._write_all(data)
+            except (serial.SerialException, OSError) as exc:
+                self._drop_locked(f"write failed: {exc}")
+                self.counts["message_write_failures"] += 1
+                return False
+            self.counts["bytes"] += sent
+            self._cut = 0 < sent < len(data)
+            if sent < len(data):
+                self.counts["message_write_failures"] += 1
+                return False
+            self.counts["messages"] += 1
+            return True
+
     def publish(
         self,
         estimate: Estimate,

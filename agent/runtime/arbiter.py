@@ -1,0 +1,247 @@
+"""The command arbiter: which one command source drives the base now, and the goal status of each answer.
+
+Sources, by precedence (``docs/navigation.md``)::
+
+    controller velocity  >  controller goal  >  local mission goal (explore, deliver, follow, sim --goal)
+
+* A **velocity** command is in force for its own timeout; it preempts any goal (the goal is CANCELLED,
+  SUPERSEDED) and is clamped to the base's limits (ACCEPTED with CLAMPED). When it expires the base
+  stops (the dead-man) and a lower source may drive again only after a new goal is given.
+* A **goal** from the controller is checked first (``check_goal``: outside the map, inside an obstacle,
+  unreachable...) and rejected with the reason, or ACCEPTED; it replaces the goal before it (CANCELLED,
+  SUPERSEDED). While a controller velocity is in force a goal is REJECTED, BUSY.
+* A **mission goal** drives only while the controller drives nothing; a controller goal cancels it.
+* **Stop** holds the base at zero and cancels everything until **resume**; commands in between are
+  REJECTED, STOPPED.
+
+Every command gets exactly one answer; a frame that could not be read gets a REJECTED answer too. The
+arbiter decides and keeps state only: it sends nothing and moves nothing (the command loop writes the
+answers, the navigation loop asks :meth:`CommandArbiter.directive` what to do). Thread-safe.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from firmware_protocol.command_frame import (
+    NO_GOAL,
+    NO_SEQUENCE,
+    CancelCommand,
+    Command,
+    CommandFrameError,
+    GoalCommand,
+    GoalReason,
+    GoalState,
+    GoalStatus,
+    ResumeCommand,
+    StopCommand,
+    VelocityCommand,
+)
+
+__all__ = ["CommandArbiter", "Directive", "DriveSource"]
+
+
+class DriveSource(enum.Enum):
+    NONE = "none"  # nothing commands the base: zero
+    STOPPED = "stopped"  # a stop command holds it: zero
+    VELOCITY = "velocity"  # the controller's velocity
+    GOAL = "goal"  # the controller's goal, through the navigator
+    MISSION = "mission"  # a local mission's goal, through the navigator
+
+
+@dataclass(frozen=True, slots=True)
+class Directive:
+    """What drives the base now: a velocity (``v_mps``, ``omega_radps``) or a goal for the navigator."""
+
+    source: DriveSource
+    v_mps: float = 0.0
+    omega_radps: float = 0.0
+    goal: GoalCommand | None = None
+
+
+_BAD_FRAME_REASONS = {
+    "type": GoalReason.UNKNOWN_TYPE,
+    "version": GoalReason.BAD_VERSION,
+    "value": GoalReason.BAD_VALUE,
+}
+
+
+class CommandArbiter:
+    """One command source at a time; answers every command with a :class:`GoalStatus`."""
+
+    def __init__(
+        self,
+        max_speed_mps: float,
+        max_turn_radps: float,
+        check_goal: Callable[[GoalCommand], GoalReason | None] | None = None,
+    ) -> None:
+        self.max_speed_mps = max_speed_mps
+        self.max_turn_radps = max_turn_radps
+        self._check_goal = check_goal or (lambda goal: None)
+        self._lock = threading.Lock()
+        self._sequence = 0
+        self._stopped = False
+        self._velocity: tuple[VelocityCommand, float, float, float] | None = None  # cmd, v, w, until_s
+        self._goal: GoalCommand | None = None
+        self._mission: GoalCommand | None = None
+        self.counts: dict[str, int] = {}
+
+    # -- answers -------------------------------------------------------------------------------------
+
+    def _status(
+        self,
+        command_sequence: int,
+        goal_id: int,
+        state: GoalState,
+        reason: GoalReason = GoalReason.NONE,
+        remaining_m: float | None = None,
+    ) -> GoalStatus:
+        self._sequence = (self._sequence + 1) & 0xFFFF
+        key = (
+            state.name.lower() if reason is GoalReason.NONE else f"{state.name.lower()}_{reason.name.lower()}"
+        )
+        self.counts[key] = self.counts.get(key, 0) + 1
+        return GoalStatus(self._sequence, command_sequence, goal_id, state, reason, remaining_m)
+
+    def bad_frame(self, error: CommandFrameError) -> GoalStatus:
+        """The answer to a frame that could not be read: its sequence is not to be trusted."""
+        with self._lock:
+            reason = _BAD_FRAME_REASONS.get(error.kind, GoalReason.BAD_FRAME)
+            return self._status(NO_SEQUENCE, NO_GOAL, GoalState.REJECTED, reason)
+
+    # -- commands ------------------------------------------------------------------------------------
+
+    def command(self, command: Command, now_s: float) -> list[GoalStatus]:
+        """Take one command; the statuses to send back, the command's own answer first."""
+        with self._lock:
+            self._expire(now_s)
+            if isinstance(command, StopCommand):
+                return self._stop(command)
+            if isinstance(command, ResumeCommand):
+                self._stopped = False
+                return [self._status(command.sequence, NO_GOAL, GoalState.ACCEPTED)]
+            if isinstance(command, CancelCommand):
+                return self._cancel(command)
+            if self._stopped:
+                goal_id = command.goal_id if isinstance(command, GoalCommand) else NO_GOAL
+                return [self._status(command.sequence, goal_id, GoalState.REJECTED, GoalReason.STOPPED)]
+            if isinstance(command, VelocityCommand):
+                return self._take_velocity(command, now_s)
+            return self._take_goal(command)
+
+    def _stop(self, command: StopCommand) -> list[GoalStatus]:
+        out = [self._status(command.sequence, NO_GOAL, GoalState.ACCEPTED)]
+        self._stopped = True
+        self._velocity = None
+        out += self._drop_goals(GoalReason.STOPPED)
+        return out
+
+    def _cancel(self, command: CancelCommand) -> list[GoalStatus]:
+        active = self._goal or self._mission
+        if active is None or command.goal_id not in (NO_GOAL, active.goal_id):
+            return [
+                self._status(command.sequence, command.goal_id, GoalState.REJECTED, GoalReason.UNKNOWN_GOAL)
+            ]
+        if active is self._goal:
+            self._goal = None
+        else:
+            self._mission = None
+        return [self._status(command.sequence, active.goal_id, GoalState.CANCELLED)]
+
+    def _take_velocity(self, command: VelocityCommand, now_s: float) -> list[GoalStatus]:
+        values = (command.v_mps, command.omega_radps, command.timeout_s)
+        if not all(math.isfinite(x) for x in values) or command.timeout_s <= 0:
+            return [self._status(command.sequence, NO_GOAL, GoalState.REJECTED, GoalReason.BAD_VALUE)]
+        v = min(max(command.v_mps, -self.max_speed_mps), self.max_speed_mps)
+        w = min(max(command.omega_radps, -self.max_turn_radps), self.max_turn_radps)
+        reason = GoalReason.CLAMPED if (v, w) != (command.v_mps, command.omega_radps) else GoalReason.NONE
+        out = [self._status(command.sequence, NO_GOAL, GoalState.ACCEPTED, reason)]
+        out += self._drop_goals(GoalReason.SUPERSEDED)
+        self._velocity = (command, v, w, now_s + command.timeout_s)
+        return out
+
+    def _take_goal(self, command: GoalCommand) -> list[GoalStatus]:
+        if self._velocity is not None:
+            return [self._status(command.sequence, command.goal_id, GoalState.REJECTED, GoalReason.BUSY)]
+        fields = (command.x_m, command.y_m, command.tolerance_xy_m, command.tolerance_yaw_rad)
+        if not all(math.isfinite(x) for x in fields) or (
+            command.yaw_rad is not None and not math.isfinite(command.yaw_rad)
+        ):
+            return [self._status(command.sequence, command.goal_id, GoalState.REJECTED, GoalReason.BAD_VALUE)]
+        reason = self._check_goal(command)
+        if reason is not None:
+            return [self._status(command.sequence, command.goal_id, GoalState.REJECTED, reason)]
+        out = [self._status(command.sequence, command.goal_id, GoalState.ACCEPTED)]
+        out += self._drop_goals(GoalReason.SUPERSEDED)
+        self._goal = command
+        return out
+
+    def _drop_goals(self, reason: GoalReason) -> list[GoalStatus]:
+        out = []
+        for goal in (self._goal, self._mission):
+            if goal is not None:
+                out.append(self._status(NO_SEQUENCE, goal.goal_id, GoalState.CANCELLED, reason))
+        self._goal = self._mission = None
+        return out
+
+    def _expire(self, now_s: float) -> GoalStatus | None:
+        if self._velocity is not None and now_s > self._velocity[3]:
+            self._velocity = None
+            return self._status(NO_SEQUENCE, NO_GOAL, GoalState.CANCELLED, GoalReason.DEAD_MAN)
+        return None
+
+    # -- missions and the navigator ------------------------------------------------------------------
+
+    def mission_goal(self, goal: GoalCommand) -> GoalStatus:
+        """A local mission's goal: driven only while the controller drives nothing."""
+        with self._lock:
+            if self._stopped:
+                return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.STOPPED)
+            if self._goal is not None or self._velocity is not None:
+                return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BUSY)
+            reason = self._check_goal(goal)
+            if reason is not None:
+                return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, reason)
+            self._mission = goal
+            return self._status(NO_SEQUENCE, goal.goal_id, GoalState.ACCEPTED)
+
+    def directive(self, now_s: float) -> tuple[Directive, GoalStatus | None]:
+        """What drives the base now, and the dead-man's status if a velocity just expired."""
+        with self._lock:
+            expired = self._expire(now_s)
+            if self._stopped:
+                return Directive(DriveSource.STOPPED), expired
+            if self._velocity is not None:
+                _, v, w, _ = self._velocity
+                return Directive(DriveSource.VELOCITY, v, w), expired
+            if self._goal is not None:
+                return Directive(DriveSource.GOAL, goal=self._goal), expired
+            if self._mission is not None:
+                return Directive(DriveSource.MISSION, goal=self._mission), expired
+            return Directive(DriveSource.NONE), expired
+
+    def goal_progress(self, goal_id: int, remaining_m: float | None) -> GoalStatus | None:
+        """An ACTIVE status for the goal in force (None if ``goal_id`` is no longer it)."""
+        with self._lock:
+            if not any(g is not None and g.goal_id == goal_id for g in (self._goal, self._mission)):
+                return None
+            return self._status(NO_SEQUENCE, goal_id, GoalState.ACTIVE, remaining_m=remaining_m)
+
+    def goal_finished(
+        self, goal_id: int, state: GoalState, reason: GoalReason = GoalReason.NONE
+    ) -> GoalStatus | None:
+        """The navigator ended the goal in force (REACHED, or FAILED with a reason); None if it is gone."""
+        with self._lock:
+            if self._goal is not None and self._goal.goal_id == goal_id:
+                self._goal = None
+            elif self._mission is not None and self._mission.goal_id == goal_id:
+                self._mission = None
+            else:
+                return None
+            return self._status(
+                NO_SEQUENCE, goal_id, state, reason, 0.0 if state is GoalState.REACHED else None
+            )

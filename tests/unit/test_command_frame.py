@@ -1,0 +1,271 @@
+"""Command and goal-status frames: the vectors of ``docs/wire-format.md``, field ranges and quantisation,
+the versioning rule, streams with junk and corrupted frames between good ones, pose frames interleaved with
+statuses, and property tests ("any input decodes or raises CommandFrameError; cuts do not matter").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import re
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from firmware_protocol.command_frame import (
+    NO_GOAL,
+    NO_SEQUENCE,
+    CancelCommand,
+    Command,
+    CommandDecoder,
+    CommandFrameError,
+    GoalCommand,
+    GoalReason,
+    GoalState,
+    GoalStatus,
+    GoalStatusDecoder,
+    ResumeCommand,
+    StopCommand,
+    VelocityCommand,
+    decode_command,
+    decode_goal_status,
+    encode_command,
+    encode_goal_status,
+)
+from firmware_protocol.framing import encode_link_frame
+from firmware_protocol.pose_frame import PoseFrame, PoseFrameDecoder, encode_pose
+
+WIRE_FORMAT_MD = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
+
+DOC_MESSAGES: dict[str, Command | GoalStatus] = {
+    "velocity": VelocityCommand(7, 0.25, -0.5, 0.5),
+    "goal": GoalCommand(8, 42, 3.1416, -2.5, math.pi / 2, 0.05, 0.0873),
+    "goal, any heading, through unknown space": GoalCommand(9, 43, 12.0, 4.0, None, allow_unknown=True),
+    "cancel": CancelCommand(10, 42),
+    "stop": StopCommand(11),
+    "resume": ResumeCommand(12),
+    "status: accepted": GoalStatus(1, 8, 42, GoalState.ACCEPTED),
+    "status: active, 4.37 m to go": GoalStatus(2, NO_SEQUENCE, 42, GoalState.ACTIVE, remaining_m=4.37),
+    "status: rejected, unreachable": GoalStatus(3, 9, 43, GoalState.REJECTED, GoalReason.UNREACHABLE),
+    "status: reached": GoalStatus(4, NO_SEQUENCE, 42, GoalState.REACHED, remaining_m=0.0),
+}
+
+
+def doc_command_vectors() -> dict[str, bytes]:
+    """The ``name: hex`` lines of the "Command test vectors" block."""
+    text = WIRE_FORMAT_MD.read_text(encoding="utf-8")
+    section = text[text.index("### Command test vectors") :]
+    block = re.search(r"```text\n(.*?)```", section, re.S)
+    assert block is not None
+    out = {}
+    for line in block.group(1).strip().splitlines():
+        name, hexbytes = line.rsplit(":", 1)
+        out[name.strip()] = bytes.fromhex(hexbytes)
+    return out
+
+
+def wire(message: Command | GoalStatus) -> bytes:
+    return encode_goal_status(message) if isinstance(message, GoalStatus) else encode_command(message)
+
+
+def test_the_doc_vectors_are_the_codecs_bytes_both_ways() -> None:
+    vectors = doc_command_vectors()
+    assert set(vectors) == set(DOC_MESSAGES)
+    for name, message in DOC_MESSAGES.items():
+        assert wire(message) == vectors[name], name
+        decoded = decode_goal_status(vectors[name]) if isinstance(message, GoalStatus) else None
+        if decoded is None:
+            decoded = decode_command(vectors[name])
+        assert decoded == message, name
+
+
+def test_frame_lengths_on_the_wire() -> None:
+    assert [len(wire(m)) for m in DOC_MESSAGES.values()] == [14, 26, 26, 10, 8, 8, 16, 16, 16, 16]
+
+
+def test_no_type_byte_looks_like_a_pose_version() -> None:
+    for message in DOC_MESSAGES.values():
+        payload = wire(message)
+        assert payload[1] >> 4 != 1  # COBS code byte first, then the type byte
+
+
+@given(
+    st.integers(0, 0xFFFF),
+    st.floats(-32.768, 32.767),
+    st.floats(-32.768, 32.767),
+    st.floats(0.0, 65.535),
+)
+def test_velocity_round_trip_is_within_half_a_step(seq: int, v: float, omega: float, timeout: float) -> None:
+    out = decode_command(encode_command(VelocityCommand(seq, v, omega, timeout)))
+    assert isinstance(out, VelocityCommand)
+    assert out.sequence == seq
+    assert abs(out.v_mps - v) <= 0.0005 + 1e-12
+    assert abs(out.omega_radps - omega) <= 0.0005 + 1e-12
+    assert abs(out.timeout_s - timeout) <= 0.0005 + 1e-12
+
+
+@given(
+    st.integers(0, 0xFFFF),
+    st.floats(-200_000, 200_000),
+    st.floats(-200_000, 200_000),
+    st.one_of(st.none(), st.floats(-math.pi, math.pi)),
+    st.booleans(),
+)
+def test_goal_round_trip(seq: int, x: float, y: float, yaw: float | None, unknown: bool) -> None:
+    out = decode_command(encode_command(GoalCommand(seq, 5, x, y, yaw, 0.1, 0.05, unknown)))
+    assert isinstance(out, GoalCommand)
+    assert abs(out.x_m - x) <= 0.5e-4 + 1e-9 and abs(out.y_m - y) <= 0.5e-4 + 1e-9
+    assert (out.yaw_rad is None) == (yaw is None)
+    if yaw is not None and out.yaw_rad is not None:
+        assert abs(math.remainder(out.yaw_rad - yaw, 2 * math.pi)) <= math.pi / 65536 + 1e-12
+    assert out.allow_unknown is unknown
+    assert (out.tolerance_xy_m, out.tolerance_yaw_rad) == (0.1, 0.05)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        VelocityCommand(1, math.nan, 0.0, 0.5),
+        VelocityCommand(1, 0.0, math.inf, 0.5),
+        VelocityCommand(1, 40.0, 0.0, 0.5),
+        VelocityCommand(1, 0.0, 0.0, -0.1),
+        VelocityCommand(0x10000, 0.0, 0.0, 0.5),
+        GoalCommand(1, 2, math.nan, 0.0),
+        GoalCommand(1, 2, 0.0, 0.0, math.inf),
+        GoalCommand(1, 0x10000, 0.0, 0.0),
+        GoalCommand(1, 2, 0.0, 0.0, tolerance_xy_m=-1.0),
+        GoalStatus(1, 2, 3, GoalState.ACTIVE, remaining_m=math.nan),
+    ],
+)
+def test_values_that_cannot_cross_the_wire_raise(bad: Command | GoalStatus) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        wire(bad)
+    assert info.value.kind == "value"
+
+
+def test_a_far_goal_saturates_its_remaining_distance_instead_of_reading_unknown() -> None:
+    out = decode_goal_status(encode_goal_status(GoalStatus(1, 2, 3, GoalState.ACTIVE, remaining_m=1e6)))
+    assert out.remaining_m == 655.34
+
+
+@pytest.mark.parametrize(
+    ("payload", "kind"),
+    [
+        (bytes([0x26, 0x10, 0, 0]), "type"),  # an unknown type
+        (bytes([0x10]) + bytes(29), "type"),  # a pose payload sent to the agent
+        (bytes([0xA1, 0x10, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]), "type"),  # a status sent to the agent
+        (bytes([0x24, 0x20, 0, 0]), "version"),  # major 2
+        (bytes([0x24, 0x10, 0, 0, 0]), "length"),  # v1.0 stop with a stray byte
+        (bytes([0x21, 0x10, 0, 0, 0, 0]), "length"),  # a velocity cut short
+    ],
+)
+def test_the_versioning_and_type_rules(payload: bytes, kind: str) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        decode_command(encode_link_frame(payload))
+    assert info.value.kind == kind
+    assert info.value.data == payload
+
+
+def test_a_newer_minor_version_with_appended_fields_is_accepted() -> None:
+    payload = bytes([0x24, 0x13, 5, 0]) + b"later fields"
+    assert decode_command(encode_link_frame(payload)) == StopCommand(5)
+
+
+def test_an_unknown_reason_from_a_later_version_keeps_the_state() -> None:
+    payload = bytes([0xA1, 0x11, 1, 0, 2, 0, 3, 0, GoalState.FAILED, 200, 0xFF, 0xFF])
+    status = decode_goal_status(encode_link_frame(payload))
+    assert (status.state, status.reason) == (GoalState.FAILED, GoalReason.NONE)
+
+
+def test_an_unknown_state_is_a_value_error() -> None:
+    payload = bytes([0xA1, 0x10, 1, 0, 2, 0, 3, 0, 9, 0, 0xFF, 0xFF])
+    with pytest.raises(CommandFrameError) as info:
+        decode_goal_status(encode_link_frame(payload))
+    assert info.value.kind == "value"
+
+
+def test_bad_crc_and_cobs_are_link_errors() -> None:
+    good = encode_command(StopCommand(3))
+    bad_crc = good[:-2] + bytes([good[-2] ^ 1]) + b"\x00"
+    with pytest.raises(CommandFrameError) as info:
+        decode_command(bad_crc)
+    assert info.value.kind == "crc"
+    with pytest.raises(CommandFrameError) as info:
+        decode_command(b"\x05\x01\x02")
+    assert info.value.kind == "cobs"
+
+
+def test_junk_and_bad_frames_between_good_ones_cost_only_themselves() -> None:
+    good = [VelocityCommand(1, 0.2, 0.0, 0.3), StopCommand(2), GoalCommand(3, 9, 1.0, 2.0)]
+    corrupt = bytearray(encode_command(ResumeCommand(4)))
+    corrupt[3] ^= 0x40
+    stream = (
+        b"\x07junk"
+        + b"\x00"
+        + encode_command(good[0])
+        + bytes(corrupt)
+        + encode_link_frame(bytes([0x2F, 0x10, 0, 0]))
+        + encode_command(good[1])
+        + b"\x01" * 300  # over-long line noise without a delimiter
+        + b"\x00"
+        + encode_command(good[2])
+    )
+    decoder = CommandDecoder()
+    assert decoder.feed(stream) == good
+    assert decoder.errors["crc"] == 1
+    assert decoder.errors["type"] == 1
+    assert decoder.errors["overflow"] == 1
+    assert decoder.errors["cobs"] + decoder.errors["length"] == 1  # the leading junk
+    rejected = decoder.take_rejected()
+    assert [e.kind for e in rejected][1:] == ["crc", "type", "overflow"]
+    assert decoder.take_rejected() == []
+
+
+def test_the_status_decoder_skips_pose_frames_and_the_pose_decoder_is_unchanged_by_statuses() -> None:
+    statuses = [GoalStatus(i, i, 42, GoalState.ACTIVE, remaining_m=float(i)) for i in range(3)]
+    poses = [PoseFrame(i, 1000 * i, 1.0, 2.0, 0.5) for i in range(3)]
+    stream = b"".join(encode_pose(p) + encode_goal_status(s) for p, s in zip(poses, statuses, strict=True))
+    status_decoder = GoalStatusDecoder()
+    assert status_decoder.feed(stream) == statuses
+    assert status_decoder.skipped == 3 and status_decoder.bad_frames == 0
+    assert len(PoseFrameDecoder().feed(stream)) == 3
+
+
+STREAMS = st.one_of(
+    st.binary(max_size=400),
+    st.lists(
+        st.sampled_from([wire(m) for m in DOC_MESSAGES.values()] + [b"\x00", b"\x01" * 70, b"\x05\x22"]),
+        max_size=12,
+    ).map(b"".join),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(STREAMS)
+def test_one_shot_decoding_of_anything_decodes_or_raises_command_frame_error(data: bytes) -> None:
+    for decode in (decode_command, decode_goal_status):
+        with contextlib.suppress(CommandFrameError):
+            decode(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(STREAMS, st.lists(st.integers(0, 500), max_size=6))
+def test_the_stream_decoders_never_raise_and_cuts_do_not_matter(data: bytes, cuts: list[int]) -> None:
+    for make in (CommandDecoder, GoalStatusDecoder):
+        whole = make()
+        expected = whole.feed(data)
+        pieces = make()
+        got = []
+        start = 0
+        for cut in sorted(c % (len(data) + 1) for c in cuts):
+            got += pieces.feed(data[start:cut])
+            start = cut
+        got += pieces.feed(data[start:])
+        assert got == expected
+        assert pieces.counters() == whole.counters()
+
+
+def test_cancel_defaults_to_whatever_goal_is_active() -> None:
+    assert decode_command(encode_command(CancelCommand(1))) == CancelCommand(1, NO_GOAL)

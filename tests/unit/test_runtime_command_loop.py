@@ -1,0 +1,120 @@
+"""The command loop on a real pseudo-terminal: a controller writes command frames (or MAVLink) on the
+pose output's line and reads goal statuses back between the pose frames; bad frames are answered too."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from agent.config import OutputConfig, OutputFormat
+from agent.runtime.arbiter import CommandArbiter, DriveSource
+from agent.runtime.command_loop import CommandLoop
+from agent.runtime.output import PoseOutput
+from firmware_protocol.command_frame import (
+    NO_SEQUENCE,
+    GoalCommand,
+    GoalReason,
+    GoalState,
+    GoalStatusDecoder,
+    StopCommand,
+    VelocityCommand,
+    encode_command,
+)
+from firmware_protocol.framing import encode_link_frame
+from firmware_protocol.pose_frame import PoseFlags, PoseFrameDecoder
+from tests.unit.test_runtime_output import estimate, pty, read_all
+
+__all__ = ["pty"]  # the fixture
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def setup(path: str, fmt: OutputFormat = OutputFormat.FRAME) -> tuple[PoseOutput, CommandLoop, Clock]:
+    out = PoseOutput(OutputConfig(url=path, format=fmt), path)
+    out.open()
+    clock = Clock()
+    arbiter = CommandArbiter(0.22, 2.0, check_goal=lambda g: GoalReason.UNREACHABLE if g.x_m > 50 else None)
+    return out, CommandLoop(out, arbiter, fmt, clock_s=clock), clock
+
+
+def pump(loop: CommandLoop, master: int, data: bytes) -> bytes:
+    os.write(master, data)
+    taken = 0
+    for _ in range(50):  # the pty hands bytes over at once; this only waits for them, it measures nothing
+        taken += loop.step()
+        reply = read_all(master)
+        if reply:
+            return reply
+    return b""
+
+
+def test_commands_are_answered_between_pose_frames_and_drive_the_arbiter(pty: tuple[int, str]) -> None:
+    master, path = pty
+    out, loop, clock = setup(path)
+    read_all(master)  # the leading 0x00
+    out.publish(estimate(0), PoseFlags.VLP)
+    reply = pump(loop, master, encode_command(VelocityCommand(7, 0.5, 0.0, 0.4)))
+    out.publish(estimate(1), PoseFlags.VLP)
+    reply += read_all(master)
+    statuses = GoalStatusDecoder().feed(reply)
+    assert [(s.command_sequence, s.state, s.reason) for s in statuses] == [
+        (7, GoalState.ACCEPTED, GoalReason.CLAMPED)
+    ]
+    assert len(PoseFrameDecoder().feed(reply)) == 2  # poses and statuses share the line
+    directive, _ = loop.arbiter.directive(clock.now)
+    assert (directive.source, directive.v_mps) == (DriveSource.VELOCITY, 0.22)
+
+
+def test_bad_crc_unknown_type_and_an_unreachable_goal_are_each_answered(pty: tuple[int, str]) -> None:
+    master, path = pty
+    _, loop, _ = setup(path)
+    read_all(master)
+    good = bytearray(encode_command(StopCommand(3)))
+    good[2] ^= 0x01
+    stream = (
+        bytes(good)
+        + encode_link_frame(bytes([0x2E, 0x10, 9, 0]))
+        + encode_command(GoalCommand(4, 11, 99.0, 0.0))
+    )
+    reply = pump(loop, master, stream)
+    for _ in range(5):
+        loop.step()
+        reply += read_all(master)
+    statuses = GoalStatusDecoder().feed(reply)
+    assert [(s.command_sequence, s.goal_id, s.state, s.reason) for s in statuses] == [
+        (NO_SEQUENCE, 0xFFFF, GoalState.REJECTED, GoalReason.BAD_FRAME),
+        (NO_SEQUENCE, 0xFFFF, GoalState.REJECTED, GoalReason.UNKNOWN_TYPE),
+        (4, 11, GoalState.REJECTED, GoalReason.UNREACHABLE),
+    ]
+    assert loop.counts["rejected_crc"] == 1 and loop.counts["rejected_type"] == 1
+    assert loop.arbiter.directive(0.0)[0].source is DriveSource.NONE
+
+
+def test_mavlink_commands_are_answered_with_command_acks(pty: tuple[int, str]) -> None:
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import common as mavlink
+
+    master, path = pty
+    _, loop, _ = setup(path, OutputFormat.MAVLINK)
+    read_all(master)
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    msg = mavlink.MAVLink_command_long_message(1, 197, 193, 0, 0, 0, 0, 0, 0, 0, 0)
+    reply = pump(loop, master, bytes(msg.pack(gcs)))
+    (ack,) = mavlink.MAVLink(None).parse_buffer(reply)
+    assert (ack.get_type(), ack.command, ack.result) == ("COMMAND_ACK", 193, 0)
+    assert loop.arbiter.directive(0.0)[0].source is DriveSource.STOPPED
+
+
+@pytest.mark.parametrize("junk", [b"\x00" * 10, bytes(range(1, 256)) * 3, b""])
+def test_junk_never_raises_and_never_moves_the_base(pty: tuple[int, str], junk: bytes) -> None:
+    master, path = pty
+    _, loop, _ = setup(path)
+    pump(loop, master, junk + b"\x00")
+    assert loop.arbiter.directive(0.0)[0].source is DriveSource.NONE
