@@ -41,7 +41,7 @@ import numpy as np
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, Written, create_agent
-from agent.runtime.mapper import save_map
+from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
@@ -275,6 +275,8 @@ def run(args: argparse.Namespace) -> int:
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation)
         url, controller = serve_pose_stream(stack, config)
+        if config.slam.mode is SlamMode.MAPPING:
+            tidy_map_folder(out_dir)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
