@@ -194,3 +194,63 @@ def test_a_killed_sim_is_tidied_up_by_the_next_start(tmp_path: Path) -> None:
     assert list(temp.iterdir()) == []  # the killed run's folder, and the second run's own
     assert not half_saved.exists()
     assert (out / "map.yaml").exists()
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "other link", "missing folder"])
+def test_fake_link_refuses_to_replace_what_is_not_its_own(tmp_path: Path, kind: str) -> None:
+    path = tmp_path / "urg"
+    if kind == "file":
+        path.write_text("someone's notes\n")
+    elif kind == "folder":
+        path.mkdir()
+        (path / "inside").write_text("kept\n")
+    elif kind == "other link":
+        (tmp_path / "target").write_text("kept\n")
+        path.symlink_to(tmp_path / "target")
+    else:
+        path = tmp_path / "absent" / "urg"
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    # In a process of its own: a fake that took the path would serve until killed (the timeout).
+    out = subprocess.run(
+        vlp_agent("fake", "urg", "--link", str(path)),
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO,
+        check=False,
+    )
+    assert out.returncode == 2 and out.stdout == ""
+    err = out.stderr
+    assert err.startswith(f"vlp-agent fake: --link {path}: ") and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing replaced, no stray temporary
+    if kind == "file":
+        assert path.read_text() == "someone's notes\n"
+    elif kind == "folder":
+        assert (path / "inside").read_text() == "kept\n"
+    elif kind == "other link":
+        assert os.readlink(path) == str(tmp_path / "target")
+
+
+def test_fake_link_replaces_a_dangling_pty_link_and_removes_its_own_on_exit(tmp_path: Path) -> None:
+    link = tmp_path / "urg"
+    link.symlink_to("/dev/pts/999999")  # a killed fake's link: its pty is gone
+    proc = subprocess.Popen(
+        vlp_agent("fake", "urg", "--link", str(link)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == str(link)
+        target = os.readlink(link)
+        assert target.startswith("/dev/pts/") and os.path.exists(target)
+        assert [p.name for p in tmp_path.iterdir()] == ["urg"]
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 0
+        assert not link.is_symlink()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
