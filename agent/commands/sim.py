@@ -43,6 +43,7 @@ from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_co
 from agent.runtime import Agent, ScanMapper, Written, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
+from agent.shipped import DEFAULT_SIM_CONFIG
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
@@ -52,7 +53,7 @@ from firmware_protocol.pose_frame import PoseFlags
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "sim.toml"
+DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
 FAULT_KINDS = ("laser", "camera", "servo")
 _SOURCES = (PoseFlags.VLP, PoseFlags.SLAM, PoseFlags.ODOMETRY, PoseFlags.IMU)
 _AUTOPILOT_PERIOD_S = 0.05
