@@ -248,6 +248,8 @@ def save_map(image: OccupancyImage, yaml_path: str | Path, comment: str = "") ->
     previous: Path | None = None
     try:
         yaml_file.parent.mkdir(parents=True, exist_ok=True)
+        # Whatever an earlier save killed half-way left (for writers with no start of their own to do it).
+        tidy_map_folder(yaml_file)
         replaced = _loadable_text(yaml_file)
         pgm_file = _image_version(yaml_file)
         # 1. The image, under a name nothing refers to yet: a kill here leaves the old pair as it was.

@@ -361,3 +361,12 @@ def test_wall_thickness_tells_thin_from_thick_and_doubled() -> None:
     two[30:32, 5:55] = True  # a wall that fell on a cell boundary: two cells thick, still one line
     assert wall_thickness(two).thin_fraction > 0.9
     assert math.isnan(wall_thickness(np.zeros((5, 5), dtype=bool)).thin_fraction)
+
+
+def test_a_save_tidies_what_a_killed_save_left(tmp_path: Path) -> None:
+    first, second = two_versions()
+    yaml_file = tmp_path / "map.yaml"
+    save_killed_before_rename(yaml_file, first, 1)  # the image renamed, no YAML yet
+    assert [p.suffix for p in tmp_path.iterdir()] in ([".tmp", ".pgm"], [".pgm", ".tmp"])
+    files = save_map(second, yaml_file)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([files.image.name, "map.yaml"])
