@@ -6,6 +6,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from agent.shipped import WORLDS
 from calibration.report import CalibrationError, Console
 from drivers.sim.world import World
 
@@ -14,8 +15,7 @@ __all__ = ["DEFAULT_DIR", "ROBOT_DIR", "SimOptions", "StepContext", "default_out
 # Where an installed robot keeps its calibration (systemd/install.sh creates it); elsewhere a local folder.
 ROBOT_DIR = Path("/var/lib/vlp-agent/calibration")
 DEFAULT_DIR = Path("vlp-calibration")
-# The shipped worlds, beside the packages (the package is installed editable, as the README says).
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "worlds"
+EXAMPLES = WORLDS
 DEFAULT_SIM_WORLD = EXAMPLES / "env1.toml"
 
 

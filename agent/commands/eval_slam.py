@@ -56,8 +56,8 @@ def add_parser(subparsers: Any) -> None:
             relative-pose error against the log's GMapping-corrected poses over every pair of
             consecutive scans (trans_error_m_*, rot_error_deg_*), next to raw odometry's, and over
             pairs --span scans apart (span_*: whether the trajectory holds together over a building,
-            which the consecutive pairs cannot show). Writes map.pgm + map.yaml (ROS map_server),
-            map.png and trajectory.png into --out.
+            which the consecutive pairs cannot show). Writes map.yaml and the map.<stamp>.pgm it names
+            (ROS map_server), map.png and trajectory.png into --out.
 
             With --world, drives the simulated robot along the world's route and reports the absolute
             trajectory error against the simulation's truth (ate_m), with VLP fixes in the filter or

@@ -11,11 +11,13 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from agent.commands.worlds import resolve_world
 from agent.runtime.shutdown import ShutdownRequest
-from drivers.fakes.pty import ByteDevice, PtyServer
+from drivers.errors import ConfigError
+from drivers.fakes.pty import ByteDevice, PtyServer, check_link_path
 from drivers.sim.simulation import Simulation
 from drivers.sim.worldfile import load_world
 
@@ -40,7 +42,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p.add_argument(
         "--link",
         metavar="PATH",
-        help="also keep a symlink at PATH pointing at the pty, like a udev rule's stable name",
+        help="also keep a symlink at PATH pointing at the pty, like a udev rule's stable name; PATH must "
+        "not exist (a dangling link into /dev/pts left by a killed fake is replaced), its folder must",
     )
     p.add_argument(
         "--rfid-protocol", choices=["id12la", "rdm6300", "mercury"], help="override the world's RFID protocol"
@@ -64,6 +67,13 @@ def make_device(name: str, simulation: Simulation, rfid_protocol: str | None = N
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.link is not None:
+        # A usage error, like a bad argument: checked before anything starts, exit code 2.
+        try:
+            check_link_path(Path(args.link))
+        except ConfigError as exc:
+            print(f"vlp-agent fake: --link {exc.file}: {exc.reason}", file=sys.stderr)
+            return 2
     world = load_world(resolve_world(args.world))
     simulation = Simulation(world)
     device = make_device(args.device, simulation, args.rfid_protocol)

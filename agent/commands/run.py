@@ -24,7 +24,7 @@ from typing import Any
 from agent.commands.args import dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
-from agent.runtime.mapper import save_map
+from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
 
 log = logging.getLogger(__name__)
@@ -85,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
         from agent.commands.sim import give_way_to_agent, serve_pose_stream
 
         url, controller = serve_pose_stream(stack, config)
+        directory = map_directory(config)
+        if directory is not None and config.slam.mode is SlamMode.MAPPING:
+            tidy_map_folder(directory)
         agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
@@ -102,7 +105,6 @@ def run(args: argparse.Namespace) -> int:
             agent.stop()
             status = agent.status()
             map_files: list[str] = []
-            directory = map_directory(config)
             if agent.mapper is not None and directory is not None and config.slam.mode is SlamMode.MAPPING:
                 map_files = [str(p) for p in save_map(agent.mapper, directory)]
             if controller is not None:

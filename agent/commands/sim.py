@@ -41,8 +41,9 @@ from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, Written, create_agent
-from agent.runtime.mapper import save_map
+from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
+from agent.shipped import DEFAULT_SIM_CONFIG
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
@@ -52,7 +53,7 @@ from firmware_protocol.pose_frame import PoseFlags
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "sim.toml"
+DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
 FAULT_KINDS = ("laser", "camera", "servo")
 _SOURCES = (PoseFlags.VLP, PoseFlags.SLAM, PoseFlags.ODOMETRY, PoseFlags.IMU)
 _AUTOPILOT_PERIOD_S = 0.05
@@ -297,6 +298,8 @@ def run(args: argparse.Namespace) -> int:
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation)
         url, controller = serve_pose_stream(stack, config)
+        if config.slam.mode is SlamMode.MAPPING:
+            tidy_map_folder(out_dir)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).

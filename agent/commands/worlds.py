@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from agent.shipped import WORLDS
 from drivers.errors import ConfigError
 
-# The repository's examples/worlds, next to the packages (the README installs the package editable).
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "worlds"
+EXAMPLES = WORLDS
 DEFAULT_WORLD = EXAMPLES / "office.toml"
 
 

@@ -27,7 +27,15 @@ from agent.config import MountConfig, SlamConfig, SlamMode
 from agent.runtime.types import AbsoluteFix
 from drivers.samples import Scan
 
-__all__ = ["MapperStep", "MclMapper", "RbpfMapper", "ScanMapper", "make_mapper", "save_map"]
+__all__ = [
+    "MapperStep",
+    "MclMapper",
+    "RbpfMapper",
+    "ScanMapper",
+    "make_mapper",
+    "save_map",
+    "tidy_map_folder",
+]
 
 log = logging.getLogger(__name__)
 
@@ -328,8 +336,9 @@ def make_mapper(
 
 
 def save_map(mapper: ScanMapper, directory: Path, name: str = "map") -> list[Path]:
-    """Write the mapper's map as ROS map_server files (``name.pgm`` + ``name.yaml``; the previous pair is
-    kept as ``name.prev.*``) and a PNG picture, atomically. Nothing when there is no map (yet)."""
+    """Write the mapper's map as ROS map_server files (``name.yaml`` naming a new ``name.<stamp>.pgm``;
+    the pair replaced is kept as ``name.prev.yaml``) and a PNG picture, atomically. Nothing when there is
+    no map (yet)."""
     image = mapper.map_image()
     if image is None or mapper.counters().get("filter_updates", 0) == 0:
         return []
@@ -338,3 +347,10 @@ def save_map(mapper: ScanMapper, directory: Path, name: str = "map") -> list[Pat
     files = mapio.save_map(image, directory / f"{name}.yaml", comment=f"vlp-agent {mapper.name}")
     png = mapio.write_png(directory / f"{name}.png", image.pixels)
     return [files.yaml, files.image, png]
+
+
+def tidy_map_folder(directory: Path, name: str = "map") -> list[Path]:
+    """At start: remove what a save killed half-way left in the map folder (see ``mapio.tidy_map_folder``)."""
+    from agent.slam import mapio
+
+    return mapio.tidy_map_folder(directory / f"{name}.yaml")

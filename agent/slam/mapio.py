@@ -5,9 +5,13 @@ The YAML is the map_server subset (``image``, ``resolution``, ``origin: [x, y, y
 library. Pixel values follow map_saver: 0 occupied, 254 free, 205 unknown; loading applies map_server's
 rule p = (255 - v) / 255 (or v / 255 with ``negate: 1``).
 
-Writes are atomic per file (a temporary file in the same folder, fsync, rename) and keep the previous
-version: saving ``map.yaml`` over an existing map first copies the old pair to ``map.prev.pgm`` and
-``map.prev.yaml`` (the latter pointing at the former), so a bad run never destroys the last good map.
+A map is the pair that was written together or nothing. The YAML names its image, so each save writes its
+image under a new name (``map.<UTC stamp>.pgm``) and then renames the YAML over ``map.yaml``: that one
+rename is the commit, and a kill at any point leaves either the old pair or the new one (in a fresh
+folder, no ``map.yaml`` at all). The pair being replaced stays loadable as ``map.prev.yaml`` (naming its
+own image), and only images that neither YAML names are removed, after the commit. Every file goes
+through a temporary file in the same folder, fsync and rename, with the permissions ``open()`` would give
+(0666 less the umask). One writer per map folder: ``tidy_map_folder`` removes what a killed writer left.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import os
 import re
 import tempfile
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
@@ -40,11 +45,37 @@ class MapFiles:
     previous_yaml: Path | None
 
 
+def new_file_mode() -> int:
+    """What ``open()`` gives a new file: 0666 less the process's umask (``mkstemp`` alone gives 0600)."""
+    try:
+        # Read it where Linux shows it: setting the umask to read it back would briefly change it for
+        # every thread of the process.
+        for line in Path("/proc/self/status").read_text(encoding="ascii").splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _fsync_dir(folder: Path) -> None:
+    # A rename is durable only once the folder's entry is on disk; not every filesystem allows this.
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, new_file_mode())
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
@@ -116,23 +147,122 @@ def _yaml_text(image_name: str, image: OccupancyImage) -> str:
     )
 
 
-def save_map(image: OccupancyImage, yaml_path: str | Path, comment: str = "") -> MapFiles:
-    """Write ``<stem>.pgm`` and ``<stem>.yaml``; an existing pair becomes ``<stem>.prev.*`` first."""
-    yaml_file = Path(yaml_path)
+# The stamp in an image's name: UTC to the microsecond, and a counter if two saves share one.
+_STAMP = r"\d{8}T\d{12}Z(?:-\d+)?"
+
+
+def _stem(yaml_file: Path) -> str:
     if yaml_file.suffix != ".yaml":
         raise ConfigError("map", f"the map description must end in .yaml: {yaml_file}")
-    stem = yaml_file.with_suffix("")
-    pgm_file = stem.with_suffix(".pgm")
+    return yaml_file.stem
+
+
+def _previous_yaml(yaml_file: Path) -> Path:
+    return yaml_file.with_name(f"{_stem(yaml_file)}.prev.yaml")
+
+
+def _image_version(yaml_file: Path) -> Path:
+    """A name no file in the folder has yet: ``<stem>.<UTC stamp>.pgm``."""
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    candidate = yaml_file.with_name(f"{_stem(yaml_file)}.{stamp}.pgm")
+    counter = 0
+    while candidate.exists():
+        counter += 1
+        candidate = yaml_file.with_name(f"{_stem(yaml_file)}.{stamp}-{counter}.pgm")
+    return candidate
+
+
+def _named_image(yaml_file: Path) -> Path | None:
+    """The image a map description names, or None when there is no readable description."""
+    try:
+        fields = _parse_yaml(yaml_file.read_text(encoding="utf-8"), str(yaml_file))
+    except (OSError, UnicodeDecodeError, ConfigError):
+        return None
+    if "image" not in fields:
+        return None
+    image = Path(fields["image"])
+    return image if image.is_absolute() else yaml_file.parent / image
+
+
+def _loadable_text(yaml_file: Path) -> bytes | None:
+    """The description's bytes when it and its image load, else None (nothing worth keeping)."""
+    try:
+        text = yaml_file.read_bytes()
+        load_map(yaml_file)
+    except (OSError, ConfigError):
+        return None
+    return text
+
+
+def _remove_unnamed_images(yaml_file: Path, *, legacy: bool) -> list[Path]:
+    """Delete this map's images that neither ``<stem>.yaml`` nor ``<stem>.prev.yaml`` names: the
+    versioned ones always (a kill before the commit leaves one), the fixed names of older releases
+    (``<stem>.pgm``, ``<stem>.prev.pgm``) only when ``legacy``, i.e. right after a commit replaced them."""
+    stem = _stem(yaml_file)
+    named = {p.resolve() for p in (_named_image(yaml_file), _named_image(_previous_yaml(yaml_file))) if p}
+    pattern = re.compile(rf"{re.escape(stem)}\.{_STAMP}\.pgm")
+    removed: list[Path] = []
+    for entry in yaml_file.parent.iterdir():
+        ours = pattern.fullmatch(entry.name) is not None
+        if legacy and entry.name in (f"{stem}.pgm", f"{stem}.prev.pgm"):
+            ours = True
+        if ours and entry.is_file() and entry.resolve() not in named:
+            with contextlib.suppress(FileNotFoundError):
+                entry.unlink()
+                removed.append(entry)
+    return removed
+
+
+def tidy_map_folder(yaml_path: str | Path) -> list[Path]:
+    """Remove what a writer killed mid-save left beside ``yaml_path``: its temporary files and any
+    versioned image no description names. Call it when the single writer of that folder starts.
+    Returns the paths removed (an absent folder is fine: nothing to tidy)."""
+    yaml_file = Path(yaml_path)
+    stem = _stem(yaml_file)
+    if not yaml_file.parent.is_dir():
+        return []
+    temporary = re.compile(
+        rf"\.{re.escape(stem)}\.(?:prev\.)?(?:{_STAMP}\.)?(?:yaml|pgm|png)\.[A-Za-z0-9_]+\.tmp"
+    )
+    removed: list[Path] = []
+    try:
+        for entry in yaml_file.parent.iterdir():
+            if temporary.fullmatch(entry.name) and entry.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    entry.unlink()
+                    removed.append(entry)
+        removed += _remove_unnamed_images(yaml_file, legacy=False)
+    except OSError as exc:
+        # Left-overs cost disk space, not correctness: the start goes on, a save may still fail later.
+        log.warning("cannot tidy the map folder %s: %s", yaml_file.parent, exc)
+    for path in removed:
+        log.info("removed %s, left by an interrupted map save", path)
+    return removed
+
+
+def save_map(image: OccupancyImage, yaml_path: str | Path, comment: str = "") -> MapFiles:
+    """Write a new image ``<stem>.<stamp>.pgm`` and then ``<stem>.yaml`` naming it; a pair that loads
+    is kept as ``<stem>.prev.yaml`` (naming its own image). See the module's docstring for why."""
+    yaml_file = Path(yaml_path)
+    _stem(yaml_file)
     previous: Path | None = None
     try:
-        if yaml_file.exists() and pgm_file.exists():
-            prev_pgm = stem.parent / f"{stem.name}.prev.pgm"
-            previous = stem.parent / f"{stem.name}.prev.yaml"
-            write_atomic(prev_pgm, pgm_file.read_bytes())
-            old = load_map(yaml_file)
-            write_atomic(previous, _yaml_text(prev_pgm.name, old).encode("ascii"))
+        yaml_file.parent.mkdir(parents=True, exist_ok=True)
+        # Whatever an earlier save killed half-way left (for writers with no start of their own to do it).
+        tidy_map_folder(yaml_file)
+        replaced = _loadable_text(yaml_file)
+        pgm_file = _image_version(yaml_file)
+        # 1. The image, under a name nothing refers to yet: a kill here leaves the old pair as it was.
         write_atomic(pgm_file, encode_pgm(image.pixels, comment))
+        # 2. The pair about to be replaced becomes the previous version (its YAML names its own image).
+        if replaced is not None:
+            previous = _previous_yaml(yaml_file)
+            write_atomic(previous, replaced)
+        # 3. The commit: one rename puts the new description, naming the new image, in place.
         write_atomic(yaml_file, _yaml_text(pgm_file.name, image).encode("ascii"))
+        _fsync_dir(yaml_file.parent)
+        # 4. Images neither description names any more (the previous-but-one, older releases' names).
+        _remove_unnamed_images(yaml_file, legacy=True)
     except OSError as exc:
         raise ConfigError("map", f"cannot write the map: {exc.strerror or exc}", str(yaml_file)) from exc
     log.info("map written to %s (%dx%d cells)", yaml_file, image.pixels.shape[1], image.pixels.shape[0])

@@ -4,7 +4,8 @@ a terminal program) can open its path like a real port.
 The fake keeps the master side; the slave side is what clients open. ``unplug()`` closes the master, which
 is what a client sees when a USB-serial device is pulled (reads fail with EIO / "device disconnected"), and
 ``replug()`` brings a new pty up. With ``link=`` the server keeps a symlink pointing at the current slave,
-the way a udev rule keeps ``/dev/urg`` pointing at whichever ``ttyACM`` the sensor came up as.
+the way a udev rule keeps ``/dev/urg`` pointing at whichever ``ttyACM`` the sensor came up as. The link
+never replaces anything but a link of its own kind: see :func:`check_link_path`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import contextlib
 import errno
 import logging
 import os
+import secrets
 import select
 import threading
 import time
@@ -22,7 +24,30 @@ from pathlib import Path
 from types import TracebackType
 from typing import Protocol, runtime_checkable
 
+from drivers.errors import ConfigError
+
 log = logging.getLogger(__name__)
+
+# Where pty slaves live: a link into here whose pty is gone was left by a fake that was killed.
+_PTS_DIR = "/dev/pts/"
+
+
+def check_link_path(path: Path) -> None:
+    """Refuse a link path that would destroy something: ``path`` may be absent (its folder must exist) or
+    a dangling symlink into /dev/pts (a fake killed before it could remove its link); any file, folder,
+    live link or link elsewhere is someone else's. Raises ConfigError naming the path."""
+    if not path.parent.is_dir():
+        raise ConfigError("link", f"the folder {path.parent} does not exist", str(path))
+    if path.is_symlink():
+        target = os.readlink(path)
+        if target.startswith(_PTS_DIR) and not os.path.exists(target):
+            return
+        raise ConfigError(
+            "link", f"is already a link (to {target}) that this fake did not make; remove it first", str(path)
+        )
+    if path.exists():
+        kind = "a folder" if path.is_dir() else "a file"
+        raise ConfigError("link", f"is {kind}; the link would replace it: choose another path", str(path))
 
 
 class ByteDevice(Protocol):
@@ -106,11 +131,13 @@ class PtyServer:
             self._master, self._slave = master, slave
             self._slave_path = os.ttyname(slave)
             if self.link is not None:
-                tmp = self.link.with_name(self.link.name + ".tmp")
-                with contextlib.suppress(FileNotFoundError):
-                    tmp.unlink()
-                tmp.symlink_to(self._slave_path)
-                os.replace(tmp, self.link)
+                try:
+                    self._place_link()
+                except BaseException:
+                    for fd in (master, slave):
+                        os.close(fd)
+                    self._master = self._slave = None
+                    raise
             self._stop.clear()
             self._thread = threading.Thread(
                 target=self._run, name=f"fake-pty {self._slave_path}", daemon=True
@@ -132,9 +159,40 @@ class PtyServer:
                         os.close(fd)
             self._master = self._slave = None
             self._thread = None
-            if self.link is not None:
+            if self.link is not None and self._owns_link():
                 with contextlib.suppress(FileNotFoundError):
                     self.link.unlink()
+
+    def _owns_link(self) -> bool:
+        try:
+            return os.readlink(self.link) == self._slave_path if self.link is not None else False
+        except OSError:
+            return False
+
+    def _place_link(self) -> None:
+        """Point the link at the new slave with one rename, after checking it replaces nothing of anyone
+        else's (on a replug, the old link is this server's own and was removed when it was unplugged)."""
+        assert self.link is not None
+        check_link_path(self.link)
+        # A name of our own for the new link: a fixed "PATH.tmp" could be someone's file.
+        while True:
+            tmp = self.link.with_name(f".{self.link.name}.{secrets.token_hex(4)}.tmp")
+            try:
+                tmp.symlink_to(self._slave_path)
+                break
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                raise self._link_error(exc) from exc
+        try:
+            os.replace(tmp, self.link)
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise self._link_error(exc) from exc
+
+    def _link_error(self, exc: OSError) -> ConfigError:
+        return ConfigError("link", f"cannot make the link: {exc.strerror or exc}", str(self.link))
 
     def close(self) -> None:
         self.unplug()

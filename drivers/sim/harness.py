@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -26,6 +28,47 @@ from drivers.sim.simulation import Simulation
 from drivers.sim.world import World
 
 log = logging.getLogger(__name__)
+
+# Each simulated robot's pty links and I2C bus live in a temporary folder named after the process that
+# made it, so that a folder left by a killed run can be told from one in use and removed at the next start.
+FOLDER_PREFIX = "vlp-sim-"
+_FOLDER = re.compile(rf"{FOLDER_PREFIX}(\d+)-[^/]+")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def remove_stale_folders(temp_dir: Path | None = None) -> list[Path]:
+    """Remove this user's simulated-robot folders whose process has ended (killed before it could clean
+    up). A reused pid only delays a removal; a folder without a pid in its name (older releases) is left."""
+    root = Path(temp_dir) if temp_dir is not None else Path(tempfile.gettempdir())
+    removed: list[Path] = []
+    try:
+        entries = list(root.glob(f"{FOLDER_PREFIX}*"))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = _FOLDER.fullmatch(entry.name)
+        try:
+            ours = entry.is_dir() and not entry.is_symlink() and entry.stat().st_uid == os.getuid()
+            if match is None or not ours:
+                continue
+        except OSError:
+            continue
+        if _alive(int(match.group(1))):
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        if not entry.exists():
+            log.info("removed %s, left by a simulated robot that did not stop", entry)
+            removed.append(entry)
+    return removed
 
 
 class SimulatedRobot:
@@ -85,7 +128,8 @@ class SimulatedRobot:
     def start(self) -> None:
         from drivers.fakes.imu import FakeI2cBus, FakeMpu6050
 
-        self._dir = Path(tempfile.mkdtemp(prefix="vlp-sim-"))
+        remove_stale_folders()
+        self._dir = Path(tempfile.mkdtemp(prefix=f"{FOLDER_PREFIX}{os.getpid()}-"))
         # How often each fake is polled for output of its own: the URG says when its next scan or reply
         # falls due and its server sleeps until then (at most the interval given), a tag reader reports
         # every few tens of milliseconds, the servos only ever answer (a reply goes out as soon as a

@@ -8,10 +8,15 @@ takes a while: it runs only with VLP_TEST_INSTALL_VENV=1.
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+import signal
 import stat
 import subprocess
+import sys
 import tomllib
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -215,3 +220,76 @@ def test_venv_install_runs_the_installed_agent(root: Path, stubs: Path) -> None:
     assert (REPO / "build").exists() == had_build_dir
     run_install(root, stubs, "--uninstall")
     assert tree(root) == set()
+
+
+@pytest.mark.slow
+def test_the_wheel_carries_the_default_config_and_worlds(tmp_path: Path) -> None:
+    """A non-editable install runs `vlp-agent sim` and `vlp-agent fake urg` with their defaults from a
+    folder outside the checkout: the config and worlds come from inside the wheel. Quick form (about
+    30 s): the wheel, built as pip builds it (an isolated build: pip fetches setuptools), is unpacked into
+    a folder that shadows the editable checkout, with the dependencies from this venv; .ci/wheel-check
+    installs it into a fresh venv instead."""
+    source = tmp_path / "src"
+    shutil.copytree(
+        REPO,
+        source,
+        symlinks=True,
+        ignore=shutil.ignore_patterns(
+            ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", ".*_cache"
+        ),
+    )
+    build = ["wheel", "--quiet", "--no-deps", "--disable-pip-version-check"]
+    subprocess.run(
+        [sys.executable, "-m", "pip", *build, "-w", str(tmp_path / "dist"), str(source)],
+        check=True,
+        timeout=300,
+        capture_output=True,
+    )
+    (wheel,) = (tmp_path / "dist").glob("vlp_agent-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+    for shipped in ("sim.toml", "worlds/office.toml", "worlds/env1.toml"):
+        assert f"agent/examples/{shipped}" in names, shipped
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as archive:
+        archive.extractall(site)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    run = [sys.executable, "-c", "import sys, agent.cli; sys.exit(agent.cli.main(sys.argv[1:]))"]
+    where = subprocess.run(
+        [sys.executable, "-c", "import agent.shipped as s; print(s.DEFAULT_SIM_CONFIG)"],
+        capture_output=True,
+        text=True,
+        cwd=outside,
+        env=env,
+        timeout=60,
+        check=True,
+    )
+    assert where.stdout.strip() == str(site / "agent" / "examples" / "sim.toml")  # not the checkout's
+
+    sim = subprocess.run(
+        [*run, "sim", "--seconds", "5", "--json"],
+        capture_output=True,
+        text=True,
+        cwd=outside,
+        env=env,
+        timeout=120,
+        check=False,
+    )
+    assert sim.returncode == 0, sim.stderr
+    assert json.loads(sim.stdout)["world"] == "office"
+    assert (outside / "vlp-sim-out" / "map.yaml").exists()
+
+    fake = subprocess.Popen(
+        [*run, "fake", "urg"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=outside, env=env
+    )
+    try:
+        assert fake.stdout is not None
+        assert fake.stdout.readline().startswith("/dev/pts/"), fake.stderr.read() if fake.stderr else ""
+        fake.send_signal(signal.SIGINT)
+        assert fake.wait(timeout=10) == 0
+    finally:
+        if fake.poll() is None:
+            fake.kill()
+            fake.wait()

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -131,6 +132,124 @@ def test_fake_prints_its_path_first_and_serves_until_interrupted(device: str) ->
                 port.closePort()
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=5) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_stale_simulated_robot_folders_are_removed_only_when_their_process_ended(tmp_path: Path) -> None:
+    from drivers.sim.harness import remove_stale_folders
+
+    ended = subprocess.Popen(["true"])
+    ended.wait()  # reaped: its pid names no process
+    dead = tmp_path / f"vlp-sim-{ended.pid}-abc123"
+    alive = tmp_path / f"vlp-sim-{os.getpid()}-def456"
+    older_release = tmp_path / "vlp-sim-k2j4x9"
+    for folder in (dead, alive, older_release):
+        folder.mkdir()
+        (folder / "laser").symlink_to("/dev/pts/999")
+    (tmp_path / f"vlp-sim-{ended.pid}-file").write_text("not a folder")
+    assert remove_stale_folders(tmp_path) == [dead]
+    assert not dead.exists() and alive.exists() and older_release.exists()
+    assert (tmp_path / f"vlp-sim-{ended.pid}-file").exists()
+
+
+def test_a_killed_sim_is_tidied_up_by_the_next_start(tmp_path: Path) -> None:
+    """SIGKILL leaves the pty folder in the temp directory and maybe a half-saved map; the next run
+    removes both before it starts."""
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    env = {**os.environ, "TMPDIR": str(temp)}
+    first = subprocess.Popen(
+        vlp_agent("sim", "--seconds", "60", "--out", str(out)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        env=env,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not list(temp.glob("vlp-sim-*")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        first.kill()
+        first.wait()
+    (left,) = temp.glob("vlp-sim-*")
+    assert left.name.startswith(f"vlp-sim-{first.pid}-")
+    half_saved = out / ".map.yaml.k2j4x9ab.tmp"
+    half_saved.write_text("image: map.20261126T101500123456Z.pgm\n")
+    second = subprocess.run(
+        vlp_agent("sim", "--seconds", "2", "--out", str(out)),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO,
+        env=env,
+        check=False,
+    )
+    assert second.returncode == 0, second.stderr
+    assert list(temp.iterdir()) == []  # the killed run's folder, and the second run's own
+    assert not half_saved.exists()
+    assert (out / "map.yaml").exists()
+
+
+@pytest.mark.parametrize("kind", ["file", "folder", "other link", "missing folder"])
+def test_fake_link_refuses_to_replace_what_is_not_its_own(tmp_path: Path, kind: str) -> None:
+    path = tmp_path / "urg"
+    if kind == "file":
+        path.write_text("someone's notes\n")
+    elif kind == "folder":
+        path.mkdir()
+        (path / "inside").write_text("kept\n")
+    elif kind == "other link":
+        (tmp_path / "target").write_text("kept\n")
+        path.symlink_to(tmp_path / "target")
+    else:
+        path = tmp_path / "absent" / "urg"
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    # In a process of its own: a fake that took the path would serve until killed (the timeout).
+    out = subprocess.run(
+        vlp_agent("fake", "urg", "--link", str(path)),
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO,
+        check=False,
+    )
+    assert out.returncode == 2 and out.stdout == ""
+    err = out.stderr
+    assert err.startswith(f"vlp-agent fake: --link {path}: ") and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing replaced, no stray temporary
+    if kind == "file":
+        assert path.read_text() == "someone's notes\n"
+    elif kind == "folder":
+        assert (path / "inside").read_text() == "kept\n"
+    elif kind == "other link":
+        assert os.readlink(path) == str(tmp_path / "target")
+
+
+def test_fake_link_replaces_a_dangling_pty_link_and_removes_its_own_on_exit(tmp_path: Path) -> None:
+    link = tmp_path / "urg"
+    link.symlink_to("/dev/pts/999999")  # a killed fake's link: its pty is gone
+    proc = subprocess.Popen(
+        vlp_agent("fake", "urg", "--link", str(link)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == str(link)
+        target = os.readlink(link)
+        assert target.startswith("/dev/pts/") and os.path.exists(target)
+        assert [p.name for p in tmp_path.iterdir()] == ["urg"]
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 0
+        assert not link.is_symlink()
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -55,8 +55,10 @@ def test_eval_slam_json_on_radish(
     assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "trajectory.png").stat().st_size > 1000
+    (pgm,) = out.glob("map.*.pgm")  # the image version the YAML names
+    assert f"image: {pgm.name}\n" in (out / "map.yaml").read_text()
     assert sorted(summary["files"]) == sorted(
-        str(out / n) for n in ("map.yaml", "map.pgm", "map.png", "trajectory.png")
+        str(out / n) for n in ("map.yaml", pgm.name, "map.png", "trajectory.png")
     )
 
 

@@ -3,12 +3,23 @@
 from __future__ import annotations
 
 import math
+import os
+import re
+import stat
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from agent.slam.mapio import decode_pgm, encode_pgm, load_map, save_map, write_png
+from agent.slam.mapio import (
+    decode_pgm,
+    encode_pgm,
+    load_map,
+    new_file_mode,
+    save_map,
+    tidy_map_folder,
+    write_png,
+)
 from agent.slam.metrics import (
     absolute_trajectory_error,
     aligned_trajectory_error,
@@ -17,7 +28,14 @@ from agent.slam.metrics import (
     wall_thickness,
 )
 from agent.slam.pose import compose
-from agent.slam.render import FREE_VALUE, OCCUPIED_VALUE, UNKNOWN_VALUE, occupancy_image, trajectory_picture
+from agent.slam.render import (
+    FREE_VALUE,
+    OCCUPIED_VALUE,
+    UNKNOWN_VALUE,
+    OccupancyImage,
+    occupancy_image,
+    trajectory_picture,
+)
 from drivers.errors import ConfigError
 
 
@@ -47,25 +65,155 @@ def test_round_trip_and_previous_version(tmp_path: Path) -> None:
     _, image = sample_image()
     files = save_map(image, tmp_path / "maps" / "office.yaml", comment="test map")  # type: ignore[arg-type]
     assert files.previous_yaml is None
+    assert re.fullmatch(r"office\.\d{8}T\d{12}Z\.pgm", files.image.name)
     text = files.yaml.read_text()
-    assert "image: office.pgm\n" in text and "origin: [-1.500000, 2.250000, 0.000000]" in text
+    assert f"image: {files.image.name}\n" in text and "origin: [-1.500000, 2.250000, 0.000000]" in text
     assert files.image.read_bytes().startswith(b"P5\n# test map\n60 40\n255\n")
     loaded = load_map(files.yaml)
     np.testing.assert_array_equal(loaded.pixels, image.pixels)  # type: ignore[attr-defined]
     assert loaded.resolution_m == pytest.approx(0.05)
     assert loaded.origin == pytest.approx((-1.5, 2.25, 0.0))
-    # Saving again keeps the first map as office.prev.{pgm,yaml}, loadable on its own.
+    # Saving again keeps the first map as office.prev.yaml (naming the first image), loadable on its own.
     log_odds2 = np.full((10, 10), 3.0, dtype=np.float32)
-    save_map(occupancy_image(log_odds2, (0.0, 0.0), 0.1), files.yaml)
-    previous = load_map(tmp_path / "maps" / "office.prev.yaml")
+    second = save_map(occupancy_image(log_odds2, (0.0, 0.0), 0.1), files.yaml)
+    assert second.previous_yaml == tmp_path / "maps" / "office.prev.yaml"
+    previous = load_map(second.previous_yaml)
     np.testing.assert_array_equal(previous.pixels, image.pixels)  # type: ignore[attr-defined]
     assert load_map(files.yaml).pixels.shape == (10, 10)
-    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == [
-        "office.pgm",
-        "office.prev.pgm",
-        "office.prev.yaml",
-        "office.yaml",
-    ]  # no temporary files left behind
+    # A third save drops the first image: two versions kept, no temporary files left behind.
+    third = save_map(occupancy_image(log_odds2, (1.0, 0.0), 0.1), files.yaml)
+    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == sorted(
+        [second.image.name, third.image.name, "office.prev.yaml", "office.yaml"]
+    )
+    assert load_map(third.previous_yaml or files.yaml).origin == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_a_map_of_an_older_release_is_kept_then_replaced(tmp_path: Path) -> None:
+    # Before versioned images: office.pgm + office.yaml, and office.prev.{pgm,yaml}.
+    old = np.full((3, 4), 254, dtype=np.uint8)
+    (tmp_path / "office.pgm").write_bytes(encode_pgm(old))
+    (tmp_path / "office.yaml").write_text("image: office.pgm\nresolution: 0.1\norigin: [5, 5, 0]\n")
+    (tmp_path / "office.prev.pgm").write_bytes(encode_pgm(old))
+    (tmp_path / "office.prev.yaml").write_text("image: office.prev.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n")
+    _, image = sample_image()
+    save_map(image, tmp_path / "office.yaml")  # type: ignore[arg-type]
+    assert load_map(tmp_path / "office.prev.yaml").origin == pytest.approx((5.0, 5.0, 0.0))
+    assert not (tmp_path / "office.prev.pgm").exists()  # named by nothing any more
+    save_map(image, tmp_path / "office.yaml")  # type: ignore[arg-type]
+    assert not (tmp_path / "office.pgm").exists()
+    assert len(list(tmp_path.glob("office.*.pgm"))) == 2
+
+
+def two_versions() -> tuple[OccupancyImage, OccupancyImage]:
+    """Two maps that differ in both image and origin, so a mixed pair cannot pass for either."""
+    first = occupancy_image(np.full((8, 12), -2.0, dtype=np.float32), (-1.0, 2.0, 0.0), 0.05)
+    second = occupancy_image(np.full((6, 5), 3.0, dtype=np.float32), (4.0, -3.0, 0.5), 0.05)
+    return first, second
+
+
+def save_killed_before_rename(yaml_file: Path, image: OccupancyImage, renames: int) -> None:
+    """Save in a child process that dies (``os._exit``, no clean-up) just before its rename number
+    ``renames`` + 1, as a kill would leave the folder."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        done = 0
+        real_replace = os.replace
+
+        def replace(src: str, dst: str) -> None:
+            nonlocal done
+            if done == renames:
+                os._exit(0)
+            done += 1
+            real_replace(src, dst)
+
+        os.replace = replace  # type: ignore[assignment]
+        try:
+            save_map(image, yaml_file)
+        finally:
+            os._exit(0)
+    os.waitpid(pid, 0)
+
+
+def image_name(yaml_file: Path) -> str:
+    return next(line[7:] for line in yaml_file.read_text().splitlines() if line.startswith("image: "))
+
+
+def same_map(loaded: OccupancyImage, expected: OccupancyImage) -> bool:
+    return loaded.pixels.shape == expected.pixels.shape and loaded.origin == pytest.approx(expected.origin)
+
+
+@pytest.mark.parametrize("renames", range(5))
+def test_a_kill_at_any_step_leaves_the_old_pair_or_the_new_one(tmp_path: Path, renames: int) -> None:
+    first, second = two_versions()
+    yaml_file = tmp_path / "map.yaml"
+    save_map(first, yaml_file)
+    save_killed_before_rename(yaml_file, second, renames)
+    loaded = load_map(yaml_file)
+    assert same_map(loaded, first) or same_map(loaded, second)
+    version = first if same_map(loaded, first) else second
+    np.testing.assert_array_equal(loaded.pixels, version.pixels)
+    # Whatever was left over goes at the next start; the map still loads the same afterwards.
+    tidy_map_folder(yaml_file)
+    names = {p.name for p in tmp_path.iterdir()}
+    assert not [n for n in names if n.endswith(".tmp")]
+    named = {image_name(y) for y in tmp_path.glob("*.yaml")}
+    assert {n for n in names if n.endswith(".pgm")} == named
+    assert same_map(load_map(yaml_file), version)
+    if (tmp_path / "map.prev.yaml").exists():
+        assert same_map(load_map(tmp_path / "map.prev.yaml"), first)
+
+
+@pytest.mark.parametrize("renames", range(3))
+def test_a_kill_in_a_fresh_folder_leaves_no_map_or_a_whole_one(tmp_path: Path, renames: int) -> None:
+    _, second = two_versions()
+    yaml_file = tmp_path / "map.yaml"
+    save_killed_before_rename(yaml_file, second, renames)
+    if yaml_file.exists():
+        assert same_map(load_map(yaml_file), second)
+    else:
+        with pytest.raises(ConfigError):
+            load_map(yaml_file)
+        # No image under the name a reader would pair with a later map.yaml.
+        assert not (tmp_path / "map.pgm").exists()
+    tidy_map_folder(yaml_file)
+    assert [p.name for p in tmp_path.iterdir() if p.suffix in (".tmp", ".pgm")] == (
+        [image_name(yaml_file)] if yaml_file.exists() else []
+    )
+
+
+def test_tidy_removes_only_this_maps_left_overs(tmp_path: Path) -> None:
+    first, _ = two_versions()
+    files = save_map(first, tmp_path / "map.yaml")
+    left = [
+        ".map.yaml.k2j4_x9a.tmp",
+        ".map.prev.yaml.abcdefgh.tmp",
+        ".map.20261126T101500123456Z.pgm.q1w2e3r4.tmp",
+        ".map.png.zzzzzzzz.tmp",
+        "map.20261126T101500123456Z.pgm",  # an image whose YAML never made it
+    ]
+    kept = [".mapping.yaml.abcdefgh.tmp", ".other.yaml.abcdefgh.tmp", "map.png", "notes.txt", "office.pgm"]
+    for name in left + kept:
+        (tmp_path / name).write_bytes(b"x")
+    removed = tidy_map_folder(tmp_path / "map.yaml")
+    assert sorted(p.name for p in removed) == sorted(left)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*kept, files.image.name, "map.yaml"])
+    assert tidy_map_folder(tmp_path / "absent" / "map.yaml") == []
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_map_files_get_the_umask_modes(tmp_path: Path, umask: int) -> None:
+    first, second = two_versions()
+    old = os.umask(umask)
+    try:
+        save_map(first, tmp_path / "map.yaml")
+        files = save_map(second, tmp_path / "map.yaml")
+        png = write_png(tmp_path / "map.png", second.pixels)
+    finally:
+        os.umask(old)
+    assert new_file_mode() == 0o666 & ~old
+    for path in (files.yaml, files.image, files.previous_yaml, png):
+        assert path is not None
+        assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask, path.name
 
 
 def test_world_to_pixel_matches_map_server_convention() -> None:
@@ -213,3 +361,12 @@ def test_wall_thickness_tells_thin_from_thick_and_doubled() -> None:
     two[30:32, 5:55] = True  # a wall that fell on a cell boundary: two cells thick, still one line
     assert wall_thickness(two).thin_fraction > 0.9
     assert math.isnan(wall_thickness(np.zeros((5, 5), dtype=bool)).thin_fraction)
+
+
+def test_a_save_tidies_what_a_killed_save_left(tmp_path: Path) -> None:
+    first, second = two_versions()
+    yaml_file = tmp_path / "map.yaml"
+    save_killed_before_rename(yaml_file, first, 1)  # the image renamed, no YAML yet
+    assert [p.suffix for p in tmp_path.iterdir()] in ([".tmp", ".pgm"], [".pgm", ".tmp"])
+    files = save_map(second, yaml_file)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([files.image.name, "map.yaml"])
