@@ -223,6 +223,7 @@ class FakeXl430:
         self.muted = False
         # Monotonic time of the last instruction packet this servo heard (Bus Watchdog counts from it).
         self.heard_at: float | None = None
+        self._has_watchdog = "Bus Watchdog" in table  # firmware v38 and later
         self.input_voltage_dv = input_voltage_dv
         self.temperature_c = temperature_c
         self._registered: tuple[int, bytes] | None = None
@@ -269,11 +270,11 @@ class FakeXl430:
     # -- Bus Watchdog ----------------------------------------------------------------------------------
     @property
     def watchdog_expired(self) -> bool:
-        return self.get("Bus Watchdog") == BUS_WATCHDOG_EXPIRED
+        return self._has_watchdog and self.get("Bus Watchdog") == BUS_WATCHDOG_EXPIRED
 
     def watchdog_left(self, now: float) -> float | None:
         """Seconds until the Bus Watchdog fires if nothing is heard (None: it is not watching)."""
-        period = self.get("Bus Watchdog")
+        period = self.get("Bus Watchdog") if self._has_watchdog else 0
         if period <= 0 or not self.torque_on or self.heard_at is None:
             return None
         return self.heard_at + period * BUS_WATCHDOG_UNIT_S - now
