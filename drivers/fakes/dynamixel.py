@@ -18,18 +18,18 @@ The right servo's ``mount_sign`` is therefore -1: positive Goal Velocity on the 
 robot backward, exactly as on the real robot. Drive Mode (10) bit 0 (Reverse mode) inverts velocity and
 position on a servo, as the e-Manual describes.
 
-Bus Watchdog (98), as the e-Manual's XL430-W250 page describes it (``_includes/en/dxl/
-control_table_buswatchdog.md`` in ROBOTIS-GIT/emanual): 0 deactivates it and clears its error, 1..127 arms
-it in 20 ms units, and it watches "the communication interval" only while Torque Enable is 1, counting
-"all the Instruction Packet[s]". When the interval grows larger than the set value the servo stops, Bus
-Watchdog reads -1 (0xFF) and the Goal items (Goal PWM, Goal Velocity, Goal Position; the XL430 has no Goal
-Current) turn read-only: a write to one gets a Data Range Error (4) in its status. Writing 0 to Bus
-Watchdog clears the error. Where the e-Manual is silent the fake takes the strict reading: an instruction
-counts for a servo when it is addressed to its ID or broadcast (a packet for another ID does not); a
-non-zero write to Bus Watchdog while it reads -1 is refused (Data Range), so only 0 clears; the Goal
-registers keep the values they had (the e-Manual says the servo stops, not that they change), and once
-the error is cleared the servo follows them again, so a host must write a new goal. The servo checks
-the interval whenever time passes for it: on every instruction and whenever the pty server polls it
+Bus Watchdog (98), as the e-Manual's XL430-W250 page describes it (ROBOTIS-GIT/emanual @ 01a2df191e6a,
+``_includes/en/dxl/control_table_buswatchdog.md``, its example included): 0 deactivates it and clears its
+error, 1..127 arms it in 20 ms units, and it watches "the communication interval" only while Torque Enable
+is 1, counting "all the Instruction Packet[s]". When the interval grows larger than the set value the servo
+stops, Bus Watchdog reads -1 (0xFF) and the Goal items (Goal PWM, Goal Velocity, Goal Position; the XL430
+has no Goal Current) turn read-only: a write to one gets a Data Range Error (4) in its status. Writing 0 to
+Bus Watchdog clears the error. Where the e-Manual is silent the fake takes the strict reading: an
+instruction counts for a servo when it is addressed to its ID or broadcast (a packet for another ID does
+not); a non-zero write to Bus Watchdog while it reads -1 is refused (Data Range), so only 0 clears; the Goal
+registers keep the values they had (the e-Manual says the servo stops, not that they change), and once the
+error is cleared the servo follows them again, so a host must write a new goal. The servo checks the
+interval whenever time passes for it: on every instruction and whenever the pty server polls it
 (:meth:`FakeDynamixelBus.next_output_in` wakes the server when a watchdog falls due).
 
 Not modelled: position and PWM control (Goal Position/PWM are stored and range-checked, the shaft does
