@@ -2,11 +2,15 @@
 
 A servo fresh from the box answers at 57600 bps as id 1 in position mode; a spare from another robot may be
 anywhere. The step broadcasts a Protocol 2.0 PING at every rate an XL430 can run (and dynamixel-sdk can set),
-reads each servo's Operating Mode, then finds out which servo drives which wheel (``--assign OLD:NEW``, or a
-short turn of each one while the user says which wheel moved), and writes, per servo at its own rate, with
-torque off: Operating Mode 1 (velocity), the new id, and the Baud Rate last (the servo answers that write at
-the old rate, then listens at the new one). A final scan at the target rate checks the result. Saves the
-``[servos]`` keys for the robot config.
+reads each servo's Operating Mode and Return Delay Time, then finds out which servo drives which wheel
+(``--assign OLD:NEW``, or a short turn of each one while the user says which wheel moved), and writes, per
+servo at its own rate, with torque off: Operating Mode 1 (velocity), Return Delay Time 0, the new id, and
+the Baud Rate last (the servo answers that write at the old rate, then listens at the new one). A final
+scan at the target rate checks the result. Saves the ``[servos]`` keys for the robot config.
+
+Return Delay Time (9, 2 us units) leaves the factory at 250: each status packet waits 0.5 ms before it
+goes out. 0 is what TurtleBot3 users set when the host reports "There is no status packet!" (a reply that
+comes later than the host waits); it also takes 0.5 ms off every read of the agent's servo loop.
 
 The bus is driven directly with the project's codec (``firmware_protocol.dynamixel``) over
 ``serial.serial_for_url``, so a scan can wait exactly as long as 253 servos would need to answer at each rate.
@@ -54,6 +58,7 @@ _STATUS_PING_BYTES = 14
 _ID = XL430_W250["ID"]
 _BAUD = XL430_W250["Baud Rate"]
 _MODE = XL430_W250["Operating Mode"]
+_RETURN_DELAY = XL430_W250["Return Delay Time"]
 _TORQUE = XL430_W250["Torque Enable"]
 _GOAL_VELOCITY = XL430_W250["Goal Velocity"]
 _PRESENT_POSITION = XL430_W250["Present Position"]
@@ -71,11 +76,17 @@ class Found:
     model: int
     firmware: int
     mode: int | None
+    return_delay: int | None = None  # Return Delay Time (9), 2 us units; None: not read
 
     def describe(self) -> str:
         model = "XL430-W250" if self.model == MODEL_XL430_W250 else f"model {self.model}"
         mode = _MODE_NAMES.get(self.mode, str(self.mode)) if self.mode is not None else "mode unknown"
-        return f"id {self.id} at {self.baud} bps: {model}, firmware {self.firmware}, {mode} mode"
+        delay = (
+            f"return delay {self.return_delay * _RETURN_DELAY.scale * 1e6:g} us"
+            if self.return_delay is not None
+            else "return delay unknown"
+        )
+        return f"id {self.id} at {self.baud} bps: {model}, firmware {self.firmware}, {mode} mode, {delay}"
 
 
 class Bus:
@@ -201,7 +212,7 @@ def scan(
     max_id: int = MAX_ID,
     progress: Callable[[str], None] | None = None,
 ) -> list[Found]:
-    """Every servo on the bus at any of ``rates``, with its Operating Mode."""
+    """Every servo on the bus at any of ``rates``, with its Operating Mode and Return Delay Time."""
     found: list[Found] = []
     for rate in rates:
         if progress is not None:
@@ -213,13 +224,19 @@ def scan(
             except CalibrationError as exc:
                 log.warning("servo %d at %d bps: %s", servo_id, rate, exc)
                 mode = None
-            found.append(Found(servo_id, rate, model, firmware, mode))
+            try:
+                delay: int | None = bus.read(servo_id, _RETURN_DELAY)
+            except CalibrationError as exc:
+                log.warning("servo %d at %d bps: %s", servo_id, rate, exc)
+                delay = None
+            found.append(Found(servo_id, rate, model, firmware, mode, delay))
     return found
 
 
 @dataclass
 class Plan:
-    """What to write to each servo (found at ``servo.baud``): its new id, the mode and the rate."""
+    """What to write to each servo (found at ``servo.baud``): the mode, the return delay, its new id and the
+    rate."""
 
     servo: Found
     new_id: int
@@ -231,7 +248,7 @@ def plan_changes(
     found: list[Found], wheels: dict[int, str], left_id: int, right_id: int, baud: int
 ) -> list[Plan]:
     """The writes that make ``wheels`` (found id -> "left"/"right") the left and right servos at ``baud``
-    in velocity mode. Raises CalibrationError when it cannot be done safely."""
+    in velocity mode with no return delay. Raises CalibrationError when it cannot be done safely."""
     if baud not in _BAUD_INDEX:
         raise CalibrationError(
             f"an XL430 cannot run at {baud} bps; choose one of {sorted(_BAUD_INDEX.values())}"
@@ -260,6 +277,8 @@ def plan_changes(
         plan = Plan(servo, new_id, wheel)
         if servo.mode != OperatingMode.VELOCITY:
             plan.writes.append((_MODE, int(OperatingMode.VELOCITY)))
+        if servo.return_delay != 0:
+            plan.writes.append((_RETURN_DELAY, 0))
         if new_id != servo.id:
             plan.writes.append((_ID, new_id))
         if servo.baud != baud:
@@ -503,6 +522,10 @@ def _identify(
     return wheels
 
 
+def _found_values(f: Found) -> dict[str, Any]:
+    return {"id": f.id, "baud": f.baud, "model": f.model, "mode": f.mode, "return_delay": f.return_delay}
+
+
 def _result(
     before: list[Found],
     after: list[Found],
@@ -516,8 +539,8 @@ def _result(
 ) -> StepResult:
     ids_after = {f.id: f for f in after}
     values: dict[str, Any] = {
-        "found": [{"id": f.id, "baud": f.baud, "model": f.model, "mode": f.mode} for f in before],
-        "after": [{"id": f.id, "baud": f.baud, "model": f.model, "mode": f.mode} for f in after],
+        "found": [_found_values(f) for f in before],
+        "after": [_found_values(f) for f in after],
         "baudrate": baud,
         "left_id": left_id,
         "right_id": right_id,
@@ -535,9 +558,11 @@ def _result(
         velocity = sum(
             1 for i in (left_id, right_id) if i in ids_after and ids_after[i].mode == OperatingMode.VELOCITY
         )
+        no_delay = sum(1 for i in (left_id, right_id) if i in ids_after and ids_after[i].return_delay == 0)
         checks = [
             Check(f"wheel servos answering at {baud} bps", float(answering), 2.0, "of 2", at_least=True),
             Check("wheel servos in velocity mode", float(velocity), 2.0, "of 2", at_least=True),
+            Check("wheel servos with Return Delay Time 0", float(no_delay), 2.0, "of 2", at_least=True),
         ]
         text = (
             "# vlp-agent calibrate servos: the [servos] keys for the robot config (docs/config.md)\n"

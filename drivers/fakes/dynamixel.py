@@ -18,9 +18,23 @@ The right servo's ``mount_sign`` is therefore -1: positive Goal Velocity on the 
 robot backward, exactly as on the real robot. Drive Mode (10) bit 0 (Reverse mode) inverts velocity and
 position on a servo, as the e-Manual describes.
 
+Bus Watchdog (98), as the e-Manual's XL430-W250 page describes it (ROBOTIS-GIT/emanual @ 01a2df191e6a,
+``_includes/en/dxl/control_table_buswatchdog.md``, its example included): 0 deactivates it and clears its
+error, 1..127 arms it in 20 ms units, and it watches "the communication interval" only while Torque Enable
+is 1, counting "all the Instruction Packet[s]". When the interval grows larger than the set value the servo
+stops, Bus Watchdog reads -1 (0xFF) and the Goal items (Goal PWM, Goal Velocity, Goal Position; the XL430
+has no Goal Current) turn read-only: a write to one gets a Data Range Error (4) in its status. Writing 0 to
+Bus Watchdog clears the error. Where the e-Manual is silent the fake takes the strict reading: an
+instruction counts for a servo when it is addressed to its ID or broadcast (a packet for another ID does
+not); a non-zero write to Bus Watchdog while it reads -1 is refused (Data Range), so only 0 clears; the Goal
+registers keep the values they had (the e-Manual says the servo stops, not that they change), and once the
+error is cleared the servo follows them again, so a host must write a new goal. The servo checks the
+interval whenever time passes for it: on every instruction and whenever the pty server polls it
+(:meth:`FakeDynamixelBus.next_output_in` wakes the server when a watchdog falls due).
+
 Not modelled: position and PWM control (Goal Position/PWM are stored and range-checked, the shaft does
 not follow them), Return Delay Time (replies go out at once, well inside the SDK's ~34 ms timeout),
-Indirect Address mapping (indirect data are plain RAM), Bus Watchdog, baud rate changes.
+Indirect Address mapping (indirect data are plain RAM), baud rate changes.
 
 Fault switches for tests: :meth:`FakeDynamixelBus.mute` (a servo stops hearing and answering),
 :meth:`~FakeDynamixelBus.set_hardware_error`, :meth:`~FakeDynamixelBus.inject_junk` (bytes before the next
@@ -40,6 +54,9 @@ from typing import Protocol
 
 from drivers.servos.control_table import (
     BAUD_RATES,
+    BUS_WATCHDOG_EXPIRED,
+    BUS_WATCHDOG_GOALS,
+    BUS_WATCHDOG_UNIT_S,
     RAD_PER_TICK,
     RADPS_PER_VELOCITY_UNIT,
     TICKS_PER_REV,
@@ -204,6 +221,9 @@ class FakeXl430:
         self.regs = table.default_image()
         self.regs[table["ID"].address] = servo_id
         self.muted = False
+        # Monotonic time of the last instruction packet this servo heard (Bus Watchdog counts from it).
+        self.heard_at: float | None = None
+        self._has_watchdog = "Bus Watchdog" in table  # firmware v38 and later
         self.input_voltage_dv = input_voltage_dv
         self.temperature_c = temperature_c
         self._registered: tuple[int, bytes] | None = None
@@ -247,10 +267,38 @@ class FakeXl430:
         level = self.get("Status Return Level")
         return instruction == Instruction.PING or level == 2 or (level == 1 and instruction in _READS)
 
+    # -- Bus Watchdog ----------------------------------------------------------------------------------
+    @property
+    def watchdog_expired(self) -> bool:
+        return self._has_watchdog and self.get("Bus Watchdog") == BUS_WATCHDOG_EXPIRED
+
+    def watchdog_left(self, now: float) -> float | None:
+        """Seconds until the Bus Watchdog fires if nothing is heard (None: it is not watching)."""
+        period = self.get("Bus Watchdog") if self._has_watchdog else 0
+        if period <= 0 or not self.torque_on or self.heard_at is None:
+            return None
+        return self.heard_at + period * BUS_WATCHDOG_UNIT_S - now
+
+    def check_watchdog(self, now: float) -> None:
+        """Fire the Bus Watchdog if the interval since the last instruction is larger than its period."""
+        left = self.watchdog_left(now)
+        if left is not None and left < 0:
+            self._set("Bus Watchdog", BUS_WATCHDOG_EXPIRED)
+            self.update_drive(now)
+            log.debug("fake servo %d: Bus Watchdog fired", self.id)
+
+    def hear(self, now: float) -> None:
+        """An instruction packet for this servo arrived at ``now`` (before it is carried out)."""
+        self.check_watchdog(now)
+        self.heard_at = now
+
     # -- motion --------------------------------------------------------------------------------------
-    def update_drive(self, now: float) -> None:
+    def _driving(self) -> bool:
         velocity_mode = self.get("Operating Mode") == OperatingMode.VELOCITY
-        goal = self.get("Goal Velocity") if self.torque_on and velocity_mode else 0
+        return self.torque_on and velocity_mode and not self.watchdog_expired
+
+    def update_drive(self, now: float) -> None:
+        goal = self.get("Goal Velocity") if self._driving() else 0
         self.motor.drive(self._direction() * goal * RADPS_PER_VELOCITY_UNIT, now)
 
     def _refresh(self, now: float) -> None:
@@ -259,8 +307,7 @@ class FakeXl430:
         velocity = round(d * speed / RADPS_PER_VELOCITY_UNIT)
         self._set("Present Velocity", velocity)
         self._set("Present Position", _wrap_int32(d * self._shaft_ticks(angle) + self._offset_ticks))
-        velocity_mode = self.get("Operating Mode") == OperatingMode.VELOCITY
-        self._set("Velocity Trajectory", self.get("Goal Velocity") if self.torque_on and velocity_mode else 0)
+        self._set("Velocity Trajectory", self.get("Goal Velocity") if self._driving() else 0)
         self._set("Moving", int(abs(velocity) > self.get("Moving Threshold")))
         self._set("Realtime Tick", int(now * 1000) % 32768)
         self._set("Present Input Voltage", self.input_voltage_dv)
@@ -309,6 +356,10 @@ class FakeXl430:
                 return ErrorNumber.DATA_RANGE
             if item.name == "Operating Mode" and value not in _MODES:
                 return ErrorNumber.DATA_RANGE
+            if self.watchdog_expired and (
+                item.name in BUS_WATCHDOG_GOALS or (item.name == "Bus Watchdog" and value != 0)
+            ):
+                return ErrorNumber.DATA_RANGE  # read-only until Bus Watchdog is cleared with 0
         return self._check_limits(new, items)
 
     def _check_limits(self, new: bytearray, items: Sequence[ControlItem]) -> int:
@@ -487,10 +538,24 @@ class FakeDynamixelBus:
 
     # -- ByteDevice ----------------------------------------------------------------------------------
     def poll(self, now: float) -> bytes:
+        with self._lock:
+            self._check_watchdogs(now)
         return b""
+
+    def next_output_in(self, now: float) -> float | None:
+        """When the next Bus Watchdog falls due: the server polls then, so a servo stops on time. (It has
+        nothing to send then; a servo never speaks unasked.)"""
+        with self._lock:
+            due = [left for s in self._servos.values() if (left := s.watchdog_left(now)) is not None]
+        return max(0.0, min(due)) if due else None
+
+    def _check_watchdogs(self, now: float) -> None:
+        for servo in self._servos.values():
+            servo.check_watchdog(now)
 
     def receive(self, data: bytes, now: float) -> bytes:
         with self._lock:
+            self._check_watchdogs(now)
             if (
                 self._last_rx is not None
                 and self.decoder.buffered
@@ -553,6 +618,8 @@ class FakeDynamixelBus:
         targets = self._targets(packet.id)
         if not targets:
             return
+        for servo in targets:
+            servo.hear(now)
         unicast = packet.id != BROADCAST_ID
 
         def reply(

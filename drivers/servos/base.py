@@ -25,7 +25,8 @@ class WheelServos(Device):
 
     Health counters: ``reads`` and ``commands`` done; what went wrong: ``timeouts``, ``retries``,
     ``corrupt_replies``, ``comm_errors``, ``status_errors``, ``disconnects``, ``reconnects``,
-    ``hardware_alerts`` (a new hardware error seen), ``clamped_commands`` (a speed beyond the limit).
+    ``hardware_alerts`` (a new hardware error seen), ``clamped_commands`` (a speed beyond the limit),
+    ``bus_watchdog_stops`` (a servo found stopped by its Bus Watchdog and started again).
     """
 
     def __init__(self, name: str, left_id: int, right_id: int) -> None:

@@ -29,6 +29,10 @@ RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 RETURN_DELAY_UNIT_S = 2e-6
 #: Bus Watchdog unit, seconds.
 BUS_WATCHDOG_UNIT_S = 0.020
+#: What Bus Watchdog (98) reads once it has fired (e-Manual: "-1", i.e. 0xFF on the wire).
+BUS_WATCHDOG_EXPIRED = -1
+#: The items a fired Bus Watchdog makes read-only until it is cleared (the XL430 has no Goal Current).
+BUS_WATCHDOG_GOALS = ("Goal PWM", "Goal Velocity", "Goal Position")
 
 #: Baud Rate (8) index -> bits per second.
 BAUD_RATES = {
@@ -166,8 +170,9 @@ _XL430_ITEMS: tuple[ControlItem, ...] = (
     ControlItem(84, 2, "Position P Gain", _RW, _M, 640, 0, 16383),
     ControlItem(88, 2, "Feedforward 2nd Gain", _RW, _M, 0, 0, 16383),
     ControlItem(90, 2, "Feedforward 1st Gain", _RW, _M, 0, 0, 16383),
-    # 0 disables the watchdog; the servo sets it to -1 (0xFF) itself when it fires.
-    ControlItem(98, 1, "Bus Watchdog", _RW, _M, 0, 0, 127, unit="s", scale=BUS_WATCHDOG_UNIT_S),
+    # 0 disables (and clears) the watchdog, 1..127 arms it; the servo sets it to -1 (0xFF) itself when it
+    # fires, so it is read signed. -1 is not a value a host may write.
+    ControlItem(98, 1, "Bus Watchdog", _RW, _M, 0, 0, 127, True, "s", BUS_WATCHDOG_UNIT_S),
     # Goal PWM/Velocity/Position: their real bound is another item (PWM/Velocity/Position Limit), a
     # "data limit" checked by the servo against the current limit value.
     ControlItem(100, 2, "Goal PWM", _RW, _M, 0, -885, 885, True, "%", 0.113),

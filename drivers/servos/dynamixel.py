@@ -2,7 +2,19 @@
 
 Bring-up (``open()`` and every reconnect): ping both IDs, then per servo torque off, clear Drive Mode's
 Reverse bit and set Operating Mode 1 (velocity) where they differ (EEPROM items, so only written when
-needed, and only with torque off), Goal Velocity 0, read Velocity Limit, torque on.
+needed, and only with torque off), read Velocity Limit, then start it: torque off, Bus Watchdog 0 (which
+clears a watchdog that fired), Goal Velocity 0, torque on, Bus Watchdog armed.
+
+**Bus Watchdog.** A servo cut off from the agent (cable pulled, adapter or agent dead) would otherwise keep
+its last Goal Velocity: one wheel driving, the other stopped, the robot pivots. The XL430 stops by itself
+when it hears no instruction for longer than Bus Watchdog (98, 20 ms units, firmware v38+; ROBOTIS
+e-Manual, XL430-W250 control table, "Bus Watchdog"), so the driver arms it with ``bus_watchdog_ms``:
+the wheel stops at most that long after the last instruction the servo heard, i.e. after it was cut off.
+A fired watchdog latches: the item reads -1 and Goal Velocity is read-only (a write gets a Data Range
+Error, and a sync write's goal is dropped without a word) until 0 is written to it. So when a servo may
+have fired, the driver reads the item and, if it is not what was armed, starts that servo again (torque
+off first, so the old goal is never followed): after a servo timed out and answers again, after the bus
+was quiet for half a period (a stalled caller), and once a second in any case.
 
 **Mirrored wheel.** Both servos face outwards, so for the robot to go forward the left shaft turns
 counter-clockwise (the servo's positive direction) and the right one clockwise. This driver flips the
@@ -59,6 +71,8 @@ from drivers.errors import (
 from drivers.samples import WheelState
 from drivers.servos.base import WheelServos
 from drivers.servos.control_table import (
+    BUS_WATCHDOG_EXPIRED,
+    BUS_WATCHDOG_UNIT_S,
     MODEL_XL430_W250,
     RAD_PER_TICK,
     RADPS_PER_VELOCITY_UNIT,
@@ -68,7 +82,7 @@ from drivers.servos.control_table import (
     describe_hardware_error,
 )
 from drivers.servos.odometry import WheelOdometry
-from firmware_protocol.dynamixel import MAX_ID, StatusError
+from firmware_protocol.dynamixel import MAX_ID, ErrorNumber, StatusError
 
 __all__ = ["DynamixelWheels"]
 
@@ -105,6 +119,12 @@ _DRIVE_MODE = _TABLE["Drive Mode"]
 _OPERATING_MODE = _TABLE["Operating Mode"]
 _VELOCITY_LIMIT = _TABLE["Velocity Limit"]
 _HARDWARE_ERROR = _TABLE["Hardware Error Status"]
+_BUS_WATCHDOG = _TABLE["Bus Watchdog"]
+_BUS_WATCHDOG_UNIT_MS = round(BUS_WATCHDOG_UNIT_S * 1000)
+# How often the driver reads Bus Watchdog back even when nothing suggests it fired (a servo that rebooted,
+# or a gap in instructions the driver could not see).
+_WATCHDOG_CHECK_S = 1.0
+_DEFAULT_BUS_WATCHDOG_MS = 100
 _GOAL_VELOCITY = _TABLE["Goal Velocity"]
 _PRESENT_VELOCITY = _TABLE["Present Velocity"]
 _PRESENT_POSITION = _TABLE["Present Position"]
@@ -186,6 +206,12 @@ class DynamixelWheels(WheelServos):
     re-sent blindly). ``max_wheel_radps`` caps commands below the servos' own Velocity Limit.
     ``latency_timer_ms`` sets the reply deadline the SDK's way (tx time + 2 x latency + 2 ms): 16 is the
     SDK's value for an untuned FTDI adapter; use 1-2 for a tuned one, more on a pty fake under load.
+    ``bus_watchdog_ms`` arms each servo's Bus Watchdog (a multiple of 20 ms, up to 2540; 0 leaves it off):
+    a servo that hears nothing for longer stops by itself. It must outlast the longest gap between two
+    instructions to a servo that is fine, which is one reply deadline when the other servo's reply is
+    lost; so it is at least twice the reply deadline, and by default 100 ms or that, whichever is longer
+    (100 ms with the SDK's 16 ms latency timer). The caller must talk to the servos more often than that
+    (the agent does every control period).
     """
 
     def __init__(
@@ -203,6 +229,7 @@ class DynamixelWheels(WheelServos):
         max_wheel_radps: float | None = None,
         low_latency: bool = True,
         latency_timer_ms: float = 16.0,
+        bus_watchdog_ms: int | None = None,
     ) -> None:
         for key, value in (("left_id", left_id), ("right_id", right_id)):
             if not 0 <= value <= MAX_ID:
@@ -222,6 +249,27 @@ class DynamixelWheels(WheelServos):
             raise ConfigError(f"{name}.retries", "must be 0 or more")
         if not latency_timer_ms > 0:
             raise ConfigError(f"{name}.latency_timer_ms", f"must be positive, not {latency_timer_ms}")
+        # A healthy servo hears nothing for one reply deadline while the driver waits for a lost reply.
+        shortest_ms = 2.0 * (2.0 * latency_timer_ms + 2.0)
+        if bus_watchdog_ms is None:
+            bus_watchdog_ms = max(
+                _DEFAULT_BUS_WATCHDOG_MS,
+                _BUS_WATCHDOG_UNIT_MS * math.ceil(shortest_ms / _BUS_WATCHDOG_UNIT_MS),
+            )
+        if bus_watchdog_ms % _BUS_WATCHDOG_UNIT_MS or not _BUS_WATCHDOG.in_range(
+            bus_watchdog_ms // _BUS_WATCHDOG_UNIT_MS
+        ):
+            raise ConfigError(
+                f"{name}.bus_watchdog_ms",
+                f"must be 0 (off) or a multiple of {_BUS_WATCHDOG_UNIT_MS} up to "
+                f"{_BUS_WATCHDOG_UNIT_MS * (_BUS_WATCHDOG.maximum or 0)}, not {bus_watchdog_ms}",
+            )
+        if 0 < bus_watchdog_ms < shortest_ms:
+            raise ConfigError(
+                f"{name}.bus_watchdog_ms",
+                f"{bus_watchdog_ms} ms is shorter than twice the reply deadline (2 x latency_timer_ms + 2 = "
+                f"{shortest_ms / 2:g} ms): one lost reply would stop both wheels",
+            )
         super().__init__(name, left_id, right_id)
         self.port = port
         self.baudrate = baudrate
@@ -231,6 +279,7 @@ class DynamixelWheels(WheelServos):
         self.max_wheel_radps = max_wheel_radps
         self.low_latency = low_latency
         self.latency_timer_ms = latency_timer_ms
+        self.bus_watchdog_units = bus_watchdog_ms // _BUS_WATCHDOG_UNIT_MS
         self.signs = (-1 if left_mirrored else 1, -1 if right_mirrored else 1)
         self.models: dict[int, int] = {}
         self._lock = threading.RLock()
@@ -241,6 +290,12 @@ class DynamixelWheels(WheelServos):
         self._hardware_error = {left_id: 0, right_id: 0}
         self._alert_pending: set[int] = set()  # alert bit seen, Hardware Error Status not read yet
         self._unwrap = {left_id: _Unwrapper(), right_id: _Unwrapper()}
+        # Bus Watchdog: servos whose watchdog may have fired, servos without one (firmware before v38),
+        # when the last transaction ended and when the item is next read back anyway.
+        self._watchdog_suspects: set[int] = set()
+        self._no_watchdog: set[int] = set()
+        self._last_transaction: float | None = None
+        self._next_watchdog_check = 0.0
         self.commanded_radps = (0.0, 0.0)
 
     # -- lifecycle -------------------------------------------------------------------------------------
@@ -355,7 +410,6 @@ class DynamixelWheels(WheelServos):
                 self._write(servo_id, _DRIVE_MODE, drive_mode & ~_REVERSE_BIT)
             if self._read(servo_id, _OPERATING_MODE) != OperatingMode.VELOCITY:
                 self._write(servo_id, _OPERATING_MODE, OperatingMode.VELOCITY)
-            self._write(servo_id, _GOAL_VELOCITY, 0)
             self._limit_units[servo_id] = self._read(servo_id, _VELOCITY_LIMIT)
             self._hardware_error[servo_id] = self._read(servo_id, _HARDWARE_ERROR)
             if self._hardware_error[servo_id]:
@@ -366,8 +420,10 @@ class DynamixelWheels(WheelServos):
                     servo_id,
                     describe_hardware_error(self._hardware_error[servo_id]),
                 )
-            self._write(servo_id, _TORQUE, 1)
+            self._start(servo_id)
             self._unwrap[servo_id].reseed()
+        self._watchdog_suspects.clear()
+        self._next_watchdog_check = time.monotonic() + _WATCHDOG_CHECK_S
         self.commanded_radps = (0.0, 0.0)
         log.info(
             "%s: servos %s (models %s) in velocity mode on %s at %d bps",
@@ -377,6 +433,78 @@ class DynamixelWheels(WheelServos):
             self.port,
             self.baudrate,
         )
+
+    # -- Bus Watchdog ------------------------------------------------------------------------------------
+    def _start(self, servo_id: int) -> None:
+        """Torque on from standstill, Bus Watchdog armed. The watchdog is cleared (0) before Goal Velocity
+        is written, which a fired watchdog makes read-only; with torque off meanwhile, a servo that follows
+        its old goal again once cleared (the e-Manual does not say it will not) cannot move."""
+        self._write(servo_id, _TORQUE, 0)
+        watchdog = servo_id not in self._no_watchdog
+        if watchdog:
+            try:
+                self._write(servo_id, _BUS_WATCHDOG, 0)
+            except DeviceStatusError as exc:
+                if not isinstance(exc.status, int) or exc.status & 0x7F != ErrorNumber.ACCESS:
+                    raise
+                log.warning(
+                    "%s: servo %d has no Bus Watchdog (firmware before v38?): if it is cut off from the "
+                    "agent it keeps its last goal velocity",
+                    self.name,
+                    servo_id,
+                )
+                self._no_watchdog.add(servo_id)
+                watchdog = False
+        self._write(servo_id, _GOAL_VELOCITY, 0)
+        self._write(servo_id, _TORQUE, 1)
+        if watchdog and self.bus_watchdog_units:
+            self._write(servo_id, _BUS_WATCHDOG, self.bus_watchdog_units)
+        self._watchdog_suspects.discard(servo_id)
+
+    def _note_bus_gap(self) -> bool:
+        """Suspect every servo when the bus has been quiet for half a watchdog period: the caller stalled,
+        and a servo that heard nothing for the whole period has stopped and refuses goals."""
+        if not self.bus_watchdog_units or self._last_transaction is None:
+            return False
+        quiet_s = time.monotonic() - self._last_transaction
+        if quiet_s < 0.5 * self.bus_watchdog_units * BUS_WATCHDOG_UNIT_S:
+            return False
+        self._watchdog_suspects.update(self.ids)
+        return True
+
+    def _check_watchdogs(self) -> bool:
+        """Read Bus Watchdog back from each suspect servo (from all of them once a second) and start again
+        any that does not hold what was armed. True when one was started again (its goal is now 0)."""
+        now = time.monotonic()
+        if now >= self._next_watchdog_check:
+            self._watchdog_suspects.update(self.ids)
+            self._next_watchdog_check = now + _WATCHDOG_CHECK_S
+        restarted = False
+        for servo_id in sorted(self._watchdog_suspects - self._no_watchdog):
+            value = self._read(servo_id, _BUS_WATCHDOG)
+            if value == self.bus_watchdog_units:
+                self._watchdog_suspects.discard(servo_id)
+                continue
+            if value == BUS_WATCHDOG_EXPIRED:
+                self.count("bus_watchdog_stops")
+                self.note_error(f"servo {servo_id}: Bus Watchdog fired (it heard nothing for too long)")
+                log.warning(
+                    "%s: servo %d stopped by its Bus Watchdog; clearing it and starting the servo again",
+                    self.name,
+                    servo_id,
+                )
+            else:
+                log.warning(
+                    "%s: servo %d's Bus Watchdog reads %d, not %d (rebooted?); starting the servo again",
+                    self.name,
+                    servo_id,
+                    value,
+                    self.bus_watchdog_units,
+                )
+            self._start(servo_id)
+            restarted = True
+        self._watchdog_suspects.difference_update(self._no_watchdog)
+        return restarted
 
     # -- one bus transaction -----------------------------------------------------------------------------
     def _bus(self) -> Any:
@@ -401,12 +529,17 @@ class DynamixelWheels(WheelServos):
             self._drop_port()
             raise DeviceDisconnected(f"{what}: {self.port} went away ({exc})", self.name) from exc
         finally:
+            # From its end: waiting for a reply that does not come is no stall of the caller's (the
+            # servo that did not answer is suspect anyway; see _check).
+            self._last_transaction = time.monotonic()
             # The SDK marks its port busy and leaves it so if a packet dies under it.
             if port is not None:
                 port.is_using = False
 
     def _check(self, what: str, servo_id: int, result: int, error: int) -> None:
         if result == COMM_RX_TIMEOUT:
+            # A servo that does not answer may not hear either: its Bus Watchdog may fire meanwhile.
+            self._watchdog_suspects.add(servo_id)
             self.count("timeouts")
             self.note_error(f"servo {servo_id}: no answer to {what}")
             raise DeviceTimeout(f"servo {servo_id} did not answer {what}", self.name)
@@ -517,7 +650,12 @@ class DynamixelWheels(WheelServos):
                 self.velocity_units(self.left_id, left_radps),
                 self.velocity_units(self.right_id, right_radps),
             )
+            gap = self._note_bus_gap()
+            # Sent first in any case: whatever still listens takes it (a silent servo's check below would
+            # time out, and the other wheel must not wait for that).
             self._sync_write_velocity(units)
+            if gap and self._check_watchdogs():
+                self._sync_write_velocity(units)  # the servos started again hold goal 0
             self.commanded_radps = (left_radps, right_radps)
             self.count("commands")
 
@@ -581,17 +719,22 @@ class DynamixelWheels(WheelServos):
 
     def read(self) -> WheelState:
         with self._lock:
+            self._note_bus_gap()
             state = self._retrying(self._read_once)
             self.count("reads")
+            if self.bus_watchdog_units:
+                # Both servos just answered, so a check gets its replies.
+                self._check_watchdogs()
             return state
 
     def torque(self, on: bool) -> None:
         with self._lock:
             for servo_id in self.ids:
                 if on:
-                    # Start from standstill, not from whatever goal was left in the register.
-                    self._write(servo_id, _GOAL_VELOCITY, 0)
-                self._write(servo_id, _TORQUE, int(on))
+                    # From standstill, not from whatever goal was left in the register; watchdog armed.
+                    self._start(servo_id)
+                else:
+                    self._write(servo_id, _TORQUE, 0)  # the Bus Watchdog only watches with torque on
             if on:
                 self.commanded_radps = (0.0, 0.0)
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from drivers.errors import (
+    ConfigError,
     DeviceDisconnected,
     DeviceError,
     DeviceNotFound,
@@ -30,7 +31,13 @@ from drivers.fakes.dynamixel import FakeDynamixelBus
 from drivers.fakes.pty import PtyServer
 from drivers.samples import WheelState
 from drivers.servos import WheelOdometry, WheelServos
-from drivers.servos.control_table import RADPS_PER_VELOCITY_UNIT, HardwareError
+from drivers.servos.control_table import (
+    MODEL_XL430_W250,
+    RADPS_PER_VELOCITY_UNIT,
+    XL430_W250,
+    ControlTable,
+    HardwareError,
+)
 from drivers.servos.dynamixel import DynamixelWheels
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import World
@@ -210,7 +217,8 @@ def test_wheel_angles_stay_continuous_across_int32_overflow_and_long_gaps(tmp_pa
     # drive at full speed and read only after more than half a wheel turn: the driver has to unwrap
     # across the overflow and must not alias the long gap into a short step backwards.
     ticks = {1: 2**31 - 1000, 2: -(2**31) + 1000}
-    with fake_backend(tmp_path / "dxl", position_ticks=ticks) as backend:
+    # The 0.6 s without a word to the servos is the point here, so their Bus Watchdog stays off.
+    with fake_backend(tmp_path / "dxl", position_ticks=ticks, bus_watchdog_ms=0) as backend:
         sim, _, _ = fake_parts(backend)
         servos = backend.servos
         before, truth_before = servos.read(), sim.wheels()
@@ -246,6 +254,14 @@ def test_torque_off_and_on(backend: Backend) -> None:
     servos.torque(True)
     assert [servos.read_item(i, "Torque Enable") for i in servos.ids] == [1, 1]
     assert [servos.read_item(i, "Goal Velocity") for i in servos.ids] == [0, 0]
+    units = servos.bus_watchdog_units
+    assert [servos.read_item(i, "Bus Watchdog") for i in servos.ids] == [units, units]
+
+
+def test_the_bus_watchdog_is_armed(backend: Backend) -> None:
+    units = backend.servos.bus_watchdog_units
+    assert units > 0
+    assert [backend.servos.read_item(i, "Bus Watchdog") for i in backend.servos.ids] == [units, units]
 
 
 # -- fake only: limits and faults --------------------------------------------------------------------
@@ -333,6 +349,101 @@ def test_a_silent_servo_times_out_instead_of_hanging(fake: Backend) -> None:
     bus.mute(2, False)
     assert servos.read().hardware_error == (0, 0)
     assert servos.connected
+
+
+def drive_like_the_agent(servos: DynamixelWheels, seconds: float, radps: float) -> None:
+    """The agent's servo loop for ``seconds``: read, then command; after a failed read, command zero
+    (what still listens stops)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            servos.read()
+            servos.set_velocity(radps, radps)
+        except DeviceError:
+            with contextlib.suppress(DeviceError):
+                servos.set_velocity(0.0, 0.0)
+        time.sleep(0.02)
+
+
+def test_a_servo_cut_off_stops_by_its_bus_watchdog_and_drives_again_when_it_hears(fake: Backend) -> None:
+    sim, bus, _ = fake_parts(fake)
+    servos = fake.servos
+    # (The simulated wheels take 0.1 s to reach 2 rad/s, as long as the watchdog's period: keep talking.)
+    drive_like_the_agent(servos, 0.3, 2.0)
+    assert sim.wheels().velocity_radps == pytest.approx((2.0, 2.0), abs=ONE_UNIT)
+    bus.mute(1)  # the left servo's cable pulled
+    cut = time.monotonic()
+    stopped_after = math.inf
+    while time.monotonic() - cut < 1.0:
+        drive_like_the_agent(servos, 0.02, 2.0)
+        if sim.wheels().velocity_radps[0] == 0.0:
+            stopped_after = min(stopped_after, time.monotonic() - cut)
+    # Without the watchdog the left wheel keeps 2 rad/s for as long as the cable is out. With it, its
+    # servo stops 220 ms (this latency timer's default) after the last instruction it heard (exact in
+    # test_dynamixel_fake_watchdog.py), and the simulated wheel takes 0.1 s more to spin down; a loaded
+    # machine may add its delays.
+    assert sim.wheels().velocity_radps == (0.0, 0.0)
+    assert stopped_after < 0.6
+    assert bus.register(1, "Bus Watchdog") == -1
+    bus.mute(1, False)
+    # Answering again, the servo is found fired and started again; commands turn its wheel once more.
+    drive_like_the_agent(servos, 0.4, 2.0)
+    assert bus.register(1, "Bus Watchdog") == servos.bus_watchdog_units
+    assert sim.wheels().velocity_radps == pytest.approx((2.0, 2.0), abs=ONE_UNIT)
+    assert servos.health().counters["bus_watchdog_stops"] == 1
+
+
+def test_after_a_stall_longer_than_the_watchdog_the_next_command_still_drives(fake: Backend) -> None:
+    sim, bus, _ = fake_parts(fake)
+    servos = fake.servos
+    drive_like_the_agent(servos, 0.3, 2.0)
+    time.sleep(0.5)  # the caller stalls: both servos hear nothing for 500 ms and stop
+    assert sim.wheels().velocity_radps == (0.0, 0.0)
+    assert [bus.register(i, "Bus Watchdog") for i in (1, 2)] == [-1, -1]
+    # Their Goal Velocity is read-only now; the driver sees the gap, starts them again, then commands.
+    servos.set_velocity(1.0, 1.0)
+    units = servos.bus_watchdog_units
+    assert [bus.register(i, "Bus Watchdog") for i in (1, 2)] == [units, units]
+    assert servos.health().counters["bus_watchdog_stops"] == 2
+    drive_like_the_agent(servos, 0.3, 1.0)
+    assert sim.wheels().velocity_radps == pytest.approx((1.0, 1.0), abs=ONE_UNIT)
+
+
+def test_the_bus_watchdog_period_outlasts_a_lost_reply() -> None:
+    # 20 ms units; by default 100 ms, or twice the reply deadline (2 x latency timer + 2 ms) if longer.
+    assert DynamixelWheels("/dev/null").bus_watchdog_units == 5  # SDK's 16 ms: deadline 34 ms
+    assert DynamixelWheels("/dev/null", latency_timer_ms=2).bus_watchdog_units == 5
+    assert DynamixelWheels("/dev/null", latency_timer_ms=50).bus_watchdog_units == 11  # 2 x 102 -> 220 ms
+    assert DynamixelWheels("/dev/null", latency_timer_ms=100).bus_watchdog_units == 21  # 2 x 202 -> 420 ms
+    assert DynamixelWheels("/dev/null", bus_watchdog_ms=0).bus_watchdog_units == 0  # off
+    assert DynamixelWheels("/dev/null", bus_watchdog_ms=2540).bus_watchdog_units == 127
+
+
+@pytest.mark.parametrize(("value", "latency_ms"), [(30, 16.0), (-20, 16.0), (2560, 16.0), (200, 50.0)])
+def test_a_bus_watchdog_period_the_servo_cannot_hold_is_a_config_error(value: int, latency_ms: float) -> None:
+    with pytest.raises(ConfigError) as info:
+        DynamixelWheels("/dev/null", bus_watchdog_ms=value, latency_timer_ms=latency_ms)
+    assert info.value.key == "servos.bus_watchdog_ms"
+
+
+def test_servos_without_a_bus_watchdog_still_drive(tmp_path: Path) -> None:
+    # Firmware before v38 has no Bus Watchdog: writing it is an Access Error. The driver says so and drives.
+    old = ControlTable(
+        MODEL_XL430_W250,
+        "XL430-W250 (old firmware)",
+        tuple(i for i in XL430_W250 if i.name != "Bus Watchdog"),
+    )
+    sim = Simulation(World("servo-contract"))
+    with (
+        PtyServer(FakeDynamixelBus(sim, table=old)) as server,
+        DynamixelWheels(server.path, latency_timer_ms=FAKE_LATENCY_TIMER_MS) as servos,
+    ):
+        servos.set_velocity(1.0, 1.0)
+        time.sleep(0.3)  # silence: nothing to stop them
+        assert sim.wheels().velocity_radps == pytest.approx((1.0, 1.0), abs=ONE_UNIT)
+        servos.read()
+        servos.set_velocity(0.5, 0.5)
+        assert settled_wheels(sim, (0.5, 0.5)) == pytest.approx((0.5, 0.5), abs=ONE_UNIT)
 
 
 def test_a_corrupt_reply_is_a_device_error(fake: Backend) -> None:

@@ -3,12 +3,14 @@
 * while a wheel servo is silent the other one is commanded to zero (the silent one cannot hear);
 * when it answers again both get zero velocity first, and zero is held for ``recovery_hold_s`` although the
   command source never stopped;
-* a command that is not repeated within the dead-man timeout becomes zero velocity.
+* a command that is not repeated within the dead-man timeout becomes zero velocity;
+* a wheel servo cut off from the agent stops by its Bus Watchdog, so the robot stops instead of pivoting.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -103,6 +105,31 @@ def test_zero_velocity_is_commanded_when_a_silent_servo_answers_again(
     wait_for(lambda: goal(robot, left) != 0)
     wait_for(lambda: not agent.flags() & PoseFlags.SERVO_FAULT)
     assert agent.status().devices["servos"].recoveries >= 1
+
+
+def test_a_wheel_servo_cut_off_stops_by_its_bus_watchdog_so_the_robot_does_not_pivot(
+    running: tuple[SimulatedRobot, Agent, threading.Event],
+) -> None:
+    robot, agent, _ = running
+    sim, left = robot.simulation, robot.world.robot.left_id
+    servos = agent.devices.servos
+    watchdog_s = 0.020 * getattr(servos, "bus_watchdog_units", 0)
+    assert watchdog_s == 0.1  # latency_timer_ms = 20: the 100 ms default
+    wait_for(lambda: goal(robot, left) != 0)
+    time.sleep(0.3)  # at speed: 0.1 m/s straight ahead
+    v_mps = 0.1
+    yaw0 = sim.pose().yaw_rad
+    robot.servos.mute(left)  # its cable pulled: it hears nothing from now on
+    time.sleep(1.5)
+    turned_rad = abs(math.remainder(sim.pose().yaw_rad - yaw0, math.tau))
+    assert sim.wheels().velocity_radps == (0.0, 0.0)
+    assert robot.servos.register(left, "Bus Watchdog") == -1
+    # The agent stops the right wheel once the left one's reads time out; the left one, deaf, keeps its
+    # goal until its watchdog stops it 100 ms after the last instruction it heard. Before the watchdog
+    # it drove on alone: 0.1 m/s / 0.16 m = 0.6 rad/s of pivot, 0.9 rad in these 1.5 s. Now the turn is
+    # at most one wheel at speed for the watchdog's period; 0.2 s more allows the wheels' spin-down and
+    # a loaded machine's delays.
+    assert turned_rad < v_mps * (watchdog_s + 0.2) / robot.world.robot.track_m
 
 
 def test_a_stale_command_stops_the_wheels(running: tuple[SimulatedRobot, Agent, threading.Event]) -> None:

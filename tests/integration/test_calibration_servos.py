@@ -57,8 +57,10 @@ def test_servos_step_sets_up_the_bus_and_writes_the_config_keys(tmp_path: Path) 
     assert result["ok"]
     found = {(s["id"], s["baud"]) for s in result["found"]}
     assert found == {(1, 57600), (3, 1_000_000)}
-    after = {(s["id"], s["baud"], s["mode"]) for s in result["after"]}
-    assert after == {(1, 1_000_000, 1), (2, 1_000_000, 1)}
+    assert {s["return_delay"] for s in result["found"]} == {250}  # 0.5 ms, from the box
+    after = {(s["id"], s["baud"], s["mode"], s["return_delay"]) for s in result["after"]}
+    assert after == {(1, 1_000_000, 1, 0), (2, 1_000_000, 1, 0)}
+    assert {c["name"]: c["ok"] for c in result["checks"]}["wheel servos with Return Delay Time 0"]
     keys = tomllib.loads((tmp_path / "servos.toml").read_text())["servos"]
     assert keys == {"baudrate": 1_000_000, "left_id": 1, "right_id": 2}
     assert (tmp_path / "servos.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -152,6 +154,7 @@ def test_servos_step_with_a_robot_config(tmp_path: Path) -> None:
         # Servo 9 (the left wheel) is now id 1, servo 4 is id 2.
         assert fake.servo(1).get("ID") == 1 and fake.servo(2).get("ID") == 2
         assert fake.register(1, "Baud Rate") == 3 and fake.register(2, "Operating Mode") == 1
+        assert [fake.register(i, "Return Delay Time") for i in (1, 2)] == [0, 0]
     finally:
         server.close()
         fake.close()

@@ -295,12 +295,24 @@ def test_collector_takes_new_views_and_refuses_repeats() -> None:
 
 
 # -- servos --------------------------------------------------------------------------------------------------
-def test_servo_plan_writes_mode_id_and_baud_last() -> None:
-    found = [Found(1, 57600, 1060, 46, int(OperatingMode.POSITION)), Found(3, 1_000_000, 1060, 46, 1)]
+def test_servo_plan_writes_mode_return_delay_id_and_baud_last() -> None:
+    found = [
+        Found(1, 57600, 1060, 46, int(OperatingMode.POSITION), 250),  # as from the box
+        Found(3, 1_000_000, 1060, 46, 1, 0),
+    ]
     plans = plan_changes(found, {1: "left", 3: "right"}, 1, 2, 1_000_000)
     left, right = plans
-    assert [(i.name, v) for i, v in left.writes] == [("Operating Mode", 1), ("Baud Rate", 3)]
+    assert [(i.name, v) for i, v in left.writes] == [
+        ("Operating Mode", 1),
+        ("Return Delay Time", 0),
+        ("Baud Rate", 3),
+    ]
     assert [(i.name, v) for i, v in right.writes] == [("ID", 2)]
+    # A return delay that could not be read is written anyway.
+    (unknown,) = plan_changes(
+        [*found[:1], Found(2, 1_000_000, 1060, 46, 1)], {1: "left", 2: "right"}, 1, 2, 57600
+    )[1:]
+    assert [(i.name, v) for i, v in unknown.writes] == [("Return Delay Time", 0), ("Baud Rate", 1)]
 
 
 def test_servo_plan_refuses_clashes_and_unknown_rates() -> None:

@@ -38,6 +38,7 @@ ADDR_LED = 65
 ADDR_STATUS_RETURN_LEVEL = 68
 ADDR_REGISTERED = 69
 ADDR_HARDWARE_ERROR = 70
+ADDR_BUS_WATCHDOG = 98
 ADDR_GOAL_VELOCITY = 104
 ADDR_PRESENT_VELOCITY = 128
 ADDR_PRESENT_POSITION = 132
@@ -288,6 +289,58 @@ def test_status_return_level_one_answers_reads_only(rig: Rig) -> None:
     assert ph.write1ByteTxRx(port, 1, ADDR_LED, 1)[0] == COMM_RX_TIMEOUT  # carried out, not answered
     assert ph.read1ByteTxRx(port, 1, ADDR_LED) == (1, COMM_SUCCESS, 0)
     assert ph.ping(port, 1)[1] == COMM_SUCCESS
+
+
+def test_bus_watchdog_stops_a_servo_that_hears_nothing_and_latches_until_cleared(rig: Rig) -> None:
+    # The e-Manual's own example (XL430-W250, "Bus Watchdog (98) Example"), with a 100 ms period.
+    ph, port = rig.ph, rig.port
+    velocity_mode_torque_on(rig)
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (0, COMM_SUCCESS, 0)  # off at power-on
+    ok(*ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 5))  # 5 x 20 ms
+    ok(*ph.write4ByteTxRx(port, 1, ADDR_GOAL_VELOCITY, 50))
+    assert wait_for(lambda: rig.sim.wheels().velocity_radps[0] > 0.5)
+    # Silence on the bus: the servo stops by itself and Bus Watchdog reads -1 (0xFF).
+    assert wait_for(lambda: rig.sim.wheels().velocity_radps[0] == 0.0)
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (0xFF, COMM_SUCCESS, 0)
+    assert ph.read4ByteTxRx(port, 1, ADDR_PRESENT_VELOCITY) == (0, COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 2, ADDR_BUS_WATCHDOG) == (0, COMM_SUCCESS, 0)  # the other was not armed
+    # Goal Velocity is read-only now: a new goal gets a Data Range Error and changes nothing; so does
+    # re-arming without clearing, and a sync write's goal (no status) is dropped.
+    assert ph.write4ByteTxRx(port, 1, ADDR_GOAL_VELOCITY, 150) == (COMM_SUCCESS, ErrorNumber.DATA_RANGE)
+    assert ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 5) == (COMM_SUCCESS, ErrorNumber.DATA_RANGE)
+    sync_write_goal_velocity(rig, {1: 150, 2: 0})
+    assert ph.read4ByteTxRx(port, 1, ADDR_GOAL_VELOCITY) == (50, COMM_SUCCESS, 0)
+    assert rig.sim.wheels().velocity_radps[0] == 0.0
+    # Writing 0 clears it; then a goal is taken again.
+    ok(*ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 0))
+    ok(*ph.write4ByteTxRx(port, 1, ADDR_GOAL_VELOCITY, 150))
+    assert wait_for(lambda: rig.sim.wheels().velocity_radps[0] > 150 * RADPS_PER_VELOCITY_UNIT * 0.99)
+    assert ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 128) == (COMM_SUCCESS, ErrorNumber.DATA_RANGE)
+    assert ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 0xFF) == (COMM_SUCCESS, ErrorNumber.DATA_RANGE)
+
+
+def test_bus_watchdog_is_kept_quiet_by_instructions_and_only_watches_with_torque_on(rig: Rig) -> None:
+    ph, port = rig.ph, rig.port
+    velocity_mode_torque_on(rig)
+    ok(*ph.write1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG, 25))  # 500 ms
+    sync_write_goal_velocity(rig, {1: 50, 2: 0})
+    end = time.monotonic() + 1.2
+    while time.monotonic() < end:  # any instruction counts: pings, reads, broadcast sync writes
+        ok(*ph.ping(port, 1)[1:])
+        sync_write_goal_velocity(rig, {1: 50, 2: 0})
+        time.sleep(0.05)
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (25, COMM_SUCCESS, 0)
+    assert rig.sim.wheels().velocity_radps[0] > 0.5
+    # Torque off: nothing to watch, however long the silence.
+    ok(*ph.write1ByteTxRx(port, 1, ADDR_TORQUE, 0))
+    time.sleep(0.7)
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (25, COMM_SUCCESS, 0)
+    # A reboot puts RAM, Bus Watchdog included, back to power-on values (0: off).
+    ok(*ph.write1ByteTxRx(port, 1, ADDR_TORQUE, 1))
+    time.sleep(0.7)  # (polling would keep it quiet)
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (0xFF, COMM_SUCCESS, 0)
+    ok(*ph.reboot(port, 1))
+    assert ph.read1ByteTxRx(port, 1, ADDR_BUS_WATCHDOG) == (0, COMM_SUCCESS, 0)
 
 
 def test_muted_servo_does_not_answer(rig: Rig) -> None:
