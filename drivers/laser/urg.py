@@ -416,6 +416,7 @@ class UrgLaser(LaserScanner):
     # -- lifecycle -----------------------------------------------------------------------------------------
     def _open(self) -> None:
         self._closing.clear()
+        self._last_streamed = None  # a new session: the time since the last one was not missed
         self._port = self._open_port()
         try:
             self._initialise()
@@ -681,6 +682,7 @@ class UrgLaser(LaserScanner):
                 f"{info.first_step}..{info.last_step}",
             )
         self._info = info
+        self._check_link_rate(info.scan_period_s)  # the sensor's own period, if the nominal one was fine
         self._sync_clock()
         reply, _ = self._transact(scip.encode_bm(self._tag()))
         raise_for_status(reply, self.name, accept=("00", "02"))
