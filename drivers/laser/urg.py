@@ -296,8 +296,9 @@ class UrgLaser(LaserScanner):
     URG at its factory 19200 bit/s is a real set-up), and it may be what the robot can live with.
 
     After a silent spell the stream is taken back as soon as the sensor's scans come again: a restart
-    whose QT went unanswered keeps the old stream's scans welcome, and is retried as soon as the sensor
-    sends anything (or every ``reconnect_interval_s``), not a whole stall limit later.
+    whose QT went unanswered keeps the old stream's scans welcome, and is retried one scan interval after
+    the sensor sends anything without a scan of ours coming (or every ``reconnect_interval_s``), not a
+    whole stall limit later.
 
     Health counters, besides those of :class:`LaserScanner`: ``bad_frames``, ``discarded_bytes`` (decoder
     resyncs), ``disconnects``, ``reconnects``, ``command_timeouts``, ``unexpected_replies``,
@@ -852,9 +853,14 @@ class UrgLaser(LaserScanner):
         now = time.monotonic()
         retry_at = self._restart_retry_at
         if retry_at is not None:
-            # The last restart went unanswered: try again as soon as the sensor talks, or at the reconnect
-            # pace, rather than a whole stall limit later.
-            if not got_bytes and now < retry_at:
+            # The last restart went unanswered: try again at the reconnect pace rather than a whole stall
+            # limit later, and soon after the sensor talks again; not at once, though: what it sends may be
+            # the first bytes of a scan of our stream, which would make the restart needless.
+            if got_bytes:
+                scan_interval_s = self._scan_period_s() + self.scan_transfer_s
+                retry_at = min(retry_at, now + scan_interval_s + self.read_poll_s)
+                self._restart_retry_at = retry_at
+            if now < retry_at:
                 return
         elif now - self._last_scan_mono < self.stall_limit_s:
             return
