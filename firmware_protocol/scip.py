@@ -72,6 +72,7 @@ __all__ = [
     "encode_vv",
     "expected_value_count",
     "parse_reply",
+    "scan_reply_size",
     "status_meaning",
 ]
 
@@ -169,6 +170,18 @@ def expected_value_count(first_step: int, last_step: int, cluster: int) -> int:
     """
     cluster = max(cluster, 1)
     return (last_step - first_step + cluster) // cluster
+
+
+def scan_reply_size(echo_chars: int, value_count: int, nchars: int) -> int:
+    """Bytes on the wire of one scan reply (GD/GS, or an MD/MS scan) whose echo is ``echo_chars`` long and
+    which carries ``value_count`` values of ``nchars`` characters: what a link's byte rate must carry.
+
+    Echo + LF, status line (2 + sum + LF), timestamp line (4 + sum + LF), each data block of up to 64
+    characters + sum + LF, and the final LF. A full URG-04LX ``GD0044072501`` is 2134 bytes.
+    """
+    payload = value_count * nchars
+    blocks = -(-payload // BLOCK_CHARS)
+    return (echo_chars + 1) + 4 + 6 + payload + 2 * blocks + 1
 
 
 # -- commands, host -> sensor ----------------------------------------------------------------------------

@@ -29,6 +29,13 @@ assumption: the spec does not say).
 Without a simulation the fake replays fixed ranges: the 682 values given as ``fixed_ranges_mm`` (e.g. a
 real capture decoded, which then comes back byte for byte), or a built-in fixed room.
 
+The USB model (the default) hands its output to the host as fast as the host reads. With ``link_bitrate``
+the fake is the RS-232 model on a serial line of that rate: each byte takes 10 bit times (8N1), replies
+leave one after the other, and a streamed scan that is finished while the line is still busy with the
+previous one is skipped (counted in ``scans_skipped``): the sensor sends the latest scan it has once the
+line is free rather than queueing without bound (an assumption: the spec does not say what a URG does when
+its line is slower than its scans). ``SS`` changes only the rate II reports; the line keeps its rate.
+
 Fault injection for tests: ``silent`` (the sensor hangs), ``hardware_fault`` (laser trouble statuses),
 ``inject(junk)`` (bytes between replies), ``corrupt_next(n)`` (break a data checksum in the next n scans)
 and ``power_cycle()`` (what a USB pull does to a bus-powered URG: laser off, streaming stopped, clock
@@ -76,12 +83,13 @@ FIRMWARE = "3.4.03(17/Dec./2012)"  # real capture A
 
 @dataclass(frozen=True, slots=True)
 class EmittedScan:
-    """Ground truth about one scan the fake sent: when step 0 was measured (fake's clock, seconds) and the
-    raw 24-bit timestamp it carried."""
+    """Ground truth about one scan the fake sent: when step 0 was measured (fake's clock, seconds), the
+    raw 24-bit timestamp it carried, and whether ``corrupt_next`` broke its checksum."""
 
     step0_time_s: float
     device_time_ms: int
     echo: str
+    corrupted: bool = False
 
 
 @dataclass(slots=True)
@@ -112,6 +120,7 @@ class FakeUrg:
         seed: int = 0,
         max_backlog_scans: int = 10,
         history: int = 1000,
+        link_bitrate: int | None = None,
     ) -> None:
         self._sim = simulation
         self.laser = laser or (simulation.world.laser if simulation is not None else LaserModel())
@@ -121,6 +130,11 @@ class FakeUrg:
         self.serial = serial
         self.boot_in_scip1 = boot_in_scip1
         self.max_backlog_scans = max_backlog_scans
+        if link_bitrate is not None and link_bitrate <= 0:
+            raise ValueError(f"link_bitrate must be positive, got {link_bitrate}")
+        # 8N1: a start bit, 8 data bits and a stop bit per byte.
+        self.link_bytes_per_s = None if link_bitrate is None else link_bitrate / 10.0
+        self._link_bitrate = link_bitrate
         self.period_s = 60.0 / lm.scan_rpm
         self._rng = np.random.default_rng(seed)
         self._lock = threading.RLock()
@@ -140,6 +154,9 @@ class FakeUrg:
         self._inbuf = bytearray()
         self._outq: collections.deque[tuple[float, bytes | Callable[[], bytes]]] = collections.deque()
         self._last_due = -math.inf
+        self._wire = bytearray()  # RS-232 model: bytes on their way out, the first one leaving at _wire_t
+        self._wire_t = -math.inf
+        self._wire_end = -math.inf  # when the line has sent everything queued so far
         self._cache: dict[int, npt.NDArray[np.int64]] = {}
         self._corrupt = 0
         self._silent = False
@@ -157,10 +174,9 @@ class FakeUrg:
         self._laser_on_time = math.inf
         self._tm_mode = False
         self._stream: _Stream | None = None
-        self._bitrate = 115200
+        self._bitrate = self._link_bitrate or 115200
         self._inbuf.clear()
-        self._outq.clear()
-        self._last_due = -math.inf
+        self._clear_output()
         self._cache.clear()
 
     def power_cycle(self, now: float | None = None) -> None:
@@ -180,8 +196,7 @@ class FakeUrg:
         with self._lock:
             self._silent = value
             if value:
-                self._outq.clear()
-                self._last_due = -math.inf
+                self._clear_output()
 
     def inject(self, data: bytes) -> None:
         """Send ``data`` as is, after the replies already due (junk between frames)."""
@@ -260,16 +275,30 @@ class FakeUrg:
             dues = []
             if self._outq:
                 dues.append(self._outq[0][0])
+            if self._wire and self.link_bytes_per_s is not None:
+                # Wake when a line's worth (a data block) has left, not for every byte.
+                chunk = min(len(self._wire), scip.BLOCK_CHARS + 2)
+                dues.append(self._wire_t + chunk / self.link_bytes_per_s)
             s = self._stream
             if s is not None:
                 dues.append(self._step0(s.next_k) + self._done_after_s(s.last))
             return max(min(dues) - t, 0.0) if dues else None
 
-    def _enqueue(self, due: float, item: bytes | Callable[[], bytes]) -> None:
+    def _clear_output(self) -> None:
+        self._outq.clear()
+        self._last_due = -math.inf
+        self._wire.clear()
+        self._wire_t = self._wire_end = -math.inf
+
+    def _enqueue(self, due: float, item: bytes | Callable[[], bytes], size: int | None = None) -> None:
+        """Queue ``item`` to leave at ``due``; ``size``: its length when it is built later (a GD scan)."""
         # Replies leave in command order even when one of them waits for a scan.
         due = max(due, self._last_due)
         self._last_due = due
         self._outq.append((due, item))
+        if self.link_bytes_per_s is not None:
+            n = len(item) if isinstance(item, bytes) else (size or 0)
+            self._wire_end = max(due, self._wire_end) + n / self.link_bytes_per_s
 
     def _reply(
         self,
@@ -283,10 +312,26 @@ class FakeUrg:
         self._enqueue(t, scip.encode_reply(echo, status, timestamp_ms=timestamp_ms, params=params))
 
     def _drain(self, t: float) -> bytes:
+        rate = self.link_bytes_per_s
         out = bytearray()
-        while self._outq and self._outq[0][0] <= t:
-            _, item = self._outq.popleft()
-            out += item() if callable(item) else item
+        while True:
+            if rate is not None and self._wire:
+                n = min(len(self._wire), math.floor((t - self._wire_t) * rate + 1e-9))
+                if n > 0:
+                    out += self._wire[:n]
+                    del self._wire[:n]
+                    self._wire_t += n / rate
+                if self._wire:
+                    break
+            if not self._outq or self._outq[0][0] > t:
+                break
+            due, item = self._outq.popleft()
+            data = item() if callable(item) else item
+            if rate is None:
+                out += data
+            else:
+                self._wire_t = max(self._wire_t, due)
+                self._wire += data
         return bytes(out)
 
     # -- commands ------------------------------------------------------------------------------------------
@@ -464,8 +509,9 @@ class FakeUrg:
         k_done = math.floor((t - self._epoch - done) / self.period_s + 1e-9)
         k_on = math.ceil((self._laser_on_time - self._epoch) / self.period_s - 1e-9)
         k = max(k_done, k_on)
+        size = scip.scan_reply_size(len(echo), scip.expected_value_count(first, last, cluster), nchars)
         self._enqueue(
-            self._step0(k) + done, lambda: self._data_frame(k, echo, "00", first, last, cluster, nchars)
+            self._step0(k) + done, lambda: self._data_frame(k, echo, "00", first, last, cluster, nchars), size
         )
 
     def _cmd_stream(self, body: str, tag: str, echo: bytes, t: float) -> None:
@@ -535,6 +581,12 @@ class FakeUrg:
             s.next_k += s.skip + 1
             if s.remaining is not None:
                 s.remaining -= 1
+            if self._step0(k) + done < self._wire_end:
+                # RS-232 model: the line is still sending; this scan is overwritten by the next one.
+                self.scans_skipped += 1
+                if s.remaining == 0:
+                    self._stream, self._laser_on = None, False
+                continue
             left = s.remaining if s.remaining is not None else 0
             echo = f"{s.body}{left:02d}" + (f";{s.tag}" if s.tag else "")
             self._enqueue(
@@ -555,10 +607,11 @@ class FakeUrg:
         if nchars == 2:
             values = np.where(values > 4095, ERR_NO_ECHO, values)
         frame = scip.encode_reply(echo, status, timestamp_ms=ts, payload=_encode_values(values, nchars))
-        self.emitted.append(EmittedScan(step0, ts, echo.decode("ascii", "replace")))
-        if self._corrupt > 0:
+        corrupted = self._corrupt > 0
+        if corrupted:
             self._corrupt -= 1
             frame = _break_first_block(frame)
+        self.emitted.append(EmittedScan(step0, ts, echo.decode("ascii", "replace"), corrupted))
         return frame
 
     @staticmethod

@@ -37,6 +37,7 @@ import contextlib
 import itertools
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -75,6 +76,15 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+
+# A byte on an 8N1 serial line: start bit, 8 data bits, stop bit.
+BITS_PER_BYTE = 10
+# The scan period assumed before the sensor's PP reply gives its own (URG-04LX: 600 rpm).
+NOMINAL_SCAN_PERIOD_S = 0.1
+# The stall watchdog waits at least this many scan intervals of the link (see UrgLaser.stall_limit_s).
+STALL_SCAN_INTERVALS = 2.0
+# The tag of our commands: 6 hex digits (``UrgLaser._tag``); its length enters the size of a streamed scan.
+_TAG_CHARS = 6
 
 
 # -- status errors -----------------------------------------------------------------------------------------
@@ -246,6 +256,18 @@ class DeviceClock:
         return self._t_ref + round(offset + device_ms * 1e6)
 
 
+def _is_serial_line(url: str) -> bool:
+    """Whether bytes from ``url`` move at ``baudrate``. Not on a USB CDC-ACM port (``/dev/ttyACM*``, or a
+    udev link such as ``/dev/urg`` to one: the URG's USB models move data at USB speed), a pseudo-terminal
+    (a fake, which ignores the rate) or pyserial's ``loop://`` and ``socket://``; anything else is taken
+    for a serial line."""
+    scheme, sep, _ = url.partition("://")
+    if sep:
+        return scheme not in ("loop", "socket")
+    real = os.path.realpath(url)
+    return not (os.path.basename(real).startswith("ttyACM") or real.startswith("/dev/pts/"))
+
+
 def _centred(delta_ms: int) -> int:
     """``delta_ms`` modulo 2^24, in [-2^23, 2^23)."""
     half = scip.TIMESTAMP_MODULUS // 2
@@ -259,13 +281,32 @@ class UrgLaser(LaserScanner):
     """A Hokuyo URG over SCIP 2.0, streaming ``Scan`` s with MD.
 
     ``first_step``/``last_step``/``cluster`` select the beams (default: all 682 of a URG-04LX).
-    ``timeout_s`` bounds each command; ``reconnect_interval_s`` paces reopening a lost port;
-    ``stall_timeout_s`` without a scan while streaming runs the connect sequence again and restarts MD.
+    ``timeout_s`` bounds each command; ``reconnect_interval_s`` paces reopening a lost port, and retrying a
+    stream restart that failed; ``stall_timeout_s`` without a scan while streaming runs the connect
+    sequence again and restarts MD.
+
+    Link rate. On a serial line (``serial_line``; by default any port but a USB CDC-ACM one, where
+    ``baudrate`` means nothing, or a pseudo-terminal) one scan takes ``scan_bytes * 10 / baudrate``
+    seconds to arrive: 1.1 s for a full URG-04LX scan at 19200 bit/s, against the 0.1 s the sensor takes
+    to measure it. The stall watchdog therefore waits at least :attr:`stall_limit_s`, twice the time
+    between two scans on this link (the scan period plus one scan's transfer), and a command reply, which
+    can queue behind a scan on its way, gets one scan's transfer time on top of ``timeout_s``. A rate that
+    cannot carry a scan per period is logged as a warning naming ``laser.baudrate`` when the driver is
+    built from the config, not refused: such a link still delivers scans, only fewer of them (an RS-232
+    URG at its factory 19200 bit/s is a real set-up), and it may be what the robot can live with.
+
+    After a silent spell the stream is taken back as soon as the sensor's scans come again: a restart
+    whose QT went unanswered keeps the old stream's scans welcome, and is retried one scan interval after
+    the sensor sends anything without a scan of ours coming (or every ``reconnect_interval_s``), not a
+    whole stall limit later.
 
     Health counters, besides those of :class:`LaserScanner`: ``bad_frames``, ``discarded_bytes`` (decoder
     resyncs), ``disconnects``, ``reconnects``, ``command_timeouts``, ``unexpected_replies``,
     ``stale_scans`` (scans of a stream we did not start), ``stream_restarts``, ``clock_resets``,
-    ``clock_inconsistent``.
+    ``clock_inconsistent``, ``scans_missed`` (scans the sensor measured while we streamed that never reached
+    the queue: corrupted, skipped for lack of line rate, lost in a silent spell or a restart; told by the
+    gap between the timestamps of consecutive streamed scans, or between their host times across a sensor
+    clock restart).
     """
 
     def __init__(
@@ -283,6 +324,7 @@ class UrgLaser(LaserScanner):
         stall_timeout_s: float = 1.0,
         time_sync_samples: int = 5,
         read_poll_s: float = 0.02,
+        serial_line: bool | None = None,
     ) -> None:
         super().__init__(name, queue_size)
         if not 0 <= first_step <= last_step <= 9999:
@@ -293,6 +335,8 @@ class UrgLaser(LaserScanner):
             raise ConfigError("laser.cluster", f"cluster is 1..99, got {cluster}")
         if timeout_s <= 0 or reconnect_interval_s <= 0 or stall_timeout_s <= 0:
             raise ConfigError("laser", "timeouts and intervals must be positive")
+        if baudrate <= 0:
+            raise ConfigError("laser.baudrate", f"must be positive, got {baudrate}")
         self.url = url
         self.baudrate = baudrate
         self.first_step = first_step
@@ -321,10 +365,59 @@ class UrgLaser(LaserScanner):
         self._last_stream_tag = ""
         self._last_scan_mono = 0.0
         self._sequence = 0
+        # (unwrapped device ms, host ns, clock epoch) of the latest streamed scan, for scans_missed.
+        self._last_streamed: tuple[int, int, int] | None = None
+        self._restart_retry_at: float | None = None  # a failed stream restart is retried from then
+        self._link_warned = False
+        if serial_line is None:
+            serial_line = _is_serial_line(url)
+        self.link_bytes_per_s: float | None = baudrate / BITS_PER_BYTE if serial_line else None
+        md_echo = scip.encode_md(first_step, last_step, cluster, 0, 0, "0" * _TAG_CHARS).rstrip(b"\n")
+        self.scan_bytes = scip.scan_reply_size(
+            len(md_echo), scip.expected_value_count(first_step, last_step, cluster), 3
+        )
+        self._check_link_rate(NOMINAL_SCAN_PERIOD_S)
+
+    # -- link rate -----------------------------------------------------------------------------------------
+    def _scan_period_s(self) -> float:
+        return self._info.scan_period_s if self._info is not None else NOMINAL_SCAN_PERIOD_S
+
+    @property
+    def scan_transfer_s(self) -> float:
+        """Time one streamed scan's bytes take on the line (0 on USB)."""
+        return 0.0 if self.link_bytes_per_s is None else self.scan_bytes / self.link_bytes_per_s
+
+    @property
+    def stall_limit_s(self) -> float:
+        """How long the watchdog waits for a scan: ``stall_timeout_s``, but never less than two scan
+        intervals of the link, so that it cannot fire between two scans that are both on their way."""
+        interval_s = self._scan_period_s() + self.scan_transfer_s
+        return max(self.stall_timeout_s, STALL_SCAN_INTERVALS * interval_s)
+
+    def _check_link_rate(self, period_s: float) -> None:
+        if self._link_warned or self.scan_transfer_s <= period_s:
+            return
+        self._link_warned = True
+        # The sensor sends the first scan finished after the line came free (the previous scan has left).
+        every = math.ceil(self.scan_transfer_s / period_s)
+        log.warning(
+            "laser.baudrate = %d cannot carry the configured scan: %d bytes take %.2f s at %d bit/s, the "
+            "sensor measures one every %.2f s: about 1 scan in %d gets through (%.2f scans/s). Raise "
+            "laser.baudrate (and the sensor's rate), or send fewer values (laser.first_step/last_step, "
+            "laser.cluster)",
+            self.baudrate,
+            self.scan_bytes,
+            self.scan_transfer_s,
+            self.baudrate,
+            period_s,
+            every,
+            1.0 / (every * period_s),
+        )
 
     # -- lifecycle -----------------------------------------------------------------------------------------
     def _open(self) -> None:
         self._closing.clear()
+        self._last_streamed = None  # a new session: the time since the last one was not missed
         self._port = self._open_port()
         try:
             self._initialise()
@@ -344,7 +437,7 @@ class UrgLaser(LaserScanner):
         self._wake_readers()
         thread, self._thread = self._thread, None
         if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=self.timeout_s + 2.0)
+            thread.join(timeout=self._reply_timeout_s() + 2.0)
         self._fail_jobs(DeviceDisconnected("laser is closed", self.name))
         if self._port is not None:
             # Leave the sensor quiet (stream stopped, laser off); best effort, the port may be gone.
@@ -372,7 +465,7 @@ class UrgLaser(LaserScanner):
         the sensor is back; if the sensor refuses (a status error), it stays off."""
         self._want_stream = True
         try:
-            self._call(self._job_start_stream, self.timeout_s)
+            self._call(self._job_start_stream, self._reply_timeout_s())
         except UrgStatusError:
             self._want_stream = False
             raise
@@ -380,7 +473,7 @@ class UrgLaser(LaserScanner):
     def stop(self) -> None:
         self._want_stream = False
         self._set_streaming(False)
-        self._call(self._job_stop_stream, self.timeout_s)
+        self._call(self._job_stop_stream, self._reply_timeout_s())
 
     def _call(self, fn: Callable[[], T], timeout_s: float) -> T:
         """Run ``fn`` on the worker thread and wait for it, never longer than ``timeout_s`` (+ slack)."""
@@ -392,7 +485,7 @@ class UrgLaser(LaserScanner):
         self._jobs.put((fn, fut))
         try:
             # The job enforces its own deadline; the slack covers a job that was queued behind another one.
-            return fut.result(timeout=timeout_s + self.timeout_s)
+            return fut.result(timeout=timeout_s + self._reply_timeout_s())
         except FutureTimeout as exc:
             fut.cancel()
             self.count("command_timeouts")
@@ -415,8 +508,8 @@ class UrgLaser(LaserScanner):
                 try:
                     fn, fut = self._jobs.get_nowait()
                 except queue.Empty:
-                    self._pump()
-                    self._check_stall()
+                    got = self._pump()
+                    self._check_stall(got)
                     continue
                 if not fut.set_running_or_notify_cancel():
                     continue
@@ -491,20 +584,19 @@ class UrgLaser(LaserScanner):
                 self.note_error(f"restarting the stream failed: {exc}")
 
     # -- I/O on the worker thread --------------------------------------------------------------------------
-    def _pump(self) -> None:
-        """Read what the port has (waiting at most ``read_poll_s``), dispatch scans, stash other replies."""
+    def _pump(self) -> bool:
+        """Read what the port has (waiting at most ``read_poll_s``), dispatch scans, stash other replies.
+        Returns whether anything came."""
         port = self._port
         if port is None:
             raise DeviceDisconnected("port is closed", self.name)
         data = port.read(max(1, port.in_waiting))
         if not data:
-            return
+            return False
         rx_ns = time.monotonic_ns()
-        for reply in self._decoder.feed(data):
-            if reply.command in ("MD", "MS") and reply.status == "99":
-                self._on_stream_scan(reply, rx_ns)
-            else:
-                self._stash.append((reply, rx_ns))
+        replies = self._decoder.feed(data)
+        # Counted before the scans that came with them are published: whoever reads a scan also sees the
+        # bad frames that arrived before it.
         bad = self._decoder.bad_frames - self._seen_bad
         if bad:
             dropped = self._decoder.discarded_bytes - self._seen_discarded
@@ -514,6 +606,12 @@ class UrgLaser(LaserScanner):
             for err in self._decoder.take_errors():
                 log.debug("URG on %s: %s", self.url, err)
                 self.note_error(str(err)[:200])
+        for reply in replies:
+            if reply.command in ("MD", "MS") and reply.status == "99":
+                self._on_stream_scan(reply, rx_ns)
+            else:
+                self._stash.append((reply, rx_ns))
+        return True
 
     def _transact(self, command: bytes, deadline: float | None = None) -> tuple[scip.ScipReply, int]:
         """Send ``command`` and wait for the reply whose echo matches it (not an MD scan); returns the reply
@@ -522,7 +620,7 @@ class UrgLaser(LaserScanner):
         if port is None:
             raise DeviceDisconnected("port is closed", self.name)
         echo = command.rstrip(b"\r\n").decode("ascii")
-        deadline = time.monotonic() + self.timeout_s if deadline is None else deadline
+        deadline = time.monotonic() + self._reply_timeout_s() if deadline is None else deadline
         if self._stash:
             self.count("unexpected_replies", len(self._stash))
             self._stash.clear()
@@ -544,6 +642,10 @@ class UrgLaser(LaserScanner):
                 raise DeviceTimeout(f"no reply to {echo!r}", self.name)
             self._pump()
 
+    def _reply_timeout_s(self) -> float:
+        # A reply can queue behind a streamed scan that is on its way (1.1 s at 19200 bit/s).
+        return self.timeout_s + self.scan_transfer_s
+
     def _tag(self) -> str:
         # A fresh tag per command, so that a late reply to an abandoned command is never taken for the
         # reply to the next one (the sensor echoes it; spec p.9).
@@ -557,8 +659,10 @@ class UrgLaser(LaserScanner):
             port.reset_input_buffer()
         self._decoder.reset()
         self._stash.clear()
-        self._stream_key = None
+        # Our stream's key is kept until QT is answered: scans it sends before that are good ones, and if QT
+        # goes unanswered (a silent sensor) the stream may well come back by itself.
         reply, _ = self._transact(scip.encode_qt())
+        self._stream_key = None
         if reply.status == "0E":
             # Only time-adjust mode refuses QT (urg_c reads 0E to QT the same way).
             self._transact(scip.encode_tm(2))
@@ -579,6 +683,7 @@ class UrgLaser(LaserScanner):
                 f"{info.first_step}..{info.last_step}",
             )
         self._info = info
+        self._check_link_rate(info.scan_period_s)  # the sensor's own period, if the nominal one was fine
         self._sync_clock()
         reply, _ = self._transact(scip.encode_bm(self._tag()))
         raise_for_status(reply, self.name, accept=("00", "02"))
@@ -680,7 +785,29 @@ class UrgLaser(LaserScanner):
                 self.count("stale_scans")
             return
         self._last_scan_mono = time.monotonic()
-        self._publish(self._make_scan(reply, rx_ns))
+        # Our stream is alive: a restart that failed while the sensor was silent is no longer needed.
+        self._restart_retry_at = None
+        scan = self._make_scan(reply, rx_ns)
+        self._count_missed(scan)
+        self._publish(scan)
+
+    def _count_missed(self, scan: Scan) -> None:
+        """Count the scans the sensor measured between the previous streamed scan and ``scan``."""
+        assert scan.device_time_ms is not None
+        epoch = self.clock.resets
+        last, self._last_streamed = self._last_streamed, (scan.device_time_ms, scan.host_time_ns, epoch)
+        if last is None:
+            return
+        period_ms = self._scan_period_s() * 1e3
+        last_ms, last_host_ns, last_epoch = last
+        if epoch == last_epoch:
+            gap_ms = float(scan.device_time_ms - last_ms)  # both on the sensor's clock: exact
+        else:
+            # The sensor's clock restarted in between: only the host times (both estimates) compare.
+            gap_ms = (scan.host_time_ns - last_host_ns) / 1e6
+        missed = round(gap_ms / period_ms) - 1
+        if missed > 0:
+            self.count("scans_missed", missed)
 
     def _job_get_scan(self, deadline: float) -> Scan:
         for attempt in range(2):
@@ -708,23 +835,40 @@ class UrgLaser(LaserScanner):
             self._stream_key = None
             raise
         self._last_scan_mono = time.monotonic()
+        self._restart_retry_at = None
         self._set_streaming(True)
 
     def _job_stop_stream(self) -> None:
         self._stream_key = None
+        self._last_streamed = None  # the gap until the next start() is wanted, not missed
         self._set_streaming(False)
         reply, _ = self._transact(scip.encode_qt())
         raise_for_status(reply, self.name)
 
-    def _check_stall(self) -> None:
-        """Restart a stream that stopped delivering (the sensor dropped it or went quiet)."""
+    def _check_stall(self, got_bytes: bool) -> None:
+        """Restart a stream that stopped delivering (the sensor dropped it or went quiet). ``got_bytes``:
+        the last read brought something, so a sensor that did not answer the last restart is back."""
         if not self._want_stream or not self.streaming:
             return
-        if time.monotonic() - self._last_scan_mono < self.stall_timeout_s:
+        now = time.monotonic()
+        retry_at = self._restart_retry_at
+        if retry_at is not None:
+            # The last restart went unanswered: try again at the reconnect pace rather than a whole stall
+            # limit later, and soon after the sensor talks again; not at once, though: what it sends may be
+            # the first bytes of a scan of our stream, which would make the restart needless.
+            if got_bytes:
+                scan_interval_s = self._scan_period_s() + self.scan_transfer_s
+                retry_at = min(retry_at, now + scan_interval_s + self.read_poll_s)
+                self._restart_retry_at = retry_at
+            if now < retry_at:
+                return
+        elif now - self._last_scan_mono < self.stall_limit_s:
             return
         self.count("stream_restarts")
-        self.note_error(f"no scan for {self.stall_timeout_s:.1f} s: restarting the stream")
-        self._last_scan_mono = time.monotonic()
+        if retry_at is None:
+            self.note_error(f"no scan for {self.stall_limit_s:.1f} s: restarting the stream")
+        self._restart_retry_at = None
+        self._last_scan_mono = now
         try:
             # The whole connect sequence, not just MD: a sensor that rebooted (brown-out) is back in its boot
             # mode with its clock restarted, which only the TM check notices.
@@ -732,3 +876,6 @@ class UrgLaser(LaserScanner):
             self._job_start_stream()
         except (DeviceError, ConfigError) as exc:
             log.info("URG on %s: stream restart failed: %s", self.url, exc)
+            if self._stream_key is not None and self._last_scan_mono > now:
+                return  # QT went unanswered, but our old stream came back meanwhile and delivers
+            self._restart_retry_at = time.monotonic() + self.reconnect_interval_s

@@ -396,6 +396,55 @@ def test_fake_encodes_any_ranges_and_timestamps_like_the_sensor(raw: bytes, star
     assert scip.parse_reply(frame).timestamp_ms == (start_ms + 200) % (1 << 24)
 
 
+@pytest.mark.parametrize(("echo", "first", "last", "cluster", "nchars"), [
+    (b"GD0044072501", 44, 725, 1, 3),
+    (b"MD0044072501000;000001", 44, 725, 1, 3),
+    (b"MS0300046804099", 300, 468, 4, 2),
+    (b"GD0000000001", 0, 0, 1, 3),
+    (b"GD0000006301", 0, 63, 1, 2),  # 128 characters: exactly two blocks
+])  # fmt: skip
+def test_scan_reply_size_is_the_length_on_the_wire(
+    echo: bytes, first: int, last: int, cluster: int, nchars: int
+) -> None:
+    count = scip.expected_value_count(first, last, cluster)
+    frame = scip.encode_reply(echo, "99", timestamp_ms=0, payload=scip.encode_values([20] * count, nchars))
+    assert scip.scan_reply_size(len(echo), count, nchars) == len(frame)
+
+
+def test_scan_reply_size_of_a_real_scan(captures: dict[str, bytes]) -> None:
+    assert scip.scan_reply_size(len(b"GD0044072501"), 682, 3) == len(captures["B"]) == 2134
+
+
+def test_fake_rs232_model_sends_at_its_line_rate_and_skips_what_it_cannot_send() -> None:
+    fake = FakeUrg(link_bitrate=19200)
+    t = 0.0
+    out = fake.receive(b"MD0044072501000;s\n", t)
+    ack = len(out)
+    arrivals: list[tuple[float, int]] = []
+    while t < 6.0:
+        due = fake.next_output_in(t)
+        assert due is not None  # a stream runs: something is always due
+        t += max(due, 0.001)
+        chunk = fake.poll(t)
+        if chunk:
+            arrivals.append((t, len(chunk)))
+            out += chunk
+    scans = [r for r in scip.ScipDecoder().feed(out) if r.status == "99"]
+    # Never more than 1920 bytes a second (10 bits a byte), whenever one looks.
+    sent = ack
+    for tc, n in arrivals:
+        sent += n
+        assert sent <= ack + tc * 1920 + 1
+    # A 2139-byte scan takes 1.114 s; the next one to go is the first finished after it left: every 12th.
+    assert [r.timestamp_ms for r in scans] == [0, 1200, 2400, 3600, 4800]
+    emitted = [e.device_time_ms for e in fake.emitted]
+    assert emitted in (
+        [0, 1200, 2400, 3600, 4800],
+        [0, 1200, 2400, 3600, 4800, 6000],
+    )  # 6000 may be on the line
+    assert fake.scans_skipped == 11 * (len(emitted) - 1)  # the eleven finished while each scan was being sent
+
+
 def test_fake_md_stream_is_paced_and_counts_down() -> None:
     fake = FakeUrg()
     t = 0.0
