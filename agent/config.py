@@ -36,6 +36,7 @@ from typing import Any
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import BACKENDS, DeviceKind, backend_class
 from drivers.sim.world import World
+from drivers.sim.worldfile import MAX_LEDS
 from drivers.toml_table import TomlTable, type_name
 
 __all__ = [
@@ -98,6 +99,25 @@ MAX_REALTIME_PRIORITY = 49
 MAX_CPU_LATENCY_US = 1_000_000
 # The serial line carries 10 bits per byte (8N1); the pose stream may use at most this share of it.
 _LINE_SHARE = 0.8
+# Bounds on every count and size a config gives (docs/config.md, "Limits"), checked on the number before
+# anything is built from it, so a slip fails at once with its key instead of allocating or looping for ever.
+MAX_IMAGE_SIDE_PX = 8192  # frames and sensors: [vlp.intrinsics], [vlp.rolling_shutter], camera_info, [camera]
+MAX_MAP_LEDS = MAX_LEDS  # an LED map holds no more LEDs than a world may
+MAX_RECORD_MB = 1_000_000  # a terabyte of recording
+# Integer device options that are counts or sizes, by the driver's argument name (one meaning in every
+# backend that takes it): (lowest, highest, why).
+_OPTION_RANGES: dict[str, tuple[int, int, str]] = {
+    "queue_size": (1, 4096, "samples kept for the consumer"),
+    "truth_history": (1, 4096, "frames that keep their ground truth"),
+    "time_sync_samples": (1, 100, "round trips to the laser at connect"),
+    "retries": (0, 100, "retries of one bus transaction"),
+    "cluster": (1, 99, "SCIP 2.0 sends it in 2 digits"),
+    "first_step": (0, 9999, "SCIP 2.0 sends step numbers in 4 digits"),
+    "last_step": (0, 9999, "SCIP 2.0 sends step numbers in 4 digits"),
+    "device_index": (0, 255, "cameras on one GenTL producer"),
+}
+# Array options: the most entries each may have.
+_OPTION_LENGTHS: dict[str, int] = {"antenna_ports": 15}  # Mercury readers number their ports 1..15
 
 
 class OutputFormat(enum.StrEnum):
@@ -541,6 +561,27 @@ def _convert_option(option: _Option, value: Any, table: _Table) -> Any:
     raise table.error(key, f"must be {option.describe()}, not {type_name(value)} ({value!r})")
 
 
+def _check_option_size(name: str, value: Any, table: _Table) -> Any:
+    if name in _OPTION_RANGES and isinstance(value, int) and not isinstance(value, bool):
+        low, high, why = _OPTION_RANGES[name]
+        if not low <= value <= high:
+            raise table.error(name, f"must be {low}..{high} ({why}), got {value}")
+    if name in _OPTION_LENGTHS and isinstance(value, tuple) and len(value) > _OPTION_LENGTHS[name]:
+        raise table.error(name, f"has {len(value)} entries, more than the limit of {_OPTION_LENGTHS[name]}")
+    return value
+
+
+def _image_side(value: int) -> bool:
+    return 0 < value <= MAX_IMAGE_SIDE_PX
+
+
+_IMAGE_SIDE = (_image_side, f"must be 1..{MAX_IMAGE_SIDE_PX} px (the limit on an image side)")
+_SENSOR_SIDE = (
+    lambda v: 0 <= v <= MAX_IMAGE_SIDE_PX,
+    f"must be 0..{MAX_IMAGE_SIDE_PX} px (0: frames are full resolution; the limit on an image side)",
+)
+
+
 # -- external files ------------------------------------------------------------------------------------
 def read_camera_info(path: Path, key: str, file: str) -> IntrinsicsConfig:
     """Width, height, camera matrix and distortion from a ROS ``camera_info`` YAML file.
@@ -564,12 +605,18 @@ def read_camera_info(path: Path, key: str, file: str) -> IntrinsicsConfig:
         data = node.getNode("data") if not node.empty() else node
         if node.empty() or data.empty() or data.size() != n:
             raise ConfigError(key, f"{path}: {name}.data must hold {n} numbers", file)
-        return [float(data.at(i).real()) for i in range(n)]
+        return finite(name, [float(data.at(i).real()) for i in range(n)])
+
+    def finite(name: str, values: list[float]) -> list[float]:
+        for i, v in enumerate(values):
+            if not math.isfinite(v):
+                raise ConfigError(key, f"{path}: {name}.data[{i}] must be finite, got {v}", file)
+        return values
 
     def integer(name: str) -> int:
         node = storage.getNode(name)
-        if node.empty() or not node.isInt() or node.real() <= 0:
-            raise ConfigError(key, f"{path}: {name} must be a positive integer", file)
+        if node.empty() or not node.isInt() or not _image_side(int(node.real())):
+            raise ConfigError(key, f"{path}: {name} must be an integer 1..{MAX_IMAGE_SIDE_PX}", file)
         return int(node.real())
 
     width, height = integer("image_width"), integer("image_height")
@@ -578,7 +625,10 @@ def read_camera_info(path: Path, key: str, file: str) -> IntrinsicsConfig:
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     if not dist_node.empty():
         data = dist_node.getNode("data")
+        if not data.empty() and data.size() > 5:
+            raise ConfigError(key, f"{path}: distortion_coefficients must hold 5 numbers (plumb_bob)", file)
         values = [float(data.at(i).real()) for i in range(data.size())] if not data.empty() else []
+        finite("distortion_coefficients", values)
         if len(values) not in (0, 4, 5):
             raise ConfigError(key, f"{path}: distortion_coefficients must hold 5 numbers (plumb_bob)", file)
         values += [0.0] * (5 - len(values))
@@ -619,6 +669,8 @@ def _led(t: _Table) -> LedConfig:
 
 
 def _leds(tables: list[_Table], key: str, file: str) -> tuple[LedConfig, ...]:
+    if len(tables) > MAX_MAP_LEDS:
+        raise ConfigError(key, f"has {len(tables)} LEDs, more than the limit of {MAX_MAP_LEDS}", file)
     leds = tuple(_led(t) for t in tables)
     if not leds:
         raise ConfigError(key, "the LED map is empty", file)
@@ -744,7 +796,7 @@ class _Reader:
                 raise t.error(name, "is set by the simulated robot ([sim]); remove it")
             if name in world_keys:
                 raise t.error(name, "comes from the world file under [sim]; set it there ([robot])")
-            options[name] = _convert_option(known[name], t.take(name), t)
+            options[name] = _check_option_size(name, _convert_option(known[name], t.take(name), t), t)
         t.finish()
         for name, option in known.items():
             if option.required and name not in options and name not in location:
@@ -765,6 +817,11 @@ class _Reader:
             elif name in ("width", "height"):
                 if isinstance(value, bool) or not isinstance(value, int):
                     raise t.error(name, f"must be an integer, not {type_name(value)}")
+                if value > MAX_IMAGE_SIDE_PX:
+                    raise t.error(
+                        name,
+                        f"must be at most {MAX_IMAGE_SIDE_PX} px (the limit on an image side), got {value}",
+                    )
                 converted[name] = value
             else:
                 if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
@@ -869,8 +926,8 @@ class _Reader:
             assert inline is not None
             dist = inline.numbers("distortion", 5) or (0.0, 0.0, 0.0, 0.0, 0.0)
             base = IntrinsicsConfig(
-                inline.integer("width_px", 0, _POSITIVE),
-                inline.integer("height_px", 0, _POSITIVE),
+                inline.integer("width_px", 0, _IMAGE_SIDE),
+                inline.integer("height_px", 0, _IMAGE_SIDE),
                 inline.number("fx_px", 0.0, _POSITIVE),
                 inline.number("fy_px", 0.0, _POSITIVE),
                 inline.number("cx_px", math.nan),
@@ -889,8 +946,8 @@ class _Reader:
             raise r.error("t_row_s", "missing: the sensor's row time (the stripes' clock)")
         t_row_s = r.number("t_row_s", 0.0, _POSITIVE)
         exposure_s = r.number("exposure_s", 20e-6, _POSITIVE)
-        sensor_w = r.integer("sensor_width_px", 0, _NON_NEGATIVE)
-        sensor_h = r.integer("sensor_height_px", 0, _NON_NEGATIVE)
+        sensor_w = r.integer("sensor_width_px", 0, _SENSOR_SIDE)
+        sensor_h = r.integer("sensor_height_px", 0, _SENSOR_SIDE)
         if (sensor_w == 0) != (sensor_h == 0):
             raise r.error("sensor_height_px", "give both sensor_width_px and sensor_height_px, or neither")
         if sensor_w and (sensor_w < base.width_px or sensor_h < base.height_px):
@@ -1051,7 +1108,11 @@ class _Reader:
         t = self.top.table("record") or _Table({}, "record", self.file)
         record = RecordConfig(
             path=t.path_value("path", self.base),
-            max_mb=t.number("max_mb", RecordConfig().max_mb, _POSITIVE),
+            max_mb=t.number(
+                "max_mb",
+                RecordConfig().max_mb,
+                (lambda v: 0 < v <= MAX_RECORD_MB, f"must be > 0 and at most {MAX_RECORD_MB} (a terabyte)"),
+            ),
         )
         t.finish()
         return record

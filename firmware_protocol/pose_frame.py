@@ -297,7 +297,10 @@ class PoseFrameDecoder:
     delimiter go to ``discarded_bytes``, and decoding resumes right after it, so one bad frame never costs a
     good one. An empty candidate (two 0x00 in a row, or a 0x00 at the start) is idle fill, not an error.
     The buffer never holds more than :data:`MAX_ENCODED_LENGTH` bytes: beyond that the candidate is counted
-    once in ``overflows`` and skipped up to the next 0x00.
+    once in ``overflows`` and skipped up to the next 0x00. The overflow is counted as soon as the byte that
+    cannot be a frame arrives, not when a 0x00 ends the run: a line that sends noise and never a 0x00 shows
+    up in the counters at once. Either way the count depends only on the bytes, never on how they were cut
+    into ``feed`` calls. The run's bytes go to ``discarded_bytes`` when its 0x00 comes.
     """
 
     def __init__(self) -> None:

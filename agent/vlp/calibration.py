@@ -45,6 +45,11 @@ __all__ = [
 
 # A track must sweep at least this much of its circle to constrain the centre.
 _MIN_ARC_RAD = math.radians(60.0)
+# Bounds on the counts and sizes a calibration file gives (docs/vlp.md). The image side is the config's
+# limit (agent.config.MAX_IMAGE_SIDE_PX; tests/unit/test_vlp_calibration.py holds the two equal). The points
+# a residual correction was fitted to are only recorded, but a count beyond this is a corrupt file.
+MAX_IMAGE_SIDE_PX = 8192
+MAX_RESIDUAL_POINTS = 1_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,8 +283,10 @@ def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) 
         if key not in known_camera:
             raise ConfigError(f"camera.{key}", "unknown key", source)
     size = _numbers(camera, "image_size_px", "camera", source, 2)
-    if any(v <= 0 or v != int(v) for v in size):
-        raise ConfigError("camera.image_size_px", f"must be two positive integers, got {size}", source)
+    if any(not 0 < v <= MAX_IMAGE_SIDE_PX or v != int(v) for v in size):
+        raise ConfigError(
+            "camera.image_size_px", f"must be two integers 1..{MAX_IMAGE_SIDE_PX}, got {size}", source
+        )
     principal = None
     if "principal_point_px" in camera:
         cx, cy = _numbers(camera, "principal_point_px", "camera", source, 2)
@@ -316,8 +323,10 @@ def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) 
         xs = _numbers(res, "x_coefficients", "residual", source, n)
         ys = _numbers(res, "y_coefficients", "residual", source, n)
         points = res.get("points", 0)
-        if isinstance(points, bool) or not isinstance(points, int) or points < 0:
-            raise ConfigError("residual.points", f"must be a non-negative integer, got {points!r}", source)
+        if isinstance(points, bool) or not isinstance(points, int) or not 0 <= points <= MAX_RESIDUAL_POINTS:
+            raise ConfigError(
+                "residual.points", f"must be an integer 0..{MAX_RESIDUAL_POINTS}, got {points!r}", source
+            )
         before = _number(res, "rms_before_m", "residual", source) if "rms_before_m" in res else math.nan
         after = _number(res, "rms_after_m", "residual", source) if "rms_after_m" in res else math.nan
         residual = ResidualCorrection((ox, oy), scale, degree, tuple(xs), tuple(ys), points, before, after)

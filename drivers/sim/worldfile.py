@@ -6,7 +6,8 @@ absent keeps the dataclass default. Angles may be given in degrees instead: ``ya
 
 Everything is checked on load, and a mistake raises :class:`~drivers.errors.ConfigError` naming the file
 and the exact key (``leds[3].frequency_hz``): unknown or missing keys, wrong types, values out of range,
-LED signatures the decoder could not tell apart, routes and people's paths that go through walls. Things
+counts and sizes over their limits (``MAX_*`` below, checked before anything is built from them), LED
+signatures the decoder could not tell apart, routes and people's paths that go through walls. Things
 that are legal but probably not meant (an LED frequency that aliases after the downsampling, a frame rate
 the readout cannot keep up with) are logged as warnings.
 
@@ -28,6 +29,9 @@ import typing
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import numpy.typing as npt
 
 from drivers.errors import ConfigError
 from drivers.sim.world import (
@@ -62,6 +66,22 @@ _MAX_SEARCHED_SIGNATURES = 48
 # A camera tilt beyond this is a mounting mistake, not an error model (and leaves the LEDs out of view).
 _MAX_TILT_RAD = math.radians(20.0)
 
+# Bounds on every count and size in a world file (docs/world.md, "Limits"). Each is checked on the number
+# itself, before anything is built from it, so that a slip such as ``ny = 100000000`` fails at once with
+# its key instead of allocating gigabytes (or, at 2**63 - 1, never finishing).
+MAX_LEDS = 4096  # all [[leds]] plus every grid's nx * ny; also the signatures of one grid
+MAX_SENSOR_SIDE_PX = 8192  # sensor_width_px, sensor_height_px
+MAX_OUTPUT_SIDE_PX = 4096  # output_width_px, output_height_px: the renderer keeps ~64 bytes per pixel
+MAX_STEPS_PER_REV = 10_000  # SCIP 2.0 writes step numbers with 4 digits (0..9999)
+MAX_RANGE_MM = 262_143  # the largest range SCIP's 3-character encoding carries (18 bits)
+MAX_SCAN_RPM = 6000  # 100 scans/s, beyond any URG; sets how many scans the fake makes per second
+MAX_FRAME_RATE_HZ = 1000.0  # sets how many frames the renderer makes per second
+MAX_WALLS = 4096  # wall segments from [[walls]], [[polygons]] and [[rooms]] together
+MAX_OUTLINE_POINTS = MAX_WALLS  # points of one [[walls]] or [[polygons]] entry
+MAX_PATH_POINTS = 256  # a person's path, the route's waypoints (each leg is checked against every wall)
+MAX_PEOPLE = 16
+MAX_DOORS = 64  # doors of one room
+
 _Check = tuple[Callable[[Any], bool], str]
 _POSITIVE: _Check = (lambda v: v > 0, "must be > 0")
 _NON_NEGATIVE: _Check = (lambda v: v >= 0, "must be >= 0")
@@ -69,17 +89,25 @@ _FRACTION_OPEN: _Check = (lambda v: 0 < v < 1, "must be strictly between 0 and 1
 _UNIT_INTERVAL: _Check = (lambda v: 0 <= v <= 1, "must be between 0 and 1")
 _SERVO_ID: _Check = (lambda v: 0 <= v <= _MAX_SERVO_ID, f"must be a Dynamixel id 0..{_MAX_SERVO_ID}")
 
+
+def _up_to(limit: float, what: str) -> _Check:
+    return (lambda v: 0 < v <= limit, f"must be > 0 and at most {limit:g} ({what})")
+
+
+_SENSOR_SIDE = _up_to(MAX_SENSOR_SIDE_PX, "the limit on a sensor side")
+_OUTPUT_SIDE = _up_to(MAX_OUTPUT_SIDE_PX, "the limit on a rendered frame side")
+
 # Range checks on single fields, by "Class.field". Cross-field checks are in the section readers below.
 _RULES: dict[str, _Check] = {
-    "CameraModel.sensor_width_px": _POSITIVE,
-    "CameraModel.sensor_height_px": _POSITIVE,
+    "CameraModel.sensor_width_px": _SENSOR_SIDE,
+    "CameraModel.sensor_height_px": _SENSOR_SIDE,
     "CameraModel.pixel_size_m": _POSITIVE,
     "CameraModel.focal_length_m": _POSITIVE,
     "CameraModel.t_row_s": _POSITIVE,
     "CameraModel.exposure_s": _POSITIVE,
-    "CameraModel.output_width_px": _POSITIVE,
-    "CameraModel.output_height_px": _POSITIVE,
-    "CameraModel.frame_rate_hz": _POSITIVE,
+    "CameraModel.output_width_px": _OUTPUT_SIDE,
+    "CameraModel.output_height_px": _OUTPUT_SIDE,
+    "CameraModel.frame_rate_hz": _up_to(MAX_FRAME_RATE_HZ, "frames per second"),
     "CameraModel.led_peak_dn": _POSITIVE,
     "CameraModel.black_level_dn": (lambda v: 0 <= v < 255, "must be in [0, 255)"),
     "CameraModel.read_noise_dn": _NON_NEGATIVE,
@@ -88,12 +116,12 @@ _RULES: dict[str, _Check] = {
     "CameraModel.radial_falloff": _UNIT_INTERVAL,
     "CameraModel.bloom_fraction": (lambda v: 0 <= v <= 0.5, "must be between 0 and 0.5"),
     "LaserModel.min_range_mm": _NON_NEGATIVE,
-    "LaserModel.max_range_mm": _POSITIVE,
-    "LaserModel.steps_per_rev": _POSITIVE,
+    "LaserModel.max_range_mm": _up_to(MAX_RANGE_MM, "what SCIP can send"),
+    "LaserModel.steps_per_rev": _up_to(MAX_STEPS_PER_REV, "SCIP step numbers have 4 digits"),
     "LaserModel.first_step": _NON_NEGATIVE,
     "LaserModel.front_step": _NON_NEGATIVE,
     "LaserModel.last_step": _NON_NEGATIVE,
-    "LaserModel.scan_rpm": _POSITIVE,
+    "LaserModel.scan_rpm": _up_to(MAX_SCAN_RPM, "100 scans per second"),
     "LaserModel.range_noise_mm": _NON_NEGATIVE,
     "LaserModel.dropout": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
     "RobotSpec.wheel_radius_m": _POSITIVE,
@@ -221,7 +249,9 @@ class _Table(TomlTable):
             raise self.error(name, "must not be empty")
         return value
 
-    def points(self, name: str, *, minimum: int = 1, required: bool = True) -> tuple[Point, ...]:
+    def points(
+        self, name: str, *, minimum: int = 1, maximum: int, required: bool = True
+    ) -> tuple[Point, ...]:
         if not self.has(name):
             if required:
                 raise self.error(name, "missing (a list of [x, y] points in metres is required)")
@@ -229,6 +259,8 @@ class _Table(TomlTable):
         value = self.take(name)
         if not isinstance(value, list):
             raise self.error(name, f"must be a list of [x, y] points, not {type_name(value)}")
+        if len(value) > maximum:
+            raise self.error(name, f"has {len(value)} points, more than the limit of {maximum}")
         pts = tuple(_as_point(p, f"{self.key(name)}[{i}]", self.file) for i, p in enumerate(value))
         if len(pts) < minimum:
             raise self.error(
@@ -247,7 +279,7 @@ class _Table(TomlTable):
             )
         return _Table(value, path, self.file)
 
-    def tables(self, name: str) -> list[_Table]:
+    def tables(self, name: str, maximum: int) -> list[_Table]:
         if not self.has(name):
             return []
         value = self.take(name)
@@ -256,6 +288,8 @@ class _Table(TomlTable):
             raise ConfigError(
                 path, f"must be an array of tables ([[{path}]]), not {type_name(value)}", self.file
             )
+        if len(value) > maximum:
+            raise ConfigError(path, f"has {len(value)} entries, more than the limit of {maximum}", self.file)
         return [_Table(v, f"{path}[{i}]", self.file) for i, v in enumerate(value)]
 
 
@@ -399,6 +433,79 @@ def _best_row_shift(n: int, dx_m: float, dy_m: float) -> int:
         if gap > best_gap + 1e-12:
             best, best_gap = s, gap
     return best
+
+
+def _wall_boxes(walls: list[Wall]) -> npt.NDArray[np.float64]:
+    """Each wall's bounding box as a row (x_min, x_max, y_min, y_max)."""
+    ends = np.array([[w.x1_m, w.x2_m, w.y1_m, w.y2_m] for w in walls], dtype=np.float64).reshape(-1, 4)
+    return np.column_stack(
+        (ends[:, :2].min(axis=1), ends[:, :2].max(axis=1), ends[:, 2:].min(axis=1), ends[:, 2:].max(axis=1))
+    )
+
+
+def _walls_near(a: Point, b: Point, boxes: npt.NDArray[np.float64], margin_m: float) -> list[int]:
+    """Indices, in order, of the walls whose bounding box comes within ``margin_m`` of the segment a-b's.
+
+    A wall whose box is farther than that can neither cross the segment nor come closer than the margin,
+    so the exact tests only run on these: checking every leg against every wall took over a second per
+    path at the wall limit."""
+    slack = margin_m + 1e-9  # at least the exact tests' own tolerance
+    near = (
+        (boxes[:, 0] <= max(a[0], b[0]) + slack)
+        & (boxes[:, 1] >= min(a[0], b[0]) - slack)
+        & (boxes[:, 2] <= max(a[1], b[1]) + slack)
+        & (boxes[:, 3] >= min(a[1], b[1]) - slack)
+    )
+    return [int(n) for n in np.flatnonzero(near)]
+
+
+def _close_signature_pairs(
+    signatures: list[tuple[Led, str]],
+) -> list[tuple[tuple[int, Led, str], tuple[int, Led, str]]]:
+    """Pairs of signatures closer than both _CLOSE_FREQUENCY_HZ and _CLOSE_DUTY, each pair in file order.
+
+    Sorted by frequency, only the neighbours within _CLOSE_FREQUENCY_HZ are compared: the all-pairs loop
+    took seconds at the LED limit."""
+    ranked = sorted(
+        ((i, led, key) for i, (led, key) in enumerate(signatures)), key=lambda e: e[1].frequency_hz
+    )
+    pairs = []
+    for n, first in enumerate(ranked):
+        for second in ranked[n + 1 :]:
+            if second[1].frequency_hz - first[1].frequency_hz >= _CLOSE_FREQUENCY_HZ:
+                break
+            if abs(first[1].duty - second[1].duty) < _CLOSE_DUTY:
+                pairs.append((first, second) if first[0] < second[0] else (second, first))
+    return sorted(pairs, key=lambda p: (p[0][0], p[1][0]))
+
+
+def _first_overlap(leds: list[_Placed]) -> tuple[_Placed, _Placed, float] | None:
+    """The first LED (in file order) whose disk overlaps an earlier one at about the same height, with the
+    earliest such one and the distance between their centres; None if no disks overlap.
+
+    LEDs are bucketed in square cells at least as wide as the widest disk, so only neighbouring cells are
+    compared: the all-pairs loop took 5 s for 4900 LEDs."""
+    if not leds:
+        return None
+    # At least 1 m, so that x / cell stays finite for any finite coordinate.
+    cell = max(1.0, max(p.led.diameter_m for p in leds))
+    buckets: dict[tuple[int, int], list[int]] = {}
+    for j, second in enumerate(leds):
+        b = second.led
+        cx, cy = math.floor(b.x_m / cell), math.floor(b.y_m / cell)
+        earlier = []
+        for ix in (cx - 1, cx, cx + 1):
+            for iy in (cy - 1, cy, cy + 1):
+                for i in buckets.get((ix, iy), ()):
+                    a = leds[i].led
+                    apart_m = math.hypot(a.x_m - b.x_m, a.y_m - b.y_m)
+                    if apart_m < (a.diameter_m + b.diameter_m) / 2 and abs(a.z_m - b.z_m) < 0.05:
+                        earlier.append((i, apart_m))
+        if earlier:
+            i, apart_m = min(earlier)
+            return leds[i], second, apart_m
+        buckets.setdefault((cx, cy), []).append(j)
+    return None
 
 
 class _Placed(typing.NamedTuple):
@@ -558,22 +665,31 @@ class _WorldReader:
     # -- walls -------------------------------------------------------------------------------------------
     def _walls(self) -> list[Wall]:
         walls: list[Wall] = []
-        for t in self.root.tables("walls"):
+        for t in self.root.tables("walls", MAX_WALLS):
             t.expect("points", "closed")
             closed = t.boolean("closed", False)
-            pts = t.points("points", minimum=3 if closed else 2)
+            pts = t.points("points", minimum=3 if closed else 2, maximum=MAX_OUTLINE_POINTS)
             t.finish()
             walls += self._chain(pts, closed, t.key("points"))
-        for t in self.root.tables("polygons"):
+            self._check_wall_count(walls, t.key("points"))
+        for t in self.root.tables("polygons", MAX_WALLS):
             t.expect("points")
-            pts = t.points("points", minimum=3)
+            pts = t.points("points", minimum=3, maximum=MAX_OUTLINE_POINTS)
             t.finish()
             if len(pts) > 3 and pts[0] == pts[-1]:
                 pts = pts[:-1]  # a ring written with its closing point repeated
             walls += self._chain(pts, True, t.key("points"))
-        for t in self.root.tables("rooms"):
+            self._check_wall_count(walls, t.key("points"))
+        for t in self.root.tables("rooms", MAX_WALLS):
             walls += self._room(t)
+            self._check_wall_count(walls, t.path)
         return walls
+
+    def _check_wall_count(self, walls: list[Wall], key: str) -> None:
+        if len(walls) > MAX_WALLS:
+            raise self.error(
+                key, f"brings the world to {len(walls)} wall segments, more than the limit of {MAX_WALLS}"
+            )
 
     def _chain(self, pts: tuple[Point, ...], closed: bool, key: str) -> list[Wall]:
         ends = list(pts) + ([pts[0]] if closed else [])
@@ -604,7 +720,7 @@ class _WorldReader:
             "east": ((x1, y0), (x1, y1)),
         }
         gaps: dict[str, list[tuple[float, float, str]]] = {side: [] for side in _SIDES}
-        for d in t.tables("doors"):
+        for d in t.tables("doors", MAX_DOORS):
             d.expect("side", "offset_m", "width_m")
             side = d.string("side")
             if side not in sides:
@@ -657,7 +773,7 @@ class _WorldReader:
                 raise defaults_table.error(name, f"{rule[1]}, got {defaults[name]:g}")
 
         leds: list[_Placed] = []
-        for t in self.root.tables("leds"):
+        for t in self.root.tables("leds", MAX_LEDS):
             t.expect("id", "x_m", "y_m", "z_m", "diameter_m", "frequency_hz", "duty")
             led = Led(
                 id=t.string("id", allow_int=True),
@@ -670,8 +786,8 @@ class _WorldReader:
             )
             t.finish()
             leds.append(_Placed(led, t.path, t.path, t.path))
-        for t in self.root.tables("led_grids"):
-            leds += self._led_grid(t, defaults)
+        for t in self.root.tables("led_grids", MAX_LEDS):
+            leds += self._led_grid(t, defaults, len(leds))
         self._check_leds(leds, robot, cam)
         return leds
 
@@ -685,21 +801,31 @@ class _WorldReader:
             raise t.error(name, f"{rule[1]}, got {value:g}")
         return value
 
-    def _led_grid(self, t: _Table, defaults: Mapping[str, float | None]) -> list[_Placed]:
+    def _led_grid(self, t: _Table, defaults: Mapping[str, float | None], placed: int) -> list[_Placed]:
         """LEDs on a rectangular grid; signature k goes to LED (ix, iy) with k = (ix + row_shift iy) mod n.
-        Neighbours along a row always differ (n > 1); the default row_shift keeps repeats farthest apart."""
+        Neighbours along a row always differ (n > 1); the default row_shift keeps repeats farthest apart.
+        ``placed``: LEDs the world already has, which count against :data:`MAX_LEDS` with this grid's."""
         t.expect("x0_m", "y0_m", "nx", "ny", "dx_m", "dy_m", "z_m", "diameter_m", "signatures", "row_shift")
         x0, y0 = t.number("x0_m", required=True), t.number("y0_m", required=True)
         nx, ny = t.integer("nx"), t.integer("ny")
         for name, n in (("nx", nx), ("ny", ny)):
-            if n < 1:
-                raise t.error(name, f"must be >= 1, got {n}")
+            if not 1 <= n <= MAX_LEDS:
+                raise t.error(
+                    name, f"must be >= 1 and at most {MAX_LEDS} (the limit on LEDs in a world), got {n}"
+                )
+        if placed + nx * ny > MAX_LEDS:
+            # Name the larger factor: the likelier slip.
+            raise t.error(
+                "ny" if ny >= nx else "nx",
+                f"a {nx} x {ny} grid is {nx * ny} LEDs; with the {placed} placed before it the world "
+                f"would hold more than the limit of {MAX_LEDS}",
+            )
         dx = t.number("dx_m", 0.0 if nx == 1 else None)
         dy = t.number("dy_m", 0.0 if ny == 1 else None)
         z = self._led_number(t, "z_m", defaults)
         diameter = self._led_number(t, "diameter_m", defaults)
         signatures = []
-        for s in t.tables("signatures"):
+        for s in t.tables("signatures", MAX_LEDS):
             s.expect("id", "frequency_hz", "duty")
             sig = (
                 s.string("id", allow_int=True),
@@ -785,34 +911,26 @@ class _WorldReader:
                         "them apart",
                     )
                 by_signature[signature] = (led, sig_key)
-        for i, (a, _) in enumerate(list(by_signature.values())):
-            for b, bkey in list(by_signature.values())[i + 1 :]:
-                if (
-                    abs(a.frequency_hz - b.frequency_hz) < _CLOSE_FREQUENCY_HZ
-                    and abs(a.duty - b.duty) < _CLOSE_DUTY
-                ):
-                    log.warning(
-                        "%s: LED ids %r and %r (%s) have close signatures (%g/%g Hz, duty %g/%g)",
-                        self.file,
-                        a.id,
-                        b.id,
-                        bkey,
-                        a.frequency_hz,
-                        b.frequency_hz,
-                        a.duty,
-                        b.duty,
-                    )
-        for i, first in enumerate(leds):
-            a = first.led
-            for second in leds[i + 1 :]:
-                b = second.led
-                apart_m = math.hypot(a.x_m - b.x_m, a.y_m - b.y_m)
-                if apart_m < (a.diameter_m + b.diameter_m) / 2 and abs(a.z_m - b.z_m) < 0.05:
-                    raise self.error(
-                        second.key,
-                        f"the LED at {second.where} overlaps the one at {first.where} "
-                        f"(centres {apart_m:.3f} m apart)",
-                    )
+        for (_, a, _), (_, b, bkey) in _close_signature_pairs(list(by_signature.values())):
+            log.warning(
+                "%s: LED ids %r and %r (%s) have close signatures (%g/%g Hz, duty %g/%g)",
+                self.file,
+                a.id,
+                b.id,
+                bkey,
+                a.frequency_hz,
+                b.frequency_hz,
+                a.duty,
+                b.duty,
+            )
+        overlap = _first_overlap(leds)
+        if overlap is not None:
+            first, second, apart_m = overlap
+            raise self.error(
+                second.key,
+                f"the LED at {second.where} overlaps the one at {first.where} "
+                f"(centres {apart_m:.3f} m apart)",
+            )
 
     # -- things that move --------------------------------------------------------------------------------
     def _check_path(self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str) -> None:
@@ -820,9 +938,10 @@ class _WorldReader:
         if len(pts) < 2:
             return
         legs = list(zip(pts, pts[1:] + pts[:1], strict=True)) if len(pts) > 2 else [(pts[0], pts[1])]
+        boxes = _wall_boxes(walls)
         for i, (a, b) in enumerate(legs):
-            for w in walls:
-                q1, q2 = _wall_ends(w)
+            for n in _walls_near(a, b, boxes, 0.0):
+                q1, q2 = _wall_ends(walls[n])
                 if _segments_cross(a, b, q1, q2):
                     raise self.error(
                         f"{key}[{i}]",
@@ -833,13 +952,13 @@ class _WorldReader:
     def _people(self, walls: list[Wall]) -> list[Person]:
         people = []
         names: dict[str, str] = {}
-        for t in self.root.tables("people"):
+        for t in self.root.tables("people", MAX_PEOPLE):
             t.expect("name", "tag_id", "path", "speed_mps", "radius_m")
             base = Person("", "", ())
             person = Person(
                 name=t.string("name"),
                 tag_id=t.string("tag_id", allow_int=True),
-                path=t.points("path", minimum=1),
+                path=t.points("path", minimum=1, maximum=MAX_PATH_POINTS),
                 speed_mps=self._checked(t, "Person", "speed_mps", base.speed_mps),
                 radius_m=self._checked(t, "Person", "radius_m", base.radius_m),
             )
@@ -861,7 +980,7 @@ class _WorldReader:
     def _route(self, walls: list[Wall], robot: RobotSpec) -> tuple[tuple[Point, ...], float]:
         t = self.root.table("route")
         t.expect("waypoints", "speed_mps")
-        waypoints = t.points("waypoints", minimum=1, required=False)
+        waypoints = t.points("waypoints", minimum=1, maximum=MAX_PATH_POINTS, required=False)
         speed = t.number("speed_mps", World("").route_speed_mps)
         t.finish()
         if speed <= 0:
@@ -869,9 +988,10 @@ class _WorldReader:
         self._check_path(waypoints, walls, "route.waypoints", "the route leg")
         if len(waypoints) >= 2:
             legs = list(zip(waypoints, waypoints[1:] + waypoints[:1], strict=True))
+            boxes = _wall_boxes(walls)
             for i, (a, b) in enumerate(legs):
-                for w in walls:
-                    gap = _segment_distance(a, b, *_wall_ends(w))
+                for n in _walls_near(a, b, boxes, robot.radius_m):
+                    gap = _segment_distance(a, b, *_wall_ends(walls[n]))
                     if gap < robot.radius_m:
                         log.warning(
                             "%s: route leg %d passes %.2f m from a wall, closer than the robot's radius "

@@ -68,7 +68,7 @@ typedef enum {
     POSE_ERR_LENGTH = 2,   /* too short or too long for its version */
     POSE_ERR_CRC = 3,      /* CRC mismatch */
     POSE_ERR_VERSION = 4,  /* unknown major version */
-    POSE_ERR_OVERFLOW = 5  /* more than POSE_FRAME_MAX_DECODED_LEN bytes without a 0x00 */
+    POSE_ERR_OVERFLOW = 5  /* more than 67 bytes without a 0x00: counted as the 68th arrives */
 } pose_status_t;
 
 typedef struct {
@@ -77,7 +77,7 @@ typedef struct {
     uint32_t length_errors;
     uint32_t cobs_errors;
     uint32_t version_errors;
-    uint32_t overflows;
+    uint32_t overflows;       /* runs of more than 67 bytes without a 0x00, counted as the 68th arrives */
     uint32_t discarded_bytes; /* bytes of rejected candidates, their 0x00 included */
 } pose_decoder_stats_t;
 

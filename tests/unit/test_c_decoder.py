@@ -258,6 +258,27 @@ def test_junk_truncated_and_corrupted_frames_between_good_ones(c_decoder: Binari
     assert py.crc_errors >= 5 and py.overflows == 5 and py.version_errors == 4 and py.pending == 10
 
 
+@pytest.mark.parametrize(
+    ("data", "frames", "overflows", "pending"),
+    [
+        (b"\x01" * 67, 0, 0, 67),  # as long as the longest frame: not (yet) an overflow
+        (b"\x01" * 68, 0, 1, 68),  # issue 17: overflowed, counted though no 0x00 has ended it
+        (b"\x01" * 68 + b"\x00", 0, 1, 0),
+        (b"\x01" * 300, 0, 1, 300),  # counted once per run, not once per buffer-full
+        (b"\xff" + bytes(range(1, 68)), 0, 1, 68),  # inside one 0xFF block: no implied zeros
+        (b"\x44" + bytes(range(1, 68)), 0, 1, 68),
+        (b"\x01" * 68 + b"\x00" + encode_pose(PoseFrame(7, 8, 1.0, 2.0, 0.5)), 1, 1, 0),
+    ],
+    ids=["67", "68", "68+00", "300", "ff-block", "44-block", "then-a-frame"],
+)
+def test_a_run_without_zero_overflows_at_the_same_byte_in_c_and_python(
+    c_decoder: Binaries, data: bytes, frames: int, overflows: int, pending: int
+) -> None:
+    rows = assert_same_as_python(c_decoder.checked, data)
+    _, counters = decode_with_c(c_decoder.checked, data)
+    assert (len(rows), counters["overflows"], counters["pending"]) == (frames, overflows, pending)
+
+
 def test_a_megabyte_of_noise_with_frames_in_it(c_decoder: Binaries) -> None:
     rng = random.Random(3)
     noise = bytearray(rng.randbytes(1 << 20))

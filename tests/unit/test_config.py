@@ -311,3 +311,129 @@ def test_an_unreadable_config_file(tmp_path: Path) -> None:
     bad.write_bytes(b'# caf\xe9\n[output]\nurl = "x"\n')
     with pytest.raises(ConfigError, match="UTF-8"):
         load_config(bad)
+
+
+# -- limits: every count and size is bounded (issue 17) -----------------------------------------------------
+INTRINSICS = (
+    "[vlp.intrinsics]\nwidth_px = 800\nheight_px = 600\nfx_px = 500.0\nfy_px = 500.0\ncx_px = 400.0\n"
+    "cy_px = 300.0\n[vlp.rolling_shutter]\nt_row_s = 3e-5\n"
+)
+CAMERA = '[camera]\nbackend = "v4l2"\n'
+ONE_LED = '[[{table}]]\nid = "A{i}"\nx_m = {i}.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+TOO_MANY_LEDS = "".join(ONE_LED.format(table="vlp.leds", i=i) for i in range(4097))
+
+
+def _option(table: str, line: str) -> str:
+    """REAL with ``line`` added to the device table ``table`` (added with a minimal backend if absent)."""
+    if table == "servos":
+        return REAL.replace('port = "/dev/dynamixel"', f'port = "/dev/dynamixel"\n{line}')
+    backends = {
+        "laser": 'backend = "urg"\nurl = "/dev/urg"',
+        "rfid": 'backend = "mercury"\nurl = "/dev/rfid"',
+        "camera": 'backend = "genicam"\ncti = "x.cti"',
+    }
+    return (
+        REAL
+        + f"[{table}]\n{backends[table]}\n{line}\n"
+        + ("[vlp]\nenabled = false\n" if table == "camera" else "")
+    )
+
+
+OVER_THE_LIMIT = [
+    # (config text, the key the error names, words of the reason)
+    (REAL + CAMERA + "width = 8193\n" + INTRINSICS, "camera.width", "at most 8192"),
+    (REAL + CAMERA + "height = 9223372036854775807\n" + INTRINSICS, "camera.height", "at most 8192"),
+    (
+        REAL + CAMERA + INTRINSICS.replace("width_px = 800", "width_px = 8193"),
+        "vlp.intrinsics.width_px",
+        "1..8192",
+    ),
+    (
+        REAL + CAMERA + INTRINSICS.replace("height_px = 600", "height_px = 100000000"),
+        "vlp.intrinsics.height_px",
+        "1..8192",
+    ),
+    (
+        REAL + CAMERA + INTRINSICS + "sensor_width_px = 8193\nsensor_height_px = 600\n",
+        "vlp.rolling_shutter.sensor_width_px",
+        "0..8192",
+    ),
+    (
+        REAL + CAMERA + "[vlp]\n" + TOO_MANY_LEDS + INTRINSICS,
+        "vlp.leds",
+        "4097 LEDs, more than the limit of 4096",
+    ),
+    (_option("laser", "queue_size = 0"), "laser.queue_size", "1..4096"),
+    (_option("laser", "queue_size = 4097"), "laser.queue_size", "1..4096"),
+    (_option("laser", "time_sync_samples = 9223372036854775807"), "laser.time_sync_samples", "1..100"),
+    (_option("laser", "cluster = 100"), "laser.cluster", "1..99"),
+    (_option("laser", "first_step = 10000"), "laser.first_step", "0..9999"),
+    (_option("laser", "last_step = 10000"), "laser.last_step", "0..9999"),
+    (_option("servos", "retries = 101"), "servos.retries", "0..100"),
+    (_option("rfid", "queue_size = 100000000"), "rfid.queue_size", "1..4096"),
+    (_option("rfid", f"antenna_ports = {list(range(1, 17))}"), "rfid.antenna_ports", "16 entries"),
+    (_option("camera", "device_index = 256"), "camera.device_index", "0..255"),
+    (sim_config("[camera]\ntruth_history = 100000000\n"), "camera.truth_history", "1..4096"),
+    (REAL + "[record]\nmax_mb = 1e7\n", "record.max_mb", "at most 1000000"),
+]
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "words"), OVER_THE_LIMIT, ids=[f"{k}:{w}" for _, k, w in OVER_THE_LIMIT]
+)
+def test_a_count_or_size_over_its_limit_names_the_key(
+    tmp_path: Path, text: str, key: str, words: str
+) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert (info.value.key, info.value.file) == (key, str(path)), str(info.value)
+    assert words in str(info.value)
+
+
+def test_counts_and_sizes_at_their_limits_load(tmp_path: Path) -> None:
+    config = parse_config(
+        REAL
+        + CAMERA
+        + "width = 8192\nheight = 8192\n"
+        + "[vlp]\n"
+        + ONE_LED.format(table="vlp.leds", i=0)
+        + INTRINSICS.replace("width_px = 800", "width_px = 8192")
+        + "sensor_width_px = 8192\nsensor_height_px = 8192\n"
+        + '[laser]\nbackend = "urg"\nurl = "/dev/urg"\nqueue_size = 4096\ncluster = 99\n'
+        + "time_sync_samples = 100\nfirst_step = 0\nlast_step = 9999\n[record]\nmax_mb = 1000000\n"
+    )
+    assert config.devices[DeviceKind.LASER].options["queue_size"] == 4096
+    assert config.vlp.intrinsics is not None and config.vlp.intrinsics.sensor_width_px == 8192
+
+
+def test_an_led_map_file_over_the_limit_names_the_map(tmp_path: Path) -> None:
+    leds = write(tmp_path, "".join(ONE_LED.format(table="leds", i=i) for i in range(4097)), "leds.toml")
+    path = write(tmp_path, REAL + CAMERA + '[vlp]\nled_map = "leds.toml"\n' + INTRINSICS)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert (info.value.key, info.value.file) == ("leds", str(leds))
+    assert "more than the limit of 4096" in info.value.reason
+
+
+@pytest.mark.parametrize(
+    ("field", "bad", "words"),
+    [
+        ("image_width: 640", "image_width: 100000", "image_width must be an integer 1..8192"),
+        ("[500.0, 0, 319.5", "[500.0, 0, .nan", "camera_matrix.data[2] must be finite"),
+        ("[0.01, -0.02, 0, 0, 0]", "[0.01, .inf, 0, 0, 0]", "distortion_coefficients.data[1] must be finite"),
+    ],
+    ids=["size", "nan", "inf"],
+)
+def test_a_camera_info_over_the_limit_or_not_finite(tmp_path: Path, field: str, bad: str, words: str) -> None:
+    info = (
+        "image_width: 640\nimage_height: 480\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+        "  data: [500.0, 0, 319.5, 0, 501.0, 239.5, 0, 0, 1]\ndistortion_model: plumb_bob\n"
+        "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.01, -0.02, 0, 0, 0]\n"
+    )
+    assert field in info
+    write(tmp_path, info.replace(field, bad), "camera_info.yaml")
+    path = write(tmp_path, REAL + CAMERA + '[vlp]\ncamera_info = "camera_info.yaml"\n')
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert err.value.key == "vlp.camera_info" and words in err.value.reason, str(err.value)

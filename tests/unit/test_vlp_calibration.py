@@ -93,6 +93,14 @@ def test_calibration_file_round_trip() -> None:
         ),
         ("[cam]\n", "cam"),
         ("[camera\n", ""),
+        # Issue 17: counts and sizes have bounds.
+        ("[camera]\nimage_size_px = [8193, 600]\n", "camera.image_size_px"),
+        ("[camera]\nimage_size_px = [800, 9223372036854775807]\n", "camera.image_size_px"),
+        (
+            "[camera]\nimage_size_px = [800, 600]\n[residual]\ndegree = 0\norigin_m = [0, 0]\nscale_m = 1.0\n"
+            "x_coefficients = [1]\ny_coefficients = [1]\npoints = 1000001\n",
+            "residual.points",
+        ),
     ],
 )
 def test_calibration_file_mistakes_name_the_key(text: str, key: str) -> None:
@@ -105,3 +113,14 @@ def test_calibration_for_another_image_size_is_refused() -> None:
     with pytest.raises(ValueError, match="1280x960"):
         VlpCalibration((1280, 960), (640.0, 480.0)).intrinsics(INTRINSICS)
     assert VlpCalibration((800, 600), (401.0, 299.0)).intrinsics(INTRINSICS).cx_px == 401.0
+
+
+def test_the_image_side_limit_is_the_configs() -> None:
+    from agent.config import MAX_IMAGE_SIDE_PX
+    from agent.vlp import calibration
+
+    assert calibration.MAX_IMAGE_SIDE_PX == MAX_IMAGE_SIDE_PX
+    assert parse_calibration(f"[camera]\nimage_size_px = [{MAX_IMAGE_SIDE_PX}, 1]\n").image_size_px == (
+        8192,
+        1,
+    )

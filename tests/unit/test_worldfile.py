@@ -7,6 +7,8 @@ import dataclasses
 import logging
 import math
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -495,3 +497,117 @@ def test_the_agents_view_is_the_truth_bent_by_the_errors() -> None:
     perfect = dataclasses.replace(world, errors=ErrorModel())
     assert surveyed_leds(perfect) == perfect.leds
     assert nominal_camera(perfect).principal_point_px == perfect.camera.principal_point_px
+
+
+# -- limits: every count and size is bounded before anything is built from it (issue 17) ------------------
+def _zigzag(n: int, x0: float = 100.0) -> str:
+    """``n`` distinct [x, y] points far from the robot's start, as a TOML array."""
+    return "[" + ", ".join(f"[{x0 + i:.1f}, {100.0 + (i % 2):.1f}]" for i in range(n)) + "]"
+
+
+def _grid(nx: int, ny: int) -> str:
+    return (
+        f"[[led_grids]]\nx0_m = 0\ny0_m = 0\nnx = {nx}\nny = {ny}\ndx_m = 0.5\ndy_m = 0.5\nz_m = 3.0\n"
+        'signatures = [{ id = "A", frequency_hz = 1000.0 }, { id = "B", frequency_hz = 2500.0 }]\n'
+    )
+
+
+def _people(n: int) -> str:
+    return "".join(f'[[people]]\nname = "p{i}"\ntag_id = "{i}"\npath = [[1.0, 1.0]]\n' for i in range(n))
+
+
+OVER_THE_LIMIT: list[tuple[str, str, str]] = [
+    # (file text, the key the error must name, a piece of the reason)
+    ("[camera]\nsensor_width_px = 8193\n", "camera.sensor_width_px", "at most 8192"),
+    ("[camera]\nsensor_height_px = 8193\n", "camera.sensor_height_px", "at most 8192"),
+    ("[camera]\noutput_width_px = 4097\n", "camera.output_width_px", "at most 4096"),
+    ("[camera]\noutput_height_px = 9223372036854775807\n", "camera.output_height_px", "at most 4096"),
+    ("[camera]\nframe_rate_hz = 1001.0\n", "camera.frame_rate_hz", "at most 1000"),
+    ("[laser]\nsteps_per_rev = 10001\n", "laser.steps_per_rev", "at most 10000"),
+    ("[laser]\nmax_range_mm = 262144\n", "laser.max_range_mm", "at most 262143"),
+    ("[laser]\nscan_rpm = 6001\n", "laser.scan_rpm", "at most 6000"),
+    ("[[leds]]\n" * 4097, "leds", "4097 entries, more than the limit of 4096"),
+    (_grid(4097, 1), "led_grids[0].nx", "at most 4096"),
+    (_grid(1, 4097), "led_grids[0].ny", "at most 4096"),
+    (_grid(65, 65), "led_grids[0].ny", "4225 LEDs"),
+    (_grid(66, 64), "led_grids[0].nx", "4224 LEDs"),
+    (leds(("Z", 50.0, 3000, 0.5)) + _grid(64, 64), "led_grids[0].ny", "the 1 placed before it"),
+    (_grid(1, 1) + _grid(64, 64), "led_grids[1].ny", "the 1 placed before it"),
+    (GRID + "signatures = [" + "{}, " * 4097 + "]\n", "led_grids[0].signatures", "more than the limit"),
+    (f"[[walls]]\npoints = {_zigzag(4097)}\n", "walls[0].points", "4097 points"),
+    (f"[[polygons]]\npoints = {_zigzag(4097)}\n", "polygons[0].points", "4097 points"),
+    (
+        f"[[walls]]\npoints = {_zigzag(4096)}\n[[walls]]\npoints = {_zigzag(3, -100.0)}\n",
+        "walls[1].points",
+        "4097 wall segments",
+    ),
+    (f"[[polygons]]\npoints = {_zigzag(4096)}\n" + ROOM, "rooms[0]", "4100 wall segments"),
+    ("[[rooms]]\n" * 4097, "rooms", "more than the limit of 4096"),
+    (ROOM + "doors = [" + "{}, " * 65 + "]\n", "rooms[0].doors", "more than the limit of 64"),
+    (_people(17), "people", "17 entries, more than the limit of 16"),
+    (f'[[people]]\nname = "a"\ntag_id = "1"\npath = {_zigzag(257)}\n', "people[0].path", "257 points"),
+    (f"[route]\nwaypoints = {_zigzag(257)}\n", "route.waypoints", "257 points"),
+]
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "reason"), OVER_THE_LIMIT, ids=[f"{k}:{r}" for _, k, r in OVER_THE_LIMIT]
+)
+def test_a_count_or_size_over_its_limit_is_a_config_error_naming_the_key(
+    text: str, key: str, reason: str
+) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_world(text, source="big.toml")
+    assert (info.value.key, info.value.file) == (key, "big.toml")
+    assert reason in info.value.reason
+    assert f"big.toml: {key}: " in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[camera]\nsensor_width_px = 8192\nsensor_height_px = 8192\n",
+        "[laser]\nsteps_per_rev = 10000\nmax_range_mm = 262143\nscan_rpm = 6000\n",
+        _grid(64, 64),
+        f'[[people]]\nname = "a"\ntag_id = "1"\npath = {_zigzag(256)}\n[route]\nwaypoints = {_zigzag(256)}\n',
+        _people(16),
+    ],
+    ids=["sensor", "laser", "grid", "paths", "people"],
+)
+def test_a_world_at_the_limits_loads(text: str) -> None:
+    parse_world(text)
+
+
+def test_the_led_limit_is_4096_whatever_mix_of_leds_and_grids() -> None:
+    world = parse_world(leds(("Z", 50.0, 3000, 0.5)) + _grid(63, 65))  # 1 + 4095
+    assert len(world.leds) == 4096
+
+
+@pytest.mark.parametrize("ny", [100_000_000, 2**63 - 1], ids=["1e8", "2**63-1"])
+def test_a_huge_led_grid_fails_at_once_without_allocating(ny: int) -> None:
+    # Before the bound the loader built every LED: ny = 1e8 took 57 s and 2.95 GB before a MemoryError,
+    # 2**63 - 1 never finished. The child is held to 1 GB of address space so that a regression fails as a
+    # MemoryError instead of swapping; the timeout only keeps a hung loader from hanging the suite.
+    code = (
+        "import resource, sys, time\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))\n"
+        "from drivers.errors import ConfigError\n"
+        "from drivers.sim.worldfile import parse_world\n"
+        "t = time.perf_counter()\n"
+        "try:\n"
+        "    parse_world(sys.stdin.read(), source='huge.toml')\n"
+        "except ConfigError as exc:\n"
+        "    print(f'{time.perf_counter() - t:.6f}', exc.key, exc.reason, sep='|')\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        input=_grid(1, ny),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert proc.returncode == 0, proc.stderr
+    seconds, key, reason = proc.stdout.strip().split("|")
+    assert key == "led_grids[0].ny" and str(ny) in reason
+    assert float(seconds) < 0.5, f"the bound took {seconds} s to fail"
