@@ -587,17 +587,17 @@ def test_the_led_limit_is_4096_whatever_mix_of_leds_and_grids() -> None:
 def test_a_huge_led_grid_fails_at_once_without_allocating(ny: int) -> None:
     # Before the bound the loader built every LED: ny = 1e8 took 57 s and 2.95 GB before a MemoryError,
     # 2**63 - 1 never finished. The child is held to 1 GB of address space so that a regression fails as a
-    # MemoryError instead of swapping; the timeout only keeps a hung loader from hanging the suite.
+    # MemoryError instead of swapping (that cap, not a clock, is what proves nothing was built first); the
+    # timeout only keeps a hung loader (2**63 - 1 before the bound) from hanging the suite.
     code = (
-        "import resource, sys, time\n"
+        "import resource, sys\n"
         "resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))\n"
         "from drivers.errors import ConfigError\n"
         "from drivers.sim.worldfile import parse_world\n"
-        "t = time.perf_counter()\n"
         "try:\n"
         "    parse_world(sys.stdin.read(), source='huge.toml')\n"
         "except ConfigError as exc:\n"
-        "    print(f'{time.perf_counter() - t:.6f}', exc.key, exc.reason, sep='|')\n"
+        "    print(exc.key, exc.reason, sep='|')\n"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code],
@@ -608,6 +608,5 @@ def test_a_huge_led_grid_fails_at_once_without_allocating(ny: int) -> None:
         cwd=REPO,
     )
     assert proc.returncode == 0, proc.stderr
-    seconds, key, reason = proc.stdout.strip().split("|")
+    key, reason = proc.stdout.strip().split("|")
     assert key == "led_grids[0].ny" and str(ny) in reason
-    assert float(seconds) < 0.5, f"the bound took {seconds} s to fail"
