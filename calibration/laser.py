@@ -418,7 +418,8 @@ def _result(
         [
             plot.scatter(
                 [*series, plot.Series(np.zeros((1, 2)), plot.BLACK, "laser", 4)],
-                title="corner in the laser frame (m)",
+                title="corner in the laser frame",
+                axis_labels=("x (m)", "y (m)"),
             ),
             plot.text_panel(report + [c.describe() for c in checks], title="laser mount"),
         ]
