@@ -413,7 +413,8 @@ def _result(
     ]
     for c in corners[:1]:
         for wall in c.walls:
-            series.append(plot.Series(np.array(wall.ends), plot.BLUE, "", 2, line=True))
+            label = "" if len(series) > 1 else "walls seen at the first stop"
+            series.append(plot.Series(np.array(wall.ends), plot.BLUE, label, 2, line=True))
     figure = plot.grid(
         [
             plot.scatter(

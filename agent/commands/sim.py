@@ -397,7 +397,10 @@ def _write_files(
     files: dict[str, str] = {}
     if mapper is not None:
         saved = save_map(
-            mapper, out_dir, paths=_map_paths(scorer, slam_path), title="map.png: laser SLAM map"
+            mapper,
+            out_dir,
+            paths=_map_paths(scorer, slam_path),
+            title=f"map.png: laser SLAM map of {sim.world.name}",
         )
         if saved:
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
