@@ -384,7 +384,7 @@ def run(args: argparse.Namespace) -> int:
             truth_paths.append(
                 MapPath("truth (simulator)", simulated.truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
             )
-        if reference is not None:
+        elif reference is not None:  # a simulated log's reference poses are the truth drawn above
             truth_paths.append(
                 MapPath(
                     "reference poses (log)",
