@@ -750,7 +750,11 @@ def _advice(fit: IntrinsicsFit, checks: list[Check], output: Path) -> list[str]:
 
 def _figure(fit: IntrinsicsFit, max_rms: float, checks: list[Check], truth: dict[str, float] | None) -> Any:
     bars = plot.bar_chart(
-        fit.per_view_rms_px, title="reprojection rms per view", ylabel="px", threshold=max(max_rms, 1e-3)
+        fit.per_view_rms_px,
+        title="reprojection rms per view",
+        ylabel="rms (px)",
+        xlabel="view",
+        threshold=max(max_rms, 1e-3),
     )
     corners = np.vstack([v.detection.image_points for v in fit.views]).astype(np.float64)
     errors = np.concatenate([np.linalg.norm(r, axis=1) for r in fit.residuals_px])
@@ -767,11 +771,13 @@ def _figure(fit: IntrinsicsFit, max_rms: float, checks: list[Check], truth: dict
         bounds=(0.0, float(fit.width), 0.0, float(fit.height)),
         flip_y=True,
         grid_lines=(xs, ys),
+        axis_labels=("u (px)", "v (px)"),
     )
     residuals = np.vstack(fit.residuals_px)
     resid = plot.scatter(
-        [plot.Series(residuals, plot.BLUE, "residual (dx, dy) px", 1)],
-        title="residuals",
+        [plot.Series(residuals, plot.BLUE, "a corner's residual", 1)],
+        title="residuals; the circle: their rms",
+        axis_labels=("dx (px)", "dy (px)"),
         circles=[(0.0, 0.0, fit.rms_px, plot.RED)],
     )
     lines = [

@@ -413,12 +413,14 @@ def _result(
     ]
     for c in corners[:1]:
         for wall in c.walls:
-            series.append(plot.Series(np.array(wall.ends), plot.BLUE, "", 2, line=True))
+            label = "" if len(series) > 1 else "walls seen at the first stop"
+            series.append(plot.Series(np.array(wall.ends), plot.BLUE, label, 2, line=True))
     figure = plot.grid(
         [
             plot.scatter(
                 [*series, plot.Series(np.zeros((1, 2)), plot.BLACK, "laser", 4)],
-                title="corner in the laser frame (m)",
+                title="corner in the laser frame",
+                axis_labels=("x (m)", "y (m)"),
             ),
             plot.text_panel(report + [c.describe() for c in checks], title="laser mount"),
         ]

@@ -428,15 +428,18 @@ def _result(
     text = format_led_map(measured, [f"signatures measured with the camera ({source})"])
     sig = np.array([[m.frequency_hz, 1000.0 * m.duty] for m in measured])
     where = np.array([[m.entry.x_m, m.entry.y_m] for m in measured])
+    ids = [m.entry.id for m in measured]
     figure = plot.grid(
         [
             plot.scatter(
-                [plot.Series(where, plot.ORANGE, "LEDs (m)", 5)],
-                title="LED map: " + ", ".join(m.entry.id for m in measured),
+                [plot.Series(where, plot.ORANGE, "LED (its id beside it)", 6, labels=ids)],
+                title="LED map: where each LED is",
+                axis_labels=("x (m)", "y (m)"),
             ),
             plot.scatter(
-                [plot.Series(sig, plot.BLUE, "frequency Hz vs 1000 x duty", 5)],
-                title="signatures",
+                [plot.Series(sig, plot.BLUE, "LED signature (its id beside it)", 5, labels=ids)],
+                title="signatures; a circle: half the least separation",
+                axis_labels=("frequency (Hz)", "duty (x 1000)"),
                 circles=[
                     (float(m.frequency_hz), 1000.0 * m.duty, MIN_SEPARATION_HZ / 2, plot.GREY)
                     for m in measured

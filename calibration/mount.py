@@ -517,8 +517,9 @@ def _result(
         panels.insert(
             0,
             plot.scatter(
-                [plot.Series(board, plot.BLUE, "board in the level camera frame (m)", 4, line=True)],
+                [plot.Series(board, plot.BLUE, "board centre in the level camera frame", 4, line=True)],
                 title="board positions: headings 0, 180, 0, ahead, back",
+                axis_labels=("x (m)", "y (m)"),
             ),
         )
     advice = [f"copy the [vlp.mount] table from {output} into the robot config"]

@@ -490,11 +490,12 @@ def _figure(
     cal = np.array([residual.apply(*f) for s in stops for f in s.centred]).reshape(-1, 2)
     fixes = plot.scatter(
         [
-            plot.Series(raw, plot.GREY, "before", 2),
-            plot.Series(cal, plot.RED, "after", 2),
-            plot.Series(truth, plot.BLACK, "known points", 4),
+            plot.Series(truth, plot.TRUTH, "known point", 7),
+            plot.Series(raw, plot.UNCALIBRATED, "fix before calibration", 2),
+            plot.Series(cal, plot.VLP_FIX, "fix after calibration", 2),
         ],
-        title="fixes at the known points (m)",
+        title="fixes at the known points",
+        axis_labels=("x (m)", "y (m)"),
     )
     # Fix errors, magnified: each fix minus its point, in cm.
     err_before = np.array(
@@ -508,18 +509,26 @@ def _figure(
         ]
     ).reshape(-1, 2)
     errors = plot.scatter(
-        [plot.Series(err_before, plot.GREY, "before", 2), plot.Series(err_after, plot.RED, "after", 2)],
-        title="fix errors (cm)",
+        [
+            plot.Series(err_before, plot.UNCALIBRATED, "before calibration", 2),
+            plot.Series(err_after, plot.VLP_FIX, "after calibration", 2),
+        ],
+        title="fix errors; the circle: 5 mm",
+        axis_labels=("x error (cm)", "y error (cm)"),
         circles=[(0.0, 0.0, 0.5, plot.GREEN)],
     )
-    circles = [plot.Series(np.array(p), plot.BLUE, "", 1) for p in tracks.paths.values()]
+    circles = [
+        plot.Series(np.array(p), plot.BLUE, "an LED's image over the turn" if k == 0 else "", 1)
+        for k, p in enumerate(tracks.paths.values())
+    ]
     centre = plot.Series(np.array([[rc.cx_px, rc.cy_px]]), plot.RED, "rotation centre", 4)
     nominal = plot.Series(
         np.array([[view.intrinsics.cx_px, view.intrinsics.cy_px]]), plot.BLACK, "nominal", 4
     )
     turn = plot.scatter(
         [*circles, centre, nominal],
-        title="LED tracks over the turn (px)",
+        title="LED tracks over the turn",
+        axis_labels=("u (px)", "v (px)"),
         bounds=(0.0, float(view.intrinsics.width_px), 0.0, float(view.intrinsics.height_px)),
         flip_y=True,
     )

@@ -397,8 +397,9 @@ def _result(
         [
             plot.bar_chart(
                 [abs(v) for v in deviations],
-                title="runs 1-2: radius, 3-4: track; |deviation from the mean| %",
-                ylabel="%",
+                title="runs 1-2: radius, 3-4: track; |deviation from the mean|",
+                ylabel="deviation (%)",
+                xlabel="run",
                 threshold=RADIUS_SPREAD_PCT / 2,
             ),
             plot.text_panel(report + [c.describe() for c in checks], title="wheels"),

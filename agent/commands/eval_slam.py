@@ -168,8 +168,7 @@ def _progress(done: int, total: int, slam: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import cv2
-
+    from agent import figure
     from agent.slam.fix import TimedFix
     from agent.slam.logs import SlamLog, read_log
     from agent.slam.mapio import save_map, write_png
@@ -182,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     from agent.slam.motion import OdometryNoise
     from agent.slam.pose import between, compose
     from agent.slam.rbpf import MapMode, RbpfConfig
-    from agent.slam.render import occupancy_image, trajectory_picture
+    from agent.slam.render import MapPath, map_picture, occupancy_image
     from agent.slam.replay import replay
     from drivers.errors import ConfigError
 
@@ -377,15 +376,39 @@ def run(args: argparse.Namespace) -> int:
         walls = wall_thickness(image.occupied_mask())
         summary["wall_thin_fraction"] = _round(walls.thin_fraction, 3)
         files = save_map(image, out / "map.yaml", comment=f"vlp-agent eval slam {source_name}")
-        enlarged = cv2.resize(image.pixels, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
-        write_png(out / "map.png", np.asarray(enlarged, dtype=np.uint8))
         odometry = log.odometry_poses()
         start_pose = result.poses[0] if simulated is None else simulated.truth[0]
-        paths = [(compose(start_pose, between(odometry[0], odometry)), (200, 120, 0))]
-        if reference is not None:
-            paths.append((compose(start_pose, between(reference[0], reference)), (0, 160, 0)))
-        paths.append((result.poses, (0, 0, 220)))
-        write_png(out / "trajectory.png", trajectory_picture(image, paths, scale=2))
+        truth_paths: list[MapPath] = []
+        if simulated is not None:
+            truth_paths.append(
+                MapPath("truth (simulator)", simulated.truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
+            )
+        elif reference is not None:  # a simulated log's reference poses are the truth drawn above
+            truth_paths.append(
+                MapPath(
+                    "reference poses (log)",
+                    compose(start_pose, between(reference[0], reference)),
+                    figure.TRUTH,
+                    figure.TRUTH_WIDTH_PX,
+                )
+            )
+        estimate = MapPath("SLAM estimate", result.poses, figure.SLAM)
+        odometry_path = MapPath(
+            "wheel odometry", compose(start_pose, between(odometry[0], odometry)), figure.ODOMETRY
+        )
+        name = Path(source_name).name
+        write_png(
+            out / "map.png",
+            map_picture(image, [*truth_paths, estimate], f"map.png: SLAM map of {name}"),
+        )
+        write_png(
+            out / "trajectory.png",
+            map_picture(
+                image,
+                [*truth_paths, odometry_path, estimate],
+                f"trajectory.png: paths over the SLAM map of {name}",
+            ),
+        )
         summary["files"] = [
             str(files.yaml),
             str(files.image),

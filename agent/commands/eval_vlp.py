@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from agent import figure
 from agent.commands.args import dumps_json
 from agent.commands.worlds import EXAMPLES
 from agent.sim_view import agent_view
@@ -550,82 +551,83 @@ def draw_figure(
     path: Path, world: World, area: Sequence[float], cal: Tally, uncal: Tally, summary: dict[str, Any]
 ) -> None:
     """Estimated vs true positions (left) and the error CDFs (right), like the paper's Fig. 9."""
-    w, h = 1400, 700
+    if not cv2.imwrite(str(path), figure_image(world, area, cal, uncal, summary)):
+        raise ConfigError("--png", f"could not write {path}")
+
+
+def figure_image(
+    world: World, area: Sequence[float], cal: Tally, uncal: Tally, summary: dict[str, Any]
+) -> npt.NDArray[np.uint8]:
+    """:func:`draw_figure`'s picture: both panels with ticks in metres / centimetres, legends, LED ids."""
+    w, h = 1440, 840
     img = np.full((h, w, 3), 255, dtype=np.uint8)
-    black, grey, red, blue, amber = (0, 0, 0), (150, 150, 150), (40, 40, 220), (200, 90, 30), (0, 170, 230)
-    font = cv2.FONT_HERSHEY_SIMPLEX
+    top, size = 110, 540
     # Left panel: positions.
     x0, y0, x1, y1 = area
     pad = 0.1 * max(x1 - x0, y1 - y0)
-    x0, x1, y0, y1 = x0 - pad, x1 + pad, y0 - pad, y1 + pad
-    left, top, size = 80, 60, 560
-    scale = size / max(x1 - x0, y1 - y0)
-
-    def to_px(x: float, y: float) -> tuple[int, int]:
-        return int(left + (x - x0) * scale), int(top + size - (y - y0) * scale)
-
-    cv2.rectangle(img, (left, top), (left + size, top + size), black, 1)
+    left = 90
+    axes = figure.Axes.fit((x0 - pad, x1 + pad, y0 - pad, y1 + pad), (left, top, left + size, top + size))
+    bx0, bx1, by0, by1 = axes.bounds
+    cv2.rectangle(img, (left, top), (left + size, top + size), figure.WHITE, -1)
     for led in world.leds:
-        if x0 <= led.x_m <= x1 and y0 <= led.y_m <= y1:
-            cv2.circle(img, to_px(led.x_m, led.y_m), max(int(led.diameter_m / 2 * scale), 4), amber, -1)
-    for ex, ey, _, _ in uncal.fixes:
-        cv2.circle(img, to_px(ex, ey), 2, grey, -1)
-    for ex, ey, _, _ in cal.fixes:
-        cv2.circle(img, to_px(ex, ey), 2, red, -1)
+        if bx0 <= led.x_m <= bx1 and by0 <= led.y_m <= by1:
+            centre = axes.to_px(led.x_m, led.y_m)
+            radius = max(round(led.diameter_m / 2 * axes.px_per_unit), 5)
+            cv2.circle(img, centre, radius, figure.LED, -1, cv2.LINE_AA)
+            figure.text(img, f"LED {led.id}", (centre[0] - 24, centre[1] + radius + 16), 0.45)
+    # The truth underneath, the fixes on top: a fix within a millimetre still shows on its cross.
     for tx, ty in {(round(f[2], 4), round(f[3], 4)) for f in cal.fixes}:
-        cv2.drawMarker(img, to_px(tx, ty), black, cv2.MARKER_CROSS, 10, 1)
-    for frac in (0.0, 0.5, 1.0):
-        xv = x0 + frac * (x1 - x0)
-        yv = y0 + frac * (y1 - y0)
-        cv2.putText(img, f"{xv:.2f}", (to_px(xv, y0)[0] - 20, top + size + 22), font, 0.45, black, 1)
-        cv2.putText(img, f"{yv:.2f}", (left - 60, to_px(x0, yv)[1] + 5), font, 0.45, black, 1)
-    cv2.putText(img, "x (m)", (left + size // 2 - 20, top + size + 45), font, 0.5, black, 1)
-    cv2.putText(img, "y (m)", (left - 70, top + size // 2 - 30), font, 0.5, black, 1)
-    cv2.putText(img, f"(a) estimated vs true positions, {world.name}", (left, top - 25), font, 0.6, black, 1)
-    cv2.putText(
+        cv2.drawMarker(img, axes.to_px(tx, ty), figure.TRUTH, cv2.MARKER_CROSS, 18, 2)
+    for ex, ey, _, _ in uncal.fixes:
+        cv2.circle(img, axes.to_px(ex, ey), 3, figure.UNCALIBRATED, -1, cv2.LINE_AA)
+    for ex, ey, _, _ in cal.fixes:
+        cv2.circle(img, axes.to_px(ex, ey), 3, figure.VLP_FIX, -1, cv2.LINE_AA)
+    axes.draw(img, grid=True)
+    figure.title(img, f"vlp-agent eval vlp: VLP positioning on {world.name}", (20, 36))
+    figure.text(img, "(a) VLP fixes vs true positions", (left, 76), 0.6)
+    figure.legend(
         img,
-        "+ true   red: calibrated   grey: uncalibrated   yellow: LEDs",
-        (left, top - 8),
-        font,
-        0.42,
-        black,
-        1,
+        [
+            figure.Entry("true position", figure.TRUTH, figure.Mark.CROSS),
+            figure.Entry("VLP fix, calibrated", figure.VLP_FIX, figure.Mark.DOT),
+            figure.Entry("VLP fix, uncalibrated", figure.UNCALIBRATED, figure.Mark.DOT),
+            figure.Entry("LED (with its id)", figure.LED, figure.Mark.DOT),
+        ],
+        (left, top + size + 60),
     )
+    figure.scale_bar(img, axes.px_per_unit, (left + size - 140, top + size + 110), target_px=140)
     # Right panel: CDFs.
-    left2 = 780
-    cv2.rectangle(img, (left2, top), (left2 + size, top + size), black, 1)
+    left2 = 820
     errs = [100.0 * e for e in cal.errors_m] + [100.0 * e for e in uncal.errors_m]
     e_max = max(max(errs) if errs else 1.0, 0.5) * 1.05
-    for values, colour in ((uncal.errors_m, grey), (cal.errors_m, red)):
+    cdf = figure.Axes((left2, top, left2 + size, top + size), (0.0, e_max, 0.0, 1.0))
+    cdf.draw(img, "position error (cm)", "fraction of fixes", grid=True)
+    p90 = cdf.to_px(0.0, 0.9)[1]
+    cv2.line(img, (left2, p90), (left2 + size, p90), figure.GREY, 1)
+    figure.text(img, "90 % of fixes", (left2 + size // 2 - 40, p90 - 6), 0.45, figure.GREY)
+    for values, colour in ((uncal.errors_m, figure.UNCALIBRATED), (cal.errors_m, figure.VLP_FIX)):
         cm = np.sort(np.array(values) * 100.0)
         if cm.size == 0:
             continue
-        pts = [
-            (int(left2 + v / e_max * size), int(top + size - (i + 1) / cm.size * size))
-            for i, v in enumerate(cm)
-        ]
-        cv2.polylines(img, [np.array(pts, dtype=np.int32)], False, colour, 2)
-    for frac in (0.0, 0.5, 1.0):
-        cv2.putText(
-            img, f"{frac * e_max:.2f}", (left2 + int(frac * size) - 15, top + size + 22), font, 0.45, black, 1
-        )
-        cv2.putText(img, f"{frac:.1f}", (left2 - 35, top + size - int(frac * size) + 5), font, 0.45, black, 1)
-    y90 = top + size - int(0.9 * size)
-    cv2.line(img, (left2, y90), (left2 + size, y90), blue, 1)
-    cv2.putText(img, "error (cm)", (left2 + size // 2 - 40, top + size + 45), font, 0.5, black, 1)
-    cv2.putText(img, "(b) CDF of positioning errors", (left2, top - 25), font, 0.6, black, 1)
-    cv2.putText(
+        xy = np.stack([cm, np.arange(1, cm.size + 1) / cm.size], axis=1)
+        figure.draw_path(img, cdf, xy, colour, 3, start=False)
+    figure.text(img, "(b) CDF of the position errors", (left2, 76), 0.6, figure.BLACK, 1)
+    figure.legend(
         img,
-        f"mean {summary['mean_error_cm']:.2f} cm, p90 {summary['p90_error_cm']:.2f} cm "
-        f"(uncalibrated mean {summary['uncalibrated_mean_error_cm']:.2f} cm)",
-        (left2, top - 8),
-        font,
-        0.42,
-        black,
-        1,
+        [
+            figure.Entry("calibrated", figure.VLP_FIX),
+            figure.Entry("uncalibrated", figure.UNCALIBRATED),
+        ],
+        (left2, top + size + 60),
     )
-    if not cv2.imwrite(str(path), img):
-        raise ConfigError("--png", f"could not write {path}")
+    figure.text(
+        img,
+        f"calibrated: mean {summary['mean_error_cm']:.2f} cm, p90 {summary['p90_error_cm']:.2f} cm; "
+        f"uncalibrated: mean {summary['uncalibrated_mean_error_cm']:.2f} cm",
+        (left2, top + size + 150),
+        0.5,
+    )
+    return img
 
 
 def _table(summary: dict[str, Any]) -> str:

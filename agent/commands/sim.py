@@ -37,6 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from agent import figure
 from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
@@ -44,6 +45,7 @@ from agent.runtime import Agent, ScanMapper, Written, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
+from agent.slam.render import MapPath
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
@@ -421,7 +423,12 @@ def _write_files(
 ) -> dict[str, str]:
     files: dict[str, str] = {}
     if mapper is not None:
-        saved = save_map(mapper, out_dir)
+        saved = save_map(
+            mapper,
+            out_dir,
+            paths=_map_paths(scorer, slam_path),
+            title=f"map.png: laser SLAM map of {sim.world.name}",
+        )
         if saved:
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
     if args.record:
@@ -442,41 +449,57 @@ def _write_files(
     return files
 
 
+def _map_paths(scorer: Scorer, slam_path: np.ndarray) -> list[MapPath]:
+    """The truth underneath, thick; the fused pose stream and the SLAM trajectory thin on top of it."""
+    return [
+        MapPath("truth (simulator)", _xy(scorer.truth_path), figure.TRUTH, figure.TRUTH_WIDTH_PX),
+        MapPath("fused pose (output)", _xy(scorer.fused_path), figure.FUSED, figure.FUSED_WIDTH_PX),
+        MapPath("SLAM estimate", np.asarray(slam_path, dtype=np.float64).reshape(-1, 3)[:, :2], figure.SLAM),
+    ]
+
+
+def _xy(points: list[tuple[float, float]]) -> np.ndarray:
+    return np.asarray(points, dtype=np.float64).reshape(-1, 2)
+
+
 def _trajectory_picture(sim: Simulation, scorer: Scorer, slam_path: np.ndarray) -> np.ndarray:
-    """Walls, LEDs, the true path (green), the fused pose stream (red), the SLAM trajectory (blue)."""
+    """The world's walls and LEDs with the paths of :func:`_map_paths` over them, axes in metres, a legend
+    and a scale bar; at least ``MIN_MAP_PX`` pixels across the building."""
     walls = np.array([(w.x1_m, w.y1_m, w.x2_m, w.y2_m) for w in sim.world.walls]).reshape(-1, 4)
-    truth = np.array(scorer.truth_path)
-    fused = np.array(scorer.fused_path)
-    pts = np.vstack([truth, fused, slam_path[:, :2]]) if slam_path.size else np.vstack([truth, fused])
-    xs = np.concatenate([walls[:, 0], walls[:, 2], pts[:, 0]])
-    ys = np.concatenate([walls[:, 1], walls[:, 3], pts[:, 1]])
-    scale = 1000 / max(float(xs.max() - xs.min()), float(ys.max() - ys.min()), 1e-3)
-    h = int((ys.max() - ys.min()) * scale) + 60
-    w = int((xs.max() - xs.min()) * scale) + 40
-    img = np.full((h, w, 3), 255, np.uint8)
-
-    def px(x: float, y: float) -> tuple[int, int]:
-        return int(20 + (x - xs.min()) * scale), int(h - 20 - (y - ys.min()) * scale)
-
+    paths = [p for p in _map_paths(scorer, slam_path) if p.xy.shape[0] >= 1]
+    pts = np.vstack([walls[:, :2], walls[:, 2:], *(p.xy for p in paths)])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    xmin, ymin = pts.min(axis=0)
+    xmax, ymax = pts.max(axis=0)
+    pad = 0.03 * max(xmax - xmin, ymax - ymin, 1.0)
+    bounds = (xmin - pad, xmax + pad, ymin - pad, ymax + pad)
+    span = max(bounds[1] - bounds[0], bounds[3] - bounds[2])
+    px_per_m = 1000 / span
+    left, top = 80, 66
+    plot_w = int((bounds[1] - bounds[0]) * px_per_m)
+    plot_h = int((bounds[3] - bounds[2]) * px_per_m)
+    entries = [figure.Entry(p.label, p.colour) for p in paths]
+    entries += [figure.Entry("LED", figure.LED, figure.Mark.DOT), figure.Entry("wall", figure.BLACK)]
+    legend_w, legend_h = figure.legend_size(entries)
+    panel_x = left + plot_w + 24
+    width = panel_x + max(legend_w, 220) + 16
+    height = max(top + plot_h + 62, top + legend_h + 120)
+    img = np.full((height, width, 3), 255, np.uint8)
+    axes = figure.Axes((left, top, left + plot_w, top + plot_h), bounds)
+    axes.draw(img, grid=True)
     for x1, y1, x2, y2 in walls:
-        cv2.line(img, px(x1, y1), px(x2, y2), (0, 0, 0), 2)
+        cv2.line(img, axes.to_px(x1, y1), axes.to_px(x2, y2), figure.BLACK, 3)
     for led in sim.world.leds:
-        cv2.circle(img, px(led.x_m, led.y_m), 4, (0, 200, 255), -1)
-    paths = [(truth, (0, 160, 0), 3), (fused, (0, 0, 220), 1)]
-    if slam_path.shape[0] >= 2:
-        paths.append((slam_path[:, :2], (220, 80, 0), 1))
-    for line, colour, width in paths:
-        poly = np.array([px(float(x), float(y)) for x, y in line], np.int32)
-        cv2.polylines(img, [poly], False, colour, width, cv2.LINE_AA)
-    cv2.putText(
-        img,
-        "green: truth   red: fused pose stream   blue: SLAM trajectory   orange: LEDs",
-        (20, h - 5),
-        cv2.FONT_HERSHEY_SIMPLEX,
-        0.5,
-        (0, 0, 0),
-        1,
-    )
+        centre = axes.to_px(led.x_m, led.y_m)
+        cv2.circle(img, centre, 6, figure.LED, -1, cv2.LINE_AA)
+        cv2.circle(img, centre, 6, figure.BLACK, 1, cv2.LINE_AA)
+    for p in paths:
+        figure.draw_path(img, axes, p.xy, p.colour, p.width)
+    figure.title(img, f"trajectory.png: {sim.world.name}, paths over the world's walls and LEDs")
+    figure.legend(img, entries, (panel_x, top))
+    y = top + legend_h + 50
+    figure.scale_bar(img, px_per_m, (panel_x + 10, y))
+    figure.text(img, "ring: where a path starts", (panel_x + 10, y + 34), 0.45)
     return img
 
 

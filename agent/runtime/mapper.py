@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -26,6 +26,9 @@ import numpy.typing as npt
 from agent.config import MountConfig, SlamConfig, SlamMode
 from agent.runtime.types import AbsoluteFix
 from drivers.samples import Scan
+
+if TYPE_CHECKING:
+    from agent.slam.render import MapPath
 
 __all__ = [
     "MapperStep",
@@ -335,17 +338,29 @@ def make_mapper(
         return None, str(exc)
 
 
-def save_map(mapper: ScanMapper, directory: Path, name: str = "map") -> list[Path]:
+def save_map(
+    mapper: ScanMapper,
+    directory: Path,
+    name: str = "map",
+    paths: Sequence[MapPath] | None = None,
+    title: str = "",
+) -> list[Path]:
     """Write the mapper's map as ROS map_server files (``name.yaml`` naming a new ``name.<stamp>.pgm``;
-    the pair replaced is kept as ``name.prev.yaml``) and a PNG picture, atomically. Nothing when there is
-    no map (yet)."""
+    the pair replaced is kept as ``name.prev.yaml``) and a picture of it for people (``name.png``:
+    enlarged, with ``paths`` over it (default: the mapper's own trajectory), axes in metres, a legend and a
+    scale bar), atomically. Nothing when there is no map (yet)."""
     image = mapper.map_image()
     if image is None or mapper.counters().get("filter_updates", 0) == 0:
         return []
+    from agent import figure
     from agent.slam import mapio
+    from agent.slam.render import MapPath, map_picture
 
+    if paths is None:
+        paths = [MapPath("SLAM estimate", mapper.trajectory(), figure.SLAM)]
     files = mapio.save_map(image, directory / f"{name}.yaml", comment=f"vlp-agent {mapper.name}")
-    png = mapio.write_png(directory / f"{name}.png", image.pixels)
+    picture = map_picture(image, paths, title or f"{name}.png: laser map ({mapper.name})")
+    png = mapio.write_png(directory / f"{name}.png", picture)
     return [files.yaml, files.image, png]
 
 

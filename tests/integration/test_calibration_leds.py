@@ -9,6 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+
+from agent import figure
+from tests.figures import has_swatch
+
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
 COORDINATES = (
@@ -64,4 +69,7 @@ def test_led_survey_measures_signatures_and_warns_about_look_alikes(tmp_path: Pa
     # The map that would mislead the pipeline is held back; the report is there.
     assert not (out_dir / "leds.toml").exists()
     assert r["not_saved"] == [str(out_dir / "leds.toml")]
-    assert (out_dir / "leds.png").is_file()
+    # The report's picture: the LED map and the signatures with ticks, each LED named, a legend.
+    picture = cv2.imread(str(out_dir / "leds.png"))
+    assert picture is not None and picture.shape[1] >= 800
+    assert has_swatch(picture, figure.LED)

@@ -13,6 +13,9 @@ from pathlib import Path
 import cv2
 import pytest
 
+from agent import figure
+from tests.figures import has_colour, has_swatch
+
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
 
@@ -59,7 +62,17 @@ def test_sim_runs_the_whole_agent_and_ends_with_the_summary(tmp_path: Path) -> N
     # The robot drove the route from the agent's own pose, through the servos.
     assert s["distance_m"] > 0.6
     assert s["source_share"]["vlp"] > 0.9 and s["source_share"]["odometry"] > 0.5
-    assert cv2.imread(s["files"]["trajectory_png"]) is not None
+    # The pictures a person reads without the docs: a building across at least 800 pixels, a legend with
+    # the paths' colours (the same in both), the path over the SLAM map.
+    trajectory = cv2.imread(s["files"]["trajectory_png"])
+    assert trajectory is not None and trajectory.shape[1] >= 800
+    for colour in (figure.TRUTH, figure.FUSED, figure.SLAM, figure.LED):
+        assert has_swatch(trajectory, colour), colour
+    picture = cv2.imread(s["files"]["map_png"])
+    assert picture is not None and picture.shape[1] >= 800
+    for colour in (figure.TRUTH, figure.FUSED, figure.SLAM, (0, 0, 0)):
+        assert has_swatch(picture, colour), colour
+    assert has_colour(picture, figure.SLAM, 50)  # the path drawn, not only its legend sample
 
 
 def test_sim_on_env1_writes_a_trajectory(tmp_path: Path) -> None:

@@ -5,11 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
+from agent import figure
 from agent.cli import main
 from agent.slam.mapio import load_map
+from tests.figures import has_colour, has_swatch
 
 
 def test_eval_slam_json_on_radish(
@@ -54,9 +57,14 @@ def test_eval_slam_json_on_radish(
     image = load_map(out / "map.yaml")
     assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
-    assert (out / "trajectory.png").stat().st_size > 1000
     (pgm,) = out.glob("map.*.pgm")  # the image version the YAML names
     assert f"image: {pgm.name}\n" in (out / "map.yaml").read_text()
+    # The log's reference poses in the truth's colour, under the estimate, named in the legend.
+    trajectory = cv2.imread(str(out / "trajectory.png"))
+    assert trajectory is not None and trajectory.shape[1] >= 800
+    for colour in (figure.TRUTH, figure.SLAM, figure.ODOMETRY):
+        assert has_swatch(trajectory, colour), colour
+        assert has_colour(trajectory, colour, 100), colour
     assert sorted(summary["files"]) == sorted(
         str(out / n) for n in ("map.yaml", pgm.name, "map.png", "trajectory.png")
     )
@@ -96,6 +104,18 @@ def test_eval_slam_table_on_breezyslam(
     assert "relative error" not in captured.out  # exp1 has no reference poses
     assert "scan 80/80" in captured.err  # progress goes to stderr
     first = load_map(tmp_path / "map.yaml").pixels
+    # The pictures: the map enlarged to a readable size, the paths over it in the shared colours, with a
+    # legend; map.pgm stays the map itself, cell for cell.
+    for name, colours in (
+        ("map.png", (figure.SLAM, (0, 0, 0))),
+        ("trajectory.png", (figure.SLAM, figure.ODOMETRY, (0, 0, 0))),
+    ):
+        picture = cv2.imread(str(tmp_path / name))
+        assert picture is not None and picture.shape[1] >= 800, name
+        for colour in colours:
+            assert has_swatch(picture, colour), (name, colour)
+        assert has_colour(picture, figure.SLAM, 100), name
+    assert first.shape == cv2.imread(str(tmp_path / "map.pgm"), cv2.IMREAD_UNCHANGED).shape
     # A second run keeps the first map as map.prev.*.
     main(
         [

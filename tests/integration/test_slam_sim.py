@@ -12,9 +12,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
+from agent import figure
 from agent.cli import main
 from agent.commands.sim_fixes import PipelineFixes
 from agent.slam.logs import LogRecord, SlamLog
@@ -25,6 +27,7 @@ from agent.slam.replay import ReplayResult, replay
 from agent.slam.scan import Rejection
 from agent.slam.simlog import MOTION_NOISE, SimulatedRun, simulate_log
 from drivers.sim.worldfile import load_world
+from tests.figures import has_swatch
 
 OFFICE = Path(__file__).resolve().parents[2] / "examples" / "worlds" / "office.toml"
 SECONDS = 60.0
@@ -149,6 +152,14 @@ def test_the_command_maps_with_the_design_wheels_on_request(
     assert s["wheels"] == "nominal" and s["wheel_radius_m"] == pytest.approx(0.033)
     assert s["wheel_track_m"] == pytest.approx(0.16 / 1.01, abs=1e-6)
     assert "ate_uncalibrated_m" not in s and s["ate_m"] > 0.0
+    # The picture names the truth once (the simulated log's reference poses are that truth).
+    picture = cv2.imread(str(tmp_path / "trajectory.png"))
+    samples = cv2.erode(
+        np.all(picture == np.array(figure.TRUTH, np.uint8), axis=2).astype(np.uint8),
+        np.ones((figure.SWATCH_PX[1], figure.SWATCH_PX[1]), np.uint8),
+    )
+    assert cv2.connectedComponents(samples)[0] - 1 == 1
+    assert has_swatch(picture, figure.ODOMETRY) and has_swatch(picture, figure.SLAM)
 
 
 def test_the_command_refuses_mixed_sources(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

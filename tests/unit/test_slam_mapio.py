@@ -32,9 +32,10 @@ from agent.slam.render import (
     FREE_VALUE,
     OCCUPIED_VALUE,
     UNKNOWN_VALUE,
+    MapPath,
     OccupancyImage,
+    map_picture,
     occupancy_image,
-    trajectory_picture,
 )
 from drivers.errors import ConfigError
 
@@ -273,12 +274,12 @@ def test_negate_inverts(tmp_path: Path) -> None:
     assert load_map(tmp_path / "m.yaml").occupied_mask().tolist() == [[False, True]]
 
 
-def test_png_and_trajectory_picture(tmp_path: Path) -> None:
+def test_png_of_the_map_picture(tmp_path: Path) -> None:
     _, image = sample_image()
     path = np.array([[-1.0, 2.6], [0.0, 3.0], [1.0, 3.5]])
-    picture = trajectory_picture(image, [(path, (0, 0, 255))], scale=2)  # type: ignore[arg-type]
-    assert picture.shape == (80, 120, 3)
-    assert (picture[..., 2] > 200).sum() > 10  # the red path was drawn
+    picture = map_picture(image, [MapPath("path", path, (0, 0, 255))])  # type: ignore[arg-type]
+    assert picture.shape[1] >= 800
+    assert (np.all(picture == (0, 0, 255), axis=2)).sum() > 10  # the red path was drawn
     written = write_png(tmp_path / "t.png", picture)
     assert written.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
