@@ -62,6 +62,7 @@ _SOURCE_FLAGS = {
     Source.ODOMETRY: PoseFlags.ODOMETRY,
     Source.IMU: PoseFlags.IMU,
 }
+_POSITION_FLAGS = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
 _FAULT_FLAGS = PoseFlags.LASER_LOST | PoseFlags.CAMERA_STALLED | PoseFlags.SERVO_FAULT
 # A VLP prior is never tighter than this: the filter may be confident and wrong.
 _MIN_PRIOR_SIGMA_XY_M = 0.05
@@ -361,11 +362,15 @@ class Agent:
         now = self.clock_ns() if now_ns is None else now_ns
         flags = PoseFlags(0)
         live = self.fusion.live(now, self.timeouts_ns)
-        for source in (Source.VLP, Source.ODOMETRY, Source.IMU):
+        for source in (Source.VLP, Source.ODOMETRY):
             if source in live:
                 flags |= _SOURCE_FLAGS[source]
         if self._slam_live(now):
             flags |= PoseFlags.SLAM
+        # The IMU gives yaw rate (and tilt), never position: alone it turns a frozen position, which is a
+        # stale hold (docs/wire-format.md), so its bit is set only beside a live position source.
+        if Source.IMU in live and flags & _POSITION_FLAGS:
+            flags |= PoseFlags.IMU
         hc = self.config.health
         d = self.devices
         if d.laser is not None and (
