@@ -19,7 +19,6 @@ answering).
 from __future__ import annotations
 
 import argparse
-import collections
 import contextlib
 import dataclasses
 import json
@@ -40,9 +39,10 @@ import numpy as np
 
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
-from agent.runtime import Agent, ScanMapper, Written, create_agent
+from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map
 from agent.runtime.shutdown import ShutdownRequest
+from agent.sim_score import Scorer
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
@@ -54,7 +54,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "examples" / "sim.toml"
 FAULT_KINDS = ("laser", "camera", "servo")
-_SOURCES = (PoseFlags.VLP, PoseFlags.SLAM, PoseFlags.ODOMETRY, PoseFlags.IMU)
 _AUTOPILOT_PERIOD_S = 0.05
 LATENCY_DEFINITION = (
     "latency: a camera frame captured by the computer (handed over complete by the camera driver) -> the "
@@ -200,40 +199,6 @@ def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None) -> None:
         robot.give_way_to(agent.hot_path.give_way)
 
 
-# -- scoring against the truth --------------------------------------------------------------------------
-class Scorer:
-    """Every frame written, compared with the simulation's truth at the frame's time (off the hot path:
-    the writer only appends; :meth:`drain` runs in the main loop, well within the truth's 2 s history)."""
-
-    def __init__(self, sim: Simulation) -> None:
-        self.sim = sim
-        self._backlog: collections.deque[Written] = collections.deque()
-        self.errors_m: list[float] = []
-        self.yaw_errors_rad: list[float] = []
-        self.flags: list[int] = []
-        self.fused_path: list[tuple[float, float]] = []
-        self.truth_path: list[tuple[float, float]] = []
-        self.truth_rows: list[tuple[int, int, float, float, float]] = []
-        self.last_error_m = math.nan
-
-    def observe(self, written: Written) -> None:
-        self._backlog.append(written)
-
-    def drain(self) -> None:
-        while self._backlog:
-            w = self._backlog.popleft()
-            f = w.frame
-            truth = self.sim.pose_at(f.t_us * 1e-6)
-            err = math.hypot(f.x_m - truth.x_m, f.y_m - truth.y_m)
-            self.errors_m.append(err)
-            self.yaw_errors_rad.append(abs(math.remainder(f.yaw_rad - truth.yaw_rad, math.tau)))
-            self.flags.append(int(f.flags))
-            self.fused_path.append((f.x_m, f.y_m))
-            self.truth_path.append((truth.x_m, truth.y_m))
-            self.truth_rows.append((f.sequence, f.t_us, truth.x_m, truth.y_m, truth.yaw_rad))
-            self.last_error_m = err
-
-
 # -- the command -----------------------------------------------------------------------------------------
 def _config(args: argparse.Namespace) -> AgentConfig:
     config = load_config(args.config or DEFAULT_CONFIG)
@@ -273,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
-        scorer = Scorer(robot.simulation)
+        scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
+        stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         url, controller = serve_pose_stream(stack, config)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
         if agent.mapper is not None:
@@ -399,17 +365,11 @@ def _write_files(
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
     if args.record:
         files["recording"] = str(Path(args.record))
-    if args.truth:
-        path = Path(args.truth)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "w", encoding="ascii") as fp:
-            fp.write("sequence,t_us,x_m,y_m,yaw_rad\n")
-            for seq, t_us, x, y, yaw in scorer.truth_rows:
-                fp.write(f"{seq},{t_us},{x!r},{y!r},{yaw!r}\n")
-        tmp.replace(path)
-        files["truth_csv"] = str(path)
+    truth = scorer.finish_truth()
+    if truth is not None:
+        files["truth_csv"] = str(truth)
     trajectory = Path(args.trajectory) if args.trajectory else out_dir / "trajectory.png"
-    if scorer.truth_path:
+    if len(scorer.truth_path):
         _write_png(trajectory, _trajectory_picture(sim, scorer, slam_path))
         files["trajectory_png"] = str(trajectory)
     return files
@@ -418,8 +378,8 @@ def _write_files(
 def _trajectory_picture(sim: Simulation, scorer: Scorer, slam_path: np.ndarray) -> np.ndarray:
     """Walls, LEDs, the true path (green), the fused pose stream (red), the SLAM trajectory (blue)."""
     walls = np.array([(w.x1_m, w.y1_m, w.x2_m, w.y2_m) for w in sim.world.walls]).reshape(-1, 4)
-    truth = np.array(scorer.truth_path)
-    fused = np.array(scorer.fused_path)
+    truth = np.array(scorer.truth_path.points())
+    fused = np.array(scorer.fused_path.points())
     pts = np.vstack([truth, fused, slam_path[:, :2]]) if slam_path.size else np.vstack([truth, fused])
     xs = np.concatenate([walls[:, 0], walls[:, 2], pts[:, 0]])
     ys = np.concatenate([walls[:, 1], walls[:, 3], pts[:, 1]])
@@ -457,10 +417,6 @@ def _round(value: float, digits: int = 3) -> float | None:
     return None if math.isnan(value) else round(value, digits)
 
 
-def _percentile(values: list[float], q: float) -> float | None:
-    return round(float(np.percentile(values, q)), 3) if values else None
-
-
 def _summary(
     config: AgentConfig,
     elapsed: float,
@@ -473,16 +429,13 @@ def _summary(
     assert config.sim is not None
     own_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     slam_mb = status.mapper.get("worker_peak_rss_kb", 0) / 1024.0
-    errors_cm = [100 * e for e in scorer.errors_m]
-    flags = np.array(scorer.flags, dtype=np.int64)
-    truth = np.array(scorer.truth_path) if scorer.truth_path else np.zeros((0, 2))
-    distance = float(np.sum(np.hypot(*np.diff(truth, axis=0).T))) if truth.shape[0] > 1 else 0.0
+    scores = scorer.figures()
     latency_p50, latency_p99 = status.latency_ms
     counts = status.counts
     return {
         "world": config.sim.world.name,
         "seconds": round(elapsed, 3),
-        "distance_m": round(distance, 3),
+        "distance_m": scores["distance_m"],
         "output_format": config.output.format.value,
         "frames_out": int(status.output.get("frames", 0)),
         "frames_received": controller.frames if controller is not None else None,
@@ -504,15 +457,12 @@ def _summary(
         "vlp_ms_p99": None if math.isnan(status.vlp_ms[1]) else round(status.vlp_ms[1], 3),
         "hot_path_cpu_ms_p50": _round(status.hot_path_cpu_ms[0]),
         "hot_path_cpu_ms_p99": _round(status.hot_path_cpu_ms[1]),
-        "pose_error_cm_mean": round(float(np.mean(errors_cm)), 3) if errors_cm else None,
-        "pose_error_cm_p95": _percentile(errors_cm, 95),
-        "pose_error_cm_max": round(max(errors_cm), 3) if errors_cm else None,
-        "within_2cm": round(float(np.mean(np.array(errors_cm) <= 2.0)), 4) if errors_cm else None,
-        "yaw_error_deg_p95": _percentile([math.degrees(e) for e in scorer.yaw_errors_rad], 95),
-        "source_share": {
-            (f.name or "").lower(): round(float(np.mean((flags & int(f)) != 0)), 4) if flags.size else 0.0
-            for f in _SOURCES
-        },
+        "pose_error_cm_mean": scores["pose_error_cm_mean"],
+        "pose_error_cm_p95": scores["pose_error_cm_p95"],
+        "pose_error_cm_max": scores["pose_error_cm_max"],
+        "within_2cm": scores["within_2cm"],
+        "yaw_error_deg_p95": scores["yaw_error_deg_p95"],
+        "source_share": scores["source_share"],
         "slam": status.mapper,
         "fusion": status.fusion,
         "output": status.output,

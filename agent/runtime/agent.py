@@ -253,8 +253,8 @@ class Agent:
         self._counts: collections.Counter[str] = collections.Counter()
         self._counts_lock = threading.Lock()
         self._no_fix: collections.Counter[str] = collections.Counter()
-        self._vlp_ms = LatencyStats(keep=2000)
-        self._hot_cpu_ms = LatencyStats(keep=2000)
+        self._vlp_ms = LatencyStats()
+        self._hot_cpu_ms = LatencyStats()
         self._last_frame_ns = 0
         self._last_scan_ns = 0
         self._slam_good = False  # the last SLAM filter update matched and was fused
