@@ -8,8 +8,9 @@
   within 0.5 % of the exact nearest-rank percentile);
 * the true and fused paths for the trajectory picture are decimated: every ``stride``-th point, the stride
   doubling (and every other kept point dropped) each time ``path_points`` are held;
-* the truth per frame (``--truth``) goes to the file as frames are scored, into a temporary file that
-  :meth:`Scorer.finish_truth` renames into place (a reader never sees half a file).
+* the truth per frame (``--truth``: the true pose at the frame's ``t_us``, and ``written_us``, when the
+  agent finished writing the frame, on the same clock) goes to the file as frames are scored, into a
+  temporary file that :meth:`Scorer.finish_truth` renames into place (a reader never sees half a file).
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ class Scorer:
             truth_csv.parent.mkdir(parents=True, exist_ok=True)
             self._truth_tmp = truth_csv.with_name(f".{truth_csv.name}.{os.getpid()}.tmp")
             self._truth_file = open(self._truth_tmp, "w", encoding="ascii")  # noqa: SIM115 (closed in finish)
-            self._truth_file.write("sequence,t_us,x_m,y_m,yaw_rad\n")
+            self._truth_file.write("sequence,t_us,x_m,y_m,yaw_rad,written_us\n")
 
     @property
     def frames(self) -> int:
@@ -109,7 +110,8 @@ class Scorer:
 
     def drain(self) -> None:
         while self._backlog:
-            f = self._backlog.popleft().frame
+            w = self._backlog.popleft()
+            f = w.frame
             truth = self.sim.pose_at(f.t_us * 1e-6)
             err = math.hypot(f.x_m - truth.x_m, f.y_m - truth.y_m)
             self.errors_cm.add(100 * err)
@@ -125,9 +127,8 @@ class Scorer:
             self.fused_path.add(f.x_m, f.y_m)
             self.truth_path.add(truth.x_m, truth.y_m)
             if self._truth_file is not None:
-                self._truth_file.write(
-                    f"{f.sequence},{f.t_us},{truth.x_m!r},{truth.y_m!r},{truth.yaw_rad!r}\n"
-                )
+                pose = f"{truth.x_m!r},{truth.y_m!r},{truth.yaw_rad!r}"
+                self._truth_file.write(f"{f.sequence},{f.t_us},{pose},{w.done_ns // 1000}\n")
             self.last_error_m = err
 
     def finish_truth(self) -> Path | None:

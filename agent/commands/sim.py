@@ -11,7 +11,9 @@ While it runs a status line shows the pose, its error against the simulation's t
 rates and the latency from a frame's capture to the last byte of its pose on the line. At the end: a
 summary (``--json``: one JSON object), a trajectory plot and, when SLAM built one, the map.
 
-``--fault KIND@START[+DURATION]`` injects a fault at START seconds for DURATION seconds (for good without):
+``--fault KIND@START[+DURATION]`` injects a fault at START seconds for DURATION seconds from when it was
+applied (for good without; the summary's ``faults`` says when each was applied, ``done_s`` when that had
+returned):
 ``laser`` (the URG's USB cable pulled), ``camera`` (frames stop), ``servo`` (the left wheel servo stops
 answering).
 """
@@ -104,7 +106,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--truth",
         metavar="CSV",
         help="also write the simulation's true pose at the time of every pose frame written "
-        "(sequence,t_us,x_m,y_m,yaw_rad), to score a decoded stream against",
+        "(sequence,t_us,x_m,y_m,yaw_rad,written_us: when the frame's last byte was written, on the agent's "
+        "clock), to score a decoded stream against",
     )
     p.add_argument(
         "--record",
@@ -116,7 +119,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         action="append",
         default=[],
         metavar="KIND@START[+DURATION]",
-        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s for DURATION s; repeatable",
+        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s for DURATION s from when it is applied "
+        "(for good without); repeatable",
     )
 
 
@@ -146,23 +150,34 @@ class Fault:
 
 
 class FaultInjector:
-    """Applies faults on schedule to the simulated robot (and the simulated camera)."""
+    """Applies faults on schedule to the simulated robot (and the simulated camera). A fault with a
+    duration ends that long after it was applied, not after it was due: a busy machine can apply it late,
+    and the fault must still last as long as asked."""
 
     def __init__(self, faults: list[Fault], robot: SimulatedRobot, agent: Agent) -> None:
         self.robot = robot
         self.agent = agent
-        self.pending = sorted(
-            [(f.start_s, f.kind, True) for f in faults]
-            + [(f.start_s + f.duration_s, f.kind, False) for f in faults if f.duration_s is not None]
+        self.pending: list[tuple[float, str, bool, float | None]] = sorted(
+            (f.start_s, f.kind, True, f.duration_s) for f in faults
         )
         self.applied: list[dict[str, Any]] = []
 
-    def step(self, elapsed_s: float) -> None:
+    def step(self, elapsed_s: float, t0_s: float | None = None) -> None:
+        """Apply what is due at ``elapsed_s``. Each applied fault records ``t_s`` (``elapsed_s``: when this
+        thread decided to apply it) and, given the start ``t0_s`` on the monotonic clock, ``done_s``: when
+        applying it had returned (a busy machine can hold this thread between the two)."""
         while self.pending and self.pending[0][0] <= elapsed_s:
-            _, kind, on = self.pending.pop(0)
+            _, kind, on, duration_s = self.pending.pop(0)
             self.set(kind, on)
-            self.applied.append({"kind": kind, "on": on, "t_s": round(elapsed_s, 3)})
+            applied: dict[str, Any] = {"kind": kind, "on": on, "t_s": round(elapsed_s, 3)}
+            done_s = elapsed_s if t0_s is None else time.monotonic() - t0_s
+            if t0_s is not None:
+                applied["done_s"] = round(done_s, 3)
+            self.applied.append(applied)
             log.warning("fault %s %s at %.1f s", kind, "on" if on else "off", elapsed_s)
+            if on and duration_s is not None:
+                self.pending.append((done_s + duration_s, kind, False, None))
+                self.pending.sort()
 
     def set(self, kind: str, on: bool) -> None:
         if kind == "laser":
@@ -314,7 +329,7 @@ def _watch(
         elapsed = now - t0
         if elapsed >= args.seconds:
             return
-        injector.step(elapsed)
+        injector.step(elapsed, t0)
         scorer.drain()
         if now >= next_status:
             next_status += 1.0

@@ -106,8 +106,8 @@ def test_the_scores_are_the_exact_figures_and_percentiles_within_half_a_percent(
     assert not truth_csv.exists()
     assert scorer.finish_truth() == truth_csv
     rows = truth_csv.read_text().splitlines()
-    assert rows[0] == "sequence,t_us,x_m,y_m,yaw_rad" and len(rows) == 5001
-    seq, _, x, y, _ = rows[-1].split(",")
+    assert rows[0] == "sequence,t_us,x_m,y_m,yaw_rad,written_us" and len(rows) == 5001
+    seq, _, x, y, _, _ = rows[-1].split(",")
     assert (int(seq), float(x), float(y)) == (4999, path[-1][0], path[-1][1])
 
 
