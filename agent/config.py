@@ -279,6 +279,8 @@ class HealthConfig:
     watchdog: bool = True
     loop_timeout_s: float = 3.0
     status_interval_s: float = 2.0
+    ready_grace_s: float = 15.0
+    not_localizing_log_s: float = 60.0
     camera_stall_s: float = 0.5
     laser_lost_s: float = 0.5
     servo_fault_s: float = 0.2
@@ -1145,6 +1147,8 @@ class _Reader:
             watchdog=t.boolean("watchdog", d.watchdog),
             loop_timeout_s=t.number("loop_timeout_s", d.loop_timeout_s, _POSITIVE),
             status_interval_s=t.number("status_interval_s", d.status_interval_s, _POSITIVE),
+            ready_grace_s=t.number("ready_grace_s", d.ready_grace_s, _POSITIVE),
+            not_localizing_log_s=t.number("not_localizing_log_s", d.not_localizing_log_s, _POSITIVE),
             camera_stall_s=t.number("camera_stall_s", d.camera_stall_s, _POSITIVE),
             laser_lost_s=t.number("laser_lost_s", d.laser_lost_s, _POSITIVE),
             servo_fault_s=t.number("servo_fault_s", d.servo_fault_s, _POSITIVE),

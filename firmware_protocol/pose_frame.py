@@ -111,7 +111,7 @@ class PoseFlags(enum.IntFlag):
     VLP = 1 << 0  # a VLP fix was fused within the timeout
     SLAM = 1 << 1  # the SLAM pose is fused (laser scans arriving, scan matching converged)
     ODOMETRY = 1 << 2  # wheel odometry is arriving
-    IMU = 1 << 3  # IMU yaw rate is arriving
+    IMU = 1 << 3  # IMU yaw rate is fused, beside a position source (alone it is a stale hold: no bit)
     DEGRADED = 1 << 8  # usable but worse than nominal: fewer sources than configured; see sigma_xy
     LASER_LOST = 1 << 9  # the laser scanner stopped answering (SLAM frozen; VLP + odometry carry on)
     CAMERA_STALLED = 1 << 10  # no camera frame within the timeout (no VLP; SLAM + odometry carry on)

@@ -3,6 +3,9 @@
 Loads and checks the robot's config, brings the devices up (each loop keeps retrying one that is not
 there), tells systemd READY=1 once they are up and WATCHDOG=1 while every critical loop is alive, and runs
 until SIGTERM or SIGINT, then stops the wheels, closes the devices and exits 0 within about two seconds.
+A device that is missing is retried and reported (``ready without ...``, and while no position source is
+live ``STATUS=NOT LOCALIZING: ...`` and a journal warning every ``health.not_localizing_log_s``), but the
+watchdog is still fed: a restart plugs in no camera (docs/operations.md).
 A config with ``[sim]`` runs the same process on the simulated robot (nothing commands the wheels then:
 `vlp-agent sim` is the one that drives the route); there ``output.url = "pty"`` means what it means for
 `vlp-agent sim`: a pseudo-terminal that a simulated controller (a child process) makes and reads as a

@@ -11,7 +11,9 @@ While it runs a status line shows the pose, its error against the simulation's t
 rates and the latency from a frame's capture to the last byte of its pose on the line. At the end: a
 summary (``--json``: one JSON object), a trajectory plot and, when SLAM built one, the map.
 
-``--fault KIND@START[+DURATION]`` injects a fault at START seconds for DURATION seconds (for good without):
+``--fault KIND@START[+DURATION]`` injects a fault at START seconds for DURATION seconds from when it was
+applied (for good without; the summary's ``faults`` says when each was applied, ``done_s`` when that had
+returned):
 ``laser`` (the URG's USB cable pulled), ``camera`` (frames stop), ``servo`` (the left wheel servo stops
 answering).
 """
@@ -19,7 +21,6 @@ answering).
 from __future__ import annotations
 
 import argparse
-import collections
 import contextlib
 import dataclasses
 import logging
@@ -41,10 +42,11 @@ from agent import figure
 from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
-from agent.runtime import Agent, ScanMapper, Written, create_agent
+from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.shutdown import ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
+from agent.sim_score import Scorer
 from agent.slam.render import MapPath
 from drivers.errors import ConfigError
 from drivers.sim.controller import SimulatedController
@@ -57,7 +59,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
 FAULT_KINDS = ("laser", "camera", "servo")
-_SOURCES = (PoseFlags.VLP, PoseFlags.SLAM, PoseFlags.ODOMETRY, PoseFlags.IMU)
 _AUTOPILOT_PERIOD_S = 0.05
 LATENCY_DEFINITION = (
     "latency: a camera frame captured by the computer (handed over complete by the camera driver) -> the "
@@ -108,7 +109,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--truth",
         metavar="CSV",
         help="also write the simulation's true pose at the time of every pose frame written "
-        "(sequence,t_us,x_m,y_m,yaw_rad), to score a decoded stream against",
+        "(sequence,t_us,x_m,y_m,yaw_rad,written_us: when the frame's last byte was written, on the agent's "
+        "clock), to score a decoded stream against",
     )
     p.add_argument(
         "--record",
@@ -121,8 +123,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         type=_fault_argument,
         default=[],
         metavar="KIND@START[+DURATION]",
-        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s (within --seconds) for DURATION s; "
-        "repeatable",
+        help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s (within --seconds) for DURATION s from "
+        "when it is applied (for good without); repeatable",
     )
 
 
@@ -171,23 +173,34 @@ def check_faults_within(faults: Sequence[Fault], seconds: float) -> None:
 
 
 class FaultInjector:
-    """Applies faults on schedule to the simulated robot (and the simulated camera)."""
+    """Applies faults on schedule to the simulated robot (and the simulated camera). A fault with a
+    duration ends that long after it was applied, not after it was due: a busy machine can apply it late,
+    and the fault must still last as long as asked."""
 
     def __init__(self, faults: list[Fault], robot: SimulatedRobot, agent: Agent) -> None:
         self.robot = robot
         self.agent = agent
-        self.pending = sorted(
-            [(f.start_s, f.kind, True) for f in faults]
-            + [(f.start_s + f.duration_s, f.kind, False) for f in faults if f.duration_s is not None]
+        self.pending: list[tuple[float, str, bool, float | None]] = sorted(
+            (f.start_s, f.kind, True, f.duration_s) for f in faults
         )
         self.applied: list[dict[str, Any]] = []
 
-    def step(self, elapsed_s: float) -> None:
+    def step(self, elapsed_s: float, t0_s: float | None = None) -> None:
+        """Apply what is due at ``elapsed_s``. Each applied fault records ``t_s`` (``elapsed_s``: when this
+        thread decided to apply it) and, given the start ``t0_s`` on the monotonic clock, ``done_s``: when
+        applying it had returned (a busy machine can hold this thread between the two)."""
         while self.pending and self.pending[0][0] <= elapsed_s:
-            _, kind, on = self.pending.pop(0)
+            _, kind, on, duration_s = self.pending.pop(0)
             self.set(kind, on)
-            self.applied.append({"kind": kind, "on": on, "t_s": round(elapsed_s, 3)})
+            applied: dict[str, Any] = {"kind": kind, "on": on, "t_s": round(elapsed_s, 3)}
+            done_s = elapsed_s if t0_s is None else time.monotonic() - t0_s
+            if t0_s is not None:
+                applied["done_s"] = round(done_s, 3)
+            self.applied.append(applied)
             log.warning("fault %s %s at %.1f s", kind, "on" if on else "off", elapsed_s)
+            if on and duration_s is not None:
+                self.pending.append((done_s + duration_s, kind, False, None))
+                self.pending.sort()
 
     def set(self, kind: str, on: bool) -> None:
         if kind == "laser":
@@ -222,40 +235,6 @@ def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None) -> None:
     hot path (see ``agent.runtime.hotpath``)."""
     if robot is not None:
         robot.give_way_to(agent.hot_path.give_way)
-
-
-# -- scoring against the truth --------------------------------------------------------------------------
-class Scorer:
-    """Every frame written, compared with the simulation's truth at the frame's time (off the hot path:
-    the writer only appends; :meth:`drain` runs in the main loop, well within the truth's 2 s history)."""
-
-    def __init__(self, sim: Simulation) -> None:
-        self.sim = sim
-        self._backlog: collections.deque[Written] = collections.deque()
-        self.errors_m: list[float] = []
-        self.yaw_errors_rad: list[float] = []
-        self.flags: list[int] = []
-        self.fused_path: list[tuple[float, float]] = []
-        self.truth_path: list[tuple[float, float]] = []
-        self.truth_rows: list[tuple[int, int, float, float, float]] = []
-        self.last_error_m = math.nan
-
-    def observe(self, written: Written) -> None:
-        self._backlog.append(written)
-
-    def drain(self) -> None:
-        while self._backlog:
-            w = self._backlog.popleft()
-            f = w.frame
-            truth = self.sim.pose_at(f.t_us * 1e-6)
-            err = math.hypot(f.x_m - truth.x_m, f.y_m - truth.y_m)
-            self.errors_m.append(err)
-            self.yaw_errors_rad.append(abs(math.remainder(f.yaw_rad - truth.yaw_rad, math.tau)))
-            self.flags.append(int(f.flags))
-            self.fused_path.append((f.x_m, f.y_m))
-            self.truth_path.append((truth.x_m, truth.y_m))
-            self.truth_rows.append((f.sequence, f.t_us, truth.x_m, truth.y_m, truth.yaw_rad))
-            self.last_error_m = err
 
 
 # -- the command -----------------------------------------------------------------------------------------
@@ -298,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
-        scorer = Scorer(robot.simulation)
+        scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
+        stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         url, controller = serve_pose_stream(stack, config)
         if config.slam.mode is SlamMode.MAPPING:
             tidy_map_folder(out_dir)
@@ -375,7 +355,7 @@ def _watch(
         elapsed = now - t0
         if elapsed >= args.seconds:
             return
-        injector.step(elapsed)
+        injector.step(elapsed, t0)
         scorer.drain()
         if now >= next_status:
             next_status += 1.0
@@ -433,17 +413,11 @@ def _write_files(
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
     if args.record:
         files["recording"] = str(Path(args.record))
-    if args.truth:
-        path = Path(args.truth)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "w", encoding="ascii") as fp:
-            fp.write("sequence,t_us,x_m,y_m,yaw_rad\n")
-            for seq, t_us, x, y, yaw in scorer.truth_rows:
-                fp.write(f"{seq},{t_us},{x!r},{y!r},{yaw!r}\n")
-        tmp.replace(path)
-        files["truth_csv"] = str(path)
+    truth = scorer.finish_truth()
+    if truth is not None:
+        files["truth_csv"] = str(truth)
     trajectory = Path(args.trajectory) if args.trajectory else out_dir / "trajectory.png"
-    if scorer.truth_path:
+    if len(scorer.truth_path):
         _write_png(trajectory, _trajectory_picture(sim, scorer, slam_path))
         files["trajectory_png"] = str(trajectory)
     return files
@@ -452,8 +426,8 @@ def _write_files(
 def _map_paths(scorer: Scorer, slam_path: np.ndarray) -> list[MapPath]:
     """The truth underneath, thick; the fused pose stream and the SLAM trajectory thin on top of it."""
     return [
-        MapPath("truth (simulator)", _xy(scorer.truth_path), figure.TRUTH, figure.TRUTH_WIDTH_PX),
-        MapPath("fused pose (output)", _xy(scorer.fused_path), figure.FUSED, figure.FUSED_WIDTH_PX),
+        MapPath("truth (simulator)", _xy(scorer.truth_path.points()), figure.TRUTH, figure.TRUTH_WIDTH_PX),
+        MapPath("fused pose (output)", _xy(scorer.fused_path.points()), figure.FUSED, figure.FUSED_WIDTH_PX),
         MapPath("SLAM estimate", np.asarray(slam_path, dtype=np.float64).reshape(-1, 3)[:, :2], figure.SLAM),
     ]
 
@@ -507,10 +481,6 @@ def _round(value: float, digits: int = 3) -> float | None:
     return None if math.isnan(value) else round(value, digits)
 
 
-def _percentile(values: list[float], q: float) -> float | None:
-    return round(float(np.percentile(values, q)), 3) if values else None
-
-
 def _summary(
     config: AgentConfig,
     elapsed: float,
@@ -523,16 +493,13 @@ def _summary(
     assert config.sim is not None
     own_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     slam_mb = status.mapper.get("worker_peak_rss_kb", 0) / 1024.0
-    errors_cm = [100 * e for e in scorer.errors_m]
-    flags = np.array(scorer.flags, dtype=np.int64)
-    truth = np.array(scorer.truth_path) if scorer.truth_path else np.zeros((0, 2))
-    distance = float(np.sum(np.hypot(*np.diff(truth, axis=0).T))) if truth.shape[0] > 1 else 0.0
+    scores = scorer.figures()
     latency_p50, latency_p99 = status.latency_ms
     counts = status.counts
     return {
         "world": config.sim.world.name,
         "seconds": round(elapsed, 3),
-        "distance_m": round(distance, 3),
+        "distance_m": scores["distance_m"],
         "output_format": config.output.format.value,
         "frames_out": int(status.output.get("frames", 0)),
         "frames_received": controller.frames if controller is not None else None,
@@ -554,15 +521,12 @@ def _summary(
         "vlp_ms_p99": None if math.isnan(status.vlp_ms[1]) else round(status.vlp_ms[1], 3),
         "hot_path_cpu_ms_p50": _round(status.hot_path_cpu_ms[0]),
         "hot_path_cpu_ms_p99": _round(status.hot_path_cpu_ms[1]),
-        "pose_error_cm_mean": round(float(np.mean(errors_cm)), 3) if errors_cm else None,
-        "pose_error_cm_p95": _percentile(errors_cm, 95),
-        "pose_error_cm_max": round(max(errors_cm), 3) if errors_cm else None,
-        "within_2cm": round(float(np.mean(np.array(errors_cm) <= 2.0)), 4) if errors_cm else None,
-        "yaw_error_deg_p95": _percentile([math.degrees(e) for e in scorer.yaw_errors_rad], 95),
-        "source_share": {
-            (f.name or "").lower(): round(float(np.mean((flags & int(f)) != 0)), 4) if flags.size else 0.0
-            for f in _SOURCES
-        },
+        "pose_error_cm_mean": scores["pose_error_cm_mean"],
+        "pose_error_cm_p95": scores["pose_error_cm_p95"],
+        "pose_error_cm_max": scores["pose_error_cm_max"],
+        "within_2cm": scores["within_2cm"],
+        "yaw_error_deg_p95": scores["yaw_error_deg_p95"],
+        "source_share": scores["source_share"],
         "slam": status.mapper,
         "fusion": status.fusion,
         "output": status.output,

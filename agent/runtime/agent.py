@@ -62,6 +62,7 @@ _SOURCE_FLAGS = {
     Source.ODOMETRY: PoseFlags.ODOMETRY,
     Source.IMU: PoseFlags.IMU,
 }
+_POSITION_FLAGS = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
 _FAULT_FLAGS = PoseFlags.LASER_LOST | PoseFlags.CAMERA_STALLED | PoseFlags.SERVO_FAULT
 # A VLP prior is never tighter than this: the filter may be confident and wrong.
 _MIN_PRIOR_SIGMA_XY_M = 0.05
@@ -74,7 +75,9 @@ _SLAM_FIX_INTERVAL_NS = 500_000_000
 _IMU_PERIOD_S = 0.01
 # The IMU tilt is only learnt while odometry this recent says the base stands still.
 _TILT_ODOMETRY_AGE_NS = 60_000_000
-_READY_GRACE_S = 15.0
+# Not localizing for this long (past start-up) before the first warning: the first fix after the devices
+# open takes a few seconds.
+_NOT_LOCALIZING_GRACE_S = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -250,8 +253,8 @@ class Agent:
         self._counts: collections.Counter[str] = collections.Counter()
         self._counts_lock = threading.Lock()
         self._no_fix: collections.Counter[str] = collections.Counter()
-        self._vlp_ms = LatencyStats(keep=2000)
-        self._hot_cpu_ms = LatencyStats(keep=2000)
+        self._vlp_ms = LatencyStats()
+        self._hot_cpu_ms = LatencyStats()
         self._last_frame_ns = 0
         self._last_scan_ns = 0
         self._slam_good = False  # the last SLAM filter update matched and was fused
@@ -361,11 +364,15 @@ class Agent:
         now = self.clock_ns() if now_ns is None else now_ns
         flags = PoseFlags(0)
         live = self.fusion.live(now, self.timeouts_ns)
-        for source in (Source.VLP, Source.ODOMETRY, Source.IMU):
+        for source in (Source.VLP, Source.ODOMETRY):
             if source in live:
                 flags |= _SOURCE_FLAGS[source]
         if self._slam_live(now):
             flags |= PoseFlags.SLAM
+        # The IMU gives yaw rate (and tilt), never position: alone it turns a frozen position, which is a
+        # stale hold (docs/wire-format.md), so its bit is set only beside a live position source.
+        if Source.IMU in live and flags & _POSITION_FLAGS:
+            flags |= PoseFlags.IMU
         hc = self.config.health
         d = self.devices
         if d.laser is not None and (
@@ -448,16 +455,18 @@ class Agent:
         )
 
     def status_line(self) -> str:
-        """One line for STATUS= and logs."""
+        """One line for STATUS= and logs; it starts with ``NOT LOCALIZING`` and why while no position source
+        is live (the pose is a stale hold)."""
         est = self.fusion.estimate()
         flags = self.flags()
         names = [f.name for f in PoseFlags if f & flags and f.name] or ["no source"]
+        prefix = "" if flags & _POSITION_FLAGS else f"NOT LOCALIZING: {self.not_localizing_reason()}; "
         latency = ""
         if self.output is not None and len(self.output.latency):
             p50, p99 = self.output.latency.percentiles(50, 99, last=300)
             latency = f" latency p50 {p50:.1f} ms p99 {p99:.1f} ms"
         return (
-            f"pose ({est.x_m:.3f}, {est.y_m:.3f}, {math.degrees(est.yaw_rad):.1f} deg) "
+            f"{prefix}pose ({est.x_m:.3f}, {est.y_m:.3f}, {math.degrees(est.yaw_rad):.1f} deg) "
             f"+-{100 * est.sigma_xy_m:.1f} cm [{' '.join(names)}]{latency}"
         )
 
@@ -926,18 +935,75 @@ class Agent:
                 self._publish(trigger_ns=None)
 
     def _monitor_loop(self) -> None:
-        grace_ns = int(_READY_GRACE_S * 1e9)
+        grace_s = self.config.health.ready_grace_s
+        warn = _NotLocalizingWarning(self.config.health.not_localizing_log_s)
         while not self._stop.wait(0.25):
             if not self.health.is_ready:
-                critical = [w for name, w in self._watch.items() if self.config.devices[_kind(name)].critical]
+                critical = [w for name, w in self._watch.items() if self._critical(name)]
                 if all(w.opened_once for w in critical):
-                    self.health.ready()
-                elif self.clock_ns() - self._started_ns > grace_ns:
-                    missing = [w.name for w in critical if not w.opened_once]
-                    log.warning("ready without %s after %.0f s", ", ".join(missing), _READY_GRACE_S)
-                    self.health.ready()
+                    self._ready(self.missing(opened_once=True), None)
+                elif self.clock_ns() - self._started_ns > grace_s * 1e9:
+                    self._ready(self.missing(opened_once=True), grace_s)
+            else:
+                now = self.clock_ns()
+                why = None if self.flags(now) & _POSITION_FLAGS else self.not_localizing_reason()
+                warn.update(why, now * 1e-9)
             self.health.tick()
             self.collector.check()
+
+    def _ready(self, missing: list[str], after_s: float | None) -> None:
+        if missing:
+            when = "" if after_s is None else f" after {after_s:.0f} s"
+            log.warning("ready without %s%s (each is retried; see the status line)", ", ".join(missing), when)
+        self.health.ready()
+
+    def missing(self, *, opened_once: bool = False) -> list[str]:
+        """What is not there: each device whose loop cannot use it now (``opened_once``: that has never been
+        opened), then the pose output port when it is not open."""
+        out = [name for name, w in self._watch.items() if not (w.opened_once if opened_once else w.ok)]
+        if self.output is not None and not self.output.is_open:
+            out.append(f"output {self.output.url}")
+        return out
+
+    def not_localizing_reason(self) -> str:
+        """Why no position source is live: what is missing, else that the sources there give nothing."""
+        missing = self.missing()
+        sources = [
+            name
+            for name, present in (
+                ("VLP", self.localizer is not None and self.devices.camera is not None),
+                ("SLAM", self.mapper is not None and self.devices.laser is not None),
+                ("odometry", self.devices.servos is not None),
+            )
+            if present
+        ]
+        text = f"no position source ({', '.join(sources) or 'none configured'} silent)"
+        return f"{text}; missing: {', '.join(missing)}" if missing else text
+
+
+class _NotLocalizingWarning:
+    """The journal's side of "not localizing": a warning once it has lasted ``_NOT_LOCALIZING_GRACE_S``,
+    repeated every ``every_s`` (or when the reason changes) while it lasts, and a line when it ends."""
+
+    def __init__(self, every_s: float) -> None:
+        self.every_s = every_s
+        self.since_s: float | None = None
+        self.next_s = 0.0
+        self.last_reason = ""
+        self.warned = False
+
+    def update(self, reason: str | None, now_s: float) -> None:
+        """``reason``: why the agent is not localizing now, None while it is."""
+        if reason is None:
+            if self.warned:
+                log.warning("localizing again after %.0f s", now_s - (self.since_s or now_s))
+            self.since_s, self.warned, self.last_reason = None, False, ""
+            return
+        if self.since_s is None:
+            self.since_s, self.next_s = now_s, now_s + _NOT_LOCALIZING_GRACE_S
+        if now_s >= self.next_s or (self.warned and reason != self.last_reason):
+            log.warning("not localizing for %.0f s: %s", now_s - self.since_s, reason)
+            self.next_s, self.last_reason, self.warned = now_s + self.every_s, reason, True
 
 
 def _kind(name: str) -> Any:

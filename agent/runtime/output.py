@@ -35,6 +35,7 @@ import serial
 
 from agent.config import OutputConfig, OutputFormat
 from agent.fusion import Estimate
+from agent.runstats import StreamStats
 from drivers.errors import DeviceNotFound
 from firmware_protocol.pose_frame import PoseFlags, PoseFrame, encode_pose
 
@@ -57,23 +58,30 @@ class Written:
 
 
 class LatencyStats:
-    """The last ``keep`` latencies in milliseconds, with percentiles. Thread-safe."""
+    """Latencies in milliseconds: percentiles over the whole run in constant memory (``StreamStats``: log
+    bins, within 0.5 %), and over the last ``window`` values exactly. Thread-safe."""
 
-    def __init__(self, keep: int = 100_000) -> None:
-        self._values: collections.deque[float] = collections.deque(maxlen=keep)
+    def __init__(self, window: int = 2000) -> None:
+        self._recent: collections.deque[float] = collections.deque(maxlen=window)
+        self._all = StreamStats(low=1e-3, high=1e5)
         self._lock = threading.Lock()
 
     def add(self, ms: float) -> None:
         with self._lock:
-            self._values.append(ms)
+            self._recent.append(ms)
+            self._all.add(ms)
 
     def __len__(self) -> int:
+        """How many values were added (all of them, not only the window's)."""
         with self._lock:
-            return len(self._values)
+            return self._all.count
 
     def percentiles(self, *qs: float, last: int | None = None) -> list[float]:
+        """Over the whole run, or (``last``) over the last ``last`` values, at most the window."""
         with self._lock:
-            values = list(self._values)[-last:] if last else list(self._values)
+            if not last:
+                return self._all.percentiles(*qs)
+            values = list(self._recent)[-last:]
         if not values:
             return [math.nan for _ in qs]
         return [float(v) for v in np.percentile(np.asarray(values), qs)]

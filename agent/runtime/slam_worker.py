@@ -57,6 +57,9 @@ FloatArray = npt.NDArray[np.float64]
 # How long one request may take before the child counts as hung (a filter update takes tens of ms; a map
 # picture of a large building, a second or so).
 _REPLY_TIMEOUT_S = 10.0
+# The first answer comes from a new interpreter (niced) that has imported numpy and the SLAM package and
+# built its filter: seconds on an idle Pi, several times that on a busy one. Slow is not hung there.
+_START_TIMEOUT_S = 40.0
 # The child's CPU priority below the agent's: on a busy core the hot path goes first.
 _NICE = 5
 # After the child died, the next one starts no sooner than this (a scan that kills it would otherwise have
@@ -164,20 +167,20 @@ class ProcessMapper:
         blas = {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
         self._process, self._conn = start_child("agent.runtime.slam_worker", blas)
         self._started = False
-        ok, why, name = self._exchange((self.config, self.mount))
+        ok, why, name = self._exchange((self.config, self.mount), _START_TIMEOUT_S)
         if not ok:
             self._stop_child()
             raise ValueError(f"the SLAM process could not build its filter: {why}")
         self.name = str(name)
 
-    def _exchange(self, message: object) -> Any:
+    def _exchange(self, message: object, timeout_s: float = _REPLY_TIMEOUT_S) -> Any:
         conn = self._conn
         if conn is None:
             raise WorkerLost("the SLAM process is not running")
         try:
             conn.send(message)
-            if not conn.poll(_REPLY_TIMEOUT_S):
-                raise WorkerLost(f"the SLAM process gave no answer in {_REPLY_TIMEOUT_S:g} s")
+            if not conn.poll(timeout_s):
+                raise WorkerLost(f"the SLAM process gave no answer in {timeout_s:g} s")
             return conn.recv()
         except (EOFError, OSError) as exc:
             raise WorkerLost(f"the SLAM process is gone: {exc}") from exc

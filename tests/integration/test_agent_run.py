@@ -174,3 +174,69 @@ def test_a_hung_critical_loop_withholds_the_watchdog_and_an_unplugged_device_doe
         finally:
             agent.stop()
     assert notifier.sent[-1] == "STOPPING"
+
+
+def test_run_without_its_devices_says_it_is_not_localizing_and_keeps_the_watchdog(tmp_path: Path) -> None:
+    """The robot's own config with every device and the output port absent: READY names them all, and
+    while no position source is live the journal and STATUS= say so, again and again. The watchdog is still
+    fed (a restart plugs in no camera; docs/operations.md)."""
+    gone = tmp_path / "gone"
+    text = (REPO / "examples" / "turtlebot3.toml").read_text()
+    for old, new in (
+        ('"/opt/MVS/lib/64/MvProducerU3V.cti"', f'"{gone}/producer.cti"'),
+        ('"/dev/urg"', f'"{gone}/urg"'),
+        ('"/dev/dynamixel"', f'"{gone}/dynamixel"'),
+        ('"/dev/ttyS0"', f'"{gone}/rfid"'),
+        ('"/dev/opencr"', f'"{gone}/opencr"'),
+        ("\nbus = 1\n", "\nbus = 97\n"),  # /dev/i2c-97: no such bus
+        ("\nwatchdog = true\n", "\nwatchdog = true\nready_grace_s = 1.0\nnot_localizing_log_s = 1.0\n"),
+    ):
+        assert old in text, old
+        text = text.replace(old, new)
+    config = tmp_path / "robot.toml"
+    config.write_text(text)
+    notify_path = tmp_path / "notify.sock"
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(notify_path))
+    notify.settimeout(0.2)
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000"}
+    proc = subprocess.Popen(
+        vlp_agent("run", "--config", str(config), "--seconds", "10"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=env,
+    )
+    fields: list[str] = []
+    try:
+        while proc.poll() is None:
+            try:
+                fields += notify.recv(4096).decode().split("\n")
+            except TimeoutError:
+                continue
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        notify.close()
+    assert proc.returncode == 0, stderr[-2000:]
+    lines = stderr.splitlines()
+    output = f"output {gone}/opencr"
+    ready = [line for line in lines if "ready without" in line]
+    assert len(ready) == 1, stderr[-3000:]
+    assert all(name in ready[0] for name in ("camera", "laser", "servos", "imu", "rfid", output)), ready
+    # In the journal, repeatedly (every not_localizing_log_s once it has lasted 5 s), with what is missing.
+    warnings = [line for line in lines if "not localizing for" in line]
+    assert len(warnings) >= 2, stderr[-3000:]
+    names = ("camera", "laser", "servos", "imu", output)
+    assert all(all(name in w for name in names) for w in warnings), warnings
+    # In STATUS= (systemctl status), refreshed every status_interval_s.
+    status = [f for f in fields if f.startswith("STATUS=")]
+    not_localizing = [f for f in status if f.startswith("STATUS=NOT LOCALIZING: ")]
+    assert len(not_localizing) >= 2, status
+    assert all("missing: camera, laser, servos, imu, rfid" in f for f in not_localizing), not_localizing
+    assert fields.count("READY=1") == 1
+    pings = [i for i, f in enumerate(fields) if f == "WATCHDOG=1"]
+    assert len(pings) >= 5 and max(pings) > fields.index(not_localizing[-1])
