@@ -15,6 +15,15 @@ lock back. (On this development machine the write's wall-time p99 stayed 1.2-4 m
 The child makes the pty pair itself (raw on both sides), tells the parent the slave's name to write to,
 and answers requests for its counts over the socketpair; asked to stop, it takes in what is still in the
 pty, sends its final counts and ends.
+
+Given goals (``vlp-agent sim --goal``), it also commands the robot as a controller would
+(``docs/wire-format.md``, "Commands and goal status"): it sends the first goal as a goal command frame
+once the agent's pose stream is flowing, reads the goal statuses coming back between the pose frames
+(:class:`~firmware_protocol.command_frame.GoalStatusDecoder`), and sends the next goal when the agent
+reports the last one ended (REACHED, FAILED, REJECTED or CANCELLED), so a run drives the goals one after
+another. ``record`` names a file that gets every byte the agent sent, for an independent decoder (the
+reference C code) to read afterwards. Goals are command frames only; with MAVLink output the controller
+only decodes (the MAVLink commands are tested on their own).
 """
 
 from __future__ import annotations
@@ -40,11 +49,49 @@ _REPLY_TIMEOUT_S = 5.0
 
 @dataclass(frozen=True)
 class ControllerCounts:
-    """What the controller has taken in: decoded frames, frames it rejected, bytes."""
+    """What the controller has taken in: decoded frames, frames it rejected, bytes; with goals, the goal
+    statuses it decoded (``(goal_id, state, reason)`` names, in order) and how many goals it sent."""
 
     frames: int = 0
     bad: int = 0
     bytes: int = 0
+    statuses: tuple[tuple[int, str, str], ...] = ()
+    goals_sent: int = 0
+
+
+_ENDED = ("REACHED", "FAILED", "REJECTED", "CANCELLED")
+
+
+class _Commander:
+    """Sends the goals one after another as goal command frames, each when the one before has ended."""
+
+    def __init__(self, goals: Sequence[tuple[float, float, float | None]]) -> None:
+        from firmware_protocol.command_frame import GoalStatusDecoder
+
+        self.goals = list(goals)
+        self.sent = 0
+        self.sequence = 0
+        self.statuses: list[tuple[int, str, str]] = []
+        self._decoder = GoalStatusDecoder()
+        self._waiting = False  # a goal is out and has not ended yet
+
+    def take(self, data: bytes) -> None:
+        for status in self._decoder.feed(data):
+            self.statuses.append((status.goal_id, status.state.name, status.reason.name))
+            if self._waiting and status.goal_id == self.sent and status.state.name in _ENDED:
+                self._waiting = False
+
+    def due(self, poses_seen: int) -> bytes:
+        """The next goal's frame if one is due (the pose stream is flowing and nothing is in progress)."""
+        if self._waiting or self.sent >= len(self.goals) or poses_seen < 20:
+            return b""
+        from firmware_protocol.command_frame import GoalCommand, encode_command
+
+        x, y, yaw = self.goals[self.sent]
+        self.sent += 1  # goal ids are 1, 2, ...: the goal's place in the list
+        self.sequence = (self.sequence + 1) & 0xFFFF
+        self._waiting = True
+        return encode_command(GoalCommand(self.sequence, self.sent, x, y, yaw))
 
 
 class _Decoder:
@@ -77,12 +124,36 @@ class _Decoder:
                 self.frames += 1
 
     def counts(self) -> tuple[int, int, int]:
-        # A plain tuple over the connection: the child's module is ``__main__``, whose classes the parent
-        # cannot unpickle.
         return (self.frames, self.bad, self.bytes)
 
 
-def _drain(fd: int, decoder: _Decoder) -> None:
+def _counts(decoder: _Decoder, commander: _Commander | None) -> tuple[Any, ...]:
+    # A plain tuple over the connection: the child's module is ``__main__``, whose classes the parent
+    # cannot unpickle.
+    if commander is None:
+        return decoder.counts()
+    frames, bad, nbytes = decoder.counts()
+    # The pose decoder takes each good goal status for a pose frame of another version: not a bad frame.
+    return (frames, bad - len(commander.statuses), nbytes, tuple(commander.statuses), commander.sent)
+
+
+class _Receiver:
+    """Everything the agent sends: to the pose decoder, to the goal commander, to the record file."""
+
+    def __init__(self, decoder: _Decoder, commander: _Commander | None, record: str | None) -> None:
+        self.decoder = decoder
+        self.commander = commander
+        self.record = open(record, "wb") if record else None  # noqa: SIM115 (closed in _serve)
+
+    def take(self, data: bytes) -> None:
+        self.decoder.take(data)
+        if self.commander is not None:
+            self.commander.take(data)
+        if self.record is not None:
+            self.record.write(data)
+
+
+def _drain(fd: int, receiver: _Receiver) -> None:
     while select.select([fd], [], [], 0)[0]:
         try:
             data = os.read(fd, 4096)
@@ -90,37 +161,45 @@ def _drain(fd: int, decoder: _Decoder) -> None:
             return
         if not data:
             return
-        decoder.take(data)
+        receiver.take(data)
 
 
 def _serve(conn: multiprocessing.connection.Connection) -> None:
-    """The child: make the pty, report its name, then decode what comes until asked to stop."""
-    mavlink = bool(conn.recv())
+    """The child: make the pty, report its name, then decode (and command) until asked to stop."""
+    mavlink, goals, record = conn.recv()
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     decoder = _Decoder(mavlink)
+    commander = _Commander(goals) if goals and not mavlink else None
+    receiver = _Receiver(decoder, commander, record)
     conn.send(os.ttyname(slave))
     try:
         while True:
-            ready, _, _ = select.select([master, conn.fileno()], [], [], 1.0)
+            ready, _, _ = select.select([master, conn.fileno()], [], [], 0.2)
             if master in ready:
                 try:
                     data = os.read(master, 4096)
                 except OSError:
                     data = b""
-                decoder.take(data)
+                receiver.take(data)
+            if commander is not None:
+                frame = commander.due(decoder.frames)
+                if frame:
+                    os.write(master, frame)
             if conn.fileno() in ready:
                 try:
                     request = conn.recv()
                 except (EOFError, OSError):
                     return
                 if request is None:
-                    _drain(master, decoder)
-                    conn.send(decoder.counts())
+                    _drain(master, receiver)
+                    conn.send(_counts(decoder, commander))
                     return
-                conn.send(decoder.counts())
+                conn.send(_counts(decoder, commander))
     finally:
+        if receiver.record is not None:
+            receiver.record.close()
         os.close(master)
         os.close(slave)
 
@@ -136,13 +215,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 class SimulatedController:
     """The controller child: ``url`` is the pty to write the pose stream to; :meth:`counts` what it decoded
-    so far; :meth:`stop` takes in the rest and ends it (its last counts stay readable)."""
+    so far; :meth:`stop` takes in the rest and ends it (its last counts stay readable). ``goals``: (x, y,
+    yaw or None) to send one after another as goal commands; ``record``: a file for every byte received."""
 
-    def __init__(self, mavlink: bool = False) -> None:
+    def __init__(
+        self,
+        mavlink: bool = False,
+        goals: Sequence[tuple[float, float, float | None]] = (),
+        record: str | None = None,
+    ) -> None:
         self._process, self._conn = start_child("drivers.sim.controller")
         self._final: ControllerCounts | None = None
         try:
-            self._conn.send(mavlink)
+            self._conn.send((mavlink, [tuple(g) for g in goals], record))
             if not self._conn.poll(_REPLY_TIMEOUT_S):
                 raise DeviceDisconnected("the simulated controller did not start", "output")
             self.url: str = self._conn.recv()
