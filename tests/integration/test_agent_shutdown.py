@@ -70,7 +70,10 @@ def test_sim_stops_within_two_seconds_with_its_files_intact(tmp_path: Path, sign
         image = cv2.imread(summary["files"][key])
         assert image is not None and image.size > 0, key
     occupancy = load_map(summary["files"]["map_yaml"])  # the YAML and its PGM, whole
-    assert occupancy.pixels.shape == cv2.imread(summary["files"]["map_png"], cv2.IMREAD_GRAYSCALE).shape
+    pgm = cv2.imread(summary["files"]["map_pgm"], cv2.IMREAD_GRAYSCALE)
+    assert pgm is not None and occupancy.pixels.shape == pgm.shape  # the PGM the summary names is the pair's
+    picture = cv2.imread(summary["files"]["map_png"])
+    assert picture is not None and picture.shape[1] >= 800  # the map drawn for people, whole
     rows = read_truth(truth)
     frames = PoseFrameDecoder().feed(data)
     assert len(rows) == summary["frames_out"] == len(frames)
