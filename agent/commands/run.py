@@ -28,13 +28,10 @@ from agent.commands.args import dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import ShutdownRequest
 
 log = logging.getLogger(__name__)
-
-# The GIL hands over every 5 ms by default: a thread in a long numpy-free Python stretch (SLAM's
-# bookkeeping) would hold the hot path that long. 1 ms bounds that wait (benchmarks/agent_latency.py).
-SWITCH_INTERVAL_S = 0.001
 
 
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:

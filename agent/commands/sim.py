@@ -40,10 +40,10 @@ import numpy as np
 
 from agent import figure
 from agent.commands.args import UsageError, dumps_json, positive_seconds
-from agent.commands.run import SWITCH_INTERVAL_S
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
 from agent.sim_score import Scorer

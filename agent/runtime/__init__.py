@@ -16,9 +16,10 @@ from agent.runtime.agent import Agent, AgentStatus, DeviceState, laser_mount_for
 from agent.runtime.devices import Devices, build_devices
 from agent.runtime.health import HealthMonitor, NotifierLike
 from agent.runtime.localizer import FrameLocalizer, make_localizer
-from agent.runtime.mapper import RbpfMapper, ScanMapper, make_mapper
+from agent.runtime.mapper import RbpfMapper, ScanMapper
 from agent.runtime.output import PoseOutput, Written
 from agent.runtime.recorder import Recorder, replay
+from agent.runtime.slam_factory import make_mapper
 
 __all__ = [
     "Agent",

@@ -1,16 +1,19 @@
-"""The agent process's runtime: device threads, the hot path, SLAM beside it, fusion, output, health.
+"""The agent process's runtime: it builds the state the loops share, composes the loops, and answers for
+the whole (pose, status word, status, stop).
 
-Threads (each beats its own heartbeat; the critical ones gate the systemd watchdog)::
+Loops (one module each; each thread beats its own heartbeat; the critical ones gate the systemd watchdog)::
 
-    camera   grab -> LatestMailbox ------------------------------+
-    vlp      (hot path) take the newest frame -> VLP fix -> fuse -> pose bytes written
-    laser    read scan -> BoundedQueue --------------------------+
-    slam     scan + odometry at its time -> RBPF -> fuse the pose of each filter update
-    servos   read wheels -> odometry -> fuse; send the velocity command (dead-man: zero when stale)
-    imu      read -> gyro yaw rate -> fuse; accelerometer -> tilt for VLP
-    rfid     read tags (kept for the status; person following and landmarks come later)
-    output   keeps the pose stream at rate_hz when nothing else writes (camera stalled, no fix)
-    monitor  heartbeats -> READY / WATCHDOG / STATUS / STOPPING
+    camera    camera_loop    grab -> LatestMailbox -----------------------------+
+    vlp       vlp_loop       (hot path) the newest frame -> VLP fix -> fuse -> pose bytes written
+    laser     laser_loop     read scan -> BoundedQueue -------------------------+
+    slam      slam_loop      scan + odometry at its time -> RBPF -> fuse the pose of each filter update
+    servos    servo_loop     read wheels -> odometry -> fuse; send the velocity command (dead-man)
+    imu       imu_loop       read -> gyro yaw rate -> fuse; accelerometer -> tilt for VLP
+    rfid      rfid_loop      read tags (kept for the status; person following and landmarks come later)
+    output    output_loop    keeps the pose stream at rate_hz when nothing else writes
+    commands  command_loop   the controller's commands on the pose port -> CommandArbiter -> statuses back;
+              drive_loop     then what the arbiter says drives the base -> the velocity command
+    monitor   monitor_loop   heartbeats -> READY / WATCHDOG / STATUS / STOPPING
 
 A device that fails is reported (pose flags, status, log) and its loop keeps trying: the drivers that
 reconnect by themselves (laser, servos, RFID) are left to it, the others are closed and reopened. The
@@ -19,8 +22,6 @@ rest carry on. Nothing here prints, installs signal handlers or configures loggi
 
 from __future__ import annotations
 
-import collections
-import contextlib
 import gc
 import logging
 import math
@@ -28,28 +29,41 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
+from agent.runtime.arbiter import CommandArbiter
+from agent.runtime.camera_loop import camera_loop
 from agent.runtime.collector import IdleCollector
+from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
+from agent.runtime.drive_loop import DirectiveDrive, Navigator
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
+from agent.runtime.imu_loop import imu_loop
+from agent.runtime.laser_loop import laser_loop
 from agent.runtime.localizer import FrameLocalizer
+from agent.runtime.loop_state import DeviceState, LoopState
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
-from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator, wheel_speeds
-from agent.runtime.output import LatencyStats, PoseOutput
-from agent.runtime.priority import CpuLatencyRequest, realtime_thread
+from agent.runtime.monitor_loop import MonitorLoop
+from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator
+from agent.runtime.output import PoseOutput
+from agent.runtime.output_loop import output_loop
+from agent.runtime.priority import CpuLatencyRequest
 from agent.runtime.recorder import Recorder
-from agent.runtime.types import AbsoluteFix, NoFix, Prior
-from drivers.device import Device
-from drivers.errors import DeviceDisconnected, DeviceError, DeviceTimeout
-from drivers.samples import Frame, Scan, TagRead, WheelState
-from drivers.servos.odometry import WheelOdometry
+from agent.runtime.rfid_loop import rfid_loop
+from agent.runtime.servo_loop import servo_loop
+from agent.runtime.slam_loop import SlamLoop
+from agent.runtime.types import AbsoluteFix
+from agent.runtime.vlp_loop import VlpLoop
+from drivers.errors import DeviceError
+from drivers.samples import Frame, Scan, TagRead
+from firmware_protocol.command_frame import GoalCommand, GoalReason, GoalStatus
 from firmware_protocol.pose_frame import PoseFlags
 
 __all__ = ["Agent", "AgentStatus", "DeviceState"]
@@ -64,81 +78,10 @@ _SOURCE_FLAGS = {
 }
 _POSITION_FLAGS = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
 _FAULT_FLAGS = PoseFlags.LASER_LOST | PoseFlags.CAMERA_STALLED | PoseFlags.SERVO_FAULT
-# A VLP prior is never tighter than this: the filter may be confident and wrong.
-_MIN_PRIOR_SIGMA_XY_M = 0.05
-_MIN_PRIOR_SIGMA_YAW_RAD = math.radians(3.0)
 # SLAM starts its map only once the fused pose is known this well (the map frame is the fused frame).
 _SLAM_START_SIGMA_M = 0.25
-# At most one VLP fix per this interval goes to SLAM: the filter multiplies every fix it is given into its
-# weights at the next update, and thirty nearly identical fixes would count as thirty independent ones.
-_SLAM_FIX_INTERVAL_NS = 500_000_000
-_IMU_PERIOD_S = 0.01
-# The IMU tilt is only learnt while odometry this recent says the base stands still.
-_TILT_ODOMETRY_AGE_NS = 60_000_000
-# Not localizing for this long (past start-up) before the first warning: the first fix after the devices
-# open takes a few seconds.
-_NOT_LOCALIZING_GRACE_S = 5.0
-
-
-@dataclass(frozen=True, slots=True)
-class DeviceState:
-    name: str
-    ok: bool
-    reason: str
-    since_ns: int
-    failures: int
-    recoveries: int
-
-
-class _DeviceWatch:
-    """One device's state as its loop sees it: transitions are logged once, not every failed read."""
-
-    def __init__(self, name: str, clock_ns: Callable[[], int]) -> None:
-        self.name = name
-        self.clock_ns = clock_ns
-        self.ok = False
-        self.opened_once = False
-        self.reason = "not opened yet"
-        self.since_ns = clock_ns()
-        self.last_good_ns = 0
-        self.failures = 0
-        self.recoveries = 0
-        self._lock = threading.Lock()
-
-    def good(self) -> bool:
-        """A successful operation; True when this ends a fault (a recovery)."""
-        now = self.clock_ns()
-        with self._lock:
-            self.last_good_ns = now
-            if self.ok:
-                return False
-            recovered = self.opened_once
-            self.ok, self.reason, self.since_ns = True, "", now
-            self.opened_once = True
-            if recovered:
-                self.recoveries += 1
-        if recovered:
-            log.warning("%s: recovered", self.name)
-        else:
-            log.info("%s: up", self.name)
-        return recovered
-
-    def bad(self, reason: str) -> None:
-        now = self.clock_ns()
-        with self._lock:
-            self.failures += 1
-            first = self.ok or not self.reason or self.reason == "not opened yet"
-            if self.ok:
-                self.since_ns = now
-            self.ok, self.reason = False, reason
-        if first:
-            log.warning("%s: %s", self.name, reason)
-        else:
-            log.debug("%s: %s", self.name, reason)
-
-    def state(self) -> DeviceState:
-        with self._lock:
-            return DeviceState(self.name, self.ok, self.reason, self.since_ns, self.failures, self.recoveries)
+# Goal statuses kept for the status snapshot.
+_LAST_STATUSES = 16
 
 
 @dataclass(frozen=True)
@@ -163,6 +106,10 @@ class AgentStatus:
     # The hot path's own work per frame (frame taken -> pose written), in its thread's CPU time: p50, p99.
     # The latency less this is waiting: for the interpreter lock, for a core, for the hypervisor.
     hot_path_cpu_ms: tuple[float, float] = (math.nan, math.nan)
+    # The controller's commands (``agent.runtime.command_loop``, the arbiter's answers by state and reason,
+    # the driving step's passes by source) and the last goal statuses sent back, oldest first.
+    commands: dict[str, int] = field(default_factory=dict)
+    command_statuses: tuple[GoalStatus, ...] = ()
 
 
 class Agent:
@@ -176,7 +123,12 @@ class Agent:
         output: the pose stream (None: none, e.g. a test that reads poses directly).
         notifier: systemd's (``agent.sdnotify.Notifier``) or None.
         initial_pose: where the base starts (x_m, y_m, yaw_rad) when the config does not say.
-        laser_mount: where the laser sits (SLAM), when the config does not say.
+        unavailable: what is not there and why (for the status).
+        recorder: records the fusion's inputs and outputs (None: nothing recorded).
+        clock_ns: the agent's clock.
+
+    With a pose output, the controller's commands on its line go through a :class:`CommandArbiter`
+    (``commands`` loop) and what it says drives the base (``agent.runtime.drive_loop``).
     """
 
     def __init__(
@@ -247,27 +199,31 @@ class Agent:
             status_interval_s=config.health.status_interval_s,
             watchdog=config.health.watchdog,
         )
-        self._stop = threading.Event()
+        self.state = LoopState(config, devices, clock_ns)
         self._threads: list[threading.Thread] = []
-        self._watch: dict[str, _DeviceWatch] = {name: _DeviceWatch(name, clock_ns) for name in devices.all()}
-        self._counts: collections.Counter[str] = collections.Counter()
-        self._counts_lock = threading.Lock()
-        self._no_fix: collections.Counter[str] = collections.Counter()
-        self._vlp_ms = LatencyStats()
-        self._hot_cpu_ms = LatencyStats()
-        self._last_frame_ns = 0
-        self._last_scan_ns = 0
-        self._slam_good = False  # the last SLAM filter update matched and was fused
-        self._last_slam_fix_ns = 0
-        self._hardware_error = (0, 0)
-        # When the wheel read in progress started (agent clock), 0 between reads: a read that hangs is a
-        # servo fault, a loop that is merely late (the machine stalled) is not.
-        self._servo_read_since_ns = 0
         self.still = StillDetector()
-        self._tags: collections.deque[TagRead] = collections.deque(maxlen=64)
         self._started_ns = 0
         self._stopped = False
         self._cpu_latency: CpuLatencyRequest | None = None
+        # The navigation loop's hook (added later): called with the controller's or a mission's goal while
+        # it is in force. None: nothing navigates, and the controller's goals are answered UNREACHABLE.
+        self.navigator: Navigator | None = None
+        self.arbiter: CommandArbiter | None = None
+        self.commands: CommandLoop | None = None
+        self.drive_step: DirectiveDrive | None = None
+        if output is not None:
+            self.arbiter = CommandArbiter(cc.max_speed_mps, cc.max_turn_radps, check_goal=self._check_goal)
+            oc = config.output
+            self.commands = CommandLoop(
+                output,
+                self.arbiter,
+                oc.format,
+                mavlink_ids=(oc.mavlink_sysid, oc.mavlink_compid),
+                clock_s=lambda: clock_ns() * 1e-9,
+            )
+            self.drive_step = DirectiveDrive(
+                self.arbiter, self.drive, self.commands.answer, clock_ns, lambda: self.navigator
+            )
 
     # -- public -------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -281,23 +237,67 @@ class Agent:
                 self.output.open()
             except DeviceError as exc:
                 log.warning("%s (retrying as poses come)", exc)
-        d = self.devices
+        d, s = self.devices, self.state
         timeout = self.config.health.loop_timeout_s
+        hot, fusion = self.hot_path, self.fusion
         if d.camera is not None:
-            self._spawn("camera", self._critical("camera"), timeout, self._camera_loop)
-            self._spawn("vlp", self._critical("camera"), timeout, self._vlp_loop)
+            vlp = VlpLoop(
+                s,
+                localizer=self.localizer,
+                fusion=fusion,
+                frames=self.frames,
+                hot_path=hot,
+                collector=self.collector,
+                tilt=self.tilt if d.imu is not None else None,
+                slam_fixes=self.slam_fixes if self.mapper is not None else None,
+                publish=self._publish,
+            )
+            camera = partial(camera_loop, s, camera=d.camera, hot_path=hot, frames=self.frames)
+            self._spawn("camera", self.critical("camera"), timeout, camera)
+            self._spawn("vlp", self.critical("camera"), timeout, vlp.run)
         if d.laser is not None:
-            self._spawn("laser", self._critical("laser"), timeout, self._laser_loop)
-            self._spawn("slam", self._critical("laser"), max(timeout, 5.0), self._slam_loop)
+            slam = SlamLoop(
+                s,
+                mapper=self.mapper,
+                fusion=fusion,
+                scans=self.scans,
+                slam_fixes=self.slam_fixes,
+                hot_path=hot,
+                odometry_track=self.odometry_track if d.servos is not None else None,
+            )
+            scans = self.scans if self.mapper is not None else None
+            laser = partial(laser_loop, s, laser=d.laser, scans=scans)
+            self._spawn("laser", self.critical("laser"), timeout, laser)
+            self._spawn("slam", self.critical("laser"), max(timeout, 5.0), slam.run)
         if d.servos is not None:
-            self._spawn("servos", self._critical("servos"), timeout, self._servo_loop)
+            servo = partial(
+                servo_loop,
+                s,
+                servos=d.servos,
+                hot_path=hot,
+                fusion=fusion,
+                drive=self.drive,
+                still=self.still,
+                odometry_track=self.odometry_track,
+            )
+            self._spawn("servos", self.critical("servos"), timeout, servo)
         if d.imu is not None:
-            self._spawn("imu", self._critical("imu"), timeout, self._imu_loop)
+            still, tilt = self.still, self.tilt
+            imu = partial(imu_loop, s, imu=d.imu, hot_path=hot, fusion=fusion, still=still, tilt=tilt)
+            self._spawn("imu", self.critical("imu"), timeout, imu)
         if d.rfid is not None:
-            self._spawn("rfid", self._critical("rfid"), timeout, self._rfid_loop)
+            self._spawn("rfid", self.critical("rfid"), timeout, partial(rfid_loop, s, rfid=d.rfid))
         if self.output is not None:
-            self._spawn("output", True, timeout, self._output_loop)
-        monitor = threading.Thread(target=self._monitor_loop, name="agent-monitor", daemon=True)
+            output = partial(output_loop, s, output=self.output, publish=self._publish)
+            self._spawn("output", True, timeout, output)
+        if self.commands is not None and self.drive_step is not None:
+            # Not critical: a controller that sends nothing is no fault, and the dead-man covers this loop.
+            commands = partial(self.commands.run, stop=s.stop, then=self.drive_step.step)
+            self._spawn("commands", False, timeout, commands)
+        monitor_loop = MonitorLoop(
+            s, agent=self, health=self.health, collector=self.collector, started_ns=self._started_ns
+        )
+        monitor = threading.Thread(target=monitor_loop.run, name="agent-monitor", daemon=True)
         monitor.start()
         self._threads.append(monitor)
 
@@ -317,7 +317,7 @@ class Agent:
             return
         self._stopped = True
         self.health.stopping("stopping: wheels to zero, closing devices")
-        self._stop.set()
+        self.state.stop.set()
         self.hot_path.close()
         self.frames.close()
         self.scans.close()
@@ -348,10 +348,14 @@ class Agent:
 
     @property
     def stopping(self) -> bool:
-        return self._stop.is_set()
+        return self.state.stop.is_set()
 
     def command_velocity(self, v_mps: float, omega_radps: float) -> None:
-        """A velocity command for the base; it must be repeated within the dead-man timeout."""
+        """A velocity command for the base; it must be repeated within the dead-man timeout. Ignored (and
+        counted) while the controller's velocity or stop is in force: it takes precedence."""
+        if self.drive_step is not None and self.drive_step.controller_drives:
+            self.state.count("velocity_commands_overridden")
+            return
         self.drive.set(v_mps, omega_radps, self.clock_ns())
 
     def pose(self) -> tuple[Estimate, PoseFlags]:
@@ -376,10 +380,10 @@ class Agent:
         hc = self.config.health
         d = self.devices
         if d.laser is not None and (
-            now - self._last_scan_ns > hc.laser_lost_s * 1e9 or not self._watch["laser"].ok
+            now - self.state.last_scan_ns > hc.laser_lost_s * 1e9 or not self.state.watch["laser"].ok
         ):
             flags |= PoseFlags.LASER_LOST
-        if d.camera is not None and now - self._last_frame_ns > hc.camera_stall_s * 1e9:
+        if d.camera is not None and now - self.state.last_frame_ns > hc.camera_stall_s * 1e9:
             flags |= PoseFlags.CAMERA_STALLED
         if d.servos is not None and self._servo_fault(now):
             flags |= PoseFlags.SERVO_FAULT
@@ -392,10 +396,10 @@ class Agent:
         servo reports hardware error bits, a wheel read has been hanging for ``health.servo_fault_s``, or
         the servo loop itself has stopped (its heartbeat past the loop timeout). A loop that is only late
         (the whole agent stalled for a moment) is not a servo fault: the ODOMETRY bit going off says that."""
-        watch = self._watch["servos"]
-        if not watch.ok or any(self._hardware_error):
+        watch = self.state.watch["servos"]
+        if not watch.ok or any(self.state.hardware_error):
             return True
-        since = self._servo_read_since_ns
+        since = self.state.servo_read_since_ns
         if since and now_ns - since > self.config.health.servo_fault_s * 1e9:
             return True
         beat = self.health.heartbeat("servos")
@@ -403,9 +407,9 @@ class Agent:
 
     def status(self) -> AgentStatus:
         now = self.clock_ns()
-        with self._counts_lock:
-            counts = dict(self._counts)
-            no_fix = dict(self._no_fix.most_common(8))
+        with self.state.counts_lock:
+            counts = dict(self.state.counts)
+            no_fix = dict(self.state.no_fix.most_common(8))
         # How often background loops waited for the hot path, and waits cut at the bound (a hot path
         # stuck for longer than max_wait_s).
         counts["hot_path_waits"] = self.hot_path.waits
@@ -433,13 +437,13 @@ class Agent:
             output = dict(self.output.counts)
             if output.get("write_timeouts"):
                 drops["output_write_timeouts"] = output["write_timeouts"]
-        vlp_ms = self._vlp_ms.percentiles(50, 99)
-        cpu_ms = self._hot_cpu_ms.percentiles(50, 99)
+        vlp_ms = self.state.vlp_ms.percentiles(50, 99)
+        cpu_ms = self.state.hot_cpu_ms.percentiles(50, 99)
         return AgentStatus(
             now,
             self.fusion.estimate(),
             self.flags(now),
-            {name: w.state() for name, w in self._watch.items()},
+            {name: w.state() for name, w in self.state.watch.items()},
             counts,
             drops,
             latency,
@@ -452,7 +456,16 @@ class Agent:
             dict(self.unavailable),
             self.health.is_ready,
             (cpu_ms[0], cpu_ms[1]),
+            *self._command_status(),
         )
+
+    def _command_status(self) -> tuple[dict[str, int], tuple[GoalStatus, ...]]:
+        if self.commands is None or self.arbiter is None or self.drive_step is None:
+            return {}, ()
+        counts = dict(self.commands.counts)
+        counts.update({f"arbiter_{key}": n for key, n in dict(self.arbiter.counts).items()})
+        counts.update(self.drive_step.counts)
+        return counts, tuple(list(self.commands.statuses)[-_LAST_STATUSES:])
 
     def status_line(self) -> str:
         """One line for STATUS= and logs; it starts with ``NOT LOCALIZING`` and why while no position source
@@ -471,18 +484,21 @@ class Agent:
         )
 
     def tags(self) -> list[TagRead]:
-        return list(self._tags)
+        return list(self.state.tags)
 
     # -- helpers -----------------------------------------------------------------------------------
-    def _count(self, what: str, n: int = 1) -> None:
-        with self._counts_lock:
-            self._counts[what] += n
-
-    def _critical(self, name: str) -> bool:
+    def critical(self, name: str) -> bool:
         """Whether the watchdog waits for this device's loops (the config says; an injected device the
         config does not list: the default for its kind)."""
         device = self.config.devices.get(_kind(name))
         return device.critical if device is not None else name in ("camera", "laser", "servos")
+
+    def _check_goal(self, goal: GoalCommand) -> GoalReason | None:
+        """No navigation loop yet: no goal can be reached (an ACCEPTED goal would never move)."""
+        if self.navigator is None:
+            self.state.count("goals_without_navigator")
+            return GoalReason.UNREACHABLE
+        return None
 
     def _expected_sources(self) -> PoseFlags:
         expected = PoseFlags(0)
@@ -499,9 +515,10 @@ class Agent:
     def _slam_live(self, now_ns: int) -> bool:
         """SLAM counts as live while scans reach it and its last filter update matched and was fused
         (between updates, every 0.25 m, it has nothing new to say; that is not a fault)."""
-        if self.mapper is None or not self._slam_good:
+        if self.mapper is None or not self.state.slam_good:
             return False
-        return now_ns - self._last_scan_ns <= self.timeouts_ns[Source.SLAM] and self._watch["laser"].ok
+        s = self.state
+        return now_ns - s.last_scan_ns <= self.timeouts_ns[Source.SLAM] and s.watch["laser"].ok
 
     def _spawn(self, name: str, critical: bool, timeout_s: float, body: Callable[[Heartbeat], None]) -> None:
         beat = self.health.register(name, critical, timeout_s)
@@ -518,57 +535,6 @@ class Agent:
         thread.start()
         self._threads.append(thread)
 
-    def _open(self, name: str, device: Device, after: Callable[[], None] | None = None) -> bool:
-        """Open ``device`` if it is closed; False (and reported) when it cannot be yet."""
-        if device.is_open:
-            return True
-        try:
-            device.open()
-            if after is not None:
-                after()
-        except DeviceError as exc:
-            self._watch[name].bad(f"cannot open: {exc}")
-            with contextlib.suppress(DeviceError):
-                device.close()
-            return False
-        self._watch[name].good()
-        return True
-
-    def _retry_wait(self, beat: Heartbeat, seconds: float) -> None:
-        """Wait before the next attempt, beating while waiting."""
-        end = time.monotonic() + seconds
-        while not self._stop.is_set():
-            beat.beat()
-            remaining = end - time.monotonic()
-            if remaining <= 0:
-                return
-            self._stop.wait(min(remaining, 0.25))
-
-    def _prior(self, t_ns: int) -> Prior:
-        est = self.fusion.estimate_at(t_ns)
-        c, s = math.cos(est.yaw_rad), math.sin(est.yaw_rad)
-        return Prior(
-            est.x_m,
-            est.y_m,
-            est.yaw_rad,
-            max(est.sigma_xy_m, _MIN_PRIOR_SIGMA_XY_M),
-            max(est.sigma_yaw_rad, _MIN_PRIOR_SIGMA_YAW_RAD),
-            est.v_mps * c,
-            est.v_mps * s,
-            est.omega_radps,
-        )
-
-    def _vlp_covariance(self, fix: AbsoluteFix) -> np.ndarray:
-        """The fix's covariance plus the floor the config sets for what it leaves out (the LED survey's and
-        the calibration's errors, the same for every frame under the same LEDs)."""
-        vc = self.config.vlp
-        cov = np.array(fix.covariance, dtype=np.float64)
-        cov[0, 0] += vc.sigma_floor_m**2
-        cov[1, 1] += vc.sigma_floor_m**2
-        if fix.yaw_rad is not None and cov.shape[0] == 3:
-            cov[2, 2] += vc.sigma_floor_yaw_rad**2
-        return cov
-
     def _publish(self, trigger_ns: int | None, arrival_ns: int | None = None) -> None:
         if self.output is None:
             return
@@ -577,7 +543,6 @@ class Agent:
         if written is not None and self.recorder is not None:
             self.recorder.record_output(estimate, int(flags))
 
-    # -- camera and the hot path --------------------------------------------------------------------
     def _hold_cpu_latency(self) -> None:
         """Ask the kernel to keep idle cores out of deep sleep while the agent runs, when configured: a
         frame that has to wake a sleeping core starts cold (``agent.runtime.priority.CpuLatencyRequest``)."""
@@ -586,146 +551,13 @@ class Agent:
             return
         request = CpuLatencyRequest(latency_us)
         refused = request.acquire()
-        with self._counts_lock:
-            self._counts["cpu_latency_held"] = int(refused is None)
+        with self.state.counts_lock:
+            self.state.counts["cpu_latency_held"] = int(refused is None)
         if refused is None:
             self._cpu_latency = request
             log.info("CPU wake-up latency limited to %d us while running (PM QoS)", latency_us)
         else:
             log.warning("CPU wake-up latency not limited: %s", refused)
-
-    def _realtime(self, loop: str) -> None:
-        """Put the calling loop's thread under real-time scheduling when configured and permitted."""
-        priority = self.config.scheduling.realtime_priority
-        refused = realtime_thread(priority)
-        with self._counts_lock:
-            self._counts[f"{loop}_realtime"] = int(refused is None)
-        if refused is None:
-            log.info("%s thread at SCHED_FIFO priority %d", loop, priority)
-        elif priority:
-            log.warning("%s thread time-shared: real-time scheduling %s", loop, refused)
-
-    def _camera_loop(self, beat: Heartbeat) -> None:
-        camera = self.devices.camera
-        assert camera is not None
-        self._realtime("camera")
-        timeout_s = self.config.health.camera_stall_s
-        while not self._stop.is_set():
-            beat.beat()
-            if not self._open("camera", camera):
-                self._retry_wait(beat, 1.0)
-                continue
-            try:
-                frame = camera.grab(timeout_s=timeout_s)
-            except DeviceTimeout as exc:
-                self._watch["camera"].bad(f"stalled: {exc}")
-                continue
-            except DeviceError as exc:
-                self._watch["camera"].bad(f"failed: {exc}; reopening")
-                with contextlib.suppress(DeviceError):
-                    camera.close()
-                self._retry_wait(beat, 0.5)
-                continue
-            self._watch["camera"].good()
-            arrival = self.clock_ns()
-            self._last_frame_ns = arrival
-            self._count("frames")
-            self.hot_path.frame_queued()
-            self.frames.put((frame, arrival))
-
-    def _vlp_loop(self, beat: Heartbeat) -> None:
-        self._realtime("hot_path")
-        while not self._stop.is_set():
-            beat.beat()
-            item = self.frames.take(0.25)
-            if item is None or self.localizer is None:
-                self.hot_path.settle()
-                self.collector.collect_if_due()
-                continue
-            with self.hot_path.busy():
-                c0 = time.thread_time()
-                try:
-                    self._locate(*item)
-                finally:
-                    self._hot_cpu_ms.add(1e3 * (time.thread_time() - c0))
-            # The pose is written: the garbage of this frame (and of every other thread) goes now.
-            self.collector.collect_if_due()
-
-    def _locate(self, frame: Frame, arrival_ns: int) -> None:
-        """The hot path: frame -> fix -> fusion -> pose bytes written."""
-        t = frame.host_time_ns
-        tilt = self.tilt.tilt() if self.devices.imu is not None else None
-        assert self.localizer is not None
-        t0 = time.perf_counter()
-        result = self.localizer.process(frame, tilt, self._prior(t))
-        elapsed_ms = 1e3 * (time.perf_counter() - t0)
-        self._vlp_ms.add(elapsed_ms)
-        with self._counts_lock:
-            if isinstance(result, NoFix):
-                self._no_fix[result.reason] += 1
-                self._counts["no_fix"] += 1
-                return
-            self._counts["fixes"] += 1
-        fused = self.fusion.add_pose(
-            Source.VLP,
-            result.t_ns,
-            result.x_m,
-            result.y_m,
-            result.yaw_rad,
-            self._vlp_covariance(result),
-            arrival_ns=self.clock_ns(),
-            relocalize=True,
-        )
-        if fused.relocalized:
-            log.warning("fusion relocalized on VLP (reset counter %d)", self.fusion.reset_counter)
-            self._count("relocalizations")
-        if not fused.accepted:
-            self._count("fixes_rejected")
-            return
-        self._count("fixes_fused")
-        self._publish(trigger_ns=t, arrival_ns=arrival_ns)
-        if self.mapper is not None and t - self._last_slam_fix_ns >= _SLAM_FIX_INTERVAL_NS:
-            self._last_slam_fix_ns = t
-            with contextlib.suppress(MailboxClosed):
-                self.slam_fixes.put(result)
-
-    # -- laser and SLAM -----------------------------------------------------------------------------
-    def _laser_loop(self, beat: Heartbeat) -> None:
-        laser = self.devices.laser
-        assert laser is not None
-        watch = self._watch["laser"]
-        while not self._stop.is_set():
-            beat.beat()
-            if not self._open("laser", laser, laser.start):
-                self._retry_wait(beat, 1.0)
-                continue
-            try:
-                scan = laser.read(timeout_s=0.25)
-            except DeviceDisconnected as exc:
-                # The driver reconnects by itself while it is open; wait for it.
-                watch.bad(f"lost: {exc}")
-                self._slam_good = False
-                self._retry_wait(beat, 0.1)
-                continue
-            except DeviceTimeout:
-                if self.clock_ns() - self._last_scan_ns > self.config.health.laser_lost_s * 1e9:
-                    watch.bad("no scan within the timeout")
-                continue
-            except DeviceError as exc:
-                watch.bad(f"failed: {exc}")
-                self._retry_wait(beat, 0.25)
-                continue
-            watch.good()
-            self._last_scan_ns = self.clock_ns()
-            self._count("scans")
-            if self.mapper is not None:
-                self.scans.put(scan)
-
-    def _odometry_at(self, t_ns: int) -> tuple[float, float, float] | None:
-        if self.devices.servos is not None:
-            return self.odometry_track.at(t_ns)
-        est = self.fusion.estimate_at(t_ns)  # no wheels: the fused pose is the best motion guess
-        return (est.x_m, est.y_m, est.yaw_rad)
 
     def slam_start_pose(self, t_ns: int) -> tuple[float, float, float] | None:
         """Where SLAM starts its map: the fused pose at ``t_ns`` once it is known well enough, else None."""
@@ -734,233 +566,10 @@ class Agent:
             return None
         return (est.x_m, est.y_m, est.yaw_rad)
 
-    def _slam_loop(self, beat: Heartbeat) -> None:
-        mapper = self.mapper
-        while not self._stop.is_set():
-            beat.beat()
-            scan = self.scans.get(0.25)
-            if scan is None or mapper is None:
-                continue
-            self.hot_path.give_way()
-            for fix in self.slam_fixes.drain():
-                odom = self._odometry_at(fix.t_ns)
-                if odom is not None:
-                    mapper.add_fix(fix, odom)
-            odom = self._odometry_at(scan.host_time_ns)
-            if odom is None:
-                self._count("slam_scans_without_odometry")
-                continue
-            step = mapper.update(scan, odom)
-            self._count(f"slam_{step.kind}")
-            if step.kind == "updated":
-                if step.fix is None:
-                    self._slam_good = False
-                    continue
-                fix = step.fix
-                result = self.fusion.add_pose(
-                    Source.SLAM,
-                    fix.t_ns,
-                    fix.x_m,
-                    fix.y_m,
-                    fix.yaw_rad,
-                    fix.covariance,
-                    arrival_ns=self.clock_ns(),
-                )
-                self._slam_good = result.accepted
-                self._count("slam_fused" if result.accepted else "slam_rejected")
-
-    # -- servos: odometry in, velocity out ------------------------------------------------------------
-    def _servo_loop(self, beat: Heartbeat) -> None:
-        servos = self.devices.servos
-        assert servos is not None
-        watch = self._watch["servos"]
-        period_s = 1.0 / self.config.control.loop_rate_hz
-        radius = float(getattr(servos, "wheel_radius_m", 0.0))
-        track = float(getattr(servos, "track_m", 0.0))
-        if not (radius > 0 and track > 0):
-            raise DeviceError("the servo backend does not say its wheel radius and track", "servos")
-        odometry = WheelOdometry(radius, track)
-        previous: WheelState | None = None
-        merged = False
-        # Twice what the base can do, plus slack: beyond this an odometry interval's timing is wrong.
-        cc = self.config.control
-        max_ds_per_s = 2.0 * cc.max_speed_mps + 0.1
-        max_dyaw_per_s = 2.0 * cc.max_turn_radps + 0.5
-        t_next = time.monotonic()
-        while not self._stop.is_set():
-            beat.beat()
-            if not self._open("servos", servos):
-                previous = None
-                self._retry_wait(beat, 1.0)
-                continue
-            self.hot_path.give_way()
-            self._servo_read_since_ns = self.clock_ns()
-            try:
-                state = servos.read()
-            except DeviceError as exc:
-                self._servo_read_since_ns = 0
-                watch.bad(f"silent: {exc}")
-                previous = None
-                merged = False
-                # Whatever still listens stops; a silent servo keeps its last goal until it hears again.
-                with contextlib.suppress(DeviceError):
-                    servos.set_velocity(0.0, 0.0)
-                self._stop.wait(period_s)
-                continue
-            self._servo_read_since_ns = 0
-            now = self.clock_ns()
-            if watch.good():
-                # Back from a fault: zero first, and hold zero a moment whatever the command says.
-                self.drive.hold(now)
-                self._count("servo_recoveries")
-                try:
-                    servos.set_velocity(0.0, 0.0)
-                    self._count("zero_on_recovery")
-                    log.warning("servos answer again: zero velocity commanded")
-                except DeviceError as exc:
-                    watch.bad(f"zero velocity after recovery failed: {exc}")
-                    continue
-            self._hardware_error = state.hardware_error
-            if any(state.hardware_error):
-                self._count("servo_hardware_error_reads")
-            deferred = False
-            if previous is not None and state.host_time_ns > previous.host_time_ns:
-                dl = state.position_rad[0] - previous.position_rad[0]
-                dr = state.position_rad[1] - previous.position_rad[1]
-                # ds = r (dphi_l + dphi_r) / 2, dyaw = r (dphi_r - dphi_l) / track
-                ds = radius * (dl + dr) / 2.0
-                dyaw = radius * (dr - dl) / track
-                dt = (state.host_time_ns - previous.host_time_ns) * 1e-9
-                if not merged and (abs(ds) > max_ds_per_s * dt or abs(dyaw) > max_dyaw_per_s * dt):
-                    # Faster than the base can go: the read's host time is earlier than when the servos
-                    # sampled (a reply that waited for a busy bus or CPU). The distance is right, the stamp
-                    # is not: leave this sample out and let the next interval span both.
-                    deferred = merged = True
-                    self._count("odometry_merged")
-                else:
-                    merged = False
-                    self.fusion.add_odometry(
-                        previous.host_time_ns, state.host_time_ns, ds, dyaw, arrival_ns=now
-                    )
-            elif previous is None and odometry.odom is not None:
-                # A new reference after a fault: the odometry frame continues from where it was.
-                last = odometry.odom
-                odometry.reset(last.x_m, last.y_m, last.yaw_rad)
-            odom = odometry.update(state)
-            if previous is None:
-                self.still.reset()
-            self.still.update(state.host_time_ns, (odom.x_m, odom.y_m, odom.yaw_rad))
-            self.odometry_track.add(state.host_time_ns, (odom.x_m, odom.y_m, odom.yaw_rad))
-            if not deferred:
-                previous = state
-            self._count("wheel_reads")
-            command = self.drive.current(self.clock_ns())
-            left, right = wheel_speeds(command.v_mps, command.omega_radps, radius, track)
-            try:
-                servos.set_velocity(left, right)
-            except DeviceError as exc:
-                watch.bad(f"velocity command failed: {exc}")
-            t_next += period_s
-            now_s = time.monotonic()
-            if t_next < now_s:
-                t_next = now_s
-            self._stop.wait(t_next - now_s)
-
-    # -- IMU, RFID ------------------------------------------------------------------------------------
-    def _imu_loop(self, beat: Heartbeat) -> None:
-        imu = self.devices.imu
-        assert imu is not None
-        watch = self._watch["imu"]
-        t_next = time.monotonic()
-        while not self._stop.is_set():
-            beat.beat()
-            if not self._open("imu", imu):
-                self._retry_wait(beat, 1.0)
-                continue
-            self.hot_path.give_way()
-            try:
-                sample = imu.read()
-            except DeviceError as exc:
-                watch.bad(f"failed: {exc}")
-                self._retry_wait(beat, 0.1)
-                continue
-            watch.good()
-            self._count("imu_samples")
-            now = self.clock_ns()
-            self.fusion.add_gyro(sample.host_time_ns, sample.gyro_radps[2], arrival_ns=now)
-            if self.still.still_at(sample.host_time_ns, _TILT_ODOMETRY_AGE_NS):
-                # Only a base that stands still feels gravity alone (see TiltEstimator).
-                self.tilt.update(sample.host_time_ns, sample.accel_mps2)
-            t_next += _IMU_PERIOD_S
-            now_s = time.monotonic()
-            if t_next < now_s:
-                t_next = now_s
-            self._stop.wait(t_next - now_s)
-
-    def _rfid_loop(self, beat: Heartbeat) -> None:
-        rfid = self.devices.rfid
-        assert rfid is not None
-        watch = self._watch["rfid"]
-        while not self._stop.is_set():
-            beat.beat()
-            if not self._open("rfid", rfid):
-                self._retry_wait(beat, 1.0)
-                continue
-            try:
-                tag = rfid.read(timeout_s=0.25)
-            except DeviceError as exc:
-                watch.bad(f"failed: {exc}")
-                self._retry_wait(beat, 0.5)
-                continue
-            if rfid.health().connected:
-                watch.good()
-            if tag is not None:
-                self._tags.append(tag)
-                self._count("tag_reads")
-
-    # -- the pose stream's floor rate, and the monitor ------------------------------------------------
-    def _output_loop(self, beat: Heartbeat) -> None:
-        output = self.output
-        assert output is not None
-        period_ns = int(1e9 / self.config.output.rate_hz)
-        while not self._stop.is_set():
-            beat.beat()
-            # Asleep until the floor rate calls for a pose (the camera's poses keep moving that time on):
-            # a thread that wakes takes the interpreter lock, from the hot path if a frame is on it.
-            due_ns = output.last_publish_ns + period_ns - self.clock_ns()
-            self._stop.wait(min(max(due_ns, period_ns // 8), period_ns) * 1e-9)
-            if self._stop.is_set():
-                return
-            if self.clock_ns() - output.last_publish_ns >= period_ns:
-                self._publish(trigger_ns=None)
-
-    def _monitor_loop(self) -> None:
-        grace_s = self.config.health.ready_grace_s
-        warn = _NotLocalizingWarning(self.config.health.not_localizing_log_s)
-        while not self._stop.wait(0.25):
-            if not self.health.is_ready:
-                critical = [w for name, w in self._watch.items() if self._critical(name)]
-                if all(w.opened_once for w in critical):
-                    self._ready(self.missing(opened_once=True), None)
-                elif self.clock_ns() - self._started_ns > grace_s * 1e9:
-                    self._ready(self.missing(opened_once=True), grace_s)
-            else:
-                now = self.clock_ns()
-                why = None if self.flags(now) & _POSITION_FLAGS else self.not_localizing_reason()
-                warn.update(why, now * 1e-9)
-            self.health.tick()
-            self.collector.check()
-
-    def _ready(self, missing: list[str], after_s: float | None) -> None:
-        if missing:
-            when = "" if after_s is None else f" after {after_s:.0f} s"
-            log.warning("ready without %s%s (each is retried; see the status line)", ", ".join(missing), when)
-        self.health.ready()
-
     def missing(self, *, opened_once: bool = False) -> list[str]:
         """What is not there: each device whose loop cannot use it now (``opened_once``: that has never been
         opened), then the pose output port when it is not open."""
-        out = [name for name, w in self._watch.items() if not (w.opened_once if opened_once else w.ok)]
+        out = [name for name, w in self.state.watch.items() if not (w.opened_once if opened_once else w.ok)]
         if self.output is not None and not self.output.is_open:
             out.append(f"output {self.output.url}")
         return out
@@ -979,31 +588,6 @@ class Agent:
         ]
         text = f"no position source ({', '.join(sources) or 'none configured'} silent)"
         return f"{text}; missing: {', '.join(missing)}" if missing else text
-
-
-class _NotLocalizingWarning:
-    """The journal's side of "not localizing": a warning once it has lasted ``_NOT_LOCALIZING_GRACE_S``,
-    repeated every ``every_s`` (or when the reason changes) while it lasts, and a line when it ends."""
-
-    def __init__(self, every_s: float) -> None:
-        self.every_s = every_s
-        self.since_s: float | None = None
-        self.next_s = 0.0
-        self.last_reason = ""
-        self.warned = False
-
-    def update(self, reason: str | None, now_s: float) -> None:
-        """``reason``: why the agent is not localizing now, None while it is."""
-        if reason is None:
-            if self.warned:
-                log.warning("localizing again after %.0f s", now_s - (self.since_s or now_s))
-            self.since_s, self.warned, self.last_reason = None, False, ""
-            return
-        if self.since_s is None:
-            self.since_s, self.next_s = now_s, now_s + _NOT_LOCALIZING_GRACE_S
-        if now_s >= self.next_s or (self.warned and reason != self.last_reason):
-            log.warning("not localizing for %.0f s: %s", now_s - self.since_s, reason)
-            self.next_s, self.last_reason, self.warned = now_s + self.every_s, reason, True
 
 
 def _kind(name: str) -> Any:

@@ -116,8 +116,11 @@ class CommandLoop:
                 self.answer(status, _kind(command) if i == 0 else CommandType.GOAL)
         return len(commands)
 
-    def run(self, beat: Heartbeat, stop: threading.Event) -> None:
+    def run(self, beat: Heartbeat, stop: threading.Event, then: Callable[[], object] | None = None) -> None:
+        """Poll until ``stop``; ``then``: called after each pass (the agent's driving step)."""
         while not stop.is_set():
             beat.beat()
             self.step()
+            if then is not None:
+                then()
             stop.wait(self.poll_s)

@@ -35,7 +35,7 @@ __all__ = [
     "MclMapper",
     "RbpfMapper",
     "ScanMapper",
-    "make_mapper",
+    "make_local_mapper",
     "save_map",
     "tidy_map_folder",
 ]
@@ -317,18 +317,15 @@ class MclMapper:
         """Nothing to release (the filter lives in this process)."""
 
 
-def make_mapper(
+def make_local_mapper(
     config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]
 ) -> tuple[ScanMapper | None, str]:
-    """The laser localizer for this config (mapping or localization on a map), or None and the reason it is
-    not available; with ``config.process``, run in a child process (``agent.runtime.slam_worker``)."""
+    """The laser localizer for this config in this process (mapping or localization on a map), or None and
+    the reason it is not available. ``agent.runtime.slam_factory.make_mapper`` picks between this and the
+    child process (``config.process``); the child builds its filter with this."""
     if not config.enabled:
         return None, "disabled in the config"
     try:
-        if config.process:
-            from agent.runtime.slam_worker import ProcessMapper
-
-            return ProcessMapper(config, mount, start_pose), ""
         if config.mode is SlamMode.LOCALIZATION:
             return MclMapper(config, mount, start_pose), ""
         return RbpfMapper(config, mount, start_pose), ""

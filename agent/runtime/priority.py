@@ -26,7 +26,12 @@ import threading
 
 from agent.config import MAX_REALTIME_PRIORITY
 
-__all__ = ["CPU_LATENCY_DEVICE", "CpuLatencyRequest", "realtime_thread"]
+__all__ = ["CPU_LATENCY_DEVICE", "SWITCH_INTERVAL_S", "CpuLatencyRequest", "realtime_thread"]
+
+# The GIL hands over every 5 ms by default: a thread in a long numpy-free Python stretch (SLAM's
+# bookkeeping) would hold the hot path that long. 1 ms bounds that wait (benchmarks/agent_latency.py).
+# ``vlp-agent run`` and ``vlp-agent sim`` set it for their process (``sys.setswitchinterval``).
+SWITCH_INTERVAL_S = 0.001
 
 # The kernel's CPU latency QoS request (Documentation/power/pm_qos_interface.rst).
 CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"

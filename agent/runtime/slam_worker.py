@@ -4,8 +4,8 @@ The agent is one Python process: its threads share one interpreter lock. A SLAM 
 milliseconds of numpy and Python; while it runs, the hot path (frame -> VLP fix -> fused pose -> bytes)
 gets the lock back only every ``sys.getswitchinterval()`` after each OpenCV call that released it, and a
 frame that meets an update pays for it in its latency. :class:`ProcessMapper` keeps the same
-:class:`~agent.runtime.mapper.ScanMapper` (built by :func:`~agent.runtime.mapper.make_mapper` from the same
-config) in a child process: the SLAM thread hands each scan over and waits on the socket, the lock
+:class:`~agent.runtime.mapper.ScanMapper` (built by :func:`~agent.runtime.mapper.make_local_mapper` from
+the same config) in a child process: the SLAM thread hands each scan over and waits on the socket, the lock
 released, as it would in a device driver. The child runs at a lower CPU priority (``nice`` +5), so on a
 busy core the hot path goes first; on the robot's four cores it has one to itself.
 
@@ -26,7 +26,6 @@ process).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import multiprocessing.connection
 import os
@@ -43,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.config import MountConfig, SlamConfig
-from agent.runtime.mapper import MapperStep, Pose, make_mapper
+from agent.runtime.mapper import MapperStep, Pose, make_local_mapper
 from agent.runtime.types import AbsoluteFix
 from drivers.child_process import child_connection, start_child, stop_child
 from drivers.samples import Scan
@@ -86,7 +85,7 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
     """Build the mapper from the first message, then answer every request until the parent hangs up."""
     config, mount = conn.recv()
     start = _StartPose()
-    mapper, why = make_mapper(dataclasses.replace(config, process=False), mount, start)
+    mapper, why = make_local_mapper(config, mount, start)
     conn.send((mapper is not None, why, mapper.name if mapper is not None else ""))
     if mapper is None:
         return
@@ -140,8 +139,9 @@ class WorkerLost(RuntimeError):
 
 
 class ProcessMapper:
-    """A :class:`~agent.runtime.mapper.ScanMapper` (the one ``make_mapper`` builds for ``config``) running in
-    a child process. Same calls, same results; called from the SLAM thread (``counters`` from any)."""
+    """A :class:`~agent.runtime.mapper.ScanMapper` (the one ``make_local_mapper`` builds for ``config``)
+    running in a child process. Same calls, same results; called from the SLAM thread (``counters`` from
+    any)."""
 
     def __init__(
         self, config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]

@@ -14,7 +14,8 @@ import pytest
 
 from agent.config import MountConfig, SlamConfig
 from agent.runtime import slam_worker
-from agent.runtime.mapper import MapperStep, RbpfMapper, make_mapper
+from agent.runtime.mapper import MapperStep, RbpfMapper
+from agent.runtime.slam_factory import make_mapper
 from agent.runtime.slam_worker import ProcessMapper
 from agent.runtime.types import AbsoluteFix
 from agent.slam.simlog import simulate_log

@@ -1,0 +1,85 @@
+"""The SLAM loop: each queued scan, with the odometry at its time, through the laser localizer
+(``agent.runtime.mapper``); the pose of each filter update that matched goes to the fusion.
+
+It gives way to the hot path before each scan, and hands the localizer the VLP fixes the hot path queued
+(at most one every half second, ``agent.runtime.vlp_loop``).
+"""
+
+from __future__ import annotations
+
+from agent.fusion import PoseFilter, Source
+from agent.runtime.health import Heartbeat
+from agent.runtime.hotpath import HotPath
+from agent.runtime.loop_state import LoopState
+from agent.runtime.mailbox import BoundedQueue
+from agent.runtime.mapper import Pose, ScanMapper
+from agent.runtime.motion import OdometryTrack
+from agent.runtime.types import AbsoluteFix
+from drivers.samples import Scan
+
+__all__ = ["SlamLoop"]
+
+
+class SlamLoop:
+    """``odometry_track``: the wheels' odometry (None without wheels: the fused pose is the motion guess)."""
+
+    def __init__(
+        self,
+        state: LoopState,
+        *,
+        mapper: ScanMapper | None,
+        fusion: PoseFilter,
+        scans: BoundedQueue[Scan],
+        slam_fixes: BoundedQueue[AbsoluteFix],
+        hot_path: HotPath,
+        odometry_track: OdometryTrack | None,
+    ) -> None:
+        self.state = state
+        self.mapper = mapper
+        self.fusion = fusion
+        self.scans = scans
+        self.slam_fixes = slam_fixes
+        self.hot_path = hot_path
+        self.odometry_track = odometry_track
+
+    def odometry_at(self, t_ns: int) -> Pose | None:
+        if self.odometry_track is not None:
+            return self.odometry_track.at(t_ns)
+        est = self.fusion.estimate_at(t_ns)  # no wheels: the fused pose is the best motion guess
+        return (est.x_m, est.y_m, est.yaw_rad)
+
+    def run(self, beat: Heartbeat) -> None:
+        state = self.state
+        mapper = self.mapper
+        while not state.stop.is_set():
+            beat.beat()
+            scan = self.scans.get(0.25)
+            if scan is None or mapper is None:
+                continue
+            self.hot_path.give_way()
+            for fix in self.slam_fixes.drain():
+                odom = self.odometry_at(fix.t_ns)
+                if odom is not None:
+                    mapper.add_fix(fix, odom)
+            odom = self.odometry_at(scan.host_time_ns)
+            if odom is None:
+                state.count("slam_scans_without_odometry")
+                continue
+            step = mapper.update(scan, odom)
+            state.count(f"slam_{step.kind}")
+            if step.kind == "updated":
+                if step.fix is None:
+                    state.slam_good = False
+                    continue
+                fix = step.fix
+                result = self.fusion.add_pose(
+                    Source.SLAM,
+                    fix.t_ns,
+                    fix.x_m,
+                    fix.y_m,
+                    fix.yaw_rad,
+                    fix.covariance,
+                    arrival_ns=state.clock_ns(),
+                )
+                state.slam_good = result.accepted
+                state.count("slam_fused" if result.accepted else "slam_rejected")
