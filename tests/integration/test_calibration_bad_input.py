@@ -100,21 +100,34 @@ def test_non_numeric_coordinate_in_the_led_csv(tmp_path: Path, capsys: pytest.Ca
     untouched(out, "leds.toml")
 
 
-def test_non_numeric_coordinate_typed_is_asked_again(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:
-    import io
+class _TypedAnswers:
+    """A console fed with typed answers, as a person at the robot would give them."""
 
-    out = previous_file(tmp_path, "leds.toml")
-    # Two LEDs of env1 (id: Enter for the default), the first x given as "west" before the number.
-    answers = "\nwest\n-0.465\n0.495\n1.5\n\n-0.46\n-0.42\n1.5\n"
-    monkeypatch.setattr(sys, "stdin", io.StringIO(answers))
-    code = main(["calibrate", "leds", "--sim", "--dir", str(out), "--count", "2", "--frames", "16"])
-    captured = capsys.readouterr()
-    assert "'west' is not a number; try again" in captured.out
-    assert code == 0, captured.err
-    assert (out / "leds.toml").read_text() != PREVIOUS
-    assert (out / "leds.toml.bak").read_text() == PREVIOUS
+    def __init__(self, answers: list[str]) -> None:
+        self.answers = answers
+        self.said: list[str] = []
+
+    def say(self, text: str = "") -> None:
+        self.said.append(text)
+
+    def status(self, text: str) -> None:
+        pass
+
+    def ask(self, question: str) -> str:
+        if not self.answers:
+            raise EOFError
+        return self.answers.pop(0)
+
+
+def test_non_numeric_coordinate_typed_is_asked_again() -> None:
+    # On a robot (no world file to read them from) the survey asks for the LED coordinates; the first x is
+    # given as "west" before the number. (Under --sim they come from the world file and nothing is asked.)
+    from calibration.leds import LedEntry, type_coordinates
+
+    console = _TypedAnswers(["", "west", "-0.465", "0.495", "1.5", "", "-0.46", "-0.42", ""])
+    entries = type_coordinates(console, 2)  # type: ignore[arg-type]
+    assert any("'west' is not a number; try again" in line for line in console.said)
+    assert entries == [LedEntry("L1", -0.465, 0.495, 1.5), LedEntry("L2", -0.46, -0.42, 1.5)]
 
 
 def test_ctrl_c_in_the_middle_of_a_step(tmp_path: Path) -> None:

@@ -115,7 +115,8 @@ def test_eval_slam_table_on_breezyslam(
         for colour in colours:
             assert has_swatch(picture, colour), (name, colour)
         assert has_colour(picture, figure.SLAM, 100), name
-    assert first.shape == cv2.imread(str(tmp_path / "map.pgm"), cv2.IMREAD_UNCHANGED).shape
+    (pgm,) = tmp_path.glob("map.*.pgm")  # the image version the YAML names
+    assert first.shape == cv2.imread(str(pgm), cv2.IMREAD_UNCHANGED).shape
     # A second run keeps the first map as map.prev.*.
     main(
         [
