@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from drivers.sim.targets import HAS_ARUCO
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -35,13 +35,15 @@ def test_charuco_board_calibrates_the_camera(tmp_path: Path) -> None:
             "10",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=240,
         cwd=REPO,
         check=False,
     )
     assert out.returncode in (0, 3), out.stderr
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert "ChArUco" in r["board"]
     assert r["views"] >= 10
     assert r["rms_px"] <= 0.4

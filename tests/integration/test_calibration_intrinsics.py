@@ -4,7 +4,6 @@ camera_info YAML that ROS tools and the agent's config both read."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ import pytest
 
 from agent.config import read_camera_info
 from calibration.camera_info import parse_camera_info, parse_simple_yaml
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -33,13 +33,15 @@ def calibrate(tmp_path: Path, *extra: str) -> dict[str, object]:
             *extra,
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=240,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    result: dict[str, object] = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    result: dict[str, object] = strict_loads(out.stdout)
     return result
 
 

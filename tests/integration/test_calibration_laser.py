@@ -3,12 +3,13 @@ facing a corner of Environment 1: yaw and position come out right; the file hold
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
+
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -29,13 +30,15 @@ def test_laser_step_finds_the_laser_mount(tmp_path: Path) -> None:
             "3",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=180,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert r["ok"], r["checks"]
     truth = r["truth"]
     assert abs(truth["yaw_deg"]) > 0.5  # there is a yaw to find

@@ -4,7 +4,6 @@ the map (the report PNG is saved)."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +12,7 @@ import cv2
 
 from agent import figure
 from tests.figures import has_swatch
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
@@ -52,13 +52,15 @@ def test_led_survey_measures_signatures_and_warns_about_look_alikes(tmp_path: Pa
             "8",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=240,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 3, out.stderr  # done, but the checks failed
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert r["warnings"] and "L1 and L3 are too close to tell apart" in r["warnings"][0]
     by_id = {led["id"]: led for led in r["leds"]}
     truth = {"L1": (1500.0, 0.3), "L2": (2500.0, 0.6), "L3": (1580.0, 0.33), "L4": (4500.0, 0.5)}

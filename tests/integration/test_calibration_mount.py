@@ -3,7 +3,6 @@ from a level board, its yaw and place on the base from driving and turning under
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import tomllib
@@ -14,6 +13,7 @@ import numpy as np
 from calibration.camera_info import CameraInfo, format_camera_info
 from drivers.sim.render import RollingShutterRenderer
 from drivers.sim.worldfile import load_world
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
@@ -45,13 +45,15 @@ def test_mount_step_finds_tilt_yaw_and_place(tmp_path: Path) -> None:
             "1",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=240,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert r["ok"], r["checks"]
     assert r["tilt_error_deg"] < 0.08
     assert abs(r["truth"]["yaw_deg"]) > 0.9  # the camera is turned on its bracket

@@ -3,7 +3,6 @@ config's, and then usable by the agent's own driver (dynamixel-sdk) at the new r
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import tomllib
@@ -21,6 +20,7 @@ from drivers.servos.control_table import XL430_W250, OperatingMode
 from drivers.servos.dynamixel import DynamixelWheels
 from drivers.sim.simulation import Simulation
 from drivers.sim.worldfile import load_world
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
@@ -42,13 +42,15 @@ def run_servos_step(folder: Path) -> dict[str, Any]:
             "12",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=120,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    result: dict[str, Any] = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    result: dict[str, Any] = strict_loads(out.stdout)
     return result
 
 
@@ -143,13 +145,15 @@ def test_servos_step_with_a_robot_config(tmp_path: Path) -> None:
                 "250",
             ],
             capture_output=True,
+            stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
             text=True,
             timeout=120,
             cwd=REPO,
             check=False,
         )
         assert out.returncode == 0, out.stderr
-        r = json.loads(out.stdout)
+        assert "Traceback" not in out.stderr, out.stderr[-3000:]
+        r = strict_loads(out.stdout)
         assert {(s["id"], s["baud"]) for s in r["after"]} == {(1, 1_000_000), (2, 1_000_000)}
         # Servo 9 (the left wheel) is now id 1, servo 4 is id 2.
         assert fake.servo(1).get("ID") == 1 and fake.servo(2).get("ID") == 2

@@ -4,7 +4,6 @@ camera and wheels, bring the mean VLP error at fresh places from about a centime
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from agent.vlp.calibration import parse_calibration
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,13 +42,15 @@ def test_vlp_error_calibration_halves_the_error(tmp_path: Path) -> None:
             "1.5",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=300,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert r["ok"], r["checks"]
     assert r["mean_error_cm_before"] > 0.8
     assert r["mean_error_cm_after"] <= 0.5

@@ -3,11 +3,12 @@ the measured runs bring wheel radius and track to the truth, the file holds the 
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
+
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -34,13 +35,15 @@ def test_wheels_step_finds_radius_and_track(tmp_path: Path) -> None:
             "2",
         ],
         capture_output=True,
+        stdin=subprocess.DEVNULL,  # nobody to answer: a step on --sim asks nothing
         text=True,
         timeout=180,
         cwd=REPO,
         check=False,
     )
     assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout)
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    r = strict_loads(out.stdout)
     assert r["ok"], r["checks"]
     truth = r["truth"]
     design_radius_error = abs(r["nominal_wheel_radius_m"] / truth["wheel_radius_m"] - 1) * 100

@@ -6,7 +6,6 @@ robot moves."""
 
 from __future__ import annotations
 
-import json
 import re
 import signal
 import subprocess
@@ -17,16 +16,10 @@ from typing import Any
 import pytest
 
 from agent import cli
+from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
-
-
-def strict_loads(text: str) -> Any:
-    def refuse(token: str) -> Any:
-        raise ValueError(f"non-standard JSON token {token}")
-
-    return json.loads(text, parse_constant=refuse)
 
 
 def closed_stdin(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -41,36 +34,31 @@ def closed_stdin(*args: str, cwd: Path, timeout: float = 240) -> subprocess.Comp
     )
 
 
-# Each step's quickest honest run on the simulated robot; each writes its files into --dir.
-STEPS: dict[str, list[str]] = {
-    "servos": [],
-    "intrinsics": ["--views", "12", "--min-views", "10"],
-    "mount": [],
-    "wheels": ["--distance-m", "0.4", "--turns", "1"],
-    "laser": [],
-    "leds": ["--frames", "6"],
-    "vlp-error": ["--test-points", "4"],
-}
-
-
-@pytest.mark.parametrize("step", list(STEPS))
-def test_every_calibration_step_runs_on_the_simulated_robot_with_stdin_closed(
-    step: str, tmp_path: Path
-) -> None:
+# Every calibration step's own integration test (tests/integration/test_calibration_*.py) runs it on the
+# simulated robot with stdin closed and --json, and checks for no traceback and strict JSON. Here: the LED
+# survey, the one step that asked (for the LED coordinates) before it took them from the world file.
+def test_the_led_survey_on_the_simulated_robot_asks_for_nothing(tmp_path: Path) -> None:
     out_dir = tmp_path / "cal"
     out = closed_stdin(
-        "calibrate", step, "--world", str(ENV1), "--dir", str(out_dir), "--json", *STEPS[step], cwd=tmp_path
+        "calibrate",
+        "leds",
+        "--world",
+        str(ENV1),
+        "--dir",
+        str(out_dir),
+        "--json",
+        "--frames",
+        "6",
+        cwd=tmp_path,
     )
     assert "Traceback" not in out.stderr, out.stderr[-3000:]
     assert out.returncode in (0, 3), out.stderr[-3000:]  # done (3: done, but the checks failed)
     result = strict_loads(out.stdout)
-    assert isinstance(result, dict) and result
-    assert any(out_dir.iterdir())
-    if step == "leds":
-        # The simulated ceiling's LEDs are where the world file says: nothing was asked.
-        assert "LED coordinates: 4 from the world file env1.toml" in out.stderr
-        assert "id [L1]" not in out.stderr
-        assert sorted(led["id"] for led in result["leds"]) == ["L1", "L2", "L3", "L4"]
+    # The simulated ceiling's LEDs are where the world file says: nothing was asked.
+    assert "LED coordinates: 4 from the world file env1.toml" in out.stderr
+    assert "id [L1]" not in out.stderr
+    assert sorted(led["id"] for led in result["leds"]) == ["L1", "L2", "L3", "L4"]
+    assert (out_dir / "leds.toml").exists()
 
 
 def test_the_wizard_with_stdin_closed_says_so_and_exits_non_zero(tmp_path: Path) -> None:
