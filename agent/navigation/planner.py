@@ -59,7 +59,8 @@ class Plan:
     cost: float = math.inf  # the grid path's cost (cells x (1 + w c))
     grid_cells: int = 0  # cells on the grid path before smoothing
     searched: bool = False  # a new search was run (False: the cached tree was walked)
-    plan_ms: float = 0.0
+    plan_ms: float = 0.0  # wall time
+    cpu_ms: float = 0.0  # this thread's CPU time (what one core spent, however loaded the machine)
     reason: str = ""
 
     @property
@@ -108,8 +109,8 @@ def build_graph(cost: Float32Array, clearance_weight: float, mask: BoolArray | N
     cells = np.flatnonzero(free)
     r, c = np.divmod(cells, cols)
     at = (r + 1) * width + (c + 1)  # each node's place in the padded grid
-    padded_cost = np.full((rows + 2, width), np.inf)
-    padded_cost[1:-1, 1:-1] = cost
+    padded_cost = np.zeros((rows + 2, width))
+    padded_cost[1:-1, 1:-1] = np.where(free, cost, 0.0)  # edges to other cells are masked out below
     flat_cost = padded_cost.ravel()
     own = flat_cost[at]
     indices = np.empty((k, 8), dtype=np.int32)
@@ -188,7 +189,7 @@ class GlobalPlanner:
         goal_xy: tuple[float, float],
         allow_unknown: bool | None = None,
     ) -> Plan:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         allow = costmap.config.allow_unknown if allow_unknown is None else allow_unknown
         cost = costmap.cost(allow)
         spec = costmap.spec
@@ -217,9 +218,9 @@ class GlobalPlanner:
         tree = self._tree
         assert tree is not None
         if start_index is None:
-            ms = (time.perf_counter() - t0) * 1e3
+            ms, cpu = (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3
             status, reason = self._why_not(cost, spec, start_cell, tree)
-            return Plan(status, searched=searched, plan_ms=ms, reason=reason)
+            return Plan(status, searched=searched, plan_ms=ms, cpu_ms=cpu, reason=reason)
         graph = tree.graph
         node = int(graph.node_of[start_index])
         chain = [node]
@@ -237,8 +238,8 @@ class GlobalPlanner:
             path = np.vstack([start[None, :], path])
         path[-1] = goal_xy
         length = float(np.sum(np.hypot(*np.diff(path, axis=0).T))) if len(path) > 1 else 0.0
-        ms = (time.perf_counter() - t0) * 1e3
-        return Plan(PlanStatus.OK, path, length, total, len(chain), searched, ms)
+        ms, cpu = (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3
+        return Plan(PlanStatus.OK, path, length, total, len(chain), searched, ms, cpu)
 
     def _search(self, cost: Float32Array, goal_index: int, mask: BoolArray | None) -> _Tree:
         graph = build_graph(cost, self.clearance_weight, mask)
@@ -353,7 +354,8 @@ class GlobalPlanner:
             return False
         on_line = cost[seg[:, 0], seg[:, 1]]
         ceiling = float(path_cost[i : j + 1].max()) + self.smooth_tolerance
-        return bool(float(on_line.max()) <= ceiling)
+        worst = float(on_line.max())
+        return math.isfinite(worst) and worst <= ceiling
 
 
 def path_is_free(costmap: Costmap, path_m: FloatArray, allow_unknown: bool | None = None) -> bool:
