@@ -112,7 +112,7 @@ class ShortestPaths:
     def __init__(self, spec: GridSpec, occupied: BoolArray, radius_m: float) -> None:
         config = NavConfig(radius_m=radius_m, safety_margin_m=0.0, inflation_radius_m=radius_m)
         self.costmap = Costmap(spec, occupied, np.zeros(spec.shape, dtype=bool), config)
-        self.planner = GlobalPlanner(clearance_weight=0.0, smooth_tolerance=math.inf, coarse_factor=1)
+        self.planner = GlobalPlanner(clearance_weight=0.0, coarse_factor=1)
 
     def length_m(self, start: tuple[float, float], goal: tuple[float, float]) -> float:
         plan = self.planner.plan(self.costmap, start, goal)

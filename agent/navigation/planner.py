@@ -9,8 +9,9 @@
   navigation function: while the costmap and the goal stay the same, a plan from anywhere is a walk up
   the predecessors, no search (replanning as the robot moves costs microseconds).
 * **Smoothing** (any-angle, a Theta*-style post-pass): from each anchor the farthest later path cell
-  that a straight line reaches over free cells, without passing nearer the walls than the grid path did
-  (its cost ceiling is the grid path's highest cost between the two, plus ``smooth_tolerance``).
+  that a straight line reaches over free cells at no more cost, by the search's own measure
+  (length (1 + w mean c)), than the grid path between them (within ``smooth_tolerance``): the corners of
+  the 8-connected staircase go, the clearance the search paid for stays.
 
 Plans report why they failed (:class:`PlanStatus`): a start inside an obstacle's footprint is escaped
 to the nearest free cell within ``escape_m``; a goal in a forbidden cell or one not connected to the start
@@ -165,7 +166,7 @@ class GlobalPlanner:
         self,
         clearance_weight: float = 2.0,
         escape_m: float = 0.3,
-        smooth_tolerance: float = 0.05,
+        smooth_tolerance: float = 0.02,
         coarse_factor: int = 2,
         corridor_m: float = 0.5,
     ) -> None:
@@ -229,8 +230,9 @@ class GlobalPlanner:
             chain.append(node)
         flat = graph.cells[np.array(chain, dtype=np.intp)]
         cells = np.stack(np.divmod(flat, cols), axis=1)
-        total = float(tree.distances[chain[0]])
-        path = self._smooth(cells, cost, spec)
+        to_goal = tree.distances[np.array(chain, dtype=np.intp)]
+        total = float(to_goal[0])
+        path = self._smooth(cells, to_goal, cost, spec)
         start = np.array(start_xy, dtype=np.float64)
         if start_index == int(start_cell[0] * cols + start_cell[1]):
             path[0] = start
@@ -321,21 +323,21 @@ class GlobalPlanner:
             "leads to the goal",
         )
 
-    def _smooth(self, cells: IntArray, cost: Float32Array, spec: GridSpec) -> FloatArray:
-        """Any-angle shortcuts over the grid path (see the module docstring); world points."""
-        path_cost = cost[cells[:, 0], cells[:, 1]].astype(np.float64)
+    def _smooth(self, cells: IntArray, to_goal: FloatArray, cost: Float32Array, spec: GridSpec) -> FloatArray:
+        """Any-angle shortcuts over the grid path (see the module docstring); world points.
+        ``to_goal``: each path cell's cost to the goal in the search (cells x (1 + w c))."""
         world = spec.to_world(cells)
         n = len(cells)
         keep = [0]
         i = 0
         while i < n - 1:
-            if self._visible(world, path_cost, cost, spec, i, n - 1):
+            if self._shortcut(world, to_goal, cost, spec, i, n - 1):
                 j = n - 1
             else:
                 lo, hi = i + 1, n - 1
                 while hi - lo > 1:
                     mid = (lo + hi) // 2
-                    if self._visible(world, path_cost, cost, spec, i, mid):
+                    if self._shortcut(world, to_goal, cost, spec, i, mid):
                         lo = mid
                     else:
                         hi = mid
@@ -345,17 +347,25 @@ class GlobalPlanner:
         out: FloatArray = world[keep].copy()
         return out
 
-    def _visible(
-        self, world: FloatArray, path_cost: FloatArray, cost: Float32Array, spec: GridSpec, i: int, j: int
+    def _shortcut(
+        self, world: FloatArray, to_goal: FloatArray, cost: Float32Array, spec: GridSpec, i: int, j: int
     ) -> bool:
+        """Whether the straight line from path cell i to j is free and costs no more, by the search's own
+        measure (length x (1 + w mean cost)), than the grid path between them (plus
+        ``smooth_tolerance`` of it)."""
+        if j == i + 1:
+            return True
         seg = segment_cells(spec, world[i], world[j])
         rows, cols = spec.shape
         if seg.min() < 0 or seg[:, 0].max() >= rows or seg[:, 1].max() >= cols:
             return False
-        on_line = cost[seg[:, 0], seg[:, 1]]
-        ceiling = float(path_cost[i : j + 1].max()) + self.smooth_tolerance
-        worst = float(on_line.max())
-        return math.isfinite(worst) and worst <= ceiling
+        on_line = cost[seg[:, 0], seg[:, 1]].astype(np.float64)
+        if not np.all(np.isfinite(on_line)):
+            return False
+        length = math.dist(world[i], world[j]) / spec.resolution_m
+        line_cost = length * (1.0 + self.clearance_weight * float(on_line.mean()))
+        grid_cost = float(to_goal[i] - to_goal[j])
+        return line_cost <= grid_cost * (1.0 + self.smooth_tolerance) + 1e-9
 
 
 def path_is_free(costmap: Costmap, path_m: FloatArray, allow_unknown: bool | None = None) -> bool:
