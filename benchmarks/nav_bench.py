@@ -40,7 +40,7 @@ from agent.navigation.config import NavConfig
 from agent.navigation.costmap import Costmap
 from agent.navigation.planner import GlobalPlanner
 from agent.slam.simlog import laser_geometry
-from drivers.sim.simulation import Simulation
+from drivers.sim.raycast import cast_rays, walls_array
 from drivers.sim.worldfile import load_world
 
 OFFICE = Path(__file__).resolve().parents[1] / "examples" / "worlds" / "office.toml"
@@ -88,7 +88,8 @@ def main() -> int:
         replan_ms.append((t2 - t0) * 1e3)
         lengths.append(plan.length_m)
 
-    sim = Simulation(world, clock=lambda: 0.0, seed=args.seed)
+    walls = walls_array(world.walls)
+    people = np.array([(*p.path[0], p.radius_m) for p in world.people]).reshape(-1, 3)
     geometry = laser_geometry(world)
     monitor = CollisionMonitor(config)
     min_m, max_m = world.laser.min_range_mm / 1000.0, world.laser.max_range_mm / 1000.0
@@ -98,8 +99,7 @@ def main() -> int:
     for i in range(args.scans):
         x, y = spec.to_world(free[rng.integers(len(free))])[0]
         yaw = float(rng.uniform(-math.pi, math.pi))
-        sim._x, sim._y, sim._yaw = float(x), float(y), yaw  # a pose to cast from, not a drive
-        ranges = sim.laser_ranges_m(geometry.angles_rad)
+        ranges = cast_rays((float(x), float(y)), geometry.angles_rad + yaw, walls, people, max_m)
         ranges = np.where(np.isfinite(ranges), ranges, 0.0)
         t0, c0 = time.perf_counter(), time.thread_time()
         monitor.on_scan(float(i), geometry.angles_rad, ranges, min_m, max_m)

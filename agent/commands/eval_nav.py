@@ -39,7 +39,7 @@ import numpy as np
 from agent.navigation.config import NavConfig
 from agent.navigation.costmap import BoolArray, Costmap, FloatArray, GridSpec
 from agent.navigation.navigator import Goal, Navigator, NavStatus
-from agent.navigation.planner import GlobalPlanner
+from agent.navigation.planner import GlobalPlanner, reachable
 from drivers.sim.world import World
 
 GOAL_CLEARANCE_M = 0.30  # a goal's distance from walls at least (beyond the robot's radius)
@@ -138,16 +138,9 @@ def goal_cells(world: World, costmap: Costmap, start: tuple[float, float]) -> Fl
         near = np.hypot(*(rel - t[..., None] * d[None]).transpose(2, 0, 1)).min(axis=1)
         keep &= near > reach
     xy = xy[keep]
-    # Reachable from the start: one search from the start over the grid.
-    planner = GlobalPlanner(clearance_weight=0.0, coarse_factor=1)
-    planner.plan(costmap, start, start)
-    tree = planner._tree
-    assert tree is not None
-    flat = spec.to_cell(xy)
-    nodes = tree.graph.node_of[flat[:, 0] * spec.shape[1] + flat[:, 1]]
-    reachable = np.zeros(len(xy), dtype=bool)
-    reachable[nodes >= 0] = np.isfinite(tree.distances[nodes[nodes >= 0]])
-    out: FloatArray = xy[reachable]
+    cells = spec.to_cell(xy)
+    reachable_cells = reachable(costmap, start)[cells[:, 0], cells[:, 1]]
+    out: FloatArray = xy[reachable_cells]
     return out
 
 

@@ -368,6 +368,24 @@ class GlobalPlanner:
         return line_cost <= grid_cost * (1.0 + self.smooth_tolerance) + 1e-9
 
 
+def reachable(
+    costmap: Costmap, start_xy: tuple[float, float], allow_unknown: bool | None = None
+) -> BoolArray:
+    """The cells a robot at ``start_xy`` can reach on the costmap (one search from there)."""
+    allow = costmap.config.allow_unknown if allow_unknown is None else allow_unknown
+    cost = costmap.cost(allow)
+    spec = costmap.spec
+    out = np.zeros(spec.shape, dtype=bool)
+    cell = spec.to_cell(np.array(start_xy))[0]
+    if not spec.inside(cell[None, :])[0] or not np.isfinite(cost[cell[0], cell[1]]):
+        return out
+    graph = build_graph(cost, 0.0)
+    root = int(graph.node_of[int(cell[0] * spec.shape[1] + cell[1])])
+    distances = csgraph.dijkstra(graph.matrix, directed=True, indices=root)
+    out.reshape(-1)[graph.cells[np.isfinite(distances)]] = True
+    return out
+
+
 def path_is_free(costmap: Costmap, path_m: FloatArray, allow_unknown: bool | None = None) -> bool:
     """Whether every cell along the polyline is still allowed."""
     if len(path_m) < 2:
