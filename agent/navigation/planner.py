@@ -6,9 +6,9 @@
   off walls where there is room and still squeeze through a door when that is the way.
 * **Search**: ``scipy.sparse.csgraph.dijkstra`` from the *goal* (C, not Python: a Python heap A* costs
   ~700 ms on such a grid, reference/eco.md §1.4; on the whole 420 x 260 office grid the graph costs
-  17-25 ms and the search ~19 ms of CPU, so the search is coarse to fine, see :class:`GlobalPlanner`). The tree is a
-  navigation function: while the costmap and the goal stay the same, a plan from anywhere is a walk up
-  the predecessors, no search (replanning as the robot moves costs microseconds).
+  17-25 ms and the search ~19 ms of CPU, so the search is coarse to fine, see :class:`GlobalPlanner`).
+  The tree is a navigation function: while the costmap and the goal stay the same, a plan from
+  anywhere is a walk up the predecessors, no search (replanning as the robot moves costs microseconds).
 * **Smoothing** (any-angle, a Theta*-style post-pass): from each anchor the farthest later path cell
   that a straight line reaches over free cells at no more cost, by the search's own measure
   (length (1 + w mean c)), than the grid path between them (within ``smooth_tolerance``): the corners of
