@@ -81,6 +81,8 @@ class Navigator:
         self._t_progress = 0.0
         self._way_since_recovery = 0.0
         self._turning = False
+        self._scans = 0
+        self._await_scan = False
 
     # -- inputs -------------------------------------------------------------------------------------
     def set_goal(self, goal: Goal, t_s: float) -> None:
@@ -118,6 +120,8 @@ class Navigator:
         c, s = math.cos(yaw), math.sin(yaw)
         laser = (x + c * mx - s * my, y + s * mx + c * my, yaw + myaw)
         self.costmap.update_scan(laser, angles_rad, ranges_m, min_range_m, max_range_m)
+        self._scans += 1
+        self._await_scan = False
         command = self.monitor.on_scan(t_s, angles_rad, ranges_m, min_range_m, max_range_m)
         if command == STOP:
             self.controller.reset()
@@ -151,11 +155,16 @@ class Navigator:
             if command is not None:
                 self.controller.reset()
                 return self._out(self.monitor.filter(command), NavStatus.RECOVERING)
-            # The round is over: forget stale marks, replan from here.
+            # The round is over: forget stale marks and replan from here, once a fresh scan has put back
+            # what is really there (planning on the bare map would take the blocked way again).
             self.costmap.clear_obstacles()
             self.plan = None
             self._t_progress = t_s
             self._best_to_go = math.inf
+            self._await_scan = self._scans > 0
+        if self._await_scan:
+            self.controller.reset()
+            return self._out(STOP, NavStatus.RECOVERING)
         self.status = NavStatus.ACTIVE
         if not self._ensure_plan(t_s, pose, goal):
             return self._out(STOP, self.status)
@@ -197,9 +206,9 @@ class Navigator:
         self._t_checked = t_s
         self._checked_version = self.costmap.version
         if plan.ok:
-            if self.plan is None:
-                self._best_to_go = math.inf
-                self._t_progress = t_s
+            # Progress is measured along the new path, from now (a detour is longer than the old way).
+            self._best_to_go = math.inf
+            self._t_progress = t_s
             self.plan = plan
             return True
         self.plan = None

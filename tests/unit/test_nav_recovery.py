@@ -115,3 +115,29 @@ def test_a_goal_blocked_by_an_obstacle_that_stays_fails_after_the_recovery_bound
     assert navigator.status is NavStatus.FAILED
     assert "gave up after 3 recoveries" in navigator.reason
     assert t < 60.0
+
+
+def test_the_navigator_replans_round_an_obstacle_that_closes_its_way() -> None:
+    occupied = np.zeros(SPEC.shape, bool)
+    occupied[:, 60] = True
+    occupied[10:20, 60] = False  # door A at y = 0.5 .. 1.0 (the near one)
+    occupied[60:72, 60] = False  # door B at y = 3.0 .. 3.6
+    config = NavConfig()
+    navigator = _navigator(occupied, config)
+    navigator.set_goal(Goal(5.0, 1.0), 0.0)
+    t, (x, y, yaw) = 0.0, (1.0, 1.0, 0.0)
+    first_plan = None
+    while t < 200.0 and navigator.status in (NavStatus.ACTIVE, NavStatus.RECOVERING):
+        t += DT
+        if t > 2.0:  # door A is closed (a trolley parked in it), as every scan from now on shows
+            navigator.costmap.obstacles[10:20, 60] = True
+            navigator.costmap.version += 1
+        out = navigator.step(t, (x, y, yaw))
+        first_plan = first_plan if first_plan is not None else navigator.plan
+        x += out.command.v_mps * DT * math.cos(yaw)
+        y += out.command.v_mps * DT * math.sin(yaw)
+        yaw += out.command.omega_radps * DT
+    assert first_plan is not None and first_plan.path_m[:, 1].max() < 1.5  # it meant to take door A
+    assert navigator.status is NavStatus.REACHED
+    assert len(navigator.plans) >= 2
+    assert max(p.path_m[:, 1].max() for p in navigator.plans if p.ok) > 3.0  # and went through door B
