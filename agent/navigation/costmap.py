@@ -81,11 +81,14 @@ class Costmap:
         self.static_occupied = occupied.astype(bool, copy=True)
         self.unknown = unknown.astype(bool, copy=True) & ~self.static_occupied
         self.obstacles = np.zeros(spec.shape, dtype=bool)
+        self.predicted = np.zeros(spec.shape, dtype=bool)  # where moving obstacles are about to be
         self.version = 0  # bumped whenever what the planner sees changes
         self._cost_version = -1
         self._cost: Float32Array = np.zeros(spec.shape, dtype=np.float32)
         self._cost_unknown: Float32Array = np.zeros(spec.shape, dtype=np.float32)
         self._distance_m: Float32Array = np.zeros(spec.shape, dtype=np.float32)
+        self._static_distance: Float32Array = np.zeros(spec.shape, dtype=np.float32)
+        self._static_version = -1
 
     # -- layers ------------------------------------------------------------------------------------
     def set_static(self, occupied: BoolArray, unknown: BoolArray) -> None:
@@ -150,6 +153,25 @@ class Costmap:
         out: IntArray = row[ok] * cols + col[ok]
         return out
 
+    def set_predicted(self, cells: BoolArray) -> None:
+        """Cells moving obstacles will sweep over soon (``agent.navigation.moving``): forbidden like
+        obstacles, replaced whole each time."""
+        if not np.array_equal(cells, self.predicted):
+            self.predicted = cells.astype(bool, copy=True)
+            self.version += 1
+
+    def static_distance_m(self) -> Float32Array:
+        """Distance from each cell to the nearest occupied cell of the map alone (no scans), metres."""
+        if self._static_version != self._static_key():
+            free = np.ascontiguousarray((~self.static_occupied).astype(np.uint8))
+            cells = np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
+            self._static_distance = cells * np.float32(self.spec.resolution_m)
+            self._static_version = self._static_key()
+        return self._static_distance
+
+    def _static_key(self) -> int:
+        return id(self.static_occupied)
+
     def clear_obstacles(self) -> None:
         if self.obstacles.any():
             self.obstacles[:] = False
@@ -160,7 +182,7 @@ class Costmap:
         if self._cost_version == self.version:
             return
         cfg = self.config
-        lethal = self.static_occupied | self.obstacles
+        lethal = self.static_occupied | self.obstacles | self.predicted
         if lethal.any():
             # The exact Euclidean distance to the nearest zero (the lethal cells); OpenCV's is ~6x faster
             # than scipy.ndimage.distance_transform_edt on the office map, and the same to 1e-5 cells.

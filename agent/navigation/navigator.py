@@ -27,8 +27,12 @@ from agent.navigation.collision import CollisionMonitor
 from agent.navigation.config import NavConfig
 from agent.navigation.controller import STOP, Command, PurePursuit, nearest_on_path, remaining_length, wrap
 from agent.navigation.costmap import Costmap, FloatArray
+from agent.navigation.moving import MovingObstacles
 from agent.navigation.planner import GlobalPlanner, Plan, PlanStatus, path_is_free
 from agent.navigation.recovery import Recovery
+
+# How far the planner looks for a free cell when the robot stands in a forbidden one (in a walker's way).
+ESCAPE_M = 0.6
 
 
 class NavStatus(enum.StrEnum):
@@ -64,7 +68,8 @@ class Navigator:
         self.config = config
         self.costmap = costmap
         self.laser_mount = laser_mount
-        self.planner = GlobalPlanner(config.clearance_weight)
+        self.planner = GlobalPlanner(config.clearance_weight, escape_m=ESCAPE_M)
+        self.moving = MovingObstacles()
         self.controller = PurePursuit(config)
         self.monitor = CollisionMonitor(config, laser_mount)
         self.recovery = Recovery(config)
@@ -120,6 +125,14 @@ class Navigator:
         c, s = math.cos(yaw), math.sin(yaw)
         laser = (x + c * mx - s * my, y + s * mx + c * my, yaw + myaw)
         self.costmap.update_scan(laser, angles_rad, ranges_m, min_range_m, max_range_m)
+        ranges = np.asarray(ranges_m, dtype=np.float64)
+        hit = (ranges >= min_range_m) & (ranges <= max_range_m)
+        theta = laser[2] + np.asarray(angles_rad, dtype=np.float64)[hit]
+        points = np.stack(
+            [laser[0] + ranges[hit] * np.cos(theta), laser[1] + ranges[hit] * np.sin(theta)], axis=1
+        )
+        self.moving.update(t_s, points, self.costmap.static_distance_m(), self.costmap.spec)
+        self.costmap.set_predicted(self.moving.sweeps(self.costmap.spec))
         self._scans += 1
         self._await_scan = False
         command = self.monitor.on_scan(t_s, angles_rad, ranges_m, min_range_m, max_range_m)
@@ -150,6 +163,14 @@ class Navigator:
                 return self._out(STOP)
             return self._out(self.monitor.filter(self.controller.turn_to(error, dt)))
         self._turning = False
+        # Standing where a walker is about to be: drop everything and get out of the way now.
+        threatened = bool(self.costmap.predicted.any()) and not np.isfinite(
+            self.costmap.cost_at(np.array([[x, y]]))[0]
+        )
+        if threatened and (self.recovery.active or (self.plan is not None and t_s - self._t_checked >= 0.3)):
+            self.recovery.abort()
+            self.plan = None
+            self._await_scan = False
         if self.recovery.active:
             command = self.recovery.step(t_s, pose, not self.monitor.blocked(forward=False))
             if command is not None:

@@ -68,6 +68,10 @@ class Recovery:
     def action(self) -> Action | None:
         return self._round.action if self._round else None
 
+    def abort(self) -> None:
+        """End the round in progress (it still counts)."""
+        self._round = None
+
     def exhausted(self) -> bool:
         return self.rounds >= self.config.max_recoveries
 
