@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import BACKENDS, DeviceKind, backend_class
 from drivers.sim.world import World
@@ -88,6 +89,7 @@ _SECTIONS = (
     "health",
     "record",
     "scheduling",
+    "navigation",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
@@ -318,6 +320,7 @@ class AgentConfig:
     health: HealthConfig = HealthConfig()
     record: RecordConfig = RecordConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
+    navigation: NavConfig = field(default_factory=NavConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -731,13 +734,25 @@ class _Reader:
         health = self._health()
         record = self._record()
         scheduling = self._scheduling()
+        navigation = self._navigation()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
                 "", "no pose source: configure [servos] (wheel odometry) or [camera] with [vlp]", self.file
             )
         return AgentConfig(
-            self.file, devices, sim, vlp, slam, fusion, output, control, health, record, scheduling
+            self.file,
+            devices,
+            sim,
+            vlp,
+            slam,
+            fusion,
+            output,
+            control,
+            health,
+            record,
+            scheduling,
+            navigation,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -1105,6 +1120,60 @@ class _Reader:
                 self.file,
             )
         return control
+
+    # [navigation] --------------------------------------------------------------------------------
+    def _navigation(self) -> NavConfig:
+        """Every :class:`NavConfig` field is a key (``*_rad`` also as ``*_deg``); numbers must be positive
+        except the margins (>= 0); then the keys that must agree with each other are checked."""
+        t = self.top.table("navigation") or _Table({}, "navigation", self.file)
+        d = NavConfig()
+        values: dict[str, Any] = {}
+        for f in dataclasses.fields(NavConfig):
+            default = getattr(d, f.name)
+            if isinstance(default, bool):
+                values[f.name] = t.boolean(f.name, default)
+            elif isinstance(default, int):
+                values[f.name] = t.integer(f.name, default, (lambda v: v >= 1, "must be >= 1"))
+            elif f.name.endswith("_rad"):
+                name = f.name.removesuffix("_rad")
+                value = t.angle(name, default)
+                if not 0 < value <= math.pi:
+                    raise t.error(f.name, "must be in (0, 180] degrees")
+                values[f.name] = value
+            else:
+                margin = f.name in ("safety_margin_m", "stop_margin_m")
+                values[f.name] = t.number(f.name, default, _NON_NEGATIVE if margin else _POSITIVE)
+        t.finish()
+        nav = NavConfig(**values)
+        checks = (
+            ("slow_margin_m", nav.slow_margin_m > nav.stop_margin_m, "must be larger than stop_margin_m"),
+            ("slow_speed_fraction", nav.slow_speed_fraction <= 1.0, "must be at most 1"),
+            (
+                "inflation_radius_m",
+                nav.inflation_radius_m >= nav.inscribed_m,
+                "must be at least radius_m + safety_margin_m",
+            ),
+            (
+                "lookahead_max_m",
+                nav.lookahead_max_m >= nav.lookahead_min_m,
+                "must be at least lookahead_min_m",
+            ),
+            (
+                "max_speed_mps",
+                nav.max_speed_mps <= nav.max_wheel_speed_mps,
+                "must be at most max_wheel_speed_mps (the wheels' top speed)",
+            ),
+            (
+                "xy_tolerance_m",
+                nav.xy_tolerance_m >= nav.resolution_m / 2,
+                "must be at least half a costmap cell (resolution_m / 2)",
+            ),
+            ("resolution_m", 0.01 <= nav.resolution_m <= 0.5, "must be 0.01..0.5"),
+        )
+        for key, ok, reason in checks:
+            if not ok:
+                raise ConfigError(f"navigation.{key}", f"{reason}, got {getattr(nav, key)}", self.file)
+        return nav
 
     def _record(self) -> RecordConfig:
         t = self.top.table("record") or _Table({}, "record", self.file)
