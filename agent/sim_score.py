@@ -44,6 +44,8 @@ class _Pose(Protocol):
 class TruthSource(Protocol):
     def pose_at(self, t: float) -> _Pose: ...
 
+    def clearances_m(self, x_m: float, y_m: float, t: float | None = None) -> tuple[float, float]: ...
+
 
 class DecimatedPath:
     """A polyline of at most ``capacity`` points (plus the newest), evenly thinned as it grows."""
@@ -91,6 +93,11 @@ class Scorer:
         self.fused_path = DecimatedPath(path_points)
         self.truth_path = DecimatedPath(path_points)
         self.last_error_m = math.nan
+        # Contact of the robot's footprint with walls and people, on the truth at each frame's time.
+        self.clearance_wall_m = math.inf
+        self.clearance_person_m = math.inf
+        self.collisions = {"walls": 0, "people": 0}  # times contact began
+        self._touching = {"walls": False, "people": False}
         self._last_truth: tuple[float, float] | None = None
         self.truth_csv = truth_csv
         self._truth_tmp: Path | None = None
@@ -126,10 +133,21 @@ class Scorer:
             self._last_truth = (truth.x_m, truth.y_m)
             self.fused_path.add(f.x_m, f.y_m)
             self.truth_path.add(truth.x_m, truth.y_m)
+            self._contact(truth.x_m, truth.y_m, f.t_us * 1e-6)
             if self._truth_file is not None:
                 pose = f"{truth.x_m!r},{truth.y_m!r},{truth.yaw_rad!r}"
                 self._truth_file.write(f"{f.sequence},{f.t_us},{pose},{w.done_ns // 1000}\n")
             self.last_error_m = err
+
+    def _contact(self, x_m: float, y_m: float, t: float) -> None:
+        wall, person = self.sim.clearances_m(x_m, y_m, t)
+        self.clearance_wall_m = min(self.clearance_wall_m, wall)
+        self.clearance_person_m = min(self.clearance_person_m, person)
+        for what, gap in (("walls", wall), ("people", person)):
+            touching = gap <= 0.0
+            if touching and not self._touching[what]:
+                self.collisions[what] += 1
+            self._touching[what] = touching
 
     def finish_truth(self) -> Path | None:
         """Close the truth file and move it into place; its path (None without ``truth_csv``)."""
@@ -159,6 +177,15 @@ class Scorer:
             "pose_error_cm_max": round(e.max, 3) if n else None,
             "within_2cm": round(self.within_2cm / n, 4) if n else None,
             "yaw_error_deg_p95": round(yaw95, 3) if n else None,
+            "collisions": self.collisions["walls"] + self.collisions["people"],
+            "collisions_walls": self.collisions["walls"],
+            "collisions_people": self.collisions["people"],
+            "clearance_wall_m_min": round(self.clearance_wall_m, 4)
+            if math.isfinite(self.clearance_wall_m)
+            else None,
+            "clearance_person_m_min": (
+                round(self.clearance_person_m, 4) if math.isfinite(self.clearance_person_m) else None
+            ),
             "source_share": {
                 (s.name or "").lower(): round(self.source_frames[s] / n, 4) if n else 0.0 for s in SOURCES
             },

@@ -97,15 +97,6 @@ def rasterize_walls(world: World, resolution_m: float) -> tuple[GridSpec, BoolAr
     return spec, occupied
 
 
-def distance_to_segments(xy: tuple[float, float], segments: FloatArray) -> float:
-    """Distance from a point to the nearest of (N, 4) segments."""
-    p = np.asarray(xy, dtype=np.float64)
-    a, b = segments[:, :2], segments[:, 2:]
-    d = b - a
-    t = np.clip(np.sum((p - a) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
-    return float(np.min(np.hypot(*(a + t[:, None] * d - p).T)))
-
-
 class ShortestPaths:
     """Shortest collision-free paths for a circle of the robot's radius on the true map."""
 
@@ -185,7 +176,7 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
         laser_geometry,
         nominal_geometry,
     )
-    from drivers.sim.raycast import walls_array
+    from drivers.sim.raycast import distance_to_segments, walls_array
     from drivers.sim.simulation import Simulation
 
     robot = world.robot

@@ -118,6 +118,12 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         help="record what the fusion takes and every pose written, for agent.runtime.recorder.replay",
     )
     p.add_argument(
+        "--controller-record",
+        metavar="FILE",
+        help="the simulated controller writes every byte it receives from the agent there (pose frames and "
+        "goal statuses), for another decoder to read",
+    )
+    p.add_argument(
         "--fault",
         action="append",
         type=_fault_argument,
@@ -125,6 +131,22 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         metavar="KIND@START[+DURATION]",
         help=f"inject a fault ({', '.join(FAULT_KINDS)}) at START s (within --seconds) for DURATION s from "
         "when it is applied (for good without); repeatable",
+    )
+    p.add_argument(
+        "--goal",
+        action="append",
+        type=_goal_argument,
+        default=[],
+        metavar="X,Y[,YAW]",
+        help="drive to this goal (metres, map frame; YAW in degrees, any heading without) instead of the "
+        "world's route: the simulated controller sends it as a goal command frame on the pose stream's "
+        "line and the next when the agent reports it ended; repeatable, a sequence of goals",
+    )
+    p.add_argument(
+        "--goals-known-map",
+        action="store_true",
+        help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
+        "built as the robot drives)",
     )
 
 
@@ -215,17 +237,38 @@ class FaultInjector:
             self.robot.servos.mute(self.robot.world.robot.left_id, on)
 
 
+def _goal_argument(text: str) -> tuple[float, float, float | None]:
+    """``X,Y`` or ``X,Y,YAW_DEG``: finite numbers."""
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected X,Y or X,Y,YAW (numbers)") from None
+    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected X,Y or X,Y,YAW (finite numbers)")
+    return values[0], values[1], math.radians(values[2]) if len(values) == 3 else None
+
+
 # -- the simulated controller on the pose stream's pty --------------------------------------------------
 def serve_pose_stream(
-    stack: contextlib.ExitStack, config: AgentConfig
+    stack: contextlib.ExitStack,
+    config: AgentConfig,
+    goals: Sequence[tuple[float, float, float | None]] = (),
+    allow_unknown: bool = True,
+    record: str | None = None,
 ) -> tuple[str | None, SimulatedController | None]:
     """With ``[output] url = "pty"``: a pseudo-terminal for the pose stream and a simulated controller
-    reading it, in a process of its own (``drivers.sim.controller``; ended with ``stack``); the URL the
-    agent writes to, and that controller (None otherwise)."""
+    reading it, in a process of its own (``drivers.sim.controller``; ended with ``stack``), sending
+    ``goals`` as goal commands; the URL the agent writes to, and that controller (None otherwise)."""
     url = config.output.url
     if url != "pty":
         return url, None
-    controller = SimulatedController(mavlink=config.output.format is OutputFormat.MAVLINK)
+    controller = SimulatedController(
+        mavlink=config.output.format is OutputFormat.MAVLINK,
+        goals=goals,
+        allow_unknown=allow_unknown,
+        record=record,
+    )
     stack.callback(controller.stop)
     return controller.url, controller
 
@@ -279,7 +322,15 @@ def run(args: argparse.Namespace) -> int:
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
-        url, controller = serve_pose_stream(stack, config)
+        goals: list[tuple[float, float, float | None]] = args.goal
+        if goals and (config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK):
+            raise UsageError(
+                "--goal needs the simulated controller on a pty sending command frames "
+                '([output] url = "pty", format "frame")'
+            )
+        url, controller = serve_pose_stream(
+            stack, config, goals, not args.goals_known_map, args.controller_record
+        )
         if config.slam.mode is SlamMode.MAPPING:
             tidy_map_folder(out_dir)
         agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
@@ -289,9 +340,11 @@ def run(args: argparse.Namespace) -> int:
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
+        # The world's route, driven from the agent's own pose, unless goals drive the robot.
+        route = () if goals else world.route
         autopilot = threading.Thread(
             target=_autopilot,
-            args=(agent, world.route, world.route_speed_mps, stop),
+            args=(agent, route, world.route_speed_mps, stop),
             name="sim-autopilot",
             daemon=True,
         )
@@ -327,7 +380,10 @@ def run(args: argparse.Namespace) -> int:
 def _autopilot(
     agent: Agent, route: tuple[tuple[float, float], ...], speed_mps: float, stop: threading.Event
 ) -> None:
-    """Pure pursuit along the route from the agent's own fused pose; nothing without a live source."""
+    """Pure pursuit along the route from the agent's own fused pose; nothing without a live source or a
+    route."""
+    if not route:
+        return
     follower = RouteFollower(route, speed_mps)
     sources = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
     while not stop.wait(_AUTOPILOT_PERIOD_S):
@@ -481,6 +537,29 @@ def _round(value: float, digits: int = 3) -> float | None:
     return None if math.isnan(value) else round(value, digits)
 
 
+def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | None:
+    """What the simulated controller's goals came to, from the goal statuses it decoded (None: no goals)."""
+    if controller is None:
+        return None
+    counts = controller.counts()
+    if not counts.goals_sent:
+        return None
+    ended: dict[int, tuple[str, str]] = {}
+    for goal_id, state, reason in counts.statuses:
+        if state in ("REACHED", "FAILED", "REJECTED", "CANCELLED"):
+            ended.setdefault(goal_id, (state, reason))
+    outcome = [s for s, _ in ended.values()]
+    return {
+        "sent": counts.goals_sent,
+        "reached": outcome.count("REACHED"),
+        "failed": outcome.count("FAILED"),
+        "rejected": outcome.count("REJECTED"),
+        "cancelled": outcome.count("CANCELLED"),
+        "outcomes": {str(goal_id): f"{state} {reason}".strip() for goal_id, (state, reason) in ended.items()},
+        "statuses_decoded": len(counts.statuses),
+    }
+
+
 def _summary(
     config: AgentConfig,
     elapsed: float,
@@ -527,6 +606,13 @@ def _summary(
         "within_2cm": scores["within_2cm"],
         "yaw_error_deg_p95": scores["yaw_error_deg_p95"],
         "source_share": scores["source_share"],
+        "collisions": scores["collisions"],
+        "collisions_walls": scores["collisions_walls"],
+        "collisions_people": scores["collisions_people"],
+        "clearance_wall_m_min": scores["clearance_wall_m_min"],
+        "clearance_person_m_min": scores["clearance_person_m_min"],
+        "goals": _goal_summary(controller),
+        "commands": status.commands,
         "slam": status.mapper,
         "fusion": status.fusion,
         "output": status.output,

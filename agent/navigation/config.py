@@ -16,6 +16,7 @@ class NavConfig:
     """Speed and acceleration limits, the footprint, the costmap's inflation, the collision monitor's
     zones, the recovery's bounds and the goal tolerances."""
 
+    enabled: bool = True  # the agent drives goals when it has SLAM, a laser, wheels and a command line
     # the robot
     radius_m: float = 0.105  # footprint circle
     track_m: float = 0.160  # wheel separation: wheel speeds are v -+ omega track / 2

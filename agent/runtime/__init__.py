@@ -100,6 +100,8 @@ def create_agent(
         if isinstance(mapper, RbpfMapper):
             mapper.give_way = agent.hot_path.give_way
         agent.mapper = mapper
+        if config.navigation.enabled:
+            agent.enable_navigation(laser_mount_for(config, world))
     return agent
 
 

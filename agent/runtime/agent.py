@@ -52,6 +52,7 @@ from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.mapper import ScanMapper
 from agent.runtime.monitor_loop import MonitorLoop
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator
+from agent.runtime.navigation_loop import NavigationLoop
 from agent.runtime.output import PoseOutput
 from agent.runtime.output_loop import output_loop
 from agent.runtime.priority import CpuLatencyRequest
@@ -205,9 +206,10 @@ class Agent:
         self._started_ns = 0
         self._stopped = False
         self._cpu_latency: CpuLatencyRequest | None = None
-        # The navigation loop's hook (added later): called with the controller's or a mission's goal while
-        # it is in force. None: nothing navigates, and the controller's goals are answered UNREACHABLE.
+        # The navigation (``enable_navigation``): called with the controller's or a mission's goal while it
+        # is in force. None: nothing navigates, and the controller's goals are answered NOT_LOCALIZED.
         self.navigator: Navigator | None = None
+        self.navigation: NavigationLoop | None = None
         self.arbiter: CommandArbiter | None = None
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
@@ -222,7 +224,12 @@ class Agent:
                 clock_s=lambda: clock_ns() * 1e-9,
             )
             self.drive_step = DirectiveDrive(
-                self.arbiter, self.drive, self.commands.answer, clock_ns, lambda: self.navigator
+                self.arbiter,
+                self.drive,
+                self.commands.answer,
+                clock_ns,
+                lambda: self.navigator,
+                lambda: self.navigation.guard if self.navigation is not None else None,
             )
 
     # -- public -------------------------------------------------------------------------------------
@@ -264,9 +271,11 @@ class Agent:
                 slam_fixes=self.slam_fixes,
                 hot_path=hot,
                 odometry_track=self.odometry_track if d.servos is not None else None,
+                on_map=self.navigation.on_map if self.navigation is not None else None,
             )
             scans = self.scans if self.mapper is not None else None
-            laser = partial(laser_loop, s, laser=d.laser, scans=scans)
+            on_scan = self.navigation.on_scan if self.navigation is not None else None
+            laser = partial(laser_loop, s, laser=d.laser, scans=scans, on_scan=on_scan)
             self._spawn("laser", self.critical("laser"), timeout, laser)
             self._spawn("slam", self.critical("laser"), max(timeout, 5.0), slam.run)
         if d.servos is not None:
@@ -465,6 +474,8 @@ class Agent:
         counts = dict(self.commands.counts)
         counts.update({f"arbiter_{key}": n for key, n in dict(self.arbiter.counts).items()})
         counts.update(self.drive_step.counts)
+        if self.navigation is not None:
+            counts.update({f"navigation_{key}": n for key, n in self.navigation.counts.items()})
         return counts, tuple(list(self.commands.statuses)[-_LAST_STATUSES:])
 
     def status_line(self) -> str:
@@ -493,12 +504,50 @@ class Agent:
         device = self.config.devices.get(_kind(name))
         return device.critical if device is not None else name in ("camera", "laser", "servos")
 
+    def enable_navigation(self, laser_mount: MountConfig) -> bool:
+        """Drive goals with ``agent.navigation`` on the live SLAM map (needs SLAM, a laser, wheels and a
+        command line); False, saying why in the log, where one is missing. Before :meth:`start`."""
+        missing = [
+            name
+            for name, present in (
+                ("SLAM", self.mapper is not None),
+                ("a laser", self.devices.laser is not None),
+                ("wheels", self.devices.servos is not None),
+                ("a command line (the pose output)", self.arbiter is not None and self.commands is not None),
+            )
+            if not present
+        ]
+        if missing:
+            log.warning("navigation off: it needs %s", ", ".join(missing))
+            return False
+        assert self.arbiter is not None and self.commands is not None
+        mount = (laser_mount.x_m, laser_mount.y_m, laser_mount.yaw_rad)
+        self.navigation = NavigationLoop(
+            self.config.navigation,
+            mount,
+            self.drive,
+            self.arbiter,
+            self.commands.answer,
+            self._navigation_pose,
+            self.clock_ns,
+        )
+        self.navigator = self.navigation
+        return True
+
+    def _navigation_pose(self) -> tuple[float, float, float] | None:
+        """The fused pose while a position source is live (a stale hold is not driven on)."""
+        estimate, flags = self.pose()
+        if not flags & (PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY):
+            return None
+        return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
+
     def _check_goal(self, goal: GoalCommand) -> GoalReason | None:
-        """No navigation loop yet: no goal can be reached (an ACCEPTED goal would never move)."""
-        if self.navigator is None:
+        """The navigation's verdict on a goal; without navigation no goal can be driven to (an ACCEPTED goal
+        would never move)."""
+        if self.navigation is None:
             self.state.count("goals_without_navigator")
-            return GoalReason.UNREACHABLE
-        return None
+            return GoalReason.NOT_LOCALIZED
+        return self.navigation.check_goal(goal)
 
     def _expected_sources(self) -> PoseFlags:
         expected = PoseFlags(0)

@@ -1,9 +1,12 @@
-"""The laser loop: read scans and queue them for SLAM (``agent.runtime.slam_loop``).
+"""The laser loop: read scans, hand each to the navigation (its collision monitor acts on every scan, in
+this thread) and queue them for SLAM (``agent.runtime.slam_loop``).
 
 The laser driver reconnects by itself while it is open: a lost laser is reported and waited for.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 from agent.runtime.health import Heartbeat
 from agent.runtime.loop_state import LoopState
@@ -16,9 +19,15 @@ __all__ = ["laser_loop"]
 
 
 def laser_loop(
-    state: LoopState, beat: Heartbeat, *, laser: LaserScanner, scans: BoundedQueue[Scan] | None
+    state: LoopState,
+    beat: Heartbeat,
+    *,
+    laser: LaserScanner,
+    scans: BoundedQueue[Scan] | None,
+    on_scan: Callable[[Scan], None] | None = None,
 ) -> None:
-    """``scans``: where the scans go (None without SLAM: they are only counted)."""
+    """``scans``: where the scans go (None without SLAM: they are only counted); ``on_scan``: called with
+    every scan in this thread as it arrives (the navigation's collision monitor)."""
     watch = state.watch["laser"]
     while not state.stop.is_set():
         beat.beat()
@@ -44,5 +53,7 @@ def laser_loop(
         watch.good()
         state.last_scan_ns = state.clock_ns()
         state.count("scans")
+        if on_scan is not None:
+            on_scan(scan)
         if scans is not None:
             scans.put(scan)

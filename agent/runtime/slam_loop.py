@@ -7,6 +7,9 @@ It gives way to the hot path before each scan, and hands the localizer the VLP f
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 from agent.fusion import PoseFilter, Source
 from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
@@ -33,6 +36,8 @@ class SlamLoop:
         slam_fixes: BoundedQueue[AbsoluteFix],
         hot_path: HotPath,
         odometry_track: OdometryTrack | None,
+        on_map: Callable[[Any], None] | None = None,
+        map_period_s: float = 2.0,
     ) -> None:
         self.state = state
         self.mapper = mapper
@@ -41,6 +46,9 @@ class SlamLoop:
         self.slam_fixes = slam_fixes
         self.hot_path = hot_path
         self.odometry_track = odometry_track
+        self.on_map = on_map  # the navigation's static layer: the map every map_period_s
+        self.map_period_ns = int(map_period_s * 1e9)
+        self._map_sent_ns = 0
 
     def odometry_at(self, t_ns: int) -> Pose | None:
         if self.odometry_track is not None:
@@ -67,6 +75,12 @@ class SlamLoop:
                 continue
             step = mapper.update(scan, odom)
             state.count(f"slam_{step.kind}")
+            if self.on_map is not None and state.clock_ns() - self._map_sent_ns >= self.map_period_ns:
+                image = mapper.map_image()
+                if image is not None:
+                    self._map_sent_ns = state.clock_ns()
+                    self.on_map(image)
+                    state.count("maps_to_navigation")
             if step.kind == "updated":
                 if step.fix is None:
                     state.slam_good = False

@@ -65,10 +65,11 @@ _ENDED = ("REACHED", "FAILED", "REJECTED", "CANCELLED")
 class _Commander:
     """Sends the goals one after another as goal command frames, each when the one before has ended."""
 
-    def __init__(self, goals: Sequence[tuple[float, float, float | None]]) -> None:
+    def __init__(self, goals: Sequence[tuple[float, float, float | None]], allow_unknown: bool) -> None:
         from firmware_protocol.command_frame import GoalStatusDecoder
 
         self.goals = list(goals)
+        self.allow_unknown = allow_unknown
         self.sent = 0
         self.sequence = 0
         self.statuses: list[tuple[int, str, str]] = []
@@ -91,7 +92,9 @@ class _Commander:
         self.sent += 1  # goal ids are 1, 2, ...: the goal's place in the list
         self.sequence = (self.sequence + 1) & 0xFFFF
         self._waiting = True
-        return encode_command(GoalCommand(self.sequence, self.sent, x, y, yaw))
+        return encode_command(
+            GoalCommand(self.sequence, self.sent, x, y, yaw, allow_unknown=self.allow_unknown)
+        )
 
 
 class _Decoder:
@@ -166,12 +169,12 @@ def _drain(fd: int, receiver: _Receiver) -> None:
 
 def _serve(conn: multiprocessing.connection.Connection) -> None:
     """The child: make the pty, report its name, then decode (and command) until asked to stop."""
-    mavlink, goals, record = conn.recv()
+    mavlink, goals, allow_unknown, record = conn.recv()
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     decoder = _Decoder(mavlink)
-    commander = _Commander(goals) if goals and not mavlink else None
+    commander = _Commander(goals, allow_unknown) if goals and not mavlink else None
     receiver = _Receiver(decoder, commander, record)
     conn.send(os.ttyname(slave))
     try:
@@ -216,18 +219,20 @@ def main(argv: Sequence[str] | None = None) -> int:
 class SimulatedController:
     """The controller child: ``url`` is the pty to write the pose stream to; :meth:`counts` what it decoded
     so far; :meth:`stop` takes in the rest and ends it (its last counts stay readable). ``goals``: (x, y,
-    yaw or None) to send one after another as goal commands; ``record``: a file for every byte received."""
+    yaw or None) to send one after another as goal commands (``allow_unknown``: their option to cross unknown
+    space); ``record``: a file for every byte received."""
 
     def __init__(
         self,
         mavlink: bool = False,
         goals: Sequence[tuple[float, float, float | None]] = (),
+        allow_unknown: bool = False,
         record: str | None = None,
     ) -> None:
         self._process, self._conn = start_child("drivers.sim.controller")
         self._final: ControllerCounts | None = None
         try:
-            self._conn.send((mavlink, [tuple(g) for g in goals], record))
+            self._conn.send((mavlink, [tuple(g) for g in goals], allow_unknown, record))
             if not self._conn.poll(_REPLY_TIMEOUT_S):
                 raise DeviceDisconnected("the simulated controller did not start", "output")
             self.url: str = self._conn.recv()

@@ -55,3 +55,14 @@ def cast_rays(
         best = np.minimum(best, t.min(axis=1))
     best[best > max_range_m] = np.inf
     return best
+
+
+def distance_to_segments(xy: tuple[float, float], segments: FloatArray) -> float:
+    """Distance from a point to the nearest of (N, 4) segments (``inf`` with none)."""
+    if not segments.size:
+        return float("inf")
+    p = np.asarray(xy, dtype=np.float64)
+    a, b = segments[:, :2], segments[:, 2:]
+    d = b - a
+    t = np.clip(np.sum((p - a) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
+    return float(np.min(np.hypot(*(a + t[:, None] * d - p).T)))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from drivers.sim.raycast import cast_rays, walls_array
+from drivers.sim.raycast import cast_rays, distance_to_segments, walls_array
 from drivers.sim.world import Person, Pose2D, World
 
 FloatArray = npt.NDArray[np.float64]
@@ -214,6 +214,17 @@ class Simulation:
         max_m = self.world.laser.max_range_mm / 1000.0
         angles = np.asarray(angles_rad) + lp.yaw_rad
         return cast_rays((lp.x_m, lp.y_m), angles, self._segments, circles, max_m)
+
+    def clearances_m(self, x_m: float, y_m: float, t: float | None = None) -> tuple[float, float]:
+        """The gaps between the robot's footprint (a circle of ``robot.radius_m`` at ``x_m, y_m``) and the
+        nearest wall and the nearest person at time ``t``: <= 0 is contact (``inf`` where there is none)."""
+        radius = self.world.robot.radius_m
+        wall = distance_to_segments((x_m, y_m), self._segments) - radius
+        person = float("inf")
+        for p in self.world.people:
+            px, py = self.person_position(p, t)
+            person = min(person, math.hypot(px - x_m, py - y_m) - p.radius_m - radius)
+        return wall, person
 
     def imu_truth(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
         """Specific force (m/s^2) and angular rate (rad/s) in the base frame (x fwd, y left, z up)."""
