@@ -17,6 +17,7 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
+    "AssociationWork",
     "CameraIntrinsics",
     "CameraMount",
     "LedMap",
@@ -302,6 +303,20 @@ class StageTimings:
 
 
 @dataclass(frozen=True, slots=True)
+class AssociationWork:
+    """What telling repeated ids apart cost on one frame: ``checks`` candidate tests (a prior gate, a pair's
+    distance, a predicted LED's place: each a few float operations), ``hypotheses`` id-to-LED assignments
+    solved by Gauss-Newton, ``truncated`` when the work budget ran out before every candidate was tried."""
+
+    checks: int = 0
+    hypotheses: int = 0
+    truncated: bool = False
+
+
+NO_WORK = AssociationWork()
+
+
+@dataclass(frozen=True, slots=True)
 class LedObservation:
     """One LED seen in one frame.
 
@@ -348,6 +363,7 @@ class VlpFix:
     degraded: bool
     flags: tuple[str, ...]
     timings: StageTimings
+    work: AssociationWork = NO_WORK
 
     @property
     def sigma_xy_m(self) -> float:
@@ -365,6 +381,7 @@ class NoFix:
     reason: str
     leds: tuple[LedObservation, ...]
     timings: StageTimings
+    work: AssociationWork = NO_WORK
 
 
 VlpResult = VlpFix | NoFix

@@ -35,6 +35,8 @@ from agent.vlp.detect import (
 )
 from agent.vlp.geometry import lens_offset_level, level_plane_points, level_rotation
 from agent.vlp.model import (
+    NO_WORK,
+    AssociationWork,
     CameraIntrinsics,
     CameraMount,
     LedMap,
@@ -47,7 +49,7 @@ from agent.vlp.model import (
     VlpFix,
     VlpResult,
 )
-from agent.vlp.solve import LedRay, SolverConfig, single_led_position, solve_pose
+from agent.vlp.solve import LedRay, NoSolution, SolverConfig, single_led_position, solve_pose
 from agent.vlp.track import FULL, LedTrack, LedTracker, TrackerConfig
 
 log = logging.getLogger(__name__)
@@ -320,8 +322,9 @@ class VlpPipeline:
                 result.degraded,
                 result.flags,
                 timings,
+                result.work,
             )
-        return NoFix(result.time_s, result.reason, result.leds, timings)
+        return NoFix(result.time_s, result.reason, result.leds, timings, result.work)
 
     # -- acquisition ---------------------------------------------------------------------------------------
     def _bands(self, height: int) -> list[tuple[int, int]]:
@@ -544,8 +547,8 @@ class VlpPipeline:
         solution = solve_pose(
             rays, self.led_map.xyz_m, lens_z, velocity=velocity, prior=lens_prior, config=self.config.solver
         )
-        if isinstance(solution, str):
-            return NoFix(time_s, solution, tuple(self._observations(features)), empty)
+        if isinstance(solution, NoSolution):
+            return NoFix(time_s, solution.reason, tuple(self._observations(features)), empty, solution.work)
 
         flags: list[str] = []
         observations = self._observations(features, dict(zip(usable, solution.assignment, strict=True)))
@@ -556,6 +559,10 @@ class VlpPipeline:
         degraded = solution.dropped > 0 or solution.rms_residual > 3.0
         if solution.rms_residual > 3.0:
             flags.append("large-residual")
+        if solution.work.truncated:
+            # The best of what the budget allowed: another placement may fit as well.
+            flags.append("association-truncated")
+            degraded = True
         lens = (solution.x_m, solution.y_m, solution.yaw_rad)
         return self._finish(
             time_s,
@@ -566,6 +573,7 @@ class VlpPipeline:
             degraded,
             flags,
             solution.rms_residual,
+            solution.work,
         )
 
     def _single(
@@ -634,6 +642,7 @@ class VlpPipeline:
         degraded: bool,
         flags: list[str],
         rms: float,
+        work: AssociationWork = NO_WORK,
     ) -> VlpFix:
         """Lens pose -> base pose (base = lens - R(psi_base) offset), residual correction, bookkeeping."""
         yaw_base = math.remainder(lens[2] - self.mount.yaw_rad, 2.0 * math.pi)
@@ -662,6 +671,7 @@ class VlpPipeline:
             degraded,
             tuple(flags),
             _NO_TIMINGS,
+            work,
         )
 
 

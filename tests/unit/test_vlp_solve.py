@@ -20,6 +20,8 @@ from agent.vlp.geometry import (
 from agent.vlp.model import CameraIntrinsics, CameraMount, Tilt
 from agent.vlp.solve import (
     LedRay,
+    NoSolution,
+    PoseSolution,
     SolverConfig,
     gauss_newton_pose,
     single_led_position,
@@ -78,7 +80,7 @@ def test_gauss_newton_with_leds_at_different_heights_and_its_covariance() -> Non
     q = level_q(leds, *truth, 0.2)
     rays = [LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, 0.2, config=SolverConfig(map_sigma_m=0.0))
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert (solution.x_m, solution.y_m, solution.yaw_rad) == pytest.approx(truth, abs=1e-9)
     assert solution.height_offset_m == pytest.approx(0.0, abs=1e-9)
     # The covariance is what the scatter of solutions under that noise is.
@@ -88,7 +90,7 @@ def test_gauss_newton_with_leds_at_different_heights_and_its_covariance() -> Non
     for _ in range(300):
         noisy = [LedRay(tuple(v + rng.normal(0, sigma, 2)), (i,), sigma) for i, v in enumerate(q)]
         s = solve_pose(noisy, leds, 0.2, config=SolverConfig(map_sigma_m=0.0, outlier_sigmas=1e9))
-        assert not isinstance(s, str)
+        assert not isinstance(s, NoSolution)
         samples.append((s.x_m, s.y_m, s.yaw_rad))
         cov = s.covariance
     empirical = np.cov(np.array(samples).T)
@@ -110,7 +112,7 @@ def test_rolling_shutter_motion_is_taken_into_account() -> None:
     rays = [LedRay(tuple(q[i]), (i,), 1e-4, float(dts[i])) for i in range(3)]
     moving = solve_pose(rays, leds, 0.2, velocity=(vx, vy, w))
     still = solve_pose(rays, leds, 0.2)
-    assert not isinstance(moving, str) and not isinstance(still, str)
+    assert not isinstance(moving, NoSolution) and not isinstance(still, NoSolution)
     assert math.hypot(moving.x_m - x, moving.y_m - y) < 1e-9
     assert math.hypot(still.x_m - x, still.y_m - y) > 2e-3
 
@@ -137,11 +139,11 @@ def test_tilt_compensation_from_the_imu() -> None:
     q = level_plane_coordinates(norm, r_level)
     rays = [LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, float(offset[2]))
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert (solution.x_m, solution.y_m) == pytest.approx(lens[:2], abs=1e-9)
     q_flat = level_plane_coordinates(norm, level_rotation(mount, None))
     naive = solve_pose([LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q_flat)], leds, 0.2)
-    assert not isinstance(naive, str)
+    assert not isinstance(naive, NoSolution)
     assert math.hypot(naive.x_m - lens[0], naive.y_m - lens[1]) > 0.03
 
 
@@ -151,7 +153,7 @@ def test_an_outlier_ray_is_dropped() -> None:
     q[2] += 0.02  # 2.6 cm on the LED plane: a bad centre
     rays = [LedRay(tuple(v), (i,), 2e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, 0.2)
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert solution.dropped == 1 and solution.assignment[2] == -1
     assert math.hypot(solution.x_m, solution.y_m) < 1e-6
 
@@ -170,14 +172,14 @@ def test_repeated_ids_need_the_pose_prior() -> None:
     q = level_q(leds[seen], *truth, 0.2)
     rays = [LedRay(tuple(q[j]), candidates[ids[i]], 2e-4) for j, i in enumerate(seen)]
     ambiguous = solve_pose(rays, leds, 0.2)
-    assert isinstance(ambiguous, str) and "ambiguous" in ambiguous
+    assert isinstance(ambiguous, NoSolution) and "ambiguous" in ambiguous.reason
     prior = (truth[0] + 0.3, truth[1] - 0.2, truth[2] + 0.1, 0.5, 0.3)
     solution = solve_pose(rays, leds, 0.2, prior=prior)
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert solution.assignment == (8, 9)
     assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
     far = solve_pose(rays, leds, 0.2, prior=(20.0, 20.0, 0.0, 0.3, 0.2))
-    assert isinstance(far, str) and "prior" in far and "ambiguous" in far
+    assert isinstance(far, NoSolution) and "prior" in far.reason and "ambiguous" in far.reason
 
 
 def test_a_wrong_prior_gives_way_to_a_placement_the_map_fixes_alone() -> None:
@@ -193,7 +195,7 @@ def test_a_wrong_prior_gives_way_to_a_placement_the_map_fixes_alone() -> None:
     rays = [LedRay(tuple(q[j]), candidates[ids[i]], 2e-4) for j, i in enumerate(seen)]
     for prior in [(5.3, 3.1, 0.45, 0.01, 0.01), (6.5, 1.5, 1.0, 0.05, 0.05)]:  # near, and 2 m off
         solution = solve_pose(rays, leds, 0.2, prior=prior)
-        assert not isinstance(solution, str), solution
+        assert not isinstance(solution, NoSolution), solution
         assert solution.assignment == (8, 9, 14)
         assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
 
@@ -208,7 +210,7 @@ def test_gauss_newton_rejects_nothing_silently_on_degenerate_input() -> None:
     leds = np.array([[0.5, 0.4, 1.5], [0.5, 0.4, 1.5]])
     rays = [LedRay((0.1, 0.1), (0,), 1e-4), LedRay((0.1, 0.1), (1,), 1e-4)]
     result = solve_pose(rays, leds, 0.2)
-    assert isinstance(result, str)
+    assert isinstance(result, NoSolution)
     with pytest.raises(np.linalg.LinAlgError):
         gauss_newton_pose(
             np.zeros((1, 2)), leds[:1], np.ones(1), np.zeros(1), 0.2, (0, 0, 0, 0), height_sigma_m=0.0
@@ -290,3 +292,70 @@ def test_level_plane_points_are_the_array_functions(
     got = level_plane_points(uv, intrinsics, r_level)
     np.testing.assert_array_equal(np.array(got), want)
     assert level_plane_points([], intrinsics, r_level) == []
+
+
+def dense_map() -> tuple[FloatArray, dict[int, tuple[int, ...]], list[int]]:
+    """examples/worlds/dense_repeats.toml: a 12 x 10 grid 0.5 m apart, four signatures (30 LEDs each)."""
+    leds = np.array([[-2.75 + 0.5 * ix, -2.25 + 0.5 * iy, 1.5] for iy in range(10) for ix in range(12)])
+    ids = [(ix + 2 * iy) % 4 for iy in range(10) for ix in range(12)]
+    return leds, {k: tuple(i for i, v in enumerate(ids) if v == k) for k in range(4)}, ids
+
+
+def twelve_in_view(truth: tuple[float, float, float]) -> tuple[list[LedRay], list[int], FloatArray]:
+    leds, candidates, ids = dense_map()
+    q = level_q(leds, *truth, 0.2)
+    seen = [i for i in range(len(leds)) if abs(q[i, 0]) < 0.78 and abs(q[i, 1]) < 0.55]
+    rng = np.random.default_rng(3)
+    rays = [LedRay(tuple(q[i] + rng.normal(0.0, 2e-4, 2)), candidates[ids[i]], 2e-4) for i in seen]
+    return rays, seen, leds
+
+
+def test_association_work_is_bounded_with_twelve_leds_of_four_signatures() -> None:
+    """Twelve LEDs in view, each id carried by 30 map LEDs: an odometry-grade prior (0.4 m, 20 deg) leaves
+    some fifteen candidates per LED, ~10^13 combinations (the old search tried them all: minutes per
+    frame). The anchor-pair search tests about a thousand candidates and solves a handful of assignments,
+    and finds the right one."""
+    truth = (0.02, 0.27, 0.03)
+    rays, seen, leds = twelve_in_view(truth)
+    assert len(rays) == 12
+    config = SolverConfig()
+    prior = (truth[0] + 0.25, truth[1] - 0.2, truth[2] + 0.15, 0.4, math.radians(20.0))
+    solution = solve_pose(rays, leds, 0.2, prior=prior, config=config)
+    assert isinstance(solution, PoseSolution)
+    assert solution.assignment == tuple(seen)
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 2e-3
+    work = solution.work
+    assert 0 < work.checks <= 2000 and not work.truncated
+    assert 1 <= work.hypotheses <= config.max_hypotheses
+
+
+def test_association_without_a_prior_stays_within_its_budget() -> None:
+    """No prior: 30 candidates per LED, 30^12 combinations; the map's repeated pattern leaves several
+    placements (ambiguous, no fix). The work stays under the budget, and a budget too small for the search
+    stops it and says so."""
+    rays, _, leds = twelve_in_view((0.02, 0.27, 0.03))
+    config = SolverConfig()
+    result = solve_pose(rays, leds, 0.2, config=config)
+    assert isinstance(result, NoSolution) and "ambiguous" in result.reason
+    assert result.work.checks <= config.max_association_checks
+    assert result.work.hypotheses <= config.max_hypotheses
+    small = SolverConfig(max_association_checks=300)
+    cut = solve_pose(rays, leds, 0.2, config=small)
+    # One look-up past the limit at most (a ray's candidates are tested together).
+    assert cut.work.truncated and cut.work.checks <= 300 + 30
+    if isinstance(cut, NoSolution):
+        assert "budget" in cut.reason
+
+
+def test_unique_ids_that_break_the_map_distances_leave_the_misread_led_out() -> None:
+    """Four LEDs with unique ids, one misread as another LED's id: the map's distances reject the
+    assignment, and the anchor pairs find the three that agree; the misread LED is left out (dropped)."""
+    leds = np.array([[0.5, 0.4, 1.5], [-0.4, 0.5, 1.5], [-0.3, -0.5, 1.5], [0.6, -0.4, 1.5], [1.6, 1.4, 1.5]])
+    truth = (0.05, -0.02, 0.3)
+    q = level_q(leds, *truth, 0.2)
+    rays = [LedRay(tuple(q[i]), (i,), 2e-4) for i in range(4)]
+    rays[3] = LedRay(rays[3].q, (4,), 2e-4)  # LED 3 read as LED 4 (1.4 m away)
+    solution = solve_pose(rays, leds, 0.2)
+    assert isinstance(solution, PoseSolution)
+    assert solution.assignment == (0, 1, 2, -1) and solution.dropped == 1
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
