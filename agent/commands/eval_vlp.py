@@ -85,6 +85,8 @@ PASS_LENGTH_M = 4.0
 # The odometry-grade prior given when the map repeats ids (what the robot's odometry or last fix would know).
 PRIOR_SIGMA_XY_M = 0.2
 PRIOR_SIGMA_YAW_RAD = math.radians(10.0)
+# A nominal (not degraded) fix farther than this from the truth is a wrong fix passed as good.
+UNFLAGGED_LIMIT_M = 0.05
 
 
 def add_parser(sub: Any) -> None:
@@ -156,6 +158,10 @@ class Tally:
     fixes: list[tuple[float, float, float, float]] = field(default_factory=list)  # est x, y, true x, y
     no_fix: Counter[str] = field(default_factory=Counter)
     degraded_errors_m: list[float] = field(default_factory=list)
+    # Nominal fixes whose protection level is at least their error; nominal fixes more than 5 cm off.
+    protected: int = 0
+    unflagged_over_5cm: int = 0
+    flags: Counter[str] = field(default_factory=Counter)
     ids_seen: int = 0
     ids_decoded: int = 0
     ids_frame_ok: int = 0
@@ -178,6 +184,7 @@ class Tally:
         base = truth.base_pose
         if isinstance(result, VlpFix):
             err = math.hypot(result.x_m - base.x_m, result.y_m - base.y_m)
+            self.flags.update(result.flags)
             if result.degraded:
                 # A degraded fix (one LED and the prior's yaw, an outlier dropped) says so; it is scored
                 # apart, as a consumer weighs it by its covariance.
@@ -185,6 +192,8 @@ class Tally:
             else:
                 self.errors_m.append(err)
                 self.fixes.append((result.x_m, result.y_m, base.x_m, base.y_m))
+                self.protected += int(result.protection_level_m >= err)
+                self.unflagged_over_5cm += int(err > UNFLAGGED_LIMIT_M)
         else:
             self.no_fix[result.reason] += 1
         for obs in result.leds:
@@ -500,6 +509,14 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "fixes": len(cal_tally.errors_m),
         "degraded_fixes": len(cal_tally.degraded_errors_m),
         "degraded_mean_error_cm": _summary_errors(cal_tally.degraded_errors_m)["mean_error_cm"],
+        "degraded_max_error_cm": _summary_errors(cal_tally.degraded_errors_m)["max_error_cm"],
+        "fix_fraction": _ratio(
+            len(cal_tally.errors_m) + len(cal_tally.degraded_errors_m), len(cal_tally.latency_ms)
+        ),
+        "unflagged_over_5cm": cal_tally.unflagged_over_5cm,
+        "protection_coverage": _ratio(cal_tally.protected, len(cal_tally.errors_m)),
+        "frame_ms_max": max(cal_tally.latency_ms, default=math.nan),
+        "flags": dict(cal_tally.flags),
         "no_fix": dict(cal_tally.no_fix),
         **_summary_errors(cal_tally.errors_m),
         "uncalibrated_mean_error_cm": _summary_errors(uncal_tally.errors_m)["mean_error_cm"],
@@ -648,6 +665,11 @@ def _table(summary: dict[str, Any]) -> str:
         ),
         ("no fix", ", ".join(f"{k}: {v}" for k, v in summary["no_fix"].items()) or "none"),
         (
+            "fix fraction / unflagged > 5 cm",
+            f"{f(summary['fix_fraction'])} / {summary['unflagged_over_5cm']}",
+        ),
+        ("protection coverage", f(summary["protection_coverage"])),
+        (
             "error mean / median",
             f"{f(summary['mean_error_cm'], ' cm')} / {f(summary['median_error_cm'], ' cm')}",
         ),
@@ -673,7 +695,8 @@ def _table(summary: dict[str, Any]) -> str:
         ),
         (
             "latency median / p99",
-            f"{f(summary['latency_ms_median'], ' ms')} / {f(summary['latency_ms_p99'], ' ms')}",
+            f"{f(summary['latency_ms_median'], ' ms')} / {f(summary['latency_ms_p99'], ' ms')} "
+            f"(max {f(summary['frame_ms_max'], ' ms')})",
         ),
         ("  per stage (median)", ", ".join(f"{k} {v:.3f}" for k, v in stages.items())),
         (

@@ -349,7 +349,12 @@ class VlpFix:
     ``covariance`` is over (x_m, y_m, yaw_rad), row-major 3x3. ``residual_rms`` is the solver's RMS
     residual in standard deviations (about 1 when the noise is as modelled). ``degraded`` says the fix is
     weaker than a
-    normal one, with the reasons in ``flags`` (e.g. ``"single-led"``, ``"partial-occlusion"``).
+    normal one, with the reasons in ``flags`` (e.g. ``"single-led"``, ``"inconsistent"``,
+    ``"id-unconfirmed"``). ``work``: what the id association cost. Integrity: ``chi2`` is the fit's
+    whitened residual sum (every fitted term, the LED-height correction's prior included), tested against
+    ``chi2_threshold`` (a fix past it is degraded, flag ``"inconsistent"``); ``protection_level_m`` bounds the
+    base position error that a fault in one LED could cause without the test seeing it, at the solver's
+    risks (inf when nothing can be ruled out: two LEDs, one LED).
     """
 
     time_s: float
@@ -364,6 +369,9 @@ class VlpFix:
     flags: tuple[str, ...]
     timings: StageTimings
     work: AssociationWork = NO_WORK
+    protection_level_m: float = math.inf
+    chi2: float = math.nan
+    chi2_threshold: float = math.inf
 
     @property
     def sigma_xy_m(self) -> float:

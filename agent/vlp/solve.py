@@ -17,11 +17,12 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+from agent.vlp.integrity import Linearisation, Row, chi2_threshold, protection_level
 from agent.vlp.model import NO_WORK, AssociationWork
 
 FloatArray = npt.NDArray[np.float64]
@@ -62,7 +63,9 @@ class SolverConfig:
     breaks the map's distances); ``max_association_checks``: cap on the candidate tests that find them (each
     a few float operations: 6000 is a few milliseconds), whatever the map. ``pair_tolerance`` (relative) and
     ``pair_tolerance_m``: how far a seen LED-to-LED distance may be from the map's (the LED height is only
-    known to a few centimetres until the fix solves for it)."""
+    known to a few centimetres until the fix solves for it). ``false_alarm``: probability that the chi-square
+    test flags a fault-free fix; ``missed_detection`` and ``fault_free_risk``: the risks the protection level
+    is computed for (``agent.vlp.integrity``)."""
 
     map_sigma_m: float = 0.003
     height_sigma_m: float = 0.05
@@ -74,12 +77,23 @@ class SolverConfig:
     pair_tolerance_m: float = 0.08
     prior_gate_sigmas: float = 4.0
     ambiguity_m: float = 0.15
+    false_alarm: float = 1e-3
+    missed_detection: float = 1e-3
+    fault_free_risk: float = 1e-3
 
 
 @dataclass(frozen=True, slots=True)
 class PoseSolution:
     """The lens pose (x, y, level yaw) at mid-readout, its 3x3 covariance, the height correction, which map
-    LED each ray was matched to (-1: not used), and per-ray residuals in sigmas."""
+    LED each ray was matched to (-1: not used), and per-ray residuals in sigmas.
+
+    Integrity (``agent.vlp.integrity``): ``chi2`` sums every whitened term of the fit (the height
+    correction's prior included) over ``dof`` degrees of freedom; ``chi2_threshold`` is the test's limit at
+    the configured false-alarm rate (``consistent`` when chi2 is within it); ``protection_level_m`` bounds
+    the lens position error a single-LED fault could cause unseen (inf with two LEDs);
+    ``alternatives``: other placements, far from this one, that fit about as well given the prior.
+    ``rms_residual`` is sqrt(chi2 / 2n). ``linearisation``: the used rays' whitened Jacobian rows and
+    (J^T J)^-1 at the solution (for the protection level)."""
 
     x_m: float
     y_m: float
@@ -90,7 +104,18 @@ class PoseSolution:
     residual_sigmas: tuple[float, ...]
     rms_residual: float
     dropped: int
+    chi2: float = math.nan
+    dof: int = 0
+    variance_scale: float = 1.0
+    chi2_threshold: float = math.inf
+    protection_level_m: float = math.inf
+    alternatives: int = 0
     work: AssociationWork = NO_WORK
+    linearisation: Linearisation | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def consistent(self) -> bool:
+        return not self.chi2 > self.chi2_threshold
 
 
 def _wrap(a: float) -> float:
@@ -155,7 +180,7 @@ def gauss_newton_pose(
     """
     q_list = np.asarray(q, dtype=np.float64).reshape(-1, 2).tolist()
     xyz_list = np.asarray(leds_xyz, dtype=np.float64).reshape(-1, 3).tolist()
-    p, cov, res = _gauss_newton(
+    p, cov, res, _ = _gauss_newton(
         [(a, b) for a, b in q_list],
         [(a, b, c) for a, b, c in xyz_list],
         np.asarray(sigma, dtype=np.float64).ravel().tolist(),
@@ -180,8 +205,10 @@ def _gauss_newton(
     velocity: tuple[float, float, float],
     height_sigma_m: float,
     max_iterations: int,
-) -> tuple[tuple[float, float, float, float], list[list[float]], list[tuple[float, float]]]:
-    """:func:`gauss_newton_pose` on plain floats: (p, covariance, whitened residuals per ray).
+) -> tuple[tuple[float, float, float, float], list[list[float]], list[tuple[float, float]], Linearisation]:
+    """:func:`gauss_newton_pose` on plain floats: (p, covariance, whitened residuals per ray, and the
+    whitened Jacobian rows per ray with (J^T J)^-1 over all four unknowns at the last linearisation: what
+    the protection level needs).
 
     Ray i gives two whitened residuals r = (q_i - qhat_i) / sigma_i, qhat = R(-psi_i)(L_i - c_i) / h_i, and
     with a = cos(psi_i) / (h_i sigma_i), b = sin(psi_i) / (h_i sigma_i) its two Jacobian rows over
@@ -206,10 +233,12 @@ def _gauss_newton(
     inv_hs = 1.0 / height_sigma_m if free_h else 0.0
     low = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0)
     residuals: list[tuple[float, float]] = []
+    rows: list[tuple[Row, Row]] = []
     for _ in range(max_iterations):
         a00 = a02 = a03 = a12 = a13 = a22 = a23 = a33 = 0.0
         b0 = b1 = b2 = b3 = 0.0
         residuals = []
+        rows = []
         for lx, ly, hz, dt, qx, qy, w in rays:
             ps = psi + omega * dt
             c, s = math.cos(ps), math.sin(ps)
@@ -225,6 +254,7 @@ def _gauss_newton(
             pxw, pyw = px * w, py * w
             pxh, pyh = pxw * inv_h, pyw * inv_h
             residuals.append((r0, r1))
+            rows.append(((-ca, -sb, pyw, -pxh), (sb, -ca, -pxw, -pyh)))
             a00 += ca * ca + sb * sb
             a02 -= ca * pyw + sb * pxw
             a03 += ca * pxh - sb * pyh
@@ -259,7 +289,10 @@ def _gauss_newton(
     # The covariance at the solution: (J^T W J)^-1 (J barely moves in the last, tiny step).
     inverse = _pose_inverse(low)
     covariance = [row[:3] for row in inverse[:3]] if not free_h else inverse
-    return (x, y, psi, dh), covariance, residuals
+    if not free_h:
+        # dh held fixed: its Jacobian column is 0 (its row and column of the inverse the identity's).
+        rows = [((a[0], a[1], a[2], 0.0), (b[0], b[1], b[2], 0.0)) for a, b in rows]
+    return (x, y, psi, dh), covariance, residuals, (rows, inverse)
 
 
 _PoseFactor = tuple[float, float, float, float, float, float, float, float]
@@ -419,12 +452,14 @@ def _hypotheses(
     prior: tuple[float, float, float, float, float] | None,
     config: SolverConfig,
     budget: _Budget,
+    search: bool,
 ) -> list[tuple[tuple[int, ...], _Initial | None]]:
     """Assignments of rays to map LEDs worth solving (-1: the ray is left out), at most
     ``config.max_hypotheses``, the search bounded by ``budget``.
 
     1. Gate each ray's candidates by the prior (:func:`_gated_options`).
-    2. One candidate each, all different and every pair at the map's distance: that one assignment.
+    2. Unless ``search``: one candidate each, all different: that one assignment (the normal case; its fit
+       is tested by the caller, who asks for the search when it fails).
     3. Otherwise anchor pairs, the rays farthest apart in the image first: every candidate pair of the two
        whose distance matches the map's (|q_a h_a - q_b h_b| = |L_a - L_b|) places the camera (the 2-LED
        closed form, which also gives the LED plane's height); every other ray is then matched to its
@@ -437,10 +472,9 @@ def _hypotheses(
     """
     n = len(rays)
     options = _gated_options(rays, xyz, lens_z_m, prior, config, budget)
-    if all(len(o) == 1 for o in options):
+    if not search and all(len(o) == 1 for o in options):
         combo = tuple(o[0] for o in options)
-        budget.spend(n * (n - 1) // 2)
-        if len(set(combo)) == n and _pairs_consistent(rays, combo, xyz, lens_z_m, config):
+        if len(set(combo)) == n:
             return [(combo, None)]
     # Each ray's candidates as (x, y, h, index), sorted by x: a placement's predicted LED is looked up by
     # bisection on x instead of against every candidate.
@@ -554,22 +588,6 @@ def _anchor(
                 found[key] = (count, rank if prior is not None else misfit, (x, y, yaw, dh))
 
 
-def _pairs_consistent(
-    rays: list[LedRay], combo: tuple[int, ...], xyz: _Points, lens_z_m: float, config: SolverConfig
-) -> bool:
-    for i in range(len(rays)):
-        xi, yi, zi = xyz[combo[i]]
-        hi = zi - lens_z_m
-        for j in range(i + 1, len(rays)):
-            xj, yj, zj = xyz[combo[j]]
-            hj = zj - lens_z_m
-            seen = math.hypot(rays[i].q[0] * hi - rays[j].q[0] * hj, rays[i].q[1] * hi - rays[j].q[1] * hj)
-            true = math.hypot(xi - xj, yi - yj)
-            if abs(seen - true) > config.pair_tolerance * true + config.pair_tolerance_m:
-                return False
-    return True
-
-
 def _initial(
     rays: list[LedRay], combo: tuple[int, ...] | list[int], xyz: _Points, lens_z_m: float
 ) -> tuple[float, float, float, float]:
@@ -645,7 +663,28 @@ def solve_pose(
         if budget.truncated:
             return NoSolution(f"{result.reason} (association work budget exhausted)", work)
         return NoSolution(result.reason, work)
-    return dataclasses.replace(result, work=work)
+    threshold = chi2_threshold(result.dof, config.false_alarm)
+    r = result
+    # Built directly: dataclasses.replace costs several times more (it reads the fields by name).
+    return PoseSolution(
+        r.x_m,
+        r.y_m,
+        r.yaw_rad,
+        r.height_offset_m,
+        r.covariance,
+        r.assignment,
+        r.residual_sigmas,
+        r.rms_residual,
+        r.dropped,
+        r.chi2,
+        r.dof,
+        r.variance_scale,
+        threshold,
+        _protection(r, config, threshold),
+        r.alternatives,
+        work,
+        r.linearisation,
+    )
 
 
 def _solve(
@@ -657,37 +696,71 @@ def _solve(
     config: SolverConfig,
     budget: _Budget,
 ) -> PoseSolution | NoSolution:
-    """:func:`solve_pose` with or without the prior: associate, solve each assignment, pick the best."""
-    hypotheses = _hypotheses(rays, points, lens_z_m, prior, config, budget)
-    if not hypotheses:
-        return NoSolution("no placement of the seen LED ids fits the map")
+    """:func:`solve_pose` with or without the prior: associate, solve each assignment, pick the best.
+
+    The one assignment of unique ids is solved first; only when its fit fails (an LED dropped, or chi^2
+    past its limit: a misread id breaks the map's geometry) are the anchor pairs searched for a placement
+    that leaves the misread LED out."""
     scored: list[tuple[float, PoseSolution]] = []
-    for combo, initial in hypotheses:
-        budget.solved += 1
-        solution = _solve_assignment(rays, list(combo), points, lens_z_m, velocity, config, initial)
-        if solution is None:
-            continue
-        # chi^2 of the rays used, plus a dropped ray's worth (the outlier threshold squared) for each ray an
-        # assignment had to leave out: explaining every LED beats explaining all but one exactly.
-        cost = solution.rms_residual**2 * max(2 * (len(rays) - solution.dropped), 1)
-        cost += solution.dropped * config.outlier_sigmas**2
-        if prior is not None:
-            px, py, pyaw, sxy, syaw = prior
-            cost += ((solution.x_m - px) ** 2 + (solution.y_m - py) ** 2) / sxy**2
-            cost += _wrap(solution.yaw_rad - pyaw) ** 2 / syaw**2
-        scored.append((cost, solution))
+    solved: set[tuple[int, ...]] = set()
+    for search in (False, True):
+        hypotheses = _hypotheses(rays, points, lens_z_m, prior, config, budget, search)
+        for combo, initial in hypotheses:
+            if combo in solved:
+                continue
+            solved.add(combo)
+            budget.solved += 1
+            solution = _solve_assignment(rays, list(combo), points, lens_z_m, velocity, config, initial)
+            if solution is None:
+                continue
+            # chi^2 of the rays used, plus a dropped ray's worth (the outlier threshold squared) for each
+            # ray an assignment had to leave out: explaining every LED beats explaining all but one exactly.
+            cost = solution.chi2 + solution.dropped * config.outlier_sigmas**2
+            if prior is not None:
+                px, py, pyaw, sxy, syaw = prior
+                cost += ((solution.x_m - px) ** 2 + (solution.y_m - py) ** 2) / sxy**2
+                cost += _wrap(solution.yaw_rad - pyaw) ** 2 / syaw**2
+            scored.append((cost, solution))
+        if search or len(hypotheses) != 1 or hypotheses[0][1] is not None:
+            break
+        # The direct assignment of unique ids: searched further only when its fit fails.
+        fit = scored[0][1] if scored else None
+        if fit is not None and fit.dropped == 0 and fit.chi2 <= chi2_threshold(fit.dof, config.false_alarm):
+            break
     if not scored:
+        if not solved:
+            return NoSolution("no placement of the seen LED ids fits the map")
         return NoSolution("the pose solver did not converge")
     scored.sort(key=lambda t: t[0])
     best_cost, best = scored[0]
-    if prior is None and len(scored) > 1:
-        for cost, other in scored[1:]:
-            far = math.hypot(other.x_m - best.x_m, other.y_m - best.y_m) > config.ambiguity_m
-            if far and cost < best_cost + 9.0:
-                return NoSolution(
-                    f"ambiguous: {len(scored)} placements of the seen LED ids fit; a pose prior is needed"
-                )
-    return best
+    rivals = sum(
+        1
+        for cost, other in scored[1:]
+        if math.hypot(other.x_m - best.x_m, other.y_m - best.y_m) > config.ambiguity_m
+        and cost < best_cost + 9.0
+    )
+    if rivals and prior is None:
+        return NoSolution(
+            f"ambiguous: {len(scored)} placements of the seen LED ids fit; a pose prior is needed"
+        )
+    return dataclasses.replace(best, alternatives=rivals) if rivals else best
+
+
+def _protection(solution: PoseSolution, config: SolverConfig, threshold: float) -> float:
+    """The solution's protection level (``agent.vlp.integrity``) from its linearisation: inf with fewer
+    than three LEDs (a fault across two is absorbed by the pose; nothing can be ruled out)."""
+    if solution.linearisation is None:
+        return math.inf
+    rows, inverse = solution.linearisation
+    return protection_level(
+        rows,
+        inverse,
+        1.0 / config.height_sigma_m if config.height_sigma_m > 0.0 else 0.0,
+        threshold=threshold,
+        variance_scale=solution.variance_scale,
+        missed_detection=config.missed_detection,
+        fault_free_risk=config.fault_free_risk,
+    )
 
 
 def _solve_assignment(
@@ -716,7 +789,7 @@ def _solve_assignment(
             return None
         sigma = _weights(sub, idx, xyz, lens_z_m, config.map_sigma_m)
         try:
-            p, cov, whitened = _gauss_newton(
+            p, cov, whitened, linearisation = _gauss_newton(
                 [r.q for r in sub],
                 [xyz[i] for i in idx],
                 sigma,
@@ -740,7 +813,10 @@ def _solve_assignment(
             dropped_here += 1
             continue
         dof = max(2 * len(active) - len(cov) + (1 if config.height_sigma_m > 0 else 0), 0)
-        chi2 = math.fsum(r0 * r0 + r1 * r1 for r0, r1 in whitened)
+        # Every term the fit paid for: the rays' residuals and the height correction's prior (a misread id
+        # on two LEDs is otherwise absorbed into dh at no visible cost).
+        height_term = (p[3] / config.height_sigma_m) ** 2 if config.height_sigma_m > 0 else 0.0
+        chi2 = math.fsum(r0 * r0 + r1 * r1 for r0, r1 in whitened) + height_term
         # With redundancy, inflate the covariance when the residuals say the noise is larger than modelled.
         scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
         assignment = [-1] * len(rays)
@@ -758,4 +834,8 @@ def _solve_assignment(
             tuple(residuals),
             math.sqrt(chi2 / max(2 * len(active), 1)),
             dropped,
+            chi2=chi2,
+            dof=dof,
+            variance_scale=scale,
+            linearisation=linearisation,
         )

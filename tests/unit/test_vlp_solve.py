@@ -4,6 +4,7 @@ repeat across a building."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -359,3 +360,80 @@ def test_unique_ids_that_break_the_map_distances_leave_the_misread_led_out() -> 
     assert isinstance(solution, PoseSolution)
     assert solution.assignment == (0, 1, 2, -1) and solution.dropped == 1
     assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
+
+
+def test_a_misread_id_on_two_leds_absorbed_by_the_height_is_inconsistent() -> None:
+    """Two LEDs 1.0 m apart, the second taken for an LED 1.14 m from the first: the distances pass the
+    loose pair check, and Gauss-Newton explains the 14 % by an LED plane 18 cm higher than surveyed, with
+    the rays fitted exactly. The height correction's prior (5 cm) is part of chi^2, so the fix fails its
+    test (it used to pass with rms 0: only the rays were counted)."""
+    leds = np.array([[0.0, 0.0, 1.5], [1.0, 0.0, 1.5], [0.3, 1.1, 1.5]])  # |L0 - L2| = 1.14
+    truth = (0.4, 0.2, 0.3)
+    q = level_q(leds, *truth, 0.2)
+    rays = [LedRay(tuple(q[0]), (0,), 2e-4), LedRay(tuple(q[1]), (2,), 2e-4)]
+    solution = solve_pose(rays, leds, 0.2)
+    assert isinstance(solution, PoseSolution)
+    assert solution.height_offset_m > 0.15
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) > 0.5
+    assert solution.dof == 1 and solution.chi2 > solution.chi2_threshold
+    assert not solution.consistent and solution.rms_residual > 1.0
+    # The right ids pass.
+    right = solve_pose([rays[0], LedRay(tuple(q[1]), (1,), 2e-4)], leds, 0.2)
+    assert isinstance(right, PoseSolution) and right.consistent
+    assert right.protection_level_m == math.inf  # two LEDs: no fault can be ruled out
+
+
+def test_a_misread_id_among_three_leds_is_flagged_or_dropped() -> None:
+    """Three LEDs of an irregular map with unique ids, one read as another LED's id, random places and
+    headings: the fix is never far off unless it says so (an LED dropped, or chi^2 past its limit), or
+    there is none."""
+    rng = np.random.default_rng(7)
+    wrong_unflagged = flagged = none = 0
+    for _ in range(300):
+        leds = np.column_stack((rng.uniform(-1.2, 1.2, (8, 2)), rng.uniform(1.45, 1.55, 8)))
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        seen = rng.choice(8, 3, replace=False)
+        q = level_q(leds[seen], *truth, 0.2) + rng.normal(0.0, 2e-4, (3, 2))
+        read = list(seen)
+        read[int(rng.integers(3))] = int(rng.choice([i for i in range(8) if i not in seen]))
+        rays = [LedRay(tuple(q[k]), (read[k],), 2e-4) for k in range(3)]
+        result = solve_pose(rays, leds, 0.2, config=SolverConfig(map_sigma_m=0.003))
+        if isinstance(result, NoSolution):
+            none += 1
+            continue
+        said = result.dropped > 0 or not result.consistent
+        flagged += int(said)
+        off = math.hypot(result.x_m - truth[0], result.y_m - truth[1]) > 0.05
+        wrong_unflagged += int(off and not said)
+    assert wrong_unflagged == 0
+    assert flagged + none == 300
+
+
+def test_the_protection_level_covers_the_error_with_noise_and_with_a_fault() -> None:
+    """Four LEDs with the noise as modelled: the error is within the protection level on >= 99.9 % of
+    fixes. With a growing bias on one LED, a fix that passes the chi-square test is within its protection
+    level (a bias large enough to break it is seen by the test)."""
+    rng = np.random.default_rng(11)
+    leds = np.array([[-0.465, 0.495, 1.5], [-0.46, -0.42, 1.5], [0.46, 0.49, 1.5], [0.48, -0.425, 1.5]])
+    sigma = 3e-4
+    config = SolverConfig(map_sigma_m=0.0)
+    covered = total = missed = passed_faulty = 0
+    for trial in range(1500):
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        q = level_q(leds, *truth, 0.2) + rng.normal(0.0, sigma, (4, 2))
+        fault = trial % 3 != 0
+        if fault:
+            angle = rng.uniform(-math.pi, math.pi)
+            q[trial % 4] += rng.uniform(0.0, 25.0) * sigma * np.array([math.cos(angle), math.sin(angle)])
+        rays = [LedRay(tuple(q[i]), (i,), sigma) for i in range(4)]
+        s = solve_pose(rays, leds, 0.2, config=dataclasses.replace(config, outlier_sigmas=1e9))
+        assert isinstance(s, PoseSolution)
+        error = math.hypot(s.x_m - truth[0], s.y_m - truth[1])
+        if not fault:
+            total += 1
+            covered += int(error <= s.protection_level_m)
+        elif s.consistent:
+            passed_faulty += 1
+            missed += int(error > s.protection_level_m)
+    assert covered >= 0.999 * total
+    assert passed_faulty > 200 and missed <= 0.001 * passed_faulty, (passed_faulty, missed)
