@@ -437,3 +437,47 @@ def test_the_protection_level_covers_the_error_with_noise_and_with_a_fault() -> 
             missed += int(error > s.protection_level_m)
     assert covered >= 0.999 * total
     assert passed_faulty > 200 and missed <= 0.001 * passed_faulty, (passed_faulty, missed)
+
+
+def test_the_written_out_protection_level_is_the_matrix_one() -> None:
+    """The plain-float protection level is the RAIM slope bound computed with matrices: the whitened
+    Jacobian J (rays and the height prior), S = (J^T J)^-1 J^T, P = I - J S, per LED the largest eigenvalue
+    of S_xy,i P_ii^-1 S_xy,i^T."""
+    rng = np.random.default_rng(5)
+    config = SolverConfig(map_sigma_m=0.0)
+    for _ in range(40):
+        n = int(rng.integers(3, 7))
+        leds = np.column_stack((rng.uniform(-1.2, 1.2, (n, 2)), rng.uniform(1.45, 1.55, n)))
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        sigma = rng.uniform(1e-4, 4e-4, n)
+        q = level_q(leds, *truth, 0.2) + rng.normal(0.0, 1.0, (n, 2)) * sigma[:, None]
+        rays = [LedRay(tuple(q[i]), (i,), float(sigma[i])) for i in range(n)]
+        s = solve_pose(rays, leds, 0.2, config=dataclasses.replace(config, outlier_sigmas=1e9))
+        assert isinstance(s, PoseSolution)
+        # The matrix version at the solution.
+        c, sn = math.cos(s.yaw_rad), math.sin(s.yaw_rad)
+        h = leds[:, 2] - 0.2 + s.height_offset_m
+        d = leds[:, :2] - np.array([s.x_m, s.y_m])
+        px, py = (c * d[:, 0] + sn * d[:, 1]) / h, (-sn * d[:, 0] + c * d[:, 1]) / h
+        w = 1.0 / sigma
+        jac = np.zeros((2 * n + 1, 4))
+        jac[0::2][:n] = np.column_stack((-c / h * w, -sn / h * w, py * w, -px / h * w))
+        jac[1::2][:n] = np.column_stack((sn / h * w, -c / h * w, -px * w, -py / h * w))
+        jac[-1, 3] = 1.0 / config.height_sigma_m
+        est = np.linalg.inv(jac.T @ jac) @ jac.T
+        proj = np.eye(2 * n + 1) - jac @ est
+        slopes = []
+        for i in range(n):
+            block = slice(2 * i, 2 * i + 2)
+            m = est[:2, block] @ np.linalg.inv(proj[block, block]) @ est[:2, block].T
+            slopes.append(np.linalg.eigvalsh(m)[-1])
+        slopes.append(float(est[0, -1] ** 2 + est[1, -1] ** 2) / proj[-1, -1])
+        slope = math.sqrt(max(slopes) * s.variance_scale)
+        cov = np.linalg.inv(jac.T @ jac)[:2, :2] * s.variance_scale
+        k_md, k_ff = 3.090232306167813, 3.290526731491926  # 1e-3 one-sided, 1e-3 two-sided
+        want = max(
+            k_ff * math.sqrt(np.linalg.eigvalsh(cov)[-1]), slope * (math.sqrt(s.chi2_threshold) + k_md)
+        )
+        # The solver's linearisation is that of its last iteration, a micrometre-sized step before the
+        # solution: equal to 1e-3.
+        assert s.protection_level_m == pytest.approx(want, rel=1e-3)
