@@ -591,7 +591,11 @@ class VlpPipeline:
                     if a >= 0
                 ),
             ),
-            ("prior-mismatch", _far_from_prior(solution, lens_prior, self.config.solver.prior_gate_sigmas)),
+            (
+                "prior-mismatch",
+                solution.prior_ignored
+                or _far_from_prior(solution, lens_prior, self.config.solver.prior_gate_sigmas),
+            ),
         ]
         flags += [name for name, hit in weak if hit]
         degraded = any(hit for _, hit in weak)

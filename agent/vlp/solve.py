@@ -91,7 +91,8 @@ class PoseSolution:
     correction's prior included) over ``dof`` degrees of freedom; ``chi2_threshold`` is the test's limit at
     the configured false-alarm rate (``consistent`` when chi2 is within it); ``protection_level_m`` bounds
     the lens position error a single-LED fault could cause unseen (inf with two LEDs);
-    ``alternatives``: other placements, far from this one, that fit about as well given the prior.
+    ``alternatives``: other placements, far from this one, that fit about as well given the prior;
+    ``prior_ignored``: no placement fitted near the prior, this one is the map's alone.
     ``rms_residual`` is sqrt(chi2 / 2n). ``linearisation``: the used rays' whitened Jacobian rows and
     (J^T J)^-1 at the solution (for the protection level)."""
 
@@ -110,6 +111,7 @@ class PoseSolution:
     chi2_threshold: float = math.inf
     protection_level_m: float = math.inf
     alternatives: int = 0
+    prior_ignored: bool = False
     work: AssociationWork = NO_WORK
     linearisation: Linearisation | None = field(default=None, repr=False, compare=False)
 
@@ -493,7 +495,11 @@ def _hypotheses(
         best_count = max((v[0] for v in found.values()), default=0)
     if best_count < 2:
         return []
-    kept = sorted((v[1], k, v[2]) for k, v in found.items() if v[0] == best_count)
+    # Placements that leave one or two rays out stay in the running (a misread or badly measured LED in
+    # the right placement), their cost paying for each ray left out: keeping only the placements that
+    # explain the most rays would let a periodic map's wrong placement, which happens to explain them
+    # all, win unopposed.
+    kept = sorted((v[1], k, v[2]) for k, v in found.items() if v[0] >= max(best_count - 2, 2))
     if prior is not None:
         # Ranked by the squared distance of the placement from the prior in its sigmas: one more than 25
         # behind the nearest cannot win (its solved fit is as good at best, the prior's term 5 sigma worse).
@@ -639,24 +645,16 @@ def solve_pose(
     budget = _Budget(config.max_association_checks)
     result = _solve(rays, points, lens_z_m, velocity, prior, config, budget)
     repeated = any(len(ray.candidates) > 1 for ray in rays)
-    if (
-        prior is not None
-        and repeated
-        and (isinstance(result, NoSolution) or result.dropped > 0)
-        and not budget.truncated
-    ):
+    if prior is not None and repeated and isinstance(result, NoSolution) and not budget.truncated:
         # The prior can be what is wrong (a pose carried on odometry through a camera stall, a robot carried
         # elsewhere): the map alone then decides, and only where the seen ids fit it in one place. It shares
-        # what is left of the budget.
+        # what is left of the budget; the fix says it went against the prior.
         alone = _solve(rays, points, lens_z_m, velocity, None, config, budget)
-        if isinstance(alone, PoseSolution) and (
-            isinstance(result, NoSolution) or alone.dropped < result.dropped
-        ):
-            result = alone
-        elif isinstance(result, NoSolution):
-            reason = alone.reason if isinstance(alone, NoSolution) else "?"
+        if isinstance(alone, PoseSolution):
+            result = dataclasses.replace(alone, prior_ignored=True)
+        else:
             result = NoSolution(
-                f"no placement of the seen LED ids fits the map near the pose prior ({reason})"
+                f"no placement of the seen LED ids fits the map near the pose prior ({alone.reason})"
             )
     work = AssociationWork(budget.checks, budget.solved, budget.truncated)
     if isinstance(result, NoSolution):
@@ -682,6 +680,7 @@ def solve_pose(
         threshold,
         _protection(r, config, threshold),
         r.alternatives,
+        r.prior_ignored,
         work,
         r.linearisation,
     )
@@ -701,7 +700,7 @@ def _solve(
     The one assignment of unique ids is solved first; only when its fit fails (an LED dropped, or chi^2
     past its limit: a misread id breaks the map's geometry) are the anchor pairs searched for a placement
     that leaves the misread LED out."""
-    scored: list[tuple[float, PoseSolution]] = []
+    scored: list[tuple[float, float, PoseSolution]] = []
     solved: set[tuple[int, ...]] = set()
     for search in (False, True):
         hypotheses = _hypotheses(rays, points, lens_z_m, prior, config, budget, search)
@@ -716,15 +715,16 @@ def _solve(
             # chi^2 of the rays used, plus a dropped ray's worth (the outlier threshold squared) for each
             # ray an assignment had to leave out: explaining every LED beats explaining all but one exactly.
             cost = solution.chi2 + solution.dropped * config.outlier_sigmas**2
+            prior_term = 0.0
             if prior is not None:
                 px, py, pyaw, sxy, syaw = prior
-                cost += ((solution.x_m - px) ** 2 + (solution.y_m - py) ** 2) / sxy**2
-                cost += _wrap(solution.yaw_rad - pyaw) ** 2 / syaw**2
-            scored.append((cost, solution))
+                prior_term = ((solution.x_m - px) ** 2 + (solution.y_m - py) ** 2) / sxy**2
+                prior_term += _wrap(solution.yaw_rad - pyaw) ** 2 / syaw**2
+            scored.append((cost + prior_term, prior_term, solution))
         if search or len(hypotheses) != 1 or hypotheses[0][1] is not None:
             break
         # The direct assignment of unique ids: searched further only when its fit fails.
-        fit = scored[0][1] if scored else None
+        fit = scored[0][2] if scored else None
         if fit is not None and fit.dropped == 0 and fit.chi2 <= chi2_threshold(fit.dof, config.false_alarm):
             break
     if not scored:
@@ -732,12 +732,24 @@ def _solve(
             return NoSolution("no placement of the seen LED ids fits the map")
         return NoSolution("the pose solver did not converge")
     scored.sort(key=lambda t: t[0])
-    best_cost, best = scored[0]
+    best_cost, _, best = scored[0]
+    # A rival: a placement far from the best that fits about as well, or that passes its own chi-square
+    # test with no more LEDs left out and that the prior cannot rule out at the integrity risk (chi^2 of
+    # its 3 dof). The chi^2 of two placements that both pass differ by noise: in a map whose ids repeat
+    # with a period, only the prior tells them apart, and only when it is much tighter than the period.
+    prior_limit = chi2_threshold(3, config.missed_detection)
     rivals = sum(
         1
-        for cost, other in scored[1:]
+        for cost, prior_term, other in scored[1:]
         if math.hypot(other.x_m - best.x_m, other.y_m - best.y_m) > config.ambiguity_m
-        and cost < best_cost + 9.0
+        and (
+            cost < best_cost + 9.0
+            or (
+                other.dropped <= best.dropped
+                and other.chi2 <= chi2_threshold(other.dof, config.false_alarm)
+                and prior_term <= prior_limit
+            )
+        )
     )
     if rivals and prior is None:
         return NoSolution(

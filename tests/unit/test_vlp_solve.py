@@ -481,3 +481,16 @@ def test_the_written_out_protection_level_is_the_matrix_one() -> None:
         # The solver's linearisation is that of its last iteration, a micrometre-sized step before the
         # solution: equal to 1e-3.
         assert s.protection_level_m == pytest.approx(want, rel=1e-3)
+
+
+def test_a_prior_too_loose_for_the_map_period_leaves_rival_placements() -> None:
+    """The dense map repeats its pattern within a metre: an odometry-grade prior (0.4 m) cannot rule out
+    the shifted placements, which fit as well (their chi^2 differ by noise), so the fix names its rivals
+    (the pipeline flags it ambiguous-placement); the last fix as the prior (5 cm) leaves none."""
+    truth = (0.02, 0.27, 0.03)
+    rays, seen, leds = twelve_in_view(truth)
+    loose = solve_pose(rays, leds, 0.2, prior=(truth[0] + 0.1, truth[1] - 0.1, truth[2], 0.4, 0.35))
+    assert isinstance(loose, PoseSolution) and loose.alternatives > 0
+    tight = solve_pose(rays, leds, 0.2, prior=(truth[0] + 0.02, truth[1] - 0.01, truth[2], 0.05, 0.1))
+    assert isinstance(tight, PoseSolution) and tight.alternatives == 0
+    assert tight.assignment == tuple(seen) and tight.consistent
