@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from agent.vlp.integrity import ProtectionInputs
+
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
@@ -354,7 +356,7 @@ class VlpFix:
     whitened residual sum (every fitted term, the LED-height correction's prior included), tested against
     ``chi2_threshold`` (a fix past it is degraded, flag ``"inconsistent"``); ``protection_level_m`` bounds the
     base position error that a fault in one LED could cause without the test seeing it, at the solver's
-    risks (inf when nothing can be ruled out: two LEDs, one LED).
+    risks (inf when nothing can be ruled out: two LEDs, one LED), computed on reading from ``protection``.
     """
 
     time_s: float
@@ -369,9 +371,14 @@ class VlpFix:
     flags: tuple[str, ...]
     timings: StageTimings
     work: AssociationWork = NO_WORK
-    protection_level_m: float = math.inf
     chi2: float = math.nan
     chi2_threshold: float = math.inf
+    protection: ProtectionInputs | None = None
+
+    @property
+    def protection_level_m(self) -> float:
+        """The protection level, metres (computed from ``protection`` on reading; inf without it)."""
+        return self.protection.protection_level_m if self.protection is not None else math.inf
 
     @property
     def sigma_xy_m(self) -> float:

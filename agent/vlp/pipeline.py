@@ -34,6 +34,7 @@ from agent.vlp.detect import (
     search_bands,
 )
 from agent.vlp.geometry import lens_offset_level, level_plane_points, level_rotation
+from agent.vlp.integrity import ProtectionInputs
 from agent.vlp.model import (
     NO_WORK,
     AssociationWork,
@@ -335,9 +336,9 @@ class VlpPipeline:
                 result.flags,
                 timings,
                 result.work,
-                result.protection_level_m,
                 result.chi2,
                 result.chi2_threshold,
+                result.protection,
             )
         return NoFix(result.time_s, result.reason, result.leds, timings, result.work)
 
@@ -584,7 +585,7 @@ class VlpPipeline:
             # which the chi-square test sees; with two nothing does).
             (
                 "id-unconfirmed",
-                not math.isfinite(solution.protection_level_m)
+                solution.protection is None
                 and any(
                     not tracks[k].confirmed(self.config.tracker)
                     for k, a in zip(usable, solution.assignment, strict=True)
@@ -610,7 +611,7 @@ class VlpPipeline:
             flags,
             solution.rms_residual,
             solution.work,
-            (solution.protection_level_m, solution.chi2, solution.chi2_threshold),
+            (solution.protection, solution.chi2, solution.chi2_threshold),
         )
 
     def _single(
@@ -680,10 +681,11 @@ class VlpPipeline:
         flags: list[str],
         rms: float,
         work: AssociationWork = NO_WORK,
-        integrity: tuple[float, float, float] = (math.inf, math.nan, math.inf),
+        integrity: tuple[ProtectionInputs | None, float, float] = (None, math.nan, math.inf),
     ) -> VlpFix:
         """Lens pose -> base pose (base = lens - R(psi_base) offset), residual correction, bookkeeping.
-        ``integrity``: the lens fix's protection level, chi^2 and the test's threshold."""
+        ``integrity``: what the lens fix's protection level is computed from, its chi^2 and the test's
+        threshold."""
         yaw_base = math.remainder(lens[2] - self.mount.yaw_rad, 2.0 * math.pi)
         c, s = math.cos(yaw_base), math.sin(yaw_base)
         ox, oy = float(lens_offset[0]), float(lens_offset[1])
@@ -693,10 +695,13 @@ class VlpPipeline:
         cov_t = _moved_covariance(cov_lens, s * ox + c * oy, -c * ox + s * oy)
         if self.calibration is not None and self.calibration.residual is not None:
             x, y = self.calibration.residual.apply(x, y)
-        pl_lens, chi2, chi2_limit = integrity
-        # The base is |o| from the lens: its position also moves with the yaw's error (bounded at the same
-        # risk as the fault-free part of the protection level).
-        pl = pl_lens + math.hypot(ox, oy) * _K_YAW * math.sqrt(max(float(cov_lens[2][2]), 0.0))
+        protection, chi2, chi2_limit = integrity
+        if protection is not None and (ox or oy):
+            # The base is |o| from the lens: its position also moves with the yaw's error (bounded at the
+            # same risk as the fault-free part of the protection level).
+            protection = protection.with_margin(
+                math.hypot(ox, oy) * _K_YAW * math.sqrt(max(float(cov_lens[2][2]), 0.0))
+            )
         if not degraded:
             # Only full fixes feed the next frames' prior and velocity (a one-LED fix leans on its prior).
             previous = (self._last.time_s, self._last.lens) if self._last is not None else None
@@ -715,9 +720,9 @@ class VlpPipeline:
             tuple(flags),
             _NO_TIMINGS,
             work,
-            pl,
             chi2,
             chi2_limit,
+            protection,
         )
 
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from agent.vlp.integrity import Linearisation, Row, chi2_threshold, protection_level
+from agent.vlp.integrity import Linearisation, ProtectionInputs, Row, chi2_threshold
 from agent.vlp.model import NO_WORK, AssociationWork
 
 FloatArray = npt.NDArray[np.float64]
@@ -94,7 +94,7 @@ class PoseSolution:
     ``alternatives``: other placements, far from this one, that fit about as well given the prior;
     ``prior_ignored``: no placement fitted near the prior, this one is the map's alone.
     ``rms_residual`` is sqrt(chi2 / 2n). ``linearisation``: the used rays' whitened Jacobian rows and
-    (J^T J)^-1 at the solution (for the protection level)."""
+    (J^T J)^-1 at the solution; ``protection``: what the protection level is computed from."""
 
     x_m: float
     y_m: float
@@ -109,11 +109,16 @@ class PoseSolution:
     dof: int = 0
     variance_scale: float = 1.0
     chi2_threshold: float = math.inf
-    protection_level_m: float = math.inf
     alternatives: int = 0
     prior_ignored: bool = False
     work: AssociationWork = NO_WORK
     linearisation: Linearisation | None = field(default=None, repr=False, compare=False)
+    protection: ProtectionInputs | None = None
+
+    @property
+    def protection_level_m(self) -> float:
+        """The protection level (computed on reading; inf with fewer than three LEDs)."""
+        return self.protection.protection_level_m if self.protection is not None else math.inf
 
     @property
     def consistent(self) -> bool:
@@ -236,6 +241,8 @@ def _gauss_newton(
     low = (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0)
     residuals: list[tuple[float, float]] = []
     rows: list[tuple[Row, Row]] = []
+    # The protection level needs the Jacobian rows only with three rays or more (with two it is inf).
+    keep_rows = len(rays) >= 3
     for _ in range(max_iterations):
         a00 = a02 = a03 = a12 = a13 = a22 = a23 = a33 = 0.0
         b0 = b1 = b2 = b3 = 0.0
@@ -256,7 +263,8 @@ def _gauss_newton(
             pxw, pyw = px * w, py * w
             pxh, pyh = pxw * inv_h, pyw * inv_h
             residuals.append((r0, r1))
-            rows.append(((-ca, -sb, pyw, -pxh), (sb, -ca, -pxw, -pyh)))
+            if keep_rows:
+                rows.append(((-ca, -sb, pyw, -pxh), (sb, -ca, -pxw, -pyh)))
             a00 += ca * ca + sb * sb
             a02 -= ca * pyw + sb * pxw
             a03 += ca * pxh - sb * pyh
@@ -644,8 +652,12 @@ def solve_pose(
     points: _Points = [(a, b, c) for a, b, c in np.asarray(xyz, dtype=np.float64).reshape(-1, 3).tolist()]
     budget = _Budget(config.max_association_checks)
     result = _solve(rays, points, lens_z_m, velocity, prior, config, budget)
-    repeated = any(len(ray.candidates) > 1 for ray in rays)
-    if prior is not None and repeated and isinstance(result, NoSolution) and not budget.truncated:
+    if (
+        prior is not None
+        and isinstance(result, NoSolution)
+        and not budget.truncated
+        and any(len(ray.candidates) > 1 for ray in rays)
+    ):
         # The prior can be what is wrong (a pose carried on odometry through a camera stall, a robot carried
         # elsewhere): the map alone then decides, and only where the seen ids fit it in one place. It shares
         # what is left of the budget; the fix says it went against the prior.
@@ -678,11 +690,11 @@ def solve_pose(
         r.dof,
         r.variance_scale,
         threshold,
-        _protection(r, config, threshold),
         r.alternatives,
         r.prior_ignored,
         work,
         r.linearisation,
+        _protection(r, config, threshold),
     )
 
 
@@ -731,6 +743,8 @@ def _solve(
         if not solved:
             return NoSolution("no placement of the seen LED ids fits the map")
         return NoSolution("the pose solver did not converge")
+    if len(scored) == 1:
+        return scored[0][2]
     scored.sort(key=lambda t: t[0])
     best_cost, _, best = scored[0]
     # A rival: a placement far from the best that fits about as well, or that passes its own chi-square
@@ -758,20 +772,20 @@ def _solve(
     return dataclasses.replace(best, alternatives=rivals) if rivals else best
 
 
-def _protection(solution: PoseSolution, config: SolverConfig, threshold: float) -> float:
-    """The solution's protection level (``agent.vlp.integrity``) from its linearisation: inf with fewer
+def _protection(solution: PoseSolution, config: SolverConfig, threshold: float) -> ProtectionInputs | None:
+    """What the solution's protection level is computed from (``agent.vlp.integrity``); None with fewer
     than three LEDs (a fault across two is absorbed by the pose; nothing can be ruled out)."""
-    if solution.linearisation is None:
-        return math.inf
+    if solution.linearisation is None or len(solution.linearisation[0]) < 3:
+        return None
     rows, inverse = solution.linearisation
-    return protection_level(
+    return ProtectionInputs(
         rows,
         inverse,
         1.0 / config.height_sigma_m if config.height_sigma_m > 0.0 else 0.0,
-        threshold=threshold,
-        variance_scale=solution.variance_scale,
-        missed_detection=config.missed_detection,
-        fault_free_risk=config.fault_free_risk,
+        threshold,
+        solution.variance_scale,
+        config.missed_detection,
+        config.fault_free_risk,
     )
 
 
