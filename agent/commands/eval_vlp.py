@@ -48,11 +48,12 @@ from agent.commands.args import dumps_json
 from agent.commands.worlds import EXAMPLES
 from agent.sim_view import agent_view
 from agent.vlp.calibration import (
+    ResidualCorrection,
     VlpCalibration,
-    fit_residual_correction,
     fit_rotation_centre,
     format_calibration,
     parse_calibration,
+    validated_residual_correction,
 )
 from agent.vlp.model import (
     PosePrior,
@@ -315,6 +316,7 @@ class CalibrationReport:
     turn_frames: int
     tracks_used: int
     known_fixes: int
+    residual_refused: str | None = None
 
 
 def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: Path) -> CalibrationReport:
@@ -371,7 +373,11 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
                     if isinstance(r, VlpFix) and not r.degraded:
                         est.append((r.x_m, r.y_m))
                         true.append((pose.x_m, pose.y_m))
-    residual = fit_residual_correction(np.array(est), np.array(true), degree=1) if len(est) >= 6 else None
+    checked = validated_residual_correction(np.array(est), np.array(true), degree=1) if est else "no fixes"
+    residual = checked if isinstance(checked, ResidualCorrection) else None
+    refused = checked if isinstance(checked, str) else None
+    if refused is not None:
+        log.warning("calibration: no residual correction: %s", refused)
     calibration = dataclasses.replace(centred, residual=residual)
     text = format_calibration(
         calibration,
@@ -389,7 +395,7 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
         1e3 * (residual.rms_after_m if residual else math.nan),
     )
     loaded = parse_calibration(out_path.read_text(encoding="utf-8"), source=str(out_path))
-    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est))
+    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est), refused)
 
 
 # -- the runs ------------------------------------------------------------------------------------------------
@@ -548,6 +554,7 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "true_principal_point_px": [true_intr.cx_px, true_intr.cy_px],
             "residual_rms_before_cm": 100.0 * cal.residual.rms_before_m if cal.residual else None,
             "residual_rms_after_cm": 100.0 * cal.residual.rms_after_m if cal.residual else None,
+            "residual_refused": report.residual_refused,
         },
         "prior": (
             f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "

@@ -13,6 +13,7 @@ from agent.vlp.calibration import (
     fit_rotation_centre,
     format_calibration,
     parse_calibration,
+    validated_residual_correction,
 )
 from agent.vlp.model import (
     AssociationWork,
@@ -55,4 +56,5 @@ __all__ = [
     "fit_rotation_centre",
     "format_calibration",
     "parse_calibration",
+    "validated_residual_correction",
 ]
