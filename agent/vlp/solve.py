@@ -747,10 +747,11 @@ def _solve(
         return scored[0][2]
     scored.sort(key=lambda t: t[0])
     best_cost, _, best = scored[0]
-    # A rival: a placement far from the best that fits about as well, or that passes its own chi-square
-    # test with no more LEDs left out and that the prior cannot rule out at the integrity risk (chi^2 of
-    # its 3 dof). The chi^2 of two placements that both pass differ by noise: in a map whose ids repeat
-    # with a period, only the prior tells them apart, and only when it is much tighter than the period.
+    # A rival: a placement far from the best that fits about as well, or that leaves no more LEDs out,
+    # whose chi^2 is within the test's limit of the best's (the best may itself fit badly: a moving robot
+    # before its velocity is known) and that the prior cannot rule out at the integrity risk (chi^2 of its
+    # 3 dof). The chi^2 of two placements that both fit differ by noise: in a map whose ids repeat with a
+    # period, only the prior tells them apart, and only when it is much tighter than the period.
     prior_limit = chi2_threshold(3, config.missed_detection)
     rivals = sum(
         1
@@ -760,7 +761,7 @@ def _solve(
             cost < best_cost + 9.0
             or (
                 other.dropped <= best.dropped
-                and other.chi2 <= chi2_threshold(other.dof, config.false_alarm)
+                and other.chi2 <= best.chi2 + chi2_threshold(other.dof, config.false_alarm)
                 and prior_term <= prior_limit
             )
         )
