@@ -521,6 +521,8 @@ def _hypotheses(
     return [(k, init) for _, k, init in kept[: config.max_hypotheses]]
 
 
+# The work of the normal case: one assignment solved directly, no candidate tested.
+_DIRECT_WORK = AssociationWork(0, 1, False)
 # Without a prior, at most this many placements are solved (the best by the map's fit).
 _AMBIGUITY_SOLVES = 4
 _Row = tuple[float, float, float, int]
@@ -673,29 +675,10 @@ def solve_pose(
         if budget.truncated:
             return NoSolution(f"{result.reason} (association work budget exhausted)", work)
         return NoSolution(result.reason, work)
-    threshold = chi2_threshold(result.dof, config.false_alarm)
-    r = result
-    # Built directly: dataclasses.replace costs several times more (it reads the fields by name).
-    return PoseSolution(
-        r.x_m,
-        r.y_m,
-        r.yaw_rad,
-        r.height_offset_m,
-        r.covariance,
-        r.assignment,
-        r.residual_sigmas,
-        r.rms_residual,
-        r.dropped,
-        r.chi2,
-        r.dof,
-        r.variance_scale,
-        threshold,
-        r.alternatives,
-        r.prior_ignored,
-        work,
-        r.linearisation,
-        _protection(r, config, threshold),
-    )
+    if work == result.work:
+        # The normal case (unique ids: one direct solve, no search) already says so.
+        return result
+    return dataclasses.replace(result, work=work)
 
 
 def _solve(
@@ -737,7 +720,7 @@ def _solve(
             break
         # The direct assignment of unique ids: searched further only when its fit fails.
         fit = scored[0][2] if scored else None
-        if fit is not None and fit.dropped == 0 and fit.chi2 <= chi2_threshold(fit.dof, config.false_alarm):
+        if fit is not None and fit.dropped == 0 and fit.consistent:
             break
     if not scored:
         if not solved:
@@ -761,7 +744,7 @@ def _solve(
             cost < best_cost + 9.0
             or (
                 other.dropped <= best.dropped
-                and other.chi2 <= best.chi2 + chi2_threshold(other.dof, config.false_alarm)
+                and other.chi2 <= best.chi2 + other.chi2_threshold
                 and prior_term <= prior_limit
             )
         )
@@ -773,18 +756,20 @@ def _solve(
     return dataclasses.replace(best, alternatives=rivals) if rivals else best
 
 
-def _protection(solution: PoseSolution, config: SolverConfig, threshold: float) -> ProtectionInputs | None:
-    """What the solution's protection level is computed from (``agent.vlp.integrity``); None with fewer
-    than three LEDs (a fault across two is absorbed by the pose; nothing can be ruled out)."""
-    if solution.linearisation is None or len(solution.linearisation[0]) < 3:
+def _protection(
+    linearisation: Linearisation, variance_scale: float, config: SolverConfig, threshold: float
+) -> ProtectionInputs | None:
+    """What a solution's protection level is computed from (``agent.vlp.integrity``); None with fewer than
+    three LEDs (a fault across two is absorbed by the pose; nothing can be ruled out)."""
+    rows, inverse = linearisation
+    if len(rows) < 3:
         return None
-    rows, inverse = solution.linearisation
     return ProtectionInputs(
         rows,
         inverse,
         1.0 / config.height_sigma_m if config.height_sigma_m > 0.0 else 0.0,
         threshold,
-        solution.variance_scale,
+        variance_scale,
         config.missed_detection,
         config.fault_free_risk,
     )
@@ -851,6 +836,7 @@ def _solve_assignment(
         for k, a in enumerate(active):
             assignment[a] = combo[a]
             residuals[a] = norms[k]
+        threshold = chi2_threshold(dof, config.false_alarm)
         return PoseSolution(
             p[0],
             p[1],
@@ -861,8 +847,13 @@ def _solve_assignment(
             tuple(residuals),
             math.sqrt(chi2 / max(2 * len(active), 1)),
             dropped,
-            chi2=chi2,
-            dof=dof,
-            variance_scale=scale,
-            linearisation=linearisation,
+            chi2,
+            dof,
+            scale,
+            threshold,
+            0,
+            False,
+            _DIRECT_WORK,
+            linearisation,
+            _protection(linearisation, scale, config, threshold),
         )
