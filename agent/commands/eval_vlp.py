@@ -49,11 +49,12 @@ from agent.commands.args import dumps_json
 from agent.commands.worlds import EXAMPLES
 from agent.sim_view import agent_view
 from agent.vlp.calibration import (
+    ResidualCorrection,
     VlpCalibration,
-    fit_residual_correction,
     fit_rotation_centre,
     format_calibration,
     parse_calibration,
+    validated_residual_correction,
 )
 from agent.vlp.model import (
     PosePrior,
@@ -86,6 +87,8 @@ PASS_LENGTH_M = 4.0
 # The odometry-grade prior given when the map repeats ids (what the robot's odometry or last fix would know).
 PRIOR_SIGMA_XY_M = 0.2
 PRIOR_SIGMA_YAW_RAD = math.radians(10.0)
+# A nominal (not degraded) fix farther than this from the truth is a wrong fix passed as good.
+UNFLAGGED_LIMIT_M = 0.05
 
 
 def add_parser(sub: Any) -> None:
@@ -157,6 +160,10 @@ class Tally:
     fixes: list[tuple[float, float, float, float]] = field(default_factory=list)  # est x, y, true x, y
     no_fix: Counter[str] = field(default_factory=Counter)
     degraded_errors_m: list[float] = field(default_factory=list)
+    # Nominal fixes whose protection level is at least their error; nominal fixes more than 5 cm off.
+    protected: int = 0
+    unflagged_over_5cm: int = 0
+    flags: Counter[str] = field(default_factory=Counter)
     ids_seen: int = 0
     ids_decoded: int = 0
     ids_frame_ok: int = 0
@@ -179,6 +186,7 @@ class Tally:
         base = truth.base_pose
         if isinstance(result, VlpFix):
             err = math.hypot(result.x_m - base.x_m, result.y_m - base.y_m)
+            self.flags.update(result.flags)
             if result.degraded:
                 # A degraded fix (one LED and the prior's yaw, an outlier dropped) says so; it is scored
                 # apart, as a consumer weighs it by its covariance.
@@ -186,6 +194,8 @@ class Tally:
             else:
                 self.errors_m.append(err)
                 self.fixes.append((result.x_m, result.y_m, base.x_m, base.y_m))
+                self.protected += int(result.protection_level_m >= err)
+                self.unflagged_over_5cm += int(err > UNFLAGGED_LIMIT_M)
         else:
             self.no_fix[result.reason] += 1
         for obs in result.leds:
@@ -307,6 +317,7 @@ class CalibrationReport:
     turn_frames: int
     tracks_used: int
     known_fixes: int
+    residual_refused: str | None = None
 
 
 def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: Path) -> CalibrationReport:
@@ -363,7 +374,11 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
                     if isinstance(r, VlpFix) and not r.degraded:
                         est.append((r.x_m, r.y_m))
                         true.append((pose.x_m, pose.y_m))
-    residual = fit_residual_correction(np.array(est), np.array(true), degree=1) if len(est) >= 6 else None
+    checked = validated_residual_correction(np.array(est), np.array(true), degree=1) if est else "no fixes"
+    residual = checked if isinstance(checked, ResidualCorrection) else None
+    refused = checked if isinstance(checked, str) else None
+    if refused is not None:
+        log.warning("calibration: no residual correction: %s", refused)
     calibration = dataclasses.replace(centred, residual=residual)
     text = format_calibration(
         calibration,
@@ -381,7 +396,7 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
         1e3 * (residual.rms_after_m if residual else math.nan),
     )
     loaded = parse_calibration(out_path.read_text(encoding="utf-8"), source=str(out_path))
-    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est))
+    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est), refused)
 
 
 # -- the runs ------------------------------------------------------------------------------------------------
@@ -501,6 +516,14 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "fixes": len(cal_tally.errors_m),
         "degraded_fixes": len(cal_tally.degraded_errors_m),
         "degraded_mean_error_cm": _summary_errors(cal_tally.degraded_errors_m)["mean_error_cm"],
+        "degraded_max_error_cm": _summary_errors(cal_tally.degraded_errors_m)["max_error_cm"],
+        "fix_fraction": _ratio(
+            len(cal_tally.errors_m) + len(cal_tally.degraded_errors_m), len(cal_tally.latency_ms)
+        ),
+        "unflagged_over_5cm": cal_tally.unflagged_over_5cm,
+        "protection_coverage": _ratio(cal_tally.protected, len(cal_tally.errors_m)),
+        "frame_ms_max": max(cal_tally.latency_ms, default=math.nan),
+        "flags": dict(cal_tally.flags),
         "no_fix": dict(cal_tally.no_fix),
         **_summary_errors(cal_tally.errors_m),
         "uncalibrated_mean_error_cm": _summary_errors(uncal_tally.errors_m)["mean_error_cm"],
@@ -532,6 +555,7 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "true_principal_point_px": [true_intr.cx_px, true_intr.cy_px],
             "residual_rms_before_cm": 100.0 * cal.residual.rms_before_m if cal.residual else None,
             "residual_rms_after_cm": 100.0 * cal.residual.rms_after_m if cal.residual else None,
+            "residual_refused": report.residual_refused,
         },
         "prior": (
             f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
@@ -650,6 +674,11 @@ def _table(summary: dict[str, Any]) -> str:
         ),
         ("no fix", ", ".join(f"{k}: {v}" for k, v in summary["no_fix"].items()) or "none"),
         (
+            "fix fraction / unflagged > 5 cm",
+            f"{f(summary['fix_fraction'])} / {summary['unflagged_over_5cm']}",
+        ),
+        ("protection coverage", f(summary["protection_coverage"])),
+        (
             "error mean / median",
             f"{f(summary['mean_error_cm'], ' cm')} / {f(summary['median_error_cm'], ' cm')}",
         ),
@@ -675,7 +704,8 @@ def _table(summary: dict[str, Any]) -> str:
         ),
         (
             "latency median / p99",
-            f"{f(summary['latency_ms_median'], ' ms')} / {f(summary['latency_ms_p99'], ' ms')}",
+            f"{f(summary['latency_ms_median'], ' ms')} / {f(summary['latency_ms_p99'], ' ms')} "
+            f"(max {f(summary['frame_ms_max'], ' ms')})",
         ),
         ("  per stage (median)", ", ".join(f"{k} {v:.3f}" for k, v in stages.items())),
         (

@@ -2,7 +2,8 @@
 
 Pure numpy/OpenCV/scipy on arrays and small frozen dataclasses: no threads, files or printing. The entry point
 is :class:`~agent.vlp.pipeline.VlpPipeline`; the algorithms are in ``detect``, ``track``, ``decode``,
-``geometry``, ``solve`` and ``calibration``. See docs/vlp.md.
+``geometry``, ``solve`` (with the bounded id association), ``integrity`` (the consistency test and the
+protection level) and ``calibration``. See docs/vlp.md.
 """
 
 from agent.vlp.calibration import (
@@ -12,8 +13,10 @@ from agent.vlp.calibration import (
     fit_rotation_centre,
     format_calibration,
     parse_calibration,
+    validated_residual_correction,
 )
 from agent.vlp.model import (
+    AssociationWork,
     CameraIntrinsics,
     CameraMount,
     LedMap,
@@ -31,6 +34,7 @@ from agent.vlp.model import (
 from agent.vlp.pipeline import VlpConfig, VlpPipeline
 
 __all__ = [
+    "AssociationWork",
     "CameraIntrinsics",
     "CameraMount",
     "LedMap",
@@ -52,4 +56,5 @@ __all__ = [
     "fit_rotation_centre",
     "format_calibration",
     "parse_calibration",
+    "validated_residual_correction",
 ]

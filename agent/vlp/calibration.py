@@ -190,6 +190,60 @@ def fit_residual_correction(
     )
 
 
+def validated_residual_correction(
+    fixes_xy: FloatArray, truth_xy: FloatArray, *, degree: int = 1, min_spread_m: float = 0.1
+) -> ResidualCorrection | str:
+    """A residual correction that cannot make the fixes worse, or the reason there is none.
+
+    1. **Spread.** The known points (the distinct true positions) must determine the field: at least as
+       many as it has coefficients, and, for degree >= 1, spread in both directions (the smaller principal
+       spread of the points at least ``min_spread_m``): points clustered at one place or along a line give
+       a slope from noise, which extrapolates to errors far larger than the ones it was fitted to.
+    2. **Held-out fixes.** The fixes at each point are split in two halves; the correction fitted to one
+       half is applied to the other (both ways), and kept only when the held-out rms error falls (a field
+       fitted to noise alone makes the other half worse).
+    """
+    fixes_xy = np.asarray(fixes_xy, dtype=np.float64).reshape(-1, 2)
+    truth_xy = np.asarray(truth_xy, dtype=np.float64).reshape(-1, 2)
+    n_coef = (degree + 1) * (degree + 2) // 2
+    keys = np.round(truth_xy * 1e3).astype(np.int64)
+    points, label = np.unique(keys, axis=0, return_inverse=True)
+    label = label.ravel()
+    if len(points) < max(n_coef, 2) or fixes_xy.shape[0] < n_coef:
+        return (
+            f"{len(points)} known points ({fixes_xy.shape[0]} fixes): a degree-{degree} correction needs "
+            f"{n_coef}"
+        )
+    centred = points / 1e3 - points.mean(axis=0) / 1e3
+    spread = float(np.sqrt(max(np.linalg.eigvalsh(centred.T @ centred / len(points))[0], 0.0)))
+    if degree >= 1 and spread < min_spread_m:
+        return f"the known points are not spread out (smaller spread {spread:.3f} m < {min_spread_m} m)"
+    # Two folds: every other fix at each known point (so both folds see every point); each fold's correction
+    # is judged on the other's fixes.
+    rank = np.zeros(len(label), dtype=np.int64)
+    for k in range(len(points)):
+        at = np.flatnonzero(label == k)
+        rank[at] = np.arange(at.size)
+    fold = rank % 2 == 0
+    if min(np.count_nonzero(fold), np.count_nonzero(~fold)) < n_coef:
+        return f"too few fixes to hold half of them out ({fixes_xy.shape[0]})"
+    before = after = 0.0
+    for train in (fold, ~fold):
+        fitted = fit_residual_correction(fixes_xy[train], truth_xy[train], degree=degree)
+        for (fx, fy), (tx, ty) in zip(fixes_xy[~train], truth_xy[~train], strict=True):
+            cx, cy = fitted.apply(float(fx), float(fy))
+            before += (fx - tx) ** 2 + (fy - ty) ** 2
+            after += (cx - tx) ** 2 + (cy - ty) ** 2
+    n = fixes_xy.shape[0]
+    rms_before, rms_after = math.sqrt(before / n), math.sqrt(after / n)
+    if not rms_after < rms_before:
+        return (
+            f"the correction does not improve held-out fixes (rms {1e3 * rms_before:.2f} -> "
+            f"{1e3 * rms_after:.2f} mm)"
+        )
+    return fit_residual_correction(fixes_xy, truth_xy, degree=degree)
+
+
 @dataclass(frozen=True, slots=True)
 class VlpCalibration:
     """What the calibration found: the principal point at the given image size (None: keep the nominal

@@ -14,9 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from agent.vlp.integrity import ProtectionInputs
+
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
+    "AssociationWork",
     "CameraIntrinsics",
     "CameraMount",
     "LedMap",
@@ -302,6 +305,20 @@ class StageTimings:
 
 
 @dataclass(frozen=True, slots=True)
+class AssociationWork:
+    """What telling repeated ids apart cost on one frame: ``checks`` candidate tests (a prior gate, a pair's
+    distance, a predicted LED's place: each a few float operations), ``hypotheses`` id-to-LED assignments
+    solved by Gauss-Newton, ``truncated`` when the work budget ran out before every candidate was tried."""
+
+    checks: int = 0
+    hypotheses: int = 0
+    truncated: bool = False
+
+
+NO_WORK = AssociationWork()
+
+
+@dataclass(frozen=True, slots=True)
 class LedObservation:
     """One LED seen in one frame.
 
@@ -334,7 +351,12 @@ class VlpFix:
     ``covariance`` is over (x_m, y_m, yaw_rad), row-major 3x3. ``residual_rms`` is the solver's RMS
     residual in standard deviations (about 1 when the noise is as modelled). ``degraded`` says the fix is
     weaker than a
-    normal one, with the reasons in ``flags`` (e.g. ``"single-led"``, ``"partial-occlusion"``).
+    normal one, with the reasons in ``flags`` (e.g. ``"single-led"``, ``"inconsistent"``,
+    ``"id-unconfirmed"``). ``work``: what the id association cost. Integrity: ``chi2`` is the fit's
+    whitened residual sum (every fitted term, the LED-height correction's prior included), tested against
+    ``chi2_threshold`` (a fix past it is degraded, flag ``"inconsistent"``); ``protection_level_m`` bounds the
+    base position error that a fault in one LED could cause without the test seeing it, at the solver's
+    risks (inf when nothing can be ruled out: two LEDs, one LED), computed on reading from ``protection``.
     """
 
     time_s: float
@@ -348,6 +370,15 @@ class VlpFix:
     degraded: bool
     flags: tuple[str, ...]
     timings: StageTimings
+    work: AssociationWork = NO_WORK
+    chi2: float = math.nan
+    chi2_threshold: float = math.inf
+    protection: ProtectionInputs | None = None
+
+    @property
+    def protection_level_m(self) -> float:
+        """The protection level, metres (computed from ``protection`` on reading; inf without it)."""
+        return self.protection.protection_level_m if self.protection is not None else math.inf
 
     @property
     def sigma_xy_m(self) -> float:
@@ -365,6 +396,7 @@ class NoFix:
     reason: str
     leds: tuple[LedObservation, ...]
     timings: StageTimings
+    work: AssociationWork = NO_WORK
 
 
 VlpResult = VlpFix | NoFix

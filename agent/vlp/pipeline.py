@@ -34,7 +34,10 @@ from agent.vlp.detect import (
     search_bands,
 )
 from agent.vlp.geometry import lens_offset_level, level_plane_points, level_rotation
+from agent.vlp.integrity import ProtectionInputs
 from agent.vlp.model import (
+    NO_WORK,
+    AssociationWork,
     CameraIntrinsics,
     CameraMount,
     LedMap,
@@ -47,7 +50,14 @@ from agent.vlp.model import (
     VlpFix,
     VlpResult,
 )
-from agent.vlp.solve import LedRay, SolverConfig, single_led_position, solve_pose
+from agent.vlp.solve import (
+    LedRay,
+    NoSolution,
+    PoseSolution,
+    SolverConfig,
+    single_led_position,
+    solve_pose,
+)
 from agent.vlp.track import FULL, LedTrack, LedTracker, TrackerConfig
 
 log = logging.getLogger(__name__)
@@ -55,6 +65,9 @@ log = logging.getLogger(__name__)
 FloatArray = npt.NDArray[np.float64]
 Covariance3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 
+# The yaw error bound at the fault-free risk, for the lens-to-base part of the protection level (3.3 sigma:
+# 1e-3 two-sided).
+_K_YAW = 3.29
 # The stage timings of a result before the frame's are filled in (immutable, so one serves every frame).
 _NO_TIMINGS = StageTimings()
 
@@ -273,13 +286,15 @@ class VlpPipeline:
             # A settled id that the last decoded frame, at most a few frames ago, agreed with is verified
             # every few frames, every settled LED on the same frame: a decode batch costs ~0.2 ms of calls
             # whatever its size, so one batch for all of them, and the frames between decode nothing. A new
-            # LED, one back from a cover, or one whose stripes last said otherwise, is decoded on every frame.
+            # LED, one back from a cover, one whose id is not confirmed yet, or one whose stripes last said
+            # otherwise, is decoded on every frame.
             last = track.frame
             agreed = (
                 last is not None
                 and track.age - track.voted_at < verify
                 and last.id is not None
                 and last.id == self._settled_id(track)
+                and track.confirmed(cfg.tracker)
             )
             if agreed and self._frames % verify != 0:
                 continue
@@ -320,8 +335,12 @@ class VlpPipeline:
                 result.degraded,
                 result.flags,
                 timings,
+                result.work,
+                result.chi2,
+                result.chi2_threshold,
+                result.protection,
             )
-        return NoFix(result.time_s, result.reason, result.leds, timings)
+        return NoFix(result.time_s, result.reason, result.leds, timings, result.work)
 
     # -- acquisition ---------------------------------------------------------------------------------------
     def _bands(self, height: int) -> list[tuple[int, int]]:
@@ -544,18 +563,43 @@ class VlpPipeline:
         solution = solve_pose(
             rays, self.led_map.xyz_m, lens_z, velocity=velocity, prior=lens_prior, config=self.config.solver
         )
-        if isinstance(solution, str):
-            return NoFix(time_s, solution, tuple(self._observations(features)), empty)
+        if isinstance(solution, NoSolution):
+            return NoFix(time_s, solution.reason, tuple(self._observations(features)), empty, solution.work)
 
         flags: list[str] = []
         observations = self._observations(features, dict(zip(usable, solution.assignment, strict=True)))
-        if solution.dropped:
-            flags.append("outlier-dropped")
         if any(not t.centre_ok for t in tracks):
             flags.append("leds-excluded")
-        degraded = solution.dropped > 0 or solution.rms_residual > 3.0
-        if solution.rms_residual > 3.0:
-            flags.append("large-residual")
+        # Each reason the fix is weaker than a nominal one (every one makes it degraded).
+        weak = [
+            ("outlier-dropped", solution.dropped > 0),
+            ("large-residual", solution.rms_residual > 3.0),
+            # chi^2 over every fitted term (the height correction's prior too) past the test's limit.
+            ("inconsistent", not solution.consistent),
+            # The best of what the budget allowed: another placement may fit as well.
+            ("association-truncated", solution.work.truncated),
+            # Another placement far from this one fits about as well given the prior.
+            ("ambiguous-placement", solution.alternatives > 0),
+            # An id that fewer than confirm_frames frames in a row named, in a fix whose own redundancy
+            # cannot check it (with three LEDs or more a misread id puts its LED far off the fitted pose,
+            # which the chi-square test sees; with two nothing does).
+            (
+                "id-unconfirmed",
+                solution.protection is None
+                and any(
+                    not tracks[k].confirmed(self.config.tracker)
+                    for k, a in zip(usable, solution.assignment, strict=True)
+                    if a >= 0
+                ),
+            ),
+            (
+                "prior-mismatch",
+                solution.prior_ignored
+                or _far_from_prior(solution, lens_prior, self.config.solver.prior_gate_sigmas),
+            ),
+        ]
+        flags += [name for name, hit in weak if hit]
+        degraded = any(hit for _, hit in weak)
         lens = (solution.x_m, solution.y_m, solution.yaw_rad)
         return self._finish(
             time_s,
@@ -566,6 +610,8 @@ class VlpPipeline:
             degraded,
             flags,
             solution.rms_residual,
+            solution.work,
+            (solution.protection, solution.chi2, solution.chi2_threshold),
         )
 
     def _single(
@@ -634,8 +680,12 @@ class VlpPipeline:
         degraded: bool,
         flags: list[str],
         rms: float,
+        work: AssociationWork = NO_WORK,
+        integrity: tuple[ProtectionInputs | None, float, float] = (None, math.nan, math.inf),
     ) -> VlpFix:
-        """Lens pose -> base pose (base = lens - R(psi_base) offset), residual correction, bookkeeping."""
+        """Lens pose -> base pose (base = lens - R(psi_base) offset), residual correction, bookkeeping.
+        ``integrity``: what the lens fix's protection level is computed from, its chi^2 and the test's
+        threshold."""
         yaw_base = math.remainder(lens[2] - self.mount.yaw_rad, 2.0 * math.pi)
         c, s = math.cos(yaw_base), math.sin(yaw_base)
         ox, oy = float(lens_offset[0]), float(lens_offset[1])
@@ -645,6 +695,13 @@ class VlpPipeline:
         cov_t = _moved_covariance(cov_lens, s * ox + c * oy, -c * ox + s * oy)
         if self.calibration is not None and self.calibration.residual is not None:
             x, y = self.calibration.residual.apply(x, y)
+        protection, chi2, chi2_limit = integrity
+        if protection is not None and (ox or oy):
+            # The base is |o| from the lens: its position also moves with the yaw's error (bounded at the
+            # same risk as the fault-free part of the protection level).
+            protection = protection.with_margin(
+                math.hypot(ox, oy) * _K_YAW * math.sqrt(max(float(cov_lens[2][2]), 0.0))
+            )
         if not degraded:
             # Only full fixes feed the next frames' prior and velocity (a one-LED fix leans on its prior).
             previous = (self._last.time_s, self._last.lens) if self._last is not None else None
@@ -662,7 +719,25 @@ class VlpPipeline:
             degraded,
             tuple(flags),
             _NO_TIMINGS,
+            work,
+            chi2,
+            chi2_limit,
+            protection,
         )
+
+
+def _far_from_prior(
+    solution: PoseSolution, prior: tuple[float, float, float, float, float] | None, gate_sigmas: float
+) -> bool:
+    """The lens fix lies outside the prior's gate (its position or yaw more than ``gate_sigmas`` of the
+    prior's uncertainty away, + 5 cm and 0.05 rad): a misread id, or a prior that is wrong; either way the
+    fix is not to be trusted as nominal."""
+    if prior is None:
+        return False
+    px, py, pyaw, sxy, syaw = prior
+    far = math.hypot(solution.x_m - px, solution.y_m - py) > gate_sigmas * sxy + 0.05
+    turned = abs(math.remainder(solution.yaw_rad - pyaw, 2.0 * math.pi)) > gate_sigmas * syaw + 0.05
+    return far or turned
 
 
 def _map_index(index: int | None) -> int | None:

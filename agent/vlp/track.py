@@ -69,7 +69,9 @@ class TrackerConfig:
     visible LED (vignetting changes its level across the image), every ``adapt_every`` frames and only
     while rho >= ``adapt_rho``, so that a cover never becomes the model. ``min_area_ratio``,
     ``max_outline_rms_px``: a disk whose bridged area is below this share of pi R^2, or whose outline is
-    not a circle, is partly covered whatever the histogram says."""
+    not a circle, is partly covered whatever the histogram says. An id settles on the tally's posterior
+    (``settle_posterior``, after ``settle_frames`` votes); it is *confirmed* once ``confirm_frames``
+    consecutive decided frames named it (one confident misread is then not enough for a nominal fix)."""
 
     accel_sigma_pxps2: float = 3000.0
     initial_speed_sigma_pxps: float = 400.0
@@ -91,6 +93,7 @@ class TrackerConfig:
     vote_span: float = 60.0
     settle_posterior: float = 0.999
     settle_frames: int = 1
+    confirm_frames: int = 2
 
 
 def bhattacharyya(p: FloatArray, q: FloatArray) -> float:
@@ -174,6 +177,8 @@ class LedTrack:
         self.tally = np.zeros(n_signatures)
         self.votes = 0
         self.id_index: int | None = None
+        # Consecutive decided frames, up to now, whose own best signature was the settled id.
+        self.confirmations = 0
         self.frame: Classification | None = None
         # The track's age at its last vote (its last decoded frame).
         self.voted_at = -1
@@ -230,8 +235,15 @@ class LedTrack:
         best = tally.index(max(tally))
         # Posterior of the best: 1 / sum_k exp(tally_k - tally_best), the best's own tally being 0.
         self._best_posterior = (best, 1.0 / math.fsum(math.exp(t) for t in tally))
+        settled = self.id_index
         if self.votes >= config.settle_frames and self._best_posterior[1] >= config.settle_posterior:
             self.id_index = best
+        if self.id_index != settled:
+            self.confirmations = 0
+        if classification.id is not None and self.id_index is not None:
+            # This frame's own verdict (its best signature) for or against the settled id.
+            said = ll.index(top_ll)
+            self.confirmations = self.confirmations + 1 if said == self.id_index else 0
 
     @property
     def posterior(self) -> FloatArray:
@@ -240,6 +252,10 @@ class LedTrack:
         e = np.exp(self.tally - self.tally.max())
         result: FloatArray = e / e.sum()
         return result
+
+    def confirmed(self, config: TrackerConfig) -> bool:
+        """The settled id was named by the last ``confirm_frames`` decided frames in a row."""
+        return self.id_index is not None and self.confirmations >= config.confirm_frames
 
     @property
     def id_confidence(self) -> float:

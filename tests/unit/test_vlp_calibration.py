@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from agent.vlp.calibration import (
@@ -14,6 +16,7 @@ from agent.vlp.calibration import (
     fit_rotation_centre,
     format_calibration,
     parse_calibration,
+    validated_residual_correction,
 )
 from agent.vlp.model import CameraIntrinsics, CameraMount
 from drivers.errors import ConfigError
@@ -64,6 +67,45 @@ def test_residual_correction_recovers_an_affine_error_field() -> None:
     corrected = np.array([correction.apply(x, y) for x, y in fixes])
     assert np.sqrt(np.mean(np.sum((corrected - truth) ** 2, axis=1))) < 5e-4
     assert correction.rms_after_m < 0.2 * correction.rms_before_m
+
+
+def grid_fixes(
+    rng: np.random.Generator,
+    points: npt.NDArray[np.float64],
+    per_point: int,
+    error: Callable[[float, float], tuple[float, float]],
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """``per_point`` fixes at each known point, off by ``error`` there plus 0.5 mm of noise."""
+    truth = np.repeat(points, per_point, axis=0)
+    fixes = truth + np.array([error(x, y) for x, y in truth]) + rng.normal(0.0, 5e-4, truth.shape)
+    return fixes, truth
+
+
+def test_a_validated_residual_correction_is_kept_when_it_helps_held_out_fixes() -> None:
+    rng = np.random.default_rng(2)
+    points = np.array([[x, y] for x in (-0.3, 0.0, 0.3) for y in (-0.3, 0.0, 0.3)])
+    fixes, truth = grid_fixes(rng, points, 12, lambda x, y: (0.003 + 0.004 * x, 0.001 - 0.002 * y))
+    correction = validated_residual_correction(fixes, truth)
+    assert isinstance(correction, ResidualCorrection)
+    assert correction.rms_after_m < 0.3 * correction.rms_before_m
+
+
+def test_a_residual_correction_that_would_hurt_is_refused_with_a_reason() -> None:
+    """Points clustered at one place (the issue's case: a slope from noise, 20x worse elsewhere), points
+    along a line, and errors that are noise only (nothing to correct: held-out points do not improve)."""
+    rng = np.random.default_rng(3)
+    clustered = np.array([[0.0, 0.0], [0.02, 0.0], [0.0, 0.02], [0.02, 0.02]])
+    fixes, truth = grid_fixes(rng, clustered, 12, lambda x, y: (0.002, 0.0))
+    refused = validated_residual_correction(fixes, truth)
+    assert isinstance(refused, str) and "spread" in refused
+    line = np.array([[x, 0.0] for x in (-0.3, -0.1, 0.1, 0.3)])
+    fixes, truth = grid_fixes(rng, line, 12, lambda x, y: (0.002, 0.0))
+    refused = validated_residual_correction(fixes, truth)
+    assert isinstance(refused, str) and "spread" in refused
+    points = np.array([[x, y] for x in (-0.3, 0.0, 0.3) for y in (-0.3, 0.0, 0.3)])
+    fixes, truth = grid_fixes(rng, points, 3, lambda x, y: (0.0, 0.0))
+    refused = validated_residual_correction(fixes, truth)
+    assert isinstance(refused, str) and "held-out" in refused, refused
 
 
 def test_calibration_file_round_trip() -> None:

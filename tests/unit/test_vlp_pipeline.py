@@ -147,7 +147,8 @@ def test_lens_distortion_is_undone(perfect_env1) -> None:  # type: ignore[no-unt
 
 
 def test_losing_all_but_one_led_carries_on_from_the_last_fix(perfect_env1) -> None:  # type: ignore[no-untyped-def]
-    """Two LEDs, then one is covered: single-LED fixes from the pipeline's own last yaw, flagged."""
+    """Two LEDs, then one is covered: single-LED fixes from the pipeline's own last yaw, flagged. The first
+    two-LED fix rests on ids one frame named (two LEDs cannot check them): flagged too."""
     world = dataclasses.replace(perfect_env1, leds=perfect_env1.leds[:2])
     view = agent_view(world)
     pipeline = VlpPipeline(view.intrinsics, view.led_map, view.mount)
@@ -159,7 +160,11 @@ def test_losing_all_but_one_led_carries_on_from_the_last_fix(perfect_env1) -> No
         result = pipeline.process(frame.image, frame.truth.t_mid_s)
         assert isinstance(result, VlpFix), (k, result)
         assert math.hypot(result.x_m - pose.x_m, result.y_m - pose.y_m) < 3e-3
-        assert result.degraded == (k >= 5)
+        assert result.degraded == (k == 0 or k >= 5)
+        assert ("id-unconfirmed" in result.flags) == (k == 0)
+        assert ("single-led" in result.flags) == (k >= 5)
+        # Two LEDs, one LED: a fault cannot be told from the pose, nothing is ruled out.
+        assert result.protection_level_m == math.inf
 
 
 def test_settled_ids_are_verified_every_few_frames_and_a_disagreement_every_frame(perfect_env1) -> None:  # type: ignore[no-untyped-def]
@@ -193,3 +198,47 @@ def test_settled_ids_are_verified_every_few_frames_and_a_disagreement_every_fram
     for frame in stream:
         result = pipeline.process(frame.image, frame.truth.t_mid_s)
         assert any(o.track_id == track.track_id and o.frame_id is not None for o in result.leds)
+
+
+def test_a_misread_id_on_two_leds_is_not_passed_as_nominal(perfect_env1) -> None:  # type: ignore[no-untyped-def]
+    """Two LEDs (L1, L2: 0.915 m apart) whose ids settled and were confirmed; then one is taken for L3 (0.925
+    m from L1: the distances agree, the fix lands about a metre away, its chi^2 is clean). The pipeline's
+    own last fix says it cannot be there: the fix is flagged, never nominal."""
+    world = dataclasses.replace(perfect_env1, leds=perfect_env1.leds[:2])
+    view = agent_view(perfect_env1)
+    pipeline = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+    renderer = RollingShutterRenderer.for_world(world, seed=5)
+    pose = Pose2D(-0.46, 0.04, 1.57)
+    for k in range(4):
+        frame = renderer.render(lambda t: pose, 10.0 + k / 20.0)
+        good = pipeline.process(frame.image, frame.truth.t_mid_s)
+    assert isinstance(good, VlpFix) and not good.degraded
+    l2 = next(t for t in pipeline.tracks if pipeline.signatures[t.id_index or 0].id == "L2")
+    # A confident, confirmed misread: the tally all for L3.
+    l3 = [s.id for s in pipeline.signatures].index("L3")
+    l2.tally = np.where(np.arange(l2.tally.size) == l3, 0.0, -60.0)
+    l2.id_index = l3
+    l2.confirmations = 5
+    frame = renderer.render(lambda t: pose, 10.0 + 4 / 20.0)
+    result = pipeline.process(frame.image, frame.truth.t_mid_s)
+    assert isinstance(result, VlpFix)
+    assert math.hypot(result.x_m - pose.x_m, result.y_m - pose.y_m) > 0.5
+    assert result.degraded
+    # The last fix contradicts it.
+    assert "prior-mismatch" in result.flags
+
+
+def test_fixes_carry_their_integrity(perfect_env1) -> None:  # type: ignore[no-untyped-def]
+    """Four LEDs: chi^2 within its limit, a finite protection level over the error (and above the
+    covariance's own sigma), the association's work (one assignment, no search)."""
+    view = agent_view(perfect_env1)
+    pipeline = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+    pose = Pose2D(0.06, -0.03, 0.2)
+    for frame in frames(perfect_env1, pose, 3):
+        result = pipeline.process(frame.image, frame.truth.t_mid_s)
+        assert isinstance(result, VlpFix) and not result.degraded
+        assert result.chi2 <= result.chi2_threshold < math.inf
+        error = math.hypot(result.x_m - pose.x_m, result.y_m - pose.y_m)
+        assert 3.0 * result.sigma_xy_m < result.protection_level_m < 0.1
+        assert error < result.protection_level_m
+        assert result.work.hypotheses == 1 and not result.work.truncated

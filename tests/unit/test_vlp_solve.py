@@ -4,6 +4,7 @@ repeat across a building."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,6 +21,8 @@ from agent.vlp.geometry import (
 from agent.vlp.model import CameraIntrinsics, CameraMount, Tilt
 from agent.vlp.solve import (
     LedRay,
+    NoSolution,
+    PoseSolution,
     SolverConfig,
     gauss_newton_pose,
     single_led_position,
@@ -78,7 +81,7 @@ def test_gauss_newton_with_leds_at_different_heights_and_its_covariance() -> Non
     q = level_q(leds, *truth, 0.2)
     rays = [LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, 0.2, config=SolverConfig(map_sigma_m=0.0))
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert (solution.x_m, solution.y_m, solution.yaw_rad) == pytest.approx(truth, abs=1e-9)
     assert solution.height_offset_m == pytest.approx(0.0, abs=1e-9)
     # The covariance is what the scatter of solutions under that noise is.
@@ -88,7 +91,7 @@ def test_gauss_newton_with_leds_at_different_heights_and_its_covariance() -> Non
     for _ in range(300):
         noisy = [LedRay(tuple(v + rng.normal(0, sigma, 2)), (i,), sigma) for i, v in enumerate(q)]
         s = solve_pose(noisy, leds, 0.2, config=SolverConfig(map_sigma_m=0.0, outlier_sigmas=1e9))
-        assert not isinstance(s, str)
+        assert not isinstance(s, NoSolution)
         samples.append((s.x_m, s.y_m, s.yaw_rad))
         cov = s.covariance
     empirical = np.cov(np.array(samples).T)
@@ -110,7 +113,7 @@ def test_rolling_shutter_motion_is_taken_into_account() -> None:
     rays = [LedRay(tuple(q[i]), (i,), 1e-4, float(dts[i])) for i in range(3)]
     moving = solve_pose(rays, leds, 0.2, velocity=(vx, vy, w))
     still = solve_pose(rays, leds, 0.2)
-    assert not isinstance(moving, str) and not isinstance(still, str)
+    assert not isinstance(moving, NoSolution) and not isinstance(still, NoSolution)
     assert math.hypot(moving.x_m - x, moving.y_m - y) < 1e-9
     assert math.hypot(still.x_m - x, still.y_m - y) > 2e-3
 
@@ -137,11 +140,11 @@ def test_tilt_compensation_from_the_imu() -> None:
     q = level_plane_coordinates(norm, r_level)
     rays = [LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, float(offset[2]))
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert (solution.x_m, solution.y_m) == pytest.approx(lens[:2], abs=1e-9)
     q_flat = level_plane_coordinates(norm, level_rotation(mount, None))
     naive = solve_pose([LedRay(tuple(v), (i,), 1e-4) for i, v in enumerate(q_flat)], leds, 0.2)
-    assert not isinstance(naive, str)
+    assert not isinstance(naive, NoSolution)
     assert math.hypot(naive.x_m - lens[0], naive.y_m - lens[1]) > 0.03
 
 
@@ -151,7 +154,7 @@ def test_an_outlier_ray_is_dropped() -> None:
     q[2] += 0.02  # 2.6 cm on the LED plane: a bad centre
     rays = [LedRay(tuple(v), (i,), 2e-4) for i, v in enumerate(q)]
     solution = solve_pose(rays, leds, 0.2)
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert solution.dropped == 1 and solution.assignment[2] == -1
     assert math.hypot(solution.x_m, solution.y_m) < 1e-6
 
@@ -170,14 +173,14 @@ def test_repeated_ids_need_the_pose_prior() -> None:
     q = level_q(leds[seen], *truth, 0.2)
     rays = [LedRay(tuple(q[j]), candidates[ids[i]], 2e-4) for j, i in enumerate(seen)]
     ambiguous = solve_pose(rays, leds, 0.2)
-    assert isinstance(ambiguous, str) and "ambiguous" in ambiguous
+    assert isinstance(ambiguous, NoSolution) and "ambiguous" in ambiguous.reason
     prior = (truth[0] + 0.3, truth[1] - 0.2, truth[2] + 0.1, 0.5, 0.3)
     solution = solve_pose(rays, leds, 0.2, prior=prior)
-    assert not isinstance(solution, str)
+    assert not isinstance(solution, NoSolution)
     assert solution.assignment == (8, 9)
     assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
     far = solve_pose(rays, leds, 0.2, prior=(20.0, 20.0, 0.0, 0.3, 0.2))
-    assert isinstance(far, str) and "prior" in far and "ambiguous" in far
+    assert isinstance(far, NoSolution) and "prior" in far.reason and "ambiguous" in far.reason
 
 
 def test_a_wrong_prior_gives_way_to_a_placement_the_map_fixes_alone() -> None:
@@ -193,7 +196,7 @@ def test_a_wrong_prior_gives_way_to_a_placement_the_map_fixes_alone() -> None:
     rays = [LedRay(tuple(q[j]), candidates[ids[i]], 2e-4) for j, i in enumerate(seen)]
     for prior in [(5.3, 3.1, 0.45, 0.01, 0.01), (6.5, 1.5, 1.0, 0.05, 0.05)]:  # near, and 2 m off
         solution = solve_pose(rays, leds, 0.2, prior=prior)
-        assert not isinstance(solution, str), solution
+        assert not isinstance(solution, NoSolution), solution
         assert solution.assignment == (8, 9, 14)
         assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
 
@@ -208,7 +211,7 @@ def test_gauss_newton_rejects_nothing_silently_on_degenerate_input() -> None:
     leds = np.array([[0.5, 0.4, 1.5], [0.5, 0.4, 1.5]])
     rays = [LedRay((0.1, 0.1), (0,), 1e-4), LedRay((0.1, 0.1), (1,), 1e-4)]
     result = solve_pose(rays, leds, 0.2)
-    assert isinstance(result, str)
+    assert isinstance(result, NoSolution)
     with pytest.raises(np.linalg.LinAlgError):
         gauss_newton_pose(
             np.zeros((1, 2)), leds[:1], np.ones(1), np.zeros(1), 0.2, (0, 0, 0, 0), height_sigma_m=0.0
@@ -290,3 +293,204 @@ def test_level_plane_points_are_the_array_functions(
     got = level_plane_points(uv, intrinsics, r_level)
     np.testing.assert_array_equal(np.array(got), want)
     assert level_plane_points([], intrinsics, r_level) == []
+
+
+def dense_map() -> tuple[FloatArray, dict[int, tuple[int, ...]], list[int]]:
+    """examples/worlds/dense_repeats.toml: a 12 x 10 grid 0.5 m apart, four signatures (30 LEDs each)."""
+    leds = np.array([[-2.75 + 0.5 * ix, -2.25 + 0.5 * iy, 1.5] for iy in range(10) for ix in range(12)])
+    ids = [(ix + 2 * iy) % 4 for iy in range(10) for ix in range(12)]
+    return leds, {k: tuple(i for i, v in enumerate(ids) if v == k) for k in range(4)}, ids
+
+
+def twelve_in_view(truth: tuple[float, float, float]) -> tuple[list[LedRay], list[int], FloatArray]:
+    leds, candidates, ids = dense_map()
+    q = level_q(leds, *truth, 0.2)
+    seen = [i for i in range(len(leds)) if abs(q[i, 0]) < 0.78 and abs(q[i, 1]) < 0.55]
+    rng = np.random.default_rng(3)
+    rays = [LedRay(tuple(q[i] + rng.normal(0.0, 2e-4, 2)), candidates[ids[i]], 2e-4) for i in seen]
+    return rays, seen, leds
+
+
+def test_association_work_is_bounded_with_twelve_leds_of_four_signatures() -> None:
+    """Twelve LEDs in view, each id carried by 30 map LEDs: an odometry-grade prior (0.4 m, 20 deg) leaves
+    some fifteen candidates per LED, ~10^13 combinations (the old search tried them all: minutes per
+    frame). The anchor-pair search tests about a thousand candidates and solves a handful of assignments,
+    and finds the right one."""
+    truth = (0.02, 0.27, 0.03)
+    rays, seen, leds = twelve_in_view(truth)
+    assert len(rays) == 12
+    config = SolverConfig()
+    prior = (truth[0] + 0.25, truth[1] - 0.2, truth[2] + 0.15, 0.4, math.radians(20.0))
+    solution = solve_pose(rays, leds, 0.2, prior=prior, config=config)
+    assert isinstance(solution, PoseSolution)
+    assert solution.assignment == tuple(seen)
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 2e-3
+    work = solution.work
+    assert 0 < work.checks <= 2000 and not work.truncated
+    assert 1 <= work.hypotheses <= config.max_hypotheses
+
+
+def test_association_without_a_prior_stays_within_its_budget() -> None:
+    """No prior: 30 candidates per LED, 30^12 combinations; the map's repeated pattern leaves several
+    placements (ambiguous, no fix). The work stays under the budget, and a budget too small for the search
+    stops it and says so."""
+    rays, _, leds = twelve_in_view((0.02, 0.27, 0.03))
+    config = SolverConfig()
+    result = solve_pose(rays, leds, 0.2, config=config)
+    assert isinstance(result, NoSolution) and "ambiguous" in result.reason
+    assert result.work.checks <= config.max_association_checks
+    assert result.work.hypotheses <= config.max_hypotheses
+    small = SolverConfig(max_association_checks=300)
+    cut = solve_pose(rays, leds, 0.2, config=small)
+    # One look-up past the limit at most (a ray's candidates are tested together).
+    assert cut.work.truncated and cut.work.checks <= 300 + 30
+    if isinstance(cut, NoSolution):
+        assert "budget" in cut.reason
+
+
+def test_unique_ids_that_break_the_map_distances_leave_the_misread_led_out() -> None:
+    """Four LEDs with unique ids, one misread as another LED's id: the map's distances reject the
+    assignment, and the anchor pairs find the three that agree; the misread LED is left out (dropped)."""
+    leds = np.array([[0.5, 0.4, 1.5], [-0.4, 0.5, 1.5], [-0.3, -0.5, 1.5], [0.6, -0.4, 1.5], [1.6, 1.4, 1.5]])
+    truth = (0.05, -0.02, 0.3)
+    q = level_q(leds, *truth, 0.2)
+    rays = [LedRay(tuple(q[i]), (i,), 2e-4) for i in range(4)]
+    rays[3] = LedRay(rays[3].q, (4,), 2e-4)  # LED 3 read as LED 4 (1.4 m away)
+    solution = solve_pose(rays, leds, 0.2)
+    assert isinstance(solution, PoseSolution)
+    assert solution.assignment == (0, 1, 2, -1) and solution.dropped == 1
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) < 1e-6
+
+
+def test_a_misread_id_on_two_leds_absorbed_by_the_height_is_inconsistent() -> None:
+    """Two LEDs 1.0 m apart, the second taken for an LED 1.14 m from the first: the distances pass the
+    loose pair check, and Gauss-Newton explains the 14 % by an LED plane 18 cm higher than surveyed, with
+    the rays fitted exactly. The height correction's prior (5 cm) is part of chi^2, so the fix fails its
+    test (it used to pass with rms 0: only the rays were counted)."""
+    leds = np.array([[0.0, 0.0, 1.5], [1.0, 0.0, 1.5], [0.3, 1.1, 1.5]])  # |L0 - L2| = 1.14
+    truth = (0.4, 0.2, 0.3)
+    q = level_q(leds, *truth, 0.2)
+    rays = [LedRay(tuple(q[0]), (0,), 2e-4), LedRay(tuple(q[1]), (2,), 2e-4)]
+    solution = solve_pose(rays, leds, 0.2)
+    assert isinstance(solution, PoseSolution)
+    assert solution.height_offset_m > 0.15
+    assert math.hypot(solution.x_m - truth[0], solution.y_m - truth[1]) > 0.5
+    assert solution.dof == 1 and solution.chi2 > solution.chi2_threshold
+    assert not solution.consistent and solution.rms_residual > 1.0
+    # The right ids pass.
+    right = solve_pose([rays[0], LedRay(tuple(q[1]), (1,), 2e-4)], leds, 0.2)
+    assert isinstance(right, PoseSolution) and right.consistent
+    assert right.protection_level_m == math.inf  # two LEDs: no fault can be ruled out
+
+
+def test_a_misread_id_among_three_leds_is_flagged_or_dropped() -> None:
+    """Three LEDs of an irregular map with unique ids, one read as another LED's id, random places and
+    headings: the fix is never far off unless it says so (an LED dropped, or chi^2 past its limit), or
+    there is none."""
+    rng = np.random.default_rng(7)
+    wrong_unflagged = flagged = none = 0
+    for _ in range(300):
+        leds = np.column_stack((rng.uniform(-1.2, 1.2, (8, 2)), rng.uniform(1.45, 1.55, 8)))
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        seen = rng.choice(8, 3, replace=False)
+        q = level_q(leds[seen], *truth, 0.2) + rng.normal(0.0, 2e-4, (3, 2))
+        read = list(seen)
+        read[int(rng.integers(3))] = int(rng.choice([i for i in range(8) if i not in seen]))
+        rays = [LedRay(tuple(q[k]), (read[k],), 2e-4) for k in range(3)]
+        result = solve_pose(rays, leds, 0.2, config=SolverConfig(map_sigma_m=0.003))
+        if isinstance(result, NoSolution):
+            none += 1
+            continue
+        said = result.dropped > 0 or not result.consistent
+        flagged += int(said)
+        off = math.hypot(result.x_m - truth[0], result.y_m - truth[1]) > 0.05
+        wrong_unflagged += int(off and not said)
+    assert wrong_unflagged == 0
+    assert flagged + none == 300
+
+
+def test_the_protection_level_covers_the_error_with_noise_and_with_a_fault() -> None:
+    """Four LEDs with the noise as modelled: the error is within the protection level on >= 99.9 % of
+    fixes. With a growing bias on one LED, a fix that passes the chi-square test is within its protection
+    level (a bias large enough to break it is seen by the test)."""
+    rng = np.random.default_rng(11)
+    leds = np.array([[-0.465, 0.495, 1.5], [-0.46, -0.42, 1.5], [0.46, 0.49, 1.5], [0.48, -0.425, 1.5]])
+    sigma = 3e-4
+    config = SolverConfig(map_sigma_m=0.0)
+    covered = total = missed = passed_faulty = 0
+    for trial in range(1500):
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        q = level_q(leds, *truth, 0.2) + rng.normal(0.0, sigma, (4, 2))
+        fault = trial % 3 != 0
+        if fault:
+            angle = rng.uniform(-math.pi, math.pi)
+            q[trial % 4] += rng.uniform(0.0, 25.0) * sigma * np.array([math.cos(angle), math.sin(angle)])
+        rays = [LedRay(tuple(q[i]), (i,), sigma) for i in range(4)]
+        s = solve_pose(rays, leds, 0.2, config=dataclasses.replace(config, outlier_sigmas=1e9))
+        assert isinstance(s, PoseSolution)
+        error = math.hypot(s.x_m - truth[0], s.y_m - truth[1])
+        if not fault:
+            total += 1
+            covered += int(error <= s.protection_level_m)
+        elif s.consistent:
+            passed_faulty += 1
+            missed += int(error > s.protection_level_m)
+    assert covered >= 0.999 * total
+    assert passed_faulty > 200 and missed <= 0.001 * passed_faulty, (passed_faulty, missed)
+
+
+def test_the_written_out_protection_level_is_the_matrix_one() -> None:
+    """The plain-float protection level is the RAIM slope bound computed with matrices: the whitened
+    Jacobian J (rays and the height prior), S = (J^T J)^-1 J^T, P = I - J S, per LED the largest eigenvalue
+    of S_xy,i P_ii^-1 S_xy,i^T."""
+    rng = np.random.default_rng(5)
+    config = SolverConfig(map_sigma_m=0.0)
+    for _ in range(40):
+        n = int(rng.integers(3, 7))
+        leds = np.column_stack((rng.uniform(-1.2, 1.2, (n, 2)), rng.uniform(1.45, 1.55, n)))
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        sigma = rng.uniform(1e-4, 4e-4, n)
+        q = level_q(leds, *truth, 0.2) + rng.normal(0.0, 1.0, (n, 2)) * sigma[:, None]
+        rays = [LedRay(tuple(q[i]), (i,), float(sigma[i])) for i in range(n)]
+        s = solve_pose(rays, leds, 0.2, config=dataclasses.replace(config, outlier_sigmas=1e9))
+        assert isinstance(s, PoseSolution)
+        # The matrix version at the solution.
+        c, sn = math.cos(s.yaw_rad), math.sin(s.yaw_rad)
+        h = leds[:, 2] - 0.2 + s.height_offset_m
+        d = leds[:, :2] - np.array([s.x_m, s.y_m])
+        px, py = (c * d[:, 0] + sn * d[:, 1]) / h, (-sn * d[:, 0] + c * d[:, 1]) / h
+        w = 1.0 / sigma
+        jac = np.zeros((2 * n + 1, 4))
+        jac[0::2][:n] = np.column_stack((-c / h * w, -sn / h * w, py * w, -px / h * w))
+        jac[1::2][:n] = np.column_stack((sn / h * w, -c / h * w, -px * w, -py / h * w))
+        jac[-1, 3] = 1.0 / config.height_sigma_m
+        est = np.linalg.inv(jac.T @ jac) @ jac.T
+        proj = np.eye(2 * n + 1) - jac @ est
+        slopes = []
+        for i in range(n):
+            block = slice(2 * i, 2 * i + 2)
+            m = est[:2, block] @ np.linalg.inv(proj[block, block]) @ est[:2, block].T
+            slopes.append(np.linalg.eigvalsh(m)[-1])
+        slopes.append(float(est[0, -1] ** 2 + est[1, -1] ** 2) / proj[-1, -1])
+        slope = math.sqrt(max(slopes) * s.variance_scale)
+        cov = np.linalg.inv(jac.T @ jac)[:2, :2] * s.variance_scale
+        k_md, k_ff = 3.090232306167813, 3.290526731491926  # 1e-3 one-sided, 1e-3 two-sided
+        want = max(
+            k_ff * math.sqrt(np.linalg.eigvalsh(cov)[-1]), slope * (math.sqrt(s.chi2_threshold) + k_md)
+        )
+        # The solver's linearisation is that of its last iteration, a micrometre-sized step before the
+        # solution: equal to 1e-3.
+        assert s.protection_level_m == pytest.approx(want, rel=1e-3)
+
+
+def test_a_prior_too_loose_for_the_map_period_leaves_rival_placements() -> None:
+    """The dense map repeats its pattern within a metre: an odometry-grade prior (0.4 m) cannot rule out
+    the shifted placements, which fit as well (their chi^2 differ by noise), so the fix names its rivals
+    (the pipeline flags it ambiguous-placement); the last fix as the prior (5 cm) leaves none."""
+    truth = (0.02, 0.27, 0.03)
+    rays, seen, leds = twelve_in_view(truth)
+    loose = solve_pose(rays, leds, 0.2, prior=(truth[0] + 0.1, truth[1] - 0.1, truth[2], 0.4, 0.35))
+    assert isinstance(loose, PoseSolution) and loose.alternatives > 0
+    tight = solve_pose(rays, leds, 0.2, prior=(truth[0] + 0.02, truth[1] - 0.01, truth[2], 0.05, 0.1))
+    assert isinstance(tight, PoseSolution) and tight.alternatives == 0
+    assert tight.assignment == tuple(seen) and tight.consistent

@@ -142,6 +142,30 @@ def test_a_settled_id_does_not_flip_on_a_few_bad_frames() -> None:
     assert track.id_index == 1
 
 
+def test_an_id_is_confirmed_by_several_frames_not_one() -> None:
+    """One confident frame settles the id (the track can be followed and shown) but does not confirm it:
+    confirm_frames decided frames in a row must name it; a frame that names another id starts over, an
+    undecided one changes nothing."""
+    frame, tracker = next(iter(run(lambda t: Pose2D(0.0, 0.0, 0.0), frames=1)))
+    del frame
+    track = tracker.tracks[0]
+    config = TrackerConfig(confirm_frames=2)
+    says_a = Classification("A", 1.0, (0.0, -40.0, -60.0, -80.0))
+    weakly_b = Classification("B", 0.9, (-1.0, 0.0, -60.0, -80.0))
+    undecided = Classification(None, 0.0, (0.0, -0.5, -1.0, -1.0))
+    track.vote(says_a, config)
+    assert track.id_index == 0 and not track.confirmed(config)
+    track.vote(undecided, config)
+    assert not track.confirmed(config)
+    track.vote(says_a, config)
+    assert track.confirmed(config)
+    track.vote(weakly_b, config)
+    assert track.id_index == 0 and not track.confirmed(config)
+    track.vote(says_a, config)
+    track.vote(says_a, config)
+    assert track.confirmed(config)
+
+
 def test_a_track_started_from_a_poor_first_look_becomes_fully_visible() -> None:
     # The first look at L2 is half covered (an LED entering at the image edge looks like this): the target
     # histogram and the radius taken from it are wrong. Once the LED shows whole, the track must take its
