@@ -683,6 +683,22 @@ def _print_summary(s: dict[str, Any]) -> None:
     print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
     share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
     print(f"  sources live      {share} of frames")
+    goals = s.get("goals")
+    if goals:
+        outcomes = ", ".join(f"{goal_id} {text.lower()}" for goal_id, text in goals["outcomes"].items())
+        print(
+            f"  goals             {goals['reached']} of {goals['sent']} sent reached"
+            + (f" ({outcomes})" if outcomes else "")
+        )
+    gaps = [
+        f"{what} {gap * 100:.0f} cm"
+        for what, gap in (("wall", s["clearance_wall_m_min"]), ("person", s["clearance_person_m_min"]))
+        if gap is not None
+    ]
+    print(
+        f"  contact           {s['collisions']} collisions (walls {s['collisions_walls']}, people "
+        f"{s['collisions_people']}); closest approach {', '.join(gaps) or 'none'}"
+    )
     print(f"  dropped           {s['dropped']}{_counts_text(s['drops'])}")
     if s["no_fix_reasons"]:
         reasons = "; ".join(f"{n} x {r}" for r, n in s["no_fix_reasons"].items())
