@@ -228,24 +228,27 @@ class PoseOutput:
             log.debug("pose output %s: read failed: %s", self.url, exc)
             return b""
 
+    def _write_message_locked(self, data: bytes) -> tuple[int, int] | None:
+        """Write one whole message, after the 0x00 that ends a frame cut before it: (bytes sent, bytes
+        meant); a message cut short is ended by the next one's 0x00 (the receiver rejects the stub by its
+        CRC). None when the port failed (it is dropped, and reopened later)."""
+        if self._cut:
+            data = b"\x00" + data
+        try:
+            sent = self._write_all(data)
+        except (serial.SerialException, OSError) as exc:
+            self._drop_locked(f"write failed: {exc}")
+            return None
+        self.counts["bytes"] += sent
+        self._cut = 0 < sent < len(data)
+        return sent, len(data)
+
     def send(self, data: bytes) -> bool:
         """Write one whole message other than a pose (a goal status) between pose frames; False if it did
         not go out complete (counted in ``message_write_failures``)."""
         with self._lock:
-            if self._port is None:
-                self.counts["message_write_failures"] += 1
-                return False
-            if self._cut:
-                data = b"\x00" + data
-            try:
-                sent = self._write_all(data)
-            except (serial.SerialException, OSError) as exc:
-                self._drop_locked(f"write failed: {exc}")
-                self.counts["message_write_failures"] += 1
-                return False
-            self.counts["bytes"] += sent
-            self._cut = 0 < sent < len(data)
-            if sent < len(data):
+            written = self._write_message_locked(data) if self._port is not None else None
+            if written is None or written[0] < written[1]:
                 self.counts["message_write_failures"] += 1
                 return False
             self.counts["messages"] += 1
@@ -286,25 +289,17 @@ class PoseOutput:
                 reset_counter=estimate.reset_counter,
             )
             self._sequence = (self._sequence + 1) & 0xFFFF_FFFF
-            data = self._encode(frame, flags)
-            if self._cut:
-                data = b"\x00" + data
-            try:
-                sent = self._write_all(data)
-            except (serial.SerialException, OSError) as exc:
-                self._drop_locked(f"write failed: {exc}")
+            result = self._write_message_locked(self._encode(frame, flags))
+            if result is None:
                 return None
             done_ns = self.clock_ns()
-            self.counts["bytes"] += sent
-            if sent < len(data):
-                # The receiver rejects the stub (CRC) once the 0x00 sent ahead of the next frame ends it.
-                self._cut = sent > 0
+            sent, nbytes = result
+            if sent < nbytes:
                 self.counts["write_timeouts"] += 1
                 return None
-            self._cut = False
             self.last_publish_ns = done_ns
             self.counts["frames"] += 1
-        written = Written(frame, done_ns, trigger_ns, len(data), arrival_ns)
+        written = Written(frame, done_ns, trigger_ns, nbytes, arrival_ns)
         if arrival_ns is not None:
             self.latency.add((done_ns - arrival_ns) * 1e-6)
         if trigger_ns is not None:
