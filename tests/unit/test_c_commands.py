@@ -9,8 +9,6 @@ same counters as :class:`GoalStatusDecoder` on any stream, pose frames and junk 
 from __future__ import annotations
 
 import random
-import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -30,7 +28,7 @@ from firmware_protocol.command_frame import (
     encode_goal_status,
 )
 from firmware_protocol.pose_frame import PoseFrame, encode_pose
-from tests.unit.test_c_decoder import RUN_ENV, SANITIZE, STRICT
+from tests.unit.test_c_decoder import build_c, run
 from tests.unit.test_command_frame import DOC_MESSAGES, STREAMS
 
 C_DIR = Path(__file__).resolve().parents[2] / "firmware_protocol" / "c"
@@ -39,27 +37,7 @@ SOURCES = [C_DIR / "test_command_frame.c", C_DIR / "command_frame.c", C_DIR / "p
 
 @pytest.fixture(scope="module")
 def c_program(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        pytest.skip("gcc not found on PATH: the C command code cannot be built here")
-    out = tmp_path_factory.mktemp("c_commands")
-    strict = out / "test_command_frame"
-    build = subprocess.run(
-        [gcc, *STRICT, "-O2", "-o", str(strict), *map(str, SOURCES)], capture_output=True, text=True
-    )
-    assert build.returncode == 0, f"the C command code does not build warning-free:\n{build.stderr}"
-    checked = out / "test_command_frame_asan"
-    build = subprocess.run(
-        [gcc, *STRICT, *SANITIZE, "-o", str(checked), *map(str, SOURCES)], capture_output=True, text=True
-    )
-    if build.returncode == 0 and run(checked, b"", "-").returncode == 0:
-        return checked
-    return strict
-
-
-def run(binary: Path, data: bytes, *args: str) -> subprocess.CompletedProcess[bytes]:
-    # The timeout only keeps a hung program from hanging the suite; it measures nothing.
-    return subprocess.run([str(binary), *args], input=data, capture_output=True, timeout=60, env=RUN_ENV)
+    return build_c(tmp_path_factory.mktemp("c_commands"), "test_command_frame", SOURCES, ("-",)).checked
 
 
 def as_line(command: Command) -> str:

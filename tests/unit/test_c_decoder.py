@@ -67,24 +67,30 @@ class Binaries:
     sanitized: bool
 
 
-@pytest.fixture(scope="module")
-def c_decoder(tmp_path_factory: pytest.TempPathFactory) -> Binaries:
+def build_c(out: Path, name: str, sources: list[Path], probe_args: tuple[str, ...] = ()) -> Binaries:
+    """``name`` built from ``sources`` into ``out`` warning-free with the firmware flags, and again with
+    the sanitizers where this gcc has them (probed by running it with ``probe_args`` on no input);
+    skips the test when gcc is missing."""
     gcc = shutil.which("gcc")
     if gcc is None:
-        pytest.skip("gcc not found on PATH: the C reference decoder cannot be built here")
-    out = tmp_path_factory.mktemp("c_decoder")
-    strict = out / "test_pose_frame"
+        pytest.skip(f"gcc not found on PATH: {name} cannot be built here")
+    strict = out / name
     build = subprocess.run(
-        [gcc, *STRICT, "-O2", "-o", str(strict), *map(str, SOURCES)], capture_output=True, text=True
+        [gcc, *STRICT, "-O2", "-o", str(strict), *map(str, sources)], capture_output=True, text=True
     )
-    assert build.returncode == 0, f"the C decoder does not build warning-free:\n{build.stderr}"
-    checked = out / "test_pose_frame_asan"
+    assert build.returncode == 0, f"{name} does not build warning-free:\n{build.stderr}"
+    checked = out / f"{name}_asan"
     build = subprocess.run(
-        [gcc, *STRICT, *SANITIZE, "-o", str(checked), *map(str, SOURCES)], capture_output=True, text=True
+        [gcc, *STRICT, *SANITIZE, "-o", str(checked), *map(str, sources)], capture_output=True, text=True
     )
-    if build.returncode == 0 and run(checked, b"").returncode == 0:
+    if build.returncode == 0 and run(checked, b"", *probe_args).returncode == 0:
         return Binaries(strict, checked, True)
     return Binaries(strict, strict, False)
+
+
+@pytest.fixture(scope="module")
+def c_decoder(tmp_path_factory: pytest.TempPathFactory) -> Binaries:
+    return build_c(tmp_path_factory.mktemp("c_decoder"), "test_pose_frame", SOURCES)
 
 
 def run(binary: Path, data: bytes, *args: str) -> subprocess.CompletedProcess[bytes]:
