@@ -140,7 +140,8 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         metavar="X,Y[,YAW]",
         help="drive to this goal (metres, map frame; YAW in degrees, any heading without) instead of the "
         "world's route: the simulated controller sends it as a goal command frame on the pose stream's "
-        "line and the next when the agent reports it ended; repeatable, a sequence of goals",
+        "line and the next when the agent reports it ended; repeatable, a sequence of goals. The run ends "
+        "when the last goal has ended, or at --seconds",
     )
     p.add_argument(
         "--goals-known-map",
@@ -353,7 +354,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         t0_us = time.monotonic_ns() // 1000
         try:
-            _watch(args, agent, scorer, injector, shutdown, t0, live)
+            _watch(args, agent, scorer, injector, shutdown, t0, live, controller)
         finally:
             stop.set()
             autopilot.join(1.0)
@@ -402,7 +403,9 @@ def _watch(
     shutdown: ShutdownRequest,
     t0: float,
     live: bool,
+    controller: SimulatedController | None = None,
 ) -> None:
+    """Until --seconds, a stop request, or (with --goal) the last goal's end; the status line each second."""
     next_status = t0 + 1.0
     last_counts: dict[str, int] = {}
     last_t = t0
@@ -415,6 +418,8 @@ def _watch(
         scorer.drain()
         if now >= next_status:
             next_status += 1.0
+            if args.goal and controller is not None and controller.counts().goals_done:
+                return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
             rate = {
@@ -547,7 +552,7 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
     ended: dict[int, tuple[str, str]] = {}
     for goal_id, state, reason in counts.statuses:
         if state in ("REACHED", "FAILED", "REJECTED", "CANCELLED"):
-            ended.setdefault(goal_id, (state, reason))
+            ended[goal_id] = (state, reason)  # the last: a goal rejected NOT_LOCALIZED is sent again
     outcome = [s for s, _ in ended.values()]
     return {
         "sent": counts.goals_sent,
@@ -556,6 +561,7 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
         "rejected": outcome.count("REJECTED"),
         "cancelled": outcome.count("CANCELLED"),
         "outcomes": {str(goal_id): f"{state} {reason}".strip() for goal_id, (state, reason) in ended.items()},
+        "all_ended": counts.goals_done,
         "statuses_decoded": len(counts.statuses),
     }
 

@@ -21,8 +21,9 @@ Given goals (``vlp-agent sim --goal``), it also commands the robot as a controll
 once the agent's pose stream is flowing, reads the goal statuses coming back between the pose frames
 (:class:`~firmware_protocol.command_frame.GoalStatusDecoder`), and sends the next goal when the agent
 reports the last one ended (REACHED, FAILED, REJECTED or CANCELLED), so a run drives the goals one after
-another. ``record`` names a file that gets every byte the agent sent, for an independent decoder (the
-reference C code) to read afterwards. Goals are command frames only; with MAVLink output the controller
+another; a goal rejected NOT_LOCALIZED (no map or pose yet) is sent again a second later. ``record`` names
+a file that gets every byte the agent sent, for an independent decoder (the reference C code) to read
+afterwards. Goals are command frames only; with MAVLink output the controller
 only decodes (the MAVLink commands are tested on their own).
 """
 
@@ -34,6 +35,7 @@ import multiprocessing.connection
 import os
 import select
 import sys
+import time
 import tty
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -57,44 +59,76 @@ class ControllerCounts:
     bytes: int = 0
     statuses: tuple[tuple[int, str, str], ...] = ()
     goals_sent: int = 0
+    goals_done: bool = False  # every goal sent and the last one ended for good
 
 
 _ENDED = ("REACHED", "FAILED", "REJECTED", "CANCELLED")
 
 
 class _Commander:
-    """Sends the goals one after another as goal command frames, each when the one before has ended."""
+    """Sends the goals one after another as goal command frames, each when the one before has ended.
 
-    def __init__(self, goals: Sequence[tuple[float, float, float | None]], allow_unknown: bool) -> None:
+    A goal rejected NOT_LOCALIZED (the agent has no map or no pose yet, as right after start-up) is sent
+    again every ``retry_s``, up to ``retries`` times, as a controller waiting for the robot would; any other
+    end moves on to the next goal."""
+
+    def __init__(
+        self,
+        goals: Sequence[tuple[float, float, float | None]],
+        allow_unknown: bool,
+        retry_s: float = 1.0,
+        retries: int = 120,
+    ) -> None:
         from firmware_protocol.command_frame import GoalStatusDecoder
 
         self.goals = list(goals)
         self.allow_unknown = allow_unknown
-        self.sent = 0
+        self.retry_s = retry_s
+        self.retries = retries
+        self.sent = 0  # goals started (ids 1, 2, ...: the goal's place in the list)
         self.sequence = 0
         self.statuses: list[tuple[int, str, str]] = []
         self._decoder = GoalStatusDecoder()
         self._waiting = False  # a goal is out and has not ended yet
+        self._retry_at: float | None = None
+        self._tries = 0
+
+    @property
+    def done(self) -> bool:
+        """Every goal sent and the last one ended for good."""
+        return self.sent == len(self.goals) and not self._waiting and self._retry_at is None
 
     def take(self, data: bytes) -> None:
         for status in self._decoder.feed(data):
             self.statuses.append((status.goal_id, status.state.name, status.reason.name))
             if self._waiting and status.goal_id == self.sent and status.state.name in _ENDED:
                 self._waiting = False
+                retry = status.state.name == "REJECTED" and status.reason.name == "NOT_LOCALIZED"
+                if retry and self._tries < self.retries:
+                    self._retry_at = time.monotonic() + self.retry_s
 
     def due(self, poses_seen: int) -> bytes:
-        """The next goal's frame if one is due (the pose stream is flowing and nothing is in progress)."""
-        if self._waiting or self.sent >= len(self.goals) or poses_seen < 20:
+        """The next frame to send, if one is due: a goal retried, or the next goal once the pose stream is
+        flowing and nothing is in progress."""
+        if self._waiting or poses_seen < 20:
+            return b""
+        if self._retry_at is not None:
+            if time.monotonic() < self._retry_at:
+                return b""
+            self._retry_at = None
+            self._tries += 1
+        elif self.sent < len(self.goals):
+            self.sent += 1
+            self._tries = 0
+        else:
             return b""
         from firmware_protocol.command_frame import GoalCommand, encode_command
 
-        x, y, yaw = self.goals[self.sent]
-        self.sent += 1  # goal ids are 1, 2, ...: the goal's place in the list
+        x, y, yaw = self.goals[self.sent - 1]
         self.sequence = (self.sequence + 1) & 0xFFFF
         self._waiting = True
-        return encode_command(
-            GoalCommand(self.sequence, self.sent, x, y, yaw, allow_unknown=self.allow_unknown)
-        )
+        goal = GoalCommand(self.sequence, self.sent, x, y, yaw, allow_unknown=self.allow_unknown)
+        return encode_command(goal)
 
 
 class _Decoder:
@@ -137,7 +171,8 @@ def _counts(decoder: _Decoder, commander: _Commander | None) -> tuple[Any, ...]:
         return decoder.counts()
     frames, bad, nbytes = decoder.counts()
     # The pose decoder takes each good goal status for a pose frame of another version: not a bad frame.
-    return (frames, bad - len(commander.statuses), nbytes, tuple(commander.statuses), commander.sent)
+    statuses = tuple(commander.statuses)
+    return (frames, bad - len(statuses), nbytes, statuses, commander.sent, commander.done)
 
 
 class _Receiver:
@@ -179,7 +214,7 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
     conn.send(os.ttyname(slave))
     try:
         while True:
-            ready, _, _ = select.select([master, conn.fileno()], [], [], 0.2)
+            ready, _, _ = select.select([master, conn.fileno()], [], [], 0.1)
             if master in ready:
                 try:
                     data = os.read(master, 4096)

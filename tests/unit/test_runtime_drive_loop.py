@@ -132,14 +132,14 @@ def test_an_expired_velocity_stops_the_base_at_once_and_is_answered(pty: tuple[i
     )
 
 
-def test_goals_are_unreachable_without_a_navigator(pty: tuple[int, str]) -> None:
+def test_goals_are_rejected_without_a_navigator(pty: tuple[int, str]) -> None:
     master, path = pty
     agent = make_agent(path)
     assert agent.output is not None
     agent.output.open()
     read_all(master)
     (status,) = GoalStatusDecoder().feed(send(agent, master, encode_command(GoalCommand(3, 21, 1.0, 2.0))))
-    assert (status.goal_id, status.state, status.reason) == (21, GoalState.REJECTED, GoalReason.UNREACHABLE)
+    assert (status.goal_id, status.state, status.reason) == (21, GoalState.REJECTED, GoalReason.NOT_LOCALIZED)
     seen = []
     agent.navigator = lambda directive, now_s: seen.append(directive.goal)
     (status,) = GoalStatusDecoder().feed(send(agent, master, encode_command(GoalCommand(4, 22, 1.0, 2.0))))

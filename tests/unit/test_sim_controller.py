@@ -17,6 +17,7 @@ from firmware_protocol.command_frame import (
     Command,
     CommandDecoder,
     GoalCommand,
+    GoalReason,
     GoalState,
     GoalStatus,
     encode_goal_status,
@@ -92,3 +93,30 @@ def _read_commands(fd: int, decoder: CommandDecoder, n: int, wait_s: float = 5.0
         if select.select([fd], [], [], 0.05)[0]:
             out += decoder.feed(os.read(fd, 4096))
     return out
+
+
+def test_a_goal_rejected_not_localized_is_sent_again_and_the_last_end_makes_it_done() -> None:
+    controller = SimulatedController(goals=[(1.0, 2.0, None)], allow_unknown=True)
+    try:
+        fd = os.open(controller.url, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(fd)
+        try:
+            os.write(fd, b"".join(_frame(k) for k in range(25)))
+            commands = CommandDecoder()
+            (first,) = _read_commands(fd, commands, 1)
+            assert isinstance(first, GoalCommand) and first.allow_unknown
+            rejected = GoalStatus(1, first.sequence, 1, GoalState.REJECTED, GoalReason.NOT_LOCALIZED)
+            os.write(fd, encode_goal_status(rejected))
+            (again,) = _read_commands(fd, commands, 1)  # about a second later: the same goal, a new sequence
+            assert isinstance(again, GoalCommand) and (again.goal_id, again.x_m) == (1, 1.0)
+            assert again.sequence != first.sequence
+            assert not controller.counts().goals_done
+            os.write(fd, encode_goal_status(GoalStatus(2, NO_SEQUENCE, 1, GoalState.REACHED)))
+            deadline = time.monotonic() + 5.0  # only waits for the child; measures nothing
+            while not controller.counts().goals_done and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert controller.counts().goals_done
+        finally:
+            os.close(fd)
+    finally:
+        controller.stop()

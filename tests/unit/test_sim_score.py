@@ -24,12 +24,20 @@ class Pose:
     yaw_rad: float
 
 
+WALL_X_M = 2.05
+
+
 class Circle:
     """The truth: a circle of 2 m radius at 0.2 m/s."""
 
     def pose_at(self, t: float) -> Pose:
         a = 0.1 * t
         return Pose(2 * math.cos(a), 2 * math.sin(a), a + math.pi / 2)
+
+    def clearances_m(self, x_m: float, y_m: float, t: float | None = None) -> tuple[float, float]:
+        """A wall at x = 2.05 m, which the robot (0.105 m in radius) touches round the circle's east end,
+        and no people."""
+        return WALL_X_M - x_m - 0.105, math.inf
 
 
 def frames(n: int, start: int = 0) -> list[tuple[Written, float, float]]:
@@ -98,6 +106,18 @@ def test_the_scores_are_the_exact_figures_and_percentiles_within_half_a_percent(
     }
     truth = Circle()
     path = np.array([(p.x_m, p.y_m) for p in (truth.pose_at(w.frame.t_us * 1e-6) for w, _, _ in batch)])
+    # Contact: counted once each time the footprint reaches the wall (5000 frames: three passes of the east
+    # end, at 0, 62.8 and 125.7 s), the closest approach the deepest frame's.
+    gaps = WALL_X_M - path[:, 0] - 0.105
+    touching = gaps <= 0
+    assert (
+        figures["collisions"]
+        == figures["collisions_walls"]
+        == int(touching[0] + np.sum(touching[1:] & ~touching[:-1]))
+    )
+    assert figures["collisions"] == 3 and figures["collisions_people"] == 0
+    assert figures["clearance_wall_m_min"] == round(float(gaps.min()), 4)
+    assert figures["clearance_person_m_min"] is None
     assert figures["distance_m"] == round(float(np.sum(np.hypot(*np.diff(path, axis=0).T))), 3)
     # The picture's paths: bounded, evenly thinned, ending where the path ends.
     points = scorer.truth_path.points()
