@@ -56,7 +56,10 @@ def add_parser(subparsers: Any) -> None:
             relative-pose error against the log's GMapping-corrected poses over every pair of
             consecutive scans (trans_error_m_*, rot_error_deg_*), next to raw odometry's, and over
             pairs --span scans apart (span_*: whether the trajectory holds together over a building,
-            which the consecutive pairs cannot show). Writes map.yaml and the map.<stamp>.pgm it names
+            which the consecutive pairs cannot show; 500 on FR079 spans most of it), over every pair
+            of reference poses further apart than 10 m (relation_over_10m_m, _deg: the map's global
+            consistency in one figure), and the RMS position error after the best rigid alignment
+            onto the reference poses (ate_aligned_m). Writes map.yaml and the map.<stamp>.pgm it names
             (ROS map_server), map.png and trajectory.png into --out.
 
             With --world, drives the simulated robot along the world's route and reports the absolute
@@ -155,6 +158,24 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
 
 
+def log_config(source_format: str, seed: int = 0, particles: int = 30) -> Any:
+    """The filter's configuration for a recorded log with every option at its default (what
+    ``eval slam --log FILE --format F --seed S`` runs; ``benchmarks/slam_vs_gmapping.py`` runs the same)."""
+    import dataclasses
+
+    from agent.slam.rbpf import RbpfConfig
+
+    defaults = RbpfConfig()
+    return RbpfConfig(
+        particles=particles,
+        proposal=dataclasses.replace(
+            defaults.proposal, along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format]
+        ),
+        max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
+        seed=seed,
+    )
+
+
 def _fix_error(simulated: Any) -> float:
     """Mean distance of the fixes from the true base pose at their own times (metres)."""
     xy = np.array([(f.fix.x_m, f.fix.y_m) for f in simulated.fixes])
@@ -176,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
     from agent.slam.metrics import (
         absolute_trajectory_error,
         aligned_trajectory_error,
+        far_relation_error,
         relative_pose_error,
         wall_thickness,
     )
@@ -315,6 +337,16 @@ def run(args: argparse.Namespace) -> int:
             trans_error_m_std=_round(error.trans_error_m_std, 4),
             rot_error_deg_std=_round(error.rot_error_deg_std, 3),
             **_relation_means("", error, relative_pose_error(reference, odometry)),
+        )
+        far = far_relation_error(reference, result.poses)
+        odometry_far = far_relation_error(reference, odometry)
+        summary.update(
+            ate_aligned_m=_round(aligned_trajectory_error(reference, result.poses), 4),
+            odometry_ate_aligned_m=_round(aligned_trajectory_error(reference, odometry), 4),
+            relations_over_10m=far.n,
+            relation_over_10m_m=_round(far.trans_error_m_mean, 4),
+            relation_over_10m_deg=_round(far.rot_error_deg_mean, 3),
+            odometry_relation_over_10m_m=_round(odometry_far.trans_error_m_mean, 4),
         )
         if len(log) > args.span:
             first = np.arange(len(log) - args.span)
@@ -462,6 +494,15 @@ def _print_table(s: dict[str, Any]) -> None:
         print(
             f"  (raw odometry      {s['odometry_trans_error_m_mean']} m, "
             f"{s['odometry_rot_error_deg_mean']} deg)"
+        )
+    if "ate_aligned_m" in s:
+        print(
+            f"  against reference  ATE {s['ate_aligned_m']} m after a rigid alignment "
+            f"(raw odometry {s['odometry_ate_aligned_m']} m)"
+        )
+        print(
+            f"  pairs over 10 m    {s['relation_over_10m_m']} m, {s['relation_over_10m_deg']} deg over "
+            f"{s['relations_over_10m']} pairs (raw odometry {s['odometry_relation_over_10m_m']} m)"
         )
     if "span_trans_error_m_mean" in s:
         label = f"over {s['span_scans']} scans"
