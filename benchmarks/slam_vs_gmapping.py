@@ -181,7 +181,9 @@ def run_gmapping(
 # -- ours, in a process of its own --------------------------------------------------------------------------
 
 
-def ours_worker(log_path: str, log_format: str, seed: int, particles: int, out_npy: str) -> int:
+def ours_worker(
+    log_path: str, log_format: str, seed: int, particles: int, out_npy: str, loop_closure: bool = True
+) -> int:
     """Run our filter as ``vlp-agent eval slam --log`` configures it; save the poses, print the figures."""
     import cv2
 
@@ -190,7 +192,7 @@ def ours_worker(log_path: str, log_format: str, seed: int, particles: int, out_n
 
     cv2.setNumThreads(1)
     log = read_log(log_path, log_format)
-    result = replay(log, log_config(log_format, seed=seed, particles=particles))
+    result = replay(log, log_config(log_format, seed=seed, particles=particles, loop_closure=loop_closure))
     np.save(out_npy, result.poses)
     slam = result.slam
     print(
@@ -210,13 +212,17 @@ def ours_worker(log_path: str, log_format: str, seed: int, particles: int, out_n
 
 
 def slam_extras(slam: Any) -> dict[str, Any]:
-    """Loop-closure counters, where the filter has them."""
+    """Loop-closure counters."""
     stats = slam.stats
-    return {k: getattr(stats, k) for k in ("loop_closures", "loop_candidates") if hasattr(stats, k)}
+    return {
+        "loop_closures": stats.loop_closures,
+        "loop_rebuilds": stats.loop_rebuilds,
+        "loop_s": round(stats.loop_ms / 1e3, 2),
+    }
 
 
 def run_ours(
-    log_path: Path, log_format: LogFormat, seed: int, particles: int, out_npy: Path
+    log_path: Path, log_format: LogFormat, seed: int, particles: int, out_npy: Path, loop_closure: bool
 ) -> tuple[FloatArray, dict[str, Any]]:
     done = subprocess.run(
         [
@@ -228,6 +234,8 @@ def run_ours(
             str(seed),
             str(particles),
             str(out_npy),
+            "--loop-closure",
+            "on" if loop_closure else "off",
         ],
         capture_output=True,
         text=True,
@@ -278,6 +286,7 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
         "particles": args.particles,
         "seeds": args.seeds,
         "span": args.span,
+        "loop_closure": args.loop_closure,
         "gmapping": {"driver": str(driver), "urange_frac": args.urange_frac}
         if driver
         else {"skipped": skip_reason},
@@ -297,7 +306,9 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
             order = ("ours", "gmapping") if k % 2 == 0 else ("gmapping", "ours")
             for system in order:
                 if system == "ours":
-                    poses, figures = run_ours(path, log_format, seed, args.particles, work / "ours.npy")
+                    poses, figures = run_ours(
+                        path, log_format, seed, args.particles, work / "ours.npy", args.loop_closure == "on"
+                    )
                 elif driver is not None and gm_input is not None:
                     poses, figures = run_gmapping(
                         driver, gm_input, work / f"gm_{name}_{seed}", args.particles, seed, args.urange_frac
@@ -330,11 +341,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--peer", default=str(PEER), help="GMapping's sources and build.sh")
     parser.add_argument("--build-dir", default=str(default_build_dir()), help="where GMapping is built")
     parser.add_argument("--no-gmapping", action="store_true", help="run ours only")
+    parser.add_argument(
+        "--loop-closure", choices=("on", "off"), default="on", help="ours with loop closure or without"
+    )
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
     if args.worker:
         log_path, log_format, seed, particles, out_npy = args.worker
-        return ours_worker(log_path, log_format, int(seed), int(particles), out_npy)
+        return ours_worker(
+            log_path, log_format, int(seed), int(particles), out_npy, args.loop_closure == "on"
+        )
     started = time.time()
     result = benchmark(args)
     result["elapsed_s"] = round(time.time() - started, 1)

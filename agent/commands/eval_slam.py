@@ -143,6 +143,12 @@ def add_parser(subparsers: Any) -> None:
         metavar="T",
         help="the proposal's likelihood temperature T' (default: 1)",
     )
+    p.add_argument(
+        "--loop-closure",
+        choices=("on", "off"),
+        default="on",
+        help="match scans against the map built long ago and optimise the pose graph (default: on)",
+    )
     p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(
@@ -158,7 +164,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
 
 
-def log_config(source_format: str, seed: int = 0, particles: int = 30) -> Any:
+def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_closure: bool = True) -> Any:
     """The filter's configuration for a recorded log with every option at its default (what
     ``eval slam --log FILE --format F --seed S`` runs; ``benchmarks/slam_vs_gmapping.py`` runs the same)."""
     import dataclasses
@@ -172,6 +178,7 @@ def log_config(source_format: str, seed: int = 0, particles: int = 30) -> Any:
             defaults.proposal, along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format]
         ),
         max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
+        loop_closure=defaults.loop_closure if loop_closure else None,
         seed=seed,
     )
 
@@ -298,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
         if args.max_range is not None
         else DEFAULT_MAX_RANGE_M[source_format],
         initial_pose=initial_pose,
+        loop_closure=defaults.loop_closure if args.loop_closure == "on" else None,
         seed=args.seed,
     )
     long_run = not args.json or sys.stderr.isatty()
@@ -327,6 +335,11 @@ def run(args: argparse.Namespace) -> int:
         "map_mb": _round(slam.maps.used_bytes() / 1e6),
         "resamples": slam.stats.resamples,
         "match_failures": slam.stats.match_failures,
+        "loop_closure": args.loop_closure,
+        "loop_checks": slam.stats.loop_checks,
+        "loop_closures": slam.stats.loop_closures,
+        "loop_rebuilds": slam.stats.loop_rebuilds,
+        "loop_s": _round(slam.stats.loop_ms / 1e3),
         "rejected": dict(result.rejections),
     }
     if reference is not None:
@@ -467,6 +480,10 @@ def _print_table(s: dict[str, Any]) -> None:
     print(
         f"  memory             peak RSS {s['peak_rss_mb']} MB; "
         f"maps {s['map_mb']} MB in {s['map_tiles']} tiles"
+    )
+    print(
+        f"  loop closure       {s['loop_closure']}: {s['loop_closures']} closures in {s['loop_checks']} "
+        f"checks, {s['loop_rebuilds']} map rebuilds, {s['loop_s']} s"
     )
     rejected = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items())) or "none"
     print(f"  rejected scans     {rejected}")
