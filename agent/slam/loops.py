@@ -167,15 +167,23 @@ def find_loop(
     j: int,
     config: LoopClosureConfig,
     travelled_m: float = 0.0,
+    yaw_doubt_rad: float = 0.0,
 ) -> LoopConstraint | None:
     """A loop factor for node j (its endpoints to match: ``match_points``, in the robot frame) against
     the old nodes' map, or None (no old node near, or no match good and unambiguous enough).
-    ``travelled_m``: the distance driven since the last closure, which widens the search."""
+    ``travelled_m``: the distance driven since the last closure, and ``yaw_doubt_rad``: the heading the
+    front end may have lost since (see :func:`yaw_doubt`), which widen the search."""
     old_end = j - config.min_separation
     if old_end < 0 or match_points.shape[0] < config.matcher.min_inliers:
         return None
-    xy_m = min(config.search_xy_m + config.xy_per_m * travelled_m, config.max_search_xy_m)
-    yaw_rad = min(config.search_yaw_rad + config.yaw_per_m * travelled_m, config.max_search_yaw_rad)
+    # A heading lost d metres ago moves the position by about d * angle / 2.
+    xy_m = min(
+        config.search_xy_m + config.xy_per_m * travelled_m + 0.5 * yaw_doubt_rad * travelled_m,
+        config.max_search_xy_m,
+    )
+    yaw_rad = min(
+        config.search_yaw_rad + config.yaw_per_m * travelled_m + yaw_doubt_rad, config.max_search_yaw_rad
+    )
     distance = np.hypot(*(poses[: old_end + 1, :2] - poses[j, :2]).T)
     i = int(np.argmin(distance))
     if distance[i] > xy_m + config.search_radius_m:
@@ -252,6 +260,18 @@ def optimize_graph(
         ]
     )
     return optimize(poses, RelativeFactors(i, j, z, sigma), absolute, huber=config.huber)
+
+
+def yaw_doubt(motions: FloatArray, odometry_motions: FloatArray, config: LoopClosureConfig) -> float:
+    """Three standard deviations of the heading the chain of ``motions`` may have lost against the
+    ``odometry_motions`` beside them: 3 sqrt(sum_k sigma_k²) over the edges whose sigma the graph widened
+    (``correction_share`` of the match's turn against odometry, where that exceeds the motion sigma: the
+    searches' own drift terms cover the rest)."""
+    if motions.shape[0] == 0:
+        return 0.0
+    gap = config.correction_share * np.abs(wrap_angle(motions[:, 2] - odometry_motions[:, 2]))
+    sigma = np.where(gap > config.motion_sigma[2], gap, 0.0)
+    return float(3.0 * np.sqrt(np.sum(sigma * sigma)))
 
 
 def chain_poses(start: FloatArray, motions: FloatArray) -> FloatArray:

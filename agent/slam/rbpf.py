@@ -49,7 +49,7 @@ from agent.slam.grid import (
     prepare_scan,
     surface_normals,
 )
-from agent.slam.loops import LoopClosureConfig, LoopConstraint, find_loop, optimize_graph
+from agent.slam.loops import LoopClosureConfig, LoopConstraint, find_loop, optimize_graph, yaw_doubt
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
@@ -547,7 +547,11 @@ class RbpfSlam:
         _, path, _ = self.trajectory()
         since = self._loops[-1].j if self._loops else 0
         travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
-        found = find_loop(path, self._node_hits, points, j, lc, travelled)
+        odometry = np.array(list(self.history_odom)[since:])
+        doubt = yaw_doubt(
+            between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
+        )
+        found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt)
         if found is not None:
             self._loops.append(found)
             self.stats.loop_closures += 1
