@@ -11,7 +11,10 @@ Per accepted scan (``process``):
    (``agent.slam.fix.fuse_fixes``), join the proposal as a third factor (so eta includes them); only when
    there is too little to match do they weight the particles alone: w_i *= N(z_fix; x_i, Sigma_fix);
 5. N_eff = 1 / sum_i w_i^2 (normalised weights); below ``resample_threshold`` * N, systematic resampling;
-6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy).
+6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy);
+7. loop closure (``RbpfConfig.loop_closure``, ``agent.slam.loops``): the update becomes a pose-graph node;
+   every few updates its scan is searched against the map of old nodes, and a closure optimises the graph
+   and rebuilds the maps at the optimised poses (one map shared by all particles, which keep their spread).
 
 Maps (``map_mode``): ``per_particle`` keeps one map per particle in copy-on-write tiles (GMapping: each
 particle's map is conditioned on its own trajectory), ``shared`` keeps the seed's single map for all
