@@ -56,7 +56,10 @@ def add_parser(subparsers: Any) -> None:
             relative-pose error against the log's GMapping-corrected poses over every pair of
             consecutive scans (trans_error_m_*, rot_error_deg_*), next to raw odometry's, and over
             pairs --span scans apart (span_*: whether the trajectory holds together over a building,
-            which the consecutive pairs cannot show). Writes map.yaml and the map.<stamp>.pgm it names
+            which the consecutive pairs cannot show; 500 on FR079 spans most of it), over every pair
+            of reference poses further apart than 10 m (relation_over_10m_m, _deg: the map's global
+            consistency in one figure), and the RMS position error after the best rigid alignment
+            onto the reference poses (ate_aligned_m). Writes map.yaml and the map.<stamp>.pgm it names
             (ROS map_server), map.png and trajectory.png into --out.
 
             With --world, drives the simulated robot along the world's route and reports the absolute
@@ -140,6 +143,12 @@ def add_parser(subparsers: Any) -> None:
         metavar="T",
         help="the proposal's likelihood temperature T' (default: 1)",
     )
+    p.add_argument(
+        "--loop-closure",
+        choices=("on", "off"),
+        default="on",
+        help="match scans against the map built long ago and optimise the pose graph (default: on)",
+    )
     p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(
@@ -153,6 +162,25 @@ def add_parser(subparsers: Any) -> None:
         "--out", metavar="DIR", help="where to write the map and pictures (default: ./eval-slam-LOG)"
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+
+
+def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_closure: bool = True) -> Any:
+    """The filter's configuration for a recorded log with every option at its default (what
+    ``eval slam --log FILE --format F --seed S`` runs; ``benchmarks/slam_vs_gmapping.py`` runs the same)."""
+    import dataclasses
+
+    from agent.slam.rbpf import RbpfConfig
+
+    defaults = RbpfConfig()
+    return RbpfConfig(
+        particles=particles,
+        proposal=dataclasses.replace(
+            defaults.proposal, along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format]
+        ),
+        max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
+        loop_closure=defaults.loop_closure if loop_closure else None,
+        seed=seed,
+    )
 
 
 def _fix_error(simulated: Any) -> float:
@@ -175,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
     from agent.slam.metrics import (
         absolute_trajectory_error,
         aligned_trajectory_error,
+        far_relation_error,
         relative_pose_error,
         wall_thickness,
     )
@@ -275,6 +304,7 @@ def run(args: argparse.Namespace) -> int:
         if args.max_range is not None
         else DEFAULT_MAX_RANGE_M[source_format],
         initial_pose=initial_pose,
+        loop_closure=defaults.loop_closure if args.loop_closure == "on" else None,
         seed=args.seed,
     )
     long_run = not args.json or sys.stderr.isatty()
@@ -304,6 +334,11 @@ def run(args: argparse.Namespace) -> int:
         "map_mb": _round(slam.maps.used_bytes() / 1e6),
         "resamples": slam.stats.resamples,
         "match_failures": slam.stats.match_failures,
+        "loop_closure": args.loop_closure,
+        "loop_checks": slam.stats.loop_checks,
+        "loop_closures": slam.stats.loop_closures,
+        "loop_rebuilds": slam.stats.loop_rebuilds,
+        "loop_s": _round(slam.stats.loop_ms / 1e3),
         "rejected": dict(result.rejections),
     }
     if reference is not None:
@@ -314,6 +349,16 @@ def run(args: argparse.Namespace) -> int:
             trans_error_m_std=_round(error.trans_error_m_std, 4),
             rot_error_deg_std=_round(error.rot_error_deg_std, 3),
             **_relation_means("", error, relative_pose_error(reference, odometry)),
+        )
+        far = far_relation_error(reference, result.poses)
+        odometry_far = far_relation_error(reference, odometry)
+        summary.update(
+            ate_aligned_m=_round(aligned_trajectory_error(reference, result.poses), 4),
+            odometry_ate_aligned_m=_round(aligned_trajectory_error(reference, odometry), 4),
+            relations_over_10m=far.n,
+            relation_over_10m_m=_round(far.trans_error_m_mean, 4),
+            relation_over_10m_deg=_round(far.rot_error_deg_mean, 3),
+            odometry_relation_over_10m_m=_round(odometry_far.trans_error_m_mean, 4),
         )
         if len(log) > args.span:
             first = np.arange(len(log) - args.span)
@@ -459,6 +504,10 @@ def _print_table(s: dict[str, Any]) -> None:
         f"  memory             peak RSS {s['peak_rss_mb']} MB; "
         f"maps {s['map_mb']} MB in {s['map_tiles']} tiles"
     )
+    print(
+        f"  loop closure       {s['loop_closure']}: {s['loop_closures']} closures in {s['loop_checks']} "
+        f"checks, {s['loop_rebuilds']} map rebuilds, {s['loop_s']} s"
+    )
     rejected = ", ".join(f"{k} {v}" for k, v in sorted(s["rejected"].items())) or "none"
     print(f"  rejected scans     {rejected}")
     if "ate_m" in s:
@@ -485,6 +534,15 @@ def _print_table(s: dict[str, Any]) -> None:
         print(
             f"  (raw odometry      {s['odometry_trans_error_m_mean']} m, "
             f"{s['odometry_rot_error_deg_mean']} deg)"
+        )
+    if "ate_aligned_m" in s:
+        print(
+            f"  against reference  ATE {s['ate_aligned_m']} m after a rigid alignment "
+            f"(raw odometry {s['odometry_ate_aligned_m']} m)"
+        )
+        print(
+            f"  pairs over 10 m    {s['relation_over_10m_m']} m, {s['relation_over_10m_deg']} deg over "
+            f"{s['relations_over_10m']} pairs (raw odometry {s['odometry_relation_over_10m_m']} m)"
         )
     if "span_trans_error_m_mean" in s:
         label = f"over {s['span_scans']} scans"

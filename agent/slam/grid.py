@@ -194,6 +194,11 @@ class TiledMaps:
         self._free.extend(int(i) for i in freed)
         self.refcount = counts
 
+    def clear(self) -> None:
+        """Every map back to unknown; every tile freed (the pool keeps its size for reuse)."""
+        self.tables[...] = UNKNOWN_TILE
+        self._recount()
+
     def select(self, rows: npt.ArrayLike) -> None:
         """Keep the maps ``rows`` (with repeats: resampling); tiles no longer referenced are freed."""
         self.tables = np.ascontiguousarray(self.tables[np.asarray(rows, dtype=np.int64)])

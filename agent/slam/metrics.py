@@ -8,6 +8,9 @@
 * :func:`wall_thickness`: how many occupied cells a wall is thick, measured across it.
 * :func:`absolute_trajectory_error`: RMS position error after nothing but a common start (for simulation,
   where the map frame is the world frame).
+* :func:`far_relation_error`: the relative-pose error over every pair of poses further apart than a
+  distance (10 m by default) in the reference: whether the map holds together across a building, which the
+  consecutive and fixed-span relations cannot show when the far pairs are few.
 """
 
 from __future__ import annotations
@@ -71,6 +74,32 @@ def relative_pose_error(
     return RelativePoseError(
         int(pairs.shape[0]), t_mean, t_std, t2_mean, t2_std, r_mean, r_std, r2_mean, r2_std
     )
+
+
+def far_relation_pairs(
+    reference: FloatArray, min_distance_m: float = 10.0, max_poses: int = 800
+) -> npt.NDArray[np.int64]:
+    """Every pair (i, j), i < j, of poses at least ``min_distance_m`` apart in the reference, among at most
+    ``max_poses`` poses taken at an even stride (the pairs grow with the square of the poses: FR079's 4791
+    would be 11 million)."""
+    n = reference.shape[0]
+    kept = np.unique(np.linspace(0, n - 1, min(n, max_poses)).round().astype(np.int64)) if n else np.zeros(0)
+    xy = reference[kept, :2]
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    i, j = np.nonzero(np.triu(d >= min_distance_m, k=1))
+    return np.stack([kept[i], kept[j]], axis=1).astype(np.int64)
+
+
+def far_relation_error(
+    reference: FloatArray, estimate: FloatArray, min_distance_m: float = 10.0, max_poses: int = 800
+) -> RelativePoseError:
+    """:func:`relative_pose_error` over :func:`far_relation_pairs` (n = 0 and NaN means when the
+    reference never goes that far)."""
+    pairs = far_relation_pairs(reference, min_distance_m, max_poses)
+    if pairs.shape[0] == 0:
+        nan = math.nan
+        return RelativePoseError(0, nan, nan, nan, nan, nan, nan, nan, nan)
+    return relative_pose_error(reference, estimate, pairs)
 
 
 def absolute_trajectory_error(truth: FloatArray, estimate: FloatArray) -> float:

@@ -11,7 +11,10 @@ Per accepted scan (``process``):
    (``agent.slam.fix.fuse_fixes``), join the proposal as a third factor (so eta includes them); only when
    there is too little to match do they weight the particles alone: w_i *= N(z_fix; x_i, Sigma_fix);
 5. N_eff = 1 / sum_i w_i^2 (normalised weights); below ``resample_threshold`` * N, systematic resampling;
-6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy).
+6. the scan is integrated into each surviving particle's map at its pose (duplicates share one copy);
+7. loop closure (``RbpfConfig.loop_closure``, ``agent.slam.loops``): the update becomes a pose-graph node;
+   every few updates its scan is searched against the map of old nodes, and a closure optimises the graph
+   and rebuilds the maps at the optimised poses (one map shared by all particles, which keep their spread).
 
 Maps (``map_mode``): ``per_particle`` keeps one map per particle in copy-on-write tiles (GMapping: each
 particle's map is conditioned on its own trajectory), ``shared`` keeps the seed's single map for all
@@ -31,13 +34,14 @@ import dataclasses
 import enum
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
-from agent.slam.fix import PoseFix, fuse_fixes, pending_fixes_log_likelihood
+from agent.slam.fix import PoseFix, PoseMeasurement, fuse_fixes, pending_fixes_log_likelihood
 from agent.slam.grid import (
     GridGeometry,
     LogOddsModel,
@@ -48,9 +52,11 @@ from agent.slam.grid import (
     prepare_scan,
     surface_normals,
 )
+from agent.slam.loops import LoopClosureConfig, LoopConstraint, find_loop, optimize_graph, yaw_doubt
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
-from agent.slam.pose import between, compose, inverse, transform_points
+from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
+from agent.slam.posegraph import AbsoluteFactors
 from agent.slam.proposal import ProposalConfig, improved_proposal
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
@@ -98,6 +104,8 @@ class RbpfConfig:
     # the oldest go first. 10 000 updates are 2.5 km of driving at 0.25 m per update, 12 MB: bounded on
     # board, and more than any log here needs (Intel: 897). None keeps everything.
     history_limit: int | None = 10_000
+    # Loop closure against the map built long ago, into a pose graph (``agent.slam.loops``); None: off.
+    loop_closure: LoopClosureConfig | None = field(default_factory=LoopClosureConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -138,6 +146,10 @@ class FilterStats:
     resamples: int = 0
     match_failures: int = 0
     fixes_applied: int = 0
+    loop_checks: int = 0
+    loop_closures: int = 0
+    loop_rebuilds: int = 0
+    loop_ms: float = 0.0  # time spent on loop search, optimisation and map rebuilds
     n_eff: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=10_000))
 
 
@@ -220,6 +232,16 @@ class RbpfSlam:
         # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath).
         self.give_way: Callable[[], None] = _no_wait
         self.stats = FilterStats()
+        # Loop closure: per node (filter update) its scan (for a map rebuild), its endpoints (for the old
+        # map) and its motion from the node before along the leading lineage; the loop factors found.
+        self._node_scans: list[ScanPoints] = []
+        self._node_hits: list[FloatArray] = []
+        self._node_motions: list[FloatArray] = []
+        self._loops: list[LoopConstraint] = []
+        self._anchored = 0  # nodes up to here hold graph-optimised poses in the history
+        # VLP fixes fused at a node stay in the graph as absolute factors: (node, mean, sigma).
+        self._node_fix: PoseMeasurement | None = None
+        self._fix_factors: list[tuple[int, FloatArray, FloatArray]] = []
 
     # -- public API --------------------------------------------------------------------------------------
     @property
@@ -296,6 +318,7 @@ class RbpfSlam:
             self._integrate(scan, np.zeros(cfg.particles, dtype=np.int64), fresh=True)
             self._update_odom = odom
             self._record(t_s, odom, np.arange(cfg.particles))
+            self._add_node(scan, np.arange(cfg.particles), None)
             return StepResult(StepKind.FIRST, self._pose_at(None), odometry=odom)
         return self._update(t_s, scan, odom, increment)
 
@@ -405,6 +428,7 @@ class RbpfSlam:
                 # The fixes join the proposal (and so eta): see ``improved_proposal``.
                 heading = float(predicted[self.best_index, 2])
                 measurement = fuse_fixes(self._pending_fixes, odom, cfg.noise, heading)
+                self._node_fix = measurement
                 fixes_weighted = True
             result = improved_proposal(
                 field,
@@ -450,6 +474,7 @@ class RbpfSlam:
         self._update_odom = odom
         self._record(t_s, odom, parents)
         self.stats.updates += 1
+        self._add_node(scan, parents, points)
         return StepResult(
             StepKind.UPDATED,
             self._pose_at(None),
@@ -497,6 +522,117 @@ class RbpfSlam:
             copies = np.flatnonzero(rows[groups] != np.arange(cfg.particles))
             self.maps.share(rows[groups[copies]], copies)
         self._groups = groups
+
+    # -- loop closure -------------------------------------------------------------------------------
+    def _add_node(self, scan: ScanPoints, parents: IntArray, points: FloatArray | None) -> None:
+        lc = self.config.loop_closure
+        if lc is None:
+            return
+        if len(self._node_scans) + 1 != len(self.history_poses):
+            return  # the history was cut (history_limit): node indices no longer line up
+        best = self.best_index
+        motion = np.zeros(3)
+        if len(self.history_poses) > 1:
+            parent_pose = self.history_poses[-2][int(parents[best])]
+            motion = between(parent_pose, self.history_poses[-1][best])
+        self._node_scans.append(scan)
+        self._node_hits.append(voxel_filter(scan.hit_xy, lc.resolution_m, 400))
+        self._node_motions.append(motion)
+        j = len(self._node_scans) - 1
+        if self._node_fix is not None:
+            variance = 1.0 / np.maximum(np.diag(self._node_fix.information), 1e-12)
+            self._fix_factors.append((j, self._node_fix.mean.copy(), np.sqrt(variance)))
+            self._node_fix = None
+        if points is None or j % lc.check_every != 0:
+            return
+        t0 = time.perf_counter()
+        self.stats.loop_checks += 1
+        _, path, _ = self.trajectory()
+        since = self._loops[-1].j if self._loops else 0
+        travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
+        odometry = np.array(list(self.history_odom)[since:])
+        doubt = yaw_doubt(
+            between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
+        )
+        found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt)
+        if found is not None:
+            self._loops.append(found)
+            self.stats.loop_closures += 1
+            self.give_way()
+            self._close(path)
+        self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
+
+    def _close(self, path: FloatArray) -> None:
+        """Optimise the graph; put the history, the particles and the maps on the optimised poses."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        motions = np.array(self._node_motions)
+        # Since the last optimisation the leading lineage's ancestry is the front end's best account.
+        recent = np.arange(self._anchored + 1, path.shape[0])
+        motions[recent] = between(path[recent - 1], path[recent])
+        self._node_motions = list(motions)
+        odometry = np.array(self.history_odom)
+        odometry_motions = np.zeros_like(odometry)
+        odometry_motions[1:] = between(odometry[:-1], odometry[1:])
+        absolute = None
+        if self._fix_factors:
+            absolute = AbsoluteFactors(
+                np.array([f[0] for f in self._fix_factors], dtype=np.int64),
+                np.array([f[1] for f in self._fix_factors]),
+                np.array([f[2] for f in self._fix_factors]),
+            )
+        result = optimize_graph(path, motions, self._loops, lc, absolute, odometry_motions)
+        optimised = result.poses
+        shift = np.abs(optimised - path)
+        if (
+            float(np.max(np.hypot(shift[:, 0], shift[:, 1]))) < lc.apply_min_shift_m
+            and float(np.max(np.abs(wrap_angle(shift[:, 2])))) < lc.apply_min_shift_rad
+        ):
+            return
+        self.stats.loop_rebuilds += 1
+        log.debug(
+            "loop closure %d: chi2 %.1f -> %.1f, %d factors downweighted",
+            len(self._loops),
+            result.chi2_initial,
+            result.chi2_final,
+            result.downweighted,
+        )
+        last = optimised.shape[0] - 1
+        self.poses = compose(optimised[last], between(path[last], self.poses))
+        for k in range(last):
+            self.history_poses[k][:] = optimised[k]
+        self.history_poses[last][:] = self.poses
+        self._anchored = last
+        self._rebuild_maps(optimised)
+
+    def _rebuild_maps(self, poses: FloatArray) -> None:
+        """One map from every node's scan at its pose, shared by all particles."""
+        cfg = self.config
+        self.maps.clear()
+        row = np.array([0])
+        for k, scan in enumerate(self._node_scans):
+            pose = poses[k][None, :]
+            local = np.vstack([scan.hit_xy, scan.fan_xy, np.array([scan.origin_xy])])
+            world = transform_points(pose, local[None, :, :]).reshape(-1, 2)
+            lo = world.min(axis=0) - cfg.grid.resolution_m
+            hi = world.max(axis=0) + cfg.grid.resolution_m
+            rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
+            windows = self.maps.gather(row, rect)
+            touched = integrate_scans(
+                windows,
+                rect.origin_m(cfg.grid),
+                cfg.grid.resolution_m,
+                pose,
+                scan,
+                cfg.log_odds,
+                cfg.grid.tile_cells,
+            )
+            self.maps.scatter(row, rect, windows, touched)
+            if k % 64 == 63:
+                self.give_way()
+        if self.maps.maps > 1:
+            self.maps.share(np.zeros(self.maps.maps - 1, dtype=np.int64), np.arange(1, self.maps.maps))
+        self._groups = np.zeros(cfg.particles, dtype=np.int64)
 
     def _record(self, t_s: float, odom: FloatArray, parents: IntArray) -> None:
         self.history_poses.append(self.poses.copy())

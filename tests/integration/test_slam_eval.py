@@ -54,6 +54,13 @@ def test_eval_slam_json_on_radish(
     assert summary["span_scans"] == 20
     assert summary["span_trans_error_m_mean"] < 0.1 * summary["odometry_span_trans_error_m_mean"]
     assert summary["span_rot_error_deg_mean"] < 0.1 * summary["odometry_span_rot_error_deg_mean"]
+    # Global consistency against the reference poses: the aligned ATE and the pairs over 10 m apart, both
+    # far below raw odometry's.
+    assert summary["ate_aligned_m"] < 0.2 * summary["odometry_ate_aligned_m"]
+    assert summary["relations_over_10m"] > 100
+    assert summary["relation_over_10m_m"] < 0.2 * summary["odometry_relation_over_10m_m"]
+    assert summary["loop_closure"] == "on" and summary["loop_checks"] >= 1
+    assert summary["loop_closures"] >= summary["loop_rebuilds"] >= 0
     image = load_map(out / "map.yaml")
     assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"

@@ -1,0 +1,283 @@
+"""Loop closure: the current scan matched against the map built long ago, as a constraint in a pose graph.
+
+The particle filter is the front end: each filter update is a node of the graph, tied to the one before by
+the leading lineage's own motion (scan-matched, locally good). Every ``check_every`` updates the scan of
+the newest node j is matched against a map drawn from the scans of the nodes around the nearest old node
+i (at least ``min_separation`` updates back, within ``search_radius_m`` of where the graph puts j): an
+exhaustive correlative search over ±``search_xy_m`` and ±``search_yaw_rad`` on a coarse lattice (each
+rotation's points computed once, translations as whole-cell shifts), refined by Gauss-Newton
+(``agent.slam.matcher.match``). A match that puts at least ``min_inlier_fraction`` of the endpoints on the
+old walls becomes a relative factor i -> j; the graph (``agent.slam.posegraph``) is then optimised with
+every loop factor so far (Huber kernel: a wrong one pulls with bounded force). What the filter does with
+the result (rebuild its map at the optimised poses) is ``RbpfSlam``'s business; this module is pure.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.slam.matcher import DistanceField, MatcherConfig, match, world_points
+from agent.slam.pose import between, compose, transform_points, wrap_angle
+from agent.slam.posegraph import AbsoluteFactors, GraphResult, RelativeFactors, optimize
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopClosureConfig:
+    check_every: int = 3
+    min_separation: int = 40  # updates between the two nodes
+    window_path_m: float = 5.0  # the old map: the nodes within this path length of node i
+    # The search window grows with the distance driven since the last closure (the graph's drift):
+    # xy = min(search_xy_m + xy_per_m * d, max_search_xy_m), yaw likewise; old nodes are looked for
+    # within xy + ``search_radius_m`` of where the graph puts the new one.
+    search_xy_m: float = 1.0
+    xy_per_m: float = 0.05
+    max_search_xy_m: float = 4.0
+    search_yaw_rad: float = 0.15
+    yaw_per_m: float = 0.005
+    max_search_yaw_rad: float = 0.6
+    search_radius_m: float = 3.0
+    # Coarse lattice on a coarse field, then a fine one around the best coarse pose, then Gauss-Newton.
+    coarse_resolution_m: float = 0.2
+    coarse_yaw_step_rad: float = 0.04
+    coarse_truncate_m: float = 0.4
+    resolution_m: float = 0.05
+    fine_yaw_step_rad: float = 0.01
+    truncate_m: float = 0.3
+    min_inlier_fraction: float = 0.75
+    # Accepted only when the best coarse cost is at most this share of the best one elsewhere (at least
+    # ``distinct_xy_m`` or ``distinct_yaw_rad`` away): a corridor or a row of like rooms has a second
+    # answer nearly as good.
+    max_ambiguity: float = 0.6
+    distinct_xy_m: float = 0.6
+    distinct_yaw_rad: float = 0.15
+    # Standard deviations of the factors (x, y in the first node's frame; yaw).
+    motion_sigma: tuple[float, float, float] = (0.03, 0.03, 0.01)
+    loop_sigma: tuple[float, float, float] = (0.05, 0.05, 0.01)
+    huber: float = 3.0
+    # A front-end edge's yaw standard deviation grows with how far the scan match moved it from odometry:
+    # sigma_yaw = max(motion_sigma yaw, share * |yaw_match - yaw_odometry|) (likewise in x, y): where the
+    # match turned the robot by 10 deg against its wheels, either the wheels slipped or the match failed,
+    # and a loop's correction belongs there rather than spread over every edge.
+    correction_share: float = 0.5
+    # An optimisation that moves no node by more than this leaves the filter as it is (its map rebuild
+    # costs a whole map's integration); the loop factor stays for the next one.
+    apply_min_shift_m: float = 0.05
+    apply_min_shift_rad: float = 0.01
+    matcher: MatcherConfig = field(default_factory=MatcherConfig)
+
+
+@dataclass(frozen=True)
+class LoopConstraint:
+    i: int
+    j: int
+    z: FloatArray  # x_j in x_i's frame
+    inlier_fraction: float
+
+
+def old_map_field(
+    poses: FloatArray, hits: list[FloatArray], nodes: range, resolution_m: float, cap_m: float
+) -> DistanceField:
+    """Distance field of the scan endpoints of ``nodes`` placed at their poses (one window)."""
+    world = np.vstack([transform_points(poses[k], hits[k]) for k in nodes])
+    lo = world.min(axis=0) - 4 * resolution_m
+    hi = world.max(axis=0) + 4 * resolution_m
+    shape = np.ceil((hi - lo) / resolution_m).astype(np.int64)
+    obstacles = np.zeros((1, int(shape[1]), int(shape[0])), dtype=bool)
+    cells = np.floor((world - lo) / resolution_m).astype(np.int64)
+    obstacles[0, cells[:, 1], cells[:, 0]] = True
+    return DistanceField.from_obstacles(obstacles, (float(lo[0]), float(lo[1])), resolution_m, cap_m)
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """Costs (R, T) of a pose lattice: rotations ``yaw_rad`` (R,) by translations ``dx_m``, ``dy_m`` (T,)
+    around a centre."""
+
+    yaw_rad: FloatArray
+    dx_m: FloatArray
+    dy_m: FloatArray
+    costs: FloatArray
+
+    def best(self) -> tuple[int, int]:
+        r, t = np.unravel_index(int(np.argmin(self.costs)), self.costs.shape)
+        return int(r), int(t)
+
+    def pose(self, centre: FloatArray, r: int, t: int) -> FloatArray:
+        pose: FloatArray = centre + np.array([self.dx_m[t], self.dy_m[t], self.yaw_rad[r]])
+        return pose
+
+    def best_elsewhere(self, r: int, t: int, xy_m: float, yaw_rad: float) -> float:
+        """The least cost at least ``xy_m`` or ``yaw_rad`` away from (r, t)."""
+        far = (np.hypot(self.dx_m - self.dx_m[t], self.dy_m - self.dy_m[t])[None, :] > xy_m) | (
+            np.abs(self.yaw_rad - self.yaw_rad[r])[:, None] > yaw_rad
+        )
+        return float(np.min(self.costs[far])) if np.any(far) else math.inf
+
+
+def lattice_search(
+    field: DistanceField,
+    points_xy: FloatArray,
+    centre: FloatArray,
+    xy_m: float,
+    yaw_rad: float,
+    yaw_step_rad: float,
+    truncate_m: float,
+) -> Lattice:
+    """Mean truncated squared distance min(d, c)² of the points at every lattice pose around ``centre``
+    (translations in whole cells of the field, rotations by ``yaw_step_rad``); each rotation's points are
+    computed once, and one rotation at a time bounds the memory."""
+    _u, h, w = field.distance_m.shape
+    res = field.resolution_m
+    reach = max(round(xy_m / res), 0)
+    shifts = np.arange(-reach, reach + 1)
+    sy, sx = (a.ravel() for a in np.meshgrid(shifts, shifts, indexing="ij"))
+    n_yaw = max(round(yaw_rad / yaw_step_rad), 0)
+    yaw_offsets = np.arange(-n_yaw, n_yaw + 1) * yaw_step_rad
+    flat = np.minimum(field.distance_m[0], np.float32(truncate_m)).reshape(-1)
+    costs = np.empty((yaw_offsets.size, sx.size))
+    for r, yaw_offset in enumerate(yaw_offsets):
+        candidate = centre.copy()
+        candidate[2] += yaw_offset
+        wx, wy, _, _ = world_points(candidate[None, :], points_xy)
+        col = np.floor((wx[0] - field.origin_m[0]) / res).astype(np.int64) + 1
+        row = np.floor((wy[0] - field.origin_m[1]) / res).astype(np.int64) + 1
+        cols = np.clip(col[None, :] + sx[:, None], 0, w - 1)
+        rows = np.clip(row[None, :] + sy[:, None], 0, h - 1)
+        d = flat[rows * w + cols]
+        costs[r] = np.mean(d * d, axis=1)
+    return Lattice(
+        yaw_offsets.astype(np.float64), (sx * res).astype(np.float64), (sy * res).astype(np.float64), costs
+    )
+
+
+def find_loop(
+    poses: FloatArray,
+    hits: list[FloatArray],
+    match_points: FloatArray,
+    j: int,
+    config: LoopClosureConfig,
+    travelled_m: float = 0.0,
+    yaw_doubt_rad: float = 0.0,
+) -> LoopConstraint | None:
+    """A loop factor for node j (its endpoints to match: ``match_points``, in the robot frame) against
+    the old nodes' map, or None (no old node near, or no match good and unambiguous enough).
+    ``travelled_m``: the distance driven since the last closure, and ``yaw_doubt_rad``: the heading the
+    front end may have lost since (see :func:`yaw_doubt`), which widen the search."""
+    old_end = j - config.min_separation
+    if old_end < 0 or match_points.shape[0] < config.matcher.min_inliers:
+        return None
+    # A heading lost d metres ago moves the position by about d * angle / 2.
+    xy_m = min(
+        config.search_xy_m + config.xy_per_m * travelled_m + 0.5 * yaw_doubt_rad * travelled_m,
+        config.max_search_xy_m,
+    )
+    yaw_rad = min(
+        config.search_yaw_rad + config.yaw_per_m * travelled_m + yaw_doubt_rad, config.max_search_yaw_rad
+    )
+    distance = np.hypot(*(poses[: old_end + 1, :2] - poses[j, :2]).T)
+    i = int(np.argmin(distance))
+    if distance[i] > xy_m + config.search_radius_m:
+        log.debug("node %d: no old node within %.1f m", j, xy_m + config.search_radius_m)
+        return None
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[: old_end + 1, :2], axis=0).T))])
+    near = np.flatnonzero(np.abs(along - along[i]) <= config.window_path_m)
+    nodes = range(int(near[0]), int(near[-1]) + 1)
+    centre = poses[j]
+    coarse_field = old_map_field(
+        poses, hits, nodes, config.coarse_resolution_m, config.coarse_truncate_m + config.coarse_resolution_m
+    )
+    coarse = lattice_search(
+        coarse_field,
+        match_points,
+        centre,
+        xy_m,
+        yaw_rad,
+        config.coarse_yaw_step_rad,
+        config.coarse_truncate_m,
+    )
+    r, t = coarse.best()
+    elsewhere = coarse.best_elsewhere(r, t, config.distinct_xy_m, config.distinct_yaw_rad)
+    if not coarse.costs[r, t] < config.max_ambiguity * elsewhere:
+        log.debug(
+            "node %d vs %d: ambiguous (%.4f against %.4f elsewhere)", j, i, coarse.costs[r, t], elsewhere
+        )
+        return None
+    start = coarse.pose(centre, r, t)
+    cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
+    old = old_map_field(poses, hits, nodes, config.resolution_m, cap)
+    fine = lattice_search(
+        old,
+        match_points,
+        start,
+        config.coarse_resolution_m,
+        config.coarse_yaw_step_rad,
+        config.fine_yaw_step_rad,
+        config.truncate_m,
+    )
+    start = fine.pose(start, *fine.best())
+    refined = match(old, np.zeros(1, dtype=np.int64), match_points, start[None, :], config.matcher)
+    fraction = float(refined.inlier_fraction[0])
+    if not refined.ok[0] or fraction < config.min_inlier_fraction:
+        log.debug("node %d vs %d: %.2f of the endpoints on the old map", j, i, fraction)
+        return None
+    return LoopConstraint(i, j, between(poses[i], refined.poses[0]), fraction)
+
+
+def optimize_graph(
+    poses: FloatArray,
+    motions: FloatArray,
+    loops: list[LoopConstraint],
+    config: LoopClosureConfig,
+    absolute: AbsoluteFactors | None = None,
+    odometry_motions: FloatArray | None = None,
+) -> GraphResult:
+    """The chain 0 -> 1 -> ... (``motions[k]``: node k in node k-1's frame, k >= 1) plus the loop factors,
+    optimised from ``poses``."""
+    n = poses.shape[0]
+    chain = np.arange(1, n, dtype=np.int64)
+    motion_sigma = np.tile(np.asarray(config.motion_sigma), (n - 1, 1))
+    if odometry_motions is not None:
+        gap = np.abs(motions[1:n] - odometry_motions[1:n])
+        gap[:, 2] = np.abs(wrap_angle(gap[:, 2]))
+        motion_sigma = np.maximum(motion_sigma, config.correction_share * gap)
+    i = np.concatenate([chain - 1, np.array([c.i for c in loops], dtype=np.int64)])
+    j = np.concatenate([chain, np.array([c.j for c in loops], dtype=np.int64)])
+    z = np.vstack([motions[1:n], np.array([c.z for c in loops]).reshape(-1, 3)])
+    sigma = np.vstack(
+        [
+            motion_sigma,
+            np.tile(np.asarray(config.loop_sigma), (len(loops), 1)),
+        ]
+    )
+    return optimize(poses, RelativeFactors(i, j, z, sigma), absolute, huber=config.huber)
+
+
+def yaw_doubt(motions: FloatArray, odometry_motions: FloatArray, config: LoopClosureConfig) -> float:
+    """Three standard deviations of the heading the chain of ``motions`` may have lost against the
+    ``odometry_motions`` beside them: 3 sqrt(sum_k sigma_k²) over the edges whose sigma the graph widened
+    (``correction_share`` of the match's turn against odometry, where that exceeds the motion sigma: the
+    searches' own drift terms cover the rest)."""
+    if motions.shape[0] == 0:
+        return 0.0
+    gap = config.correction_share * np.abs(wrap_angle(motions[:, 2] - odometry_motions[:, 2]))
+    sigma = np.where(gap > config.motion_sigma[2], gap, 0.0)
+    return float(3.0 * np.sqrt(np.sum(sigma * sigma)))
+
+
+def chain_poses(start: FloatArray, motions: FloatArray) -> FloatArray:
+    """Poses of the chain from ``start`` by ``motions[1:]``."""
+    out = np.zeros_like(motions)
+    out[0] = start
+    for k in range(1, motions.shape[0]):
+        out[k] = compose(out[k - 1], motions[k])
+    return out

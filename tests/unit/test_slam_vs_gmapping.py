@@ -1,0 +1,85 @@
+"""The side-by-side benchmark's quick pieces: GMapping's input format written from our logs and read back,
+and the clean skip where GMapping cannot be built or a log is absent (benchmarks/slam_vs_gmapping.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.slam.logs import LogFormat, LogRecord, SlamLog
+from agent.slam.scan import LaserGeometry
+
+_SPEC = importlib.util.spec_from_file_location(
+    "slam_vs_gmapping", Path(__file__).resolve().parents[2] / "benchmarks" / "slam_vs_gmapping.py"
+)
+assert _SPEC is not None and _SPEC.loader is not None
+bench = importlib.util.module_from_spec(_SPEC)
+sys.modules[_SPEC.name] = bench  # dataclasses look their module up there
+_SPEC.loader.exec_module(bench)
+
+
+def _log(geometry: LaserGeometry, fmt: LogFormat, records: int = 4) -> SlamLog:
+    rng = np.random.default_rng(3)
+    rows = []
+    for i in range(records):
+        ranges = rng.uniform(0.5, geometry.no_return_m * 0.9, geometry.beams)
+        ranges[1] = 0.0  # no return, ours
+        ranges[2] = geometry.no_return_m  # saturation: no return too
+        odom = np.array([0.1 * i, -0.05 * i, 0.3 - 0.2 * i])
+        rows.append(LogRecord(i + 1, 10.0 + 0.1 * i, ranges, odom))
+    return SlamLog("<test>", fmt, geometry, tuple(rows))
+
+
+@pytest.mark.parametrize(
+    ("geometry", "fmt"),
+    [
+        (LaserGeometry(-math.pi / 2 + np.arange(180) * math.pi / 180, 0.0, 81.83), LogFormat.RADISH),
+        (LaserGeometry.urg04lx((0.145, 0.0, 0.0)), LogFormat.BREEZYSLAM),
+    ],
+)
+def test_the_gmapping_input_reads_back_as_the_log(
+    tmp_path: Path, geometry: LaserGeometry, fmt: LogFormat
+) -> None:
+    log = _log(geometry, fmt)
+    back = bench.read_gmapping_input(bench.write_gmapping_input(log, tmp_path / "x.gmlog"))
+    assert back.beams == geometry.beams
+    angles = back.angle0_rad + np.arange(back.beams) * back.dangle_rad
+    np.testing.assert_allclose(angles, geometry.angles_rad, atol=1e-9)
+    assert back.mount == pytest.approx(geometry.mount)
+    assert (back.range_min_m, back.range_max_m) == pytest.approx((geometry.min_range_m, geometry.no_return_m))
+    np.testing.assert_allclose(back.times_s, log.times_s(), atol=1e-6)
+    np.testing.assert_allclose(back.odometry, log.odometry_poses(), atol=1e-8)
+    ours = np.array([r.ranges_m for r in log.records])
+    expected = np.where(ours >= geometry.no_return_m, 0.0, ours)  # no return is 0 for the driver
+    np.testing.assert_allclose(back.ranges_m, expected, rtol=1e-5)
+    assert np.all(back.ranges_m[:, 1:3] == 0.0)
+
+
+def test_gmapping_is_skipped_with_a_reason_without_its_sources_or_a_compiler(tmp_path: Path) -> None:
+    driver, reason = bench.build_gmapping(tmp_path / "absent", tmp_path / "build")
+    assert driver is None and "not found" in reason
+    peer = tmp_path / "peer"
+    peer.mkdir()
+    (peer / "build.sh").write_text("exit 1\n")
+    driver, reason = bench.build_gmapping(peer, tmp_path / "build", compiler="no-such-compiler-x")
+    assert driver is None and "no C++ compiler" in reason
+    driver, reason = bench.build_gmapping(peer, tmp_path / "build", compiler="sh")
+    assert driver is None and "build failed" in reason
+
+
+def test_the_benchmark_reports_skips_in_its_json(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(bench, "SHARED", tmp_path)
+    out = tmp_path / "out.json"
+    assert bench.main(["--logs", "intel", "--peer", str(tmp_path / "none"), "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert "not found" in result["gmapping"]["skipped"]
+    assert "log not found" in result["logs"]["intel"]["skipped"]
+    assert json.loads(capsys.readouterr().out) == result
