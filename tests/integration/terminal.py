@@ -14,6 +14,14 @@ import signal
 from typing import Any
 
 
+def terminal_signals() -> None:
+    """pexpect's ``preexec_fn``: SIGINT and SIGQUIT as a shell at a terminal hands them to a program it
+    starts. A test runner started in the background without job control (``cmd &`` in a script) inherits
+    them ignored, and Python keeps an ignored SIGINT ignored: Ctrl-C would then test nothing."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGQUIT, signal.SIG_DFL)
+
+
 def press_ctrl_c(child: Any) -> None:
     os.killpg(os.getpgid(child.pid), signal.SIGINT)
 

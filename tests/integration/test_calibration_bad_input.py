@@ -14,7 +14,7 @@ import pytest
 from agent.cli import main
 from drivers.sim.targets import Chessboard, TargetRenderer
 from drivers.sim.world import CameraModel
-from tests.integration.terminal import press_ctrl_c, signal_state
+from tests.integration.terminal import press_ctrl_c, signal_state, terminal_signals
 
 REPO = Path(__file__).resolve().parents[2]
 PREVIOUS = "# the calibration that works\n"
@@ -139,6 +139,7 @@ def test_ctrl_c_in_the_middle_of_a_step(tmp_path: Path) -> None:
         cwd=str(REPO),
         encoding="utf-8",
         timeout=90,
+        preexec_fn=terminal_signals,
         env={**os.environ, "COLUMNS": "200"},
     )
     try:

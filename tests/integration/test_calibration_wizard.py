@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from calibration.camera_info import parse_camera_info
-from tests.integration.terminal import press_ctrl_c, signal_state
+from tests.integration.terminal import press_ctrl_c, signal_state, terminal_signals
 
 pexpect = pytest.importorskip("pexpect")
 
@@ -26,6 +26,7 @@ def wizard(folder: Path) -> pexpect.spawn:
         cwd=str(REPO),
         encoding="utf-8",
         timeout=90,
+        preexec_fn=terminal_signals,
         dimensions=(50, 220),
         env={**os.environ, "COLUMNS": "220", "LINES": "50"},
     )

@@ -4,6 +4,7 @@ pose output's line and reads goal statuses back between the pose frames; bad fra
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import pytest
 
@@ -44,15 +45,23 @@ def setup(path: str, fmt: OutputFormat = OutputFormat.FRAME) -> tuple[PoseOutput
     return out, CommandLoop(out, arbiter, fmt, clock_s=clock), clock
 
 
-def pump(loop: CommandLoop, master: int, data: bytes) -> bytes:
+def pump(
+    loop: CommandLoop, master: int, data: bytes, done: Callable[[bytes], bool], rounds: int = 100
+) -> bytes:
+    """The controller writes ``data``; the loop steps until what came back is ``done`` (at most ``rounds``
+    steps of up to 50 ms: this waits for the pty and the answers, it measures nothing)."""
     os.write(master, data)
-    taken = 0
-    for _ in range(50):  # the pty hands bytes over at once; this only waits for them, it measures nothing
-        taken += loop.step()
-        reply = read_all(master)
-        if reply:
-            return reply
-    return b""
+    reply = b""
+    for _ in range(rounds):
+        loop.step()
+        reply += read_all(master)
+        if done(reply):
+            break
+    return reply
+
+
+def statuses(n: int) -> Callable[[bytes], bool]:
+    return lambda reply: len(GoalStatusDecoder().feed(reply)) >= n
 
 
 def test_commands_are_answered_between_pose_frames_and_drive_the_arbiter(pty: tuple[int, str]) -> None:
@@ -60,11 +69,11 @@ def test_commands_are_answered_between_pose_frames_and_drive_the_arbiter(pty: tu
     out, loop, clock = setup(path)
     read_all(master)  # the leading 0x00
     out.publish(estimate(0), PoseFlags.VLP)
-    reply = pump(loop, master, encode_command(VelocityCommand(7, 0.5, 0.0, 0.4)))
+    reply = pump(loop, master, encode_command(VelocityCommand(7, 0.5, 0.0, 0.4)), statuses(1))
     out.publish(estimate(1), PoseFlags.VLP)
     reply += read_all(master)
-    statuses = GoalStatusDecoder().feed(reply)
-    assert [(s.command_sequence, s.state, s.reason) for s in statuses] == [
+    answers = GoalStatusDecoder().feed(reply)
+    assert [(s.command_sequence, s.state, s.reason) for s in answers] == [
         (7, GoalState.ACCEPTED, GoalReason.CLAMPED)
     ]
     assert len(PoseFrameDecoder().feed(reply)) == 2  # poses and statuses share the line
@@ -83,12 +92,9 @@ def test_bad_crc_unknown_type_and_an_unreachable_goal_are_each_answered(pty: tup
         + encode_link_frame(bytes([0x2E, 0x10, 9, 0]))
         + encode_command(GoalCommand(4, 11, 99.0, 0.0))
     )
-    reply = pump(loop, master, stream)
-    for _ in range(5):
-        loop.step()
-        reply += read_all(master)
-    statuses = GoalStatusDecoder().feed(reply)
-    assert [(s.command_sequence, s.goal_id, s.state, s.reason) for s in statuses] == [
+    reply = pump(loop, master, stream, statuses(3))
+    answers = GoalStatusDecoder().feed(reply)
+    assert [(s.command_sequence, s.goal_id, s.state, s.reason) for s in answers] == [
         (NO_SEQUENCE, 0xFFFF, GoalState.REJECTED, GoalReason.BAD_FRAME),
         (NO_SEQUENCE, 0xFFFF, GoalState.REJECTED, GoalReason.UNKNOWN_TYPE),
         (4, 11, GoalState.REJECTED, GoalReason.UNREACHABLE),
@@ -106,7 +112,7 @@ def test_mavlink_commands_are_answered_with_command_acks(pty: tuple[int, str]) -
     read_all(master)
     gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
     msg = mavlink.MAVLink_command_long_message(1, 197, 193, 0, 0, 0, 0, 0, 0, 0, 0)
-    reply = pump(loop, master, bytes(msg.pack(gcs)))
+    reply = pump(loop, master, bytes(msg.pack(gcs)), lambda r: bool(mavlink.MAVLink(None).parse_buffer(r)))
     (ack,) = mavlink.MAVLink(None).parse_buffer(reply)
     assert (ack.get_type(), ack.command, ack.result) == ("COMMAND_ACK", 193, 0)
     assert loop.arbiter.directive(0.0)[0].source is DriveSource.STOPPED
@@ -116,5 +122,5 @@ def test_mavlink_commands_are_answered_with_command_acks(pty: tuple[int, str]) -
 def test_junk_never_raises_and_never_moves_the_base(pty: tuple[int, str], junk: bytes) -> None:
     master, path = pty
     _, loop, _ = setup(path)
-    pump(loop, master, junk + b"\x00")
+    pump(loop, master, junk + b"\x00", lambda reply: False, rounds=10)
     assert loop.arbiter.directive(0.0)[0].source is DriveSource.NONE
