@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from agent.slam.mapio import fsync_dir, new_file_mode
 from calibration.report import CalibrationError, StepResult
 
 __all__ = ["SavedFile", "backup_path", "check_writable", "commit", "save_all", "save_atomic"]
@@ -35,24 +36,12 @@ def backup_path(path: Path) -> Path:
     return path.with_name(path.name + ".bak")
 
 
-def _fsync_dir(folder: Path) -> None:
-    # The rename is durable only once the folder's entry is on disk; not every filesystem allows this.
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def _mode_for(path: Path) -> int:
     """The permissions a new version gets: the old file's, or what ``open()`` would give (0666 - umask)."""
     try:
         return path.stat().st_mode & 0o777
     except OSError:
-        mask = os.umask(0)
-        os.umask(mask)
-        return 0o666 & ~mask
+        return new_file_mode()
 
 
 def check_writable(folder: Path) -> None:
@@ -120,7 +109,7 @@ def save_all(files: Sequence[tuple[Path, bytes | str]], *, backup: bool = True) 
                 os.replace(tmp, path)
             except OSError as exc:
                 raise CalibrationError(f"cannot replace {path}: {exc.strerror or exc}") from exc
-            _fsync_dir(path.parent)
+            fsync_dir(path.parent)
             log.info("saved %s%s", path, f" (previous version: {kept})" if kept else "")
             saved.append(SavedFile(path, kept))
         return saved

@@ -60,7 +60,7 @@ def new_file_mode() -> int:
     return 0o666 & ~mask
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
     # A rename is durable only once the folder's entry is on disk; not every filesystem allows this.
     with contextlib.suppress(OSError):
         fd = os.open(folder, os.O_RDONLY)
@@ -260,7 +260,7 @@ def save_map(image: OccupancyImage, yaml_path: str | Path, comment: str = "") ->
             write_atomic(previous, replaced)
         # 3. The commit: one rename puts the new description, naming the new image, in place.
         write_atomic(yaml_file, _yaml_text(pgm_file.name, image).encode("ascii"))
-        _fsync_dir(yaml_file.parent)
+        fsync_dir(yaml_file.parent)
         # 4. Images neither description names any more (the previous-but-one, older releases' names).
         _remove_unnamed_images(yaml_file, legacy=True)
     except OSError as exc:
