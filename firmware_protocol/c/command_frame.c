@@ -165,16 +165,6 @@ void status_decoder_init(status_decoder_t *dec)
     dec->stats = zero;
 }
 
-static void push(status_decoder_t *dec, uint8_t byte)
-{
-    if (dec->len >= CMD_FRAME_MAX_DECODED_LEN) {
-        dec->overflow = 1;
-        dec->stats.overflows++;
-        return;
-    }
-    dec->buf[dec->len++] = byte;
-}
-
 int status_decoder_feed(status_decoder_t *dec, uint8_t byte, goal_status_t *out)
 {
     status_result_t result;
@@ -211,18 +201,10 @@ int status_decoder_feed(status_decoder_t *dec, uint8_t byte, goal_status_t *out)
     if (dec->overflow) {
         return 0;
     }
-    if (dec->block_left == 0u) {
-        if (dec->zero_pending) {
-            push(dec, 0u);
-            if (dec->overflow) {
-                return 0;
-            }
-        }
-        dec->block_left = (uint8_t)(byte - 1u);
-        dec->zero_pending = (uint8_t)(byte != 0xFFu);
-    } else {
-        push(dec, byte);
-        dec->block_left--;
+    if (cobs_unstuff_byte(byte, dec->buf, CMD_FRAME_MAX_DECODED_LEN, &dec->len, &dec->block_left,
+                          &dec->zero_pending)) {
+        dec->overflow = 1;
+        dec->stats.overflows++;
     }
     return 0;
 }

@@ -104,15 +104,27 @@ void pose_decoder_init(pose_decoder_t *dec)
     dec->stats.discarded_bytes = 0;
 }
 
-static void push(pose_decoder_t *dec, uint8_t byte)
+int cobs_unstuff_byte(uint8_t byte, uint8_t *buf, uint8_t cap, uint8_t *len, uint8_t *block_left,
+                      uint8_t *zero_pending)
 {
-    if (dec->len >= POSE_FRAME_MAX_DECODED_LEN) {
-        dec->overflow = 1;
-        dec->stats.overflows++;
-        dec->last_error = POSE_ERR_OVERFLOW;
-        return;
+    if (*block_left == 0u) {
+        /* A COBS code byte: the previous block (if any, and if shorter than 254) ended in a zero. */
+        if (*zero_pending) {
+            if (*len >= cap) {
+                return 1;
+            }
+            buf[(*len)++] = 0u;
+        }
+        *block_left = (uint8_t)(byte - 1u);
+        *zero_pending = (uint8_t)(byte != 0xFFu);
+        return 0;
     }
-    dec->buf[dec->len++] = byte;
+    if (*len >= cap) {
+        return 1;
+    }
+    buf[(*len)++] = byte;
+    (*block_left)--;
+    return 0;
 }
 
 static void reject(pose_decoder_t *dec, pose_status_t why)
@@ -172,19 +184,11 @@ int pose_decoder_feed(pose_decoder_t *dec, uint8_t byte, pose_frame_t *out)
     if (dec->overflow) {
         return 0;
     }
-    if (dec->block_left == 0u) {
-        /* A COBS code byte: the previous block (if any, and if shorter than 254) ended in a zero. */
-        if (dec->zero_pending) {
-            push(dec, 0u);
-            if (dec->overflow) {
-                return 0;
-            }
-        }
-        dec->block_left = (uint8_t)(byte - 1u);
-        dec->zero_pending = (uint8_t)(byte != 0xFFu);
-    } else {
-        push(dec, byte);
-        dec->block_left--;
+    if (cobs_unstuff_byte(byte, dec->buf, POSE_FRAME_MAX_DECODED_LEN, &dec->len, &dec->block_left,
+                          &dec->zero_pending)) {
+        dec->overflow = 1;
+        dec->stats.overflows++;
+        dec->last_error = POSE_ERR_OVERFLOW;
     }
     return 0;
 }

@@ -98,6 +98,13 @@ uint16_t pose_crc16_ccitt_false(const uint8_t *data, size_t len);
 /* Check and decode one un-stuffed frame (payload followed by its CRC). Writes *out only on POSE_OK. */
 pose_status_t pose_frame_parse(const uint8_t *decoded, size_t len, pose_frame_t *out);
 
+/* One byte of a COBS-stuffed candidate (any byte but the 0x00 delimiter) un-stuffed into buf (cap bytes);
+ * *len, *block_left and *zero_pending carry the state between bytes and start at 0. Shared by the pose
+ * decoder and the goal-status decoder (command_frame.c). Returns 1 when buf is full (the candidate
+ * overflows: skip to the next 0x00), else 0. */
+int cobs_unstuff_byte(uint8_t byte, uint8_t *buf, uint8_t cap, uint8_t *len, uint8_t *block_left,
+                      uint8_t *zero_pending);
+
 /* Start (or restart) a decoder; counters are zeroed. */
 void pose_decoder_init(pose_decoder_t *dec);
 
