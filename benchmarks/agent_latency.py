@@ -1,6 +1,11 @@
 """The whole agent's latency and memory on the simulated robot, with SLAM running. Prints one JSON object.
 
-    python benchmarks/agent_latency.py [--seconds 30] [--world FILE] [--config FILE] [--runs 1]
+    python benchmarks/agent_latency.py [--seconds 30] [--world FILE] [--config FILE] [--runs 1] [--goal X,Y]
+
+With ``--goal`` (repeatable, as ``vlp-agent sim --goal``) the robot drives itself to those goals: the
+navigation loop (costmap, planner, controller, collision monitor) runs beside the hot path, and the run
+ends when the last goal has ended or at ``--seconds``. ``--goal nav`` stands for three goals across the
+office's rooms (the whole-agent navigation test's).
 
 Each run is a fresh ``vlp-agent sim --json`` process (so its peak RSS is the agent's alone, fakes and
 renderer included), driving the office route with VLP, SLAM, fusion and the pose stream on a pty read by
@@ -47,9 +52,17 @@ BUDGET_LATENCY_P99_MS = 10.0
 BUDGET_PEAK_RSS_MB = 250.0
 
 
-def one_run(seconds: float, world: str | None, config: str | None = None) -> dict[str, Any]:
+# Three goals across the office's rooms, through its corridor (tests/integration/test_agent_navigation.py).
+OFFICE_GOALS = ("7.5,2.5", "12.5,2.5,90", "12.5,9.5")
+
+
+def one_run(
+    seconds: float, world: str | None, config: str | None = None, goals: tuple[str, ...] = ()
+) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "agent.cli", "sim", "--seconds", str(seconds), "--json", "--out", tmp]
+        for goal in goals:
+            cmd += ["--goal", goal]
         if world:
             cmd += ["--world", world]
         if config:
@@ -80,6 +93,7 @@ def one_run(seconds: float, world: str | None, config: str | None = None) -> dic
         "slam_map_bytes": s["slam"].get("map_bytes", 0),
         "slam_share_of_frames": s["source_share"]["slam"],
         "unavailable": s["unavailable"],
+        "goals": s.get("goals"),
     }
 
 
@@ -89,10 +103,18 @@ def main() -> None:
     parser.add_argument("--world", default=None)
     parser.add_argument("--config", default=None, help="agent config (default: examples/sim.toml)")
     parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument(
+        "--goal",
+        action="append",
+        default=[],
+        metavar="X,Y[,YAW]",
+        help="drive to these goals with navigation running (repeatable); nav: three goals across the office",
+    )
     args = parser.parse_args()
+    goals = tuple(g for arg in args.goal for g in (OFFICE_GOALS if arg == "nav" else (arg,)))
     world = load_world(args.world or REPO / "examples" / "worlds" / "office.toml")
     half_readout_ms = 0.5 * readout_time_s(world.camera) * 1e3
-    runs = [one_run(args.seconds, args.world, args.config) for _ in range(args.runs)]
+    runs = [one_run(args.seconds, args.world, args.config, goals) for _ in range(args.runs)]
     worst = {
         key: max(r[key] for r in runs)
         for key in (
@@ -118,6 +140,7 @@ def main() -> None:
             "peak_rss_mb": worst["peak_rss_mb"] <= BUDGET_PEAK_RSS_MB,
         },
         "slam_running": all(r["slam_filter_updates"] > 0 for r in runs),
+        "navigating": bool(goals),
         "runs": runs,
     }
     print(json.dumps(result, indent=2))
