@@ -7,7 +7,9 @@ frame."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 from agent.recording.messages import CHANNELS
@@ -83,3 +85,37 @@ def test_a_sim_recording_has_every_channel_and_every_message_validates(tmp_path:
     assert {"u_px", "v_px", "id"} <= set(fix["leds"][0])
     scan = by_topic["/laser/scan_raw"][0].data
     assert scan["device_time_ms"] is not None and scan["host_time_ns"] > 0
+
+
+def test_a_recording_killed_mid_run_reads_up_to_its_last_chunk(tmp_path: Path) -> None:
+    """SIGKILL while recording: the file has no footer, and reads whole up to within about one chunk
+    (``chunk_s`` = 1 s, plus the writer's quarter-second pass) of the kill."""
+    path = tmp_path / "rec" / "run.mcap"
+    proc = subprocess.Popen(
+        vlp_agent("sim", "--seconds", "60", "--json", "--out", str(tmp_path), "--record", str(path)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+    )
+    try:
+        first = tmp_path / "rec" / "run-0001.mcap"
+        deadline = time.monotonic() + 120
+        # Run until the recording holds a few seconds of chunks.
+        while time.monotonic() < deadline and (not first.exists() or first.stat().st_size < 400_000):
+            time.sleep(0.2)
+        assert first.exists(), "no recording file appeared"
+        # The size grows when a chunk is written: kill between two chunks, not right after one.
+        time.sleep(0.6)
+        killed_ns = time.monotonic_ns()
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait(30)
+    recording = read_recording(first)
+    assert not recording.complete
+    topics = recording.by_topic()
+    assert {"/laser/scan", "/imu", "/vlp/fix", "/pose"} <= set(topics)
+    last_ns = max(m.log_time_ns for m in recording.messages)
+    lost_s = (killed_ns - last_ns) * 1e-9
+    print(f"killed: {len(recording.messages)} messages read, the last {lost_s:.2f} s before the kill lost")
+    assert 0 <= lost_s < 2.5, lost_s
