@@ -26,6 +26,7 @@ __all__ = [
     "GoalSample",
     "HealthSample",
     "WheelCommandSample",
+    "fusion_record_time",
     "messages_for",
 ]
 
@@ -49,6 +50,8 @@ CHANNELS: dict[str, str] = {
     "/commands/received": "vlp_agent.Command",
     "/goals/status": "vlp_agent.GoalState",
     "/health": "vlp_agent.HealthEvent",
+    "/fusion/setup": "vlp_agent.FusionSetup",
+    "/fusion/input": "vlp_agent.FusionInput",
 }
 
 MAP_FRAME = "map"
@@ -338,6 +341,25 @@ def _health(h: HealthSample) -> Iterable[tuple[str, Message]]:
     yield ("/health", {"host_time_ns": h.host_time_ns, "device": h.device, "ok": h.ok, "reason": h.reason})
 
 
+def _fusion_setup(parameters: dict[str, Any]) -> Iterable[tuple[str, Message]]:
+    yield ("/fusion/setup", {"parameters": parameters})
+
+
+def _fusion_input(record: dict[str, Any]) -> Iterable[tuple[str, Message]]:
+    # The filter's own record, as it is: its floats survive JSON exactly (repr round-trips), which is what
+    # lets a replay reproduce the poses bit for bit.
+    yield ("/fusion/input", record)
+
+
+def fusion_record_time(record: dict[str, Any]) -> int:
+    """A fusion input's log time: when it arrived, else when it was measured."""
+    for key in ("a", "t", "t1"):
+        value = record.get(key)
+        if value is not None:
+            return int(value)
+    return 0
+
+
 # kind -> converter. The loops name the kind; one kind may give several channels (a scan: the Foxglove
 # view and the raw one; a written pose: the pose, its detail and the transform).
 KINDS: dict[str, Callable[[Any], Iterable[tuple[str, Message]]]] = {
@@ -354,6 +376,8 @@ KINDS: dict[str, Callable[[Any], Iterable[tuple[str, Message]]]] = {
     "command": _command,
     "goal_status": _goal,
     "health": _health,
+    "fusion_setup": _fusion_setup,
+    "fusion_input": _fusion_input,
 }
 
 

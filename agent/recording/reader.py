@@ -10,7 +10,10 @@ format version of the recorder raises :class:`RecordingFormatError` rather than 
 from __future__ import annotations
 
 import json
+import logging
+import re
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,20 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from firmware_protocol.errors import VlpAgentError
 
-__all__ = ["RecordedMessage", "Recording", "RecordingFormatError", "read_recording"]
+__all__ = [
+    "RecordedMessage",
+    "Recording",
+    "RecordingFormatError",
+    "fusion_records",
+    "is_mcap",
+    "read_recording",
+    "recording_files",
+    "recording_paths",
+]
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"\x89MCAP0\r\n"
 
 FORMAT_VERSION = 1
 
@@ -94,6 +110,72 @@ def read_recording(path: Path) -> Recording:
                 raise
             result.stopped_at, result.error = good, f"{type(exc).__name__}: {exc}"
     return result
+
+
+def recording_files(path: Path) -> list[tuple[int, Path]]:
+    """The files of the recording named by ``path`` (``<stem>-<n>.mcap`` beside it), oldest first."""
+    pattern = re.compile(re.escape(path.stem) + r"-(\d+)\.mcap$")
+    found = []
+    if path.parent.is_dir():
+        for entry in path.parent.iterdir():
+            m = pattern.match(entry.name)
+            if m is not None:
+                found.append((int(m.group(1)), entry))
+    return sorted(found)
+
+
+def recording_paths(path: Path) -> list[Path]:
+    """The files to read for ``path``: the file itself when it exists, else the recorder's files it names
+    (``run.mcap`` -> ``run-0001.mcap``, ``run-0002.mcap``, ...), oldest first."""
+    if path.exists():
+        return [path]
+    files = [p for _, p in recording_files(path)]
+    if not files:
+        raise FileNotFoundError(f"{path}: no such recording (nor {path.stem}-NNNN.mcap beside it)")
+    return files
+
+
+def is_mcap(path: Path) -> bool:
+    """Whether ``path`` is (or names) an MCAP recording, by its magic bytes."""
+    paths = [path] if path.exists() else [p for _, p in recording_files(path)]
+    if not paths:
+        return False
+    with open(paths[0], "rb") as fp:
+        return fp.read(len(MAGIC)) == MAGIC
+
+
+def fusion_records(path: Path) -> Iterator[dict[str, Any]]:
+    """The fusion's part of a flight recording, in the records of ``agent.runtime.recorder``'s JSON lines:
+    the header (the filter's setup), every input in the order the filter took them, and every pose
+    written (``out``). Over every file of the recording in order; a cut file ends the inputs there (logged
+    with where), since a replay cannot go on past a gap."""
+    for path_i in recording_paths(path):
+        recording = read_recording(path_i)
+        for m in recording.messages:
+            if m.topic == "/fusion/setup":
+                yield {"k": "header", "format": FORMAT_VERSION, "fusion": m.data["parameters"]}
+            elif m.topic == "/fusion/input":
+                yield m.data
+            elif m.topic == "/pose/fused":
+                d = m.data
+                yield {
+                    "k": "out",
+                    "v": d["version"],
+                    "t": d["t_ns"],
+                    "x": d["x_m"],
+                    "y": d["y_m"],
+                    "yaw": d["yaw_rad"],
+                    "flags": d["flags"],
+                }
+        if recording.stopped_at is not None:
+            log.warning(
+                "%s: read up to byte %d of %d (%s); the replay stops there",
+                path_i,
+                recording.stopped_at,
+                path_i.stat().st_size,
+                recording.error,
+            )
+            return
 
 
 def _check_version(path: Path, record: Metadata) -> None:

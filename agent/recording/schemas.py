@@ -276,6 +276,19 @@ SCHEMAS: dict[str, Schema] = {
         "A goal status sent to the controller",
         {"host_time_ns": _INTEGER, "state": _STRING, "fields": {"type": "object"}},
     ),
+    "vlp_agent.FusionSetup": _project(
+        "vlp_agent.FusionSetup",
+        "How the fusion filter was set up (agent.fusion.PoseFilter.parameters), once at the start",
+        {"parameters": {"type": "object"}},
+    ),
+    "vlp_agent.FusionInput": {
+        "title": "vlp_agent.FusionInput",
+        "description": "One input the fusion filter took, in the order it took them (agent.fusion's observer "
+        "record: k = odometry | gyro | pose, with its measurement and arrival times)",
+        "type": "object",
+        "properties": {"k": _STRING, "a": _nullable(_INTEGER)},
+        "required": ["k", "a"],
+    },
     "vlp_agent.HealthEvent": _project(
         "vlp_agent.HealthEvent",
         "A device's state changed (up, lost, recovered), with the reason",

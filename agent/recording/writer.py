@@ -22,7 +22,6 @@ import contextlib
 import json
 import logging
 import os
-import re
 import shutil
 import threading
 import time
@@ -34,7 +33,7 @@ from mcap.writer import CompressionType, Writer
 
 from agent.config import RecorderConfig
 from agent.recording.messages import CHANNELS, messages_for
-from agent.recording.reader import FORMAT_VERSION
+from agent.recording.reader import FORMAT_VERSION, recording_files
 from agent.recording.schemas import SCHEMAS
 
 __all__ = ["PROFILE", "McapRecorder", "free_bytes", "recording_files"]
@@ -49,18 +48,6 @@ _MAX_CHUNK_BYTES = 8 << 20
 
 def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
-
-
-def recording_files(path: Path) -> list[tuple[int, Path]]:
-    """The files of the recording named by ``path`` (``<stem>-<n>.mcap`` beside it), oldest first."""
-    pattern = re.compile(re.escape(path.stem) + r"-(\d+)\.mcap$")
-    found = []
-    if path.parent.is_dir():
-        for entry in path.parent.iterdir():
-            m = pattern.match(entry.name)
-            if m is not None:
-                found.append((int(m.group(1)), entry))
-    return sorted(found)
 
 
 class McapRecorder:

@@ -36,7 +36,7 @@ import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
-from agent.recording.messages import FusedSample
+from agent.recording.messages import FusedSample, fusion_record_time
 from agent.recording.writer import McapRecorder
 from agent.runtime.arbiter import CommandArbiter
 from agent.runtime.camera_loop import camera_loop
@@ -177,7 +177,7 @@ class Agent:
             gate_probability=fc.gate_probability,
             history_s=fc.history_s,
             odometry_hold_s=fc.odometry_timeout_s,
-            observer=recorder.record_input if recorder is not None else None,
+            observer=_fusion_observer(recorder, flight_recorder),
         )
         self.timeouts_ns = {
             Source.VLP: int(fc.vlp_timeout_s * 1e9),
@@ -245,6 +245,9 @@ class Agent:
         if self.recorder is not None:
             self.recorder.start(self.fusion.parameters)
         if self.flight_recorder is not None:
+            # First in the recording: how the filter was set up, so that its inputs can be replayed.
+            setup = self.fusion.parameters
+            self.flight_recorder.record("fusion_setup", setup["t0_ns"], setup)
             self.flight_recorder.start()
             self.state.set_recorder(self.flight_recorder.record)
             if self.commands is not None:
@@ -653,6 +656,23 @@ class Agent:
         ]
         text = f"no position source ({', '.join(sources) or 'none configured'} silent)"
         return f"{text}; missing: {', '.join(missing)}" if missing else text
+
+
+def _fusion_observer(
+    recorder: Recorder | None, flight_recorder: McapRecorder | None
+) -> Callable[[dict[str, Any]], None] | None:
+    """What the fusion tells each of its inputs to (under its lock): the JSON-lines recorder, the flight
+    recorder, both or neither."""
+    if flight_recorder is None:
+        return recorder.record_input if recorder is not None else None
+    record = flight_recorder.record
+
+    def observe(r: dict[str, Any]) -> None:
+        if recorder is not None:
+            recorder.record_input(r)
+        record("fusion_input", fusion_record_time(r), r)
+
+    return observe
 
 
 def _kind(name: str) -> Any:

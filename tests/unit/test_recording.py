@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from agent.config import RecorderConfig, parse_config
-from agent.fusion import Estimate
+from agent.fusion import Estimate, PoseFilter
 from agent.recording.messages import (
     CHANNELS,
     KINDS,
@@ -24,12 +24,14 @@ from agent.recording.messages import (
     GoalSample,
     HealthSample,
     WheelCommandSample,
+    fusion_record_time,
     messages_for,
     occupancy_cells,
 )
 from agent.recording.reader import RecordingFormatError, read_recording
 from agent.recording.schemas import SCHEMAS
 from agent.recording.writer import McapRecorder, recording_files
+from agent.runtime.recorder import replay
 from agent.runtime.types import AbsoluteFix, NoFix
 from agent.slam.render import OccupancyImage
 from agent.vlp.model import LedObservation
@@ -120,6 +122,8 @@ def one_of_each(t_ns: int) -> list[tuple[str, Any]]:
         ("command", CommandSample(t_ns, VelocityCommand(5, 0.1, 0.2, 0.5))),
         ("goal_status", GoalSample(t_ns, GoalStatus(1, 4, 9, GoalState.ACTIVE, GoalReason.NONE, 3.2))),
         ("health", HealthSample(t_ns, "laser", False, "lost: gone")),
+        ("fusion_setup", PoseFilter(np.zeros(3), np.eye(3), t_ns).parameters),
+        ("fusion_input", {"k": "gyro", "t": t_ns, "w": 0.1, "a": t_ns + 5}),
     ]
 
 
@@ -411,3 +415,64 @@ def test_a_recording_from_a_newer_format_is_a_clear_error(tmp_path: Path) -> Non
         writer.finish()  # type: ignore[no-untyped-call]
     with pytest.raises(RecordingFormatError, match="format version 2"):
         read_recording(path)
+
+
+def recorded_fusion_run(tmp_path: Path, **settings: Any) -> tuple[McapRecorder, PoseFilter, int]:
+    """A seeded synthetic fusion run (tests.unit.test_fusion.Run) into a flight recording, as the agent
+    wires it: the filter's observer -> /fusion/input, its setup first, every 7th estimate written."""
+    from tests.unit.test_fusion import Run
+
+    rec, clock, _ = recorder(tmp_path, **settings)
+    fusion = PoseFilter(
+        np.zeros(3),
+        np.eye(3) * 1e-4,
+        0,
+        observer=lambda r: rec.record("fusion_input", fusion_record_time(r), r),
+    )
+    rec.record("fusion_setup", 0, fusion.parameters)
+    run = Run(seed=9)
+    outputs = 0
+    for k, event in enumerate(run.events(4.0)):
+        run.feed(fusion, [event])
+        if k % 7 == 0:
+            estimate = fusion.estimate()
+            rec.record("pose", estimate.t_ns, FusedSample(estimate, 0x0F))
+            outputs += 1
+        if k % 20 == 0:
+            clock.t_s += 0.1
+            rec.pump()
+    rec.close()
+    return rec, fusion, outputs
+
+
+def test_the_fusion_replays_bit_for_bit_from_a_flight_recording(tmp_path: Path) -> None:
+    rec, fusion, outputs = recorded_fusion_run(tmp_path, chunk_s=0.5)
+    assert len(rec.files) == 1 and rec.dropped == 0
+    result = replay(rec.files[0])
+    assert result.outputs == outputs > 50
+    assert result.max_position_difference_m == 0.0 and result.max_yaw_difference_rad == 0.0
+    assert result.inputs == fusion.inputs
+    final = fusion.estimate()
+    assert (result.final.x_m, result.final.y_m, result.final.yaw_rad) == (final.x_m, final.y_m, final.yaw_rad)
+
+
+def test_the_fusion_replays_across_rotated_files_by_the_recording_name(tmp_path: Path) -> None:
+    rec, fusion, outputs = recorded_fusion_run(tmp_path, chunk_s=0.2, file_mb=0.01)
+    assert len(rec.files) >= 3
+    result = replay(tmp_path / "run.mcap")  # names run-0001.mcap, run-0002.mcap, ...
+    assert result.outputs == outputs and result.inputs == fusion.inputs
+    assert result.max_position_difference_m == 0.0
+
+
+def test_a_cut_flight_recording_replays_up_to_the_cut_and_says_where(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rec, fusion, outputs = recorded_fusion_run(tmp_path, chunk_s=0.2)
+    data = rec.files[0].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    with caplog.at_level(logging.WARNING, logger="agent.recording.reader"):
+        result = replay(cut)
+    assert 0 < result.outputs < outputs and 0 < result.inputs < fusion.inputs
+    assert result.max_position_difference_m == 0.0
+    assert any("the replay stops there" in r.getMessage() for r in caplog.records)
