@@ -2,8 +2,9 @@
 
 The loops call :meth:`McapRecorder.record` with a kind and the sample they hold: one bounded-deque append
 (no lock, no encoding, no I/O); a full queue drops the sample and counts it. A writer thread drains the
-queue every ``chunk_s / 4``, turns each sample into channel messages (``agent.recording.messages``),
-encodes them as JSON and adds them to the open MCAP file, whose chunk it closes every ``chunk_s``: a
+queue every ``chunk_s / 4`` (giving way to the hot path before each sample), turns each sample into
+channel messages (``agent.recording.messages``), encodes them as JSON and adds them to the open MCAP
+file, whose chunk it closes every ``chunk_s``: a
 chunk on disk is whole and indexed by its own records, so a file cut by a kill or a power cut reads up to
 its last whole chunk (``agent.recording.reader``).
 
@@ -46,6 +47,10 @@ _DISK_RECHECK_S = 5.0
 _MAX_CHUNK_BYTES = 8 << 20
 
 
+def _no_wait() -> None:
+    pass
+
+
 def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
@@ -68,6 +73,10 @@ class McapRecorder:
         self.free_space = free_space
         self.clock_s = clock_s
         self.channels = frozenset(config.channels)
+        # Called before each sample is encoded and before a chunk is compressed: the agent passes
+        # HotPath.give_way, so the writer waits (the interpreter lock released) while a camera frame is on
+        # the hot path instead of taking turns with it.
+        self.give_way: Callable[[], None] = _no_wait
         self._queue: collections.deque[tuple[str, int, Any]] = collections.deque()
         self._limit = config.queue_size
         self._drop_lock = threading.Lock()
@@ -122,8 +131,9 @@ class McapRecorder:
         self._finish_file()
 
     def counters(self) -> dict[str, int]:
-        out = {f"recorded_{topic}": n for topic, n in sorted(self.counts.items()) if topic.startswith("/")}
-        out.update({k: v for k, v in self.counts.items() if not k.startswith("/")})
+        counts = dict(self.counts)  # one copy (the writer thread adds keys while the agent runs)
+        out = {f"recorded_{topic}": n for topic, n in sorted(counts.items()) if topic.startswith("/")}
+        out.update({k: v for k, v in counts.items() if not k.startswith("/")})
         out["record_dropped"] = self.dropped
         out["record_files"] = len(self.files)
         out["record_files_deleted"] = len(self.deleted)
@@ -148,8 +158,9 @@ class McapRecorder:
         self._maybe_close_chunk()
 
     def _drain(self) -> None:
-        queue = self._queue
+        queue, give_way = self._queue, self.give_way
         while queue:
+            give_way()
             kind, t_ns, sample = queue.popleft()
             self._write_sample(kind, t_ns, sample)
 
@@ -186,6 +197,7 @@ class McapRecorder:
         if now - self._last_chunk_s < self.config.chunk_s:
             return
         self._last_chunk_s = now
+        self.give_way()
         try:
             self._writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk: whole on disk from here on
         except OSError as exc:

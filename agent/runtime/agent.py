@@ -248,6 +248,7 @@ class Agent:
             # First in the recording: how the filter was set up, so that its inputs can be replayed.
             setup = self.fusion.parameters
             self.flight_recorder.record("fusion_setup", setup["t0_ns"], setup)
+            self.flight_recorder.give_way = self.hot_path.give_way
             self.flight_recorder.start()
             self.state.set_recorder(self.flight_recorder.record)
             if self.commands is not None:

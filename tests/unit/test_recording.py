@@ -476,3 +476,17 @@ def test_a_cut_flight_recording_replays_up_to_the_cut_and_says_where(
     assert 0 < result.outputs < outputs and 0 < result.inputs < fusion.inputs
     assert result.max_position_difference_m == 0.0
     assert any("the replay stops there" in r.getMessage() for r in caplog.records)
+
+
+def test_the_writer_gives_way_before_each_sample_and_each_chunk(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, chunk_s=0.5)
+    calls: list[int] = []
+    rec.give_way = lambda: calls.append(len(rec._queue))
+    for i in range(10):
+        rec.record("imu", i, ImuSample((0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 30.0, i))
+    rec.pump()  # ten samples: the hot path is asked before each one is encoded
+    assert calls == list(range(10, 0, -1))
+    clock.t_s += 1.0
+    rec.pump()  # nothing queued, a chunk to close: asked once more
+    assert len(calls) == 11
+    rec.close()
