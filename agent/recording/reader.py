@@ -31,6 +31,7 @@ __all__ = [
     "fusion_records",
     "is_mcap",
     "read_recording",
+    "read_recordings",
     "recording_files",
     "recording_paths",
 ]
@@ -144,13 +145,33 @@ def is_mcap(path: Path) -> bool:
         return fp.read(len(MAGIC)) == MAGIC
 
 
-def fusion_records(path: Path) -> Iterator[dict[str, Any]]:
-    """The fusion's part of a flight recording, in the records of ``agent.runtime.recorder``'s JSON lines:
-    the header (the filter's setup), every input in the order the filter took them, and every pose
-    written (``out``). Over every file of the recording in order; a cut file ends the inputs there (logged
-    with where), since a replay cannot go on past a gap."""
-    for path_i in recording_paths(path):
+def read_recordings(path: Path) -> list[Recording]:
+    """Every file of the recording ``path`` names (``recording_paths``), read in order, up to the first
+    one that is cut or corrupt (a replay cannot go on past a gap; the files after it are left out, logged)."""
+    out = []
+    paths = recording_paths(path)
+    for i, path_i in enumerate(paths):
         recording = read_recording(path_i)
+        out.append(recording)
+        if recording.stopped_at is not None:
+            log.warning(
+                "%s: read up to byte %d of %d (%s); the replay stops there%s",
+                path_i,
+                recording.stopped_at,
+                path_i.stat().st_size,
+                recording.error,
+                f" ({len(paths) - i - 1} later files left out)" if i + 1 < len(paths) else "",
+            )
+            break
+    return out
+
+
+def fusion_records(path: Path | list[Recording]) -> Iterator[dict[str, Any]]:
+    """The fusion's part of a flight recording (a path, or the files :func:`read_recordings` read), in the
+    records of ``agent.runtime.recorder``'s JSON lines: the header (the filter's setup), every input in the
+    order the filter took them, and every pose written (``out``), over the files in order."""
+    recordings = read_recordings(path) if isinstance(path, Path) else path
+    for recording in recordings:
         for m in recording.messages:
             if m.topic == "/fusion/setup":
                 yield {"k": "header", "format": FORMAT_VERSION, "fusion": m.data["parameters"]}
@@ -167,15 +188,6 @@ def fusion_records(path: Path) -> Iterator[dict[str, Any]]:
                     "yaw": d["yaw_rad"],
                     "flags": d["flags"],
                 }
-        if recording.stopped_at is not None:
-            log.warning(
-                "%s: read up to byte %d of %d (%s); the replay stops there",
-                path_i,
-                recording.stopped_at,
-                path_i.stat().st_size,
-                recording.error,
-            )
-            return
 
 
 def _check_version(path: Path, record: Metadata) -> None:

@@ -32,7 +32,7 @@ from typing import Any
 
 from agent.fusion import Estimate, PoseFilter, Source
 
-__all__ = ["Recorder", "ReplayResult", "read_recording", "replay"]
+__all__ = ["Recorder", "ReplayResult", "read_recording", "replay", "replay_records"]
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,11 @@ def replay(path: Path) -> ReplayResult:
     records = list(fusion_records(path) if is_mcap(path) else read_recording(path))
     if not records or records[0].get("k") != "header":
         raise ValueError(f"{path} is not a recording (no header line)")
+    return replay_records(records)
+
+
+def replay_records(records: list[dict[str, Any]]) -> ReplayResult:
+    """:func:`replay` on records already read (the header first)."""
     fusion = PoseFilter.from_parameters(records[0]["fusion"])
     outputs: dict[int, list[dict[str, Any]]] = collections.defaultdict(list)
     for r in records:

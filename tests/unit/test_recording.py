@@ -490,3 +490,50 @@ def test_the_writer_gives_way_before_each_sample_and_each_chunk(tmp_path: Path) 
     rec.pump()  # nothing queued, a chunk to close: asked once more
     assert len(calls) == 11
     rec.close()
+
+
+def test_the_replay_command_on_a_whole_and_on_a_cut_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agent.cli import main
+
+    rec, fusion, outputs = recorded_fusion_run(tmp_path, chunk_s=0.2)
+    assert main(["replay", str(tmp_path / "run.mcap"), "--json"]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert whole["complete"] and whole["stopped"] is None and whole["format"] == "mcap"
+    assert whole["messages"] == len(read_recording(rec.files[0]).messages)
+    assert whole["poses_compared"] == outputs and whole["inputs"] == fusion.inputs
+    assert whole["max_pose_diff_m"] == 0.0 and whole["max_slam_diff_m"] is None
+
+    data = rec.files[0].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    assert main(["replay", str(cut), "--json"]) == 0
+    part = json.loads(capsys.readouterr().out)
+    assert not part["complete"] and part["stopped"]["file"] == str(cut)
+    assert 0 < part["stopped"]["at_byte"] <= len(data) // 2 and part["stopped"]["error"]
+    assert 0 < part["poses_compared"] < outputs and part["max_pose_diff_m"] == 0.0
+
+
+def test_the_replay_command_refuses_what_it_cannot_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mcap.writer import Writer
+
+    from agent.cli import main
+
+    assert main(["replay", str(tmp_path / "absent.mcap")]) == 1
+    assert "no such recording" in capsys.readouterr().err
+    future = tmp_path / "future.mcap"
+    with open(future, "wb") as fp:
+        writer = Writer(fp)
+        writer.start(profile="vlp_agent", library="vlp-agent recorder 2")
+        writer.add_metadata("vlp_agent", {"format_version": "2"})
+        writer.finish()  # type: ignore[no-untyped-call]
+    assert main(["replay", str(future)]) == 1
+    assert "format version 2; this agent reads up to 1" in capsys.readouterr().err
+    rec, clock, _ = recorder(tmp_path / "scans")
+    feed_scans(rec, clock, 0, 5)  # a recording without the fusion's channels
+    rec.close()
+    assert main(["replay", str(rec.files[0])]) == 1
+    assert "no fusion setup" in capsys.readouterr().err
