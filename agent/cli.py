@@ -31,6 +31,7 @@ COMMANDS: dict[str, str] = {
     "fake": "agent.commands.fake",
     "eval": "agent.commands.eval",
     "calibrate": "agent.commands.calibrate",
+    "replay": "agent.commands.replay",
 }
 
 log = logging.getLogger("vlp_agent")

@@ -88,6 +88,7 @@ _SECTIONS = (
     "control",
     "health",
     "record",
+    "recorder",
     "scheduling",
     "navigation",
 )
@@ -296,6 +297,28 @@ class RecordConfig:
     max_mb: float = 200.0
 
 
+def _all_channels() -> tuple[str, ...]:
+    from agent.recording.messages import CHANNELS
+
+    return tuple(CHANNELS)
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """The flight recorder (``agent.recording``): every sample in MCAP files named ``<stem>-<n>.mcap``
+    beside ``path``; None: nothing recorded. Sizes in MB (10^6 bytes), durations in seconds."""
+
+    path: Path | None = None
+    channels: tuple[str, ...] = field(default_factory=_all_channels)
+    chunk_s: float = 1.0
+    file_mb: float = 100.0
+    file_s: float = 600.0
+    total_mb: float = 2000.0
+    min_free_mb: float = 200.0
+    queue_size: int = 20_000
+    map_period_s: float = 5.0
+
+
 @dataclass(frozen=True)
 class SchedulingConfig:
     """``realtime_priority``: SCHED_FIFO priority of the camera and hot-path threads where the system
@@ -321,6 +344,7 @@ class AgentConfig:
     record: RecordConfig = RecordConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
     navigation: NavConfig = field(default_factory=NavConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -733,6 +757,7 @@ class _Reader:
         control = self._control()
         health = self._health()
         record = self._record()
+        recorder = self._recorder()
         scheduling = self._scheduling()
         navigation = self._navigation()
         top.finish()
@@ -753,6 +778,7 @@ class _Reader:
             record,
             scheduling,
             navigation,
+            recorder,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -1187,6 +1213,43 @@ class _Reader:
         )
         t.finish()
         return record
+
+    def _recorder(self) -> RecorderConfig:
+        t = self.top.table("recorder") or _Table({}, "recorder", self.file)
+        d = RecorderConfig()
+        channels = d.channels
+        if t.has("channels"):
+            value = t.take("channels")
+            if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+                raise t.error("channels", f"must be a non-empty array of channel names, not {value!r}")
+            for name in value:
+                if name not in d.channels:
+                    # No image channel exists: the camera's frames never leave the process (ARCHITECTURE.md).
+                    image = any(w in name.lower() for w in ("image", "camera", "frame"))
+                    why = "camera images are never recorded; " if image else ""
+                    raise t.error("channels", f"{why}{name!r} is not a channel (one of {list(d.channels)})")
+            channels = tuple(dict.fromkeys(value))
+        size = (lambda v: 0 < v <= MAX_RECORD_MB, f"must be > 0 and at most {MAX_RECORD_MB} (a terabyte)")
+        free = (lambda v: 0 <= v <= MAX_RECORD_MB, f"must be 0..{MAX_RECORD_MB}")
+        queue = (lambda v: 100 <= v <= 10**6, "must be 100..1000000")
+        maps = (lambda v: v == 0 or 0.5 <= v <= 3600, "must be 0 (no map snapshots) or 0.5..3600")
+        recorder = RecorderConfig(
+            path=t.path_value("path", self.base),
+            channels=channels,
+            chunk_s=t.number("chunk_s", d.chunk_s, (lambda v: 0.05 <= v <= 60, "must be 0.05..60")),
+            file_mb=t.number("file_mb", d.file_mb, size),
+            file_s=t.number("file_s", d.file_s, (lambda v: 1 <= v <= 86_400, "must be 1..86400 (a day)")),
+            total_mb=t.number("total_mb", d.total_mb, size),
+            min_free_mb=t.number("min_free_mb", d.min_free_mb, free),
+            queue_size=t.integer("queue_size", d.queue_size, queue),
+            map_period_s=t.number("map_period_s", d.map_period_s, maps),
+        )
+        if recorder.file_mb > recorder.total_mb:
+            raise t.error(
+                "file_mb", f"must be at most total_mb ({recorder.total_mb:g}), got {recorder.file_mb:g}"
+            )
+        t.finish()
+        return recorder
 
     def _scheduling(self) -> SchedulingConfig:
         t = self.top.table("scheduling") or _Table({}, "scheduling", self.file)

@@ -114,8 +114,16 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     )
     p.add_argument(
         "--record",
+        metavar="PATH",
+        help="flight-record every sample (scans, wheels, IMU, tags, VLP fixes with their LEDs, poses, maps, "
+        "commands, health) as MCAP files PATH-stem-0001.mcap, ... beside PATH, with the config's [recorder] "
+        "rotation and caps (docs/recording.md); Foxglove opens them",
+    )
+    p.add_argument(
+        "--record-fusion",
         metavar="JSONL",
-        help="record what the fusion takes and every pose written, for agent.runtime.recorder.replay",
+        help="record what the fusion takes and every pose written as JSON lines, for "
+        "agent.runtime.recorder.replay",
     )
     p.add_argument(
         "--controller-record",
@@ -303,9 +311,12 @@ def _config(args: argparse.Namespace) -> AgentConfig:
     if args.output:
         output = dataclasses.replace(output, url=args.output)
     record = config.record
+    if args.record_fusion:
+        record = dataclasses.replace(record, path=Path(args.record_fusion))
+    recorder = config.recorder
     if args.record:
-        record = dataclasses.replace(record, path=Path(args.record))
-    return config.replace(sim=sim, output=output, record=record)
+        recorder = dataclasses.replace(recorder, path=Path(args.record))
+    return config.replace(sim=sim, output=output, record=record, recorder=recorder)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -371,6 +382,11 @@ def run(args: argparse.Namespace) -> int:
         files = _write_files(args, out_dir, robot.simulation, scorer, mapping, slam_path)
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
         summary["t0_us"] = t0_us
+        if agent.flight_recorder is not None:
+            summary["recording"] = {
+                "files": [str(p) for p in agent.flight_recorder.files],
+                **agent.flight_recorder.counters(),
+            }
     if args.json:
         print(dumps_json(summary, sort_keys=True))
     else:
@@ -472,8 +488,8 @@ def _write_files(
         )
         if saved:
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
-    if args.record:
-        files["recording"] = str(Path(args.record))
+    if args.record_fusion:
+        files["fusion_recording"] = str(Path(args.record_fusion))
     truth = scorer.finish_truth()
     if truth is not None:
         files["truth_csv"] = str(truth)

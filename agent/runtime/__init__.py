@@ -81,6 +81,11 @@ def create_agent(
     recorder = None
     if config.record.path is not None:
         recorder = Recorder(config.record.path, int(config.record.max_mb * 1e6))
+    flight_recorder = None
+    if config.recorder.path is not None:
+        from agent.recording.writer import McapRecorder
+
+        flight_recorder = McapRecorder(config.recorder)
     agent = Agent(
         config,
         devices,
@@ -90,6 +95,7 @@ def create_agent(
         initial_pose=initial,
         unavailable=unavailable,
         recorder=recorder,
+        flight_recorder=flight_recorder,
     )
     if devices.laser is not None:
         mapper, why = make_mapper(config.slam, laser_mount_for(config, world), agent.slam_start_pose)

@@ -36,6 +36,8 @@ import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
+from agent.recording.messages import FusedSample, fusion_record_time
+from agent.recording.writer import McapRecorder
 from agent.runtime.arbiter import CommandArbiter
 from agent.runtime.camera_loop import camera_loop
 from agent.runtime.collector import IdleCollector
@@ -125,7 +127,8 @@ class Agent:
         notifier: systemd's (``agent.sdnotify.Notifier``) or None.
         initial_pose: where the base starts (x_m, y_m, yaw_rad) when the config does not say.
         unavailable: what is not there and why (for the status).
-        recorder: records the fusion's inputs and outputs (None: nothing recorded).
+        recorder: records the fusion's inputs and outputs as JSON lines (None: nothing recorded).
+        flight_recorder: the MCAP flight recorder (``agent.recording``) every loop hands its samples to.
         clock_ns: the agent's clock.
 
     With a pose output, the controller's commands on its line go through a :class:`CommandArbiter`
@@ -144,6 +147,7 @@ class Agent:
         initial_pose: tuple[float, float, float] | None = None,
         unavailable: dict[str, str] | None = None,
         recorder: Recorder | None = None,
+        flight_recorder: McapRecorder | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self.config = config
@@ -154,6 +158,7 @@ class Agent:
         self.clock_ns = clock_ns
         self.unavailable = dict(unavailable or {})
         self.recorder = recorder
+        self.flight_recorder = flight_recorder
         fc = config.fusion
         x0 = fc.initial_pose or initial_pose or (0.0, 0.0, 0.0)
         P0 = np.diag([fc.initial_sigma_xy_m**2, fc.initial_sigma_xy_m**2, fc.initial_sigma_yaw_rad**2])
@@ -172,7 +177,7 @@ class Agent:
             gate_probability=fc.gate_probability,
             history_s=fc.history_s,
             odometry_hold_s=fc.odometry_timeout_s,
-            observer=recorder.record_input if recorder is not None else None,
+            observer=_fusion_observer(recorder, flight_recorder),
         )
         self.timeouts_ns = {
             Source.VLP: int(fc.vlp_timeout_s * 1e9),
@@ -239,6 +244,15 @@ class Agent:
         self._hold_cpu_latency()
         if self.recorder is not None:
             self.recorder.start(self.fusion.parameters)
+        if self.flight_recorder is not None:
+            # First in the recording: how the filter was set up, so that its inputs can be replayed.
+            setup = self.fusion.parameters
+            self.flight_recorder.record("fusion_setup", setup["t0_ns"], setup)
+            self.flight_recorder.give_way = self.hot_path.give_way
+            self.flight_recorder.start()
+            self.state.set_recorder(self.flight_recorder.record)
+            if self.commands is not None:
+                self.commands.record = self.flight_recorder.record
         if self.output is not None:
             try:
                 self.output.open()
@@ -352,6 +366,8 @@ class Agent:
             self.output.close()
         if self.recorder is not None:
             self.recorder.close()
+        if self.flight_recorder is not None:
+            self.flight_recorder.close()
         if self._cpu_latency is not None:
             self._cpu_latency.release()
 
@@ -593,6 +609,8 @@ class Agent:
         written = self.output.publish(estimate, flags, trigger_ns, arrival_ns)
         if written is not None and self.recorder is not None:
             self.recorder.record_output(estimate, int(flags))
+        if written is not None and self.state.recording:
+            self.state.record("pose", estimate.t_ns, FusedSample(estimate, int(flags)))
 
     def _hold_cpu_latency(self) -> None:
         """Ask the kernel to keep idle cores out of deep sleep while the agent runs, when configured: a
@@ -639,6 +657,23 @@ class Agent:
         ]
         text = f"no position source ({', '.join(sources) or 'none configured'} silent)"
         return f"{text}; missing: {', '.join(missing)}" if missing else text
+
+
+def _fusion_observer(
+    recorder: Recorder | None, flight_recorder: McapRecorder | None
+) -> Callable[[dict[str, Any]], None] | None:
+    """What the fusion tells each of its inputs to (under its lock): the JSON-lines recorder, the flight
+    recorder, both or neither."""
+    if flight_recorder is None:
+        return recorder.record_input if recorder is not None else None
+    record = flight_recorder.record
+
+    def observe(r: dict[str, Any]) -> None:
+        if recorder is not None:
+            recorder.record_input(r)
+        record("fusion_input", fusion_record_time(r), r)
+
+    return observe
 
 
 def _kind(name: str) -> Any:

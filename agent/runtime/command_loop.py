@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from agent.config import OutputFormat
+from agent.recording.messages import CommandSample, GoalSample
 from agent.runtime.arbiter import CommandArbiter
 from agent.runtime.health import Heartbeat
 from firmware_protocol.command_frame import (
@@ -82,6 +83,8 @@ class CommandLoop:
         self.clock_s = clock_s
         self.counts: collections.Counter[str] = collections.Counter()
         self.statuses: collections.deque[GoalStatus] = collections.deque(maxlen=256)  # for the summary
+        # The flight recorder's entry (kind, time ns, sample); set by the agent when it records.
+        self.record: Callable[[str, int, object], None] | None = None
         self._decoder: _Decoder
         self._encode: Callable[[GoalStatus, CommandType | None], bytes]
         if output_format is OutputFormat.MAVLINK:
@@ -96,6 +99,9 @@ class CommandLoop:
     def answer(self, status: GoalStatus, answers: CommandType | None = CommandType.GOAL) -> None:
         """Send one status (also the navigator's ACTIVE / REACHED / FAILED reports, through the caller)."""
         self.statuses.append(status)
+        if self.record is not None:
+            now_ns = int(self.clock_s() * 1e9)
+            self.record("goal_status", now_ns, GoalSample(now_ns, status))
         self.counts[f"status_{status.state.name.lower()}"] += 1
         if not self.port.send(self._encode(status, answers)):
             self.counts["status_write_failures"] += 1
@@ -111,6 +117,9 @@ class CommandLoop:
             log.warning("command frame rejected: %s", error)
             self.answer(self.arbiter.bad_frame(error), None)
         for command in commands:
+            if self.record is not None:
+                now_ns = int(self.clock_s() * 1e9)
+                self.record("command", now_ns, CommandSample(now_ns, command))
             self.counts[f"command_{_kind(command).name.lower()}"] += 1
             for i, status in enumerate(self.arbiter.command(command, self.clock_s())):
                 self.answer(status, _kind(command) if i == 0 else CommandType.GOAL)

@@ -46,6 +46,7 @@ def imu_loop(
             continue
         watch.good()
         state.count("imu_samples")
+        state.record("imu", sample.host_time_ns, sample)
         now = state.clock_ns()
         fusion.add_gyro(sample.host_time_ns, sample.gyro_radps[2], arrival_ns=now)
         if still.still_at(sample.host_time_ns, _TILT_ODOMETRY_AGE_NS):

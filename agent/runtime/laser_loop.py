@@ -53,6 +53,7 @@ def laser_loop(
         watch.good()
         state.last_scan_ns = state.clock_ns()
         state.count("scans")
+        state.record("scan", scan.host_time_ns, scan)
         if on_scan is not None:
             on_scan(scan)
         if scans is not None:

@@ -75,7 +75,13 @@ class VlpLocalizer:
             float(result.yaw_rad),
             cov,
             bool(result.degraded),
-            {"ids": result.ids, "residual_rms": result.residual_rms, "flags": result.flags},
+            # The LED observations go along for the flight recorder (a reference, nothing copied).
+            {
+                "ids": result.ids,
+                "residual_rms": result.residual_rms,
+                "flags": result.flags,
+                "leds": result.leds,
+            },
         )
 
 

@@ -14,8 +14,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from agent.config import AgentConfig
+from agent.recording.messages import HealthSample
 from agent.runtime.devices import Devices
 from agent.runtime.health import Heartbeat
 from agent.runtime.output import LatencyStats
@@ -24,7 +26,15 @@ from drivers.device import Device
 from drivers.errors import DeviceError
 from drivers.samples import TagRead
 
-__all__ = ["DeviceState", "DeviceWatch", "LoopState"]
+__all__ = ["DeviceState", "DeviceWatch", "LoopState", "RecordSample"]
+
+# The flight recorder's entry (``agent.recording.writer.McapRecorder.record``): (kind, time ns, sample).
+RecordSample = Callable[[str, int, Any], None]
+
+
+def _record_nothing(kind: str, t_ns: int, sample: Any) -> None:
+    pass
+
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +63,7 @@ class DeviceWatch:
         self.failures = 0
         self.recoveries = 0
         self._lock = threading.Lock()
+        self.record: RecordSample = _record_nothing  # the flight recorder's health channel
 
     def good(self) -> bool:
         """A successful operation; True when this ends a fault (a recovery)."""
@@ -70,6 +81,7 @@ class DeviceWatch:
             log.warning("%s: recovered", self.name)
         else:
             log.info("%s: up", self.name)
+        self.record("health", now, HealthSample(now, self.name, True, "recovered" if recovered else "up"))
         return recovered
 
     def bad(self, reason: str) -> None:
@@ -82,6 +94,7 @@ class DeviceWatch:
             self.ok, self.reason = False, reason
         if first:
             log.warning("%s: %s", self.name, reason)
+            self.record("health", now, HealthSample(now, self.name, False, reason))
         else:
             log.debug("%s: %s", self.name, reason)
 
@@ -113,6 +126,16 @@ class LoopState:
         # When the wheel read in progress started (agent clock), 0 between reads: a read that hangs is a
         # servo fault, a loop that is merely late (the machine stalled) is not.
         self.servo_read_since_ns = 0
+        # The flight recorder (``set_recorder``); a no-op while nothing records.
+        self.record: RecordSample = _record_nothing
+        self.recording = False
+
+    def set_recorder(self, record: RecordSample) -> None:
+        """Every loop (and every device watch's state change) hands its samples to ``record`` from now on."""
+        self.record = record
+        self.recording = True
+        for watch in self.watch.values():
+            watch.record = record
 
     def count(self, what: str, n: int = 1) -> None:
         with self.counts_lock:

@@ -8,8 +8,9 @@ filter's lock, so the order in the file is the order they were fused in, whateve
 
 :func:`replay` runs a fresh filter over a recording and reproduces every pose the agent wrote: a regression
 check for the fusion on recorded runs (a change in ``agent.fusion`` shows up as poses that moved), and a
-way to study a run offline. Frames and scans are not recorded (30 frames/s of 480 kB would not fit a
-robot's card); the VLP fixes and SLAM poses made from them are.
+way to study a run offline (also from a flight recording, ``agent.recording``, which holds the same
+records on its ``/fusion/*`` channels). Frames and scans are not in this file (30 frames/s of 480 kB would
+not fit a robot's card); the VLP fixes and SLAM poses made from them are.
 
 Writes never block the agent: records go through a bounded queue to a writer thread (a full queue drops
 and counts), lines are written whole and flushed twice a second, and the file is closed cleanly on stop
@@ -31,7 +32,7 @@ from typing import Any
 
 from agent.fusion import Estimate, PoseFilter, Source
 
-__all__ = ["Recorder", "ReplayResult", "read_recording", "replay"]
+__all__ = ["Recorder", "ReplayResult", "read_recording", "replay", "replay_records"]
 
 log = logging.getLogger(__name__)
 
@@ -159,10 +160,21 @@ class ReplayResult:
 
 
 def replay(path: Path) -> ReplayResult:
-    """Run a fresh filter over a recording's inputs, in their order, and compare every pose written."""
-    records = list(read_recording(path))
+    """Run a fresh filter over a recording's inputs, in their order, and compare every pose written.
+
+    ``path``: a JSON-lines recording of ``[record]``, or a flight recording (MCAP, ``[recorder]``: one
+    file, or the name its files were written under, ``run.mcap`` for ``run-0001.mcap`` ...), whose
+    ``/fusion/setup``, ``/fusion/input`` and ``/pose/fused`` channels hold the same records."""
+    from agent.recording.reader import fusion_records, is_mcap
+
+    records = list(fusion_records(path) if is_mcap(path) else read_recording(path))
     if not records or records[0].get("k") != "header":
         raise ValueError(f"{path} is not a recording (no header line)")
+    return replay_records(records)
+
+
+def replay_records(records: list[dict[str, Any]]) -> ReplayResult:
+    """:func:`replay` on records already read (the header first)."""
     fusion = PoseFilter.from_parameters(records[0]["fusion"])
     outputs: dict[int, list[dict[str, Any]]] = collections.defaultdict(list)
     for r in records:

@@ -29,3 +29,4 @@ def rfid_loop(state: LoopState, beat: Heartbeat, *, rfid: RfidReader) -> None:
         if tag is not None:
             state.tags.append(tag)
             state.count("tag_reads")
+            state.record("tag", tag.host_time_ns, tag)

@@ -12,6 +12,7 @@ import logging
 import time
 
 from agent.fusion import PoseFilter
+from agent.recording.messages import WheelCommandSample
 from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
 from agent.runtime.loop_state import LoopState
@@ -116,10 +117,15 @@ def servo_loop(
         if not deferred:
             previous = wheels
         state.count("wheel_reads")
+        state.record("wheels", wheels.host_time_ns, wheels)
         command = drive.current(state.clock_ns())
         left, right = wheel_speeds(command.v_mps, command.omega_radps, radius, track)
         try:
             servos.set_velocity(left, right)
         except DeviceError as exc:
             watch.bad(f"velocity command failed: {exc}")
+        else:
+            if state.recording:
+                sent_ns = state.clock_ns()
+                state.record("wheel_command", sent_ns, WheelCommandSample(sent_ns, left, right))
         t_next = state.wait_period(t_next, period_s)

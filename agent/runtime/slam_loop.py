@@ -49,12 +49,27 @@ class SlamLoop:
         self.on_map = on_map  # the navigation's static layer: the map every map_period_s
         self.map_period_ns = int(map_period_s * 1e9)
         self._map_sent_ns = 0
+        self._map_recorded_ns = 0
 
     def odometry_at(self, t_ns: int) -> Pose | None:
         if self.odometry_track is not None:
             return self.odometry_track.at(t_ns)
         est = self.fusion.estimate_at(t_ns)  # no wheels: the fused pose is the best motion guess
         return (est.x_m, est.y_m, est.yaw_rad)
+
+    def _record_map(self) -> None:
+        """A map snapshot for the flight recorder every ``recorder.map_period_s`` (0: none)."""
+        state, mapper = self.state, self.mapper
+        period_s = state.config.recorder.map_period_s
+        if not state.recording or not period_s or mapper is None:
+            return
+        now = state.clock_ns()
+        if now - self._map_recorded_ns < period_s * 1e9:
+            return
+        image = mapper.map_image()
+        if image is not None:
+            self._map_recorded_ns = now
+            state.record("map", now, (now, image))
 
     def run(self, beat: Heartbeat) -> None:
         state = self.state
@@ -81,11 +96,13 @@ class SlamLoop:
                     self._map_sent_ns = state.clock_ns()
                     self.on_map(image)
                     state.count("maps_to_navigation")
+            self._record_map()
             if step.kind == "updated":
                 if step.fix is None:
                     state.slam_good = False
                     continue
                 fix = step.fix
+                state.record("slam_pose", fix.t_ns, fix)
                 result = self.fusion.add_pose(
                     Source.SLAM,
                     fix.t_ns,

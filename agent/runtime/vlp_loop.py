@@ -127,8 +127,11 @@ class VlpLoop:
             if isinstance(result, NoFix):
                 state.no_fix[result.reason] += 1
                 state.counts["no_fix"] += 1
-                return
-            state.counts["fixes"] += 1
+            else:
+                state.counts["fixes"] += 1
+        state.record("no_fix" if isinstance(result, NoFix) else "vlp_fix", result.t_ns, result)
+        if isinstance(result, NoFix):
+            return
         fused = self.fusion.add_pose(
             Source.VLP,
             result.t_ns,

@@ -1,6 +1,6 @@
-"""Record and replay: a recording of a run (``vlp-agent sim --record``) holds every input the fusion took
-in the order it took them, and a fresh filter replaying it reproduces every pose the agent wrote, exactly,
-although the live inputs came from six threads."""
+"""Record and replay: a recording of a run (``vlp-agent sim --record-fusion``) holds every input the
+fusion took in the order it took them, and a fresh filter replaying it reproduces every pose the agent
+wrote, exactly, although the live inputs came from six threads."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ from tests.integration.test_agent_accuracy import REPO, vlp_agent
 def test_a_replayed_recording_reproduces_every_pose_written(tmp_path: Path) -> None:
     recording = tmp_path / "run.jsonl"
     proc = subprocess.run(
-        vlp_agent("sim", "--seconds", "8", "--json", "--out", str(tmp_path), "--record", str(recording)),
+        vlp_agent(
+            "sim", "--seconds", "8", "--json", "--out", str(tmp_path), "--record-fusion", str(recording)
+        ),
         capture_output=True,
         text=True,
         timeout=90,
@@ -38,7 +40,9 @@ def test_a_replayed_recording_reproduces_every_pose_written(tmp_path: Path) -> N
 def test_a_recording_cut_by_a_kill_still_replays(tmp_path: Path) -> None:
     recording = tmp_path / "run.jsonl"
     subprocess.run(
-        vlp_agent("sim", "--seconds", "3", "--json", "--out", str(tmp_path), "--record", str(recording)),
+        vlp_agent(
+            "sim", "--seconds", "3", "--json", "--out", str(tmp_path), "--record-fusion", str(recording)
+        ),
         capture_output=True,
         timeout=90,
         cwd=REPO,

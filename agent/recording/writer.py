@@ -1,0 +1,335 @@
+"""The flight recorder's writer: samples from the agent's loops into rotating, chunked MCAP files.
+
+The loops call :meth:`McapRecorder.record` with a kind and the sample they hold: one bounded-deque append
+(no lock, no encoding, no I/O); a full queue drops the sample and counts it. A writer thread drains the
+queue every ``chunk_s / 4`` (giving way to the hot path before each sample), turns each sample into
+channel messages (``agent.recording.messages``), encodes them as JSON and adds them to the open MCAP
+file, whose chunk it closes every ``chunk_s``: a
+chunk on disk is whole and indexed by its own records, so a file cut by a kill or a power cut reads up to
+its last whole chunk (``agent.recording.reader``).
+
+Files are ``<stem>-<n>.mcap`` beside the configured path (n counts up, also across restarts). A file is
+closed and the next one begun at ``file_mb`` or after ``file_s``; before a file is begun the oldest files
+of the same stem are deleted until the closed ones plus a full new one fit in ``total_mb``. When the
+free space of the folder falls below ``min_free_mb`` the recorder closes its file and pauses (samples are
+dropped and counted) until the space is back; the agent keeps running either way, and every such step is
+logged once.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import logging
+import os
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import CompressionType, Writer
+
+from agent.config import RecorderConfig
+from agent.recording.messages import CHANNELS, messages_for
+from agent.recording.reader import FORMAT_VERSION, recording_files
+from agent.recording.schemas import SCHEMAS
+
+__all__ = ["PROFILE", "McapRecorder", "free_bytes", "recording_files"]
+
+log = logging.getLogger(__name__)
+
+PROFILE = "vlp_agent"
+# How often a paused recorder (disk nearly full) looks at the free space again.
+_DISK_RECHECK_S = 5.0
+_MAX_CHUNK_BYTES = 8 << 20
+
+
+def _no_wait() -> None:
+    pass
+
+
+def free_bytes(folder: Path) -> int:
+    return shutil.disk_usage(folder).free
+
+
+class McapRecorder:
+    """One recording (possibly many files). ``free_space``: bytes free in a folder (tests pass a fake);
+    ``clock_s``: monotonic seconds (chunk and file durations)."""
+
+    def __init__(
+        self,
+        config: RecorderConfig,
+        *,
+        free_space: Callable[[Path], int] = free_bytes,
+        clock_s: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if config.path is None:
+            raise ValueError("McapRecorder needs recorder.path")
+        self.config = config
+        self.path = config.path
+        self.free_space = free_space
+        self.clock_s = clock_s
+        self.channels = frozenset(config.channels)
+        # Called before each sample is encoded and before a chunk is compressed: the agent passes
+        # HotPath.give_way, so the writer waits (the interpreter lock released) while a camera frame is on
+        # the hot path instead of taking turns with it.
+        self.give_way: Callable[[], None] = _no_wait
+        self._queue: collections.deque[tuple[str, int, Any]] = collections.deque()
+        self._limit = config.queue_size
+        self._drop_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._writer: Writer | None = None
+        self._stream: IO[bytes] | None = None
+        self._file: Path | None = None
+        self._file_opened_s = 0.0
+        self._last_chunk_s = 0.0
+        self._channel_ids: dict[str, int] = {}
+        self._next_index = 1 + max((n for n, _ in recording_files(self.path)), default=0)
+        self._paused_until_s = 0.0
+        self.paused = False
+        self.closed = False
+        # Counters (read by the status and the summary; written by the writer thread, drops by any).
+        self.counts: collections.Counter[str] = collections.Counter()
+        self.dropped = 0
+        self.writer_cpu_s = 0.0  # CPU time of the writer thread: the recording's cost but for the appends
+        self.files: list[Path] = []
+        self.deleted: list[Path] = []
+
+    # -- the loops' side ------------------------------------------------------------------------------
+    def record(self, kind: str, t_ns: int, sample: Any) -> None:
+        """Queue one sample; never blocks (a full queue drops it, counted)."""
+        if len(self._queue) >= self._limit or self.closed:
+            with self._drop_lock:
+                self.dropped += 1
+            return
+        self._queue.append((kind, t_ns, sample))
+
+    # -- lifecycle ------------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._thread = threading.Thread(target=self._run, name="agent-recorder", daemon=True)
+        self._thread.start()
+        log.info("recording to %s (%s)", self.path.parent, ", ".join(sorted(self.channels)))
+
+    def close(self) -> None:
+        """Write what is queued, close the file (its summary and footer written) and stop. Twice is fine."""
+        if self.closed:
+            return
+        self.closed = True
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(10.0)
+            if self._thread.is_alive():
+                log.warning("recorder: the writer did not finish within 10 s")
+                return
+        else:
+            self._drain()
+        self._finish_file()
+
+    def counters(self) -> dict[str, int]:
+        counts = dict(self.counts)  # one copy (the writer thread adds keys while the agent runs)
+        out = {f"recorded_{topic}": n for topic, n in sorted(counts.items()) if topic.startswith("/")}
+        out.update({k: v for k, v in counts.items() if not k.startswith("/")})
+        out["record_dropped"] = self.dropped
+        out["record_files"] = len(self.files)
+        out["record_files_deleted"] = len(self.deleted)
+        out["record_paused"] = int(self.paused)
+        out["record_writer_cpu_ms"] = round(1e3 * self.writer_cpu_s)
+        return out
+
+    # -- the writer thread ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        period_s = max(self.config.chunk_s / 4.0, 0.01)
+        c0 = time.thread_time()
+        while not self._stop.wait(period_s):
+            self.pump()
+            self.writer_cpu_s = time.thread_time() - c0
+        self._drain()
+        self.writer_cpu_s = time.thread_time() - c0
+
+    def pump(self) -> None:
+        """One pass of the writer: write what is queued, close the chunk when ``chunk_s`` is up, rotate or
+        pause when due. The writer thread's body; tests call it directly (no thread, a fake clock)."""
+        self._drain()
+        self._maybe_close_chunk()
+
+    def _drain(self) -> None:
+        queue, give_way = self._queue, self.give_way
+        while queue:
+            give_way()
+            kind, t_ns, sample = queue.popleft()
+            self._write_sample(kind, t_ns, sample)
+
+    def _write_sample(self, kind: str, t_ns: int, sample: Any) -> None:
+        try:
+            messages = messages_for(kind, sample)
+            encoded = [
+                (topic, json.dumps(m, separators=(",", ":"), allow_nan=False).encode())
+                for topic, m in messages
+                if topic in self.channels
+            ]
+        except (ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
+            if not self.counts["record_bad_samples"]:
+                log.warning("recorder: a %s sample could not be encoded (%s): skipped", kind, exc)
+            self.counts["record_bad_samples"] += 1
+            return
+        if not encoded:
+            return
+        writer = self._writer_for_now()
+        if writer is None:
+            self.counts["record_dropped_disk"] += len(encoded)
+            return
+        for topic, data in encoded:
+            channel = self._channel_ids.get(topic)
+            if channel is None:
+                channel = self._register(writer, topic)
+            writer.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data, sequence=0)
+            self.counts[topic] += 1
+
+    def _maybe_close_chunk(self) -> None:
+        if self._writer is None:
+            return
+        now = self.clock_s()
+        if now - self._last_chunk_s < self.config.chunk_s:
+            return
+        self._last_chunk_s = now
+        self.give_way()
+        try:
+            self._writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk: whole on disk from here on
+        except OSError as exc:
+            self._fail(exc)
+            return
+        assert self._stream is not None
+        if (
+            self._stream.tell() >= self.config.file_mb * 1e6
+            or now - self._file_opened_s >= self.config.file_s
+        ):
+            self._finish_file()
+        elif self._disk_low():
+            self._pause()
+
+    # -- files ----------------------------------------------------------------------------------------
+    def _writer_for_now(self) -> Writer | None:
+        if self._writer is not None:
+            return self._writer
+        now = self.clock_s()
+        if self.paused and now < self._paused_until_s:
+            return None
+        if self._disk_low():
+            self._pause()
+            return None
+        if self.paused:
+            self.paused = False
+            log.warning("recorder: free space is back above %g MB: recording again", self.config.min_free_mb)
+        self._enforce_total_cap()
+        return self._open_next(now)
+
+    def _open_next(self, now_s: float) -> Writer | None:
+        path = self.path.parent / f"{self.path.stem}-{self._next_index:04d}.mcap"
+        self._next_index += 1
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            stream = open(path, "wb")  # noqa: SIM115  closed by _finish_file
+        except OSError as exc:
+            self._fail(exc)
+            return None
+        # Chunks are closed by time (every chunk_s); the size bound only caps memory on a burst.
+        writer = Writer(stream, chunk_size=_MAX_CHUNK_BYTES, compression=CompressionType.ZSTD)
+        writer.start(profile=PROFILE, library=f"vlp-agent recorder {FORMAT_VERSION}")
+        writer.add_metadata(
+            "vlp_agent",
+            {
+                "format_version": str(FORMAT_VERSION),
+                "clock": "monotonic",
+                # Add to a log time to get Unix time (the agent's clock is CLOCK_MONOTONIC).
+                "unix_minus_monotonic_ns": str(time.time_ns() - time.monotonic_ns()),
+                "file_index": str(self._next_index - 1),
+            },
+        )
+        self._writer, self._stream, self._file = writer, stream, path
+        self._channel_ids = {}
+        self._file_opened_s = self._last_chunk_s = now_s
+        self.files.append(path)
+        log.info("recording to %s", path)
+        return writer
+
+    def _register(self, writer: Writer, topic: str) -> int:
+        name = CHANNELS[topic]
+        schema_id = writer.register_schema(
+            name=name, encoding="jsonschema", data=json.dumps(SCHEMAS[name]).encode()
+        )
+        channel = writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id)
+        self._channel_ids[topic] = channel
+        return channel
+
+    def _finish_file(self) -> None:
+        writer, stream, path = self._writer, self._stream, self._file
+        self._writer = self._stream = self._file = None
+        if writer is None or stream is None:
+            return
+        try:
+            writer.finish()  # type: ignore[no-untyped-call]
+            stream.flush()
+            os.fsync(stream.fileno())
+        except OSError as exc:
+            log.warning("recorder: closing %s: %s", path, exc)
+        finally:
+            stream.close()
+
+    def _enforce_total_cap(self) -> None:
+        """Delete the oldest files until the closed ones and a full new one fit in ``total_mb``."""
+        budget = self.config.total_mb * 1e6 - self.config.file_mb * 1e6
+        files = recording_files(self.path)
+        sizes = {p: p.stat().st_size for _, p in files}
+        total = sum(sizes.values())
+        for _, oldest in files:
+            if total <= budget:
+                break
+            try:
+                oldest.unlink()
+            except OSError as exc:
+                log.warning("recorder: cannot delete %s: %s", oldest, exc)
+                continue
+            total -= sizes[oldest]
+            self.deleted.append(oldest)
+            log.warning(
+                "recorder: deleted %s (%d bytes) to keep the recording under %g MB",
+                oldest,
+                sizes[oldest],
+                self.config.total_mb,
+            )
+
+    def _disk_low(self) -> bool:
+        try:
+            free = self.free_space(self.path.parent)
+        except OSError as exc:
+            log.warning("recorder: cannot read the free space of %s: %s", self.path.parent, exc)
+            return False
+        return free < self.config.min_free_mb * 1e6
+
+    def _pause(self) -> None:
+        self._finish_file()
+        self._paused_until_s = self.clock_s() + _DISK_RECHECK_S
+        if not self.paused:
+            self.paused = True
+            self.counts["record_disk_pauses"] += 1
+            log.warning(
+                "recorder: less than %g MB free in %s: recording paused (the agent keeps running)",
+                self.config.min_free_mb,
+                self.path.parent,
+            )
+
+    def _fail(self, exc: OSError) -> None:
+        log.warning("recorder: %s: recording paused", exc)
+        self._writer = None
+        stream, self._stream, self._file = self._stream, None, None
+        if stream is not None:
+            with contextlib.suppress(OSError):
+                stream.close()
+        self._paused_until_s = self.clock_s() + _DISK_RECHECK_S
+        self.paused = True
+        self.counts["record_write_errors"] += 1
