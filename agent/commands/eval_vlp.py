@@ -318,6 +318,7 @@ class CalibrationReport:
     tracks_used: int
     known_fixes: int
     residual_refused: str | None = None
+    rotation_centre_refused: str | None = None
 
 
 def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: Path) -> CalibrationReport:
@@ -349,9 +350,13 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
     rc = fit_rotation_centre(
         [np.array(paths[k]) for k in ids], [heights[k] for k in ids], view.intrinsics, view.mount
     )
-    centred = VlpCalibration(
-        (view.intrinsics.width_px, view.intrinsics.height_px), (rc.cx_px, rc.cy_px), rc.sigma_px
-    )
+    size = (view.intrinsics.width_px, view.intrinsics.height_px)
+    if isinstance(rc, str):
+        # A ceiling too sparse for the turn: the nominal principal point stays, the residual still runs.
+        log.warning("calibration: no rotation centre, the nominal principal point is kept: %s", rc)
+        centred = VlpCalibration(size)
+    else:
+        centred = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px)
 
     # 2. Residual correction: fixes at known points with the centre applied.
     pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount, calibration=centred)
@@ -387,16 +392,19 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
         f"at {CALIBRATION_GRID}x{CALIBRATION_GRID} known points x {CALIBRATION_HEADINGS} headings",
     )
     out_path.write_text(text, encoding="utf-8")
+    principal = centred.principal_point_px or (view.intrinsics.cx_px, view.intrinsics.cy_px)
     log.info(
         "calibration: principal point (%.2f, %.2f) px from %d tracks, residual rms %.2f -> %.2f mm",
-        rc.cx_px,
-        rc.cy_px,
+        principal[0],
+        principal[1],
         len(ids),
         1e3 * (residual.rms_before_m if residual else math.nan),
         1e3 * (residual.rms_after_m if residual else math.nan),
     )
     loaded = parse_calibration(out_path.read_text(encoding="utf-8"), source=str(out_path))
-    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est), refused)
+    return CalibrationReport(
+        loaded, str(out_path), n, len(ids), len(est), refused, rc if isinstance(rc, str) else None
+    )
 
 
 # -- the runs ------------------------------------------------------------------------------------------------
@@ -556,6 +564,7 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "residual_rms_before_cm": 100.0 * cal.residual.rms_before_m if cal.residual else None,
             "residual_rms_after_cm": 100.0 * cal.residual.rms_after_m if cal.residual else None,
             "residual_refused": report.residual_refused,
+            "rotation_centre_refused": report.rotation_centre_refused,
         },
         "prior": (
             f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
@@ -714,6 +723,9 @@ def _table(summary: dict[str, Any]) -> str:
             f"true {cal['true_principal_point_px']})",
         ),
     ]
+    for key, what in (("rotation_centre_refused", "no rotation centre"), ("residual_refused", "no residual")):
+        if cal[key]:
+            rows.append((what, str(cal[key])))
     width = max(len(r[0]) for r in rows)
     return "\n".join(f"{name.ljust(width)}  {value}" for name, value in rows)
 

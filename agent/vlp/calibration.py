@@ -78,13 +78,16 @@ def fit_rotation_centre(
     mount: CameraMount | None = None,
     *,
     min_points: int = 12,
-) -> RotationCentre:
-    """The principal point from LED image tracks recorded while turning in place.
+) -> RotationCentre | str:
+    """The principal point from LED image tracks recorded while turning in place, or the reason there is
+    none.
 
     ``tracks[i]`` is an (n, 2) array of one LED's image centres (output px) over the turn, ``heights_m[i]``
     that LED's height above the lens. Each circle centre, moved back by the lens offset
     (+f R(-yaw_m) m_xy / h), estimates the principal point; they are averaged weighted by their arc and
-    point count. Raises ValueError when no track sweeps enough of its circle.
+    point count. A turn that saw no LED long enough (a sparse ceiling, a turn away from the LEDs) is not an
+    error of the program but an answer: the refusal says what the tracks lacked, and the caller keeps the
+    nominal principal point.
     """
     mount = mount if mount is not None else CameraMount()
     cos_m, sin_m = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
@@ -93,13 +96,19 @@ def fit_rotation_centre(
     my = -sin_m * mount.x_m + cos_m * mount.y_m
     centres: list[tuple[float, float, float]] = []
     circles: list[tuple[float, float, float, float]] = []
+    used_points: list[int] = []
+    short = narrow = 0
+    widest_rad = 0.0
     for pts, h in zip(tracks, heights_m, strict=True):
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         if pts.shape[0] < min_points:
+            short += 1
             continue
         a, b, r = fit_circle(pts[:, 0], pts[:, 1])
-        arc = _arc_rad(pts, a, b)
-        if arc < _MIN_ARC_RAD or r <= 0:
+        arc = _arc_rad(pts, a, b) if r > 0 else 0.0
+        widest_rad = max(widest_rad, arc)
+        if arc < _MIN_ARC_RAD:
+            narrow += 1
             continue
         rms = float(np.sqrt(np.mean((np.hypot(pts[:, 0] - a, pts[:, 1] - b) - r) ** 2)))
         # The circle is centred on the principal point minus f R(-yaw_m) m / h.
@@ -108,15 +117,24 @@ def fit_rotation_centre(
         weight = pts.shape[0] * (arc / (2.0 * math.pi)) ** 2 / max(rms, 0.05) ** 2
         centres.append((cx, cy, weight))
         circles.append((a, b, r, rms))
+        used_points.append(pts.shape[0])
     if not centres:
-        raise ValueError("no LED track covers enough of its circle: turn further, or under more LEDs")
+        if not tracks:
+            return "no LED of the map was tracked during the turn: turn in place under two or more LEDs"
+        return (
+            f"no LED track covers {math.degrees(_MIN_ARC_RAD):.0f} degrees of its circle ({len(tracks)} "
+            f"tracks: {short} with fewer than {min_points} points, {narrow} sweeping at most "
+            f"{math.degrees(widest_rad):.0f} degrees): turn in place under two or more LEDs"
+        )
     c = np.array(centres)
     w = c[:, 2] / c[:, 2].sum()
     cx, cy = float(w @ c[:, 0]), float(w @ c[:, 1])
     if len(centres) > 1:
         spread = float(np.sqrt(w @ ((c[:, 0] - cx) ** 2 + (c[:, 1] - cy) ** 2) / (len(centres) - 1)))
     else:
-        spread = circles[0][3] / math.sqrt(len(tracks[0]))
+        # One circle: its centre's standard error from its own scatter over its points (the track used,
+        # which need not be the first one given).
+        spread = circles[0][3] / math.sqrt(used_points[0])
     return RotationCentre(cx, cy, spread, tuple(circles))
 
 

@@ -117,3 +117,17 @@ def test_env1_integrity_over_all_frames(capsys: pytest.CaptureFixture[str]) -> N
     assert out["unflagged_over_5cm"] == 0
     assert out["fixes"] >= 250 and out["protection_coverage"] >= 0.999
     assert out["frame_ms_max"] >= out["latency_ms_p99"] > 0
+
+
+def test_sparse_layout_calibrates_without_a_rotation_centre(capsys: pytest.CaptureFixture[str]) -> None:
+    """Four LEDs 1.8 m apart: the turn in place at the area's centre sees no LED. The rotation centre is
+    refused with its reason (it used to raise out of ``eval vlp``), the principal point stays nominal, and
+    the rest of the calibration and the test go on."""
+    args = parse("--world", str(WORLDS / "sparse.toml"), "--points", "3", "--repeats", "2", "--json")
+    assert eval_vlp.run(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    cal = out["calibration"]
+    assert cal["principal_point_px"] is None
+    assert "turn in place under two or more LEDs" in cal["rotation_centre_refused"]
+    assert cal["known_point_fixes"] > 0
+    assert out["frames"] == 6 and out["unflagged_over_5cm"] == 0

@@ -11,6 +11,7 @@ import pytest
 
 from agent.vlp.calibration import (
     ResidualCorrection,
+    RotationCentre,
     VlpCalibration,
     fit_residual_correction,
     fit_rotation_centre,
@@ -47,14 +48,30 @@ def turning_tracks(centre: tuple[float, float], mount: CameraMount, heights: lis
 def test_rotation_centre_is_the_principal_point(mount: CameraMount) -> None:
     heights = [1.3, 1.3, 1.35]
     centre = fit_rotation_centre(turning_tracks((401.3, 298.4), mount, heights), heights, INTRINSICS, mount)
+    assert isinstance(centre, RotationCentre)
     assert (centre.cx_px, centre.cy_px) == pytest.approx((401.3, 298.4), abs=0.02)
     assert len(centre.circles) == 3
 
 
-def test_rotation_centre_needs_an_arc() -> None:
+def test_rotation_centre_needs_an_arc_and_says_so() -> None:
+    """Too little of a circle, too few points or no track at all (a sparse ceiling): a reason, not an
+    exception (``eval vlp`` used to end in a traceback on a sparse layout)."""
     tracks = [t[:8] for t in turning_tracks((400.0, 300.0), CameraMount(), [1.3])]
-    with pytest.raises(ValueError, match="circle"):
-        fit_rotation_centre(tracks, [1.3], INTRINSICS, min_points=4)
+    refused = fit_rotation_centre(tracks, [1.3], INTRINSICS, min_points=4)
+    assert isinstance(refused, str) and "1 sweeping at most 21 degrees" in refused, refused
+    refused = fit_rotation_centre(tracks, [1.3], INTRINSICS)
+    assert isinstance(refused, str) and "1 with fewer than 12 points" in refused, refused
+    refused = fit_rotation_centre([], [], INTRINSICS)
+    assert isinstance(refused, str) and "no LED of the map was tracked" in refused
+
+
+def test_one_circle_gives_its_own_standard_error() -> None:
+    """With one usable track the spread is that track's scatter over its own points, even when an unusable
+    track comes first."""
+    good = turning_tracks((400.0, 300.0), CameraMount(), [1.3])[0]
+    centre = fit_rotation_centre([good[:3], good], [1.3, 1.3], INTRINSICS)
+    assert isinstance(centre, RotationCentre)
+    assert centre.sigma_px == pytest.approx(centre.circles[0][3] / math.sqrt(len(good)))
 
 
 def test_residual_correction_recovers_an_affine_error_field() -> None:
@@ -106,6 +123,27 @@ def test_a_residual_correction_that_would_hurt_is_refused_with_a_reason() -> Non
     fixes, truth = grid_fixes(rng, points, 3, lambda x, y: (0.0, 0.0))
     refused = validated_residual_correction(fixes, truth)
     assert isinstance(refused, str) and "held-out" in refused, refused
+
+
+def test_the_issues_clustered_points_are_refused() -> None:
+    """Issue 19's case: known points within 1 cm of each other (three fixes at each of four marks, 1 mm
+    noise, no error to correct). The plain fit reports a healthy fit (its rms falls) but its slope comes
+    from noise: over a 1 x 1 m area it makes fixes more than 20x worse than uncorrected. The validated
+    path refuses it and says why."""
+    rng = np.random.default_rng(0)
+    marks = np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.01], [0.01, 0.01]])
+    truth = np.repeat(marks, 3, axis=0)
+    fixes = truth + rng.normal(0.0, 1e-3, truth.shape)
+    plain = fit_residual_correction(fixes, truth)
+    assert plain.rms_after_m < plain.rms_before_m
+    area = np.array([[x, y] for x in np.linspace(-0.5, 0.5, 11) for y in np.linspace(-0.5, 0.5, 11)])
+    area_fixes = area + rng.normal(0.0, 1e-3, area.shape)
+    corrected = np.array([plain.apply(x, y) for x, y in area_fixes])
+    rms_uncorrected = np.sqrt(np.mean(np.sum((area_fixes - area) ** 2, axis=1)))
+    rms_corrected = np.sqrt(np.mean(np.sum((corrected - area) ** 2, axis=1)))
+    assert rms_corrected > 20.0 * rms_uncorrected
+    refused = validated_residual_correction(fixes, truth)
+    assert isinstance(refused, str) and "not spread out" in refused, refused
 
 
 def test_calibration_file_round_trip() -> None:
