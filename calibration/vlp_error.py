@@ -37,6 +37,7 @@ from agent.vlp.calibration import (
     VlpCalibration,
     fit_rotation_centre,
     format_calibration,
+    mount_tilt_from_shift,
     validated_residual_correction,
 )
 from agent.vlp.model import LedMap, VlpFix, VlpResult
@@ -70,6 +71,7 @@ DEFAULT_FILE = "vlp.toml"
 MAX_CENTRE_SIGMA_PX = 0.5
 MIN_FIXES = 6
 MAX_MEAN_ERROR_CM = 1.0
+TURN_AT = 0.3
 
 
 class FrameLoop:
@@ -235,7 +237,10 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         pose: tuple[float, float, float] | None = None
         if sim is not None:
             s = sim.world.robot.start
-            centre = tuple(led_map.xyz_m[:, :2].mean(axis=0))
+            # Off the LEDs' middle (TURN_AT of the way in from the south-west corner of their box), so that
+            # they are at different distances from the axis: the circles' radii then tell the tilt apart.
+            (x0, y0), (x1, y1) = led_map.xyz_m[:, :2].min(axis=0), led_map.xyz_m[:, :2].max(axis=0)
+            centre = (x0 + TURN_AT * (x1 - x0), y0 + TURN_AT * (y1 - y0))
             pose = go_to(
                 servos,
                 (s.x_m, s.y_m, s.yaw_rad),
@@ -247,7 +252,11 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                 status=console.status,
             )
         else:
-            ask_line(console, "  put the robot under two or more LEDs, with room to turn, then press Enter ")
+            ask_line(
+                console,
+                "  put the robot under three or more LEDs, nearer one than the others (their distances tell "
+                "the camera's tilt), with room to turn, then press Enter ",
+            )
 
         # 1. Rotation centre.
         tracks = Tracks()
@@ -283,10 +292,17 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             centred_cal = VlpCalibration(size)
             console.say(f"  no rotation centre, the camera's principal point is kept: {rc}")
         else:
-            centred_cal = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px)
+            tilt = mount_tilt_from_shift(rc.tilt_px, view.intrinsics) if rc.tilt_px is not None else None
+            centred_cal = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px, mount_tilt_rad=tilt)
             console.say(
                 f"  rotation centre ({rc.cx_px:.2f}, {rc.cy_px:.2f}) px from {len(rc.circles)} LED circles; "
                 f"the camera's was ({view.intrinsics.cx_px:.2f}, {view.intrinsics.cy_px:.2f})"
+                + (
+                    f"; camera tilt on its mount {math.degrees(tilt[0]):.2f} / "
+                    f"{math.degrees(tilt[1]):.2f} deg (roll / pitch)"
+                    if tilt is not None
+                    else ""
+                )
             )
         centred = VlpPipeline(view.intrinsics, led_map, view.mount, calibration=centred_cal)
 
@@ -453,6 +469,9 @@ def _result(
         "principal_point_px": [round(centre.cx_px, 3), round(centre.cy_px, 3)] if centre else None,
         "principal_point_sigma_px": round(centre.sigma_px, 4) if centre else None,
         "rotation_centre_refused": rc if isinstance(rc, str) else None,
+        "mount_tilt_deg": [round(math.degrees(a), 4) for a in calibration.mount_tilt_rad]
+        if calibration.mount_tilt_rad
+        else None,
         "nominal_principal_point_px": [round(view.intrinsics.cx_px, 3), round(view.intrinsics.cy_px, 3)],
         "circles": circles,
         "known_point_fixes": len(after),

@@ -148,6 +148,9 @@ class VlpPipeline:
         self.intrinsics = calibration.intrinsics(intrinsics) if calibration is not None else intrinsics
         self.led_map = led_map
         self.mount = mount if mount is not None else CameraMount()
+        if calibration is not None:
+            # The calibrated tilt turns the rays (with the IMU's), instead of a principal point moved for it.
+            self.mount = calibration.mount(self.mount)
         self.config = config = config if config is not None else VlpConfig()
         self.signatures = led_map.signatures
         # Each LED's survey sigma where the map states it (else the solver's map_sigma_m); None: none does.

@@ -4,6 +4,7 @@ camera and wheels, bring the mean VLP error at fresh places from about a centime
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -58,6 +59,13 @@ def test_vlp_error_calibration_halves_the_error(tmp_path: Path) -> None:
     calibration = parse_calibration((tmp_path / "vlp.toml").read_text(), "vlp.toml")
     assert calibration.image_size_px == (800, 600)
     assert calibration.principal_point_px == pytest.approx(r["principal_point_px"], abs=1e-3)
+    # Turned nearer one LED than the others, the circles tell the camera's tilt (0.2, -0.15 degrees in
+    # env1.toml) from its principal point (true (399.99, 299.99) px).
+    assert r["mount_tilt_deg"] == pytest.approx([0.2, -0.15], abs=0.05)
+    assert r["principal_point_px"] == pytest.approx([399.99, 299.99], abs=0.5)
+    assert calibration.mount_tilt_rad == pytest.approx(
+        [math.radians(a) for a in r["mount_tilt_deg"]], abs=1e-5
+    )
     # Eight fixes at four points: the residual correction is kept only when half of them, held out, say it
     # helps; either way the file and the JSON agree.
     if calibration.residual is not None:

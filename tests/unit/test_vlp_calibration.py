@@ -16,9 +16,11 @@ from agent.vlp.calibration import (
     fit_residual_correction,
     fit_rotation_centre,
     format_calibration,
+    mount_tilt_from_shift,
     parse_calibration,
     validated_residual_correction,
 )
+from agent.vlp.geometry import level_rotation
 from agent.vlp.model import CameraIntrinsics, CameraMount
 from drivers.errors import ConfigError
 
@@ -51,6 +53,50 @@ def test_rotation_centre_is_the_principal_point(mount: CameraMount) -> None:
     assert isinstance(centre, RotationCentre)
     assert (centre.cx_px, centre.cy_px) == pytest.approx((401.3, 298.4), abs=0.02)
     assert len(centre.circles) == 3
+
+
+def tilted_tracks(
+    centre: tuple[float, float], roll_rad: float, pitch_rad: float, reach_m: list[float], h_m: float = 1.3
+) -> list[np.ndarray]:  # type: ignore[type-arg]
+    """Image tracks over a turn in place of a camera tilted by (roll, pitch) on its mount (R_level =
+    Ry(pitch) Rx(roll), agent.vlp.geometry), its principal point ``centre``; LEDs ``reach_m`` from the
+    axis."""
+    rng = np.random.default_rng(4)
+    r_level = level_rotation(CameraMount(roll_rad=roll_rad, pitch_rad=pitch_rad))
+    tracks = []
+    for k, reach in enumerate(reach_m):
+        pts = []
+        for yaw in np.linspace(0.0, 2.0 * math.pi, 120, endpoint=False):
+            phase = yaw + 1.1 * k
+            m = r_level.T @ np.array([reach * math.cos(phase) / h_m, reach * math.sin(phase) / h_m, 1.0])
+            pts.append((centre[0] + 488.0 * m[0] / m[2], centre[1] + 488.0 * m[1] / m[2]))
+        tracks.append(np.array(pts) + rng.normal(0.0, 0.05, (120, 2)))
+    return tracks
+
+
+def test_a_tilt_is_told_from_the_principal_point_by_circles_of_different_radii() -> None:
+    """A camera tilted 1.5 degrees: LEDs at different distances from the turning axis give circles whose
+    centres move with their radius (p + f tan(tilt) sec^2 alpha); the fit separates the principal point
+    from the tilt, and the tilt comes back as the mount's roll and pitch. Circles of one radius cannot tell
+    them apart: the rotation centre is then the tilt-shifted point, as before."""
+    roll, pitch = math.radians(1.5), math.radians(-0.6)
+    tracks = tilted_tracks((401.3, 298.4), roll, pitch, [0.3, 0.55, 0.8])
+    centre = fit_rotation_centre(tracks, [1.3] * 3, INTRINSICS)
+    assert isinstance(centre, RotationCentre) and centre.tilt_px is not None
+    assert (centre.cx_px, centre.cy_px) == pytest.approx((401.3, 298.4), abs=0.3)
+    got = mount_tilt_from_shift(centre.tilt_px, INTRINSICS)
+    assert got == pytest.approx((roll, pitch), abs=math.radians(0.03))
+    same = fit_rotation_centre(tilted_tracks((401.3, 298.4), roll, pitch, [0.55] * 3), [1.3] * 3, INTRINSICS)
+    assert isinstance(same, RotationCentre) and same.tilt_px is None
+    assert abs(same.cy_px - 298.4) > 10.0  # the tilt absorbed: f tan(1.5 deg) sec^2 alpha
+
+
+def test_mount_tilt_from_shift_puts_the_vertical_there() -> None:
+    for roll, pitch in ((0.02, -0.01), (-0.03, 0.025), (0.0, 0.0)):
+        r_level = level_rotation(CameraMount(roll_rad=roll, pitch_rad=pitch))
+        up = r_level.T @ np.array([0.0, 0.0, 1.0])
+        shift = (488.0 * up[0] / up[2], 488.0 * up[1] / up[2])
+        assert mount_tilt_from_shift(shift, INTRINSICS) == pytest.approx((roll, pitch), abs=1e-12)
 
 
 def test_rotation_centre_needs_an_arc_and_says_so() -> None:
@@ -150,7 +196,7 @@ def test_calibration_file_round_trip() -> None:
     residual = ResidualCorrection(
         (0.1, -0.2), 0.5, 1, (0.001, 0.002, -0.0005), (0.0, 0.0003, 0.0001), 108, 0.004, 0.001
     )
-    cal = VlpCalibration((800, 600), (401.25, 298.5), 0.03, residual)
+    cal = VlpCalibration((800, 600), (401.25, 298.5), 0.03, residual, (0.026, -0.004))
     text = format_calibration(cal, "a test\nof two lines")
     assert text.startswith("# vlp-agent VLP calibration")
     assert parse_calibration(text) == cal
@@ -166,6 +212,8 @@ def test_calibration_file_round_trip() -> None:
             "camera.principal_point_px[1]",
         ),
         ("[camera]\nimage_size_px = [800, 600]\nfocal = 3\n", "camera.focal"),
+        ("[camera]\nimage_size_px = [800, 600]\nmount_tilt_rad = [0.5, 0.0]\n", "camera.mount_tilt_rad"),
+        ("[camera]\nimage_size_px = [800, 600]\nmount_tilt_rad = [0.01]\n", "camera.mount_tilt_rad"),
         (
             "[camera]\nimage_size_px = [800, 600]\n[residual]\ndegree = 1\norigin_m = [0, 0]\nscale_m = 1.0\n"
             "x_coefficients = [1, 2]\ny_coefficients = [1, 2, 3]\n",
