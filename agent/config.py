@@ -196,6 +196,8 @@ class LedConfig:
     frequency_hz: float
     duty: float
     diameter_m: float = 0.086
+    # The survey's standard deviation of this LED's x and y (None: the VLP solver's map_sigma_m, 3 mm).
+    survey_sigma_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -491,6 +493,7 @@ class _Table(TomlTable):
 
 _POSITIVE = (lambda v: v > 0, "must be > 0")
 _NON_NEGATIVE = (lambda v: v >= 0, "must be >= 0")
+_SURVEY_SIGMA = (lambda v: 0 <= v <= 1.0, "must be in [0, 1] m")
 _PROBABILITY = (lambda v: 0 < v < 1, "must be strictly between 0 and 1")
 _BYTE = (lambda v: 0 <= v <= 255, "must be 0..255")
 
@@ -690,6 +693,9 @@ def _led(t: _Table) -> LedConfig:
         t.number("duty", math.nan, _PROBABILITY),
         t.number("diameter_m", 0.086, _POSITIVE),
     )
+    if t.has("survey_sigma_m"):
+        sigma = t.number("survey_sigma_m", math.nan, _SURVEY_SIGMA)
+        led = dataclasses.replace(led, survey_sigma_m=sigma)
     for name in ("x_m", "y_m", "z_m", "frequency_hz", "duty"):
         if math.isnan(getattr(led, name)):
             raise t.error(name, "missing (every LED needs id, x_m, y_m, z_m, frequency_hz and duty)")
@@ -717,7 +723,7 @@ def _leds(tables: list[_Table], key: str, file: str) -> tuple[LedConfig, ...]:
 
 def read_led_map(path: Path, key: str, file: str) -> tuple[LedConfig, ...]:
     """A surveyed LED map: TOML with ``[[leds]]`` tables (id, x_m, y_m, z_m, frequency_hz, duty,
-    diameter_m). Errors name the map file and the LED."""
+    diameter_m, survey_sigma_m). Errors name the map file and the LED."""
     try:
         with open(path, "rb") as fp:
             data = tomllib.load(fp)

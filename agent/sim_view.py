@@ -47,7 +47,16 @@ def agent_view(world: World) -> AgentView:
     """The nominal camera, the surveyed LED map and the nominal mount."""
     leds = LedMap(
         tuple(
-            MapLed(led.id, led.x_m, led.y_m, led.z_m, led.frequency_hz, led.duty, led.diameter_m)
+            MapLed(
+                led.id,
+                led.x_m,
+                led.y_m,
+                led.z_m,
+                led.frequency_hz,
+                led.duty,
+                led.diameter_m,
+                led.survey_sigma_m,
+            )
             for led in surveyed_leds(world)
         )
     )

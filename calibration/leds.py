@@ -4,16 +4,18 @@ For each LED in turn the robot stands under it (the user puts it there; on the s
 there by its odometry), the camera takes ``--frames`` frames, and the LED nearest the middle of the picture is
 found and its stripes read with the VLP pipeline's own detector and decoder (``agent.vlp.detect``,
 ``agent.vlp.decode``): frequency f = 1 / (P t_row_eff) and duty, the median over the frames, with their
-spread. Coordinates come from a CSV file (``id,x_m,y_m,z_m[,diameter_m]``) or are typed. Two LEDs with
-different ids whose signatures are too close for the camera to tell apart are reported (closer than three
-times their combined spread, or than 150 Hz and 0.08 duty); so is one id measured with two signatures. The
-result is the LED map (TOML ``[[leds]]``, the format the robot config's ``[vlp] led_map`` reads).
+spread. Coordinates come from a CSV file (``id,x_m,y_m,z_m[,diameter_m][,survey_sigma_m]``) or are typed.
+Two LEDs with different ids whose signatures are too close for the camera to tell apart are reported (closer
+than three times their combined spread, or than 150 Hz and 0.08 duty); so is one id measured with two
+signatures. The result is the LED map (TOML ``[[leds]]``, the format the robot config's ``[vlp] led_map``
+reads).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import itertools
 import logging
 import math
@@ -74,6 +76,8 @@ class LedEntry:
     y_m: float
     z_m: float
     diameter_m: float = 0.086
+    # The survey's standard deviation of x and y, when it states one (written to the map; docs/config.md).
+    survey_sigma_m: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,7 +103,8 @@ class Measured:
 
 
 def read_coordinates(path: Path) -> list[LedEntry]:
-    """LED coordinates from CSV: a header with id, x_m, y_m, z_m (and optionally diameter_m)."""
+    """LED coordinates from CSV: a header with id, x_m, y_m, z_m (and optionally diameter_m and
+    survey_sigma_m, the survey's standard deviation of x and y; an empty cell: none stated)."""
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -123,8 +128,8 @@ def read_coordinates(path: Path) -> list[LedEntry]:
             )
         cells = dict(zip(header, (c.strip() for c in row), strict=True))
         numbers: dict[str, float] = {}
-        for key in ("x_m", "y_m", "z_m", "diameter_m"):
-            if key not in cells:
+        for key in ("x_m", "y_m", "z_m", "diameter_m", "survey_sigma_m"):
+            if key not in cells or (key == "survey_sigma_m" and not cells[key]):
                 continue
             try:
                 numbers[key] = float(cells[key])
@@ -134,11 +139,18 @@ def read_coordinates(path: Path) -> list[LedEntry]:
                 ) from None
             if not math.isfinite(numbers[key]):
                 raise CalibrationError(f"{path.name} line {line_no}: {key} must be finite")
+        if not 0.0 <= numbers.get("survey_sigma_m", 0.0) <= 1.0:
+            raise CalibrationError(f"{path.name} line {line_no}: survey_sigma_m must be in [0, 1] m")
         if not cells["id"]:
             raise CalibrationError(f"{path.name} line {line_no}: the id is empty")
         entries.append(
             LedEntry(
-                cells["id"], numbers["x_m"], numbers["y_m"], numbers["z_m"], numbers.get("diameter_m", 0.086)
+                cells["id"],
+                numbers["x_m"],
+                numbers["y_m"],
+                numbers["z_m"],
+                numbers.get("diameter_m", 0.086),
+                numbers.get("survey_sigma_m"),
             )
         )
     if not entries:
@@ -250,7 +262,7 @@ def world_coordinates(ctx: StepContext, count: int | None) -> list[LedEntry]:
     if not leds:
         raise CalibrationError(f"the world {ctx.sim.world_file} has no LEDs to survey")
     chosen = leds if count is None else leds[:count]
-    return [LedEntry(led.id, led.x_m, led.y_m, led.z_m, led.diameter_m) for led in chosen]
+    return [LedEntry(led.id, led.x_m, led.y_m, led.z_m, led.diameter_m, led.survey_sigma_m) for led in chosen]
 
 
 def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
@@ -272,7 +284,7 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             count = ask_int(console, "how many LEDs", None, minimum=1, maximum=500)
         entries = type_coordinates(console, count)
     if options.led_diameter_mm != 86.0:
-        entries = [LedEntry(e.id, e.x_m, e.y_m, e.z_m, options.led_diameter_mm / 1000.0) for e in entries]
+        entries = [dataclasses.replace(e, diameter_m=options.led_diameter_mm / 1000.0) for e in entries]
     view = view_for(ctx)
     intrinsics, mount = view.intrinsics, view.mount
     decoder = StripeDecoder()
@@ -361,6 +373,8 @@ def format_led_map(measured: list[Measured], comment: list[str]) -> str:
             f"duty = {round(m.duty, 3)!r}",
             f"diameter_m = {e.diameter_m!r}",
         ]
+        if e.survey_sigma_m is not None:
+            lines.append(f"survey_sigma_m = {e.survey_sigma_m!r}")
     return "\n".join(lines) + "\n"
 
 

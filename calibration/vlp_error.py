@@ -33,10 +33,12 @@ import numpy.typing as npt
 
 from agent.vlp.calibration import (
     ResidualCorrection,
+    RotationCentre,
     VlpCalibration,
-    fit_residual_correction,
     fit_rotation_centre,
     format_calibration,
+    mount_tilt_from_shift,
+    validated_residual_correction,
 )
 from agent.vlp.model import LedMap, VlpFix, VlpResult
 from agent.vlp.pipeline import VlpPipeline
@@ -69,6 +71,7 @@ DEFAULT_FILE = "vlp.toml"
 MAX_CENTRE_SIGMA_PX = 0.5
 MIN_FIXES = 6
 MAX_MEAN_ERROR_CM = 1.0
+TURN_AT = 0.3
 
 
 class FrameLoop:
@@ -234,7 +237,10 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         pose: tuple[float, float, float] | None = None
         if sim is not None:
             s = sim.world.robot.start
-            centre = tuple(led_map.xyz_m[:, :2].mean(axis=0))
+            # Off the LEDs' middle (TURN_AT of the way in from the south-west corner of their box), so that
+            # they are at different distances from the axis: the circles' radii then tell the tilt apart.
+            (x0, y0), (x1, y1) = led_map.xyz_m[:, :2].min(axis=0), led_map.xyz_m[:, :2].max(axis=0)
+            centre = (x0 + TURN_AT * (x1 - x0), y0 + TURN_AT * (y1 - y0))
             pose = go_to(
                 servos,
                 (s.x_m, s.y_m, s.yaw_rad),
@@ -246,7 +252,11 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                 status=console.status,
             )
         else:
-            ask_line(console, "  put the robot under two or more LEDs, with room to turn, then press Enter ")
+            ask_line(
+                console,
+                "  put the robot under three or more LEDs, nearer one than the others (their distances tell "
+                "the camera's tilt), with room to turn, then press Enter ",
+            )
 
         # 1. Rotation centre.
         tracks = Tracks()
@@ -269,22 +279,31 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         if pose is not None:
             pose = (pose[0], pose[1], pose[2] + 2.0 * math.pi)
         usable = [k for k in tracks.paths if k in tracks.heights]
-        try:
-            rc = fit_rotation_centre(
-                [np.array(tracks.paths[k]) for k in usable],
-                [tracks.heights[k] for k in usable],
-                view.intrinsics,
-                view.mount,
-            )
-        except ValueError as exc:
-            raise CalibrationError(
-                f"rotation centre: {exc} ({loop.frames} frames, {len(usable)} LED tracks)"
-            ) from exc
-        centred_cal = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px)
-        console.say(
-            f"  rotation centre ({rc.cx_px:.2f}, {rc.cy_px:.2f}) px from {len(rc.circles)} LED circles; "
-            f"the camera's was ({view.intrinsics.cx_px:.2f}, {view.intrinsics.cy_px:.2f})"
+        rc = fit_rotation_centre(
+            [np.array(tracks.paths[k]) for k in usable],
+            [tracks.heights[k] for k in usable],
+            view.intrinsics,
+            view.mount,
         )
+        if isinstance(rc, str):
+            # The turn saw too little (a sparse ceiling): the fixes at the known points still give the
+            # residual correction, with the camera's own principal point.
+            rc = f"{rc} ({loop.frames} frames, {len(usable)} LED tracks)"
+            centred_cal = VlpCalibration(size)
+            console.say(f"  no rotation centre, the camera's principal point is kept: {rc}")
+        else:
+            tilt = mount_tilt_from_shift(rc.tilt_px, view.intrinsics) if rc.tilt_px is not None else None
+            centred_cal = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px, mount_tilt_rad=tilt)
+            console.say(
+                f"  rotation centre ({rc.cx_px:.2f}, {rc.cy_px:.2f}) px from {len(rc.circles)} LED circles; "
+                f"the camera's was ({view.intrinsics.cx_px:.2f}, {view.intrinsics.cy_px:.2f})"
+                + (
+                    f"; camera tilt on its mount {math.degrees(tilt[0]):.2f} / "
+                    f"{math.degrees(tilt[1]):.2f} deg (roll / pitch)"
+                    if tilt is not None
+                    else ""
+                )
+            )
         centred = VlpPipeline(view.intrinsics, led_map, view.mount, calibration=centred_cal)
 
         # 2. Fixes at known points.
@@ -344,10 +363,14 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             f"only {len(est)} fixes at the known points (at least {max(MIN_FIXES, n_coef)} needed): "
             "are two LEDs in view at every point?"
         )
-    residual = fit_residual_correction(est, true, degree=options.degree)
+    checked = validated_residual_correction(est, true, degree=options.degree)
+    residual = checked if isinstance(checked, ResidualCorrection) else None
+    if isinstance(checked, str):
+        console.say(f"  no residual correction: {checked}")
     calibration = dataclasses.replace(centred_cal, residual=residual)
     evaluation = _evaluate(ctx, view, calibration, options.test_points) if ctx.sim is not None else None
-    return _result(calibration, rc, stops, residual, tracks, evaluation, view, output, points)
+    refused = checked if isinstance(checked, str) else None
+    return _result(calibration, rc, stops, residual, refused, tracks, evaluation, view, output, points)
 
 
 def _standing(pose: Any) -> Callable[[float], Any]:
@@ -408,11 +431,16 @@ def _evaluate(
     }
 
 
+def _corrected(residual: ResidualCorrection | None, fix: tuple[float, float]) -> tuple[float, float]:
+    return residual.apply(*fix) if residual is not None else fix
+
+
 def _result(
     calibration: VlpCalibration,
-    rc: Any,
+    rc: RotationCentre | str,
     stops: list[Stop],
-    residual: ResidualCorrection,
+    residual: ResidualCorrection | None,
+    residual_refused: str | None,
     tracks: Tracks,
     evaluation: dict[str, Any] | None,
     view: VlpView,
@@ -420,33 +448,49 @@ def _result(
     points: list[tuple[float, float]],
 ) -> StepResult:
     raw_pairs = [(f, s.truth) for s in stops for f in s.raw]
-    cal_pairs = [(residual.apply(*f), s.truth) for s in stops for f in s.centred]
+    cal_pairs = [(_corrected(residual, f), s.truth) for s in stops for f in s.centred]
     before, after = _errors_cm(raw_pairs), _errors_cm(cal_pairs)
     mean_before = float(np.mean(before)) if before else math.nan
     mean_after = float(np.mean(after)) if after else math.nan
+    centre = rc if isinstance(rc, RotationCentre) else None
+    circles = len(centre.circles) if centre is not None else 0
     checks = [
-        Check("rotation centre: LED circles used", float(len(rc.circles)), 1.0, "", at_least=True),
-        Check("rotation centre: spread of the circle centres", rc.sigma_px, MAX_CENTRE_SIGMA_PX, "px"),
+        Check("rotation centre: LED circles used", float(circles), 1.0, "", at_least=True),
+        Check(
+            "rotation centre: spread of the circle centres",
+            centre.sigma_px if centre is not None else math.nan,
+            MAX_CENTRE_SIGMA_PX,
+            "px",
+        ),
         Check("fixes at the known points", float(len(after)), float(MIN_FIXES), "", at_least=True),
         Check("mean error at the known points, after", mean_after, MAX_MEAN_ERROR_CM, "cm"),
     ]
     values: dict[str, Any] = {
-        "principal_point_px": [round(rc.cx_px, 3), round(rc.cy_px, 3)],
-        "principal_point_sigma_px": round(rc.sigma_px, 4),
+        "principal_point_px": [round(centre.cx_px, 3), round(centre.cy_px, 3)] if centre else None,
+        "principal_point_sigma_px": round(centre.sigma_px, 4) if centre else None,
+        "rotation_centre_refused": rc if isinstance(rc, str) else None,
+        "mount_tilt_deg": [round(math.degrees(a), 4) for a in calibration.mount_tilt_rad]
+        if calibration.mount_tilt_rad
+        else None,
         "nominal_principal_point_px": [round(view.intrinsics.cx_px, 3), round(view.intrinsics.cy_px, 3)],
-        "circles": len(rc.circles),
+        "circles": circles,
         "known_point_fixes": len(after),
         "known_points_mean_error_cm_before": round(mean_before, 4),
         "known_points_mean_error_cm_after": round(mean_after, 4),
-        "residual_rms_before_m": round(residual.rms_before_m, 6),
-        "residual_rms_after_m": round(residual.rms_after_m, 6),
+        "residual_rms_before_m": round(residual.rms_before_m, 6) if residual else None,
+        "residual_rms_after_m": round(residual.rms_after_m, 6) if residual else None,
+        "residual_refused": residual_refused,
     }
     report = [
-        f"rotation centre ({rc.cx_px:.2f}, {rc.cy_px:.2f}) px (was ({view.intrinsics.cx_px:.2f}, "
-        f"{view.intrinsics.cy_px:.2f})), spread {rc.sigma_px:.3f} px over {len(rc.circles)} LED circles",
+        f"rotation centre ({centre.cx_px:.2f}, {centre.cy_px:.2f}) px (was ({view.intrinsics.cx_px:.2f}, "
+        f"{view.intrinsics.cy_px:.2f})), spread {centre.sigma_px:.3f} px over {circles} LED circles"
+        if centre is not None
+        else f"no rotation centre (the camera's principal point is kept): {rc}",
         f"residual correction (degree {residual.degree}) from {residual.points} fixes at {len(points)} "
         "points: rms "
-        f"{100 * residual.rms_before_m:.2f} -> {100 * residual.rms_after_m:.2f} cm",
+        f"{100 * residual.rms_before_m:.2f} -> {100 * residual.rms_after_m:.2f} cm"
+        if residual is not None
+        else f"no residual correction: {residual_refused}",
         f"at the known points: mean error {mean_before:.2f} cm before, {mean_after:.2f} cm after",
     ]
     if evaluation is not None:
@@ -461,10 +505,16 @@ def _result(
             )
     text = format_calibration(
         calibration,
-        f"vlp-agent calibrate vlp-error: rotation centre from {len(rc.circles)} LED circles; residual from "
-        f"{residual.points} fixes at {len(points)} known points",
+        "vlp-agent calibrate vlp-error: "
+        + (f"rotation centre from {circles} LED circles" if centre else f"no rotation centre: {rc}")
+        + "; "
+        + (
+            f"residual from {residual.points} fixes at {len(points)} known points"
+            if residual
+            else f"no residual correction: {residual_refused}"
+        ),
     )
-    figure = _figure(stops, residual, rc, tracks, view, report, checks)
+    figure = _figure(stops, residual, centre, tracks, view, report, checks)
     advice = [f'set calibration = "{output}" in the [vlp] table of the robot config']
     if not all(c.ok for c in checks):
         advice.insert(
@@ -478,8 +528,8 @@ def _result(
 
 def _figure(
     stops: list[Stop],
-    residual: ResidualCorrection,
-    rc: Any,
+    residual: ResidualCorrection | None,
+    rc: RotationCentre | None,
     tracks: Tracks,
     view: VlpView,
     report: list[str],
@@ -487,7 +537,7 @@ def _figure(
 ) -> Any:
     truth = np.array([s.truth for s in stops]).reshape(-1, 2)
     raw = np.array([f for s in stops for f in s.raw]).reshape(-1, 2)
-    cal = np.array([residual.apply(*f) for s in stops for f in s.centred]).reshape(-1, 2)
+    cal = np.array([_corrected(residual, f) for s in stops for f in s.centred]).reshape(-1, 2)
     fixes = plot.scatter(
         [
             plot.Series(truth, plot.TRUTH, "known point", 7),
@@ -505,7 +555,7 @@ def _figure(
         [
             (100 * (a[0] - s.truth[0]), 100 * (a[1] - s.truth[1]))
             for s in stops
-            for a in (residual.apply(*f) for f in s.centred)
+            for a in (_corrected(residual, f) for f in s.centred)
         ]
     ).reshape(-1, 2)
     errors = plot.scatter(
@@ -521,12 +571,12 @@ def _figure(
         plot.Series(np.array(p), plot.BLUE, "an LED's image over the turn" if k == 0 else "", 1)
         for k, p in enumerate(tracks.paths.values())
     ]
-    centre = plot.Series(np.array([[rc.cx_px, rc.cy_px]]), plot.RED, "rotation centre", 4)
+    centre = [plot.Series(np.array([[rc.cx_px, rc.cy_px]]), plot.RED, "rotation centre", 4)] if rc else []
     nominal = plot.Series(
         np.array([[view.intrinsics.cx_px, view.intrinsics.cy_px]]), plot.BLACK, "nominal", 4
     )
     turn = plot.scatter(
-        [*circles, centre, nominal],
+        [*circles, *centre, nominal],
         title="LED tracks over the turn",
         axis_labels=("u (px)", "v (px)"),
         bounds=(0.0, float(view.intrinsics.width_px), 0.0, float(view.intrinsics.height_px)),

@@ -69,7 +69,10 @@ def led_map_from_toml(path: Path) -> LedMap:
     except ConfigError as exc:
         raise CalibrationError(str(exc)) from exc
     return LedMap(
-        tuple(MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m) for e in leds)
+        tuple(
+            MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
+            for e in leds
+        )
     )
 
 
@@ -82,7 +85,7 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
         intrinsics = nominal_intrinsics(world)
         leds: LedMap | None = LedMap(
             tuple(
-                MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m)
+                MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
                 for e in surveyed_leds(world)
             )
         )
@@ -113,7 +116,8 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
         if vlp.leds is not None:
             leds = LedMap(
                 tuple(
-                    MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m) for e in vlp.leds
+                    MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
+                    for e in vlp.leds
                 )
             )
         m2 = vlp.mount

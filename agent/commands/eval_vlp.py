@@ -6,8 +6,9 @@ What it does, in the order a robot would live it:
    (``drivers.sim.worldfile.nominal_camera`` / ``surveyed_leds``): principal point, LED positions and heights
    off by the world's ``[errors]``, camera tilt unknown. Frames are rendered by the physical renderer from the
    *true* world.
-2. **Calibration, as on the robot** (``agent.vlp.calibration``). The robot turns in place once under the LEDs
-   at the test area's centre; the circles its LED tracks draw give the rotation centre (principal point).
+2. **Calibration, as on the robot** (``agent.vlp.calibration``). The robot turns in place once under the LEDs,
+   30 % of the way into the test area from its south-west corner (so the LEDs are at different distances from
+   the axis); the circles its LED tracks draw give the principal point and the camera's tilt on its mount.
    Then fixes at a grid of known points (four headings each) give the residual correction. The result is
    written to a calibration file (TOML, docs/vlp.md) and read back from it: nothing true is handed over.
 3. **The test** (static, ``--speed 0``): ``--points`` random places in the test area (the LED map's bounding
@@ -53,6 +54,7 @@ from agent.vlp.calibration import (
     VlpCalibration,
     fit_rotation_centre,
     format_calibration,
+    mount_tilt_from_shift,
     parse_calibration,
     validated_residual_correction,
 )
@@ -75,6 +77,7 @@ PoseAt = Callable[[float], Pose2D]
 DEFAULT_WORLD = EXAMPLES / "env1.toml"
 # Turning in place for the rotation-centre calibration (a TurtleBot3 turns at up to 2.8 rad/s).
 CALIBRATION_TURN_RADPS = 0.5
+TURN_AT = 0.3
 # Known points for the residual correction: a 3 x 3 grid over the inner part of the area, four headings.
 CALIBRATION_GRID = 3
 CALIBRATION_HEADINGS = 4
@@ -318,13 +321,16 @@ class CalibrationReport:
     tracks_used: int
     known_fixes: int
     residual_refused: str | None = None
+    rotation_centre_refused: str | None = None
 
 
 def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: Path) -> CalibrationReport:
     """The robot's calibration, simulated: turn in place, then fixes at known points. Writes the file."""
     view = bench.view
-    centre = Pose2D(0.5 * (area[0] + area[2]), 0.5 * (area[1] + area[3]), 0.0)
-    # 1. Rotation centre: one full turn in place, tracks of the uncalibrated pipeline.
+    # 1. Rotation centre: one full turn in place, tracks of the uncalibrated pipeline. Off the area's middle
+    # (TURN_AT of the way from its south-west corner), so that the LEDs are at different distances from the
+    # axis: their circles' radii then tell the camera's tilt from a principal-point error.
+    centre = Pose2D(area[0] + TURN_AT * (area[2] - area[0]), area[1] + TURN_AT * (area[3] - area[1]), 0.0)
     pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount)
     duration = 2.0 * math.pi / CALIBRATION_TURN_RADPS
     n = int(duration * bench.fps) + 1
@@ -349,9 +355,14 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
     rc = fit_rotation_centre(
         [np.array(paths[k]) for k in ids], [heights[k] for k in ids], view.intrinsics, view.mount
     )
-    centred = VlpCalibration(
-        (view.intrinsics.width_px, view.intrinsics.height_px), (rc.cx_px, rc.cy_px), rc.sigma_px
-    )
+    size = (view.intrinsics.width_px, view.intrinsics.height_px)
+    if isinstance(rc, str):
+        # A ceiling too sparse for the turn: the nominal principal point stays, the residual still runs.
+        log.warning("calibration: no rotation centre, the nominal principal point is kept: %s", rc)
+        centred = VlpCalibration(size)
+    else:
+        tilt = mount_tilt_from_shift(rc.tilt_px, view.intrinsics) if rc.tilt_px is not None else None
+        centred = VlpCalibration(size, (rc.cx_px, rc.cy_px), rc.sigma_px, mount_tilt_rad=tilt)
 
     # 2. Residual correction: fixes at known points with the centre applied.
     pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount, calibration=centred)
@@ -387,16 +398,19 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
         f"at {CALIBRATION_GRID}x{CALIBRATION_GRID} known points x {CALIBRATION_HEADINGS} headings",
     )
     out_path.write_text(text, encoding="utf-8")
+    principal = centred.principal_point_px or (view.intrinsics.cx_px, view.intrinsics.cy_px)
     log.info(
         "calibration: principal point (%.2f, %.2f) px from %d tracks, residual rms %.2f -> %.2f mm",
-        rc.cx_px,
-        rc.cy_px,
+        principal[0],
+        principal[1],
         len(ids),
         1e3 * (residual.rms_before_m if residual else math.nan),
         1e3 * (residual.rms_after_m if residual else math.nan),
     )
     loaded = parse_calibration(out_path.read_text(encoding="utf-8"), source=str(out_path))
-    return CalibrationReport(loaded, str(out_path), n, len(ids), len(est), refused)
+    return CalibrationReport(
+        loaded, str(out_path), n, len(ids), len(est), refused, rc if isinstance(rc, str) else None
+    )
 
 
 # -- the runs ------------------------------------------------------------------------------------------------
@@ -551,11 +565,14 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "tracks_used": report.tracks_used,
             "known_point_fixes": report.known_fixes,
             "principal_point_px": list(cal.principal_point_px) if cal.principal_point_px else None,
+            "mount_tilt_deg": [math.degrees(a) for a in cal.mount_tilt_rad] if cal.mount_tilt_rad else None,
+            "true_mount_tilt_deg": [math.degrees(a) for a in world.errors.camera_tilt_rad],
             "nominal_principal_point_px": [view.intrinsics.cx_px, view.intrinsics.cy_px],
             "true_principal_point_px": [true_intr.cx_px, true_intr.cy_px],
             "residual_rms_before_cm": 100.0 * cal.residual.rms_before_m if cal.residual else None,
             "residual_rms_after_cm": 100.0 * cal.residual.rms_after_m if cal.residual else None,
             "residual_refused": report.residual_refused,
+            "rotation_centre_refused": report.rotation_centre_refused,
         },
         "prior": (
             f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
@@ -714,6 +731,9 @@ def _table(summary: dict[str, Any]) -> str:
             f"true {cal['true_principal_point_px']})",
         ),
     ]
+    for key, what in (("rotation_centre_refused", "no rotation centre"), ("residual_refused", "no residual")):
+        if cal[key]:
+            rows.append((what, str(cal[key])))
     width = max(len(r[0]) for r in rows)
     return "\n".join(f"{name.ljust(width)}  {value}" for name, value in rows)
 

@@ -18,6 +18,7 @@ does no I/O: the caller reads and writes the text.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -40,26 +41,42 @@ __all__ = [
     "fit_residual_correction",
     "fit_rotation_centre",
     "format_calibration",
+    "mount_tilt_from_shift",
     "parse_calibration",
 ]
 
 # A track must sweep at least this much of its circle to constrain the centre.
 _MIN_ARC_RAD = math.radians(60.0)
+# The tilt is told from a principal-point error by how the circle centres move with the radius (below); the
+# circles' tan^2(alpha) must span at least this much, over at least this many circles.
+_MIN_TILT_LEVER = 0.15
+_MIN_TILT_CIRCLES = 3
+# chi^2 (2 dof) the tilt's slope must reach to be kept: 1e-3 false alarm.
+_TILT_CHI2 = 13.8
 # Bounds on the counts and sizes a calibration file gives (docs/vlp.md). The image side is the config's
 # limit (agent.config.MAX_IMAGE_SIDE_PX; tests/unit/test_vlp_calibration.py holds the two equal). The points
 # a residual correction was fitted to are only recorded, but a count beyond this is a corrupt file.
 MAX_IMAGE_SIDE_PX = 8192
 MAX_RESIDUAL_POINTS = 1_000_000
+# A camera tilted more than this on its mount is not looking at the ceiling as the model assumes.
+_MAX_MOUNT_TILT_RAD = 0.35
 
 
 @dataclass(frozen=True, slots=True)
 class RotationCentre:
-    """The principal point found from a turn in place (output px), its standard error, and the circles."""
+    """The principal point found from a turn in place (output px), its standard error, and the circles.
+
+    ``tilt_px``: where the camera's tilt puts the image of the vertical, relative to the principal point
+    (f tan(tilt) per axis, output px), when the circles' radii were spread enough to tell it from a
+    principal-point error; (cx_px, cy_px) is then the principal point itself. None: (cx_px, cy_px) is the
+    rotation centre, the principal point plus the tilt's shift (the level-camera model with the tilt
+    absorbed)."""
 
     cx_px: float
     cy_px: float
     sigma_px: float
     circles: tuple[tuple[float, float, float, float], ...]  # (a, b, r, rms) per track used
+    tilt_px: tuple[float, float] | None = None
 
 
 def _arc_rad(points: FloatArray, a: float, b: float) -> float:
@@ -78,13 +95,16 @@ def fit_rotation_centre(
     mount: CameraMount | None = None,
     *,
     min_points: int = 12,
-) -> RotationCentre:
-    """The principal point from LED image tracks recorded while turning in place.
+) -> RotationCentre | str:
+    """The principal point from LED image tracks recorded while turning in place, or the reason there is
+    none.
 
     ``tracks[i]`` is an (n, 2) array of one LED's image centres (output px) over the turn, ``heights_m[i]``
     that LED's height above the lens. Each circle centre, moved back by the lens offset
     (+f R(-yaw_m) m_xy / h), estimates the principal point; they are averaged weighted by their arc and
-    point count. Raises ValueError when no track sweeps enough of its circle.
+    point count. A turn that saw no LED long enough (a sparse ceiling, a turn away from the LEDs) is not an
+    error of the program but an answer: the refusal says what the tracks lacked, and the caller keeps the
+    nominal principal point.
     """
     mount = mount if mount is not None else CameraMount()
     cos_m, sin_m = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
@@ -93,13 +113,19 @@ def fit_rotation_centre(
     my = -sin_m * mount.x_m + cos_m * mount.y_m
     centres: list[tuple[float, float, float]] = []
     circles: list[tuple[float, float, float, float]] = []
+    used_points: list[int] = []
+    short = narrow = 0
+    widest_rad = 0.0
     for pts, h in zip(tracks, heights_m, strict=True):
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         if pts.shape[0] < min_points:
+            short += 1
             continue
         a, b, r = fit_circle(pts[:, 0], pts[:, 1])
-        arc = _arc_rad(pts, a, b)
-        if arc < _MIN_ARC_RAD or r <= 0:
+        arc = _arc_rad(pts, a, b) if r > 0 else 0.0
+        widest_rad = max(widest_rad, arc)
+        if arc < _MIN_ARC_RAD:
+            narrow += 1
             continue
         rms = float(np.sqrt(np.mean((np.hypot(pts[:, 0] - a, pts[:, 1] - b) - r) ** 2)))
         # The circle is centred on the principal point minus f R(-yaw_m) m / h.
@@ -108,16 +134,76 @@ def fit_rotation_centre(
         weight = pts.shape[0] * (arc / (2.0 * math.pi)) ** 2 / max(rms, 0.05) ** 2
         centres.append((cx, cy, weight))
         circles.append((a, b, r, rms))
+        used_points.append(pts.shape[0])
     if not centres:
-        raise ValueError("no LED track covers enough of its circle: turn further, or under more LEDs")
+        if not tracks:
+            return "no LED of the map was tracked during the turn: turn in place under two or more LEDs"
+        return (
+            f"no LED track covers {math.degrees(_MIN_ARC_RAD):.0f} degrees of its circle ({len(tracks)} "
+            f"tracks: {short} with fewer than {min_points} points, {narrow} sweeping at most "
+            f"{math.degrees(widest_rad):.0f} degrees): turn in place under two or more LEDs"
+        )
     c = np.array(centres)
     w = c[:, 2] / c[:, 2].sum()
     cx, cy = float(w @ c[:, 0]), float(w @ c[:, 1])
     if len(centres) > 1:
         spread = float(np.sqrt(w @ ((c[:, 0] - cx) ** 2 + (c[:, 1] - cy) ** 2) / (len(centres) - 1)))
     else:
-        spread = circles[0][3] / math.sqrt(len(tracks[0]))
-    return RotationCentre(cx, cy, spread, tuple(circles))
+        # One circle: its centre's standard error from its own scatter over its points (the track used,
+        # which need not be the first one given).
+        spread = circles[0][3] / math.sqrt(used_points[0])
+    tilt = _tilt_from_circles(c, np.array([r for _, _, r, _ in circles]), intrinsics)
+    if tilt is None:
+        return RotationCentre(cx, cy, spread, tuple(circles))
+    (px, py), (tx, ty), sigma = tilt
+    return RotationCentre(px, py, sigma, tuple(circles), (tx, ty))
+
+
+def _tilt_from_circles(
+    centres: FloatArray, radii_px: FloatArray, intrinsics: CameraIntrinsics
+) -> tuple[tuple[float, float], tuple[float, float], float] | None:
+    """The principal point and the tilt's shift t = f tan(tilt) from circles of different radii.
+
+    A camera tilted by a small angle tau sees a ray at alpha from the vertical at f tan(alpha + tau), so an
+    LED circle of radius r = f tan(alpha) is centred on c = p + t (1 + tan^2 alpha) = p + t (1 + (r/f)^2)
+    (first order in tau): a principal-point error moves every circle alike, a tilt moves the wide ones
+    more. Weighted least squares of the centres on (1, (r/f)^2) per axis gives p + t and t. ``centres[:, 2]``
+    are the circles' weights n (arc share)^2 / rms^2, half the inverse variance of a centre (a circle's centre
+    is known to rms sqrt(2 / n) from n points all round it). None when the radii do not span
+    ``_MIN_TILT_LEVER`` in (r/f)^2, there are fewer than ``_MIN_TILT_CIRCLES``, or the slope t is not
+    significant (chi^2 of its two components under ``_TILT_CHI2``): then the single-parameter centre, more
+    precise, is the better estimate.
+    """
+    if len(radii_px) < _MIN_TILT_CIRCLES:
+        return None
+    lever = np.column_stack(((radii_px / intrinsics.fx_px) ** 2, (radii_px / intrinsics.fy_px) ** 2))
+    if float(np.min(lever.max(axis=0) - lever.min(axis=0))) < _MIN_TILT_LEVER:
+        return None
+    w = 0.5 * centres[:, 2]
+    out: list[tuple[float, float]] = []
+    chi2_slope = 0.0
+    var_p = 0.0
+    for axis in (0, 1):
+        a = np.column_stack((np.ones(len(w)), lever[:, axis]))
+        cov = np.linalg.inv(a.T @ (a * w[:, None]))
+        intercept, slope = cov @ (a.T @ (w * centres[:, axis]))
+        # The principal point p = intercept - slope, its variance from the fit's covariance.
+        var_p += float(cov[0, 0] - 2.0 * cov[0, 1] + cov[1, 1])
+        chi2_slope += float(slope) ** 2 / float(cov[1, 1])
+        out.append((float(intercept - slope), float(slope)))
+    if chi2_slope < _TILT_CHI2:
+        return None
+    return (out[0][0], out[1][0]), (out[0][1], out[1][1]), math.sqrt(0.5 * var_p)
+
+
+def mount_tilt_from_shift(tilt_px: tuple[float, float], intrinsics: CameraIntrinsics) -> tuple[float, float]:
+    """The camera's (roll, pitch) on its mount that puts the vertical at ``tilt_px`` from the principal point.
+
+    With R_level = Ry(pitch) Rx(roll) (agent.vlp.geometry), the vertical seen by the camera is
+    R_level^T e_z = (-sin p, cos p sin r, cos p cos r), at normalised (-tan p / cos r, tan r)."""
+    roll = math.atan(tilt_px[1] / intrinsics.fy_px)
+    pitch = -math.atan(tilt_px[0] / intrinsics.fx_px * math.cos(roll))
+    return roll, pitch
 
 
 def _monomials(x: FloatArray, y: FloatArray, degree: int) -> FloatArray:
@@ -247,12 +333,20 @@ def validated_residual_correction(
 @dataclass(frozen=True, slots=True)
 class VlpCalibration:
     """What the calibration found: the principal point at the given image size (None: keep the nominal
-    one) and a residual correction (None: none)."""
+    one), the camera's tilt on its mount (roll, pitch; None: the mount's own, the tilt then absorbed in the
+    principal point) and a residual correction (None: none)."""
 
     image_size_px: tuple[int, int]
     principal_point_px: tuple[float, float] | None = None
     principal_point_sigma_px: float = math.nan
     residual: ResidualCorrection | None = None
+    mount_tilt_rad: tuple[float, float] | None = None
+
+    def mount(self, nominal: CameraMount) -> CameraMount:
+        """``nominal`` with the calibrated roll and pitch (the whole tilt the turn saw, not an addition)."""
+        if self.mount_tilt_rad is None:
+            return nominal
+        return dataclasses.replace(nominal, roll_rad=self.mount_tilt_rad[0], pitch_rad=self.mount_tilt_rad[1])
 
     def intrinsics(self, nominal: CameraIntrinsics) -> CameraIntrinsics:
         """``nominal`` with the calibrated principal point (images must have the calibrated size)."""
@@ -281,6 +375,8 @@ def format_calibration(cal: VlpCalibration, comment: str = "") -> str:
         lines.append(f"principal_point_px = [{_fmt(cx)}, {_fmt(cy)}]")
         if math.isfinite(cal.principal_point_sigma_px):
             lines.append(f"principal_point_sigma_px = {_fmt(cal.principal_point_sigma_px)}")
+    if cal.mount_tilt_rad is not None:
+        lines.append(f"mount_tilt_rad = [{_fmt(cal.mount_tilt_rad[0])}, {_fmt(cal.mount_tilt_rad[1])}]")
     res = cal.residual
     if res is not None:
         lines += ["", "[residual]"]
@@ -332,7 +428,7 @@ def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) 
     camera = table.get("camera")
     if not isinstance(camera, dict):
         raise ConfigError("camera", "missing [camera] section", source)
-    known_camera = {"image_size_px", "principal_point_px", "principal_point_sigma_px"}
+    known_camera = {"image_size_px", "principal_point_px", "principal_point_sigma_px", "mount_tilt_rad"}
     for key in camera:
         if key not in known_camera:
             raise ConfigError(f"camera.{key}", "unknown key", source)
@@ -345,6 +441,16 @@ def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) 
     if "principal_point_px" in camera:
         cx, cy = _numbers(camera, "principal_point_px", "camera", source, 2)
         principal = (cx, cy)
+    tilt = None
+    if "mount_tilt_rad" in camera:
+        roll, pitch = _numbers(camera, "mount_tilt_rad", "camera", source, 2)
+        if max(abs(roll), abs(pitch)) > _MAX_MOUNT_TILT_RAD:
+            raise ConfigError(
+                "camera.mount_tilt_rad",
+                f"must be within +-0.35 rad (20 degrees), got {[roll, pitch]}",
+                source,
+            )
+        tilt = (roll, pitch)
     sigma = math.nan
     if "principal_point_sigma_px" in camera:
         sigma = _number(camera, "principal_point_sigma_px", "camera", source)
@@ -384,4 +490,4 @@ def parse_calibration(data: str | Mapping[str, Any], source: str | None = None) 
         before = _number(res, "rms_before_m", "residual", source) if "rms_before_m" in res else math.nan
         after = _number(res, "rms_after_m", "residual", source) if "rms_after_m" in res else math.nan
         residual = ResidualCorrection((ox, oy), scale, degree, tuple(xs), tuple(ys), points, before, after)
-    return VlpCalibration((int(size[0]), int(size[1])), principal, sigma, residual)
+    return VlpCalibration((int(size[0]), int(size[1])), principal, sigma, residual, tilt)

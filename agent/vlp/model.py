@@ -212,7 +212,8 @@ class Signature:
 
 @dataclass(frozen=True, slots=True)
 class MapLed:
-    """One surveyed ceiling LED: a horizontal disk facing down."""
+    """One surveyed ceiling LED: a horizontal disk facing down. ``survey_sigma_m``: the standard deviation
+    of its surveyed x and y, when the survey states one (None: the solver's ``map_sigma_m``)."""
 
     id: str
     x_m: float
@@ -221,17 +222,21 @@ class MapLed:
     frequency_hz: float
     duty: float
     diameter_m: float = 0.086
+    survey_sigma_m: float | None = None
 
 
 @dataclass(frozen=True)
 class LedMap:
     """The surveyed LED map. Ids may repeat across a large building (the same signature on LEDs far
-    apart); one id always has one signature. ``signatures`` lists each id once, in first-seen order."""
+    apart); one id always has one signature. ``signatures`` lists each id once, in first-seen order.
+    ``survey_sigma_m``: each LED's survey standard deviation (NaN where it states none), or None when no LED
+    states one."""
 
     leds: tuple[MapLed, ...]
     signatures: tuple[Signature, ...] = field(init=False)
     indices_by_id: dict[str, tuple[int, ...]] = field(init=False, compare=False)
     xyz_m: FloatArray = field(init=False, compare=False, repr=False)
+    survey_sigma_m: FloatArray | None = field(init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         by_id: dict[str, list[int]] = {}
@@ -239,6 +244,8 @@ class LedMap:
         for i, led in enumerate(self.leds):
             if not (led.frequency_hz > 0 and 0 < led.duty < 1 and led.diameter_m > 0):
                 raise ValueError(f"LED {led.id!r} has an impossible signature or size: {led}")
+            if led.survey_sigma_m is not None and not 0.0 <= led.survey_sigma_m < math.inf:
+                raise ValueError(f"LED {led.id!r} has an impossible survey sigma: {led.survey_sigma_m}")
             known = sigs.get(led.id)
             if known is None:
                 sigs[led.id] = Signature(led.id, led.frequency_hz, led.duty)
@@ -249,6 +256,20 @@ class LedMap:
         object.__setattr__(self, "signatures", tuple(sigs.values()))
         object.__setattr__(self, "indices_by_id", {k: tuple(v) for k, v in by_id.items()})
         object.__setattr__(self, "xyz_m", xyz)
+        stated = [led.survey_sigma_m for led in self.leds]
+        sigma = (
+            np.array([math.nan if v is None else v for v in stated], dtype=np.float64)
+            if any(v is not None for v in stated)
+            else None
+        )
+        object.__setattr__(self, "survey_sigma_m", sigma)
+
+    def map_sigmas_m(self, default_m: float) -> list[float] | None:
+        """Each LED's survey sigma, ``default_m`` where it states none; None when none states one (every LED
+        then has the default)."""
+        if self.survey_sigma_m is None:
+            return None
+        return [default_m if math.isnan(v) else float(v) for v in self.survey_sigma_m.tolist()]
 
     def __len__(self) -> int:
         return len(self.leds)

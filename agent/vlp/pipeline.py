@@ -148,8 +148,13 @@ class VlpPipeline:
         self.intrinsics = calibration.intrinsics(intrinsics) if calibration is not None else intrinsics
         self.led_map = led_map
         self.mount = mount if mount is not None else CameraMount()
+        if calibration is not None:
+            # The calibrated tilt turns the rays (with the IMU's), instead of a principal point moved for it.
+            self.mount = calibration.mount(self.mount)
         self.config = config = config if config is not None else VlpConfig()
         self.signatures = led_map.signatures
+        # Each LED's survey sigma where the map states it (else the solver's map_sigma_m); None: none does.
+        self._map_sigmas_m = led_map.map_sigmas_m(config.solver.map_sigma_m)
         self.detector = config.detector if config.detector is not None else self._detector_for_map()
         self.decoder = StripeDecoder(config.decoder)
         self.tracker = LedTracker(self.detector, config.tracker)
@@ -561,7 +566,13 @@ class VlpPipeline:
 
         velocity = self._lens_velocity(time_s, motion)
         solution = solve_pose(
-            rays, self.led_map.xyz_m, lens_z, velocity=velocity, prior=lens_prior, config=self.config.solver
+            rays,
+            self.led_map.xyz_m,
+            lens_z,
+            velocity=velocity,
+            prior=lens_prior,
+            config=self.config.solver,
+            map_sigmas_m=self._map_sigmas_m,
         )
         if isinstance(solution, NoSolution):
             return NoFix(time_s, solution.reason, tuple(self._observations(features)), empty, solution.work)
@@ -665,7 +676,10 @@ class VlpPipeline:
             return NoFix(time_s, "one LED in view, far from the prior", observations, empty)
         h = float(xyz[best, 2]) - lens_z
         reach = h * math.hypot(*ray.q)
-        var_xy = (h * ray.sigma) ** 2 + (self.config.solver.map_sigma_m) ** 2 + (reach * syaw) ** 2
+        map_sigma = (
+            self._map_sigmas_m[best] if self._map_sigmas_m is not None else self.config.solver.map_sigma_m
+        )
+        var_xy = (h * ray.sigma) ** 2 + map_sigma**2 + (reach * syaw) ** 2
         cov = np.diag([var_xy, var_xy, syaw**2])
         matched = self._observations(features, {track_index: best})
         return self._finish(time_s, (x, y, yaw), cov, matched, lens_offset, True, ["single-led"], 0.0)

@@ -391,11 +391,21 @@ _Points = list[tuple[float, float, float]]
 
 
 def _weights(
-    rays: list[LedRay], leds: list[int], xyz: _Points, lens_z_m: float, map_sigma_m: float
+    rays: list[LedRay],
+    leds: list[int],
+    xyz: _Points,
+    lens_z_m: float,
+    map_sigma_m: float,
+    led_sigmas_m: list[float] | None,
 ) -> list[float]:
-    """Per-ray sigma in q units: image noise plus the survey error seen from the lens, sigma_map / h."""
+    """Per-ray sigma in q units: image noise plus the LED's survey error seen from the lens, sigma_map / h
+    (``led_sigmas_m[idx]`` when the map states each LED's, else ``map_sigma_m``)."""
     return [
-        math.hypot(ray.sigma, map_sigma_m / max(xyz[idx][2] - lens_z_m, 1e-3))
+        math.hypot(
+            ray.sigma,
+            (led_sigmas_m[idx] if led_sigmas_m is not None else map_sigma_m)
+            / max(xyz[idx][2] - lens_z_m, 1e-3),
+        )
         for ray, idx in zip(rays, leds, strict=True)
     ]
 
@@ -638,8 +648,13 @@ def solve_pose(
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0),
     prior: tuple[float, float, float, float, float] | None = None,
     config: SolverConfig = SolverConfig(),
+    map_sigmas_m: list[float] | None = None,
 ) -> PoseSolution | NoSolution:
     """The pose from two or more rays, or the reason there is none.
+
+    ``map_sigmas_m``: each map LED's survey standard deviation (per axis), when the map states them
+    (``LedMap.map_sigmas_m``); None: ``config.map_sigma_m`` for every LED. It weighs each ray, so the
+    covariance, the chi-square test and the protection level all carry it.
 
     ``prior`` is (x, y, yaw, sigma_xy, sigma_yaw) of the *lens*: it gates which map LED a repeated id is,
     and breaks ties between assignments that fit equally well; it does not pull the fix itself. When no
@@ -653,7 +668,9 @@ def solve_pose(
     # per call than the work.
     points: _Points = [(a, b, c) for a, b, c in np.asarray(xyz, dtype=np.float64).reshape(-1, 3).tolist()]
     budget = _Budget(config.max_association_checks)
-    result = _solve(rays, points, lens_z_m, velocity, prior, config, budget)
+    if map_sigmas_m is not None and len(map_sigmas_m) != len(points):
+        raise ValueError(f"{len(map_sigmas_m)} survey sigmas for a map of {len(points)} LEDs")
+    result = _solve(rays, points, lens_z_m, velocity, prior, config, budget, map_sigmas_m)
     if (
         prior is not None
         and isinstance(result, NoSolution)
@@ -663,7 +680,7 @@ def solve_pose(
         # The prior can be what is wrong (a pose carried on odometry through a camera stall, a robot carried
         # elsewhere): the map alone then decides, and only where the seen ids fit it in one place. It shares
         # what is left of the budget; the fix says it went against the prior.
-        alone = _solve(rays, points, lens_z_m, velocity, None, config, budget)
+        alone = _solve(rays, points, lens_z_m, velocity, None, config, budget, map_sigmas_m)
         if isinstance(alone, PoseSolution):
             result = dataclasses.replace(alone, prior_ignored=True)
         else:
@@ -689,6 +706,7 @@ def _solve(
     prior: tuple[float, float, float, float, float] | None,
     config: SolverConfig,
     budget: _Budget,
+    map_sigmas_m: list[float] | None,
 ) -> PoseSolution | NoSolution:
     """:func:`solve_pose` with or without the prior: associate, solve each assignment, pick the best.
 
@@ -704,7 +722,9 @@ def _solve(
                 continue
             solved.add(combo)
             budget.solved += 1
-            solution = _solve_assignment(rays, list(combo), points, lens_z_m, velocity, config, initial)
+            solution = _solve_assignment(
+                rays, list(combo), points, lens_z_m, velocity, config, initial, map_sigmas_m
+            )
             if solution is None:
                 continue
             # chi^2 of the rays used, plus a dropped ray's worth (the outlier threshold squared) for each
@@ -783,6 +803,7 @@ def _solve_assignment(
     velocity: tuple[float, float, float],
     config: SolverConfig,
     initial: _Initial | None = None,
+    map_sigmas_m: list[float] | None = None,
 ) -> PoseSolution | None:
     """Gauss-Newton on one assignment (-1: ray left out), from ``initial`` (else the closed form on the rays
     farthest apart), dropping the worst ray while it is an outlier and three or more remain."""
@@ -799,7 +820,7 @@ def _solve_assignment(
             init = initial if initial is not None and not dropped_here else _initial(sub, idx, xyz, lens_z_m)
         except ValueError:
             return None
-        sigma = _weights(sub, idx, xyz, lens_z_m, config.map_sigma_m)
+        sigma = _weights(sub, idx, xyz, lens_z_m, config.map_sigma_m, map_sigmas_m)
         try:
             p, cov, whitened, linearisation = _gauss_newton(
                 [r.q for r in sub],

@@ -50,6 +50,8 @@ class Led:
     diameter_m: float = 0.086
     frequency_hz: float = 2000.0
     duty: float = 0.5
+    # What the LED map given to the agent states as this LED's survey uncertainty (per axis); None: none.
+    survey_sigma_m: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -65,6 +65,8 @@ _MIN_STRIPE_CONTRAST = 0.3
 _MAX_SEARCHED_SIGNATURES = 48
 # A camera tilt beyond this is a mounting mistake, not an error model (and leaves the LEDs out of view).
 _MAX_TILT_RAD = math.radians(20.0)
+# A stated LED survey uncertainty beyond this is no survey (and would let any LED fit anywhere).
+_MAX_SURVEY_SIGMA_M = 1.0
 
 # Bounds on every count and size in a world file (docs/world.md, "Limits"). Each is checked on the number
 # itself, before anything is built from it, so that a slip such as ``ny = 100000000`` fails at once with
@@ -758,7 +760,7 @@ class _WorldReader:
     # -- LEDs --------------------------------------------------------------------------------------------
     def _leds(self, robot: RobotSpec, cam: CameraModel) -> list[_Placed]:
         defaults_table = self.root.table("led_defaults")
-        defaults_table.expect("z_m", "diameter_m", "frequency_hz", "duty")
+        defaults_table.expect("z_m", "diameter_m", "frequency_hz", "duty", "survey_sigma_m")
         base = Led("", 0.0, 0.0, 0.0)
         defaults = {
             "z_m": defaults_table.number("z_m") if defaults_table.has("z_m") else None,
@@ -766,6 +768,7 @@ class _WorldReader:
             "frequency_hz": defaults_table.number("frequency_hz", base.frequency_hz),
             "duty": defaults_table.number("duty", base.duty),
         }
+        survey_sigma = self._survey_sigma(defaults_table, None)
         defaults_table.finish()
         for name in ("diameter_m", "frequency_hz", "duty"):
             rule = _RULES[f"Led.{name}"]
@@ -774,7 +777,7 @@ class _WorldReader:
 
         leds: list[_Placed] = []
         for t in self.root.tables("leds", MAX_LEDS):
-            t.expect("id", "x_m", "y_m", "z_m", "diameter_m", "frequency_hz", "duty")
+            t.expect("id", "x_m", "y_m", "z_m", "diameter_m", "frequency_hz", "duty", "survey_sigma_m")
             led = Led(
                 id=t.string("id", allow_int=True),
                 x_m=t.number("x_m", required=True),
@@ -783,11 +786,12 @@ class _WorldReader:
                 diameter_m=self._led_number(t, "diameter_m", defaults),
                 frequency_hz=self._led_number(t, "frequency_hz", defaults),
                 duty=self._led_number(t, "duty", defaults),
+                survey_sigma_m=self._survey_sigma(t, survey_sigma),
             )
             t.finish()
             leds.append(_Placed(led, t.path, t.path, t.path))
         for t in self.root.tables("led_grids", MAX_LEDS):
-            leds += self._led_grid(t, defaults, len(leds))
+            leds += self._led_grid(t, defaults, len(leds), survey_sigma)
         self._check_leds(leds, robot, cam)
         return leds
 
@@ -801,11 +805,34 @@ class _WorldReader:
             raise t.error(name, f"{rule[1]}, got {value:g}")
         return value
 
-    def _led_grid(self, t: _Table, defaults: Mapping[str, float | None], placed: int) -> list[_Placed]:
+    def _survey_sigma(self, t: _Table, default: float | None) -> float | None:
+        """An LED's stated survey sigma (``survey_sigma_m``), ``default`` when the table gives none."""
+        if not t.has("survey_sigma_m"):
+            return default
+        value = t.number("survey_sigma_m")
+        if not 0.0 <= value <= _MAX_SURVEY_SIGMA_M:
+            raise t.error("survey_sigma_m", f"must be in [0, {_MAX_SURVEY_SIGMA_M:g}] m, got {value:g}")
+        return value
+
+    def _led_grid(
+        self, t: _Table, defaults: Mapping[str, float | None], placed: int, survey_sigma: float | None
+    ) -> list[_Placed]:
         """LEDs on a rectangular grid; signature k goes to LED (ix, iy) with k = (ix + row_shift iy) mod n.
         Neighbours along a row always differ (n > 1); the default row_shift keeps repeats farthest apart.
         ``placed``: LEDs the world already has, which count against :data:`MAX_LEDS` with this grid's."""
-        t.expect("x0_m", "y0_m", "nx", "ny", "dx_m", "dy_m", "z_m", "diameter_m", "signatures", "row_shift")
+        t.expect(
+            "x0_m",
+            "y0_m",
+            "nx",
+            "ny",
+            "dx_m",
+            "dy_m",
+            "z_m",
+            "diameter_m",
+            "signatures",
+            "row_shift",
+            "survey_sigma_m",
+        )
         x0, y0 = t.number("x0_m", required=True), t.number("y0_m", required=True)
         nx, ny = t.integer("nx"), t.integer("ny")
         for name, n in (("nx", nx), ("ny", ny)):
@@ -824,6 +851,7 @@ class _WorldReader:
         dy = t.number("dy_m", 0.0 if ny == 1 else None)
         z = self._led_number(t, "z_m", defaults)
         diameter = self._led_number(t, "diameter_m", defaults)
+        sigma = self._survey_sigma(t, survey_sigma)
         signatures = []
         for s in t.tables("signatures", MAX_LEDS):
             s.expect("id", "frequency_hz", "duty")
@@ -846,7 +874,7 @@ class _WorldReader:
             for ix in range(nx):
                 k = (ix + row_shift * iy) % n
                 sid, freq, duty = signatures[k]
-                led = Led(sid, x0 + ix * dx, y0 + iy * dy, z, diameter, freq, duty)
+                led = Led(sid, x0 + ix * dx, y0 + iy * dy, z, diameter, freq, duty, sigma)
                 out.append(_Placed(led, t.path, f"{t.path}.signatures[{k}]", f"{t.path} (ix={ix}, iy={iy})"))
         return out
 

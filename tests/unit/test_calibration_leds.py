@@ -84,6 +84,26 @@ def test_led_map_file_reads_back_in_the_config_and_the_pipeline(tmp_path: Path) 
     LedMap(tuple(MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m) for e in loaded))
 
 
+def test_a_stated_survey_sigma_goes_from_the_csv_to_the_map(tmp_path: Path) -> None:
+    """``survey_sigma_m`` (optional column, an empty cell: none) is written to the LED map, which the
+    config reads and the pipeline weighs each LED by."""
+    csv_path = tmp_path / "leds.csv"
+    csv_path.write_text("id,x_m,y_m,z_m,survey_sigma_m\nL1,-0.465,0.495,1.5,0.025\nL2,-0.46,-0.42,1.5,\n")
+    entries = read_coordinates(csv_path)
+    assert [e.survey_sigma_m for e in entries] == [0.025, None]
+    path = tmp_path / "leds.toml"
+    path.write_text(
+        format_led_map(
+            [Measured(e, 1500.0 + 1000 * k, 0.4, 5.0, 0.01, 10, 10) for k, e in enumerate(entries)], []
+        )
+    )
+    loaded = read_led_map(path, "vlp.led_map", "robot.toml")
+    assert [e.survey_sigma_m for e in loaded] == [0.025, None]
+    csv_path.write_text("id,x_m,y_m,z_m,survey_sigma_m\nL1,-0.465,0.495,1.5,-0.1\n")
+    with pytest.raises(CalibrationError, match="line 2: survey_sigma_m must be in"):
+        read_coordinates(csv_path)
+
+
 def test_known_points(tmp_path: Path) -> None:
     path = tmp_path / "points.csv"
     path.write_text("x_m,y_m\n0,0\n0.3,0.1\n-0.2,0.25\n")

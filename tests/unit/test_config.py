@@ -274,7 +274,32 @@ LED_MISTAKES = [
         "leds[0].colour",
     ),
     ("leds = 3\n", "leds"),
+    (
+        '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+        "survey_sigma_m = -0.01\n",
+        "leds[0].survey_sigma_m",
+    ),
 ]
+
+
+def test_an_led_map_states_each_leds_survey_sigma(tmp_path: Path) -> None:
+    """``survey_sigma_m`` per LED in the map file (optional: absent is None, the solver's default)."""
+    write(
+        tmp_path,
+        '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+        "survey_sigma_m = 0.025\n"
+        '[[leds]]\nid = "B"\nx_m = 1.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 2000.0\nduty = 0.5\n',
+        "leds.toml",
+    )
+    path = write(
+        tmp_path,
+        REAL + '[camera]\nbackend = "v4l2"\n[vlp]\nled_map = "leds.toml"\n'
+        "[vlp.intrinsics]\nwidth_px = 8\nheight_px = 6\nfx_px = 5.0\nfy_px = 5.0\ncx_px = 4.0\n"
+        "cy_px = 3.0\n[vlp.rolling_shutter]\nt_row_s = 3e-5\n",
+    )
+    leds = load_config(path).vlp.leds
+    assert leds is not None
+    assert [led.survey_sigma_m for led in leds] == [0.025, None]
 
 
 @pytest.mark.parametrize(("text", "key"), LED_MISTAKES)

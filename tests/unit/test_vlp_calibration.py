@@ -11,13 +11,16 @@ import pytest
 
 from agent.vlp.calibration import (
     ResidualCorrection,
+    RotationCentre,
     VlpCalibration,
     fit_residual_correction,
     fit_rotation_centre,
     format_calibration,
+    mount_tilt_from_shift,
     parse_calibration,
     validated_residual_correction,
 )
+from agent.vlp.geometry import level_rotation
 from agent.vlp.model import CameraIntrinsics, CameraMount
 from drivers.errors import ConfigError
 
@@ -47,14 +50,74 @@ def turning_tracks(centre: tuple[float, float], mount: CameraMount, heights: lis
 def test_rotation_centre_is_the_principal_point(mount: CameraMount) -> None:
     heights = [1.3, 1.3, 1.35]
     centre = fit_rotation_centre(turning_tracks((401.3, 298.4), mount, heights), heights, INTRINSICS, mount)
+    assert isinstance(centre, RotationCentre)
     assert (centre.cx_px, centre.cy_px) == pytest.approx((401.3, 298.4), abs=0.02)
     assert len(centre.circles) == 3
 
 
-def test_rotation_centre_needs_an_arc() -> None:
+def tilted_tracks(
+    centre: tuple[float, float], roll_rad: float, pitch_rad: float, reach_m: list[float], h_m: float = 1.3
+) -> list[np.ndarray]:  # type: ignore[type-arg]
+    """Image tracks over a turn in place of a camera tilted by (roll, pitch) on its mount (R_level =
+    Ry(pitch) Rx(roll), agent.vlp.geometry), its principal point ``centre``; LEDs ``reach_m`` from the
+    axis."""
+    rng = np.random.default_rng(4)
+    r_level = level_rotation(CameraMount(roll_rad=roll_rad, pitch_rad=pitch_rad))
+    tracks = []
+    for k, reach in enumerate(reach_m):
+        pts = []
+        for yaw in np.linspace(0.0, 2.0 * math.pi, 120, endpoint=False):
+            phase = yaw + 1.1 * k
+            m = r_level.T @ np.array([reach * math.cos(phase) / h_m, reach * math.sin(phase) / h_m, 1.0])
+            pts.append((centre[0] + 488.0 * m[0] / m[2], centre[1] + 488.0 * m[1] / m[2]))
+        tracks.append(np.array(pts) + rng.normal(0.0, 0.05, (120, 2)))
+    return tracks
+
+
+def test_a_tilt_is_told_from_the_principal_point_by_circles_of_different_radii() -> None:
+    """A camera tilted 1.5 degrees: LEDs at different distances from the turning axis give circles whose
+    centres move with their radius (p + f tan(tilt) sec^2 alpha); the fit separates the principal point
+    from the tilt, and the tilt comes back as the mount's roll and pitch. Circles of one radius cannot tell
+    them apart: the rotation centre is then the tilt-shifted point, as before."""
+    roll, pitch = math.radians(1.5), math.radians(-0.6)
+    tracks = tilted_tracks((401.3, 298.4), roll, pitch, [0.3, 0.55, 0.8])
+    centre = fit_rotation_centre(tracks, [1.3] * 3, INTRINSICS)
+    assert isinstance(centre, RotationCentre) and centre.tilt_px is not None
+    assert (centre.cx_px, centre.cy_px) == pytest.approx((401.3, 298.4), abs=0.3)
+    got = mount_tilt_from_shift(centre.tilt_px, INTRINSICS)
+    assert got == pytest.approx((roll, pitch), abs=math.radians(0.03))
+    same = fit_rotation_centre(tilted_tracks((401.3, 298.4), roll, pitch, [0.55] * 3), [1.3] * 3, INTRINSICS)
+    assert isinstance(same, RotationCentre) and same.tilt_px is None
+    assert abs(same.cy_px - 298.4) > 10.0  # the tilt absorbed: f tan(1.5 deg) sec^2 alpha
+
+
+def test_mount_tilt_from_shift_puts_the_vertical_there() -> None:
+    for roll, pitch in ((0.02, -0.01), (-0.03, 0.025), (0.0, 0.0)):
+        r_level = level_rotation(CameraMount(roll_rad=roll, pitch_rad=pitch))
+        up = r_level.T @ np.array([0.0, 0.0, 1.0])
+        shift = (488.0 * up[0] / up[2], 488.0 * up[1] / up[2])
+        assert mount_tilt_from_shift(shift, INTRINSICS) == pytest.approx((roll, pitch), abs=1e-12)
+
+
+def test_rotation_centre_needs_an_arc_and_says_so() -> None:
+    """Too little of a circle, too few points or no track at all (a sparse ceiling): a reason, not an
+    exception (``eval vlp`` used to end in a traceback on a sparse layout)."""
     tracks = [t[:8] for t in turning_tracks((400.0, 300.0), CameraMount(), [1.3])]
-    with pytest.raises(ValueError, match="circle"):
-        fit_rotation_centre(tracks, [1.3], INTRINSICS, min_points=4)
+    refused = fit_rotation_centre(tracks, [1.3], INTRINSICS, min_points=4)
+    assert isinstance(refused, str) and "1 sweeping at most 21 degrees" in refused, refused
+    refused = fit_rotation_centre(tracks, [1.3], INTRINSICS)
+    assert isinstance(refused, str) and "1 with fewer than 12 points" in refused, refused
+    refused = fit_rotation_centre([], [], INTRINSICS)
+    assert isinstance(refused, str) and "no LED of the map was tracked" in refused
+
+
+def test_one_circle_gives_its_own_standard_error() -> None:
+    """With one usable track the spread is that track's scatter over its own points, even when an unusable
+    track comes first."""
+    good = turning_tracks((400.0, 300.0), CameraMount(), [1.3])[0]
+    centre = fit_rotation_centre([good[:3], good], [1.3, 1.3], INTRINSICS)
+    assert isinstance(centre, RotationCentre)
+    assert centre.sigma_px == pytest.approx(centre.circles[0][3] / math.sqrt(len(good)))
 
 
 def test_residual_correction_recovers_an_affine_error_field() -> None:
@@ -108,11 +171,32 @@ def test_a_residual_correction_that_would_hurt_is_refused_with_a_reason() -> Non
     assert isinstance(refused, str) and "held-out" in refused, refused
 
 
+def test_the_issues_clustered_points_are_refused() -> None:
+    """Issue 19's case: known points within 1 cm of each other (three fixes at each of four marks, 1 mm
+    noise, no error to correct). The plain fit reports a healthy fit (its rms falls) but its slope comes
+    from noise: over a 1 x 1 m area it makes fixes more than 20x worse than uncorrected. The validated
+    path refuses it and says why."""
+    rng = np.random.default_rng(0)
+    marks = np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.01], [0.01, 0.01]])
+    truth = np.repeat(marks, 3, axis=0)
+    fixes = truth + rng.normal(0.0, 1e-3, truth.shape)
+    plain = fit_residual_correction(fixes, truth)
+    assert plain.rms_after_m < plain.rms_before_m
+    area = np.array([[x, y] for x in np.linspace(-0.5, 0.5, 11) for y in np.linspace(-0.5, 0.5, 11)])
+    area_fixes = area + rng.normal(0.0, 1e-3, area.shape)
+    corrected = np.array([plain.apply(x, y) for x, y in area_fixes])
+    rms_uncorrected = np.sqrt(np.mean(np.sum((area_fixes - area) ** 2, axis=1)))
+    rms_corrected = np.sqrt(np.mean(np.sum((corrected - area) ** 2, axis=1)))
+    assert rms_corrected > 20.0 * rms_uncorrected
+    refused = validated_residual_correction(fixes, truth)
+    assert isinstance(refused, str) and "not spread out" in refused, refused
+
+
 def test_calibration_file_round_trip() -> None:
     residual = ResidualCorrection(
         (0.1, -0.2), 0.5, 1, (0.001, 0.002, -0.0005), (0.0, 0.0003, 0.0001), 108, 0.004, 0.001
     )
-    cal = VlpCalibration((800, 600), (401.25, 298.5), 0.03, residual)
+    cal = VlpCalibration((800, 600), (401.25, 298.5), 0.03, residual, (0.026, -0.004))
     text = format_calibration(cal, "a test\nof two lines")
     assert text.startswith("# vlp-agent VLP calibration")
     assert parse_calibration(text) == cal
@@ -128,6 +212,8 @@ def test_calibration_file_round_trip() -> None:
             "camera.principal_point_px[1]",
         ),
         ("[camera]\nimage_size_px = [800, 600]\nfocal = 3\n", "camera.focal"),
+        ("[camera]\nimage_size_px = [800, 600]\nmount_tilt_rad = [0.5, 0.0]\n", "camera.mount_tilt_rad"),
+        ("[camera]\nimage_size_px = [800, 600]\nmount_tilt_rad = [0.01]\n", "camera.mount_tilt_rad"),
         (
             "[camera]\nimage_size_px = [800, 600]\n[residual]\ndegree = 1\norigin_m = [0, 0]\nscale_m = 1.0\n"
             "x_coefficients = [1, 2]\ny_coefficients = [1, 2, 3]\n",

@@ -18,7 +18,7 @@ from agent.vlp.geometry import (
     level_rotation,
     normalised_coordinates,
 )
-from agent.vlp.model import CameraIntrinsics, CameraMount, Tilt
+from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap, MapLed, Tilt
 from agent.vlp.solve import (
     LedRay,
     NoSolution,
@@ -494,3 +494,67 @@ def test_a_prior_too_loose_for_the_map_period_leaves_rival_placements() -> None:
     tight = solve_pose(rays, leds, 0.2, prior=(truth[0] + 0.02, truth[1] - 0.01, truth[2], 0.05, 0.1))
     assert isinstance(tight, PoseSolution) and tight.alternatives == 0
     assert tight.assignment == tuple(seen) and tight.consistent
+
+
+def survey_trials(
+    sigma_stated_m: float | None, misread: bool, n_leds: int, trials: int = 400
+) -> tuple[int, int, int, int]:
+    """Fixes from ``n_leds`` rays on a map whose LEDs are surveyed 2.5 cm off (per axis); the map states
+    ``sigma_stated_m`` for each LED (None: the solver's 3 mm). With ``misread`` one ray carries another
+    LED's id. Returns (nominal fixes, nominal fixes within their protection level, flagged, no solution)."""
+    rng = np.random.default_rng(23)
+    nominal = covered = flagged = none = 0
+    for _ in range(trials):
+        true_leds = np.column_stack((rng.uniform(-1.2, 1.2, (8, 2)), rng.uniform(1.45, 1.55, 8)))
+        surveyed = true_leds + np.column_stack((rng.normal(0.0, 0.025, (8, 2)), np.zeros(8)))
+        truth = (rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        seen = rng.choice(8, n_leds, replace=False)
+        q = level_q(true_leds[seen], *truth, 0.2) + rng.normal(0.0, 2e-4, (n_leds, 2))
+        read = list(seen)
+        if misread:
+            read[int(rng.integers(n_leds))] = int(rng.choice([i for i in range(8) if i not in seen]))
+        rays = [LedRay(tuple(q[k]), (read[k],), 2e-4) for k in range(n_leds)]
+        sigmas = None if sigma_stated_m is None else [sigma_stated_m] * 8
+        result = solve_pose(rays, surveyed, 0.2, map_sigmas_m=sigmas)
+        if isinstance(result, NoSolution):
+            none += 1
+        elif result.dropped > 0 or not result.consistent:
+            flagged += 1
+        else:
+            nominal += 1
+            error = math.hypot(result.x_m - truth[0], result.y_m - truth[1])
+            covered += int(error <= result.protection_level_m)
+    return nominal, covered, flagged, none
+
+
+def test_a_stated_survey_sigma_keeps_good_fixes_nominal_and_wrong_ones_flagged() -> None:
+    """A 2.5 cm survey error against the fixed 3 mm map sigma: nearly every good fix is flagged (an LED
+    dropped as an outlier, or the chi-square test failed). With each LED's stated 2.5 cm the same fixes are
+    nominal and their protection level covers their error. A misread id is still flagged or refused; the
+    few that pass the test (the misread LED near the right one, or a weak geometry) are within their
+    protection level."""
+    nominal, _, flagged, _ = survey_trials(None, misread=False, n_leds=4)
+    assert flagged > 0.9 * 400 and nominal < 0.05 * 400
+    nominal, covered, flagged, none = survey_trials(0.025, misread=False, n_leds=4)
+    assert nominal >= 0.97 * 400 and covered == nominal
+    for n_leds in (3, 4, 5):
+        nominal, covered, flagged, none = survey_trials(0.025, misread=True, n_leds=n_leds)
+        assert flagged + none >= 0.97 * 400, (n_leds, nominal, flagged, none)
+        assert covered == nominal, (n_leds, nominal, covered)
+
+
+def test_survey_sigmas_must_match_the_map() -> None:
+    leds = np.array([[0.5, 0.4, 1.5], [-0.4, 0.5, 1.5]])
+    q = level_q(leds, 0.0, 0.0, 0.0, 0.2)
+    rays = [LedRay(tuple(q[k]), (k,), 2e-4) for k in range(2)]
+    with pytest.raises(ValueError, match="3 survey sigmas for a map of 2 LEDs"):
+        solve_pose(rays, leds, 0.2, map_sigmas_m=[0.01, 0.01, 0.01])
+
+
+def test_the_led_map_gives_each_leds_survey_sigma() -> None:
+    plain = LedMap((MapLed("A", 0.0, 0.0, 2.0, 1000.0, 0.5), MapLed("B", 1.0, 0.0, 2.0, 2000.0, 0.5)))
+    assert plain.map_sigmas_m(0.003) is None
+    stated = LedMap((MapLed("A", 0.0, 0.0, 2.0, 1000.0, 0.5, survey_sigma_m=0.025), *plain.leds[1:]))
+    assert stated.map_sigmas_m(0.003) == [0.025, 0.003]
+    with pytest.raises(ValueError, match="survey sigma"):
+        LedMap((MapLed("A", 0.0, 0.0, 2.0, 1000.0, 0.5, survey_sigma_m=-1.0),))

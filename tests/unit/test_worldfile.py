@@ -175,6 +175,7 @@ z_m = 2.0
 diameter_m = 0.1
 frequency_hz = 2500.0
 duty = 0.4
+survey_sigma_m = 0.01
 
 [[walls]]
 points = [[-3.0, -3.0], [3.0, -3.0]]
@@ -610,3 +611,36 @@ def test_a_huge_led_grid_fails_at_once_without_allocating(ny: int) -> None:
     assert proc.returncode == 0, proc.stderr
     key, reason = proc.stdout.strip().split("|")
     assert key == "led_grids[0].ny" and str(ny) in reason
+
+
+def test_led_survey_sigma_from_defaults_leds_and_grids(tmp_path: Path) -> None:
+    """``survey_sigma_m``: what the agent's LED map states for each LED, from [led_defaults], an LED or a
+    grid; the surveyed map the agent is given carries it."""
+    world = load_world(
+        write(
+            tmp_path,
+            "[led_defaults]\nz_m = 2.0\nsurvey_sigma_m = 0.025\n"
+            '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+            '[[leds]]\nid = "B"\nx_m = 1.0\ny_m = 0.0\nfrequency_hz = 2000.0\nduty = 0.5\n'
+            "survey_sigma_m = 0.004\n"
+            "[[led_grids]]\nx0_m = 0.0\ny0_m = 2.0\nnx = 2\nny = 1\ndx_m = 1.0\nsurvey_sigma_m = 0.01\n"
+            'signatures = [{ id = "C", frequency_hz = 3000.0, duty = 0.5 }, '
+            '{ id = "D", frequency_hz = 4000.0, duty = 0.5 }]\n'
+            "[errors]\nled_survey_error_m = 0.025\n",
+        )
+    )
+    assert [led.survey_sigma_m for led in world.leds] == [0.025, 0.004, 0.01, 0.01]
+    assert [led.survey_sigma_m for led in surveyed_leds(world)] == [0.025, 0.004, 0.01, 0.01]
+    assert load_world(write(tmp_path, "")).leds == ()
+
+
+def test_an_led_survey_sigma_out_of_range_names_its_key(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_world(
+            write(
+                tmp_path,
+                '[[leds]]\nid = "A"\nx_m = 0.0\ny_m = 0.0\nz_m = 2.0\nfrequency_hz = 1000.0\nduty = 0.5\n'
+                "survey_sigma_m = 2.0\n",
+            )
+        )
+    assert info.value.key == "leds[0].survey_sigma_m", str(info.value)
