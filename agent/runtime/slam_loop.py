@@ -2,7 +2,9 @@
 (``agent.runtime.mapper``); the pose of each filter update that matched goes to the fusion.
 
 It gives way to the hot path before each scan, and hands the localizer the VLP fixes the hot path queued
-(at most one every half second, ``agent.runtime.vlp_loop``).
+(at most one every half second, ``agent.runtime.vlp_loop``). When a save of the map is due
+(``agent.runtime.map_saver``), it takes the map out of the localizer between two scans and hands it to the
+saver's thread, which writes it.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
 from agent.runtime.loop_state import LoopState
 from agent.runtime.mailbox import BoundedQueue
+from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import Pose, ScanMapper
 from agent.runtime.motion import OdometryTrack
 from agent.runtime.types import AbsoluteFix
@@ -38,6 +41,7 @@ class SlamLoop:
         odometry_track: OdometryTrack | None,
         on_map: Callable[[Any], None] | None = None,
         map_period_s: float = 2.0,
+        saver: MapSaver | None = None,
     ) -> None:
         self.state = state
         self.mapper = mapper
@@ -49,6 +53,7 @@ class SlamLoop:
         self.on_map = on_map  # the navigation's static layer: the map every map_period_s
         self.map_period_ns = int(map_period_s * 1e9)
         self._map_sent_ns = 0
+        self.saver = saver  # the map saved as the robot goes (None: only at the end, by the command)
 
     def odometry_at(self, t_ns: int) -> Pose | None:
         if self.odometry_track is not None:
@@ -62,6 +67,8 @@ class SlamLoop:
         while not state.stop.is_set():
             beat.beat()
             scan = self.scans.get(0.25)
+            if mapper is not None and self.saver is not None and self.saver.due():
+                self._hand_over_map(mapper, self.saver)
             if scan is None or mapper is None:
                 continue
             self.hot_path.give_way()
@@ -97,3 +104,12 @@ class SlamLoop:
                 )
                 state.slam_good = result.accepted
                 state.count("slam_fused" if result.accepted else "slam_rejected")
+
+    def _hand_over_map(self, mapper: ScanMapper, saver: MapSaver) -> None:
+        # Before the first filter update the "map" is one scan at a guessed pose: not worth a save.
+        image = mapper.map_image() if mapper.counters().get("filter_updates", 0) > 0 else None
+        if image is None:
+            saver.skip()
+            return
+        saver.submit(image)
+        self.state.count("map_saves_handed_over")
