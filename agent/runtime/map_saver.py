@@ -53,7 +53,9 @@ class MapSaver:
         self.failures = 0
         self.dropped = 0  # maps replaced by a newer one before they were written
         self.last_save_ms = 0.0
-        self.max_save_ms = 0.0
+        self.max_save_ms = 0.0  # wall time of one write, on this thread (mostly the fsyncs)
+        self.max_save_cpu_ms = 0.0  # CPU time of one write: what it can take from the other threads
+        self.max_fetch_ms = 0.0  # what taking the map out cost the SLAM thread (given to submit)
         self._last_handover_s = clock_s()
         self._pending: OccupancyImage | None = None
         self._closed = False
@@ -72,8 +74,10 @@ class MapSaver:
             return True
         return self.interval_s > 0.0 and self.clock_s() - self._last_handover_s >= self.interval_s
 
-    def submit(self, image: OccupancyImage) -> None:
-        """Queue ``image`` to be written (replacing one not written yet); returns at once."""
+    def submit(self, image: OccupancyImage, fetch_s: float = 0.0) -> None:
+        """Queue ``image`` to be written (replacing one not written yet); returns at once. ``fetch_s``: what
+        taking it out of the mapper cost the caller (for the counters)."""
+        self.max_fetch_ms = max(self.max_fetch_ms, fetch_s * 1e3)
         self.requested = False
         self._last_handover_s = self.clock_s()
         with self._wake:
@@ -119,6 +123,8 @@ class MapSaver:
             "map_saves_replaced": self.dropped,
             "map_save_last_us": round(self.last_save_ms * 1e3),
             "map_save_max_us": round(self.max_save_ms * 1e3),
+            "map_save_cpu_max_us": round(self.max_save_cpu_ms * 1e3),
+            "map_fetch_max_us": round(self.max_fetch_ms * 1e3),
         }
 
     def _run(self) -> None:
@@ -135,6 +141,7 @@ class MapSaver:
                     return
                 self._busy = True
             t0 = time.perf_counter()
+            cpu0 = time.thread_time()
             try:
                 mapio.save_map(image, self.yaml_path, comment=self.comment)
                 self.saves += 1
@@ -144,6 +151,7 @@ class MapSaver:
                 log.error("periodic map save failed: %s", exc)
             finally:
                 elapsed_ms = (time.perf_counter() - t0) * 1e3
+                self.max_save_cpu_ms = max(self.max_save_cpu_ms, (time.thread_time() - cpu0) * 1e3)
                 self.last_save_ms = elapsed_ms
                 self.max_save_ms = max(self.max_save_ms, elapsed_ms)
                 with self._wake:

@@ -9,6 +9,7 @@ saver's thread, which writes it.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -107,9 +108,10 @@ class SlamLoop:
 
     def _hand_over_map(self, mapper: ScanMapper, saver: MapSaver) -> None:
         # Before the first filter update the "map" is one scan at a guessed pose: not worth a save.
+        t0 = time.perf_counter()
         image = mapper.map_image() if mapper.counters().get("filter_updates", 0) > 0 else None
         if image is None:
             saver.skip()
             return
-        saver.submit(image)
+        saver.submit(image, time.perf_counter() - t0)
         self.state.count("map_saves_handed_over")
