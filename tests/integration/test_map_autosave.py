@@ -7,14 +7,18 @@
 * ``vlp-agent sim`` saves every ``slam.save_interval_s`` while it runs; a second run with
   ``mode = "continue"`` starts from that map (a shorter run ends with at least every cell the first one
   knew); ``mode = "localization"`` on it neither saves nor changes it.
+* SIGUSR1 saves the map at once, and the agent's child processes survive it.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -99,3 +103,40 @@ def test_saved_while_running_continued_after_a_restart_and_untouched_when_locali
     counts = third["counts"]
     assert isinstance(counts, dict) and "map_saves" not in counts
     assert not (tmp_path / "localize" / "map.yaml").exists()
+
+
+def test_sigusr1_to_the_whole_group_saves_the_map_now_and_stops_nothing(tmp_path: Path) -> None:
+    """No periodic saves (interval 0): SIGUSR1, sent to every process as ``systemctl kill`` does, is the
+    only way a map gets to disk before the stop; the agent, its SLAM process and the rest go on."""
+    out = tmp_path / "out"
+    config = map_kill.mapping_config(tmp_path, 0.0)
+    proc = subprocess.Popen(
+        vlp_agent("sim", "--config", str(config), "--seconds", "120", "--json", "--out", str(out)),
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 90.0
+        # Before SLAM's first filter update there is no map: the request is dropped; ask again each second.
+        while not (out / "map.yaml").exists():
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+            assert time.monotonic() < deadline, "no map saved on SIGUSR1"
+            os.killpg(proc.pid, signal.SIGUSR1)
+            time.sleep(1.0)
+        time.sleep(1.0)
+        assert proc.poll() is None
+        load_map(out / "map.yaml")
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, stderr[-3000:]
+    summary = json.loads(stdout)
+    assert summary["counts"]["map_saves"] >= 1
+    assert summary["slam"]["worker_restarts"] == 0
+    assert summary["frames_received"] > 0
