@@ -3,8 +3,8 @@
 Loads and checks the robot's config, brings the devices up (each loop keeps retrying one that is not
 there), tells systemd READY=1 once they are up and WATCHDOG=1 while every critical loop is alive, and runs
 until SIGTERM or SIGINT, then stops the wheels, closes the devices and exits 0 within about two seconds.
-While mapping, the map is saved every ``slam.save_interval_s`` and on SIGUSR1 (docs/slam.md, "Maps on
-disk"), and once more at the end.
+While mapping, the map is saved every ``slam.save_interval_s`` and on SIGUSR1 (docs/slam.md, "Maps as
+the robot goes"), and once more at the end.
 A device that is missing is retried and reported (``ready without ...``, and while no position source is
 live ``STATUS=NOT LOCALIZING: ...`` and a journal warning every ``health.not_localizing_log_s``), but the
 watchdog is still fed: a restart plugs in no camera (docs/operations.md).
@@ -80,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
     notifier = _notifier()
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
+        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
+        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
         robot = None
         if config.sim is not None:
             from drivers.sim.harness import SimulatedRobot
@@ -98,8 +100,7 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
-        # `kill -USR1 PID` (systemctl kill -s USR1): save the map now, without stopping.
-        stack.enter_context(SignalCall(signal.SIGUSR1, agent.request_map_save))
+        save_request.action = agent.request_map_save
         give_way_to_agent(agent, robot)
         agent.start()
         agent.settle_heap()

@@ -321,6 +321,8 @@ def run(args: argparse.Namespace) -> int:
     world = config.sim.world
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
+        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
+        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
@@ -343,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
             observer=scorer.observe,
             map_dir=out_dir if mapping else None,
         )
-        stack.enter_context(SignalCall(signal.SIGUSR1, agent.request_map_save))
+        save_request.action = agent.request_map_save
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)

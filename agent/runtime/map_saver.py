@@ -17,9 +17,12 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from agent.slam.render import OccupancyImage
 from drivers.errors import ConfigError
+
+if TYPE_CHECKING:  # the SLAM package is imported only where it is used (the agent runs without it)
+    from agent.slam.render import OccupancyImage
 
 __all__ = ["MapSaver"]
 
