@@ -109,6 +109,11 @@ def create_agent(
             agent.map_saver = MapSaver(
                 map_dir, config.slam.save_interval_s, comment=f"vlp-agent {mapper.name}"
             )
+            from agent.runtime.slam_worker import ProcessMapper
+
+            if isinstance(mapper, ProcessMapper):
+                # A SLAM process that dies is replaced by one that continues the last saved map.
+                mapper.resume_map = agent.map_saver.last_saved
         if config.navigation.enabled:
             agent.enable_navigation(laser_mount_for(config, world))
     return agent

@@ -67,6 +67,10 @@ class MapSaver:
         self._thread = threading.Thread(target=self._run, name="agent-map-saver", daemon=True)
         self._thread.start()
 
+    def last_saved(self) -> Path | None:
+        """The map this saver has written (its YAML), None before its first save."""
+        return self.yaml_path if self.saves > 0 else None
+
     def request(self) -> None:
         """Ask for a save at the SLAM thread's next turn. Safe from a signal handler."""
         self.requested = True
