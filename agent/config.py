@@ -130,6 +130,7 @@ class OutputFormat(enum.StrEnum):
 
 class SlamMode(enum.StrEnum):
     MAPPING = "mapping"  # build a map (RBPF SLAM)
+    CONTINUE = "continue"  # go on building a saved map (RBPF SLAM seeded with it: lifelong mapping)
     LOCALIZATION = "localization"  # localize on a saved map (MCL)
 
 
@@ -219,7 +220,7 @@ class VlpConfig:
 class SlamConfig:
     enabled: bool = True
     mode: SlamMode = SlamMode.MAPPING
-    map: Path | None = None  # the saved map (map_server YAML) to localize on
+    map: Path | None = None  # the saved map (map_server YAML) to localize on or to continue
     particles: int = 30
     map_mode: str = "per_particle"
     resolution_m: float = 0.05
@@ -228,6 +229,7 @@ class SlamConfig:
     laser_mount: MountConfig | None = None
     queue_size: int = 4
     map_dir: Path | None = None
+    save_interval_s: float = 30.0  # the map saved this often while mapping (0: only at the end / on request)
     sigma_xy_m: float = 0.03
     sigma_yaw_rad: float = math.radians(1.0)
     seed: int = 0
@@ -615,6 +617,26 @@ _SENSOR_SIDE = (
 
 
 # -- external files ------------------------------------------------------------------------------------
+def _check_saved_map(t: _Table, saved: Path, resolution_m: float | None) -> None:
+    """The map ``[slam] map`` names loads (both files, whole), and, when the map is to be continued
+    (``resolution_m`` given), has the cell size the filter will map at: a start fails here, naming the key
+    and what is wrong, rather than running without SLAM."""
+    from agent.slam.mapio import load_map
+
+    if not saved.is_file():
+        raise t.error("map", f"no such map file: {saved}")
+    try:
+        image = load_map(saved)
+    except ConfigError as exc:
+        raise t.error("map", f"the saved map {saved} does not load: {exc}") from exc
+    if resolution_m is not None and not math.isclose(image.resolution_m, resolution_m, rel_tol=1e-6):
+        raise t.error(
+            "map",
+            f"the saved map {saved} has {image.resolution_m:g} m cells, [slam] resolution_m is "
+            f"{resolution_m:g} m: continue a map at the resolution it was made with",
+        )
+
+
 def read_camera_info(path: Path, key: str, file: str) -> IntrinsicsConfig:
     """Width, height, camera matrix and distortion from a ROS ``camera_info`` YAML file.
 
@@ -1019,27 +1041,30 @@ class _Reader:
         d = SlamConfig()
         mode = SlamMode(t.choice("mode", d.mode.value, [m.value for m in SlamMode]))
         saved = t.path_value("map", self.base)
-        if mode is SlamMode.LOCALIZATION and enabled:
+        resolution_m = t.number(
+            "resolution_m", d.resolution_m, (lambda v: 0.01 <= v <= 0.5, "must be 0.01..0.5")
+        )
+        if mode is not SlamMode.MAPPING and enabled:
             if saved is None:
-                raise t.error("map", "missing: localization needs the saved map (a map_server .yaml)")
-            if not saved.is_file():
-                raise t.error("map", f"no such map file: {saved}")
-        elif saved is not None:
-            raise t.error("map", 'only used with mode = "localization"')
+                raise t.error(
+                    "map", f"missing: mode = {mode.value!r} needs the saved map (a map_server .yaml)"
+                )
+            _check_saved_map(t, saved, resolution_m if mode is SlamMode.CONTINUE else None)
+        elif saved is not None and mode is SlamMode.MAPPING:
+            raise t.error("map", 'only used with mode = "localization" or "continue"')
         slam = SlamConfig(
             enabled=enabled,
             mode=mode,
             map=saved,
             particles=t.integer("particles", d.particles, (lambda v: 1 <= v <= 1000, "must be 1..1000")),
             map_mode=t.choice("map_mode", d.map_mode, ("per_particle", "shared")),
-            resolution_m=t.number(
-                "resolution_m", d.resolution_m, (lambda v: 0.01 <= v <= 0.5, "must be 0.01..0.5")
-            ),
+            resolution_m=resolution_m,
             linear_update_m=t.number("linear_update_m", d.linear_update_m, _POSITIVE),
             angular_update_rad=t.angle("angular_update", d.angular_update_rad),
             laser_mount=self._mount(t.table("laser_mount"), 0.18),
             queue_size=t.integer("queue_size", d.queue_size, (lambda v: 1 <= v <= 64, "must be 1..64")),
             map_dir=t.path_value("map_dir", self.base),
+            save_interval_s=t.number("save_interval_s", d.save_interval_s, _NON_NEGATIVE),
             sigma_xy_m=t.number("sigma_xy_m", d.sigma_xy_m, _POSITIVE),
             sigma_yaw_rad=t.angle("sigma_yaw", d.sigma_yaw_rad),
             seed=t.integer("seed", d.seed, _NON_NEGATIVE),

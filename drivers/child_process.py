@@ -13,6 +13,7 @@ import contextlib
 import logging
 import multiprocessing.connection
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -66,7 +67,12 @@ def child_connection(
     module: str, started_by: str, argv: Sequence[str] | None = None
 ) -> multiprocessing.connection.Connection | None:
     """In the child (``python -m module FD``): the connection on the descriptor its command line names, or
-    None, with a usage line on stderr, when the command line is not one descriptor number."""
+    None, with a usage line on stderr, when the command line is not one descriptor number.
+
+    The child ignores SIGUSR1 from here on: it is the agent's "save the map now", and ``systemctl kill``
+    sends a signal to every process of the unit unless told ``--kill-whom=main``; its default action
+    would end the child (the SLAM process, with the map)."""
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN)
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or not args[0].isdigit():
         print(f"usage: python -m {module} FD (started by {started_by})", file=sys.stderr)

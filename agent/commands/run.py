@@ -3,6 +3,8 @@
 Loads and checks the robot's config, brings the devices up (each loop keeps retrying one that is not
 there), tells systemd READY=1 once they are up and WATCHDOG=1 while every critical loop is alive, and runs
 until SIGTERM or SIGINT, then stops the wheels, closes the devices and exits 0 within about two seconds.
+While mapping, the map is saved every ``slam.save_interval_s`` and on SIGUSR1 (docs/slam.md, "Maps as
+the robot goes"), and once more at the end.
 A device that is missing is retried and reported (``ready without ...``, and while no position source is
 live ``STATUS=NOT LOCALIZING: ...`` and a journal warning every ``health.not_localizing_log_s``), but the
 watchdog is still fed: a restart plugs in no camera (docs/operations.md).
@@ -18,6 +20,7 @@ import argparse
 import contextlib
 import logging
 import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -29,7 +32,7 @@ from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
-from agent.runtime.shutdown import ShutdownRequest
+from agent.runtime.shutdown import ShutdownRequest, SignalCall
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
     notifier = _notifier()
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
+        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
+        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
         robot = None
         if config.sim is not None:
             from drivers.sim.harness import SimulatedRobot
@@ -86,12 +91,16 @@ def run(args: argparse.Namespace) -> int:
 
         url, controller = serve_pose_stream(stack, config)
         directory = map_directory(config)
-        if directory is not None and config.slam.mode is SlamMode.MAPPING:
+        mapping = config.slam.mode is not SlamMode.LOCALIZATION
+        if directory is not None and mapping:
             tidy_map_folder(directory)
-        agent = create_agent(config, robot=robot, notifier=notifier, output_url=url)
+        agent = create_agent(
+            config, robot=robot, notifier=notifier, output_url=url, map_dir=directory if mapping else None
+        )
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
+        save_request.action = agent.request_map_save
         give_way_to_agent(agent, robot)
         agent.start()
         agent.settle_heap()
@@ -105,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
             agent.stop()
             status = agent.status()
             map_files: list[str] = []
-            if agent.mapper is not None and directory is not None and config.slam.mode is SlamMode.MAPPING:
+            if agent.mapper is not None and directory is not None and mapping:
                 map_files = [str(p) for p in save_map(agent.mapper, directory)]
             if controller is not None:
                 controller.stop()

@@ -27,6 +27,7 @@ import logging
 import math
 import os
 import resource
+import signal
 import sys
 import threading
 import time
@@ -44,7 +45,7 @@ from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_co
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
-from agent.runtime.shutdown import ShutdownRequest
+from agent.runtime.shutdown import ShutdownRequest, SignalCall
 from agent.shipped import DEFAULT_SIM_CONFIG
 from agent.sim_score import Scorer
 from agent.slam.render import MapPath
@@ -331,6 +332,8 @@ def run(args: argparse.Namespace) -> int:
     world = config.sim.world
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
+        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
+        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
@@ -343,9 +346,17 @@ def run(args: argparse.Namespace) -> int:
         url, controller = serve_pose_stream(
             stack, config, goals, not args.goals_known_map, args.controller_record
         )
-        if config.slam.mode is SlamMode.MAPPING:
+        mapping = config.slam.mode is not SlamMode.LOCALIZATION
+        if mapping:
             tidy_map_folder(out_dir)
-        agent = create_agent(config, robot=robot, output_url=url, observer=scorer.observe)
+        agent = create_agent(
+            config,
+            robot=robot,
+            output_url=url,
+            observer=scorer.observe,
+            map_dir=out_dir if mapping else None,
+        )
+        save_request.action = agent.request_map_save
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
@@ -378,8 +389,9 @@ def run(args: argparse.Namespace) -> int:
             scorer.drain()
         if live:
             print(file=sys.stderr)
-        mapping = agent.mapper if config.slam.mode is SlamMode.MAPPING else None
-        files = _write_files(args, out_dir, robot.simulation, scorer, mapping, slam_path)
+        files = _write_files(
+            args, out_dir, robot.simulation, scorer, agent.mapper if mapping else None, slam_path
+        )
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
         summary["t0_us"] = t0_us
         if agent.flight_recorder is not None:

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
-from agent.config import AgentConfig
+from agent.config import AgentConfig, SlamMode
 from agent.runtime.agent import Agent, AgentStatus, DeviceState, laser_mount_for
 from agent.runtime.devices import Devices, build_devices
 from agent.runtime.health import HealthMonitor, NotifierLike
 from agent.runtime.localizer import FrameLocalizer, make_localizer
+from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import RbpfMapper, ScanMapper
 from agent.runtime.output import PoseOutput, Written
 from agent.runtime.recorder import Recorder, replay
@@ -47,6 +49,7 @@ def create_agent(
     output_url: str | None = None,
     observer: Callable[[Written], None] | None = None,
     devices: Devices | None = None,
+    map_dir: Path | None = None,
 ) -> Agent:
     """An agent for ``config``, not started.
 
@@ -54,6 +57,8 @@ def create_agent(
     (default: the config's ``output.url``; the sim command passes the pty it made for ``"pty"``).
     ``observer``: called with every frame written (the simulator measures its error against the truth).
     ``devices``: injected devices (tests); default: built from the config.
+    ``map_dir``: where the map is saved as the robot goes (``slam.save_interval_s``, on request); None:
+    nowhere (only the caller's save at the end, if any). Not used when localizing on a saved map.
     """
     world = config.sim.world if config.sim is not None else None
     if devices is None:
@@ -106,6 +111,15 @@ def create_agent(
         if isinstance(mapper, RbpfMapper):
             mapper.give_way = agent.hot_path.give_way
         agent.mapper = mapper
+        if mapper is not None and map_dir is not None and config.slam.mode is not SlamMode.LOCALIZATION:
+            agent.map_saver = MapSaver(
+                map_dir, config.slam.save_interval_s, comment=f"vlp-agent {mapper.name}"
+            )
+            from agent.runtime.slam_worker import ProcessMapper
+
+            if isinstance(mapper, ProcessMapper):
+                # A SLAM process that dies is replaced by one that continues the last saved map.
+                mapper.resume_map = agent.map_saver.last_saved
         if config.navigation.enabled:
             agent.enable_navigation(laser_mount_for(config, world))
     return agent

@@ -51,6 +51,7 @@ from agent.runtime.laser_loop import laser_loop
 from agent.runtime.localizer import FrameLocalizer
 from agent.runtime.loop_state import DeviceState, LoopState
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
+from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import ScanMapper
 from agent.runtime.monitor_loop import MonitorLoop
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator
@@ -159,6 +160,8 @@ class Agent:
         self.unavailable = dict(unavailable or {})
         self.recorder = recorder
         self.flight_recorder = flight_recorder
+        # The map saved as the robot goes (``create_agent`` sets it when there is a map folder).
+        self.map_saver: MapSaver | None = None
         fc = config.fusion
         x0 = fc.initial_pose or initial_pose or (0.0, 0.0, 0.0)
         P0 = np.diag([fc.initial_sigma_xy_m**2, fc.initial_sigma_xy_m**2, fc.initial_sigma_yaw_rad**2])
@@ -286,6 +289,7 @@ class Agent:
                 hot_path=hot,
                 odometry_track=self.odometry_track if d.servos is not None else None,
                 on_map=self.navigation.on_map if self.navigation is not None else None,
+                saver=self.map_saver,
             )
             scans = self.scans if self.mapper is not None else None
             on_scan = self.navigation.on_scan if self.navigation is not None else None
@@ -351,6 +355,9 @@ class Agent:
             if thread.is_alive():
                 log.warning("thread %s did not stop in time", thread.name)
         self.collector.stop()
+        if self.map_saver is not None:
+            # Before the caller's final save: one writer per map folder at a time.
+            self.map_saver.close()
         servos = self.devices.servos
         if servos is not None and servos.is_open:
             try:
@@ -370,6 +377,12 @@ class Agent:
             self.flight_recorder.close()
         if self._cpu_latency is not None:
             self._cpu_latency.release()
+
+    def request_map_save(self) -> None:
+        """Save the map at the SLAM thread's next turn (SIGUSR1 under ``vlp-agent run``); nothing without a
+        map saver. Safe from a signal handler: it sets a flag and takes no lock."""
+        if self.map_saver is not None:
+            self.map_saver.request()
 
     @property
     def stopping(self) -> bool:
@@ -439,6 +452,8 @@ class Agent:
         # stuck for longer than max_wait_s).
         counts["hot_path_waits"] = self.hot_path.waits
         counts["hot_path_wait_timeouts"] = self.hot_path.timeouts
+        if self.map_saver is not None:
+            counts.update(self.map_saver.counters())
         # Garbage collections run between frames (agent.runtime.collector), by generation.
         for generation, n in enumerate(self.collector.collections):
             counts[f"gc_between_frames_{generation}"] = n

@@ -6,7 +6,10 @@ absolute fixes (VLP) are passed in so that everything stays in the map frame of 
 
 * :class:`RbpfMapper` (``[slam] mode = "mapping"``) adapts ``agent.slam.rbpf.RbpfSlam``; it starts its map
   at the fused pose of the first scan, so the occupancy grid, the VLP fixes and the pose output share one
-  frame.
+  frame. With ``mode = "continue"`` the filter starts from the saved map ``[slam] map`` (lifelong mapping):
+  the saved map is in the same frame (it was made in it), the robot's start pose is the fused one
+  (``fusion.initial_pose`` or the first VLP fixes), and the first filter update's search matches the first
+  scan against the saved walls.
 * :class:`MclMapper` (``mode = "localization"``) adapts ``agent.slam.mcl.MclLocalizer`` on a saved map
   (ROS map_server files, ``agent.slam.mapio``); its particles start from the fused pose once that is known.
 """
@@ -36,6 +39,7 @@ __all__ = [
     "RbpfMapper",
     "ScanMapper",
     "make_local_mapper",
+    "prior_log_odds",
     "save_map",
     "tidy_map_folder",
 ]
@@ -107,6 +111,15 @@ class RbpfMapper:
         self._counts: dict[str, int] = {}
         # Between the stages of an update the filter lets the hot path go first (Agent sets this).
         self.give_way: Callable[[], None] = lambda: None
+        self.prior: tuple[FloatArray, tuple[float, float]] | None = None
+        if config.mode is SlamMode.CONTINUE:
+            if config.map is None:
+                raise ValueError('mode = "continue" needs a map')
+            from agent.slam import mapio
+            from agent.slam.grid import LogOddsModel
+
+            self.prior = prior_log_odds(mapio.load_map(config.map), LogOddsModel())
+            log.info("continuing the saved map %s", config.map)
 
     def _count(self, what: str) -> None:
         self._counts[what] = self._counts.get(what, 0) + 1
@@ -132,6 +145,8 @@ class RbpfMapper:
             ),
         )
         self.slam.give_way = self.give_way
+        if self.prior is not None:
+            self.slam.seed_map(self.prior[0].astype(np.float32), self.prior[1])
         log.info("SLAM map started at (%.3f, %.3f, %.1f deg)", pose[0], pose[1], math.degrees(pose[2]))
 
     def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:
@@ -218,6 +233,21 @@ class RbpfMapper:
 
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""
+
+
+def prior_log_odds(image: Any, model: Any) -> tuple[FloatArray, tuple[float, float]]:
+    """A saved map (``OccupancyImage``) as log-odds to seed the filter with (rows = y) and the world xy of
+    its first cell's corner: occupied cells at the model's upper limit, free at its lower one (a cell seen
+    often enough to be saved as such), unknown 0. A rotated map (origin yaw != 0) is refused."""
+    if abs(image.origin[2]) > 1e-9:
+        raise ValueError(
+            f"a saved map with a rotated origin (yaw {image.origin[2]:g} rad) cannot be continued"
+        )
+    p = (255.0 - image.pixels.astype(np.float64)) / 255.0
+    log_odds = np.zeros(image.pixels.shape, dtype=np.float64)
+    log_odds[p < image.free_thresh] = model.minimum
+    log_odds[p > image.occupied_thresh] = model.maximum
+    return np.ascontiguousarray(log_odds[::-1]), (float(image.origin[0]), float(image.origin[1]))
 
 
 def _pose_fix(fix: AbsoluteFix) -> Any:

@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable
 from types import FrameType, TracebackType
 from typing import Any
 
-__all__ = ["ShutdownRequest"]
+__all__ = ["ShutdownRequest", "SignalCall"]
 
 _Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
@@ -77,3 +77,27 @@ class ShutdownRequest:
             with contextlib.suppress(OSError):
                 os.close(fd)
         self._read_fd = self._write_fd = -1
+
+
+class SignalCall:
+    """Calls ``action`` when ``signum`` arrives (e.g. SIGUSR1: save the map now), between enter and exit.
+
+    ``action`` runs inside the signal handler, so it must take no lock (set a flag, as
+    ``Agent.request_map_save`` does); the previous handler comes back on exit."""
+
+    def __init__(self, signum: signal.Signals, action: Callable[[], None]) -> None:
+        self.signum = signum
+        self.action = action
+        self._previous: _Handler = None
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.action()
+
+    def __enter__(self) -> SignalCall:
+        self._previous = signal.signal(self.signum, self._on_signal)
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        signal.signal(self.signum, self._previous if self._previous is not None else signal.SIG_DFL)

@@ -2,11 +2,14 @@
 (``agent.runtime.mapper``); the pose of each filter update that matched goes to the fusion.
 
 It gives way to the hot path before each scan, and hands the localizer the VLP fixes the hot path queued
-(at most one every half second, ``agent.runtime.vlp_loop``).
+(at most one every half second, ``agent.runtime.vlp_loop``). When a save of the map is due
+(``agent.runtime.map_saver``), it takes the map out of the localizer between two scans and hands it to the
+saver's thread, which writes it.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -15,6 +18,7 @@ from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
 from agent.runtime.loop_state import LoopState
 from agent.runtime.mailbox import BoundedQueue
+from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import Pose, ScanMapper
 from agent.runtime.motion import OdometryTrack
 from agent.runtime.types import AbsoluteFix
@@ -38,6 +42,7 @@ class SlamLoop:
         odometry_track: OdometryTrack | None,
         on_map: Callable[[Any], None] | None = None,
         map_period_s: float = 2.0,
+        saver: MapSaver | None = None,
     ) -> None:
         self.state = state
         self.mapper = mapper
@@ -50,6 +55,7 @@ class SlamLoop:
         self.map_period_ns = int(map_period_s * 1e9)
         self._map_sent_ns = 0
         self._map_recorded_ns = 0
+        self.saver = saver  # the map saved as the robot goes (None: only at the end, by the command)
 
     def odometry_at(self, t_ns: int) -> Pose | None:
         if self.odometry_track is not None:
@@ -77,6 +83,8 @@ class SlamLoop:
         while not state.stop.is_set():
             beat.beat()
             scan = self.scans.get(0.25)
+            if mapper is not None and self.saver is not None and self.saver.due():
+                self._hand_over_map(mapper, self.saver)
             if scan is None or mapper is None:
                 continue
             self.hot_path.give_way()
@@ -114,3 +122,13 @@ class SlamLoop:
                 )
                 state.slam_good = result.accepted
                 state.count("slam_fused" if result.accepted else "slam_rejected")
+
+    def _hand_over_map(self, mapper: ScanMapper, saver: MapSaver) -> None:
+        # Before the first filter update the "map" is one scan at a guessed pose: not worth a save.
+        t0 = time.perf_counter()
+        image = mapper.map_image() if mapper.counters().get("filter_updates", 0) > 0 else None
+        if image is None:
+            saver.skip()
+            return
+        saver.submit(image, time.perf_counter() - t0)
+        self.state.count("map_saves_handed_over")

@@ -26,6 +26,7 @@ process).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import multiprocessing.connection
 import os
@@ -36,12 +37,13 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from agent.config import MountConfig, SlamConfig
+from agent.config import MountConfig, SlamConfig, SlamMode
 from agent.runtime.mapper import MapperStep, Pose, make_local_mapper
 from agent.runtime.types import AbsoluteFix
 from drivers.child_process import child_connection, start_child, stop_child
@@ -160,14 +162,17 @@ class ProcessMapper:
         self._process: subprocess.Popen[bytes] | None = None
         self._next_spawn_s = 0.0
         self._closed = False
-        self._spawn()
+        # The map last saved as the robot went (None: none yet); a child started after a death continues
+        # it rather than starting the map again (``create_agent`` sets it to the map saver's).
+        self.resume_map: Callable[[], Path | None] = lambda: None
+        self._spawn(config)
 
     # -- the child's life ------------------------------------------------------------------------------
-    def _spawn(self) -> None:
+    def _spawn(self, config: SlamConfig) -> None:
         blas = {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
         self._process, self._conn = start_child("agent.runtime.slam_worker", blas)
         self._started = False
-        ok, why, name = self._exchange((self.config, self.mount), _START_TIMEOUT_S)
+        ok, why, name = self._exchange((config, self.mount), _START_TIMEOUT_S)
         if not ok:
             self._stop_child()
             raise ValueError(f"the SLAM process could not build its filter: {why}")
@@ -194,9 +199,17 @@ class ProcessMapper:
                 if time.monotonic() < self._next_spawn_s:
                     raise WorkerLost("the SLAM process is down (a new one starts shortly)")
                 self.restarts += 1
-                log.warning("starting a new SLAM process (restart %d); the map starts again", self.restarts)
+                config = self._restart_config()
+                if config.map is not None and config.mode is SlamMode.CONTINUE:
+                    log.warning(
+                        "starting a new SLAM process (restart %d), continuing %s", self.restarts, config.map
+                    )
+                else:
+                    log.warning(
+                        "starting a new SLAM process (restart %d); the map starts again", self.restarts
+                    )
                 try:
-                    self._spawn()
+                    self._spawn(config)
                 except ValueError as exc:
                     self._next_spawn_s = time.monotonic() + _RESTART_AFTER_S
                     raise WorkerLost(str(exc)) from exc
@@ -212,6 +225,23 @@ class ProcessMapper:
         if isinstance(reply, Exception):
             raise reply
         return reply
+
+    def _restart_config(self) -> SlamConfig:
+        """The config a new child starts with: continuing the last saved map when there is one that loads."""
+        if self.config.mode is SlamMode.LOCALIZATION:
+            return self.config
+        saved = self.resume_map()
+        if saved is None:
+            return self.config
+        from agent.slam.mapio import load_map
+        from drivers.errors import ConfigError
+
+        try:
+            load_map(saved)
+        except ConfigError as exc:
+            log.error("cannot continue the saved map after a restart: %s", exc)
+            return self.config
+        return dataclasses.replace(self.config, mode=SlamMode.CONTINUE, map=saved)
 
     def close(self) -> None:
         """Stop the child for good (idempotent): later calls answer as a mapper without a filter."""

@@ -62,6 +62,8 @@ from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+Int8Array = npt.NDArray[np.int8]
+BoolArray = npt.NDArray[np.bool_]
 
 log = logging.getLogger(__name__)
 
@@ -242,6 +244,8 @@ class RbpfSlam:
         # VLP fixes fused at a node stay in the graph as absolute factors: (node, mean, sigma).
         self._node_fix: PoseMeasurement | None = None
         self._fix_factors: list[tuple[int, FloatArray, FloatArray]] = []
+        # A saved map this one continues (``seed_map``): its stored window, put back under every rebuild.
+        self._prior: tuple[TileRect, Int8Array, BoolArray] | None = None
 
     # -- public API --------------------------------------------------------------------------------------
     @property
@@ -349,6 +353,55 @@ class RbpfSlam:
 
     def memory_bytes(self) -> int:
         return self.maps.memory_bytes()
+
+    def seed_map(self, log_odds: npt.NDArray[np.float32], origin_m: tuple[float, float]) -> None:
+        """Start from a saved map (lifelong mapping): ``log_odds`` (rows = y, this grid's cell size) with
+        its first cell's lower-left corner at ``origin_m``, clamped to the model's limits, becomes every
+        particle's map before the first scan; its unknown cells (0) stay unknown. It is also the base a loop
+        closure rebuilds the map on (the nodes only hold this run's scans). Cells are placed on the nearest
+        cell of this grid (a map saved by this filter lines up exactly)."""
+        if self._started:
+            raise ValueError("seed_map comes before the first scan")
+        cfg = self.config
+        grid, model = cfg.grid, cfg.log_odds
+        res = grid.resolution_m
+        h, w = log_odds.shape
+        x0, y0 = origin_m
+        rect = TileRect.covering(
+            grid, (x0 + res / 2, y0 + res / 2), (x0 + (w - 0.5) * res, y0 + (h - 0.5) * res)
+        )
+        rx, ry = rect.origin_m(grid)
+        col0, row0 = round((x0 - rx) / res), round((y0 - ry) / res)
+        window = self.maps.gather([0], rect)[0]
+        counts = np.clip(
+            np.round(np.asarray(log_odds, dtype=np.float64) / model.step),
+            model.counts(model.minimum),
+            model.counts(model.maximum),
+        ).astype(np.int8)
+        # The part of the saved map inside this grid's extent (a map is never larger in practice).
+        r_lo, c_lo = max(0, -row0), max(0, -col0)
+        r_hi, c_hi = min(h, window.shape[0] - row0), min(w, window.shape[1] - col0)
+        if r_lo >= r_hi or c_lo >= c_hi:
+            raise ValueError("the saved map lies outside the grid's extent")
+        known = np.zeros(window.shape, dtype=bool)
+        part = counts[r_lo:r_hi, c_lo:c_hi]
+        target = (slice(row0 + r_lo, row0 + r_hi), slice(col0 + c_lo, col0 + c_hi))
+        known[target] = part != 0
+        window[known] = part[part != 0]
+        t = grid.tile_cells
+        touched: BoolArray = np.any(
+            known.reshape(known.shape[0] // t, t, known.shape[1] // t, t), axis=(1, 3)
+        )
+        self._prior = (rect, window[None].copy(), touched[None].copy())
+        self._put_prior()
+
+    def _put_prior(self) -> None:
+        if self._prior is None:
+            return
+        rect, window, touched = self._prior
+        self.maps.scatter([0], rect, window.copy(), touched)
+        if self.maps.maps > 1:
+            self.maps.share(np.zeros(self.maps.maps - 1, dtype=np.int64), np.arange(1, self.maps.maps))
 
     # -- internals -----------------------------------------------------------------------------------
     def _map_rows(self, particles: IntArray) -> IntArray:
@@ -609,6 +662,7 @@ class RbpfSlam:
         """One map from every node's scan at its pose, shared by all particles."""
         cfg = self.config
         self.maps.clear()
+        self._put_prior()
         row = np.array([0])
         for k, scan in enumerate(self._node_scans):
             pose = poses[k][None, :]

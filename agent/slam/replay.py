@@ -52,11 +52,14 @@ def replay(
     progress: Progress | None = None,
     progress_every_s: float = 2.0,
     fixes: Sequence[TimedFix] = (),
+    prior: tuple[npt.NDArray[np.float32], tuple[float, float]] | None = None,
 ) -> ReplayResult:
     """Run the whole log; see :class:`ReplayResult`. ``fixes`` (in time order) are handed to the filter
     (``RbpfSlam.add_fix``) as soon as a record's time reaches theirs; their handling is timed with the
-    record's."""
+    record's. ``prior``: a saved map to continue (log-odds, origin; ``RbpfSlam.seed_map``)."""
     slam = RbpfSlam(log.geometry, config)
+    if prior is not None:
+        slam.seed_map(*prior)
     n = len(log.records)
     scan_ms = np.zeros(n)
     online = np.zeros((n, 3))

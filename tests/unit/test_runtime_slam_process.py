@@ -148,3 +148,43 @@ def test_the_slam_process_outlives_ctrl_c_and_systemds_stop_until_the_agent_hang
     finally:
         mapper.close()
     assert process.wait(5) == 0
+
+
+def test_a_replaced_slam_process_continues_the_last_saved_map(run, monkeypatch, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from agent.slam.mapio import save_map
+
+    scans, start, mount, _ = run
+    monkeypatch.setattr(slam_worker, "_RESTART_AFTER_S", 0.3)
+    mapper = ProcessMapper(SlamConfig(seed=4), mount, lambda t_ns: start)
+    try:
+        for scan, odom in scans[:100]:
+            mapper.update(scan, odom)
+        saved = mapper.map_image()
+        assert saved is not None
+        # What the map saver wrote last.
+        mapper.resume_map = lambda: save_map(saved, tmp_path / "map.yaml").yaml
+        assert mapper._process is not None
+        mapper._process.kill()
+        mapper._process.wait(5)
+        assert mapper.update(*scans[100]).kind == "rejected"
+        time.sleep(0.4)
+        assert mapper.update(*scans[101]).kind == "first"
+        assert mapper.counters()["worker_restarts"] == 1
+        after = mapper.map_image()
+    finally:
+        mapper.close()
+
+    def occupied(image):  # type: ignore[no-untyped-def]
+        rows, cols = np.nonzero(image.pixels == 0)
+        h = image.pixels.shape[0]
+        return set(
+            zip(
+                (np.round(image.origin[0] / 0.05) + cols).astype(int).tolist(),
+                (np.round(image.origin[1] / 0.05) + h - 1 - rows).astype(int).tolist(),
+                strict=True,
+            )
+        )
+
+    # The new process's map holds what the old one had saved, not just its first scan.
+    assert len(occupied(saved)) > 100
+    assert len(occupied(saved) & occupied(after)) > 0.95 * len(occupied(saved))

@@ -1,0 +1,172 @@
+"""``kill -9`` at random instants of a mapping run: is the last saved map whole, and how much was lost?
+
+    python benchmarks/map_kill.py [--instants 20] [--mid-save 5] [--interval 1.0] [--span 4.0] [--seed 0]
+
+Each instant is a fresh ``vlp-agent sim`` (the office route, VLP + SLAM, ``[slam] save_interval_s =
+INTERVAL``) in a session of its own, SIGKILLed as a whole (the agent, its SLAM process and its camera
+renderer, as a power cut would) at a random moment ``U(0, SPAN)`` s after its first periodic save is on
+disk. A save lasts tens of milliseconds a second, so random instants seldom land inside one: the last
+``--mid-save`` instants instead wait ``U(0, SPAN)`` s and then kill at the first sign of a save under way
+(a new image or a temporary file in the folder, polled every millisecond), between the image's write and
+the YAML's rename. Then, per instant:
+
+* ``loads``: ``map.yaml`` and the image it names load whole (``agent.slam.mapio.load_map``), and so does
+  ``map.prev.yaml`` when there is one;
+* ``age_s``: the kill time minus the commit time of that map (the YAML's mtime): the mapping lost, which
+  should stay under one interval plus one save's duration;
+* ``left_over``: temporary files and unnamed images the kill left (never ``map.yaml`` itself: that is
+  only ever a rename), and whether ``tidy_map_folder`` (what the next start runs) removes every one while
+  the map still loads.
+
+Prints one JSON object: the per-instant records and ``all_loaded``, ``max_age_s``, ``max_left_over``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from agent.slam.mapio import load_map, tidy_map_folder  # noqa: E402
+from drivers.errors import ConfigError  # noqa: E402
+
+EXAMPLES = REPO / "agent" / "examples"
+_FIRST_SAVE_TIMEOUT_S = 120.0
+
+
+def mapping_config(folder: Path, interval_s: float) -> Path:
+    """The simulated robot's example config, mapping, saving every ``interval_s``."""
+    text = (EXAMPLES / "sim.toml").read_text(encoding="utf-8")
+    text = text.replace('"worlds/office.toml"', f'"{EXAMPLES / "worlds" / "office.toml"}"')
+    text = text.replace("[slam]\n", f"[slam]\nsave_interval_s = {interval_s}\n", 1)
+    path = folder / "sim.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _loads(yaml_file: Path) -> bool:
+    try:
+        load_map(yaml_file)
+    except ConfigError:
+        return False
+    return True
+
+
+def _save_under_way(out: Path, known: set[str]) -> bool:
+    try:
+        names = os.listdir(out)
+    except OSError:
+        return False
+    return any(n.endswith(".tmp") or (n.endswith(".pgm") and n not in known) for n in names)
+
+
+def kill_once(folder: Path, interval_s: float, delay_s: float, mid_save: bool = False) -> dict[str, Any]:
+    """One mapping run in ``folder``, SIGKILLed ``delay_s`` after its first save (``mid_save``: at the
+    first save under way after that); what it left."""
+    out = folder / "out"
+    config = mapping_config(folder, interval_s)
+    command = [sys.executable, "-m", "agent.cli", "sim", "--config", str(config), "--seconds", "600"]
+    command += ["--out", str(out)]
+    proc = subprocess.Popen(
+        command,
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+    yaml_file = out / "map.yaml"
+    try:
+        deadline = time.monotonic() + _FIRST_SAVE_TIMEOUT_S
+        while not yaml_file.exists():
+            if proc.poll() is not None:
+                err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+                raise RuntimeError(f"the sim ended before its first map save: {err[-2000:]}")
+            if time.monotonic() > deadline:
+                raise RuntimeError("no map saved in time")
+            time.sleep(0.05)
+        time.sleep(delay_s)
+        if mid_save:
+            known = set(os.listdir(out))
+            deadline = time.monotonic() + 10 * interval_s + 10.0
+            while not _save_under_way(out, known) and time.monotonic() < deadline:
+                time.sleep(0.001)
+        killed_at = time.time()
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
+    names = sorted(p.name for p in out.iterdir())
+    loads = _loads(yaml_file)
+    previous = out / "map.prev.yaml"
+    previous_loads = _loads(previous) if previous.exists() else None
+    age_s = killed_at - yaml_file.stat().st_mtime
+    removed = tidy_map_folder(yaml_file)
+    return {
+        "delay_s": round(delay_s, 3),
+        "mid_save": mid_save,
+        "loads": loads,
+        "previous_loads": previous_loads,
+        "age_s": round(age_s, 3),
+        "files": names,
+        "left_over": [p.name for p in removed],
+        "loads_after_tidy": _loads(yaml_file),
+        "tmp_after_tidy": sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp")),
+    }
+
+
+def run(
+    instants: int, interval_s: float, span_s: float, seed: int, workdir: Path, mid_save: int = 0
+) -> dict[str, Any]:
+    rng = random.Random(seed)
+    records = []
+    for k in range(instants):
+        folder = workdir / f"kill{k}"
+        folder.mkdir(parents=True)
+        records.append(kill_once(folder, interval_s, rng.uniform(0.0, span_s), k >= instants - mid_save))
+    return {
+        "instants": instants,
+        "mid_save": mid_save,
+        "interval_s": interval_s,
+        "span_s": span_s,
+        "seed": seed,
+        "all_loaded": all(
+            r["loads"] and r["loads_after_tidy"] and r["previous_loads"] is not False for r in records
+        ),
+        "max_age_s": max(r["age_s"] for r in records),
+        "max_left_over": max(len(r["left_over"]) for r in records),
+        "records": records,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--instants", type=int, default=20)
+    parser.add_argument("--mid-save", type=int, default=5, help="how many of the instants aim inside a save")
+    parser.add_argument("--interval", type=float, default=1.0, help="slam.save_interval_s of the runs")
+    parser.add_argument(
+        "--span", type=float, default=4.0, help="kills fall U(0, SPAN) s after the first save"
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="map-kill-") as tmp:
+        result = run(args.instants, args.interval, args.span, args.seed, Path(tmp), args.mid_save)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
