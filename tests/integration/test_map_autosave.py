@@ -36,9 +36,11 @@ sys.modules[_SPEC.name] = map_kill
 _SPEC.loader.exec_module(map_kill)
 
 INTERVAL_S = 1.0
-# The save interval plus a save and the SLAM thread's turn (it looks between scans, at most every 0.25 s)
-# on a loaded two-core machine.
-LOST_BOUND_S = INTERVAL_S + 1.0
+# The save interval plus a save (up to 0.1 s of fsync) and the SLAM thread's turn (it looks between scans,
+# at most every 0.25 s), on a two-core machine that may be running other jobs: 1 s of margin failed once
+# beside four other test processes (load 16). A saver that stopped saving still fails: the mid-save
+# instants wait for a save under way, and without one the kill comes 10 intervals later.
+LOST_BOUND_S = INTERVAL_S + 2.0
 
 
 def test_kill_9_at_random_instants_and_inside_saves_leaves_the_last_saved_map(tmp_path: Path) -> None:
