@@ -20,13 +20,15 @@ from agent.recording.messages import (
     SlamStartSample,
     messages_for,
 )
-from agent.recording.reader import RecordedMessage, Recording
+from agent.recording.reader import RecordedMessage, Recording, read_recording
 from agent.recording.slam_replay import SlamReplayResult, replay_slam, slam_setup
+from agent.recording.writer import McapRecorder
 from agent.runtime.mapper import Pose, RbpfMapper
 from agent.runtime.types import AbsoluteFix
 from agent.slam.simlog import SimulatedRun, simulate_log
 from drivers.samples import Scan
 from drivers.sim.worldfile import load_world
+from tests.unit.test_recording import FakeClock, recorder
 
 OFFICE = Path(__file__).resolve().parents[2] / "examples" / "worlds" / "office.toml"
 T0_NS = 5_000_000_000
@@ -49,13 +51,18 @@ def _scans(run: SimulatedRun) -> list[Scan]:
     return out
 
 
-def live_recording(run: SimulatedRun, taken: set[int]) -> tuple[Recording, int]:
+def live_recording(
+    run: SimulatedRun, taken: set[int], writer: tuple[McapRecorder, FakeClock] | None = None
+) -> tuple[Recording, int]:
     """A live run of the SLAM loop's calls, recorded as the agent records them (through JSON): every scan on
     /laser/scan_raw, only the ``taken`` ones given to the mapper. Returns the recording and how many poses
-    the live mapper gave."""
+    the live mapper gave. ``writer``: also through the flight recorder into its file, a chunk every 0.2 s
+    of a fake clock that a scan moves on by 0.1 s."""
     messages: list[RecordedMessage] = []
 
     def record(kind: str, t_ns: int, sample: Any) -> None:
+        if writer is not None:
+            writer[0].record(kind, t_ns, sample)
         for topic, message in messages_for(kind, sample):
             messages.append(RecordedMessage(topic, CHANNELS[topic], t_ns, json.loads(json.dumps(message))))
 
@@ -72,6 +79,9 @@ def live_recording(run: SimulatedRun, taken: set[int]) -> tuple[Recording, int]:
     fixes = list(run.fixes)
     poses = 0
     for i, scan in enumerate(_scans(run)):
+        if writer is not None:
+            writer[1].t_s += 0.1
+            writer[0].pump()
         record("scan", scan.host_time_ns, scan)
         while fixes and T0_NS + round(fixes[0].t_s * 1e9) <= scan.host_time_ns:
             timed = fixes.pop(0)
@@ -88,6 +98,8 @@ def live_recording(run: SimulatedRun, taken: set[int]) -> tuple[Recording, int]:
         if step.fix is not None:
             record("slam_pose", step.fix.t_ns, step.fix)
             poses += 1
+    if writer is not None:
+        writer[0].close()
     return Recording(Path("live.mcap"), messages, complete=True), poses
 
 
@@ -139,3 +151,77 @@ def test_a_scan_missing_from_the_recording_is_counted_not_replayed(drive: Simula
 def test_a_recording_without_slam_inputs_says_why() -> None:
     result = replay_slam([Recording(Path("old.mcap"), [], complete=True)])
     assert isinstance(result, str) and "/slam/setup" in result
+
+
+def test_eval_slam_runs_on_a_flight_recording_and_says_where_a_cut_one_stopped(
+    drive: SimulatedRun, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agent.cli import main
+
+    n = len(drive.log.records)
+    taken = {i for i in range(n) if i % 4 != 2}
+    rec, clock, _ = recorder(tmp_path / "rec", chunk_s=0.2)
+    live_recording(drive, taken, (rec, clock))
+    [path] = rec.files
+    assert read_recording(path).complete
+
+    assert main(["eval", "slam", "--log", str(path), "--json", "--out", str(tmp_path / "out")]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert whole["format"] == "mcap" and whole["scans"] == len(taken) and whole["updates"] >= 5
+    recording = whole["recording"]
+    assert recording["complete"] and recording["stopped"] is None and recording["truth"] is None
+    assert recording["odometry"] == "slam_input" and recording["scans_left_out"] == n - len(taken)
+    assert "ate_m" not in whole and whole["fixes_used"] == 0  # fixes only with --vlp-fixes
+    assert (tmp_path / "out" / "map.yaml").exists()
+
+    assert (
+        main(["eval", "slam", "--log", str(path), "--json", "--vlp-fixes", "--out", str(tmp_path / "o2")])
+        == 0
+    )
+    assert json.loads(capsys.readouterr().out)["fixes_used"] > 50
+
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    assert main(["eval", "slam", "--log", str(cut), "--json", "--out", str(tmp_path / "o3")]) == 0
+    captured = capsys.readouterr()
+    part = json.loads(captured.out)
+    stopped = part["recording"]["stopped"]
+    assert not part["recording"]["complete"] and stopped["file"] == str(cut)
+    assert 0 < stopped["at_byte"] <= len(data) // 2 and stopped["error"]
+    assert 10 < part["scans"] < len(taken)
+    assert f"readable up to byte {stopped['at_byte']}" in captured.err
+
+
+def test_without_slam_inputs_the_log_takes_every_scan_with_the_fusions_wheel_odometry(
+    drive: SimulatedRun,
+) -> None:
+    """SLAM off in the live run: every raw scan, the odometry integrated from /fusion/input's records."""
+    from agent.recording.slam_log import slam_log_from_recording
+    from agent.slam.pose import between
+
+    messages = []
+    scans = _scans(drive)
+    for s in scans:
+        for topic, message in messages_for("scan", s):
+            messages.append(RecordedMessage(topic, CHANNELS[topic], s.host_time_ns, message))
+    odometry = drive.log.odometry_poses()
+    for k in range(1, len(scans)):
+        (x0, y0, a0), (x1, y1, a1) = odometry[k - 1], odometry[k]
+        record = {
+            "k": "odometry",
+            "t0": scans[k - 1].host_time_ns,
+            "t1": scans[k].host_time_ns,
+            "ds": float(np.hypot(x1 - x0, y1 - y0)),
+            "dyaw": float(np.remainder(a1 - a0 + np.pi, 2 * np.pi) - np.pi),
+            "a": scans[k].host_time_ns,
+        }
+        messages.append(RecordedMessage("/fusion/input", CHANNELS["/fusion/input"], record["a"], record))
+    recorded = slam_log_from_recording([Recording(Path("r.mcap"), messages, complete=True)], "r.mcap")
+    assert recorded.odometry == "fusion_input" and recorded.skipped == 0 and recorded.fixes == ()
+    assert len(recorded.log) == len(scans)
+    got = recorded.log.odometry_poses()
+    # The same odometry, up to where it starts (the fusion's records are increments from zero).
+    expected = between(odometry[0][None, :], odometry)
+    assert np.max(np.hypot(*(got[:, :2] - expected[:, :2]).T)) < 0.01
+    assert np.max(np.abs(np.remainder(got[:, 2] - expected[:, 2] + np.pi, 2 * np.pi) - np.pi)) < 1e-9
