@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,9 +30,10 @@ from agent.slam.fix import PoseFix, TimedFix
 from agent.slam.logs import LogFormat, LogRecord, SlamLog
 from agent.slam.scan import LaserGeometry, ranges_from_scan
 
-__all__ = ["RecordedSlamLog", "slam_log_from_recording"]
+__all__ = ["RecordedSlamLog", "integrate_odometry", "slam_log_from_recording"]
 
 FloatArray = npt.NDArray[np.float64]
+Pose = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -48,29 +50,40 @@ class RecordedSlamLog:
     notes: list[str] = field(default_factory=list)
 
 
-def _odometry_track(inputs: list[dict[str, Any]]) -> tuple[list[int], list[tuple[float, float, float]]]:
-    """Integrate the fusion's odometry records: x += ds cos(yaw + dyaw / 2), y += ds sin(...), yaw += dyaw."""
-    times: list[int] = []
-    poses: list[tuple[float, float, float]] = []
+def integrate_odometry(inputs: Iterable[dict[str, Any]]) -> Iterator[tuple[int, Pose, float, float]]:
+    """The wheel odometry in the fusion's ``odometry`` records (``/fusion/input``: distance ``ds`` and
+    heading change ``dyaw`` over each wheel interval ``t0``..``t1``), integrated from the origin:
+    x += ds cos(yaw + dyaw / 2), y += ds sin(...), yaw += dyaw. Yields (t_ns, pose, v_mps, w_radps) at the
+    first interval's start and at each interval's end (records that go back in time are skipped)."""
     x = y = yaw = 0.0
+    last: int | None = None
     for r in inputs:
         if r.get("k") != "odometry":
             continue
         t0, t1 = int(r["t0"]), int(r["t1"])
-        if not times:
-            times.append(t0)
-            poses.append((x, y, yaw))
-        elif t1 <= times[-1]:
+        if last is None:
+            last = t0
+            yield t0, (x, y, yaw), 0.0, 0.0
+        if t1 <= last:
             continue
         ds, dyaw = float(r["ds"]), float(r["dyaw"])
         mid = yaw + 0.5 * dyaw
         x, y, yaw = x + ds * math.cos(mid), y + ds * math.sin(mid), math.remainder(yaw + dyaw, math.tau)
-        times.append(t1)
-        poses.append((x, y, yaw))
+        dt_s = (t1 - t0) * 1e-9 if t1 > t0 else math.inf
+        last = t1
+        yield t1, (x, y, yaw), ds / dt_s, dyaw / dt_s
+
+
+def _odometry_track(inputs: list[dict[str, Any]]) -> tuple[list[int], list[Pose]]:
+    times: list[int] = []
+    poses: list[Pose] = []
+    for t_ns, pose, _, _ in integrate_odometry(inputs):
+        times.append(t_ns)
+        poses.append(pose)
     return times, poses
 
 
-def _at(times: list[int], poses: list[tuple[float, float, float]], t_ns: int) -> FloatArray | None:
+def _at(times: list[int], poses: list[Pose], t_ns: int) -> FloatArray | None:
     if len(times) < 2 or not times[0] <= t_ns <= times[-1]:
         return None
     i = max(min(bisect.bisect_right(times, t_ns), len(times) - 1), 1)
