@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from agent.config import MountConfig, SlamConfig
+from agent.fusion import PoseFilter
 from agent.recording.messages import (
     CHANNELS,
     SlamFixSample,
@@ -75,6 +76,7 @@ def live_recording(
 
     config = SlamConfig(particles=8, seed=11, process=False)
     mapper = RbpfMapper(config, MountConfig(), start_pose)
+    record("fusion_setup", T0_NS, PoseFilter(np.zeros(3), np.eye(3), T0_NS).parameters)
     record("slam_setup", T0_NS, slam_setup(config, MountConfig(), mapper.name))
     fixes = list(run.fixes)
     poses = 0
@@ -225,3 +227,41 @@ def test_without_slam_inputs_the_log_takes_every_scan_with_the_fusions_wheel_odo
     expected = between(odometry[0][None, :], odometry)
     assert np.max(np.hypot(*(got[:, :2] - expected[:, :2]).T)) < 0.01
     assert np.max(np.abs(np.remainder(got[:, 2] - expected[:, 2] + np.pi, 2 * np.pi) - np.pi)) < 1e-9
+
+
+@pytest.mark.parametrize("damage", ["cut", "corrupt"])
+def test_replay_and_eval_slam_on_a_damaged_recording_use_what_is_readable_and_say_where_it_stopped(
+    drive: SimulatedRun, tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: str
+) -> None:
+    """A file cut short (a kill, a full disk) or with a flipped byte in a chunk (a bad card): both commands
+    run on the records before the damage, and report the file, the byte and the error."""
+    from agent.cli import main
+
+    n = len(drive.log.records)
+    rec, clock, _ = recorder(tmp_path / "rec", chunk_s=0.2)
+    live_recording(drive, set(range(n)), (rec, clock))
+    data = bytearray(rec.files[0].read_bytes())
+    damaged_at = len(data) // 2  # the first byte that is not as written
+    if damage == "cut":
+        data = data[:damaged_at]
+    else:
+        data[damaged_at] ^= 0xFF
+    bad = tmp_path / f"{damage}.mcap"
+    bad.write_bytes(bytes(data))
+
+    assert main(["replay", str(bad), "--json"]) == 0
+    replayed = json.loads(capsys.readouterr().out)
+    stopped = replayed["stopped"]
+    assert not replayed["complete"] and stopped["file"] == str(bad) and stopped["error"]
+    assert 0 < stopped["at_byte"] <= damaged_at
+    slam = replayed["slam"]
+    assert 10 < slam["scans"] < n and slam["scans_missing"] == 0 and slam["steps_differing"] == 0
+    # The last scan read may have lost its recorded pose to the damage: at most that one unmatched.
+    assert slam["poses_compared"] >= 2 and slam["poses_unmatched"] <= 1
+    assert replayed["max_slam_diff_m"] == 0.0
+
+    assert main(["eval", "slam", "--log", str(bad), "--json", "--out", str(tmp_path / "out")]) == 0
+    captured = capsys.readouterr()
+    evaluated = json.loads(captured.out)
+    assert evaluated["recording"]["stopped"] == stopped and evaluated["scans"] == slam["scans"]
+    assert f"{bad} is readable up to byte {stopped['at_byte']}" in captured.err
