@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from agent.commands.args import dumps_json, positive_seconds
 
@@ -72,9 +73,10 @@ def add_parser(subparsers: Any) -> None:
             --log also takes a flight recording (MCAP, `vlp-agent sim --record`; the format is found by
             its magic bytes): the scans the live SLAM took with the odometry each went with (every scan
             with the fusion's wheel odometry when SLAM was off), the map started where the live one
-            did, its VLP fixes in the filter with --vlp-fixes. A recording holds no ground truth, so
-            there is no ATE. A cut or corrupt recording is read up to where it stops being readable,
-            and the output says where (recording.stopped)."""
+            did, its VLP fixes in the filter with --vlp-fixes. A vlp-agent sim recording holds the
+            simulation's truth (/sim/truth): the ATE against it (ate_m, ...); a robot's has none, and
+            no ATE. A cut or corrupt recording is read up to where it stops being readable, and the
+            output says where (recording.stopped)."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -233,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
     fixes: tuple[TimedFix, ...] = ()
     recording_summary: dict[str, Any] | None = None
     recorded_start: tuple[float, float, float] | None = None
+    recorded_truth: npt.NDArray[np.float64] | None = None
     if args.world is not None:
         from agent.slam.simlog import (
             WheelErrorModel,
@@ -277,7 +280,12 @@ def run(args: argparse.Namespace) -> int:
         source_format = "mcap"
         source_name = str(args.log)
         # No ground truth in a recording (vlp-agent sim --truth writes it to a CSV file): no ATE.
-        recording_summary.update(odometry=recorded.odometry, scans_left_out=recorded.skipped, truth=None)
+        recording_summary.update(
+            odometry=recorded.odometry,
+            scans_left_out=recorded.skipped,
+            truth="/sim/truth" if recorded.truth is not None else None,
+        )
+        recorded_truth = recorded.truth
         recorded_start = recorded.start_pose
         if args.vlp_fixes:
             fixes = recorded.fixes
@@ -375,6 +383,16 @@ def run(args: argparse.Namespace) -> int:
         summary["recording"] = recording_summary
         summary["vlp_fixes"] = bool(fixes)
         summary["fixes_used"] = slam.stats.fixes_applied
+        if recorded_truth is not None:
+            truth = recorded_truth[: len(log)]
+            position_error = np.hypot(*(result.poses[:, :2] - truth[:, :2]).T)
+            summary.update(
+                ate_m=_round(absolute_trajectory_error(truth, result.poses), 4),
+                ate_aligned_m=_round(aligned_trajectory_error(truth, result.poses), 4),
+                ate_online_m=_round(absolute_trajectory_error(truth, result.online_poses), 4),
+                ate_max_m=_round(float(position_error.max()), 4),
+                final_error_m=_round(float(position_error[-1]), 4),
+            )
     if reference is not None:
         odometry = log.odometry_poses()
         error = relative_pose_error(reference, result.poses)
@@ -461,6 +479,10 @@ def run(args: argparse.Namespace) -> int:
         if simulated is not None:
             truth_paths.append(
                 MapPath("truth (simulator)", simulated.truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
+            )
+        elif recorded_truth is not None:
+            truth_paths.append(
+                MapPath("truth (recorded)", recorded_truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
             )
         elif reference is not None:  # a simulated log's reference poses are the truth drawn above
             truth_paths.append(

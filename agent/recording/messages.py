@@ -28,6 +28,7 @@ __all__ = [
     "SlamFixSample",
     "SlamScanSample",
     "SlamStartSample",
+    "TruthSample",
     "WheelCommandSample",
     "fusion_record_time",
     "messages_for",
@@ -57,6 +58,7 @@ CHANNELS: dict[str, str] = {
     "/fusion/input": "vlp_agent.FusionInput",
     "/slam/setup": "vlp_agent.SlamSetup",
     "/slam/input": "vlp_agent.SlamInput",
+    "/sim/truth": "vlp_agent.SimTruth",
 }
 
 MAP_FRAME = "map"
@@ -122,6 +124,16 @@ class SlamStartSample:
 
     t_ns: int
     pose: tuple[float, float, float] | None
+
+
+@dataclass(frozen=True, slots=True)
+class TruthSample:
+    """The simulated robot's true base pose at ``t_ns`` (``vlp-agent sim`` only)."""
+
+    t_ns: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
 
 
 def _time(t_ns: int) -> Message:
@@ -429,6 +441,10 @@ def _slam_start(s: SlamStartSample) -> Iterable[tuple[str, Message]]:
     )
 
 
+def _truth(s: TruthSample) -> Iterable[tuple[str, Message]]:
+    yield ("/sim/truth", {"t_ns": int(s.t_ns), "x_m": s.x_m, "y_m": s.y_m, "yaw_rad": s.yaw_rad})
+
+
 def fusion_record_time(record: dict[str, Any]) -> int:
     """A fusion input's log time: when it arrived, else when it was measured."""
     for key in ("a", "t", "t1"):
@@ -460,6 +476,7 @@ KINDS: dict[str, Callable[[Any], Iterable[tuple[str, Message]]]] = {
     "slam_scan": _slam_scan,
     "slam_fix": _slam_fix,
     "slam_start": _slam_start,
+    "sim_truth": _truth,
 }
 
 

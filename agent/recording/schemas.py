@@ -305,6 +305,11 @@ SCHEMAS: dict[str, Schema] = {
         "properties": {"k": _STRING, "t": _INTEGER},
         "required": ["k", "t"],
     },
+    "vlp_agent.SimTruth": _project(
+        "vlp_agent.SimTruth",
+        "The simulated robot's true base pose (map frame) at the time of each pose written (vlp-agent sim)",
+        {"t_ns": _INTEGER, "x_m": _NUMBER, "y_m": _NUMBER, "yaw_rad": _NUMBER},
+    ),
     "vlp_agent.HealthEvent": _project(
         "vlp_agent.HealthEvent",
         "A device's state changed (up, lost, recovered), with the reason",

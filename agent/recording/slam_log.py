@@ -9,8 +9,9 @@ Which scans, and which odometry:
   wheel interval) and interpolated to the scan's time; scans outside the odometry are left out.
 
 The map starts where the live one did (the recorded start pose), else at the first fused pose, else at
-the origin. The recording holds no ground truth (the simulator's truth goes to ``vlp-agent sim --truth``'s
-CSV file, not into the recording), so there is no trajectory error against truth.
+the origin. A ``vlp-agent sim`` recording holds the simulation's truth (``/sim/truth``, at each pose
+written): the truth at each scan is interpolated from it, for the trajectory error; a robot's recording
+has none.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ class RecordedSlamLog:
     odometry: str
     skipped: int
     mount: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    truth: FloatArray | None = None  # (N, 3): the true base pose at each record's time (sim recordings)
     notes: list[str] = field(default_factory=list)
 
 
@@ -101,6 +103,7 @@ def slam_log_from_recording(recordings: list[Recording], source: str) -> Recorde
     fusion_inputs: list[dict[str, Any]] = []
     fused: list[tuple[int, tuple[float, float, float]]] = []
     setup: dict[str, Any] | None = None
+    truth: list[tuple[int, Pose]] = []
     for recording in recordings:
         for m in recording.messages:
             if m.topic == "/laser/scan_raw":
@@ -114,6 +117,9 @@ def slam_log_from_recording(recordings: list[Recording], source: str) -> Recorde
                 fused.append((int(d["t_ns"]), (float(d["x_m"]), float(d["y_m"]), float(d["yaw_rad"]))))
             elif m.topic == "/slam/setup" and setup is None:
                 setup = m.data
+            elif m.topic == "/sim/truth":
+                d = m.data
+                truth.append((int(d["t_ns"]), (float(d["x_m"]), float(d["y_m"]), float(d["yaw_rad"]))))
     mount = (0.0, 0.0, 0.0)
     if setup is not None:
         mt = setup["mount"]
@@ -158,4 +164,21 @@ def slam_log_from_recording(recordings: list[Recording], source: str) -> Recorde
         geometry = LaserGeometry.urg04lx(mount)  # no scan: an empty log, refused by the caller
     log = SlamLog(source, LogFormat.MCAP, geometry, tuple(records))
     fixes.sort(key=lambda f: f.t_s)
-    return RecordedSlamLog(log, tuple(fixes), start, odometry, len(raw) - len(records), mount)
+    at_scans = _truth_at([round(r.t_s * 1e9) for r in records], truth) if records else None
+    return RecordedSlamLog(log, tuple(fixes), start, odometry, len(raw) - len(records), mount, at_scans)
+
+
+def _truth_at(times_ns: list[int], truth: list[tuple[int, Pose]]) -> FloatArray | None:
+    """The truth interpolated at ``times_ns`` (held at its ends); None without truth samples."""
+    truth = sorted(dict(truth).items())
+    if len(truth) < 2:
+        return None
+    t = np.array([s for s, _ in truth], dtype=np.float64)
+    poses = np.array([p for _, p in truth], dtype=np.float64)
+    at = np.asarray(times_ns, dtype=np.float64)
+    yaw = np.unwrap(poses[:, 2])
+    out: FloatArray = np.stack(
+        [np.interp(at, t, poses[:, 0]), np.interp(at, t, poses[:, 1]), np.interp(at, t, yaw)], axis=1
+    )
+    out[:, 2] = np.remainder(out[:, 2] + np.pi, 2.0 * np.pi) - np.pi
+    return out

@@ -26,6 +26,7 @@ from agent.recording.messages import (
     SlamFixSample,
     SlamScanSample,
     SlamStartSample,
+    TruthSample,
     WheelCommandSample,
     fusion_record_time,
     messages_for,
@@ -133,6 +134,7 @@ def one_of_each(t_ns: int) -> list[tuple[str, Any]]:
         ("slam_start", SlamStartSample(t_ns, None)),
         ("slam_fix", SlamFixSample(AbsoluteFix(t_ns, 1.0, 2.0, None, np.eye(2) * 1e-4), (0.1, 0.2, 0.3))),
         ("slam_scan", SlamScanSample(scan(2, t_ns), (0.1, 0.2, 0.3), "updated")),
+        ("sim_truth", TruthSample(t_ns, 1.0, 2.0, 0.5)),
     ]
 
 

@@ -19,6 +19,7 @@ from agent.recording.messages import (
     SlamFixSample,
     SlamScanSample,
     SlamStartSample,
+    TruthSample,
     messages_for,
 )
 from agent.recording.reader import RecordedMessage, Recording, read_recording
@@ -53,12 +54,16 @@ def _scans(run: SimulatedRun) -> list[Scan]:
 
 
 def live_recording(
-    run: SimulatedRun, taken: set[int], writer: tuple[McapRecorder, FakeClock] | None = None
+    run: SimulatedRun,
+    taken: set[int],
+    writer: tuple[McapRecorder, FakeClock] | None = None,
+    with_truth: bool = True,
 ) -> tuple[Recording, int]:
     """A live run of the SLAM loop's calls, recorded as the agent records them (through JSON): every scan on
     /laser/scan_raw, only the ``taken`` ones given to the mapper. Returns the recording and how many poses
     the live mapper gave. ``writer``: also through the flight recorder into its file, a chunk every 0.2 s
-    of a fake clock that a scan moves on by 0.1 s."""
+    of a fake clock that a scan moves on by 0.1 s. ``with_truth``: the simulation's truth at each scan on
+    /sim/truth, as ``vlp-agent sim`` records it."""
     messages: list[RecordedMessage] = []
 
     def record(kind: str, t_ns: int, sample: Any) -> None:
@@ -85,6 +90,9 @@ def live_recording(
             writer[1].t_s += 0.1
             writer[0].pump()
         record("scan", scan.host_time_ns, scan)
+        if with_truth:
+            x, y, yaw = (float(v) for v in run.truth[i])
+            record("sim_truth", scan.host_time_ns, TruthSample(scan.host_time_ns, x, y, yaw))
         while fixes and T0_NS + round(fixes[0].t_s * 1e9) <= scan.host_time_ns:
             timed = fixes.pop(0)
             f = timed.fix
@@ -171,9 +179,11 @@ def test_eval_slam_runs_on_a_flight_recording_and_says_where_a_cut_one_stopped(
     whole = json.loads(capsys.readouterr().out)
     assert whole["format"] == "mcap" and whole["scans"] == len(taken) and whole["updates"] >= 5
     recording = whole["recording"]
-    assert recording["complete"] and recording["stopped"] is None and recording["truth"] is None
+    assert recording["complete"] and recording["stopped"] is None and recording["truth"] == "/sim/truth"
     assert recording["odometry"] == "slam_input" and recording["scans_left_out"] == n - len(taken)
-    assert "ate_m" not in whole and whole["fixes_used"] == 0  # fixes only with --vlp-fixes
+    assert whole["fixes_used"] == 0  # fixes only with --vlp-fixes
+    # The truth at the scans the filter took: its trajectory error (a map started at the true pose).
+    assert 0.0 < whole["ate_m"] < 0.1 and whole["ate_max_m"] >= whole["ate_m"]
     assert (tmp_path / "out" / "map.yaml").exists()
 
     assert (
@@ -239,7 +249,7 @@ def test_replay_and_eval_slam_on_a_damaged_recording_use_what_is_readable_and_sa
 
     n = len(drive.log.records)
     rec, clock, _ = recorder(tmp_path / "rec", chunk_s=0.2)
-    live_recording(drive, set(range(n)), (rec, clock))
+    live_recording(drive, set(range(n)), (rec, clock), with_truth=False)  # a robot's: no truth
     data = bytearray(rec.files[0].read_bytes())
     damaged_at = len(data) // 2  # the first byte that is not as written
     if damage == "cut":
@@ -264,4 +274,5 @@ def test_replay_and_eval_slam_on_a_damaged_recording_use_what_is_readable_and_sa
     captured = capsys.readouterr()
     evaluated = json.loads(captured.out)
     assert evaluated["recording"]["stopped"] == stopped and evaluated["scans"] == slam["scans"]
+    assert evaluated["recording"]["truth"] is None and "ate_m" not in evaluated
     assert f"{bad} is readable up to byte {stopped['at_byte']}" in captured.err
