@@ -4,7 +4,8 @@ LOG is a flight recording (MCAP, ``[recorder]`` / ``vlp-agent sim --record``: on
 files were written under). OUT is the bag folder to make (rosbag2 with MCAP storage: OUT/OUT_0.mcap and
 OUT/metadata.yaml); it must not exist or be empty. The bag holds standard message types: /scan
 (sensor_msgs/msg/LaserScan), /odom (nav_msgs/msg/Odometry), /pose, /slam/pose and /vlp/pose
-(geometry_msgs/msg/PoseWithCovarianceStamped) and /map (nav_msgs/msg/OccupancyGrid), in Unix time. A cut or
+(geometry_msgs/msg/PoseWithCovarianceStamped), /map (nav_msgs/msg/OccupancyGrid), /tf and /tf_static
+(tf2_msgs/msg/TFMessage: map -> base_link, base_link -> laser), in Unix time. A cut or
 corrupt recording is exported up to where it stops being readable, and the output says where
 (docs/recording.md).
 """

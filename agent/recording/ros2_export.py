@@ -14,7 +14,12 @@ bag topic               type                                           from
 ``/slam/pose``          geometry_msgs/msg/PoseWithCovarianceStamped    ``/slam/pose``
 ``/vlp/pose``           geometry_msgs/msg/PoseWithCovarianceStamped    ``/vlp/fix``
 ``/map``                nav_msgs/msg/OccupancyGrid (frame ``map``)     ``/map``
+``/tf``                 tf2_msgs/msg/TFMessage (map -> base_link)      ``/tf`` (the fused pose)
+``/tf_static``          tf2_msgs/msg/TFMessage (base_link -> laser)    ``/slam/setup``'s laser mount
 ======================  =============================================  ==============================
+
+``/map`` and ``/tf_static`` are offered transient-local (latched), as map servers and static transform
+publishers offer them, so that RViz started after ``ros2 bag play`` still gets them.
 
 Times are Unix time (the recording's monotonic times plus its ``unix_minus_monotonic_ns``), in the headers
 and as the bag's receive times. A scan's error codes (below ``min_range_mm``) become NaN ("erroneous" in
@@ -43,6 +48,7 @@ from agent.recording.ros2_types import (
     OCCUPANCY_GRID,
     ODOMETRY,
     POSE_WITH_COVARIANCE_STAMPED,
+    TF_MESSAGE,
     msgdef,
 )
 from agent.recording.slam_log import integrate_odometry
@@ -150,6 +156,47 @@ def _grid(d: Message, offset: int) -> Message:
     }
 
 
+def _quaternion(roll: float, pitch: float, yaw: float) -> Message:
+    """Roll, pitch, yaw (fixed axes x, y, z) as a quaternion."""
+    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    return {
+        "x": sr * cp * cy - cr * sp * sy,
+        "y": cr * sp * cy + sr * cp * sy,
+        "z": cr * cp * sy - sr * sp * cy,
+        "w": cr * cp * cy + sr * sp * sy,
+    }
+
+
+def _transforms(d: Message, offset: int) -> Message:
+    out = []
+    for tf in d["transforms"]:
+        stamp = tf["timestamp"]
+        t_ns = int(stamp["sec"]) * 1_000_000_000 + int(stamp["nsec"]) + offset
+        out.append(
+            {
+                "header": _header(t_ns, tf["parent_frame_id"]),
+                "child_frame_id": tf["child_frame_id"],
+                "transform": {"translation": dict(tf["translation"]), "rotation": dict(tf["rotation"])},
+            }
+        )
+    return {"transforms": out}
+
+
+def _laser_mount(t_ns: int, mount: Message) -> Message:
+    def get(key: str) -> float:
+        return float(mount.get(key, 0.0))
+
+    rotation = _quaternion(get("roll_rad"), get("pitch_rad"), get("yaw_rad"))
+    transform = {
+        "translation": {"x": get("x_m"), "y": get("y_m"), "z": get("z_m")},
+        "rotation": rotation,
+    }
+    stamped = {"header": _header(t_ns, "base_link"), "child_frame_id": "laser", "transform": transform}
+    return {"transforms": [stamped]}
+
+
 def _odometry(t_ns: int, pose: tuple[float, float, float], v: float, w: float) -> Message:
     return {
         "header": _header(t_ns, "odom"),
@@ -168,6 +215,7 @@ def _bag_messages(recordings: Iterable[Recording]) -> list[tuple[int, str, str, 
     for recording in recordings:
         offset = int(recording.metadata.get("vlp_agent", {}).get("unix_minus_monotonic_ns", "0"))
         odometry: list[Message] = []
+        mount: Message | None = None
         for m in recording.messages:
             d, t = m.data, m.log_time_ns + offset
             if m.topic == "/laser/scan_raw":
@@ -183,12 +231,40 @@ def _bag_messages(recordings: Iterable[Recording]) -> list[tuple[int, str, str, 
                 out.append((t, "/vlp/pose", POSE_WITH_COVARIANCE_STAMPED, stamped))
             elif m.topic == "/map":
                 out.append((t, "/map", OCCUPANCY_GRID, _grid(d, offset)))
+            elif m.topic == "/tf":
+                out.append((t, "/tf", TF_MESSAGE, _transforms(d, offset)))
+            elif m.topic == "/slam/setup":
+                mount = d["mount"]
             elif m.topic == "/fusion/input" and d.get("k") == "odometry":
                 odometry.append(d)
         for t_ns, pose, v, w in integrate_odometry(odometry):
             out.append((t_ns + offset, "/odom", ODOMETRY, _odometry(t_ns + offset, pose, v, w)))
+        if mount is not None and out and not any(topic == "/tf_static" for _, topic, _, _ in out):
+            first = min(t for t, _, _, _ in out)
+            out.append((first, "/tf_static", TF_MESSAGE, _laser_mount(first, mount)))
     out.sort(key=lambda item: item[0])
     return out
+
+
+# What a latched publisher offers (rosbag2's QoS fields; rmw's enum values: history 1 keep last,
+# reliability 1 reliable, durability 1 transient local, liveliness 1 automatic; durations infinite).
+_INFINITE = {"sec": 2147483647, "nsec": 4294967295}
+_LATCHED_QOS = json.dumps(
+    [
+        {
+            "history": 1,
+            "depth": 1,
+            "reliability": 1,
+            "durability": 1,
+            "deadline": _INFINITE,
+            "lifespan": _INFINITE,
+            "liveliness": 1,
+            "liveliness_lease_duration": _INFINITE,
+            "avoid_ros_namespace_conventions": False,
+        }
+    ]
+)
+_LATCHED = frozenset({"/map", "/tf_static"})
 
 
 def _metadata(name: str, counts: dict[str, tuple[str, int]], start_ns: int, end_ns: int) -> str:
@@ -209,7 +285,7 @@ def _metadata(name: str, counts: dict[str, tuple[str, int]], start_ns: int, end_
                     "name": topic,
                     "type": msgtype,
                     "serialization_format": "cdr",
-                    "offered_qos_profiles": "",
+                    "offered_qos_profiles": _qos(topic),
                 },
                 "message_count": n,
             }
@@ -220,6 +296,26 @@ def _metadata(name: str, counts: dict[str, tuple[str, int]], start_ns: int, end_
         "files": [{"path": name, "starting_time": starting, "duration": duration, "message_count": total}],
     }
     return json.dumps({"rosbag2_bagfile_information": info}, indent=2) + "\n"
+
+
+def _qos(topic: str) -> str:
+    return _LATCHED_QOS if topic in _LATCHED else ""
+
+
+def _register_channel(writer: Writer, topic: str, schema: Schema) -> None:
+    """The topic's channel with its offered QoS in the channel's metadata, as rosbag2's MCAP storage writes
+    it (readers match it with metadata.yaml's). mcap-ros2-support registers channels without metadata
+    when it first writes a topic, so the channel is registered here first, in the two attributes its
+    ``write_message`` looks in (the dependency's version is pinned below 0.7 for that reason)."""
+    mcap_writer, channel_ids = getattr(writer, "_writer", None), getattr(writer, "_channel_ids", None)
+    if mcap_writer is None or not isinstance(channel_ids, dict):
+        raise RuntimeError("mcap-ros2-support changed: its Writer has no _writer/_channel_ids")
+    channel_ids[topic] = mcap_writer.register_channel(
+        topic=topic,
+        message_encoding="cdr",
+        schema_id=schema.id,
+        metadata={"offered_qos_profiles": _qos(topic)},
+    )
 
 
 def export_ros2(recordings: list[Recording], out: Path) -> ExportResult:
@@ -238,6 +334,8 @@ def export_ros2(recordings: list[Recording], out: Path) -> ExportResult:
             schema = schemas.get(msgtype)
             if schema is None:
                 schema = schemas[msgtype] = writer.register_msgdef(msgtype, msgdef(msgtype))
+            if topic not in counts:
+                _register_channel(writer, topic, schema)
             writer.write_message(topic, schema, message, log_time=t_ns, publish_time=t_ns)
             kind, n = counts.get(topic, (msgtype, 0))
             counts[topic] = (kind, n + 1)

@@ -2,15 +2,23 @@
 (``ros2msg`` schema encoding: the type's own ``.msg`` fields, then each type it uses after a line of 80
 ``=`` and ``MSG: pkg/Type``), pure data.
 
-The fields are those of ROS 2's ``common_interfaces`` (sensor_msgs, nav_msgs, geometry_msgs, std_msgs)
-and ``rcl_interfaces/builtin_interfaces``, unchanged since Humble, without comments and default values
-(neither changes the wire format). The export test decodes the bag with rosbags' own Humble type store,
-so a field that differed from the standard type would fail there.
+The fields are those of ROS 2's ``common_interfaces`` (sensor_msgs, nav_msgs, geometry_msgs,
+std_msgs), ``geometry2``'s tf2_msgs and ``rcl_interfaces/builtin_interfaces``, unchanged since Humble,
+without comments and default values (neither changes the wire format). The export test compares them with
+rosbags' Humble type store and decodes the bag with it, so a field that differed would fail there.
 """
 
 from __future__ import annotations
 
-__all__ = ["LASER_SCAN", "OCCUPANCY_GRID", "ODOMETRY", "POSE_WITH_COVARIANCE_STAMPED", "msgdef"]
+__all__ = [
+    "LASER_SCAN",
+    "OCCUPANCY_GRID",
+    "ODOMETRY",
+    "POSE_WITH_COVARIANCE_STAMPED",
+    "TF_MESSAGE",
+    "TYPES",
+    "msgdef",
+]
 
 _SEPARATOR = "=" * 80
 
@@ -22,6 +30,11 @@ _FIELDS: dict[str, str] = {
     "geometry_msgs/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w",
     "geometry_msgs/Pose": "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation",
     "geometry_msgs/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular",
+    "geometry_msgs/Transform": "geometry_msgs/Vector3 translation\ngeometry_msgs/Quaternion rotation",
+    "geometry_msgs/TransformStamped": (
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform"
+    ),
+    "tf2_msgs/TFMessage": "geometry_msgs/TransformStamped[] transforms",
     "geometry_msgs/PoseWithCovariance": "geometry_msgs/Pose pose\nfloat64[36] covariance",
     "geometry_msgs/TwistWithCovariance": "geometry_msgs/Twist twist\nfloat64[36] covariance",
     "geometry_msgs/PoseWithCovarianceStamped": (
@@ -78,3 +91,5 @@ LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TYPES = (LASER_SCAN, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED, OCCUPANCY_GRID, TF_MESSAGE)

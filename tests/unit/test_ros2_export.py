@@ -15,8 +15,11 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from agent.config import MountConfig, SlamConfig
 from agent.recording.messages import FusedSample, occupancy_cells
 from agent.recording.reader import read_recording
+from agent.recording.ros2_types import TYPES, msgdef
+from agent.recording.slam_replay import slam_setup
 from agent.runtime.types import AbsoluteFix
 from agent.slam.render import OccupancyImage
 from tests.unit.test_recording import recorder, scan
@@ -32,6 +35,8 @@ def _recorded(tmp_path: Path, seconds: float = 6.0) -> Path:
     from agent.fusion import Estimate
 
     rec, clock, _ = recorder(tmp_path / "rec", chunk_s=0.2)
+    mount = MountConfig(x_m=0.1, z_m=0.2, yaw_rad=math.pi)
+    rec.record("slam_setup", T0_NS, slam_setup(SlamConfig(), mount, "slam"))
     pixels = np.full((40, 60), 205, dtype=np.uint8)
     pixels[:10] = 254
     pixels[10:12] = 0
@@ -71,8 +76,9 @@ def _set_unix_offset(path: Path) -> None:
     path.write_bytes(data.replace(real, fixed))
 
 
-def _read_bag(bag: Path) -> tuple[dict[str, list[tuple[int, Any]]], dict[str, str]]:
-    """Every message of the bag, decoded by rosbags' Humble type store, by topic; and each topic's type."""
+def _read_bag(bag: Path) -> tuple[dict[str, list[tuple[int, Any]]], dict[str, str], dict[str, Any]]:
+    """Every message of the bag, decoded by rosbags' Humble type store, by topic; each topic's type and
+    the QoS profiles it was offered with."""
     typestore = get_typestore(Stores.ROS2_HUMBLE)
     out: dict[str, list[tuple[int, Any]]] = {}
     with Reader(bag) as reader:
@@ -80,7 +86,15 @@ def _read_bag(bag: Path) -> tuple[dict[str, list[tuple[int, Any]]], dict[str, st
             message = typestore.deserialize_cdr(raw, connection.msgtype)
             out.setdefault(connection.topic, []).append((t_ns, message))
         types = {c.topic: c.msgtype for c in reader.connections}
-    return out, types
+        qos = {c.topic: c.ext.offered_qos_profiles for c in reader.connections}  # type: ignore[union-attr]
+    return out, types, qos
+
+
+def test_the_message_definitions_are_the_standard_ones() -> None:
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    for name in TYPES:
+        standard, _ = typestore.generate_msgdef(name, ros_version=2)
+        assert msgdef(name).strip() == standard.strip(), name
 
 
 def _stamp_ns(header: Any) -> int:
@@ -101,13 +115,17 @@ def test_a_recording_exports_to_a_ros2_bag_that_an_independent_reader_decodes(
         "/scan": 60,
         "/odom": 300,
         "/pose": 30,
+        "/tf": 30,
+        "/tf_static": 1,
         "/slam/pose": 6,
         "/vlp/pose": 6,
         "/map": 3,
     }
     assert sorted(p.name for p in bag.iterdir()) == ["bag_0.mcap", "metadata.yaml"]
-    messages, types = _read_bag(bag)
+    messages, types, qos = _read_bag(bag)
     assert types == {
+        "/tf": "tf2_msgs/msg/TFMessage",
+        "/tf_static": "tf2_msgs/msg/TFMessage",
         "/scan": "sensor_msgs/msg/LaserScan",
         "/odom": "nav_msgs/msg/Odometry",
         "/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -167,6 +185,25 @@ def test_a_recording_exports_to_a_ros2_bag_that_an_independent_reader_decodes(
     assert (grid.info.origin.position.x, grid.info.origin.position.y) == (-1.0, -2.0)
     assert np.array_equal(np.asarray(grid.data, dtype=np.int8), occupancy_cells(pixels).ravel())
 
+    # The transforms: the fused pose map -> base_link; the laser's mount base_link -> laser, latched.
+    _, tf = messages["/tf"][0]
+    [map_base] = tf.transforms
+    assert (map_base.header.frame_id, map_base.child_frame_id) == ("map", "base_link")
+    assert (map_base.transform.translation.x, map_base.transform.translation.y) == (1.0, 2.0)
+    assert map_base.transform.rotation.z == pytest.approx(math.sin(0.25))
+    t_static, static = messages["/tf_static"][0]
+    [base_laser] = static.transforms
+    assert (base_laser.header.frame_id, base_laser.child_frame_id) == ("base_link", "laser")
+    assert t_static == T0_NS + UNIX_OFFSET_NS
+    translation, rotation = base_laser.transform.translation, base_laser.transform.rotation
+    assert (translation.x, translation.y, translation.z) == (0.1, 0.0, 0.2)
+    assert (rotation.z, rotation.w) == pytest.approx((1.0, 0.0))
+    for topic in ("/tf_static", "/map"):
+        [profile] = qos[topic]
+        latched = (profile.durability.name, profile.reliability.name, profile.depth)
+        assert latched == ("TRANSIENT_LOCAL", "RELIABLE", 1)
+    assert qos["/scan"] == []
+
     # A bag is never written over.
     assert main(["export", "--ros2", str(path), str(bag)]) == 1
     assert "never written over" in capsys.readouterr().err
@@ -186,7 +223,7 @@ def test_a_cut_recording_exports_what_is_readable_and_says_where_it_stopped(
     assert not result["complete"] and stopped["file"] == str(cut) and stopped["error"]
     assert 0 < stopped["at_byte"] <= len(data) // 2
     assert 5 < result["topics"]["/scan"] < 60
-    messages, _ = _read_bag(tmp_path / "bag")
+    messages, _, _ = _read_bag(tmp_path / "bag")
     assert {topic: len(m) for topic, m in messages.items()} == result["topics"]
     last_scan_ns = messages["/scan"][-1][0] - UNIX_OFFSET_NS
     assert T0_NS < last_scan_ns < T0_NS + 6_000_000_000
