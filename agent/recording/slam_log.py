@@ -19,7 +19,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -49,7 +49,6 @@ class RecordedSlamLog:
     skipped: int
     mount: tuple[float, float, float] = (0.0, 0.0, 0.0)
     truth: FloatArray | None = None  # (N, 3): the true base pose at each record's time (sim recordings)
-    notes: list[str] = field(default_factory=list)
 
 
 def integrate_odometry(inputs: Iterable[dict[str, Any]]) -> Iterator[tuple[int, Pose, float, float]]:
