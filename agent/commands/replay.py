@@ -77,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
             max_slam_yaw_diff_rad=slam.max_yaw_diff_rad,
             slam={
                 "mapper": slam.mapper,
+                "restarts": slam.restarts,
                 "scans": slam.scans,
                 "fixes": slam.fixes,
                 "scans_missing": slam.scans_missing,

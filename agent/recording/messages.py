@@ -108,6 +108,7 @@ class SlamScanSample:
     scan: Any  # drivers.samples.Scan
     odom_pose: tuple[float, float, float]
     step: str
+    restarts: int = 0  # the mapper's SLAM process restarts so far (each one started a new map)
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +117,7 @@ class SlamFixSample:
 
     fix: Any  # agent.runtime.types.AbsoluteFix
     odom_pose: tuple[float, float, float]
+    restarts: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -414,6 +416,7 @@ def _slam_scan(s: SlamScanSample) -> Iterable[tuple[str, Message]]:
             "seq": int(scan.sequence),
             "odom": _floats(s.odom_pose),
             "step": s.step,
+            "restarts": s.restarts,
         },
     )
 
@@ -430,6 +433,7 @@ def _slam_fix(s: SlamFixSample) -> Iterable[tuple[str, Message]]:
             "yaw": None if fix.yaw_rad is None else float(fix.yaw_rad),
             "cov": np.asarray(fix.covariance, dtype=np.float64).ravel().tolist(),
             "odom": _floats(s.odom_pose),
+            "restarts": s.restarts,
         },
     )
 

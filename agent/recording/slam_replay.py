@@ -105,10 +105,12 @@ class SlamReplayResult:
     time, and replayed ones with no recorded one (0 when the replay followed the live run);
     ``steps_differing``: scans the replayed mapper treated otherwise than the live one (``updated`` against
     ``gated``, ...); ``scans_missing``: scans SLAM took whose raw scan is not in the recording (dropped, or
-    in a file that was not read), not replayed. ``max_diff_m`` / ``max_yaw_diff_rad``: over the compared
+    in a file that was not read), not replayed; ``restarts``: SLAM process restarts followed (each a new
+    map, as in the live run). ``max_diff_m`` / ``max_yaw_diff_rad``: over the compared
     poses (None: none compared)."""
 
     mapper: str
+    restarts: int
     scans: int
     fixes: int
     scans_missing: int
@@ -151,15 +153,25 @@ def replay_slam(recordings: list[Recording]) -> SlamReplayResult | str:
     def start_pose(t_ns: int) -> Pose | None:
         return starts.get(t_ns)
 
-    mapper, why = make_local_mapper(config, mount, start_pose)
-    if mapper is None:
+    built, why = make_local_mapper(config, mount, start_pose)
+    if built is None:
         return f"the recorded SLAM cannot be built here: {why}"
-    n_scans = n_fixes = missing = differing = poses = 0
+    mapper: ScanMapper = built
+    n_scans = n_fixes = missing = differing = poses = restarts = 0
     compared: set[int] = set()
     worst_xy = worst_yaw = 0.0
     try:
         for r in inputs:
             kind = r["k"]
+            if int(r.get("restarts", 0)) > restarts:
+                # The live SLAM process died and a new one started a new map at this input: so does the
+                # replay (the scan the old one lost was answered "rejected", and gave no pose either way).
+                restarts = int(r["restarts"])
+                mapper.close()
+                built, why = make_local_mapper(config, mount, start_pose)
+                if built is None:
+                    return f"the recorded SLAM cannot be built here: {why}"
+                mapper = built
             if kind == "start":
                 pose = r["pose"]
                 starts[int(r["t"])] = None if pose is None else (pose[0], pose[1], pose[2])
@@ -190,6 +202,7 @@ def replay_slam(recordings: list[Recording]) -> SlamReplayResult | str:
     unmatched = (len(recorded) - len(compared)) + (poses - len(compared))
     return SlamReplayResult(
         mapper=mapper.name,
+        restarts=restarts,
         scans=n_scans,
         fixes=n_fixes,
         scans_missing=missing,

@@ -58,12 +58,14 @@ def live_recording(
     taken: set[int],
     writer: tuple[McapRecorder, FakeClock] | None = None,
     with_truth: bool = True,
+    restart_at: int | None = None,
 ) -> tuple[Recording, int]:
     """A live run of the SLAM loop's calls, recorded as the agent records them (through JSON): every scan on
     /laser/scan_raw, only the ``taken`` ones given to the mapper. Returns the recording and how many poses
     the live mapper gave. ``writer``: also through the flight recorder into its file, a chunk every 0.2 s
     of a fake clock that a scan moves on by 0.1 s. ``with_truth``: the simulation's truth at each scan on
-    /sim/truth, as ``vlp-agent sim`` records it."""
+    /sim/truth, as ``vlp-agent sim`` records it. ``restart_at``: at that scan the mapper starts again with
+    a new map, as the agent's does when its SLAM process died and a new one started."""
     messages: list[RecordedMessage] = []
 
     def record(kind: str, t_ns: int, sample: Any) -> None:
@@ -84,8 +86,11 @@ def live_recording(
     record("fusion_setup", T0_NS, PoseFilter(np.zeros(3), np.eye(3), T0_NS).parameters)
     record("slam_setup", T0_NS, slam_setup(config, MountConfig(), mapper.name))
     fixes = list(run.fixes)
-    poses = 0
+    poses = restarts = 0
     for i, scan in enumerate(_scans(run)):
+        if i == restart_at:
+            mapper = RbpfMapper(config, MountConfig(), start_pose)
+            restarts += 1
         if writer is not None:
             writer[1].t_s += 0.1
             writer[0].pump()
@@ -99,12 +104,12 @@ def live_recording(
             fix = AbsoluteFix(T0_NS + round(timed.t_s * 1e9), f.x_m, f.y_m, f.yaw_rad, f.covariance)
             odom = tuple(float(v) for v in timed.odom_pose)
             mapper.add_fix(fix, odom)  # type: ignore[arg-type]
-            record("slam_fix", fix.t_ns, SlamFixSample(fix, odom))  # type: ignore[arg-type]
+            record("slam_fix", fix.t_ns, SlamFixSample(fix, odom, restarts))  # type: ignore[arg-type]
         if i not in taken:
             continue  # the SLAM loop's queue dropped it
         odom_pose = tuple(float(v) for v in run.log.records[i].odom_pose)
         step = mapper.update(scan, odom_pose)  # type: ignore[arg-type]
-        record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom_pose, step.kind))  # type: ignore[arg-type]
+        record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom_pose, step.kind, restarts))  # type: ignore[arg-type]
         if step.fix is not None:
             record("slam_pose", step.fix.t_ns, step.fix)
             poses += 1
@@ -145,6 +150,23 @@ def test_taking_every_scan_instead_would_not_reproduce_the_live_run(drive: Simul
     mixed = Recording(Path("mixed.mcap"), others + inputs, complete=True)
     result = _result(mixed)
     assert result.poses_unmatched > 0 or (result.max_diff_m or 0.0) > 0.0
+
+
+def test_a_slam_process_restart_is_followed_with_a_new_map(drive: SimulatedRun) -> None:
+    """The live SLAM process died at a scan and a new one started a new map there: the replay starts a new
+    mapper at the same input and matches every pose; one that went on with the old map would not."""
+    n = len(drive.log.records)
+    recording, live_poses = live_recording(drive, set(range(n)), restart_at=n // 2)
+    result = _result(recording)
+    assert result.restarts == 1 and result.poses_compared == live_poses >= 5
+    assert result.poses_unmatched == 0 and result.max_diff_m == 0.0
+
+    def without_restarts(m: RecordedMessage) -> RecordedMessage:
+        return RecordedMessage(m.topic, m.schema_name, m.log_time_ns, {**m.data, "restarts": 0})
+
+    ignored = Recording(Path("ignored.mcap"), [without_restarts(m) for m in recording.messages])
+    went_on = _result(ignored)
+    assert went_on.poses_unmatched > 0 or (went_on.max_diff_m or 0.0) > 0.0
 
 
 def test_a_scan_missing_from_the_recording_is_counted_not_replayed(drive: SimulatedRun) -> None:
