@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "eval": "agent.commands.eval",
     "calibrate": "agent.commands.calibrate",
     "replay": "agent.commands.replay",
+    "export": "agent.commands.export",
 }
 
 log = logging.getLogger("vlp_agent")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import collections
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
@@ -100,6 +101,8 @@ class Scorer:
         self._touching = {"walls": False, "people": False}
         self._last_truth: tuple[float, float] | None = None
         self.truth_csv = truth_csv
+        # Called with (t_ns, x_m, y_m, yaw_rad) for each truth sampled (vlp-agent sim --record records it).
+        self.on_truth: Callable[[int, float, float, float], None] | None = None
         self._truth_tmp: Path | None = None
         self._truth_file: IO[str] | None = None
         if truth_csv is not None:
@@ -138,6 +141,8 @@ class Scorer:
                 pose = f"{truth.x_m!r},{truth.y_m!r},{truth.yaw_rad!r}"
                 self._truth_file.write(f"{f.sequence},{f.t_us},{pose},{w.done_ns // 1000}\n")
             self.last_error_m = err
+            if self.on_truth is not None:
+                self.on_truth(f.t_us * 1000, truth.x_m, truth.y_m, truth.yaw_rad)
 
     def _contact(self, x_m: float, y_m: float, t: float) -> None:
         wall, person = self.sim.clearances_m(x_m, y_m, t)

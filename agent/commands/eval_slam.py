@@ -23,16 +23,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from agent.commands.args import dumps_json, positive_seconds
 
 if TYPE_CHECKING:
     from agent.slam.metrics import RelativePoseError
 
-FORMATS = ("breezyslam", "radish")
+FORMATS = ("breezyslam", "radish", "mcap")
 # Usable range per format: the URG-04LX reaches 5.6 m; the radish SICK logs reach far, but beams longer
 # than this add little and cost window area.
-DEFAULT_MAX_RANGE_M = {"breezyslam": 5.5, "radish": 15.0, "simulated": 5.5}
+DEFAULT_MAX_RANGE_M = {"breezyslam": 5.5, "radish": 15.0, "simulated": 5.5, "mcap": 5.5}
 # Weight of an endpoint's offset along its surface in the scan match (ProposalConfig.along_surface_weight):
 # point to line for the radish SICK logs (1 deg beams out to 15 m sample far walls sparsely and at grazing
 # angles, and those pull point-to-point matches along themselves: Intel 0.045-0.058 m / 0.9-1.5 deg
@@ -41,7 +42,7 @@ DEFAULT_MAX_RANGE_M = {"breezyslam": 5.5, "radish": 15.0, "simulated": 5.5}
 # lower). docs/slam.md has the runs.
 # The span_* relations: pairs of scans this many apart (tens of metres on the radish logs).
 DEFAULT_SPAN_SCANS = 50
-DEFAULT_ALONG_SURFACE_WEIGHT = {"breezyslam": 1.0, "radish": 0.0, "simulated": 1.0}
+DEFAULT_ALONG_SURFACE_WEIGHT = {"breezyslam": 1.0, "radish": 0.0, "simulated": 1.0, "mcap": 1.0}
 
 
 def add_parser(subparsers: Any) -> None:
@@ -67,12 +68,25 @@ def add_parser(subparsers: Any) -> None:
             without. The simulated wheels err like real ones; by default their odometry is that of a
             robot through `vlp-agent calibrate wheels` (the step's runs simulated on the same wheels and
             fitted by its own fit), and ate_uncalibrated_m gives the same drive with the design's
-            geometry (--wheels nominal: that one only)."""
+            geometry (--wheels nominal: that one only).
+
+            --log also takes a flight recording (MCAP, `vlp-agent sim --record`; the format is found by
+            its magic bytes): the scans the live SLAM took with the odometry each went with (every scan
+            with the fusion's wheel odometry when SLAM was off), the map started where the live one
+            did, its VLP fixes in the filter with --vlp-fixes. A vlp-agent sim recording holds the
+            simulation's truth (/sim/truth): the ATE against it (ate_m, ...); a robot's has none, and
+            no ATE. A cut or corrupt recording is read up to where it stops being readable, and the
+            output says where (recording.stopped)."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--log", metavar="FILE", help="the log file (needs --format)")
+    source.add_argument(
+        "--log",
+        metavar="FILE",
+        help="the log file (needs --format), or a flight recording (.mcap, or the name its files were "
+        "written under)",
+    )
     source.add_argument(
         "--world",
         metavar="FILE",
@@ -90,7 +104,8 @@ def add_parser(subparsers: Any) -> None:
         "--vlp-fixes",
         action="store_true",
         help="with --world: VLP fixes at 10 Hz as absolute measurements in the filter; the map starts at "
-        "the first fix (where they come from: --fix-source)",
+        "the first fix (where they come from: --fix-source); with a flight recording: the VLP fixes the "
+        "live SLAM took",
     )
     p.add_argument(
         "--fix-source",
@@ -218,6 +233,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--particles", "must be at least 1")
     simulated = None
     fixes: tuple[TimedFix, ...] = ()
+    recording_summary: dict[str, Any] | None = None
+    recorded_start: tuple[float, float, float] | None = None
+    recorded_truth: npt.NDArray[np.float64] | None = None
     if args.world is not None:
         from agent.slam.simlog import (
             WheelErrorModel,
@@ -253,6 +271,24 @@ def run(args: argparse.Namespace) -> int:
         source_name = str(args.world)
         if args.vlp_fixes:
             fixes = simulated.fixes
+    elif args.format == "mcap" or (args.format is None and _is_recording(args.log)):
+        from agent.recording.slam_log import slam_log_from_recording
+
+        recordings, recording_summary = _read_recording(Path(args.log))
+        recorded = slam_log_from_recording(recordings, str(args.log))
+        log = recorded.log
+        source_format = "mcap"
+        source_name = str(args.log)
+        # No ground truth in a recording (vlp-agent sim --truth writes it to a CSV file): no ATE.
+        recording_summary.update(
+            odometry=recorded.odometry,
+            scans_left_out=recorded.skipped,
+            truth="/sim/truth" if recorded.truth is not None else None,
+        )
+        recorded_truth = recorded.truth
+        recorded_start = recorded.start_pose
+        if args.vlp_fixes:
+            fixes = recorded.fixes
     else:
         if args.format is None:
             raise ConfigError("--format", "is needed with --log (breezyslam or radish)")
@@ -289,6 +325,8 @@ def run(args: argparse.Namespace) -> int:
     reference = log.reference_poses()
     if simulated is not None:
         initial_pose = simulated.start_pose(from_fix=bool(fixes))
+    elif recorded_start is not None:
+        initial_pose = recorded_start
     config = RbpfConfig(
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
@@ -341,6 +379,20 @@ def run(args: argparse.Namespace) -> int:
         "loop_s": _round(slam.stats.loop_ms / 1e3),
         "rejected": dict(result.rejections),
     }
+    if recording_summary is not None:
+        summary["recording"] = recording_summary
+        summary["vlp_fixes"] = bool(fixes)
+        summary["fixes_used"] = slam.stats.fixes_applied
+        if recorded_truth is not None:
+            truth = recorded_truth[: len(log)]
+            position_error = np.hypot(*(result.poses[:, :2] - truth[:, :2]).T)
+            summary.update(
+                ate_m=_round(absolute_trajectory_error(truth, result.poses), 4),
+                ate_aligned_m=_round(aligned_trajectory_error(truth, result.poses), 4),
+                ate_online_m=_round(absolute_trajectory_error(truth, result.online_poses), 4),
+                ate_max_m=_round(float(position_error.max()), 4),
+                final_error_m=_round(float(position_error[-1]), 4),
+            )
     if reference is not None:
         odometry = log.odometry_poses()
         error = relative_pose_error(reference, result.poses)
@@ -428,6 +480,10 @@ def run(args: argparse.Namespace) -> int:
             truth_paths.append(
                 MapPath("truth (simulator)", simulated.truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
             )
+        elif recorded_truth is not None:
+            truth_paths.append(
+                MapPath("truth (recorded)", recorded_truth[: len(log)], figure.TRUTH, figure.TRUTH_WIDTH_PX)
+            )
         elif reference is not None:  # a simulated log's reference poses are the truth drawn above
             truth_paths.append(
                 MapPath(
@@ -466,6 +522,38 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_table(summary)
     return 0
+
+
+def _is_recording(log: str) -> bool:
+    from agent.recording.reader import is_mcap
+
+    return is_mcap(Path(log))
+
+
+def _read_recording(path: Path) -> tuple[list[Any], dict[str, Any]]:
+    """The files of a flight recording, read up to where one stops being readable, and what was read."""
+    from agent.recording.reader import read_recordings
+    from drivers.errors import ConfigError
+
+    try:
+        recordings = read_recordings(path)
+    except FileNotFoundError as exc:
+        raise ConfigError("--log", str(exc)) from exc
+    cut = next((r for r in recordings if r.stopped_at is not None), None)
+    if cut is not None:
+        print(
+            f"vlp-agent eval slam: {cut.path} is readable up to byte {cut.stopped_at} of "
+            f"{cut.path.stat().st_size} ({cut.error}); using what is before it",
+            file=sys.stderr,
+        )
+    return recordings, {
+        "files": [str(r.path) for r in recordings],
+        "messages": sum(len(r.messages) for r in recordings),
+        "complete": cut is None and all(r.complete for r in recordings),
+        "stopped": None
+        if cut is None
+        else {"file": str(cut.path), "at_byte": cut.stopped_at, "error": cut.error},
+    }
 
 
 def _relation_means(

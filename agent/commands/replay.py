@@ -1,11 +1,13 @@
-"""``vlp-agent replay LOG``: re-run the fusion on a recording, as fast as it goes, and compare.
+"""``vlp-agent replay LOG``: re-run SLAM and the fusion on a recording, as fast as it goes, and compare.
 
 LOG is a flight recording (MCAP, ``[recorder]`` / ``vlp-agent sim --record``: one file, or the name its
-files were written under) or the fusion's JSON lines (``[record]`` / ``--record-fusion``). A fresh filter
-takes the recorded inputs in their order and every pose the agent wrote is compared with the replayed
-estimate at the same input count (``agent.runtime.recorder.replay``). A cut or corrupt file is read up to
-where it stops being readable, and the output says where. SLAM is not replayed yet (issue 21):
-``max_slam_diff_m`` is null.
+files were written under) or the fusion's JSON lines (``[record]`` / ``--record-fusion``). A fresh fusion
+filter takes the recorded inputs in their order and every pose the agent wrote is compared with the
+replayed estimate at the same input count (``max_pose_diff_m``). From a flight recording, a fresh SLAM
+mapper built from ``/slam/setup`` takes the recorded raw scans with the odometry they went with, in the
+order the live SLAM loop took them, and every filter update's pose is compared with the recorded one
+(``max_slam_diff_m``; null when the recording has no SLAM inputs, with the reason under ``slam``). A cut or
+corrupt file is read up to where it stops being readable, and the output says where (docs/recording.md).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ log = logging.getLogger(__name__)
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "replay",
-        help="re-run the fusion on a recording and compare with the poses written",
+        help="re-run SLAM and the fusion on a recording and compare with the poses it holds",
         description=__doc__.split("\n\n", 1)[1].replace("``", "") if __doc__ else None,
     )
     p.add_argument("log", metavar="LOG", help="a flight recording (.mcap, or its name) or a JSON-lines one")
@@ -34,6 +36,7 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from agent.recording.reader import fusion_records, is_mcap, read_recordings
+    from agent.recording.slam_replay import replay_slam
     from agent.runtime.recorder import read_recording, replay_records
 
     path = Path(args.log)
@@ -49,7 +52,9 @@ def run(args: argparse.Namespace) -> int:
             None if cut is None else {"file": str(cut.path), "at_byte": cut.stopped_at, "error": cut.error}
         )
         records = list(fusion_records(recordings))
+        slam = replay_slam(recordings)
     elif path.exists():
+        slam = "a JSON-lines recording holds the fusion's inputs only"
         records = list(read_recording(path))
         out["format"] = "jsonl"
         out["messages"] = len(records)
@@ -63,8 +68,25 @@ def run(args: argparse.Namespace) -> int:
         poses_compared=result.outputs,
         max_pose_diff_m=result.max_position_difference_m,
         max_yaw_diff_rad=result.max_yaw_difference_rad,
-        max_slam_diff_m=None,  # SLAM replay is not there yet
     )
+    if isinstance(slam, str):
+        out.update(max_slam_diff_m=None, slam=slam)
+    else:
+        out.update(
+            max_slam_diff_m=slam.max_diff_m,
+            max_slam_yaw_diff_rad=slam.max_yaw_diff_rad,
+            slam={
+                "mapper": slam.mapper,
+                "restarts": slam.restarts,
+                "scans": slam.scans,
+                "fixes": slam.fixes,
+                "scans_missing": slam.scans_missing,
+                "poses": slam.poses,
+                "poses_compared": slam.poses_compared,
+                "poses_unmatched": slam.poses_unmatched,
+                "steps_differing": slam.steps_differing,
+            },
+        )
     if args.json:
         print(dumps_json(out, sort_keys=True))
     else:

@@ -31,7 +31,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +42,8 @@ import numpy as np
 from agent import figure
 from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_config
+from agent.recording.messages import TruthSample
+from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
@@ -357,6 +359,8 @@ def run(args: argparse.Namespace) -> int:
             map_dir=out_dir if mapping else None,
         )
         save_request.action = agent.request_map_save
+        if agent.flight_recorder is not None:
+            scorer.on_truth = _truth_recorder(agent.flight_recorder)
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
@@ -404,6 +408,18 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_summary(summary)
     return 0
+
+
+def _truth_recorder(recorder: McapRecorder) -> Callable[[int, float, float, float], None]:
+    """The simulation's truth into the recording (``/sim/truth``), for ``eval slam --log``'s ATE. Truths
+    sampled after the agent stopped (its last poses, scored once it has) are left out, not counted as
+    drops: they are the simulation's, not the agent's."""
+
+    def record(t_ns: int, x_m: float, y_m: float, yaw_rad: float) -> None:
+        if not recorder.closed:
+            recorder.record("sim_truth", t_ns, TruthSample(t_ns, x_m, y_m, yaw_rad))
+
+    return record
 
 
 def _autopilot(

@@ -25,6 +25,10 @@ __all__ = [
     "FusedSample",
     "GoalSample",
     "HealthSample",
+    "SlamFixSample",
+    "SlamScanSample",
+    "SlamStartSample",
+    "TruthSample",
     "WheelCommandSample",
     "fusion_record_time",
     "messages_for",
@@ -52,6 +56,9 @@ CHANNELS: dict[str, str] = {
     "/health": "vlp_agent.HealthEvent",
     "/fusion/setup": "vlp_agent.FusionSetup",
     "/fusion/input": "vlp_agent.FusionInput",
+    "/slam/setup": "vlp_agent.SlamSetup",
+    "/slam/input": "vlp_agent.SlamInput",
+    "/sim/truth": "vlp_agent.SimTruth",
 }
 
 MAP_FRAME = "map"
@@ -92,6 +99,43 @@ class HealthSample:
     device: str
     ok: bool
     reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class SlamScanSample:
+    """A scan the SLAM loop gave its mapper: the odometry pose it went with and what the mapper did."""
+
+    scan: Any  # drivers.samples.Scan
+    odom_pose: tuple[float, float, float]
+    step: str
+    restarts: int = 0  # the mapper's SLAM process restarts so far (each one started a new map)
+
+
+@dataclass(frozen=True, slots=True)
+class SlamFixSample:
+    """An absolute fix (VLP) the SLAM loop gave its mapper, with the odometry pose at its time."""
+
+    fix: Any  # agent.runtime.types.AbsoluteFix
+    odom_pose: tuple[float, float, float]
+    restarts: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class SlamStartSample:
+    """What the mapper was told when it asked where its map starts (the fused pose, None: not yet)."""
+
+    t_ns: int
+    pose: tuple[float, float, float] | None
+
+
+@dataclass(frozen=True, slots=True)
+class TruthSample:
+    """The simulated robot's true base pose at ``t_ns`` (``vlp-agent sim`` only)."""
+
+    t_ns: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
 
 
 def _time(t_ns: int) -> Message:
@@ -351,6 +395,60 @@ def _fusion_input(record: dict[str, Any]) -> Iterable[tuple[str, Message]]:
     yield ("/fusion/input", record)
 
 
+def _slam_setup(setup: dict[str, Any]) -> Iterable[tuple[str, Message]]:
+    yield ("/slam/setup", setup)
+
+
+def _floats(values: Iterable[Any]) -> list[float]:
+    return [float(v) for v in values]
+
+
+# The SLAM loop's calls into its mapper, in the order it made them (one thread): what a replay feeds a fresh
+# mapper. Odometry and fixes are the floats the mapper got (JSON round-trips them exactly); the scan itself
+# is on /laser/scan_raw (matched by host_time_ns), not written twice.
+def _slam_scan(s: SlamScanSample) -> Iterable[tuple[str, Message]]:
+    scan = s.scan
+    yield (
+        "/slam/input",
+        {
+            "k": "scan",
+            "t": int(scan.host_time_ns),
+            "seq": int(scan.sequence),
+            "odom": _floats(s.odom_pose),
+            "step": s.step,
+            "restarts": s.restarts,
+        },
+    )
+
+
+def _slam_fix(s: SlamFixSample) -> Iterable[tuple[str, Message]]:
+    fix = s.fix
+    yield (
+        "/slam/input",
+        {
+            "k": "fix",
+            "t": int(fix.t_ns),
+            "x": float(fix.x_m),
+            "y": float(fix.y_m),
+            "yaw": None if fix.yaw_rad is None else float(fix.yaw_rad),
+            "cov": np.asarray(fix.covariance, dtype=np.float64).ravel().tolist(),
+            "odom": _floats(s.odom_pose),
+            "restarts": s.restarts,
+        },
+    )
+
+
+def _slam_start(s: SlamStartSample) -> Iterable[tuple[str, Message]]:
+    yield (
+        "/slam/input",
+        {"k": "start", "t": int(s.t_ns), "pose": None if s.pose is None else _floats(s.pose)},
+    )
+
+
+def _truth(s: TruthSample) -> Iterable[tuple[str, Message]]:
+    yield ("/sim/truth", {"t_ns": int(s.t_ns), "x_m": s.x_m, "y_m": s.y_m, "yaw_rad": s.yaw_rad})
+
+
 def fusion_record_time(record: dict[str, Any]) -> int:
     """A fusion input's log time: when it arrived, else when it was measured."""
     for key in ("a", "t", "t1"):
@@ -378,6 +476,11 @@ KINDS: dict[str, Callable[[Any], Iterable[tuple[str, Message]]]] = {
     "health": _health,
     "fusion_setup": _fusion_setup,
     "fusion_input": _fusion_input,
+    "slam_setup": _slam_setup,
+    "slam_scan": _slam_scan,
+    "slam_fix": _slam_fix,
+    "slam_start": _slam_start,
+    "sim_truth": _truth,
 }
 
 

@@ -289,6 +289,27 @@ SCHEMAS: dict[str, Schema] = {
         "properties": {"k": _STRING, "a": _nullable(_INTEGER)},
         "required": ["k", "a"],
     },
+    "vlp_agent.SlamSetup": _project(
+        "vlp_agent.SlamSetup",
+        "How the SLAM mapper was built, once at the start: the [slam] config (every key, as in the config "
+        "file), the laser's mount on the base and the mapper's name (slam, mcl)",
+        {"config": {"type": "object"}, "mount": {"type": "object"}, "mapper": _STRING},
+    ),
+    "vlp_agent.SlamInput": {
+        "title": "vlp_agent.SlamInput",
+        "description": "One call the SLAM loop made into its mapper, in the order it made them: k = scan "
+        "(t = the scan's host_time_ns on /laser/scan_raw, seq, odom = the odometry pose it went with, step = "
+        "what the mapper did), fix (an absolute fix x, y, yaw, cov with the odometry pose at its time) or "
+        "start (the pose the map was told to start at, null: not known yet)",
+        "type": "object",
+        "properties": {"k": _STRING, "t": _INTEGER},
+        "required": ["k", "t"],
+    },
+    "vlp_agent.SimTruth": _project(
+        "vlp_agent.SimTruth",
+        "The simulated robot's true base pose (map frame) at the time of each pose written (vlp-agent sim)",
+        {"t_ns": _INTEGER, "x_m": _NUMBER, "y_m": _NUMBER, "yaw_rad": _NUMBER},
+    ),
     "vlp_agent.HealthEvent": _project(
         "vlp_agent.HealthEvent",
         "A device's state changed (up, lost, recovered), with the reason",

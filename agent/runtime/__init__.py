@@ -103,7 +103,14 @@ def create_agent(
         flight_recorder=flight_recorder,
     )
     if devices.laser is not None:
-        mapper, why = make_mapper(config.slam, laser_mount_for(config, world), agent.slam_start_pose)
+        mount = laser_mount_for(config, world)
+        mapper, why = make_mapper(config.slam, mount, agent.slam_start_pose)
+        if mapper is not None and flight_recorder is not None:
+            from agent.recording.slam_replay import slam_setup
+
+            # How the mapper was built, so that a replay builds the same one (agent.recording.slam_replay).
+            setup = slam_setup(config.slam, mount, mapper.name)
+            flight_recorder.record("slam_setup", agent.clock_ns(), setup)
         if mapper is None:
             unavailable["slam"] = why
             agent.unavailable["slam"] = why

@@ -36,7 +36,7 @@ import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
-from agent.recording.messages import FusedSample, fusion_record_time
+from agent.recording.messages import FusedSample, SlamStartSample, fusion_record_time
 from agent.recording.writer import McapRecorder
 from agent.runtime.arbiter import CommandArbiter
 from agent.runtime.camera_loop import camera_loop
@@ -646,9 +646,10 @@ class Agent:
     def slam_start_pose(self, t_ns: int) -> tuple[float, float, float] | None:
         """Where SLAM starts its map: the fused pose at ``t_ns`` once it is known well enough, else None."""
         est = self.fusion.estimate_at(t_ns)
-        if est.sigma_xy_m > _SLAM_START_SIGMA_M:
-            return None
-        return (est.x_m, est.y_m, est.yaw_rad)
+        pose = None if est.sigma_xy_m > _SLAM_START_SIGMA_M else (est.x_m, est.y_m, est.yaw_rad)
+        # The mapper asks from the SLAM thread, between the scans it records: a replay answers the same.
+        self.state.record("slam_start", t_ns, SlamStartSample(t_ns, pose))
+        return pose
 
     def missing(self, *, opened_once: bool = False) -> list[str]:
         """What is not there: each device whose loop cannot use it now (``opened_once``: that has never been

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from agent.fusion import PoseFilter, Source
+from agent.recording.messages import SlamFixSample, SlamScanSample
 from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
 from agent.runtime.loop_state import LoopState
@@ -92,11 +93,16 @@ class SlamLoop:
                 odom = self.odometry_at(fix.t_ns)
                 if odom is not None:
                     mapper.add_fix(fix, odom)
+                    restarts = getattr(mapper, "restarts", 0)
+                    state.record("slam_fix", fix.t_ns, SlamFixSample(fix, odom, restarts))
             odom = self.odometry_at(scan.host_time_ns)
             if odom is None:
                 state.count("slam_scans_without_odometry")
                 continue
             step = mapper.update(scan, odom)
+            # What SLAM took and with which odometry, for a replay (agent.recording.slam_replay).
+            restarts = getattr(mapper, "restarts", 0)  # a SLAM process restarted: a new map from here
+            state.record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom, step.kind, restarts))
             state.count(f"slam_{step.kind}")
             if self.on_map is not None and state.clock_ns() - self._map_sent_ns >= self.map_period_ns:
                 image = mapper.map_image()

@@ -40,6 +40,7 @@ class LogFormat(enum.StrEnum):
     BREEZYSLAM = "breezyslam"
     RADISH = "radish"
     SIMULATED = "simulated"  # made in memory by ``agent.slam.simlog``; no file format
+    MCAP = "mcap"  # a flight recording, read by ``agent.recording.slam_log`` (not by read_log)
 
 
 class LogFormatError(ProtocolError):
@@ -259,6 +260,8 @@ def read_log(path: str | Path, log_format: LogFormat | str) -> SlamLog:
         raise ConfigError(
             "format", "simulated logs are made by agent.slam.simlog, not read from files", str(file)
         )
+    if chosen is LogFormat.MCAP:
+        raise ConfigError("format", "flight recordings are read by agent.recording.slam_log", str(file))
     try:
         with file.open("r", encoding="ascii", errors="replace") as handle:
             lines = handle.readlines()

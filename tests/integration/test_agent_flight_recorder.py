@@ -2,7 +2,7 @@
 simulated controller sent, with a laser fault in the middle. Every channel is there (the ones that depend on
 what happened, when it happened), every message validates against the JSON schema embedded in the file,
 the counts match what the agent itself counted (nothing dropped): scans at ~10 Hz, a fix per camera frame;
-and the fusion replayed from the recording reproduces every pose written."""
+and the fusion and SLAM replayed from the recording reproduce every pose written."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from pathlib import Path
 
 from agent.recording.messages import CHANNELS
 from agent.recording.reader import read_recording
+from agent.recording.slam_replay import SlamReplayResult, replay_slam
 from agent.runtime.recorder import replay
 from tests.integration.test_agent_accuracy import REPO, vlp_agent
 from tests.unit.test_recording import schema_errors
@@ -93,6 +94,15 @@ def test_a_sim_recording_has_every_channel_and_every_message_validates(tmp_path:
     result = replay(Path(recorded["files"][0]))
     assert result.outputs == summary["frames_out"] and result.inputs == n("/fusion/input")
     assert result.max_position_difference_m < 1e-9 and result.max_yaw_difference_rad < 1e-9
+
+    # SLAM from the raw scans and the odometry they went with, taking the scans the live SLAM loop took (in
+    # its child process): every filter update's pose again, exactly.
+    slam = replay_slam([recording])
+    assert isinstance(slam, SlamReplayResult), slam
+    assert slam.scans == n("/slam/input") - sum(m.data["k"] != "scan" for m in by_topic["/slam/input"])
+    assert slam.scans_missing == 0 and slam.steps_differing == 0 and slam.poses_unmatched == 0
+    assert slam.poses_compared == n("/slam/pose") >= 5
+    assert slam.max_diff_m == 0.0 and slam.max_yaw_diff_rad == 0.0
 
 
 def test_a_recording_killed_mid_run_reads_up_to_its_last_chunk(tmp_path: Path) -> None:

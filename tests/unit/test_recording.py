@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agent.config import RecorderConfig, parse_config
+from agent.config import MountConfig, RecorderConfig, SlamConfig, SlamMode, parse_config
 from agent.fusion import Estimate, PoseFilter
 from agent.recording.messages import (
     CHANNELS,
@@ -23,6 +23,10 @@ from agent.recording.messages import (
     FusedSample,
     GoalSample,
     HealthSample,
+    SlamFixSample,
+    SlamScanSample,
+    SlamStartSample,
+    TruthSample,
     WheelCommandSample,
     fusion_record_time,
     messages_for,
@@ -30,6 +34,7 @@ from agent.recording.messages import (
 )
 from agent.recording.reader import RecordingFormatError, read_recording
 from agent.recording.schemas import SCHEMAS
+from agent.recording.slam_replay import scan_from_message, slam_config_from_json, slam_setup
 from agent.recording.writer import McapRecorder, recording_files
 from agent.runtime.recorder import replay
 from agent.runtime.types import AbsoluteFix, NoFix
@@ -124,6 +129,12 @@ def one_of_each(t_ns: int) -> list[tuple[str, Any]]:
         ("health", HealthSample(t_ns, "laser", False, "lost: gone")),
         ("fusion_setup", PoseFilter(np.zeros(3), np.eye(3), t_ns).parameters),
         ("fusion_input", {"k": "gyro", "t": t_ns, "w": 0.1, "a": t_ns + 5}),
+        ("slam_setup", slam_setup(SlamConfig(map_dir=Path("/var/lib/maps")), MountConfig(x_m=0.1), "slam")),
+        ("slam_start", SlamStartSample(t_ns, (1.0, 2.0, 0.5))),
+        ("slam_start", SlamStartSample(t_ns, None)),
+        ("slam_fix", SlamFixSample(AbsoluteFix(t_ns, 1.0, 2.0, None, np.eye(2) * 1e-4), (0.1, 0.2, 0.3))),
+        ("slam_scan", SlamScanSample(scan(2, t_ns), (0.1, 0.2, 0.3), "updated")),
+        ("sim_truth", TruthSample(t_ns, 1.0, 2.0, 0.5)),
     ]
 
 
@@ -137,6 +148,33 @@ def test_every_kind_gives_messages_that_validate_against_their_schemas() -> None
             seen.add(topic)
     assert seen == set(CHANNELS)
     assert set(KINDS) == {kind for kind, _ in one_of_each(0)}
+
+
+def test_the_slam_setup_and_a_raw_scan_read_back_as_they_were() -> None:
+    config = SlamConfig(
+        mode=SlamMode.LOCALIZATION,
+        map=Path("/maps/office.yaml"),
+        particles=17,
+        laser_mount=MountConfig(x_m=0.12, yaw_rad=math.pi),
+        sigma_yaw_rad=math.radians(1.5),
+        seed=42,
+    )
+    setup = slam_setup(config, MountConfig(x_m=0.12, yaw_rad=math.pi), "mcl")
+    [(_, message)] = messages_for("slam_setup", setup)
+    again = json.loads(json.dumps(message))
+    assert slam_config_from_json(again["config"]) == config
+    assert MountConfig(**again["mount"]) == MountConfig(x_m=0.12, yaw_rad=math.pi)
+    raw = scan(5, 123_456_789)
+    [_, (_, data)] = messages_for("scan", raw)
+    back = scan_from_message(json.loads(json.dumps(data)))
+    assert np.array_equal(back.ranges_mm, raw.ranges_mm) and back.ranges_mm.dtype == raw.ranges_mm.dtype
+    assert (back.angle_min_rad, back.angle_increment_rad, back.sequence, back.host_time_ns) == (
+        raw.angle_min_rad,
+        raw.angle_increment_rad,
+        raw.sequence,
+        raw.host_time_ns,
+    )
+    assert back.device_time_ms == raw.device_time_ms
 
 
 def test_the_validator_catches_a_wrong_message() -> None:
