@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from agent.exploration.config import ExploreConfig, ExplorerKind
 from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import BACKENDS, DeviceKind, backend_class
@@ -90,6 +91,7 @@ _SECTIONS = (
     "record",
     "scheduling",
     "navigation",
+    "exploration",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
@@ -321,6 +323,7 @@ class AgentConfig:
     record: RecordConfig = RecordConfig()
     scheduling: SchedulingConfig = SchedulingConfig()
     navigation: NavConfig = field(default_factory=NavConfig)
+    exploration: ExploreConfig = field(default_factory=ExploreConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -735,6 +738,7 @@ class _Reader:
         record = self._record()
         scheduling = self._scheduling()
         navigation = self._navigation()
+        exploration = self._exploration()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
@@ -753,6 +757,7 @@ class _Reader:
             record,
             scheduling,
             navigation,
+            exploration,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -1174,6 +1179,29 @@ class _Reader:
             if not ok:
                 raise ConfigError(f"navigation.{key}", f"{reason}, got {getattr(nav, key)}", self.file)
         return nav
+
+    # [exploration] -------------------------------------------------------------------------------
+    def _exploration(self) -> ExploreConfig:
+        """Every :class:`ExploreConfig` field is a key: ``explorer`` by name, counts >= 1, the rest > 0
+        (``gain_scale`` and ``switch_margin`` >= 0)."""
+        t = self.top.table("exploration") or _Table({}, "exploration", self.file)
+        d = ExploreConfig()
+        values: dict[str, Any] = {}
+        for f in dataclasses.fields(ExploreConfig):
+            default = getattr(d, f.name)
+            if f.name == "explorer":
+                values[f.name] = ExplorerKind(
+                    t.choice(f.name, default.value, [k.value for k in ExplorerKind])
+                )
+            elif isinstance(default, bool):
+                values[f.name] = t.boolean(f.name, default)
+            elif isinstance(default, int):
+                values[f.name] = t.integer(f.name, default, (lambda v: v >= 1, "must be >= 1"))
+            else:
+                zero_ok = f.name in ("gain_scale", "switch_margin")
+                values[f.name] = t.number(f.name, default, _NON_NEGATIVE if zero_ok else _POSITIVE)
+        t.finish()
+        return ExploreConfig(**values)
 
     def _record(self) -> RecordConfig:
         t = self.top.table("record") or _Table({}, "record", self.file)
