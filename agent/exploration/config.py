@@ -22,7 +22,9 @@ class ExploreConfig:
     explorer: ExplorerKind = ExplorerKind.FRONTIER
     # frontiers
     min_frontier_size_m: float = 0.3  # clusters shorter than this (cells x resolution) are noise
+    min_unknown_m2: float = 0.1  # unknown pockets smaller than this (inside walls, between hits) are noise
     target_reach_m: float = 0.35  # a frontier's targets: free cells this close to it the robot can stand on
+    target_clearance_m: float = 0.1  # ... with this much room beyond the footprint (scans add noise marks)
     # choice: cost = potential_scale x path cost (m) - gain_scale x frontier length (m)
     potential_scale: float = 3.0
     gain_scale: float = 1.0
@@ -33,7 +35,7 @@ class ExploreConfig:
     progress_m: float = 0.1  # what counts as getting closer to the target
     progress_timeout_s: float = 30.0  # no progress for this long: the target is blacklisted
     blacklist_radius_m: float = 0.5  # around a blacklisted target no target is chosen ...
-    blacklist_expiry_s: float = 120.0  # ... for this long (doubling with each failure there)
+    blacklist_expiry_s: float = 60.0  # ... for this long (doubling with each failure there)
     max_failures: int = 3  # failures at one place before it is given up for good
     # the end
     return_home: bool = False  # drive back to where exploration started once it is complete

@@ -95,6 +95,7 @@ class FrontierExplorer:
         self._t_progress = 0.0
         self._arrived: tuple[Target, float] | None = None
         self._finished = False  # exploration ended complete (returning home afterwards)
+        self._wanted = True  # a decision is due now, not at the next replan period
         self.decisions = 0
 
     @property
@@ -119,7 +120,7 @@ class FrontierExplorer:
         self._set(after, f"{command.value} at t={t_s:.1f} s")
         self.target = None
         self._arrived = None
-        self._t_decided = -math.inf
+        self._wanted = True
         if after is ExploreState.RETURNING:
             assert self.home is not None
             self._aim(Target(self.home[0], self.home[1], self.home[2]), pose, t_s)
@@ -139,6 +140,7 @@ class FrontierExplorer:
             return
         self._arrived = (self.target, t_s)
         self.target = None
+        self._wanted = True
 
     def report_failed(self, reason: str, t_s: float) -> None:
         if self.target is None:
@@ -148,6 +150,7 @@ class FrontierExplorer:
             self.target = None
             return
         entry = self.blacklist.add((self.target.x_m, self.target.y_m), t_s, reason)
+        self._wanted = True
         log.info(
             "exploration: target (%.2f, %.2f) blacklisted (%s, %d failures)",
             entry.x_m,
@@ -180,7 +183,9 @@ class FrontierExplorer:
                     self._watch_progress(pose, t_s)
             return self._decision()
         self._watch_progress(pose, t_s)
-        due = self.target is None or t_s - self._t_decided >= self.config.replan_period_s
+        # Decide at once when a target has ended (or none was ever given); otherwise every replan period,
+        # also while waiting with no target (a blacklist entry to expire, a robot to be placed).
+        due = self._wanted or t_s - self._t_decided >= self.config.replan_period_s
         if self._arrived is not None and t_s - self._arrived[1] < SETTLE_S:
             return self._decision()  # let the scans at the arrival heading into the map first
         if not due:
@@ -189,6 +194,7 @@ class FrontierExplorer:
         survey = self.survey(grid, pose, t_s)
         self.decisions += 1
         self._t_decided = t_s
+        self._wanted = False
         if self._judge_arrival(survey, t_s):
             survey = self.survey(grid, pose, t_s)
         self._choose(survey, pose, t_s)
@@ -295,11 +301,15 @@ class FrontierExplorer:
         occupied = grid.occupied & ~body
         unknown = grid.unknown & ~body
         seen = GridMap(spec, occupied, unknown)
-        frontiers = tuple(detect_frontiers(seen, cfg.min_frontier_size_m))
-        path_m = self._path_costs(Costmap(spec, occupied, unknown, nav), pose)
+        frontiers = tuple(detect_frontiers(seen, cfg.min_frontier_size_m, cfg.min_unknown_m2))
+        costmap = Costmap(spec, occupied, unknown, nav)
+        path_m = self._path_costs(costmap, pose)
         if path_m is None:
             return Survey(frontiers, None, (), 0, 0, len(frontiers), False)
         reach_cells = max(round(cfg.target_reach_m / spec.resolution_m), 0)
+        # A target with room round it: the navigator's costmap adds the scans' marks (noise on walls, a
+        # person), and a target right at the forbidden edge would fail there at once.
+        roomy = costmap.distance_m() >= nav.inscribed_m + cfg.target_clearance_m
         rows, cols = spec.shape
         candidates: list[Candidate] = []
         waiting = given_up = unreachable = 0
@@ -311,7 +321,7 @@ class FrontierExplorer:
             mask[f.cells[:, 0] - r0, f.cells[:, 1] - c0] = True
             near = dilate(mask, reach_cells)
             window = path_m[r0:r1, c0:c1]
-            ok = near & np.isfinite(window)
+            ok = near & np.isfinite(window) & roomy[r0:r1, c0:c1]
             if not ok.any():
                 unreachable += 1
                 continue

@@ -3,7 +3,8 @@ dropped.
 
 Grid convention as ``agent.navigation.costmap``: cell (row, col) covers x in [x0 + col res, ...), y in
 [y0 + row res, ...) (rows along +y). A frontier cell is a *free* cell with an *unknown* 4-neighbour
-(explore_lite marks the unknown cell instead; the free side is where the robot can stand and look from).
+(explore_lite marks the unknown cell instead; the free side is where the robot can stand and look from),
+and none of whose 8 neighbours is occupied (see :func:`frontier_mask`).
 Cells are clustered 8-connected (explore_lite's BFS; here OpenCV's connected components, C speed); a
 cluster shorter than ``min_size_m`` (cells x resolution) is dropped as noise.
 
@@ -52,20 +53,48 @@ class Frontier:
     centroid_m: tuple[float, float]
 
 
-def frontier_mask(free: BoolArray, unknown: BoolArray) -> BoolArray:
-    """Free cells with at least one unknown 4-neighbour (cells off the grid count as known)."""
-    near = np.zeros_like(unknown)
-    near[1:, :] |= unknown[:-1, :]
-    near[:-1, :] |= unknown[1:, :]
-    near[:, 1:] |= unknown[:, :-1]
-    near[:, :-1] |= unknown[:, 1:]
+def frontier_mask(free: BoolArray, unknown: BoolArray, occupied: BoolArray | None = None) -> BoolArray:
+    """Free cells with at least one unknown 4-neighbour (cells off the grid count as known) and, given
+    ``occupied``, no occupied cell among their 8 neighbours.
+
+    Why the second rule: a wall's surface rarely falls on a cell boundary, so range noise puts some hits in
+    the cell just beyond it; that cell's misses can leave it free with never-seen cells behind it: a
+    "frontier" along the far side of every wall, which no position of the robot can ever see past."""
+    near = _shifted_any(unknown, diagonal=False)
     out: BoolArray = free & near
+    if occupied is not None:
+        out &= ~_shifted_any(occupied, diagonal=True) & ~occupied
     return out
 
 
-def detect_frontiers(grid: GridMap, min_size_m: float) -> list[Frontier]:
-    """The frontier clusters of ``grid`` at least ``min_size_m`` long, longest first."""
-    mask = frontier_mask(grid.free, grid.unknown)
+def _shifted_any(mask: BoolArray, diagonal: bool) -> BoolArray:
+    """Cells with a True 4-neighbour (8-neighbour with ``diagonal``)."""
+    out = np.zeros_like(mask)
+    out[1:, :] |= mask[:-1, :]
+    out[:-1, :] |= mask[1:, :]
+    out[:, 1:] |= mask[:, :-1]
+    out[:, :-1] |= mask[:, 1:]
+    if diagonal:
+        out[1:, 1:] |= mask[:-1, :-1]
+        out[1:, :-1] |= mask[:-1, 1:]
+        out[:-1, 1:] |= mask[1:, :-1]
+        out[:-1, :-1] |= mask[1:, 1:]
+    return out
+
+
+def detect_frontiers(grid: GridMap, min_size_m: float, min_unknown_m2: float = 0.0) -> list[Frontier]:
+    """The frontier clusters of ``grid`` at least ``min_size_m`` long, longest first; unknown pockets (4-
+    connected) smaller than ``min_unknown_m2`` do not make frontiers (the inside of a wall seen from both
+    sides, a gap between two hits: nothing a robot could drive to see)."""
+    unknown = grid.unknown
+    if min_unknown_m2 > 0.0 and unknown.any():
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(
+            unknown.astype(np.uint8), connectivity=4, ltype=cv2.CV_32S
+        )
+        small = stats[:, cv2.CC_STAT_AREA] * grid.spec.resolution_m**2 < min_unknown_m2
+        small[0] = False  # label 0 is the known cells
+        unknown = unknown & ~small[labels]
+    mask = frontier_mask(grid.free, unknown, grid.occupied)
     if not mask.any():
         return []
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
