@@ -4,8 +4,9 @@ threads, files or ports.
 
 Every explorer offers one interface (:class:`~agent.exploration.lifecycle.Explorer`); the config's
 ``[exploration] explorer`` picks one by name (:func:`make_explorer`). Implemented: ``frontier``
-(explore_lite's algorithm, its cost defect fixed). SP2ATM (AST, HTM, Bellman-Ford backtracking) is not
-written yet.
+(explore_lite's algorithm, its cost defect fixed). SP2ATM has two tested building blocks and no explorer
+yet: ``admissible_tree`` (the AST's first level: branches to one scan's gaps) and ``htm`` (the topology
+map's append / rebind / remove rules and Bellman-Ford backtracking).
 """
 
 from __future__ import annotations
