@@ -222,6 +222,7 @@ class _Run:
     errors_m2: list[float] = field(default_factory=list)
     targets: list[tuple[float, float]] = field(default_factory=list)
     decision_ms: list[float] = field(default_factory=list)
+    decision_cpu_ms: list[float] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
     collisions_walls: int = 0
     collisions_people: int = 0
@@ -361,6 +362,7 @@ def run_eval(
         run.last_decision = decision if decision.decided else run.last_decision
         if decision.decided:
             run.decision_ms.append(decision.decision_ms)
+            run.decision_cpu_ms.append(decision.decision_cpu_ms)
         if decision.new_target:
             if decision.target is None:
                 navigator.cancel("the explorer has no target")
@@ -415,6 +417,9 @@ def run_eval(
         "decisions": len(run.decision_ms),
         "decision_ms_median": round(float(np.median(run.decision_ms)), 2) if run.decision_ms else None,
         "decision_ms_max": round(float(np.max(run.decision_ms)), 2) if run.decision_ms else None,
+        "decision_cpu_ms_median": (
+            round(float(np.median(run.decision_cpu_ms)), 2) if run.decision_cpu_ms else None
+        ),
         "targets": len(run.targets),
         "navigation_failures": len(run.failures),
         "collisions": run.collisions_walls + run.collisions_people,
@@ -515,7 +520,7 @@ def explore_picture(
         f"explored {summary['explored_fraction']:.1%} of {summary['reachable_free_m2']} m2",
         f"{summary['state']}",
         f"path {summary['path_length_m']} m, {summary['time_s']} s",
-        f"{summary['decisions']} decisions, median {summary['decision_ms_median']} ms",
+        f"{summary['decisions']} decisions, median {summary['decision_cpu_ms_median']} ms CPU",
         f"collisions {summary['collisions']}, ATE {summary['ate_m']} m",
     ]
     width = MARGIN_LEFT + map_w + GAP + panel_w + 16
@@ -566,7 +571,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"  explored           {s['explored_fraction']:.1%} of {s['reachable_free_m2']} m2 reachable free")
     print(f"  stopped            {s['stopped_reason']}")
     print(f"  path               {s['path_length_m']} m in {s['time_s']} s simulated ({s['wall_s']} s wall)")
-    print(f"  decisions          {s['decisions']}, median {s['decision_ms_median']} ms")
+    print(
+        f"  decisions          {s['decisions']}, median {s['decision_ms_median']} ms "
+        f"({s['decision_cpu_ms_median']} ms CPU)"
+    )
     print(f"  localization ATE   {s['ate_m']} m")
     print(
         f"  collisions         {s['collisions']} (walls {s['collisions_walls']}, "

@@ -190,7 +190,7 @@ class FrontierExplorer:
             return self._decision()  # let the scans at the arrival heading into the map first
         if not due:
             return self._decision()
-        started = time.perf_counter()
+        started, started_cpu = time.perf_counter(), time.thread_time()
         survey = self.survey(grid, pose, t_s)
         self.decisions += 1
         self._t_decided = t_s
@@ -199,14 +199,21 @@ class FrontierExplorer:
             survey = self.survey(grid, pose, t_s)
         self._choose(survey, pose, t_s)
         ms = (time.perf_counter() - started) * 1000.0
-        return self._decision(decided=True, decision_ms=ms, frontiers=survey.frontiers)
+        cpu_ms = (time.thread_time() - started_cpu) * 1000.0
+        return self._decision(True, ms, cpu_ms, survey.frontiers)
 
     def _decision(
-        self, decided: bool = False, decision_ms: float = 0.0, frontiers: tuple[Frontier, ...] = ()
+        self,
+        decided: bool = False,
+        decision_ms: float = 0.0,
+        decision_cpu_ms: float = 0.0,
+        frontiers: tuple[Frontier, ...] = (),
     ) -> Decision:
         new = self.target != self._sent
         self._sent = self.target
-        return Decision(self._state, self.target, self._reason, new, decided, decision_ms, frontiers)
+        return Decision(
+            self._state, self.target, self._reason, new, decided, decision_ms, decision_cpu_ms, frontiers
+        )
 
     def _watch_progress(self, pose: Pose, t_s: float) -> None:
         if self.target is None:

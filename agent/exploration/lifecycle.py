@@ -78,8 +78,9 @@ class Target:
 @dataclass(frozen=True)
 class Decision:
     """One cycle's answer. ``target`` None: stand still. ``new_target``: it differs from the last one
-    (send it to the navigator). ``decided``: the map was searched this cycle (``decision_ms`` is its cost;
-    otherwise 0). ``frontiers``: what that search found (empty when it did not run)."""
+    (send it to the navigator). ``decided``: the map was searched this cycle (``decision_ms`` is its wall
+    time, ``decision_cpu_ms`` its CPU time; otherwise 0). ``frontiers``: what that search found (empty
+    when it did not run)."""
 
     state: ExploreState
     target: Target | None
@@ -87,6 +88,7 @@ class Decision:
     new_target: bool = False
     decided: bool = False
     decision_ms: float = 0.0
+    decision_cpu_ms: float = 0.0  # this thread's CPU time for the search (what one core spent)
     frontiers: tuple[Frontier, ...] = field(default=())
 
 
