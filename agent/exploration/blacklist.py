@@ -71,12 +71,17 @@ class Blacklist:
     def active(self, t_s: float) -> list[Entry]:
         return [e for e in self.entries if e.until_s > t_s]
 
-    def blocked(self, points_m: FloatArray, t_s: float, permanent_only: bool = False) -> BoolArray:
-        """Which of the (N, 2) points lie within the radius of an active (or only a permanent) entry."""
+    def blocked(
+        self, points_m: FloatArray, t_s: float, permanent_only: bool = False, kind: EntryKind | None = None
+    ) -> BoolArray:
+        """Which of the (N, 2) points lie within the radius of an active entry (only permanent ones, only
+        of ``kind``, if asked)."""
         pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
         out = np.zeros(len(pts), dtype=bool)
         for e in self.entries:
             if e.until_s <= t_s or (permanent_only and math.isfinite(e.until_s)):
+                continue
+            if kind is not None and e.kind is not kind:
                 continue
             out |= np.hypot(pts[:, 0] - e.x_m, pts[:, 1] - e.y_m) <= self.radius_m
         return out

@@ -24,7 +24,8 @@ driving):
 
 The target's heading faces the unknown cells near it, so that on arrival the laser looks at what the
 frontier hid. A target the robot reached (heading included) that still borders unknown space is
-blacklisted for good as unobservable; a target the navigator failed, or with no ``progress_m`` of
+blacklisted for good as unobservable (that spot's cells are no target again; the rest of the frontier
+still is); a target the navigator failed, or with no ``progress_m`` of
 approach for ``progress_timeout_s``, is blacklisted with an expiry (``agent.exploration.blacklist``).
 
 The end: no reachable frontier outside the blacklist. If reachable frontiers remain only under expiring
@@ -335,17 +336,22 @@ class FrontierExplorer:
             cells = np.argwhere(ok) + np.array([r0, c0])
             points = spec.to_world(cells)
             costs = window[ok]
-            # explore_lite's rule: a frontier is blacklisted while its cheapest target lies within an
-            # entry's radius (from elsewhere its cheapest target moves, and it is tried from there).
+            # Spots the robot stood at, facing this frontier, and saw nothing more from: their cells are
+            # no targets, the rest of the frontier still is (a long frontier is not done because one
+            # end of it could not be seen past). Every target looked at already: nothing left here.
+            fresh = ~self.blacklist.blocked(points, t_s, kind=EntryKind.UNOBSERVABLE)
+            if not fresh.any():
+                continue
+            points, costs = points[fresh], costs[fresh]
+            # explore_lite's rule for failures: a frontier is passed over while its cheapest target lies
+            # within an entry's radius (from elsewhere its cheapest target moves, and is tried from there).
             i = int(np.argmin(costs))
             spot = points[i : i + 1]
-            if self.blacklist.blocked(spot, t_s)[0]:
-                if not self.blacklist.blocked(spot, t_s, permanent_only=True)[0]:
-                    waiting += 1
-                elif self._unobservable(spot):
-                    pass  # looked at from there already: nothing more to see
-                else:
+            if self.blacklist.blocked(spot, t_s, kind=EntryKind.UNREACHED)[0]:
+                if self.blacklist.blocked(spot, t_s, permanent_only=True, kind=EntryKind.UNREACHED)[0]:
                     given_up += 1
+                else:
+                    waiting += 1
                 continue
             tx, ty = float(points[i, 0]), float(points[i, 1])
             target = Target(tx, ty, self._facing(seen, (tx, ty), f))
@@ -354,13 +360,6 @@ class FrontierExplorer:
         candidates.sort(key=lambda c: c.cost)
         best = candidates[0] if candidates else None
         return Survey(frontiers, best, tuple(candidates), waiting, given_up, unreachable, True)
-
-    def _unobservable(self, spot: FloatArray) -> bool:
-        r = self.blacklist.radius_m
-        return any(
-            e.kind is EntryKind.UNOBSERVABLE and math.hypot(e.x_m - spot[0, 0], e.y_m - spot[0, 1]) <= r
-            for e in self.blacklist.permanent()
-        )
 
     def _path_costs(self, costmap: Costmap, pose: Pose) -> FloatArray | None:
         """Path cost in metres (length (1 + w c)) from the robot to every cell; None if the robot cannot be

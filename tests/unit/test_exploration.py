@@ -213,18 +213,29 @@ def test_no_progress_blacklists_the_target() -> None:
     assert explorer.blacklist.blocked(np.array([[first.x_m, first.y_m]]), 6.0).tolist() == [True]
 
 
-def test_a_spot_reached_that_stays_unknown_is_not_visited_again() -> None:
-    explorer = _started()
-    grid = _open(_box(0.5, 0.5, 3.0, 3.5), 2.95, 1.0, 3.0, 2.0)
-    target = explorer.update(grid, (1.0, 2.0, 0.0), 0.0).target
-    assert target is not None
-    there = (target.x_m, target.y_m, target.yaw_rad or 0.0)
-    explorer.report_reached(10.0)
-    # The gap is still unknown beyond (the laser saw nothing there): unobservable, and then complete.
-    after = explorer.update(grid, there, 11.0)
-    assert [e.kind for e in explorer.blacklist.entries] == [EntryKind.UNOBSERVABLE]
-    assert after.state is ExploreState.COMPLETE
-    assert "1 unobservable" in after.reason
+def test_a_spot_reached_that_stays_unknown_is_not_visited_again_but_the_rest_of_its_frontier_is() -> None:
+    """Reaching one end of a frontier and seeing nothing more from there does not finish the frontier:
+    explore_lite's whole-frontier rule said complete here with most of a room unseen (office seed 2)."""
+    explorer = _started(ExploreConfig(blacklist_radius_m=0.5))
+    grid = _open(_box(0.5, 0.5, 3.0, 3.5), 2.95, 0.75, 3.0, 3.25)  # a 2.5 m gap: a long frontier
+    pose = (1.0, 2.0, 0.0)
+    spots: list[tuple[float, float]] = []
+    t = 0.0
+    for _ in range(10):
+        decision = explorer.update(grid, pose, t)
+        if decision.state is not ExploreState.EXPLORING:
+            break
+        target = decision.target
+        assert target is not None
+        # Never back within the radius of a spot already looked from.
+        assert all(math.hypot(target.x_m - x, target.y_m - y) > 0.5 for x, y in spots)
+        spots.append((target.x_m, target.y_m))
+        pose = (target.x_m, target.y_m, target.yaw_rad or 0.0)
+        explorer.report_reached(t + 1.0)
+        t += 2.0
+    assert len(spots) >= 2  # the first spot did not end the frontier
+    assert explorer.state is ExploreState.COMPLETE
+    assert f"{len(spots)} unobservable" in explorer.reason
 
 
 def test_the_nearer_frontier_wins_over_a_longer_one_far_away() -> None:
