@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from agent.exploration.config import ExploreConfig, ExplorerKind
 from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import BACKENDS, DeviceKind, backend_class
@@ -91,6 +92,7 @@ _SECTIONS = (
     "recorder",
     "scheduling",
     "navigation",
+    "exploration",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
@@ -349,6 +351,7 @@ class AgentConfig:
     scheduling: SchedulingConfig = SchedulingConfig()
     navigation: NavConfig = field(default_factory=NavConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    exploration: ExploreConfig = field(default_factory=ExploreConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -788,6 +791,7 @@ class _Reader:
         recorder = self._recorder()
         scheduling = self._scheduling()
         navigation = self._navigation()
+        exploration = self._exploration()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
@@ -807,6 +811,7 @@ class _Reader:
             scheduling,
             navigation,
             recorder,
+            exploration,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -1231,6 +1236,29 @@ class _Reader:
             if not ok:
                 raise ConfigError(f"navigation.{key}", f"{reason}, got {getattr(nav, key)}", self.file)
         return nav
+
+    # [exploration] -------------------------------------------------------------------------------
+    def _exploration(self) -> ExploreConfig:
+        """Every :class:`ExploreConfig` field is a key: ``explorer`` by name, counts >= 1, the rest > 0
+        (``gain_scale`` and ``switch_margin`` >= 0)."""
+        t = self.top.table("exploration") or _Table({}, "exploration", self.file)
+        d = ExploreConfig()
+        values: dict[str, Any] = {}
+        for f in dataclasses.fields(ExploreConfig):
+            default = getattr(d, f.name)
+            if f.name == "explorer":
+                values[f.name] = ExplorerKind(
+                    t.choice(f.name, default.value, [k.value for k in ExplorerKind])
+                )
+            elif isinstance(default, bool):
+                values[f.name] = t.boolean(f.name, default)
+            elif isinstance(default, int):
+                values[f.name] = t.integer(f.name, default, (lambda v: v >= 1, "must be >= 1"))
+            else:
+                zero_ok = f.name in ("gain_scale", "switch_margin")
+                values[f.name] = t.number(f.name, default, _NON_NEGATIVE if zero_ok else _POSITIVE)
+        t.finish()
+        return ExploreConfig(**values)
 
     def _record(self) -> RecordConfig:
         t = self.top.table("record") or _Table({}, "record", self.file)

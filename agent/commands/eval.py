@@ -15,6 +15,7 @@ from typing import Any
 
 # Evaluation name -> module; each module adds its own parser under `eval` and runs it.
 EVALUATIONS: dict[str, str] = {
+    "explore": "agent.commands.eval_explore",
     "nav": "agent.commands.eval_nav",
     "slam": "agent.commands.eval_slam",
     "vlp": "agent.commands.eval_vlp",

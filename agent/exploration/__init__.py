@@ -1,0 +1,45 @@
+"""Exploration: from an empty map to a complete one (``docs/exploration.md``). Pure algorithms, as
+``agent.navigation``: numpy arrays and small dataclasses in, targets and states out, time passed in; no
+threads, files or ports.
+
+Every explorer offers one interface (:class:`~agent.exploration.lifecycle.Explorer`); the config's
+``[exploration] explorer`` picks one by name (:func:`make_explorer`). Implemented: ``frontier``
+(explore_lite's algorithm, its cost defect fixed). SP2ATM has two tested building blocks and no explorer
+yet: ``admissible_tree`` (the AST's first level: branches to one scan's gaps) and ``htm`` (the topology
+map's append / rebind / remove rules and Bellman-Ford backtracking).
+"""
+
+from __future__ import annotations
+
+from agent.exploration.blacklist import Blacklist, EntryKind
+from agent.exploration.config import ExploreConfig, ExplorerKind
+from agent.exploration.frontier_explorer import FrontierExplorer
+from agent.exploration.frontiers import Frontier, GridMap, detect_frontiers, frontier_mask
+from agent.exploration.lifecycle import Command, Decision, Explorer, ExploreState, Target
+from agent.navigation.config import NavConfig
+
+
+def make_explorer(config: ExploreConfig, nav: NavConfig) -> Explorer:
+    """The explorer ``config.explorer`` names."""
+    if config.explorer is ExplorerKind.FRONTIER:
+        return FrontierExplorer(config, nav)
+    raise ValueError(f"no explorer {config.explorer!r}")  # unreachable while the enum has one member
+
+
+__all__ = [
+    "Blacklist",
+    "Command",
+    "Decision",
+    "EntryKind",
+    "ExploreConfig",
+    "ExploreState",
+    "Explorer",
+    "ExplorerKind",
+    "Frontier",
+    "FrontierExplorer",
+    "GridMap",
+    "Target",
+    "detect_frontiers",
+    "frontier_mask",
+    "make_explorer",
+]
