@@ -26,6 +26,7 @@ the shortest collision-free path on the true map (the walls rasterized and grown
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -72,6 +73,12 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--goals", type=int, default=10, metavar="N", help="goals to drive to (default: 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed: goals, sensor noise (default: 0)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    p.add_argument(
+        "--people-never-yield",
+        action="store_true",
+        help="people walk through the robot as if it were not there (every person's yields = false), "
+        "instead of stopping for it as the world file says",
+    )
 
 
 # -- the true map ------------------------------------------------------------------------------------
@@ -160,6 +167,8 @@ class _Contact:
     people: int = 0
     while_stopped: int = 0
     touching: bool = False
+    # Each contact with a person as it began: who was moving towards whom, what the navigator was doing.
+    people_log: list[dict[str, Any]] = field(default_factory=list)
 
 
 def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = None) -> dict[str, Any]:
@@ -235,6 +244,7 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
         clearance = math.inf
         collisions_before = contact.walls + contact.people
         last = (truth.x_m, truth.y_m)
+        people_then = [sim.person_position(p) for p in world.people]
         while True:
             tick += 1
             clock.t_s = tick * TICK_S
@@ -244,11 +254,17 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
             # Contact with walls and people, on the truth.
             gap = distance_to_segments(last, segments) - robot.radius_m
             touching_person = False
-            for person in world.people:
-                px, py = sim.person_position(person)
+            people_now = [sim.person_position(p) for p in world.people]
+            for i, person in enumerate(world.people):
+                px, py = people_now[i]
                 person_gap = math.hypot(px - last[0], py - last[1]) - person.radius_m - robot.radius_m
                 gap = min(gap, person_gap)
+                if person_gap <= 0.0 and not contact.touching:
+                    contact.people_log.append(
+                        _contact_record(sim, navigator, person.name, people_then[i], people_now[i], clock.t_s)
+                    )
                 touching_person |= person_gap <= 0.0
+            people_then = people_now
             clearance = min(clearance, gap)
             touching = gap <= 0.0
             if touching and not contact.touching:
@@ -312,6 +328,44 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
     return _summary(world, seed, results, contact, time.perf_counter() - wall_start, clock.t_s)
 
 
+def _contact_record(
+    sim: Any,
+    navigator: Navigator,
+    name: str,
+    person_then: tuple[float, float],
+    person_now: tuple[float, float],
+    t_s: float,
+) -> dict[str, Any]:
+    """Who closed the gap at a contact: each one's speed along the line between them (m/s, > 0 towards
+    the other), and the navigator's state then."""
+    from agent.slam.simlog import TICK_S
+
+    truth = sim.pose()
+    v_robot = sim.body_motion()[0]
+    ux, uy = person_now[0] - truth.x_m, person_now[1] - truth.y_m
+    norm = max(math.hypot(ux, uy), 1e-9)
+    ux, uy = ux / norm, uy / norm
+    robot_closing = v_robot * (math.cos(truth.yaw_rad) * ux + math.sin(truth.yaw_rad) * uy)
+    pvx = (person_now[0] - person_then[0]) / TICK_S
+    pvy = (person_now[1] - person_then[1]) / TICK_S
+    person_closing = -(pvx * ux + pvy * uy)
+    cost = navigator.costmap.cost_at(np.array([[truth.x_m, truth.y_m]]))[0]
+    action = navigator.recovery.action
+    return {
+        "t_s": _r(t_s, 2),
+        "person": name,
+        "robot_speed_mps": _r(v_robot),
+        "robot_closing_mps": _r(robot_closing),
+        "person_speed_mps": _r(math.hypot(pvx, pvy)),
+        "person_closing_mps": _r(person_closing),
+        "navigator": navigator.status.value,
+        "recovery": action.value if action is not None else None,
+        "monitor_stopped": navigator.monitor.command.v_mps == 0.0,
+        "in_predicted_sweep": not bool(np.isfinite(cost)),
+        "moving_tracks": len(navigator.moving.moving()),
+    }
+
+
 def _summary(
     world: World, seed: int, results: list[GoalResult], contact: _Contact, wall_s: float, sim_s: float
 ) -> dict[str, Any]:
@@ -324,6 +378,7 @@ def _summary(
     return {
         "world": world.name,
         "seed": seed,
+        "people_yield": [p.name for p in world.people if p.yields],
         "goals": len(results),
         "reached": len(reached),
         "success_rate": round(len(reached) / len(results), 4) if results else None,
@@ -331,6 +386,7 @@ def _summary(
         "collisions_walls": contact.walls,
         "collisions_people": contact.people,
         "collisions_while_stopped": contact.while_stopped,
+        "contacts_people": contact.people_log,
         "path_ratio_median": _r(np.median(ratios)) if ratios else None,
         "path_ratio_max": _r(max(ratios)) if ratios else None,
         "final_error_m_median": _r(np.median([r.error_m for r in reached]), 4) if reached else None,
@@ -380,6 +436,10 @@ def run(args: argparse.Namespace) -> int:
 
     path = resolve_world(args.world)
     world = load_world(path)
+    if args.people_never_yield:
+        world = dataclasses.replace(
+            world, people=tuple(dataclasses.replace(p, yields=False) for p in world.people)
+        )
     summary = run_eval(world, args.goals, args.seed)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
