@@ -13,14 +13,17 @@ error and 5 mm / 0.3 deg noise when two LEDs are in view). The navigator (``agen
 * **the scans** (10 Hz) and a control step at 20 Hz.
 
 Goals are random poses, one after another, each from where the last one ended: at least
-``GOAL_CLEARANCE_M`` from walls, reachable, not on a person's walking path (a robot parked there would be
-walked into: people in the simulation do not step aside), at least ``MIN_GOAL_DISTANCE_M`` away.
+``GOAL_CLEARANCE_M`` from walls, reachable, not on a person's walking path (a robot parked there would
+keep a yielding walker waiting for ever, and be walked into by one who does not yield: people stop for
+the robot in their way, as the world file's ``yields`` says, but never step aside), at least
+``MIN_GOAL_DISTANCE_M`` away.
 
 Judged on the truth: a goal is reached when the navigator says so and the true pose is within 0.10 m
 and 5 deg of it; a collision is the footprint (the world robot's radius) touching a wall or a person
-(counted per contact, and whether the robot was moving); the path ratio is the true distance driven over
-the shortest collision-free path on the true map (the walls rasterized and grown by the radius, searched
-8-connected then pulled taut by line of sight).
+(counted per contact, whoever moved, and whether the robot was moving; each contact with a person is
+logged with who closed the gap and what the navigator was doing); the path ratio is the true distance
+driven over the shortest collision-free path on the true map (the walls rasterized and grown by the
+radius, searched 8-connected then pulled taut by line of sight).
 """
 
 from __future__ import annotations
