@@ -23,6 +23,8 @@ import numpy as np
 from agent.navigation.controller import nearest_on_path, point_ahead
 from agent.navigation.costmap import Costmap, FloatArray
 
+SECTOR_RAD = math.radians(60)  # ahead of / behind the robot: within this of its heading / its back
+
 
 def way_ahead_blocked(
     costmap: Costmap, path_m: FloatArray, xy: tuple[float, float], ahead_m: float, allow_unknown: bool
@@ -42,10 +44,18 @@ def way_ahead_blocked(
 
 
 def aside_target(
-    costmap: Costmap, xy: tuple[float, float], reach_m: float, allow_unknown: bool
+    costmap: Costmap,
+    pose: tuple[float, float, float],
+    reach_m: float,
+    allow_unknown: bool,
+    ahead_ok: bool = True,
+    behind_ok: bool = True,
 ) -> FloatArray | None:
-    """The nearest free cell's centre within ``reach_m`` of ``xy`` reached in a straight line clear of the
-    map's walls and the scanned obstacles (by the footprint), or None."""
+    """The nearest free cell's centre within ``reach_m`` of the robot reached in a straight line clear of
+    the map's walls and the scanned obstacles (by the footprint), or None. Not ahead (within
+    ``SECTOR_RAD`` of the heading) unless ``ahead_ok``, nor behind unless ``behind_ok``: the collision
+    monitor's verdicts (driving towards what stops it would only leave the robot standing in the way)."""
+    xy = (pose[0], pose[1])
     spec = costmap.spec
     res = spec.resolution_m
     inscribed = costmap.config.inscribed_m
@@ -66,6 +76,15 @@ def aside_target(
     rr, cc = np.mgrid[r0:r1, c0:c1]
     d2 = (rr - cell[0]) ** 2 + (cc - cell[1]) ** 2
     candidate = np.isfinite(cost) & (d2 <= reach * reach)
+    bearing = (
+        np.arctan2(spec.origin_m[1] + (rr + 0.5) * res - xy[1], spec.origin_m[0] + (cc + 0.5) * res - xy[0])
+        - pose[2]
+    )
+    off_heading = np.abs(np.arctan2(np.sin(bearing), np.cos(bearing)))
+    if not ahead_ok:
+        candidate &= off_heading > SECTOR_RAD
+    if not behind_ok:
+        candidate &= off_heading < math.pi - SECTOR_RAD
     order = np.argsort(np.where(candidate, d2, np.iinfo(np.int64).max), axis=None)
     for flat in order[: int(np.count_nonzero(candidate))][:40]:
         r, c = divmod(int(flat), c1 - c0)

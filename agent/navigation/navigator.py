@@ -184,10 +184,11 @@ class Navigator:
         threatened = bool(self.costmap.predicted.any()) and not np.isfinite(
             self.costmap.cost_at(np.array([[x, y]]))[0]
         )
-        if threatened and (self.recovery.active or (self.plan is not None and t_s - self._t_checked >= 0.3)):
+        if threatened and self._giving_way_since is None:
             self.recovery.abort()
             self.plan = None
             self._await_scan = False
+            self._start_giving_way(t_s)
         if self.recovery.active:
             command = self.recovery.step(t_s, pose, not self.monitor.blocked(forward=False))
             if command is not None:
@@ -274,15 +275,18 @@ class Navigator:
             return False
         if self.costmap.predicted.any() and self._open_but_for_walkers(pose, goal):
             # Only a walker's way cuts the goal off: it passes; step out of it and wait, no recovery.
-            self._giving_way_since = t_s
-            self._t_give_way_try = t_s
-            self._aside = None
-            self.give_ways += 1
-            self.status = NavStatus.RECOVERING
-            self.controller.reset()
+            self._start_giving_way(t_s)
             return False
         self._recover(t_s, pose, f"{plan.status.value} by obstacles ({plan.reason})")
         return False
+
+    def _start_giving_way(self, t_s: float) -> None:
+        self._giving_way_since = t_s
+        self._t_give_way_try = t_s
+        self._aside = None
+        self.give_ways += 1
+        self.status = NavStatus.RECOVERING
+        self.controller.reset()
 
     def _open_but_for_walkers(self, pose: tuple[float, float, float], goal: Goal) -> bool:
         """Whether the goal plans on the map and the scanned obstacles without the walkers' sweeps."""
@@ -300,7 +304,21 @@ class Navigator:
         """While a walker's way cuts the goal off: out of it, then wait; None once a plan is made."""
         assert self._giving_way_since is not None
         x, y, _ = pose
-        if t_s - self._t_give_way_try >= GIVE_WAY_RETRY_S:
+        here = np.array([[x, y]])
+        in_sweep = not np.isfinite(self.costmap.cost_at(here, goal.allow_unknown)[0])
+        if in_sweep and (self._aside is None or t_s - self._t_aside >= GIVE_WAY_RETRY_S):
+            self._aside = aside_target(
+                self.costmap,
+                pose,
+                ASIDE_M,
+                goal.allow_unknown,
+                ahead_ok=not self.monitor.blocked(),
+                behind_ok=not self.monitor.blocked(forward=False),
+            )
+            self._t_aside = t_s
+        # Standing in a walker's way, plan only when there is no way out of it (the planner's escape
+        # would take the nearest cell towards the goal, maybe towards the walker).
+        if (not in_sweep or self._aside is None) and t_s - self._t_give_way_try >= GIVE_WAY_RETRY_S:
             self._t_give_way_try = t_s
             plan = self.planner.plan(self.costmap, (x, y), (goal.x_m, goal.y_m), goal.allow_unknown)
             self.plans.append(plan)
@@ -317,15 +335,11 @@ class Navigator:
             self._giving_way_since = None
             self._aside = None
             return self._recover(t_s, pose, f"a walker's way cut the goal off for {GIVE_WAY_MAX_S:g} s")
-        here = np.array([[x, y]])
-        if np.isfinite(self.costmap.cost_at(here, goal.allow_unknown)[0]):
+        if not in_sweep:
             self._aside = None
             self.controller.reset()
             return self._out(STOP, NavStatus.RECOVERING)
         # Standing in their way: step to the nearest place out of it.
-        if self._aside is None or t_s - self._t_aside >= GIVE_WAY_RETRY_S:
-            self._aside = aside_target(self.costmap, (x, y), ASIDE_M, goal.allow_unknown)
-            self._t_aside = t_s
         if self._aside is None:
             self.controller.reset()
             return self._out(STOP, NavStatus.RECOVERING)

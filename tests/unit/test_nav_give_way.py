@@ -41,7 +41,7 @@ def test_a_sweep_just_ahead_on_the_path_is_seen_and_one_further_on_is_not() -> N
 def test_the_place_aside_is_out_of_the_sweep_and_not_through_a_wall() -> None:
     costmap = _costmap()
     costmap.set_predicted(_band(0.0, 8.0, 0.9, 1.4))  # a walker's way along the corridor
-    target = aside_target(costmap, (3.0, 1.1), 1.0, False)
+    target = aside_target(costmap, (3.0, 1.1, 0.0), 1.0, False)
     assert target is not None
     assert math.isfinite(costmap.cost_at(target[None, :])[0])
     assert abs(target[0] - 3.0) < 0.1 and target[1] < 0.8  # straight to the nearer side
@@ -50,7 +50,7 @@ def test_the_place_aside_is_out_of_the_sweep_and_not_through_a_wall() -> None:
     occupied[:, 70] = True
     walled = Costmap(SPEC, occupied, np.zeros(SPEC.shape, bool), NavConfig())
     walled.set_predicted(_band(2.0, 3.55))
-    target = aside_target(walled, (3.2, 1.0), 1.0, False)
+    target = aside_target(walled, (3.2, 1.0, 0.0), 1.0, False)
     assert target is None or target[0] < 3.5
 
 
@@ -94,3 +94,14 @@ def test_a_robot_standing_in_a_walkers_way_that_cuts_the_goal_off_steps_out_of_i
     out = navigator.step(0.10, pose)
     assert out.command.v_mps > 0.0  # towards the strip, ahead of it
     assert navigator.recovery.rounds == 0
+
+
+def test_no_place_aside_is_offered_in_the_direction_the_collision_monitor_blocks() -> None:
+    costmap = _costmap()
+    costmap.set_predicted(_band(2.5, 3.3, 0.0, 2.0))  # the robot at x = 3.2 in it, facing +x
+    target = aside_target(costmap, (3.2, 1.0, 0.0), 1.0, False)
+    assert target is not None and abs(math.atan2(target[1] - 1.0, target[0] - 3.2)) < math.radians(60)
+    for behind_ok in (True, False):
+        target = aside_target(costmap, (3.2, 1.0, 0.0), 1.0, False, ahead_ok=False, behind_ok=behind_ok)
+        assert target is not None and math.isfinite(costmap.cost_at(target[None, :])[0])
+        assert abs(math.atan2(target[1] - 1.0, target[0] - 3.2)) > math.radians(60)
