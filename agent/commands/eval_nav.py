@@ -35,6 +35,7 @@ import math
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,6 +77,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--goals", type=int, default=10, metavar="N", help="goals to drive to (default: 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed: goals, sensor noise (default: 0)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    p.add_argument("--progress", action="store_true", help="print each goal's outcome on stderr as it ends")
     p.add_argument(
         "--people-never-yield",
         action="store_true",
@@ -174,8 +176,15 @@ class _Contact:
     people_log: list[dict[str, Any]] = field(default_factory=list)
 
 
-def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = None) -> dict[str, Any]:
-    """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict."""
+def run_eval(
+    world: World,
+    goals: int,
+    seed: int,
+    config: NavConfig | None = None,
+    on_goal: Callable[[GoalResult], None] | None = None,
+) -> dict[str, Any]:
+    """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict.
+    ``on_goal`` is told each goal's result as it ends."""
     from agent.slam.pose import between, compose
     from agent.slam.simlog import (
         TICK_S,
@@ -328,6 +337,8 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
             )
         )
         position = (truth.x_m, truth.y_m)
+        if on_goal is not None:
+            on_goal(results[-1])
     return _summary(world, seed, results, contact, time.perf_counter() - wall_start, clock.t_s)
 
 
@@ -443,7 +454,21 @@ def run(args: argparse.Namespace) -> int:
         world = dataclasses.replace(
             world, people=tuple(dataclasses.replace(p, yields=False) for p in world.people)
         )
-    summary = run_eval(world, args.goals, args.seed)
+    progress = None
+    if args.progress:
+
+        def progress(r: GoalResult) -> None:
+            line = {
+                "goal": [_r(v, 3) for v in r.goal],
+                "reached": r.reached,
+                "status": r.status,
+                "collisions": r.collisions,
+                "ratio": _r(r.driven_m / r.shortest_m) if r.shortest_m > 0 else None,
+                "time_s": _r(r.time_s, 1),
+            }
+            print(json.dumps(line), file=sys.stderr, flush=True)
+
+    summary = run_eval(world, args.goals, args.seed, on_goal=progress)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
         return 0
