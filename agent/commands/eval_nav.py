@@ -13,24 +13,29 @@ error and 5 mm / 0.3 deg noise when two LEDs are in view). The navigator (``agen
 * **the scans** (10 Hz) and a control step at 20 Hz.
 
 Goals are random poses, one after another, each from where the last one ended: at least
-``GOAL_CLEARANCE_M`` from walls, reachable, not on a person's walking path (a robot parked there would be
-walked into: people in the simulation do not step aside), at least ``MIN_GOAL_DISTANCE_M`` away.
+``GOAL_CLEARANCE_M`` from walls, reachable, not on a person's walking path (a robot parked there would
+keep a yielding walker waiting for ever, and be walked into by one who does not yield: people stop for
+the robot in their way, as the world file's ``yields`` says, but never step aside), at least
+``MIN_GOAL_DISTANCE_M`` away.
 
 Judged on the truth: a goal is reached when the navigator says so and the true pose is within 0.10 m
 and 5 deg of it; a collision is the footprint (the world robot's radius) touching a wall or a person
-(counted per contact, and whether the robot was moving); the path ratio is the true distance driven over
-the shortest collision-free path on the true map (the walls rasterized and grown by the radius, searched
-8-connected then pulled taut by line of sight).
+(counted per contact, whoever moved, and whether the robot was moving; each contact with a person is
+logged with who closed the gap and what the navigator was doing); the path ratio is the true distance
+driven over the shortest collision-free path on the true map (the walls rasterized and grown by the
+radius, searched 8-connected then pulled taut by line of sight).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,6 +77,13 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--goals", type=int, default=10, metavar="N", help="goals to drive to (default: 10)")
     p.add_argument("--seed", type=int, default=0, help="random seed: goals, sensor noise (default: 0)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    p.add_argument("--progress", action="store_true", help="print each goal's outcome on stderr as it ends")
+    p.add_argument(
+        "--people-never-yield",
+        action="store_true",
+        help="people walk through the robot as if it were not there (every person's yields = false), "
+        "instead of stopping for it as the world file says",
+    )
 
 
 # -- the true map ------------------------------------------------------------------------------------
@@ -160,10 +172,19 @@ class _Contact:
     people: int = 0
     while_stopped: int = 0
     touching: bool = False
+    # Each contact with a person as it began: who was moving towards whom, what the navigator was doing.
+    people_log: list[dict[str, Any]] = field(default_factory=list)
 
 
-def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = None) -> dict[str, Any]:
-    """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict."""
+def run_eval(
+    world: World,
+    goals: int,
+    seed: int,
+    config: NavConfig | None = None,
+    on_goal: Callable[[GoalResult], None] | None = None,
+) -> dict[str, Any]:
+    """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict.
+    ``on_goal`` is told each goal's result as it ends."""
     from agent.slam.pose import between, compose
     from agent.slam.simlog import (
         TICK_S,
@@ -235,6 +256,7 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
         clearance = math.inf
         collisions_before = contact.walls + contact.people
         last = (truth.x_m, truth.y_m)
+        people_then = [sim.person_position(p) for p in world.people]
         while True:
             tick += 1
             clock.t_s = tick * TICK_S
@@ -244,11 +266,17 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
             # Contact with walls and people, on the truth.
             gap = distance_to_segments(last, segments) - robot.radius_m
             touching_person = False
-            for person in world.people:
-                px, py = sim.person_position(person)
+            people_now = [sim.person_position(p) for p in world.people]
+            for i, person in enumerate(world.people):
+                px, py = people_now[i]
                 person_gap = math.hypot(px - last[0], py - last[1]) - person.radius_m - robot.radius_m
                 gap = min(gap, person_gap)
+                if person_gap <= 0.0 and not contact.touching:
+                    contact.people_log.append(
+                        _contact_record(sim, navigator, person.name, people_then[i], people_now[i], clock.t_s)
+                    )
                 touching_person |= person_gap <= 0.0
+            people_then = people_now
             clearance = min(clearance, gap)
             touching = gap <= 0.0
             if touching and not contact.touching:
@@ -309,7 +337,47 @@ def run_eval(world: World, goals: int, seed: int, config: NavConfig | None = Non
             )
         )
         position = (truth.x_m, truth.y_m)
+        if on_goal is not None:
+            on_goal(results[-1])
     return _summary(world, seed, results, contact, time.perf_counter() - wall_start, clock.t_s)
+
+
+def _contact_record(
+    sim: Any,
+    navigator: Navigator,
+    name: str,
+    person_then: tuple[float, float],
+    person_now: tuple[float, float],
+    t_s: float,
+) -> dict[str, Any]:
+    """Who closed the gap at a contact: each one's speed along the line between them (m/s, > 0 towards
+    the other), and the navigator's state then."""
+    from agent.slam.simlog import TICK_S
+
+    truth = sim.pose()
+    v_robot = sim.body_motion()[0]
+    ux, uy = person_now[0] - truth.x_m, person_now[1] - truth.y_m
+    norm = max(math.hypot(ux, uy), 1e-9)
+    ux, uy = ux / norm, uy / norm
+    robot_closing = v_robot * (math.cos(truth.yaw_rad) * ux + math.sin(truth.yaw_rad) * uy)
+    pvx = (person_now[0] - person_then[0]) / TICK_S
+    pvy = (person_now[1] - person_then[1]) / TICK_S
+    person_closing = -(pvx * ux + pvy * uy)
+    cost = navigator.costmap.cost_at(np.array([[truth.x_m, truth.y_m]]))[0]
+    action = navigator.recovery.action
+    return {
+        "t_s": _r(t_s, 2),
+        "person": name,
+        "robot_speed_mps": _r(v_robot),
+        "robot_closing_mps": _r(robot_closing),
+        "person_speed_mps": _r(math.hypot(pvx, pvy)),
+        "person_closing_mps": _r(person_closing),
+        "navigator": navigator.status.value,
+        "recovery": action.value if action is not None else None,
+        "monitor_stopped": navigator.monitor.command.v_mps == 0.0,
+        "in_predicted_sweep": not bool(np.isfinite(cost)),
+        "moving_tracks": len(navigator.moving.moving()),
+    }
 
 
 def _summary(
@@ -324,6 +392,7 @@ def _summary(
     return {
         "world": world.name,
         "seed": seed,
+        "people_yield": [p.name for p in world.people if p.yields],
         "goals": len(results),
         "reached": len(reached),
         "success_rate": round(len(reached) / len(results), 4) if results else None,
@@ -331,6 +400,7 @@ def _summary(
         "collisions_walls": contact.walls,
         "collisions_people": contact.people,
         "collisions_while_stopped": contact.while_stopped,
+        "contacts_people": contact.people_log,
         "path_ratio_median": _r(np.median(ratios)) if ratios else None,
         "path_ratio_max": _r(max(ratios)) if ratios else None,
         "final_error_m_median": _r(np.median([r.error_m for r in reached]), 4) if reached else None,
@@ -380,7 +450,25 @@ def run(args: argparse.Namespace) -> int:
 
     path = resolve_world(args.world)
     world = load_world(path)
-    summary = run_eval(world, args.goals, args.seed)
+    if args.people_never_yield:
+        world = dataclasses.replace(
+            world, people=tuple(dataclasses.replace(p, yields=False) for p in world.people)
+        )
+    progress = None
+    if args.progress:
+
+        def progress(r: GoalResult) -> None:
+            line = {
+                "goal": [_r(v, 3) for v in r.goal],
+                "reached": r.reached,
+                "status": r.status,
+                "collisions": r.collisions,
+                "ratio": _r(r.driven_m / r.shortest_m) if r.shortest_m > 0 else None,
+                "time_s": _r(r.time_s, 1),
+            }
+            print(json.dumps(line), file=sys.stderr, flush=True)
+
+    summary = run_eval(world, args.goals, args.seed, on_goal=progress)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
         return 0

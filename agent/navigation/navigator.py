@@ -27,12 +27,21 @@ from agent.navigation.collision import CollisionMonitor
 from agent.navigation.config import NavConfig
 from agent.navigation.controller import STOP, Command, PurePursuit, nearest_on_path, remaining_length, wrap
 from agent.navigation.costmap import Costmap, FloatArray
+from agent.navigation.give_way import aside_target, way_ahead_blocked
 from agent.navigation.moving import MovingObstacles
 from agent.navigation.planner import GlobalPlanner, Plan, PlanStatus, path_is_free
 from agent.navigation.recovery import Recovery
 
 # How far the planner looks for a free cell when the robot stands in a forbidden one (in a walker's way).
 ESCAPE_M = 0.6
+# Giving way to walkers (agent/navigation/give_way.py): how far ahead along the path a walker's sweep
+# stops the robot at once; how far it steps aside out of a sweep that cuts the goal off; how often it
+# tries the plan again while it waits; how long it waits before the blocked-goal recoveries take over.
+WAY_AHEAD_M = 0.4
+ASIDE_M = 1.0
+GIVE_WAY_RETRY_S = 0.5
+GIVE_WAY_MAX_S = 20.0
+BACK_ASIDE_RAD = math.radians(60)  # a place aside this near straight behind is backed into
 
 
 class NavStatus(enum.StrEnum):
@@ -88,6 +97,11 @@ class Navigator:
         self._turning = False
         self._scans = 0
         self._await_scan = False
+        self._giving_way_since: float | None = None  # waiting out a walker's way (no recovery counted)
+        self._t_give_way_try = -math.inf
+        self._aside: FloatArray | None = None
+        self._t_aside = -math.inf
+        self.give_ways = 0  # times it gave way to a walker (this goal)
 
     # -- inputs -------------------------------------------------------------------------------------
     def set_goal(self, goal: Goal, t_s: float) -> None:
@@ -103,6 +117,9 @@ class Navigator:
         self._best_to_go = math.inf
         self._t_progress = t_s
         self._turning = False
+        self._giving_way_since = None
+        self._aside = None
+        self.give_ways = 0
 
     def cancel(self, reason: str = "cancelled") -> None:
         if self.status in (NavStatus.ACTIVE, NavStatus.RECOVERING):
@@ -167,10 +184,11 @@ class Navigator:
         threatened = bool(self.costmap.predicted.any()) and not np.isfinite(
             self.costmap.cost_at(np.array([[x, y]]))[0]
         )
-        if threatened and (self.recovery.active or (self.plan is not None and t_s - self._t_checked >= 0.3)):
+        if threatened and self._giving_way_since is None:
             self.recovery.abort()
             self.plan = None
             self._await_scan = False
+            self._start_giving_way(t_s)
         if self.recovery.active:
             command = self.recovery.step(t_s, pose, not self.monitor.blocked(forward=False))
             if command is not None:
@@ -186,9 +204,23 @@ class Navigator:
         if self._await_scan:
             self.controller.reset()
             return self._out(STOP, NavStatus.RECOVERING)
+        if self._giving_way_since is not None:
+            waiting = self._give_way(t_s, pose, goal, dt)
+            if waiting is not None:
+                return waiting
         self.status = NavStatus.ACTIVE
         if not self._ensure_plan(t_s, pose, goal):
             return self._out(STOP, self.status)
+        # A walker's way just ahead: stop outside it now and replan (behind them, or wait for them).
+        if (
+            self.plan is not None
+            and self.costmap.predicted.any()
+            and way_ahead_blocked(self.costmap, self.plan.path_m, (x, y), WAY_AHEAD_M, goal.allow_unknown)
+        ):
+            self.plan = None
+            if not self._ensure_plan(t_s, pose, goal):
+                self.controller.reset()
+                return self._out(STOP, self.status)
         plan = self.plan
         assert plan is not None
         segment, fraction, _ = nearest_on_path(plan.path_m, (x, y))
@@ -241,8 +273,89 @@ class Navigator:
         if not alone.ok:
             self._fail(f"{plan.status.value}: {alone.reason}")
             return False
+        if self.costmap.predicted.any() and self._open_but_for_walkers(pose, goal):
+            # Only a walker's way cuts the goal off: it passes; step out of it and wait, no recovery.
+            self._start_giving_way(t_s)
+            return False
         self._recover(t_s, pose, f"{plan.status.value} by obstacles ({plan.reason})")
         return False
+
+    def _start_giving_way(self, t_s: float) -> None:
+        self._giving_way_since = t_s
+        self._t_give_way_try = t_s
+        self._aside = None
+        self.give_ways += 1
+        self.status = NavStatus.RECOVERING
+        self.controller.reset()
+
+    def _open_but_for_walkers(self, pose: tuple[float, float, float], goal: Goal) -> bool:
+        """Whether the goal plans on the map and the scanned obstacles without the walkers' sweeps."""
+        cfg = self.config
+        bare = Costmap(self.costmap.spec, self.costmap.static_occupied, self.costmap.unknown, cfg)
+        bare.obstacles = self.costmap.obstacles.copy()
+        plan = GlobalPlanner(cfg.clearance_weight, escape_m=ESCAPE_M).plan(
+            bare, pose[:2], (goal.x_m, goal.y_m), goal.allow_unknown
+        )
+        return plan.ok
+
+    def _give_way(
+        self, t_s: float, pose: tuple[float, float, float], goal: Goal, dt: float
+    ) -> NavOutput | None:
+        """While a walker's way cuts the goal off: out of it, then wait; None once a plan is made."""
+        assert self._giving_way_since is not None
+        x, y, _ = pose
+        here = np.array([[x, y]])
+        in_sweep = not np.isfinite(self.costmap.cost_at(here, goal.allow_unknown)[0])
+        if in_sweep and (self._aside is None or t_s - self._t_aside >= GIVE_WAY_RETRY_S):
+            self._aside = aside_target(
+                self.costmap,
+                pose,
+                ASIDE_M,
+                goal.allow_unknown,
+                ahead_ok=not self.monitor.blocked(),
+                behind_ok=not self.monitor.blocked(forward=False),
+            )
+            self._t_aside = t_s
+        # Standing in a walker's way, plan only when there is no way out of it (the planner's escape
+        # would take the nearest cell towards the goal, maybe towards the walker).
+        if (not in_sweep or self._aside is None) and t_s - self._t_give_way_try >= GIVE_WAY_RETRY_S:
+            self._t_give_way_try = t_s
+            plan = self.planner.plan(self.costmap, (x, y), (goal.x_m, goal.y_m), goal.allow_unknown)
+            self.plans.append(plan)
+            if plan.ok:
+                self.plan = plan
+                self._giving_way_since = None
+                self._aside = None
+                self._best_to_go = math.inf
+                self._t_progress = t_s
+                self._t_checked = t_s
+                self._checked_version = self.costmap.version
+                return None
+        if t_s - self._giving_way_since > GIVE_WAY_MAX_S:
+            self._giving_way_since = None
+            self._aside = None
+            return self._recover(t_s, pose, f"a walker's way cut the goal off for {GIVE_WAY_MAX_S:g} s")
+        if not in_sweep:
+            self._aside = None
+            self.controller.reset()
+            return self._out(STOP, NavStatus.RECOVERING)
+        # Standing in their way: step to the nearest place out of it.
+        if self._aside is None:
+            self.controller.reset()
+            return self._out(STOP, NavStatus.RECOVERING)
+        ax, ay = float(self._aside[0]) - x, float(self._aside[1]) - y
+        behind = wrap(math.atan2(ay, ax) - pose[2] - math.pi)
+        if abs(behind) < BACK_ASIDE_RAD:
+            # Behind the robot: back straight out (a turn first would leave it in the way for seconds).
+            cfg = self.config
+            backing = Command(-cfg.max_reverse_mps, max(-cfg.max_turn_radps, min(cfg.max_turn_radps, behind)))
+            command = self.controller.limit(backing, dt)
+        else:
+            command = self.controller.follow(pose, np.vstack([here, self._aside[None, :]]), dt)
+        filtered = self.monitor.filter(command)
+        if filtered != command:
+            self.controller.reset(filtered)
+        return self._out(filtered, NavStatus.RECOVERING)
 
     def _recover(self, t_s: float, pose: tuple[float, float, float], why: str) -> NavOutput:
         if self.recovery.exhausted():

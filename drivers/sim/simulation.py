@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from drivers.sim.pedestrians import Walker, WalkPath, lookahead_m, step_walker
 from drivers.sim.raycast import cast_rays, distance_to_segments, walls_array
 from drivers.sim.world import Person, Pose2D, World
 
@@ -66,8 +67,13 @@ class Simulation:
         self._v_mps = 0.0
         self._a_long_mps2 = 0.0
         self._omega_radps = 0.0
+        # People: distance walked along each one's path (they stop for the robot: drivers/sim/pedestrians.py).
+        self._paths = [WalkPath(p.path) for p in world.people]
+        self._walkers = [Walker(0.0, p.speed_mps) for p in world.people]
+        self._person_index = {p.name: i for i, p in enumerate(world.people)}
         self._times: collections.deque[float] = collections.deque()
         self._poses: collections.deque[tuple[float, float, float]] = collections.deque()
+        self._walked: collections.deque[tuple[float, ...]] = collections.deque()
         self._record()
 
     # -- time ----------------------------------------------------------------------------------------
@@ -87,9 +93,24 @@ class Simulation:
     def _record(self) -> None:
         self._times.append(self._t)
         self._poses.append((self._x, self._y, self._yaw))
+        self._walked.append(tuple(w.s_m for w in self._walkers))
         while self._times and self._times[0] < self._t - self.history_s:
             self._times.popleft()
             self._poses.popleft()
+            self._walked.popleft()
+
+    def _step_people(self, dt: float) -> None:
+        radius = self.world.robot.radius_m
+        for person, path, walker in zip(self.world.people, self._paths, self._walkers, strict=True):
+            seen: tuple[float, float] | None = None
+            if person.yields:
+                px, py = path.point_at(walker.s_m)
+                # The robot moves less than 0.5 m in a reaction time: farther than this, it cannot matter.
+                far = lookahead_m(person.speed_mps, person.reaction_s) + person.radius_m + radius + 0.6
+                if math.hypot(self._x - px, self._y - py) <= far:
+                    x, y, _ = self._interpolate(self._t - person.reaction_s)
+                    seen = (x, y)
+            step_walker(walker, person, path, dt, seen, radius)
 
     def _integrate_to(self, t: float) -> None:
         robot = self.world.robot
@@ -116,6 +137,7 @@ class Simulation:
                 self._yaw = _wrap(yaw2)
             self._v_mps, self._omega_radps = v, omega
             self._a_long_mps2 = (v - v_before) / dt if dt > 0 else 0.0
+            self._step_people(dt)
             self._t += dt
             self._record()
 
@@ -148,16 +170,26 @@ class Simulation:
         """The true pose at a recent time ``t`` (linear interpolation over the kept history)."""
         with self._lock:
             self._integrate_to(max(t, self.clock()) if t > self._t else self._t)
-            times = self._times
-            if t <= times[0]:
-                return Pose2D(*self._poses[0])
-            if t >= times[-1]:
-                return Pose2D(*self._poses[-1])
-            i = bisect.bisect_left(times, t)
-            t0, t1 = times[i - 1], times[i]
-            (x0, y0, a0), (x1, y1, a1) = self._poses[i - 1], self._poses[i]
-            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-            return Pose2D(x0 + w * (x1 - x0), y0 + w * (y1 - y0), _wrap(a0 + w * _wrap(a1 - a0)))
+            return Pose2D(*self._interpolate(t))
+
+    def _bracket(self, t: float) -> tuple[int, float]:
+        """(i, w): ``t`` lies w of the way from history entry i - 1 to i (clamped to the history)."""
+        times = self._times
+        if t <= times[0]:
+            return 0, 1.0
+        if t >= times[-1]:
+            return len(times) - 1, 1.0
+        i = bisect.bisect_left(times, t)
+        t0, t1 = times[i - 1], times[i]
+        return i, (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+
+    def _interpolate(self, t: float) -> tuple[float, float, float]:
+        i, w = self._bracket(t)
+        (x1, y1, a1) = self._poses[i]
+        if i == 0 or w >= 1.0:
+            return x1, y1, a1
+        (x0, y0, a0) = self._poses[i - 1]
+        return x0 + w * (x1 - x0), y0 + w * (y1 - y0), _wrap(a0 + w * _wrap(a1 - a0))
 
     def body_motion(self) -> tuple[float, float, float]:
         """(forward speed m/s, forward acceleration m/s^2, yaw rate rad/s), true values now."""
@@ -172,23 +204,22 @@ class Simulation:
 
     # -- people --------------------------------------------------------------------------------------
     def person_position(self, person: Person, t: float | None = None) -> tuple[float, float]:
-        """Where a person is at time ``t`` walking their looped path at constant speed."""
-        t = self.clock() if t is None else t
-        pts = person.path
-        if len(pts) == 1:
-            return pts[0]
-        legs = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
-        lengths = [math.dist(a, b) for a, b in legs]
-        total = sum(lengths)
-        if total <= 0:
-            return pts[0]
-        d = ((t - self.t_start) * person.speed_mps) % total
-        for (a, b), length in zip(legs, lengths, strict=True):
-            if d <= length and length > 0:
-                w = d / length
-                return (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]))
-            d -= length
-        return pts[0]
+        """Where a person is at time ``t`` (now by default; a past time within the kept history) on their
+        looped path: walking at their speed, or stopped for the robot (``Person.yields``)."""
+        with self._lock:
+            t = self.clock() if t is None else t
+            self._integrate_to(max(t, self._t))
+            k = self._person_index[person.name]
+            i, w = self._bracket(t)
+            s1 = self._walked[i][k]
+            s = s1 if i == 0 or w >= 1.0 else self._walked[i - 1][k] + w * (s1 - self._walked[i - 1][k])
+            return self._paths[k].point_at(s)
+
+    def person_speed_mps(self, person: Person) -> float:
+        """How fast a person walks now (0 while they stand for the robot)."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return self._walkers[self._person_index[person.name]].v_mps
 
     def tags_in_range(self, range_m: float | None = None) -> list[TagInRange]:
         range_m = self.world.rfid.range_m if range_m is None else range_m

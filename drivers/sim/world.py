@@ -138,6 +138,9 @@ class Person:
     path: tuple[tuple[float, float], ...]
     speed_mps: float = 0.8
     radius_m: float = 0.2
+    # A pedestrian stops for the robot's body in their way ahead (``drivers/sim/pedestrians.py``).
+    yields: bool = True
+    reaction_s: float = 0.4
 
 
 @dataclass(frozen=True, slots=True)

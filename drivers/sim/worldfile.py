@@ -140,6 +140,8 @@ _RULES: dict[str, _Check] = {
     "Led.duty": _FRACTION_OPEN,
     "Person.speed_mps": _POSITIVE,
     "Person.radius_m": _POSITIVE,
+    # The simulation keeps 2 s of the robot's poses to look back on.
+    "Person.reaction_s": (lambda v: 0 <= v <= 1.5, "must be in [0, 1.5] s"),
     "ErrorModel.led_survey_error_m": _NON_NEGATIVE,
     "ErrorModel.led_height_error_m": _NON_NEGATIVE,
     "ErrorModel.camera_tilt_rad": (
@@ -981,7 +983,7 @@ class _WorldReader:
         people = []
         names: dict[str, str] = {}
         for t in self.root.tables("people", MAX_PEOPLE):
-            t.expect("name", "tag_id", "path", "speed_mps", "radius_m")
+            t.expect("name", "tag_id", "path", "speed_mps", "radius_m", "yields", "reaction_s")
             base = Person("", "", ())
             person = Person(
                 name=t.string("name"),
@@ -989,6 +991,8 @@ class _WorldReader:
                 path=t.points("path", minimum=1, maximum=MAX_PATH_POINTS),
                 speed_mps=self._checked(t, "Person", "speed_mps", base.speed_mps),
                 radius_m=self._checked(t, "Person", "radius_m", base.radius_m),
+                yields=t.boolean("yields", base.yields),
+                reaction_s=self._checked(t, "Person", "reaction_s", base.reaction_s),
             )
             t.finish()
             if person.name in names:

@@ -186,6 +186,8 @@ tag_id = "ABC"
 path = [[1.0, 1.0], [2.0, 1.0]]
 speed_mps = 1.1
 radius_m = 0.25
+yields = false
+reaction_s = 0.6
 
 [route]
 waypoints = [[0.0, 0.0], [1.0, 0.0]]
@@ -391,6 +393,16 @@ BAD: list[tuple[str, str, str]] = [
         "> 0",
     ),
     ('[[people]]\nname = "a"\npath = [[1.0, 1.0]]\n', "people[0].tag_id", "missing"),
+    (
+        '[[people]]\nname = "a"\ntag_id = "1"\npath = [[1.0, 1.0]]\nreaction_s = 2.0\n',
+        "people[0].reaction_s",
+        "[0, 1.5]",
+    ),
+    (
+        '[[people]]\nname = "a"\ntag_id = "1"\npath = [[1.0, 1.0]]\nyields = 1\n',
+        "people[0].yields",
+        "true or",
+    ),
 ]
 
 
