@@ -53,6 +53,7 @@ class SnapshotRing:
         self._entries: collections.deque[SnapshotEntry] = collections.deque()
         self.pinned = pinned
         self._pinned: dict[str, SnapshotEntry] = {}
+        self.newest_ns: int | None = None
         self.bytes = 0
         self.dropped = 0  # messages let go to keep within the bounds (the expected steady state)
 
@@ -67,15 +68,22 @@ class SnapshotRing:
         self._entries.append(entry)
         self.bytes += len(data) + _ENTRY_OVERHEAD_BYTES
         # Time is the newest message's, not the wall clock's: a quiet recorder keeps its last span.
-        oldest_kept_ns = max(t_ns, self._entries[0].t_ns) - self.span_ns
+        self.newest_ns = t_ns if self.newest_ns is None else max(self.newest_ns, t_ns)
+        oldest_kept_ns = self.newest_ns - self.span_ns
         while self._entries and (self.bytes > self.max_bytes or self._entries[0].t_ns < oldest_kept_ns):
             gone = self._entries.popleft()
             self.bytes -= len(gone.data) + _ENTRY_OVERHEAD_BYTES
             self.dropped += 1
 
     def entries(self) -> list[SnapshotEntry]:
-        """A copy of what is kept: the pinned messages, then the rest oldest first."""
-        return sorted(self._pinned.values(), key=lambda e: e.t_ns) + list(self._entries)
+        """A copy of what is kept: the pinned messages, then the rest in arrival order. The loops hand
+        samples over in arrival order, not quite in log-time order (a scan is stamped before it is read):
+        one that came late with an older time is left out here rather than stretch the span."""
+        pinned = sorted(self._pinned.values(), key=lambda e: e.t_ns)
+        if self.newest_ns is None:
+            return pinned
+        oldest_kept_ns = self.newest_ns - self.span_ns
+        return pinned + [e for e in self._entries if e.t_ns >= oldest_kept_ns]
 
 
 def snapshot_files(path: Path) -> list[Path]:

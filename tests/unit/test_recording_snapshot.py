@@ -43,6 +43,9 @@ def test_the_setups_are_kept_whatever_their_age() -> None:
         ring.append("/imu", i * 100_000_000, b"{}")
     entries = ring.entries()
     assert entries[0].topic == "/fusion/setup" and len(entries) == 1 + 11
+    # A message arriving late with a time older than the span is not in a snapshot.
+    ring.append("/laser/scan", 4_800_000_000 - 1_500_000_000, b"{}")
+    assert all(e.t_ns >= 3_900_000_000 for e in ring.entries()[1:]) and len(ring.entries()) == 12
     with pytest.raises(ValueError):
         SnapshotRing(0.0, 100)
 
