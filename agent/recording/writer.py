@@ -57,6 +57,15 @@ def _no_wait() -> None:
     pass
 
 
+def next_wait_s(now_s: float, last_chunk_s: float, chunk_s: float, period_s: float, open_file: bool) -> float:
+    """How long the writer thread sleeps: its pass period, but no later than when the open chunk is due,
+    so a chunk is closed ``chunk_s`` after the last one rather than up to a period later (a kill then
+    loses at most ``chunk_s``, not ``chunk_s`` plus a period)."""
+    if not open_file:
+        return period_s
+    return min(period_s, max(0.0, last_chunk_s + chunk_s - now_s))
+
+
 def free_bytes(folder: Path) -> int:
     return shutil.disk_usage(folder).free
 
@@ -178,7 +187,11 @@ class McapRecorder:
     def _run(self) -> None:
         period_s = max(self.config.chunk_s / 4.0, 0.01)
         c0 = time.thread_time()
-        while not self._stop.wait(period_s):
+        while not self._stop.wait(
+            next_wait_s(
+                self.clock_s(), self._last_chunk_s, self.config.chunk_s, period_s, self._writer is not None
+            )
+        ):
             self.pump()
             self.writer_cpu_s = time.thread_time() - c0
         self._drain()

@@ -12,7 +12,7 @@ from agent.config import parse_config
 from agent.recording.messages import HealthSample
 from agent.recording.reader import read_recording
 from agent.recording.snapshot import SnapshotRing, snapshot_files, write_snapshot
-from agent.recording.writer import recording_files
+from agent.recording.writer import next_wait_s, recording_files
 from drivers.errors import ConfigError
 from tests.unit.test_recording import OFFICE, feed_scans, recorder, sequences
 
@@ -143,3 +143,11 @@ def test_the_snapshot_config_keys() -> None:
         with pytest.raises(ConfigError) as err:
             parse_config(base + text + "\n")
         assert err.value.key == key, err.value
+
+
+def test_the_writer_wakes_when_the_chunk_is_due_not_a_period_later() -> None:
+    # chunk_s 1 s, a pass every 0.25 s: the last chunk closed at 10.0, now 10.9 -> wake at 11.0, not 11.15.
+    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=True) == pytest.approx(0.1)
+    assert next_wait_s(10.2, 10.0, 1.0, 0.25, open_file=True) == 0.25
+    assert next_wait_s(11.3, 10.0, 1.0, 0.25, open_file=True) == 0.0  # overdue: at once
+    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=False) == 0.25  # no chunk open: nothing due
