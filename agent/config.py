@@ -323,6 +323,9 @@ class RecorderConfig:
     min_free_mb: float = 200.0
     queue_size: int = 20_000
     map_period_s: float = 5.0
+    snapshot_s: float = 0.0
+    snapshot_mb: float = 64.0
+    continuous: bool = True
 
 
 @dataclass(frozen=True)
@@ -1302,7 +1305,16 @@ class _Reader:
             min_free_mb=t.number("min_free_mb", d.min_free_mb, free),
             queue_size=t.integer("queue_size", d.queue_size, queue),
             map_period_s=t.number("map_period_s", d.map_period_s, maps),
+            snapshot_s=t.number(
+                "snapshot_s",
+                d.snapshot_s,
+                (lambda v: v == 0 or 1 <= v <= 3600, "must be 0 (no snapshots) or 1..3600"),
+            ),
+            snapshot_mb=t.number("snapshot_mb", d.snapshot_mb, (lambda v: 1 <= v <= 4096, "must be 1..4096")),
+            continuous=t.boolean("continuous", d.continuous),
         )
+        if not recorder.continuous and recorder.snapshot_s == 0:
+            raise t.error("continuous", "false records nothing unless snapshot_s > 0")
         if recorder.file_mb > recorder.total_mb:
             raise t.error(
                 "file_mb", f"must be at most total_mb ({recorder.total_mb:g}), got {recorder.file_mb:g}"

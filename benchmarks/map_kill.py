@@ -1,6 +1,7 @@
 """``kill -9`` at random instants of a mapping run: is the last saved map whole, and how much was lost?
 
     python benchmarks/map_kill.py [--instants 20] [--mid-save 5] [--interval 1.0] [--span 4.0] [--seed 0]
+                                  [--no-record]
 
 Each instant is a fresh ``vlp-agent sim`` (the office route, VLP + SLAM, ``[slam] save_interval_s =
 INTERVAL``) in a session of its own, SIGKILLed as a whole (the agent, its SLAM process and its camera
@@ -17,8 +18,13 @@ the YAML's rename. Then, per instant:
 * ``left_over``: temporary files and unnamed images the kill left (never ``map.yaml`` itself: that is
   only ever a rename), and whether ``tidy_map_folder`` (what the next start runs) removes every one while
   the map still loads.
+* ``mcap_lost_s``: the runs also flight-record (``--record``, ``[recorder] chunk_s`` 1 s; not with
+  ``--no-record``): the kill time minus the log time of the newest message the recording still reads
+  (``agent.recording.reader``: whole chunks only), both on ``CLOCK_MONOTONIC``; with ``mcap_messages``
+  and ``mcap_files_cut`` (files that read only up to a cut, at most the last one).
 
-Prints one JSON object: the per-instant records and ``all_loaded``, ``max_age_s``, ``max_left_over``.
+Prints one JSON object: the per-instant records and ``all_loaded``, ``max_age_s``, ``max_left_over`` and
+``max_mcap_lost_s``.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from agent.recording.reader import read_recording, recording_files  # noqa: E402
 from agent.slam.mapio import load_map, tidy_map_folder  # noqa: E402
 from drivers.errors import ConfigError  # noqa: E402
 
@@ -71,13 +78,34 @@ def _save_under_way(out: Path, known: set[str]) -> bool:
     return any(n.endswith(".tmp") or (n.endswith(".pgm") and n not in known) for n in names)
 
 
-def kill_once(folder: Path, interval_s: float, delay_s: float, mid_save: bool = False) -> dict[str, Any]:
+def mcap_after_kill(record: Path, killed_ns: int) -> dict[str, Any]:
+    """What a recording killed at ``killed_ns`` (monotonic) still reads: how many seconds before the kill
+    its newest readable message is, how many messages, how many files cut."""
+    newest_ns: int | None = None
+    messages = cut = 0
+    for _, path in recording_files(record):
+        recording = read_recording(path)
+        messages += len(recording.messages)
+        cut += recording.stopped_at is not None
+        if recording.messages:
+            newest = max(m.log_time_ns for m in recording.messages)
+            newest_ns = newest if newest_ns is None else max(newest_ns, newest)
+    lost_s = None if newest_ns is None else round((killed_ns - newest_ns) / 1e9, 3)
+    return {"mcap_lost_s": lost_s, "mcap_messages": messages, "mcap_files_cut": cut}
+
+
+def kill_once(
+    folder: Path, interval_s: float, delay_s: float, mid_save: bool = False, record: bool = True
+) -> dict[str, Any]:
     """One mapping run in ``folder``, SIGKILLed ``delay_s`` after its first save (``mid_save``: at the
     first save under way after that); what it left."""
     out = folder / "out"
     config = mapping_config(folder, interval_s)
     command = [sys.executable, "-m", "agent.cli", "sim", "--config", str(config), "--seconds", "600"]
     command += ["--out", str(out)]
+    record_path = folder / "rec" / "run.mcap"
+    if record:
+        command += ["--record", str(record_path)]
     proc = subprocess.Popen(
         command,
         cwd=REPO,
@@ -102,6 +130,7 @@ def kill_once(folder: Path, interval_s: float, delay_s: float, mid_save: bool = 
             while not _save_under_way(out, known) and time.monotonic() < deadline:
                 time.sleep(0.001)
         killed_at = time.time()
+        killed_ns = time.monotonic_ns()
         os.killpg(proc.pid, signal.SIGKILL)
     finally:
         if proc.poll() is None:
@@ -125,18 +154,26 @@ def kill_once(folder: Path, interval_s: float, delay_s: float, mid_save: bool = 
         "left_over": [p.name for p in removed],
         "loads_after_tidy": _loads(yaml_file),
         "tmp_after_tidy": sorted(p.name for p in out.iterdir() if p.name.endswith(".tmp")),
+        **(mcap_after_kill(record_path, killed_ns) if record else {}),
     }
 
 
 def run(
-    instants: int, interval_s: float, span_s: float, seed: int, workdir: Path, mid_save: int = 0
+    instants: int,
+    interval_s: float,
+    span_s: float,
+    seed: int,
+    workdir: Path,
+    mid_save: int = 0,
+    record: bool = True,
 ) -> dict[str, Any]:
     rng = random.Random(seed)
     records = []
     for k in range(instants):
         folder = workdir / f"kill{k}"
         folder.mkdir(parents=True)
-        records.append(kill_once(folder, interval_s, rng.uniform(0.0, span_s), k >= instants - mid_save))
+        delay_s = rng.uniform(0.0, span_s)
+        records.append(kill_once(folder, interval_s, delay_s, k >= instants - mid_save, record))
     return {
         "instants": instants,
         "mid_save": mid_save,
@@ -148,6 +185,12 @@ def run(
         ),
         "max_age_s": max(r["age_s"] for r in records),
         "max_left_over": max(len(r["left_over"]) for r in records),
+        # None when a run kept no readable message at all (or nothing was recorded): worse than any figure.
+        "max_mcap_lost_s": (
+            max(r["mcap_lost_s"] for r in records)
+            if record and all(r["mcap_lost_s"] is not None for r in records)
+            else None
+        ),
         "records": records,
     }
 
@@ -161,9 +204,14 @@ def main() -> int:
         "--span", type=float, default=4.0, help="kills fall U(0, SPAN) s after the first save"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--no-record", action="store_true", help="no flight recording (no mcap_lost_s): the runs as before"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="map-kill-") as tmp:
-        result = run(args.instants, args.interval, args.span, args.seed, Path(tmp), args.mid_save)
+        result = run(
+            args.instants, args.interval, args.span, args.seed, Path(tmp), args.mid_save, not args.no_record
+        )
     print(json.dumps(result, indent=1))
     return 0
 

@@ -69,10 +69,11 @@ def child_connection(
     """In the child (``python -m module FD``): the connection on the descriptor its command line names, or
     None, with a usage line on stderr, when the command line is not one descriptor number.
 
-    The child ignores SIGUSR1 from here on: it is the agent's "save the map now", and ``systemctl kill``
-    sends a signal to every process of the unit unless told ``--kill-whom=main``; its default action
-    would end the child (the SLAM process, with the map)."""
+    The child ignores SIGUSR1 and SIGUSR2 from here on: they are the agent's "save the map now" and
+    "write a recorder snapshot", and ``systemctl kill`` sends a signal to every process of the unit unless
+    told ``--kill-whom=main``; their default action would end the child (the SLAM process, with the map)."""
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    signal.signal(signal.SIGUSR2, signal.SIG_IGN)
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or not args[0].isdigit():
         print(f"usage: python -m {module} FD (started by {started_by})", file=sys.stderr)

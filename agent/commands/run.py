@@ -82,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
         save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
+        # SIGUSR2 asks the flight recorder for a snapshot (its last [recorder] snapshot_s); dropped likewise.
+        snapshot_request = stack.enter_context(SignalCall(signal.SIGUSR2, lambda: None))
         robot = None
         if config.sim is not None:
             from drivers.sim.harness import SimulatedRobot
@@ -101,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
         save_request.action = agent.request_map_save
+        if agent.flight_recorder is not None:
+            snapshot_request.action = agent.flight_recorder.request_snapshot
         give_way_to_agent(agent, robot)
         agent.start()
         agent.settle_heap()

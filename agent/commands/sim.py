@@ -123,6 +123,19 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "rotation and caps (docs/recording.md); Foxglove opens them",
     )
     p.add_argument(
+        "--snapshot",
+        metavar="SECONDS",
+        type=positive_seconds,
+        default=None,
+        help="with --record (or [recorder] path): keep the last SECONDS in memory and write them to "
+        "PATH-stem-snapshot-0001.mcap, ... on SIGUSR2 and when a device goes bad ([recorder] snapshot_s)",
+    )
+    p.add_argument(
+        "--snapshot-only",
+        action="store_true",
+        help="with --snapshot: write nothing but the snapshots ([recorder] continuous = false)",
+    )
+    p.add_argument(
         "--record-fusion",
         metavar="JSONL",
         help="record what the fusion takes and every pose written as JSON lines, for "
@@ -319,6 +332,16 @@ def _config(args: argparse.Namespace) -> AgentConfig:
     recorder = config.recorder
     if args.record:
         recorder = dataclasses.replace(recorder, path=Path(args.record))
+    if args.snapshot is not None:
+        recorder = dataclasses.replace(recorder, snapshot_s=args.snapshot)
+    if args.snapshot_only:
+        if recorder.snapshot_s == 0:
+            raise UsageError("--snapshot-only needs --snapshot SECONDS (or [recorder] snapshot_s)")
+        recorder = dataclasses.replace(recorder, continuous=False)
+    if recorder.snapshot_s > 0 and recorder.path is None:
+        raise UsageError(
+            "--snapshot needs --record PATH (or [recorder] path): snapshots are written beside it"
+        )
     return config.replace(sim=sim, output=output, record=record, recorder=recorder)
 
 
@@ -336,6 +359,8 @@ def run(args: argparse.Namespace) -> int:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
         save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
+        # SIGUSR2 asks the flight recorder for a snapshot (its last [recorder] snapshot_s); dropped likewise.
+        snapshot_request = stack.enter_context(SignalCall(signal.SIGUSR2, lambda: None))
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
@@ -359,6 +384,8 @@ def run(args: argparse.Namespace) -> int:
             map_dir=out_dir if mapping else None,
         )
         save_request.action = agent.request_map_save
+        if agent.flight_recorder is not None:
+            snapshot_request.action = agent.flight_recorder.request_snapshot
         if agent.flight_recorder is not None:
             scorer.on_truth = _truth_recorder(agent.flight_recorder)
         if agent.mapper is not None:

@@ -14,6 +14,11 @@ of the same stem are deleted until the closed ones plus a full new one fit in ``
 free space of the folder falls below ``min_free_mb`` the recorder closes its file and pauses (samples are
 dropped and counted) until the space is back; the agent keeps running either way, and every such step is
 logged once.
+
+With ``snapshot_s`` > 0 the writer also keeps the last ``snapshot_s`` of encoded messages in memory
+(``agent.recording.snapshot``, at most ``snapshot_mb``) and writes them to ``<stem>-snapshot-<n>.mcap``
+when asked (:meth:`McapRecorder.request_snapshot`, SIGUSR2 under ``run`` and ``sim``) or when a device
+health event goes bad; ``continuous = false`` keeps only that memory (nothing is written until asked).
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from agent.config import RecorderConfig
 from agent.recording.messages import CHANNELS, messages_for
 from agent.recording.reader import FORMAT_VERSION, recording_files
 from agent.recording.schemas import SCHEMAS
+from agent.recording.snapshot import SnapshotRing, next_snapshot_path, write_snapshot
 
 __all__ = ["PROFILE", "McapRecorder", "free_bytes", "recording_files"]
 
@@ -49,6 +55,15 @@ _MAX_CHUNK_BYTES = 8 << 20
 
 def _no_wait() -> None:
     pass
+
+
+def next_wait_s(now_s: float, last_chunk_s: float, chunk_s: float, period_s: float, open_file: bool) -> float:
+    """How long the writer thread sleeps: its pass period, but no later than when the open chunk is due,
+    so a chunk is closed ``chunk_s`` after the last one rather than up to a period later (a kill then
+    loses at most ``chunk_s``, not ``chunk_s`` plus a period)."""
+    if not open_file:
+        return period_s
+    return min(period_s, max(0.0, last_chunk_s + chunk_s - now_s))
 
 
 def free_bytes(folder: Path) -> int:
@@ -98,6 +113,13 @@ class McapRecorder:
         self.writer_cpu_s = 0.0  # CPU time of the writer thread: the recording's cost but for the appends
         self.files: list[Path] = []
         self.deleted: list[Path] = []
+        self.ring: SnapshotRing | None = None
+        if config.snapshot_s > 0:
+            self.ring = SnapshotRing(config.snapshot_s, round(config.snapshot_mb * 1e6))
+        # Appended to by a signal handler or a loop, popped by the writer thread: deque ops are atomic.
+        self._snapshot_requests: collections.deque[str] = collections.deque()
+        self._last_fault_snapshot_ns: int | None = None
+        self.snapshots: list[Path] = []
 
     # -- the loops' side ------------------------------------------------------------------------------
     def record(self, kind: str, t_ns: int, sample: Any) -> None:
@@ -108,12 +130,26 @@ class McapRecorder:
             return
         self._queue.append((kind, t_ns, sample))
 
+    def request_snapshot(self, reason: str = "requested") -> None:
+        """Ask the writer thread to write the snapshot ring to a file at its next pass. Safe from a signal
+        handler (one deque append, no lock); nothing when snapshots are off."""
+        if self.ring is not None:
+            self._snapshot_requests.append(reason)
+
     # -- lifecycle ------------------------------------------------------------------------------------
     def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._thread = threading.Thread(target=self._run, name="agent-recorder", daemon=True)
         self._thread.start()
-        log.info("recording to %s (%s)", self.path.parent, ", ".join(sorted(self.channels)))
+        if self.config.continuous:
+            log.info("recording to %s (%s)", self.path.parent, ", ".join(sorted(self.channels)))
+        if self.ring is not None:
+            log.info(
+                "recorder: keeping the last %g s (at most %g MB) for snapshots in %s",
+                self.config.snapshot_s,
+                self.config.snapshot_mb,
+                self.path.parent,
+            )
 
     def close(self) -> None:
         """Write what is queued, close the file (its summary and footer written) and stop. Twice is fine."""
@@ -128,6 +164,7 @@ class McapRecorder:
                 return
         else:
             self._drain()
+            self._write_snapshots()
         self._finish_file()
 
     def counters(self) -> dict[str, int]:
@@ -139,22 +176,33 @@ class McapRecorder:
         out["record_files_deleted"] = len(self.deleted)
         out["record_paused"] = int(self.paused)
         out["record_writer_cpu_ms"] = round(1e3 * self.writer_cpu_s)
+        if self.ring is not None:
+            out["snapshot_files"] = len(self.snapshots)
+            out["snapshot_ring_messages"] = len(self.ring)
+            out["snapshot_ring_bytes"] = self.ring.bytes
+            out["snapshot_ring_dropped"] = self.ring.dropped
         return out
 
     # -- the writer thread ----------------------------------------------------------------------------
     def _run(self) -> None:
         period_s = max(self.config.chunk_s / 4.0, 0.01)
         c0 = time.thread_time()
-        while not self._stop.wait(period_s):
+        while not self._stop.wait(
+            next_wait_s(
+                self.clock_s(), self._last_chunk_s, self.config.chunk_s, period_s, self._writer is not None
+            )
+        ):
             self.pump()
             self.writer_cpu_s = time.thread_time() - c0
         self._drain()
+        self._write_snapshots()
         self.writer_cpu_s = time.thread_time() - c0
 
     def pump(self) -> None:
         """One pass of the writer: write what is queued, close the chunk when ``chunk_s`` is up, rotate or
         pause when due. The writer thread's body; tests call it directly (no thread, a fake clock)."""
         self._drain()
+        self._write_snapshots()
         self._maybe_close_chunk()
 
     def _drain(self) -> None:
@@ -179,6 +227,15 @@ class McapRecorder:
             return
         if not encoded:
             return
+        if self.ring is not None:
+            for topic, data in encoded:
+                self.ring.append(topic, t_ns, data)
+            if kind == "health" and not sample.ok:
+                self._fault(t_ns, f"{sample.device}: {sample.reason}")
+            if not self.config.continuous:
+                for topic, _ in encoded:
+                    self.counts[topic] += 1
+                return
         writer = self._writer_for_now()
         if writer is None:
             self.counts["record_dropped_disk"] += len(encoded)
@@ -189,6 +246,33 @@ class McapRecorder:
                 channel = self._register(writer, topic)
             writer.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data, sequence=0)
             self.counts[topic] += 1
+
+    def _fault(self, t_ns: int, what: str) -> None:
+        """A device went bad: snapshot what led up to it, at most once per ``snapshot_s`` (a flapping
+        device would otherwise write the same minutes over and over; the skipped ones are counted)."""
+        last = self._last_fault_snapshot_ns
+        if last is not None and t_ns - last < self.config.snapshot_s * 1e9:
+            self.counts["snapshot_faults_skipped"] += 1
+            return
+        self._last_fault_snapshot_ns = t_ns
+        self._snapshot_requests.append(f"fault {what}")
+
+    def _write_snapshots(self) -> None:
+        """Every pending request gets a file (two requests in one pass: two files, the same messages)."""
+        ring = self.ring
+        while ring is not None and self._snapshot_requests:
+            reason = self._snapshot_requests.popleft()
+            path = next_snapshot_path(self.path)
+            self.give_way()
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                n = write_snapshot(path, ring.entries(), reason, PROFILE)
+            except OSError as exc:
+                self.counts["snapshot_errors"] += 1
+                log.warning("recorder: snapshot (%s) to %s failed: %s", reason, path, exc)
+                continue
+            self.snapshots.append(path)
+            log.warning("recorder: snapshot (%s): %d messages to %s", reason, n, path)
 
     def _maybe_close_chunk(self) -> None:
         if self._writer is None:

@@ -41,6 +41,9 @@ INTERVAL_S = 1.0
 # beside four other test processes (load 16). A saver that stopped saving still fails: the mid-save
 # instants wait for a save under way, and without one the kill comes 10 intervals later.
 LOST_BOUND_S = INTERVAL_S + 2.0
+# The flight recording (chunk_s 1 s) of the same runs: a chunk closed every second, from what the writer
+# drained at most 0.25 s before; the same two-core margin.
+MCAP_LOST_BOUND_S = 1.0 + 0.25 + 1.75
 
 
 def test_kill_9_at_random_instants_and_inside_saves_leaves_the_last_saved_map(tmp_path: Path) -> None:
@@ -53,6 +56,8 @@ def test_kill_9_at_random_instants_and_inside_saves_leaves_the_last_saved_map(tm
         # Whatever was left is a temporary file or an image no description names, never the map.
         assert all(name.endswith(".tmp") or name.endswith(".pgm") for name in record["left_over"]), record
         assert 0.0 <= record["age_s"] < LOST_BOUND_S, record
+        assert record["mcap_messages"] > 0 and record["mcap_files_cut"] <= 1, record
+        assert 0.0 <= record["mcap_lost_s"] < MCAP_LOST_BOUND_S, record
 
 
 def known(image: OccupancyImage) -> dict[int, set[tuple[int, int]]]:

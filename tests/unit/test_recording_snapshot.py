@@ -1,0 +1,153 @@
+"""The flight recorder's snapshot: the ring's bounds (time, bytes, the pinned setups), a snapshot file
+written whole and atomically, on request and on a device going bad, with or without the continuous files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agent.config import parse_config
+from agent.recording.messages import HealthSample
+from agent.recording.reader import read_recording
+from agent.recording.snapshot import SnapshotRing, snapshot_files, write_snapshot
+from agent.recording.writer import next_wait_s, recording_files
+from drivers.errors import ConfigError
+from tests.unit.test_recording import OFFICE, feed_scans, recorder, sequences
+
+
+def test_the_ring_keeps_the_last_span_of_log_time_and_counts_what_it_let_go() -> None:
+    ring = SnapshotRing(span_s=2.0, max_bytes=10**9)
+    for i in range(100):  # 10 Hz for 10 s
+        ring.append("/imu", i * 100_000_000, b"x" * 10)
+    kept = ring.entries()
+    # The span is closed: the message exactly span_s older than the newest stays.
+    assert [e.t_ns for e in kept] == [i * 100_000_000 for i in range(79, 100)]
+    assert ring.dropped == 79 and len(ring) == 21
+
+
+def test_the_ring_keeps_under_its_byte_cap_dropping_the_oldest() -> None:
+    ring = SnapshotRing(span_s=3600.0, max_bytes=10_000)
+    for i in range(100):
+        ring.append("/laser/scan", i, bytes(880))  # 880 + 120 overhead: 1000 bytes an entry
+    assert ring.bytes <= 10_000
+    assert [e.t_ns for e in ring.entries()] == list(range(90, 100))
+    assert ring.dropped == 90
+
+
+def test_the_setups_are_kept_whatever_their_age() -> None:
+    ring = SnapshotRing(span_s=1.0, max_bytes=10**6)
+    ring.append("/fusion/setup", 0, b"{}")
+    for i in range(50):
+        ring.append("/imu", i * 100_000_000, b"{}")
+    entries = ring.entries()
+    assert entries[0].topic == "/fusion/setup" and len(entries) == 1 + 11
+    # A message arriving late with a time older than the span is not in a snapshot.
+    ring.append("/laser/scan", 4_800_000_000 - 1_500_000_000, b"{}")
+    assert all(e.t_ns >= 3_900_000_000 for e in ring.entries()[1:]) and len(ring.entries()) == 12
+    with pytest.raises(ValueError):
+        SnapshotRing(0.0, 100)
+
+
+def test_a_snapshot_file_is_whole_and_atomic(tmp_path: Path) -> None:
+    ring = SnapshotRing(span_s=10.0, max_bytes=10**6)
+    for i in range(30):
+        ring.append("/imu", i, b'{"i":%d}' % i)
+    path = tmp_path / "run-snapshot-0001.mcap"
+    assert write_snapshot(path, ring.entries(), "test", "vlp_agent") == 30
+    recording = read_recording(path)
+    assert recording.complete and recording.stopped_at is None
+    assert [m.data["i"] for m in recording.messages] == list(range(30))
+    assert recording.metadata["vlp_agent"]["snapshot_reason"] == "test"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temporary left
+
+    # A write that fails leaves neither the snapshot nor its temporary.
+    with pytest.raises(KeyError):
+        write_snapshot(
+            tmp_path / "run-snapshot-0002.mcap",
+            [*ring.entries()[:3], ring.entries()[0].__class__("/nope", 1, b"{}")],
+            "x",
+            "vlp_agent",
+        )
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+def health(t_s: float, ok: bool) -> tuple[str, int, Any]:
+    t_ns = int(t_s * 1e9)
+    return ("health", t_ns, HealthSample(t_ns, "laser", ok, "up" if ok else "lost"))
+
+
+def test_snapshot_only_writes_nothing_until_asked_then_the_last_span(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, snapshot_s=2.0, continuous=False, chunk_s=0.2)
+    feed_scans(rec, clock, 0, 50)  # 5 s of scans at 10 Hz
+    assert list(tmp_path.iterdir()) == []
+    rec.request_snapshot()
+    rec.pump()
+    [snap] = snapshot_files(tmp_path / "run.mcap")
+    assert snap.name == "run-snapshot-0001.mcap" and rec.snapshots == [snap]
+    got = sequences(snap)  # the last 2 s: 21 scans, 20 where the fake clock's float steps fall short
+    assert got == list(range(got[0], 50)) and len(got) in (20, 21)
+    rec.close()
+    assert recording_files(tmp_path / "run.mcap") == []  # no continuous file, even after close
+    counters = rec.counters()
+    assert counters["snapshot_files"] == 1 and counters["snapshot_ring_dropped"] > 0
+
+
+def test_a_device_going_bad_writes_a_snapshot_once_per_span(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, snapshot_s=2.0, chunk_s=0.2)
+    feed_scans(rec, clock, 0, 10)
+    rec.record(*health(clock.t_s, True))  # a device coming up is no fault
+    rec.pump()
+    assert snapshot_files(tmp_path / "run.mcap") == []
+    rec.record(*health(clock.t_s, False))
+    rec.pump()
+    [snap] = snapshot_files(tmp_path / "run.mcap")
+    recording = read_recording(snap)
+    assert recording.messages[-1].topic == "/health" and recording.messages[-1].data["ok"] is False
+    assert recording.metadata["vlp_agent"]["snapshot_reason"].startswith("fault laser: lost")
+    # Flapping within the span: no second file, counted; after it, a new one.
+    rec.record(*health(clock.t_s + 0.5, False))
+    rec.pump()
+    assert len(snapshot_files(tmp_path / "run.mcap")) == 1
+    assert rec.counters()["snapshot_faults_skipped"] == 1
+    rec.record(*health(clock.t_s + 3.0, False))
+    rec.pump()
+    assert len(snapshot_files(tmp_path / "run.mcap")) == 2
+    rec.close()
+    # The continuous recording went on beside the snapshots, unaffected.
+    [(_, continuous)] = recording_files(tmp_path / "run.mcap")
+    assert sequences(continuous) == list(range(10))
+
+
+def test_a_request_without_snapshots_configured_does_nothing(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, chunk_s=0.2)
+    feed_scans(rec, clock, 0, 5)
+    rec.request_snapshot()
+    rec.pump()
+    rec.close()
+    assert snapshot_files(tmp_path / "run.mcap") == [] and "snapshot_files" not in rec.counters()
+
+
+def test_the_snapshot_config_keys() -> None:
+    base = f'[sim]\nworld = "{OFFICE}"\n[recorder]\npath = "/tmp/x/run.mcap"\n'
+    r = parse_config(base).recorder
+    assert (r.snapshot_s, r.snapshot_mb, r.continuous) == (0.0, 64.0, True)
+    r = parse_config(base + "snapshot_s = 120\nsnapshot_mb = 32\ncontinuous = false\n").recorder
+    assert (r.snapshot_s, r.snapshot_mb, r.continuous) == (120.0, 32.0, False)
+    for text, key in (
+        ("snapshot_s = 0.5", "recorder.snapshot_s"),
+        ("snapshot_s = 10\nsnapshot_mb = 0", "recorder.snapshot_mb"),
+        ("continuous = false", "recorder.continuous"),
+    ):
+        with pytest.raises(ConfigError) as err:
+            parse_config(base + text + "\n")
+        assert err.value.key == key, err.value
+
+
+def test_the_writer_wakes_when_the_chunk_is_due_not_a_period_later() -> None:
+    # chunk_s 1 s, a pass every 0.25 s: the last chunk closed at 10.0, now 10.9 -> wake at 11.0, not 11.15.
+    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=True) == pytest.approx(0.1)
+    assert next_wait_s(10.2, 10.0, 1.0, 0.25, open_file=True) == 0.25
+    assert next_wait_s(11.3, 10.0, 1.0, 0.25, open_file=True) == 0.0  # overdue: at once
+    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=False) == 0.25  # no chunk open: nothing due
