@@ -45,21 +45,7 @@ def nominal_intrinsics(world: World) -> CameraIntrinsics:
 
 def agent_view(world: World) -> AgentView:
     """The nominal camera, the surveyed LED map and the nominal mount."""
-    leds = LedMap(
-        tuple(
-            MapLed(
-                led.id,
-                led.x_m,
-                led.y_m,
-                led.z_m,
-                led.frequency_hz,
-                led.duty,
-                led.diameter_m,
-                led.survey_sigma_m,
-            )
-            for led in surveyed_leds(world)
-        )
-    )
+    leds = LedMap(tuple(MapLed.of(led) for led in surveyed_leds(world)))
     m = world.robot.camera_mount
     return AgentView(
         nominal_intrinsics(world), leds, CameraMount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad)

@@ -68,12 +68,7 @@ def led_map_from_toml(path: Path) -> LedMap:
         leds = read_led_map(path, "led_map", str(path))
     except ConfigError as exc:
         raise CalibrationError(str(exc)) from exc
-    return LedMap(
-        tuple(
-            MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
-            for e in leds
-        )
-    )
+    return LedMap(tuple(MapLed.of(e) for e in leds))
 
 
 def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str | None = None) -> VlpView:
@@ -83,12 +78,7 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
         from drivers.sim.worldfile import surveyed_leds
 
         intrinsics = nominal_intrinsics(world)
-        leds: LedMap | None = LedMap(
-            tuple(
-                MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
-                for e in surveyed_leds(world)
-            )
-        )
+        leds: LedMap | None = LedMap(tuple(MapLed.of(e) for e in surveyed_leds(world)))
         m = world.robot.camera_mount
         mount = CameraMount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad)
         source = f"world {world.name!r}: nominal camera, surveyed LED map"
@@ -114,12 +104,7 @@ def view_for(ctx: StepContext, *, camera_info: str | None = None, led_map: str |
         intrinsics = intrinsics_from_config(c)
         leds = None
         if vlp.leds is not None:
-            leds = LedMap(
-                tuple(
-                    MapLed(e.id, e.x_m, e.y_m, e.z_m, e.frequency_hz, e.duty, e.diameter_m, e.survey_sigma_m)
-                    for e in vlp.leds
-                )
-            )
+            leds = LedMap(tuple(MapLed.of(e) for e in vlp.leds))
         m2 = vlp.mount
         mount = (
             CameraMount()

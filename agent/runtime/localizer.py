@@ -129,35 +129,11 @@ def make_localizer(
     else:
         return None, "no camera calibration"
     if config.leds is not None:
-        leds = tuple(
-            MapLed(
-                led.id,
-                led.x_m,
-                led.y_m,
-                led.z_m,
-                led.frequency_hz,
-                led.duty,
-                led.diameter_m,
-                led.survey_sigma_m,
-            )
-            for led in config.leds
-        )
+        leds = tuple(MapLed.of(led) for led in config.leds)
     elif world is not None:
         from drivers.sim.worldfile import surveyed_leds
 
-        leds = tuple(
-            MapLed(
-                led.id,
-                led.x_m,
-                led.y_m,
-                led.z_m,
-                led.frequency_hz,
-                led.duty,
-                led.diameter_m,
-                led.survey_sigma_m,
-            )
-            for led in surveyed_leds(world)
-        )
+        leds = tuple(MapLed.of(led) for led in surveyed_leds(world))
     else:
         return None, "no LED map"
     m = config.mount

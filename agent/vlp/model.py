@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -223,6 +224,34 @@ class MapLed:
     duty: float
     diameter_m: float = 0.086
     survey_sigma_m: float | None = None
+
+    @classmethod
+    def of(cls, led: SurveyedLed) -> MapLed:
+        """The map's LED from any record of one (an LED map file's entry, a world file's LED)."""
+        return cls(
+            led.id, led.x_m, led.y_m, led.z_m, led.frequency_hz, led.duty, led.diameter_m, led.survey_sigma_m
+        )
+
+
+class SurveyedLed(Protocol):
+    """What a record of a surveyed LED carries: :class:`MapLed`'s fields, read-only."""
+
+    @property
+    def id(self) -> str: ...
+    @property
+    def x_m(self) -> float: ...
+    @property
+    def y_m(self) -> float: ...
+    @property
+    def z_m(self) -> float: ...
+    @property
+    def frequency_hz(self) -> float: ...
+    @property
+    def duty(self) -> float: ...
+    @property
+    def diameter_m(self) -> float: ...
+    @property
+    def survey_sigma_m(self) -> float | None: ...
 
 
 @dataclass(frozen=True)
