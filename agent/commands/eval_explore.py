@@ -243,17 +243,7 @@ def run_eval(
     """Explore ``world`` (see the module docstring); the summary as a JSON-ready dict and the picture."""
     from agent.slam.fix import PoseFix
     from agent.slam.pose import between, compose
-    from agent.slam.simlog import (
-        TICK_S,
-        VlpFixModel,
-        WheelErrorModel,
-        _FakeClock,
-        _ModelledFixes,
-        _Odometry,
-        _Scanner,
-        laser_geometry,
-        nominal_geometry,
-    )
+    from agent.slam.simlog import TICK_S, simulated_sensors
     from drivers.sim.raycast import walls_array
     from drivers.sim.simulation import Simulation
 
@@ -264,20 +254,9 @@ def run_eval(
         max_wheel_speed_mps=robot.max_wheel_radps * robot.wheel_radius_m,
     )
     config = config or ExploreConfig(explorer=explorer_kind)
-    rng = np.random.default_rng(seed)
-    clock = _FakeClock()
-    sim = Simulation(world, clock=clock, seed=seed)
-    geometry = laser_geometry(world)
-    scanner = _Scanner(sim, world.laser, geometry, np.random.default_rng(rng.integers(1 << 32)))
-    errors = WheelErrorModel()
-    odometry = _Odometry(
-        world,
-        errors,
-        nominal_geometry(world, errors),
-        sim.wheels().position_rad,
-        np.random.default_rng(rng.integers(1 << 32)),
-    )
-    fixes = _ModelledFixes(world, VlpFixModel(), np.random.default_rng(rng.integers(1 << 32)))
+    sensors = simulated_sensors(world, seed)
+    clock, sim, geometry = sensors.clock, sensors.sim, sensors.geometry
+    scanner, odometry, fixes = sensors.scanner, sensors.odometry, sensors.fixes
     spec, true_occupied = rasterize_walls(world, nav.resolution_m)
     start = robot.start
     target_area = reachable_free(spec, true_occupied, (start.x_m, start.y_m))

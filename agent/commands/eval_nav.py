@@ -186,19 +186,8 @@ def run_eval(
     """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict.
     ``on_goal`` is told each goal's result as it ends."""
     from agent.slam.pose import between, compose
-    from agent.slam.simlog import (
-        TICK_S,
-        VlpFixModel,
-        WheelErrorModel,
-        _FakeClock,
-        _ModelledFixes,
-        _Odometry,
-        _Scanner,
-        laser_geometry,
-        nominal_geometry,
-    )
+    from agent.slam.simlog import TICK_S, simulated_sensors
     from drivers.sim.raycast import distance_to_segments, walls_array
-    from drivers.sim.simulation import Simulation
 
     robot = world.robot
     if config is None:
@@ -207,20 +196,9 @@ def run_eval(
             track_m=robot.track_m,
             max_wheel_speed_mps=robot.max_wheel_radps * robot.wheel_radius_m,
         )
-    rng = np.random.default_rng(seed)
-    clock = _FakeClock()
-    sim = Simulation(world, clock=clock, seed=seed)
-    geometry = laser_geometry(world)
-    scanner = _Scanner(sim, world.laser, geometry, np.random.default_rng(rng.integers(1 << 32)))
-    errors = WheelErrorModel()
-    odometry = _Odometry(
-        world,
-        errors,
-        nominal_geometry(world, errors),
-        sim.wheels().position_rad,
-        np.random.default_rng(rng.integers(1 << 32)),
-    )
-    fixes = _ModelledFixes(world, VlpFixModel(), np.random.default_rng(rng.integers(1 << 32)))
+    sensors = simulated_sensors(world, seed)
+    rng, clock, sim, geometry = sensors.rng, sensors.clock, sensors.sim, sensors.geometry
+    scanner, odometry, fixes = sensors.scanner, sensors.odometry, sensors.fixes
     spec, occupied = rasterize_walls(world, config.resolution_m)
     costmap = Costmap(spec, occupied, np.zeros(spec.shape, dtype=bool), config)
     mount = robot.laser_mount

@@ -412,6 +412,41 @@ class _Scanner:
         return out
 
 
+@dataclass
+class SimulatedSensors:
+    """A simulated robot on a clock the caller sets (``clock.t_s``), with the sensors an offline evaluation
+    reads as it drives: laser sweeps, wheel odometry with the default wheel errors, and modelled VLP fixes.
+    ``rng`` is what is left of the seed's generator, for the caller's own draws (goals, ...)."""
+
+    clock: _FakeClock
+    sim: Simulation
+    geometry: LaserGeometry
+    scanner: _Scanner
+    odometry: _Odometry
+    fixes: _ModelledFixes
+    rng: np.random.Generator
+
+
+def simulated_sensors(world: World, seed: int) -> SimulatedSensors:
+    """``world`` at time 0 with its sensors, every random stream drawn from ``seed`` (``eval nav``,
+    ``eval explore``)."""
+    rng = np.random.default_rng(seed)
+    clock = _FakeClock()
+    sim = Simulation(world, clock=clock, seed=seed)
+    geometry = laser_geometry(world)
+    scanner = _Scanner(sim, world.laser, geometry, np.random.default_rng(rng.integers(1 << 32)))
+    errors = WheelErrorModel()
+    odometry = _Odometry(
+        world,
+        errors,
+        nominal_geometry(world, errors),
+        sim.wheels().position_rad,
+        np.random.default_rng(rng.integers(1 << 32)),
+    )
+    fixes = _ModelledFixes(world, VlpFixModel(), np.random.default_rng(rng.integers(1 << 32)))
+    return SimulatedSensors(clock, sim, geometry, scanner, odometry, fixes, rng)
+
+
 def simulate_log(
     world: World,
     seconds: float,
