@@ -79,7 +79,10 @@ def test_a_sim_recording_has_every_channel_and_every_message_validates(tmp_path:
     # Rates: the URG's 10 Hz less the 2 s without the laser; a fix for nearly every 30 Hz camera frame.
     assert 0.7 * 10 * (SECONDS - 2) <= counts["scans"] <= 1.1 * 10 * SECONDS
     assert 0.5 * 30 * SECONDS <= n("/vlp/fix") + n("/vlp/no_fix") <= summary["camera_frames"]
-    assert n("/map") >= 2 and n("/slam/pose") >= 5
+    # SLAM's poses, each handed to the fusion (fused or rejected) as it was recorded. How many there are
+    # depends on how soon the SLAM process was up: 3 in 15 s beside a CPU hog (a hog run), ~13 idle.
+    assert n("/slam/pose") == counts.get("slam_fused", 0) + counts.get("slam_rejected", 0) >= 1
+    assert n("/map") >= 1
     health = [(m.data["device"], m.data["ok"]) for m in by_topic["/health"]]
     assert ("laser", False) in health and health.index(("laser", False)) < len(health) - 1
     fix = by_topic["/vlp/fix"][len(by_topic["/vlp/fix"]) // 2].data
