@@ -29,6 +29,7 @@ The chain (``reference/vlp.md`` §1.4, the reference paper's Fig. 1(b)):
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.interpolate import CubicSpline
 
-from agent.vlp.model import Signature
+from agent.vlp.model import CameraIntrinsics, Signature
 
 FloatArray = npt.NDArray[np.float64]
 ImageU8 = npt.NDArray[np.uint8]
@@ -48,6 +49,7 @@ __all__ = [
     "Classification",
     "DecoderConfig",
     "LedRequest",
+    "RowTiming",
     "SpectralPeriod",
     "SplineInterpolator",
     "StripeDecoder",
@@ -55,13 +57,17 @@ __all__ = [
     "classify",
     "classify_many",
     "fft_period",
+    "fit_period",
     "lexw_threshold",
+    "match_signatures",
+    "normalised_profile",
     "signature_table",
     "stripe_edges",
     "stripe_profile",
 ]
 
 MODES = ("row_mean", "middle_column")
+PERIOD_FITS = ("never", "ambiguous", "always")
 
 # One LED to decode: (centre_px, radius_px, background_dn, fft_check), as the arguments of
 # StripeDecoder.features.
@@ -83,7 +89,19 @@ class DecoderConfig:
     ``dark_margin_dn`` / ``dark_compensation_dn``: a window minimum within the margin of the background is
     replaced by background + compensation (reference: below 20 DN -> 40 DN for its camera; 0 here, for a
     linear sensor). ``edge_sigma_px``: edge position noise for the classifier; ``edge_cap_px``: a worse
-    misfit counts as this much. ``min_confidence``: below it, a frame's id is left undecided."""
+    misfit counts as this much. ``min_confidence``: below it, a frame's id is left undecided.
+
+    The sub-row period fit (:func:`fit_period`, :func:`match_signatures`): ``period_fit`` says when it runs:
+    ``"never"`` (the edges alone), ``"ambiguous"`` (for an LED whose measured period lies within
+    ``ambiguous_fraction`` of two or more signatures' periods: close signatures, the only case where the
+    edges' resolution is not enough), ``"always"`` (every LED: the survey and the row-time calibration).
+    ``fit_noise_floor``: the least noise assumed on the normalised profile (a fraction of the stripe's
+    height) when the fit's residual is smaller.
+    Refusals (a :class:`Classification` with ``id`` None and a ``reason``, no vote): a profile with less
+    than ``min_contrast_dn`` between its brightest and darkest rows (``low-contrast``); one shorter than
+    ``min_profile_periods`` periods of the best signature (``blob-too-short``); a best signature whose
+    shorter stripe (bright or dark) lasts less than ``min_stripe_rows`` output rows, which the
+    nearest-neighbour resize can drop whole (``stripe-too-short``)."""
 
     mode: str = "row_mean"
     interpolation: float = 3.9
@@ -100,10 +118,18 @@ class DecoderConfig:
     end_margin_px: float = 0.8
     min_confidence: float = 0.6
     max_misfit_per_edge: float = 3.0
+    period_fit: str = "ambiguous"
+    ambiguous_fraction: float = 0.2
+    fit_noise_floor: float = 0.03
+    min_contrast_dn: float = 10.0
+    min_stripe_rows: float = 1.0
+    min_profile_periods: float = 1.5
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.period_fit not in PERIOD_FITS:
+            raise ValueError(f"period_fit must be one of {PERIOD_FITS}, got {self.period_fit!r}")
         if not self.interpolation >= 1.0:
             raise ValueError(f"interpolation must be >= 1, got {self.interpolation}")
 
@@ -133,11 +159,16 @@ class StripeFeatures:
 @dataclass(frozen=True, slots=True)
 class Classification:
     """The id this frame's stripes give (``None``: undecided), its posterior probability, and the
-    log-likelihood of every signature (in the order given to :func:`classify`)."""
+    log-likelihood of every signature (in the order given to :func:`classify`). ``reason``: why there is
+    no id, a code and its detail (``"unresolved: A (2000 Hz) and B (2050 Hz) ..."``, ``"low-contrast: ..."``,
+    ``"too-few-stripes: ..."``, ``"blob-too-short: ..."``, ``"stripe-too-short: ..."``, ``"poor-fit: ..."``);
+    None when there is an id. A refusal for what the frame cannot show (contrast, length, a stripe shorter
+    than a row) carries no log-likelihoods, so it does not vote."""
 
     id: str | None
     confidence: float
     log_likelihood: tuple[float, ...]
+    reason: str | None = None
 
 
 class SplineInterpolator:
@@ -384,7 +415,7 @@ def classify(
     """
     k_sig = len(signatures)
     if k_sig == 0:
-        return Classification(None, 0.0, ())
+        return Classification(None, 0.0, (), "no signatures to compare with")
     if table is None:
         table = signature_table(signatures, t_row_eff_s)
     period, duty = table
@@ -419,8 +450,34 @@ def classify(
     best = int(loglik.argmax())
     confidence = 1.0 / float(np.exp(loglik - loglik[best]).sum())
     misfit_ok = n_edges >= 2 and float(chi2[best]) <= config.max_misfit_per_edge**2 * n_edges
+    ll = loglik.tolist()
     chosen = signatures[best].id if (confidence >= config.min_confidence and misfit_ok) else None
-    return Classification(chosen, confidence if misfit_ok else 0.0, tuple(loglik.tolist()))
+    reason = None if chosen else _undecided(n_edges, float(chi2[best]), confidence, ll, signatures, config)
+    return Classification(chosen, confidence if misfit_ok else 0.0, tuple(ll), reason)
+
+
+def _undecided(
+    n_edges: int,
+    chi2_best: float,
+    confidence: float,
+    loglik: list[float],
+    signatures: tuple[Signature, ...],
+    config: DecoderConfig,
+) -> str:
+    """Why a frame's edges name no signature."""
+    if n_edges < 2:
+        return f"too-few-stripes: {n_edges} edge{'s' if n_edges != 1 else ''}, 2 needed"
+    if chi2_best > config.max_misfit_per_edge**2 * n_edges:
+        return f"poor-fit: chi2 {chi2_best:.0f} over {n_edges} edges fits no signature"
+    order = sorted(range(len(loglik)), key=lambda k: -loglik[k])
+    a = signatures[order[0]]
+    if len(order) < 2:
+        return f"unresolved: {a.id} at posterior {confidence:.2f}"
+    b = signatures[order[1]]
+    return (
+        f"unresolved: {a.id} ({a.frequency_hz:.0f} Hz, duty {a.duty:.2f}) and {b.id} "
+        f"({b.frequency_hz:.0f} Hz, duty {b.duty:.2f}) fit alike (posterior {confidence:.2f})"
+    )
 
 
 def classify_many(
@@ -536,7 +593,8 @@ def _classify_batch(
         confidence = 1.0 / math.fsum([math.exp(v - top) for v in ll])
         ok = n_edges >= 2 and c2[best] <= limit * n_edges
         chosen = signatures[best].id if (confidence >= config.min_confidence and ok) else None
-        out.append(Classification(chosen, confidence if ok else 0.0, tuple(ll)))
+        reason = None if chosen else _undecided(n_edges, c2[best], confidence, ll, signatures, config)
+        out.append(Classification(chosen, confidence if ok else 0.0, tuple(ll), reason))
     return out
 
 
@@ -653,6 +711,160 @@ def _lexw_edges_batch(
     return _EdgeBatch(positions, binary[after_c], bounds)
 
 
+@dataclass(frozen=True)
+class RowTiming:
+    """When each output row was exposed, in output rows: ``clock_rows[v]`` = (the sensor row that output row
+    v shows) / (sensor rows per output row), so that a stripe period of P = 1 / (f t_row_eff) rows holds
+    exactly in this clock, and ``exposure_rows`` = T_exp / t_row_eff. A frame resized with nearest
+    neighbour shows sensor rows 0, 2, 5, 7, 10, ... (2.56 apart on average at 1536 -> 600): row v's time is
+    off the uniform a v by up to half a sensor row, which the clock removes."""
+
+    clock_rows: FloatArray
+    exposure_rows: float
+
+    @classmethod
+    def uniform(cls, height_px: int, exposure_rows: float) -> RowTiming:
+        return cls(np.arange(height_px, dtype=np.float64), exposure_rows)
+
+    @classmethod
+    def of(cls, intrinsics: CameraIntrinsics) -> RowTiming:
+        """The timing of the camera's frames (OpenCV ``resizeNN``'s row selection, as
+        :meth:`CameraIntrinsics.from_sensor` models it)."""
+        h, sensor = intrinsics.height_px, intrinsics.sensor_height_px
+        exposure = intrinsics.exposure_s / intrinsics.t_row_eff_s
+        if sensor <= 0 or sensor == h:
+            return cls.uniform(h, exposure)
+        ifx = 1.0 / (h / sensor)
+        rows = np.minimum(np.floor(np.arange(h, dtype=np.float64) * ifx), sensor - 1)
+        return cls(rows / intrinsics.sensor_rows_per_row, exposure)
+
+    def clock(self, first_row: int, n: int) -> FloatArray:
+        """The clock of ``n`` rows from ``first_row`` (rows past the table's end continue it uniformly)."""
+        table = self.clock_rows
+        if first_row + n <= table.size:
+            out: FloatArray = table[first_row : first_row + n]
+            return out
+        return np.arange(first_row, first_row + n, dtype=np.float64)
+
+
+def normalised_profile(profile: FloatArray, background_dn: float) -> FloatArray | None:
+    """The profile as the fraction of the LED's light each row caught: (y - background) / (envelope -
+    background), the envelope a parabola fitted to the bright rows (above the middle of the profile's range:
+    the lamp's fall-off across the disk). None when too few rows are bright to fit it."""
+    n = profile.size
+    lo, hi = max(float(profile.min()), background_dn), float(profile.max())
+    if n < 6 or hi - lo <= 0.0:
+        return None
+    x = np.linspace(-1.0, 1.0, n)
+    bright = profile > lo + 0.6 * (hi - lo)
+    if int(bright.sum()) < 3:
+        return None
+    xb, yb = x[bright], profile[bright]
+    if np.ptp(xb) < 0.5:
+        envelope = np.full(n, float(np.median(yb)))
+    else:
+        coef = np.polyfit(xb, yb, 2 if xb.size >= 5 else 1)
+        envelope = np.polyval(coef, x)
+    height = np.maximum(envelope - background_dn, 0.25 * (hi - background_dn))
+    z: FloatArray = (profile - background_dn) / height
+    return z
+
+
+def _pwm_fractions(
+    clock: FloatArray, period: FloatArray, phase: FloatArray, duty: FloatArray, exposure: float
+) -> FloatArray:
+    """(G, n): the share of each row's exposure the LED was on, for G (period, phase, duty) candidates:
+    the box filter of the square wave in closed form (the renderer's ``pwm_exposure_fraction``); the wave is
+    on while frac(c / P + phase) < D, c the row's clock at the start of its exposure."""
+    w = max(exposure, 1e-3)
+    ua = clock[None, :] / period[:, None] + phase[:, None]
+    ub = ua + (w / period)[:, None]
+    fa, fb = np.floor(ua), np.floor(ub)
+    d = duty[:, None]
+    on = (fb - fa) * d + np.minimum(ub - fb, d) - np.minimum(ua - fa, d)
+    out: FloatArray = on * (period / w)[:, None]
+    return out
+
+
+def _fit_costs(
+    z: FloatArray, clock: FloatArray, period: FloatArray, phase: FloatArray, duty: FloatArray, exposure: float
+) -> FloatArray:
+    r = z[None, :] - _pwm_fractions(clock, period, phase, duty, exposure)
+    out: FloatArray = np.einsum("gn,gn->g", r, r)
+    return out
+
+
+_PHASES = 32
+
+
+def _best_phase(
+    z: FloatArray, clock: FloatArray, period: FloatArray, duty: FloatArray, exposure: float
+) -> tuple[FloatArray, FloatArray]:
+    """Per (period, duty) candidate, the least squared misfit over the phase and the phase: a grid of 32
+    phases, then two finer grids around the best."""
+    k = period.size
+    grid = np.arange(_PHASES, dtype=np.float64) / _PHASES
+    p = np.repeat(period, _PHASES)
+    d = np.repeat(duty, _PHASES)
+    cost = _fit_costs(z, clock, p, np.tile(grid, k), d, exposure).reshape(k, _PHASES)
+    best = grid[cost.argmin(axis=1)]
+    step = 1.0 / _PHASES
+    offsets = np.linspace(-1.0, 1.0, 7)
+    for _ in range(2):
+        step /= 3.0
+        phases = (best[:, None] + 3.0 * step * offsets[None, :]).ravel()
+        c2 = _fit_costs(z, clock, np.repeat(period, 7), phases, np.repeat(duty, 7), exposure).reshape(k, 7)
+        best = phases.reshape(k, 7)[np.arange(k), c2.argmin(axis=1)]
+        cost = c2
+    return cost.min(axis=1), best
+
+
+def match_signatures(
+    z: FloatArray, clock: FloatArray, periods: FloatArray, duties: FloatArray, exposure_rows: float
+) -> FloatArray:
+    """Least squared misfit of the normalised profile ``z`` (rows at ``clock``) to each signature's
+    rendered stripes (its period and duty, the phase fitted): the sub-row test of close signatures, which
+    uses every row (also those caught half-way through an edge), not only the edges' crossings."""
+    costs, _ = _best_phase(z, clock, periods, duties, exposure_rows)
+    return costs
+
+
+def fit_period(
+    z: FloatArray,
+    clock: FloatArray,
+    period0: float,
+    duty: float,
+    exposure_rows: float,
+    half_range: float | None = None,
+) -> tuple[float, float, float]:
+    """The stripe period below the output row: the period (and phase) whose rendered stripes fit the
+    normalised profile ``z`` best, searched within ``half_range`` (default 8 %) of ``period0`` (the edges'
+    estimate) on a grid of 17 periods, then on two finer grids. Returns (period, its resolution, the
+    residual's rms): the resolution is half the width of the periods whose misfit stays within 4 noise
+    variances of the best (where they cannot be told apart from it)."""
+    n = z.size
+    h = 0.08 * period0 if half_range is None else half_range
+    periods = np.linspace(period0 - h, period0 + h, 17)
+    duties = np.full(periods.size, duty)
+    costs, _ = _best_phase(z, clock, periods, duties, exposure_rows)
+    i = int(costs.argmin())
+    best_p, best_c = float(periods[i]), float(costs[i])
+    step = float(periods[1] - periods[0])
+    for _ in range(2):
+        step /= 3.0
+        fine = best_p + step * np.linspace(-3.0, 3.0, 7)
+        c2, _ = _best_phase(z, clock, fine, np.full(7, duty), exposure_rows)
+        j = int(c2.argmin())
+        if float(c2[j]) <= best_c:
+            best_p, best_c = float(fine[j]), float(c2[j])
+    noise = max(best_c / max(n - 4, 1), 0.0)
+    level = best_c + 4.0 * noise
+    within = periods[costs <= level]
+    resolution = 0.5 * float(within.max() - within.min()) if within.size else 0.0
+    resolution = max(resolution, 0.5 * float(periods[1] - periods[0]))
+    return best_p, resolution, math.sqrt(noise)
+
+
 class StripeDecoder:
     """Profile -> spline -> LEXW -> edges, runs, period, frequency, duty, FFT check -> classification.
 
@@ -661,8 +873,9 @@ class StripeDecoder:
     the classification as one batch of array operations, which costs little more than one LED.
     """
 
-    def __init__(self, config: DecoderConfig = DecoderConfig()) -> None:
+    def __init__(self, config: DecoderConfig = DecoderConfig(), timing: RowTiming | None = None) -> None:
         self.config = config
+        self.timing = timing
         self._spline = SplineInterpolator(config.interpolation, config.smooth_samples)
         self._spectral = SpectralPeriod()
         self._table_key: tuple[tuple[Signature, ...], float] | None = None
@@ -688,7 +901,13 @@ class StripeDecoder:
     ) -> list[StripeFeatures]:
         """:meth:`features` of several LEDs of one frame, each given as (centre_px, radius_px,
         background_dn, fft_check)."""
-        return self._features(image, leds, t_row_eff_s)[0]
+        features, _, _, profiles = self._features(image, leds, t_row_eff_s)
+        if self.config.period_fit == "always":
+            features = [
+                self._fitted(f, p, first, led[2], t_row_eff_s)[0]
+                for f, (p, first), led in zip(features, profiles, leds, strict=True)
+            ]
+        return features
 
     def decode_many(
         self,
@@ -699,7 +918,7 @@ class StripeDecoder:
     ) -> list[tuple[StripeFeatures, Classification]]:
         """:meth:`features_many` and :meth:`classify_many` in one go (the edges stay in the batch's arrays
         between the two)."""
-        features, batch, members = self._features(image, leds, t_row_eff_s)
+        features, batch, members, profiles = self._features(image, leds, t_row_eff_s)
         table = self._signature_table(signatures, t_row_eff_s)
         classes: list[Classification | None] = [None] * len(leds)
         if batch is not None and signatures:
@@ -738,11 +957,106 @@ class StripeDecoder:
                     table,
                 )
             out.append((f, c))
-        return out
+        return [
+            self._checked(f, c, profile, first, led[2], signatures, t_row_eff_s, table)
+            for (f, c), (profile, first), led in zip(out, profiles, leds, strict=True)
+        ]
+
+    def _clock(self, first_row: int, n: int, t_row_eff_s: float) -> tuple[FloatArray, float]:
+        """The rows' clock and the exposure in rows (uniform rows and a 20 us exposure without a timing)."""
+        if self.timing is not None:
+            return self.timing.clock(first_row, n), self.timing.exposure_rows
+        return np.arange(first_row, first_row + n, dtype=np.float64), 20e-6 / t_row_eff_s
+
+    def _fitted(
+        self, f: StripeFeatures, profile: FloatArray, first_row: int, background_dn: float, t_row_eff_s: float
+    ) -> tuple[StripeFeatures, FloatArray | None, FloatArray]:
+        """The features with the period fitted below the output row (:func:`fit_period`), the normalised
+        profile (None when it cannot be normalised) and its clock."""
+        clock, exposure = self._clock(first_row, profile.size, t_row_eff_s)
+        z = normalised_profile(profile, background_dn) if math.isfinite(f.period_px) else None
+        if z is None:
+            return f, z, clock
+        duty = f.duty if math.isfinite(f.duty) else 0.5
+        period, _, _ = fit_period(z, clock, f.period_px, duty, exposure)
+        return dataclasses.replace(f, period_px=period, frequency_hz=1.0 / (period * t_row_eff_s)), z, clock
+
+    def _checked(
+        self,
+        f: StripeFeatures,
+        c: Classification,
+        profile: FloatArray,
+        first_row: int,
+        background_dn: float,
+        signatures: tuple[Signature, ...],
+        t_row_eff_s: float,
+        table: tuple[FloatArray, FloatArray],
+    ) -> tuple[StripeFeatures, Classification]:
+        """What the edges said, checked against what the frame can show and, for close signatures, decided
+        by the sub-row fit (see :class:`DecoderConfig`)."""
+        cfg = self.config
+        if f.length_px and f.contrast_dn < cfg.min_contrast_dn:
+            return f, Classification(
+                None,
+                0.0,
+                (),
+                f"low-contrast: {f.contrast_dn:.0f} DN between the brightest and darkest rows, "
+                f"{cfg.min_contrast_dn:.0f} needed",
+            )
+        if not signatures or not c.log_likelihood:
+            return f, c
+        period, duty = table
+        ll = list(c.log_likelihood)
+        if cfg.period_fit != "never" and math.isfinite(f.period_px) and f.length_px >= 6:
+            close = [
+                k
+                for k in range(len(signatures))
+                if abs(period[k] - f.period_px) <= cfg.ambiguous_fraction * period[k]
+            ]
+            if len(close) >= 2 or cfg.period_fit == "always":
+                f, z, clock = self._fitted(f, profile, first_row, background_dn, t_row_eff_s)
+                if z is not None and len(close) >= 2 and not (c.reason or "").startswith("poor-fit"):
+                    exposure = self.timing.exposure_rows if self.timing is not None else 20e-6 / t_row_eff_s
+                    costs = match_signatures(z, clock, period[close], duty[close], exposure)
+                    noise = max(float(costs.min()) / max(z.size - 3, 1), cfg.fit_noise_floor**2)
+                    fitted = (-0.5 / noise) * costs
+                    base = max(ll[k] for k in close)
+                    top = float(fitted.max())
+                    for k, v in zip(close, fitted.tolist(), strict=True):
+                        ll[k] = base + v - top
+                    best = ll.index(max(ll))
+                    confidence = 1.0 / math.fsum(math.exp(v - ll[best]) for v in ll)
+                    chosen = signatures[best].id if confidence >= cfg.min_confidence else None
+                    reason = None if chosen else _undecided(2, 0.0, confidence, ll, signatures, cfg)
+                    c = Classification(chosen, confidence, tuple(ll), reason)
+        if c.id is None:
+            return f, c
+        best = ll.index(max(ll))
+        p_best, d_best = float(period[best]), float(duty[best])
+        stripe = min(d_best, 1.0 - d_best) * p_best
+        sig = signatures[best]
+        if stripe < cfg.min_stripe_rows:
+            kind = "bright" if d_best <= 0.5 else "dark"
+            return f, Classification(
+                None,
+                0.0,
+                (),
+                f"stripe-too-short: {sig.id}'s {kind} stripe lasts {stripe:.2f} rows, under "
+                f"{cfg.min_stripe_rows:g}: the resize can drop it",
+            )
+        if f.length_px < cfg.min_profile_periods * p_best:
+            return f, Classification(
+                None,
+                0.0,
+                (),
+                f"blob-too-short: {f.length_px} rows hold {f.length_px / p_best:.1f} periods of {sig.id} "
+                f"({p_best:.1f} rows), {cfg.min_profile_periods:g} needed",
+            )
+        return f, c
 
     def _features(
         self, image: ImageU8, leds: list[LedRequest], t_row_eff_s: float
-    ) -> tuple[list[StripeFeatures], _EdgeBatch | None, list[int]]:
+    ) -> tuple[list[StripeFeatures], _EdgeBatch | None, list[int], list[tuple[FloatArray, int]]]:
         """The features of every LED, the edge batch of those with a profile long enough to decode, and
         which LEDs those are (in batch order)."""
         cfg = self.config
@@ -775,7 +1089,7 @@ class StripeDecoder:
                 out[i] = self._summarise(
                     profile, first_row, positions[b0:b1], rising[b0:b1], t_row_eff_s, leds[i][3]
                 )
-        return out, batch, members
+        return out, batch, members, profiles
 
     def _summarise(
         self,

@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.vlp.calibration import VlpCalibration
-from agent.vlp.decode import DecoderConfig, LedRequest, StripeDecoder
+from agent.vlp.decode import DecoderConfig, LedRequest, RowTiming, StripeDecoder
 from agent.vlp.detect import (
     Blob,
     DetectorConfig,
@@ -156,7 +156,7 @@ class VlpPipeline:
         # Each LED's survey sigma where the map states it (else the solver's map_sigma_m); None: none does.
         self._map_sigmas_m = led_map.map_sigmas_m(config.solver.map_sigma_m)
         self.detector = config.detector if config.detector is not None else self._detector_for_map()
-        self.decoder = StripeDecoder(config.decoder)
+        self.decoder = StripeDecoder(config.decoder, RowTiming.of(self.intrinsics))
         self.tracker = LedTracker(self.detector, config.tracker)
         self._frames = 0
         self._last: _LastFix | None = None
