@@ -142,7 +142,11 @@ def main() -> int:
     for name in ("edges", "fit"):
         right = [c[name]["ids"]["right"] for c in cases if c[name]["ids"]["right"] is not None]
         wrong = [c[name]["ids"]["wrong"] for c in cases if c[name]["ids"]["wrong"] is not None]
-        rel = [c[name]["period_error"]["rms_rows"] / c["period_rows"] for c in cases if c[name]["period_error"]["n"]]
+        rel = [
+            c[name]["period_error"]["rms_rows"] / c["period_rows"]
+            for c in cases
+            if c[name]["period_error"]["n"]
+        ]
         summary[name] = {
             "ids_right_mean": round(float(np.mean(right)), 3),
             "ids_wrong_mean": round(float(np.mean(wrong)), 3),

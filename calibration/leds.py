@@ -27,6 +27,8 @@ import numpy as np
 
 from agent.vlp.decode import StripeDecoder
 from agent.vlp.detect import DetectorConfig, find_blobs
+from agent.vlp.model import CameraIntrinsics, LedMap, MapLed
+from agent.vlp.signatures import check_signatures
 from calibration import plot
 from calibration.context import StepContext
 from calibration.report import (
@@ -347,7 +349,32 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                 f"  {entry.id}: {m.frequency_hz:.0f} Hz (+-{m.frequency_spread_hz:.0f}), duty {m.duty:.3f} "
                 f"(+-{m.duty_spread:.3f}), {m.frames}/{m.frames_tried} frames"
             )
-    return _result(measured, truth, view.source, output)
+    return _result(measured, truth, view.source, output, _camera_warnings(measured, intrinsics, mount.z_m))
+
+
+def _camera_warnings(measured: list[Measured], intrinsics: CameraIntrinsics, lens_z_m: float) -> list[str]:
+    """What this camera cannot tell apart in the measured map (``agent.vlp.signatures``): pairs closer than
+    the decoder's resolution, stripes shorter than a row, too few stripes across a blob."""
+    if not measured:
+        return []
+    try:
+        leds = LedMap(
+            tuple(
+                MapLed(
+                    m.entry.id,
+                    m.entry.x_m,
+                    m.entry.y_m,
+                    m.entry.z_m,
+                    m.frequency_hz,
+                    m.duty,
+                    m.entry.diameter_m,
+                )
+                for m in measured
+            )
+        )
+    except ValueError:
+        return []  # one id measured with two signatures: close_pairs says so
+    return [w.message for w in check_signatures(leds, intrinsics, lens_z_m)]
 
 
 def _grab(camera: Camera, count: int) -> list[Any]:
@@ -379,9 +406,14 @@ def format_led_map(measured: list[Measured], comment: list[str]) -> str:
 
 
 def _result(
-    measured: list[Measured], truth: dict[str, tuple[float, float]], source: str, output: Path
+    measured: list[Measured],
+    truth: dict[str, tuple[float, float]],
+    source: str,
+    output: Path,
+    camera_warnings: list[str] | None = None,
 ) -> StepResult:
     pairs = close_pairs(measured)
+    camera_warnings = camera_warnings or []
     f_error = max((m.frequency_error_hz / m.frequency_hz for m in measured), default=math.inf)
     d_error = max((m.duty_error for m in measured), default=math.inf)
     checks = [
@@ -405,6 +437,7 @@ def _result(
         for m in measured
     ]
     report += [f"WARNING: {text}" for _, _, text in pairs]
+    report += [f"WARNING (this camera): {text}" for text in camera_warnings]
     values: dict[str, Any] = {
         "leds": [
             {
@@ -420,7 +453,7 @@ def _result(
             }
             for m in measured
         ],
-        "warnings": [text for _, _, text in pairs],
+        "warnings": [text for _, _, text in pairs] + camera_warnings,
         "camera": source,
     }
     if truth:

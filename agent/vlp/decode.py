@@ -123,7 +123,7 @@ class DecoderConfig:
     fit_noise_floor: float = 0.03
     min_contrast_dn: float = 10.0
     min_stripe_rows: float = 1.0
-    min_profile_periods: float = 1.5
+    min_profile_periods: float = 1.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

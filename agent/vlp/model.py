@@ -376,6 +376,9 @@ class LedObservation:
     ``id`` is the track's settled identity after voting over frames (``None`` until it settles).
     ``visibility`` is ``"full"``, ``"partial"`` (partly occluded: kept, not used for the fix) or
     ``"occluded"`` (coasting on the Kalman prediction). ``map_index`` is the map LED the solver matched.
+    ``frame_reason``: why this frame's stripes named no id when they were decoded (the decoder's refusal:
+    ``"unresolved: ..."``, ``"low-contrast: ..."``, ``"blob-too-short: ..."``, ``"stripe-too-short: ..."``,
+    ``"too-few-stripes: ..."``, ``"poor-fit: ..."``; ``agent.vlp.decode.Classification``).
     """
 
     track_id: int
@@ -392,6 +395,7 @@ class LedObservation:
     area_px: int
     map_index: int | None = None
     used: bool = False
+    frame_reason: str | None = None
 
 
 @dataclass(frozen=True, slots=True)

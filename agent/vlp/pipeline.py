@@ -50,6 +50,7 @@ from agent.vlp.model import (
     VlpFix,
     VlpResult,
 )
+from agent.vlp.signatures import check_signatures
 from agent.vlp.solve import (
     LedRay,
     NoSolution,
@@ -157,6 +158,10 @@ class VlpPipeline:
         self._map_sigmas_m = led_map.map_sigmas_m(config.solver.map_sigma_m)
         self.detector = config.detector if config.detector is not None else self._detector_for_map()
         self.decoder = StripeDecoder(config.decoder, RowTiming.of(self.intrinsics))
+        # What this camera cannot tell apart in the map, said once, at load (agent.vlp.signatures).
+        self.signature_warnings = check_signatures(led_map, self.intrinsics, self.mount.z_m)
+        for warning in self.signature_warnings:
+            log.warning("LED map: %s", warning.message)
         self.tracker = LedTracker(self.detector, config.tracker)
         self._frames = 0
         self._last: _LastFix | None = None
@@ -488,6 +493,7 @@ class VlpPipeline:
             area,
             map_index,
             map_index is not None,
+            frame.reason if frame is not None else None,
         )
 
     def _settled_id(self, track: LedTrack) -> str | None:

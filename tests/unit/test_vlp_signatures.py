@@ -1,0 +1,79 @@
+"""The LED map's signatures checked at load against what the camera can tell apart (agent.vlp.signatures)."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap, MapLed
+from agent.vlp.pipeline import VlpPipeline
+from agent.vlp.signatures import check_signatures, period_resolution_rows
+
+MV_UB300 = CameraIntrinsics.from_sensor(
+    sensor_width_px=2048,
+    sensor_height_px=1536,
+    output_width_px=800,
+    output_height_px=600,
+    focal_length_px=1250.0,
+    cx_sensor_px=1023.5,
+    cy_sensor_px=767.5,
+    t_row_s=32e-6,
+)
+
+
+def _map(*signatures: tuple[str, float, float], diameter_m: float = 0.086) -> LedMap:
+    return LedMap(
+        tuple(
+            MapLed(led_id, 0.5 * k, 0.0, 1.5, frequency_hz=f, duty=d, diameter_m=diameter_m)
+            for k, (led_id, f, d) in enumerate(signatures)
+        )
+    )
+
+
+def test_environment_1_is_clean() -> None:
+    leds = _map(("L1", 1500.0, 0.3), ("L2", 2500.0, 0.6), ("L3", 3500.0, 0.4), ("L4", 4500.0, 0.5))
+    assert check_signatures(leds, MV_UB300) == []
+
+
+def test_a_pair_closer_than_the_resolution_is_named_with_the_numbers() -> None:
+    leds = _map(("L3", 2000.0, 0.5), ("L5", 3500.0, 0.4), ("L7", 2050.0, 0.5))
+    (warning,) = check_signatures(leds, MV_UB300)
+    assert warning.kind == "too-close" and warning.ids == ("L3", "L7")
+    # 6.10 and 5.95 rows, 0.15 apart; the resolution at the 32-row blob (1250 / 2.56 px x 0.086 m / 1.3 m).
+    assert "LED L3 (2000 Hz) and LED L7 (2050 Hz): periods 6.10 and 5.95 rows" in warning.message
+    assert "resolution 0.26 rows at a 32-row blob" in warning.message
+    resolution = period_resolution_rows(6.10, 32.3)
+    assert 0.15 < resolution < 0.5
+    # Far enough apart in frequency, or told apart by the duty: no warning.
+    assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2300.0, 0.5)), MV_UB300) == []
+    assert check_signatures(_map(("L3", 2000.0, 0.3), ("L7", 2050.0, 0.6)), MV_UB300) == []
+    # A larger blob resolves what a small one cannot.
+    assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.2), MV_UB300) == []
+    assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.05), MV_UB300)
+
+
+@pytest.mark.parametrize(
+    ("signature", "kind", "text"),
+    [
+        (("S", 6000.0, 0.15), "stripe-too-short", "bright stripe lasts 0.31 rows"),
+        (("F", 7000.0, 0.5), "aliased", "1.74 rows is under 2 rows"),
+        (("W", 400.0, 0.5), "too-few-stripes", "holds 0.6 periods of 30.5 rows"),
+    ],
+)
+def test_what_one_signature_cannot_show_is_said(
+    signature: tuple[str, float, float], kind: str, text: str
+) -> None:
+    diameter = 0.05 if kind == "too-few-stripes" else 0.086
+    warnings = check_signatures(_map(("L1", 1500.0, 0.3), signature, diameter_m=diameter), MV_UB300)
+    mine = [w for w in warnings if w.ids == (signature[0],)]
+    assert [w.kind for w in mine] == [kind]
+    assert text in mine[0].message
+
+
+def test_the_pipeline_warns_at_load(caplog: pytest.LogCaptureFixture) -> None:
+    leds = _map(("L3", 2000.0, 0.5), ("L7", 2050.0, 0.5))
+    with caplog.at_level(logging.WARNING, logger="agent.vlp.pipeline"):
+        pipeline = VlpPipeline(MV_UB300, leds, CameraMount(z_m=0.2))
+    assert [w.ids for w in pipeline.signature_warnings] == [("L3", "L7")]
+    assert any("LED L3 (2000 Hz) and LED L7 (2050 Hz)" in r.getMessage() for r in caplog.records)
