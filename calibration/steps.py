@@ -72,6 +72,13 @@ STEPS: tuple[StepInfo, ...] = (
         "laser.toml",
     ),
     StepInfo(
+        "row-time",
+        "calibration.row_time",
+        "the camera's row time (the stripes' clock) from the LEDs' known frequencies",
+        "the LED map with the drivers' frequencies; the robot where 2+ LEDs are in view",
+        "row_time.toml",
+    ),
+    StepInfo(
         "leds",
         "calibration.leds",
         "survey the ceiling LEDs: frequency and duty signature of each, with its coordinates",

@@ -158,7 +158,8 @@ class ErrorModel:
 
     The true principal point is offset from the nominal one by ``principal_point_error_px``; the LED map
     the agent is given is off by ``led_survey_error_m`` (standard deviation, per axis) and
-    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch).
+    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch); the
+    camera's true row time is the nominal one times (1 + ``row_time_error``).
     """
 
     principal_point_error_px: tuple[float, float] = (0.0, 0.0)
@@ -166,6 +167,7 @@ class ErrorModel:
     led_height_error_m: float = 0.0
     camera_tilt_rad: tuple[float, float] = (0.0, 0.0)
     seed: int = 0
+    row_time_error: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

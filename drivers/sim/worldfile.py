@@ -106,6 +106,7 @@ _RULES: dict[str, _Check] = {
     "CameraModel.pixel_size_m": _POSITIVE,
     "CameraModel.focal_length_m": _POSITIVE,
     "CameraModel.t_row_s": _POSITIVE,
+    "ErrorModel.row_time_error": (lambda v: -0.5 < v < 0.5, "must be between -0.5 and 0.5 (a fraction)"),
     "CameraModel.exposure_s": _POSITIVE,
     "CameraModel.output_width_px": _OUTPUT_SIDE,
     "CameraModel.output_height_px": _OUTPUT_SIDE,
@@ -213,11 +214,13 @@ def nominal_camera(world: World) -> CameraModel:
     """The camera as the agent's calibration knows it.
 
     ``world.camera`` is the truth (the renderer uses it); the nominal principal point is the true one minus
-    ``errors.principal_point_error_px`` (sensor pixels), i.e. the truth is off the nominal by the error.
+    ``errors.principal_point_error_px`` (sensor pixels), i.e. the truth is off the nominal by the error;
+    the nominal row time is the true one over (1 + ``errors.row_time_error``).
     """
     cx, cy = world.camera.principal_point_px
     ex, ey = world.errors.principal_point_error_px
-    return dataclasses.replace(world.camera, cx_px=cx - ex, cy_px=cy - ey)
+    t_row = world.camera.t_row_s / (1.0 + world.errors.row_time_error)
+    return dataclasses.replace(world.camera, cx_px=cx - ex, cy_px=cy - ey, t_row_s=t_row)
 
 
 # -- a table being read --------------------------------------------------------------------------------------

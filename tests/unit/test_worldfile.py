@@ -166,6 +166,7 @@ led_survey_error_m = 0.001
 led_height_error_m = 0.002
 camera_tilt_rad = [0.001, -0.002]
 seed = 42
+row_time_error = 0.03
 
 [[leds]]
 id = "X"

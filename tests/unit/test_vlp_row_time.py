@@ -1,0 +1,70 @@
+"""The row time from LEDs of known frequency (agent.vlp.row_time): robust combination and recognition."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.vlp.model import Signature
+from agent.vlp.row_time import estimate_row_time, match_signature
+
+A = 1536 / 600  # sensor rows per output row at 800x600
+ENV1 = (
+    Signature("L1", 1500.0, 0.3),
+    Signature("L2", 2500.0, 0.6),
+    Signature("L3", 3500.0, 0.4),
+    Signature("L4", 4500.0, 0.5),
+)
+
+
+def test_the_row_time_from_noisy_periods_with_outliers() -> None:
+    rng = np.random.default_rng(0)
+    t_true = 33e-6
+    periods, freqs, ids = [], [], []
+    for s in ENV1:
+        p = 1.0 / (s.frequency_hz * t_true * A)
+        for _ in range(25):
+            periods.append(p * (1.0 + rng.normal(0.0, 0.005)))
+            freqs.append(s.frequency_hz)
+            ids.append(s.id)
+    periods[3] *= 0.5  # a half-period misread
+    periods[40] *= 1.3
+    est = estimate_row_time(periods, freqs, ids, A)
+    assert est.rejected == 2 and est.used == 98
+    assert abs(est.t_row_s / t_true - 1.0) < 3.0 * est.relative_sigma
+    assert 0.0003 < est.relative_sigma < 0.002
+    assert set(est.per_led) == {"L1", "L2", "L3", "L4"} and sum(n for _, n in est.per_led.values()) == 100
+    assert max(abs(v) for v in est.led_deviation().values()) < 0.005
+
+
+def test_an_led_with_the_wrong_frequency_in_the_map_stands_apart() -> None:
+    t_true = 32e-6
+    periods, freqs, ids = [], [], []
+    for s in ENV1:
+        blinks = s.frequency_hz * (1.03 if s.id == "L3" else 1.0)  # L3's driver is 3 % faster than mapped
+        periods += [1.0 / (blinks * t_true * A)] * 5
+        freqs += [s.frequency_hz] * 5
+        ids += [s.id] * 5
+    est = estimate_row_time(periods, freqs, ids, A)
+    deviation = est.led_deviation()
+    assert max(deviation, key=lambda k: abs(deviation[k])) == "L3"
+    assert abs(deviation["L3"]) > 0.015
+
+
+def test_recognition_allows_for_the_row_time_error_but_not_for_a_swap() -> None:
+    t_eff = 32e-6 * A
+    # True row time 3 % longer than stated: periods 3 % shorter than the stated row time predicts.
+    p = 1.0 / (2500.0 * 1.03 * t_eff)
+    assert match_signature(p, 0.6, ENV1, t_eff) == ENV1[1]
+    assert match_signature(p, 0.6, ENV1, t_eff, max_error=0.01) is None
+    # Two signatures 4 % apart: a 3 % error could swap them, so neither is named.
+    close = (Signature("A", 2000.0, 0.5), Signature("B", 2080.0, 0.5))
+    assert match_signature(1.0 / (2030.0 * t_eff), 0.5, close, t_eff) is None
+    assert match_signature(math.nan, 0.5, ENV1, t_eff) is None
+
+
+def test_no_sightings_is_an_error() -> None:
+    with pytest.raises(ValueError, match="at least one"):
+        estimate_row_time([], [], [], A)
