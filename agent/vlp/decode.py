@@ -96,7 +96,9 @@ class DecoderConfig:
     ``ambiguous_fraction`` of two or more signatures' periods: close signatures, the only case where the
     edges' resolution is not enough), ``"always"`` (every LED: the survey and the row-time calibration).
     ``fit_noise_floor``: the least noise assumed on the normalised profile (a fraction of the stripe's
-    height) when the fit's residual is smaller.
+    height) when the fit's residual is smaller. ``fit_min_periods``: the fitted period replaces the edges'
+    only on a profile this many periods long (on shorter ones the edges measure it as well or better; the
+    signatures are still compared by the fit).
     Refusals (a :class:`Classification` with ``id`` None and a ``reason``, no vote): a profile with less
     than ``min_contrast_dn`` between its brightest and darkest rows (``low-contrast``); one shorter than
     ``min_profile_periods`` periods of the best signature (``blob-too-short``); a best signature whose
@@ -121,6 +123,7 @@ class DecoderConfig:
     period_fit: str = "ambiguous"
     ambiguous_fraction: float = 0.2
     fit_noise_floor: float = 0.03
+    fit_min_periods: float = 4.5
     min_contrast_dn: float = 10.0
     min_stripe_rows: float = 1.0
     min_profile_periods: float = 1.0
@@ -976,6 +979,10 @@ class StripeDecoder:
         clock, exposure = self._clock(first_row, profile.size, t_row_eff_s)
         z = normalised_profile(profile, background_dn) if math.isfinite(f.period_px) else None
         if z is None:
+            return f, z, clock
+        if f.length_px < self.config.fit_min_periods * f.period_px:
+            # Few periods across the blob: the fit has too few edges to beat the edges' own estimate
+            # (benchmarks/vlp_decode.py), so the period stays theirs.
             return f, z, clock
         duty = f.duty if math.isfinite(f.duty) else 0.5
         period, _, _ = fit_period(z, clock, f.period_px, duty, exposure)

@@ -1,6 +1,6 @@
-"""`vlp-agent calibrate row-time` on the simulated robot: in a world whose camera's row time is 3 % longer than
-the config's, the step finds the true one from the LEDs' known frequencies, with an uncertainty that covers
-it, and writes it for the config."""
+"""`vlp-agent calibrate row-time` on the simulated robot: in a world whose camera's row time is 3 % longer
+than the config's, the step finds the true one from the LEDs' known frequencies, with an uncertainty that
+covers it, and writes it for the config."""
 
 from __future__ import annotations
 
