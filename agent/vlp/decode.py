@@ -91,10 +91,12 @@ class DecoderConfig:
     linear sensor). ``edge_sigma_px``: edge position noise for the classifier; ``edge_cap_px``: a worse
     misfit counts as this much. ``min_confidence``: below it, a frame's id is left undecided.
 
-    The sub-row period fit (:func:`fit_period`, :func:`match_signatures`): ``period_fit`` says when it runs:
-    ``"never"`` (the edges alone), ``"ambiguous"`` (for an LED whose measured period lies within
-    ``ambiguous_fraction`` of two or more signatures' periods: close signatures, the only case where the
-    edges' resolution is not enough), ``"always"`` (every LED: the survey and the row-time calibration).
+    The sub-row fit (:func:`fit_period`, :func:`match_signatures`): ``period_fit`` says when it runs:
+    ``"never"`` (the edges alone), ``"ambiguous"`` (the close signatures compared by the fit, for an LED
+    whose measured period lies within ``ambiguous_fraction`` of two or more signatures' periods, with
+    duties within ``ambiguous_duty`` of its measured duty: the only case where the edges' resolution is
+    not enough, as they are within 4 % even on a 19-row blob; the period itself stays the edges'),
+    ``"always"`` (also every LED's period fitted: the row-time calibration, the benchmark).
     ``fit_noise_floor``: the least noise assumed on the normalised profile (a fraction of the stripe's
     height) when the fit's residual is smaller. ``fit_min_periods``: the fitted period replaces the edges'
     only on a profile this many periods long (on shorter ones the edges measure it as well or better; the
@@ -121,7 +123,8 @@ class DecoderConfig:
     min_confidence: float = 0.6
     max_misfit_per_edge: float = 3.0
     period_fit: str = "ambiguous"
-    ambiguous_fraction: float = 0.2
+    ambiguous_fraction: float = 0.12
+    ambiguous_duty: float = 0.15
     fit_noise_floor: float = 0.03
     fit_min_periods: float = 4.5
     min_contrast_dn: float = 10.0
@@ -972,13 +975,19 @@ class StripeDecoder:
         return np.arange(first_row, first_row + n, dtype=np.float64), 20e-6 / t_row_eff_s
 
     def _fitted(
-        self, f: StripeFeatures, profile: FloatArray, first_row: int, background_dn: float, t_row_eff_s: float
+        self,
+        f: StripeFeatures,
+        profile: FloatArray,
+        first_row: int,
+        background_dn: float,
+        t_row_eff_s: float,
+        refine: bool = True,
     ) -> tuple[StripeFeatures, FloatArray | None, FloatArray]:
-        """The features with the period fitted below the output row (:func:`fit_period`), the normalised
-        profile (None when it cannot be normalised) and its clock."""
+        """The features with the period fitted below the output row (:func:`fit_period`; only with
+        ``refine``), the normalised profile (None when it cannot be normalised) and its clock."""
         clock, exposure = self._clock(first_row, profile.size, t_row_eff_s)
         z = normalised_profile(profile, background_dn) if math.isfinite(f.period_px) else None
-        if z is None:
+        if z is None or not refine:
             return f, z, clock
         if f.length_px < self.config.fit_min_periods * f.period_px:
             # Few periods across the blob: the fit has too few edges to beat the edges' own estimate
@@ -1015,13 +1024,20 @@ class StripeDecoder:
         period, duty = table
         ll = list(c.log_likelihood)
         if cfg.period_fit != "never" and math.isfinite(f.period_px) and f.length_px >= 6:
+            # Close: the period within ambiguous_fraction and the duty within ambiguous_duty of the
+            # measured ones (a larger duty difference the edge template sees at once).
+            measured_duty = f.duty if math.isfinite(f.duty) else math.nan
             close = [
                 k
                 for k in range(len(signatures))
                 if abs(period[k] - f.period_px) <= cfg.ambiguous_fraction * period[k]
+                and not abs(duty[k] - measured_duty) > cfg.ambiguous_duty
             ]
             if len(close) >= 2 or cfg.period_fit == "always":
-                f, z, clock = self._fitted(f, profile, first_row, background_dn, t_row_eff_s)
+                # The period itself is refined only when asked for ("always"): the ids need only the
+                # signatures' fits.
+                refine = cfg.period_fit == "always"
+                f, z, clock = self._fitted(f, profile, first_row, background_dn, t_row_eff_s, refine)
                 if z is not None and len(close) >= 2 and not (c.reason or "").startswith("poor-fit"):
                     exposure = self.timing.exposure_rows if self.timing is not None else 20e-6 / t_row_eff_s
                     costs = match_signatures(z, clock, period[close], duty[close], exposure)
