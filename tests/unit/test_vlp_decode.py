@@ -350,11 +350,13 @@ def test_what_the_frame_cannot_show_is_refused_with_the_reason() -> None:
     t_eff = intrinsics.t_row_eff_s
     decoder = StripeDecoder(DecoderConfig(), RowTiming.of(intrinsics))
     short = (Signature("S", 6000.0, 0.15), Signature("T", 1500.0, 0.5))
-    (image, blob), *_ = _single_led_frames(6000.0, 0.086, 3, seed=2)
-    request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
-    ((_, cls),) = decoder.decode_many(image, request, short, t_eff)
-    if cls.reason is None or not cls.reason.startswith("stripe-too-short"):
-        assert cls.id != "S"
+    reasons = []
+    for image, blob in _single_led_frames(6000.0, 0.086, 4, seed=2):
+        request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
+        ((_, cls),) = decoder.decode_many(image, request, short, t_eff)
+        assert cls.id is None and cls.reason is not None
+        reasons.append(cls.reason)
+    assert sum(r.startswith("stripe-too-short: S's bright stripe lasts 0.31 rows") for r in reasons) >= 3
     slow = (Signature("L", 500.0, 0.5), Signature("M", 700.0, 0.5))
     (image, blob), *_ = _single_led_frames(500.0, 0.05, 3, seed=2)
     request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
