@@ -7,8 +7,8 @@ as much. The LEDs' drivers blink at known frequencies (the LED map's), so the ro
 periods measured: with the robot where several LEDs are in view (on the simulated robot it drives under
 the middle of the three LEDs nearest its start and turns between batches of frames), ``--frames`` frames
 are taken, each LED's stripe period fitted below the output row (``agent.vlp.decode.fit_period``), the LED
-recognised by its signature (the nearest, allowing ``--max-error`` of row-time error, and only when no
-other signature is as near), and t_row = 1 / (f P a) combined robustly over all sightings
+recognised by its signature (the one within ``--max-error`` of the frequency read; none when several are,
+as a row-time error could swap them), and t_row = 1 / (f P a) combined robustly over all sightings
 (``agent.vlp.row_time``: median, outliers rejected, mean, with its uncertainty).
 
 Run it before ``leds`` (the survey measures frequencies with the row time) with the LED map of the drivers'
@@ -59,8 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-error",
         type=float,
-        default=0.15,
-        help="the largest row-time error to allow for when recognising LEDs, a fraction (default 0.15)",
+        default=0.05,
+        help="the largest row-time error to allow for when recognising LEDs, a fraction (default 0.05): an "
+        "LED is used only when its signature is the one within this of the frequency read",
     )
 
 
@@ -151,7 +152,10 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
     if not periods:
         raise CalibrationError(
             f"no LED of the map was recognised in {len(frames)} frames ({unknown} blobs not recognised): are "
-            "LEDs in view, with the VLP exposure, and is --led-map the map of these LEDs?"
+            "LEDs in view, with the VLP exposure, and is --led-map the map of these LEDs? An LED is used "
+            f"only when one signature lies within --max-error ({options.max_error:g}) of the frequency read: "
+            "under LEDs whose signatures are closer than that to each other, stand where others are in "
+            "view, or give --led-map with those far apart"
         )
     estimate = estimate_row_time(periods, frequencies, ids, intrinsics.sensor_rows_per_row)
     return _result(estimate, intrinsics, len(frames), unknown, truth, view.source, output)

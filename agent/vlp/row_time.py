@@ -48,25 +48,24 @@ def match_signature(
     duty: float,
     signatures: Sequence[Signature],
     t_row_eff_s: float,
-    max_error: float = 0.15,
+    max_error: float = 0.05,
     max_duty_error: float = 0.15,
 ) -> Signature | None:
     """The signature a stripe period belongs to when the row time may be off by up to ``max_error``: the
-    nearest in log-frequency (with the duty within ``max_duty_error``), when it is within that error and
-    the next nearest is at least twice as far (so a row-time error cannot swap two LEDs); else None."""
+    one signature (with the duty within ``max_duty_error``) whose frequency lies within that error of the
+    measured one; None when none does, or several do (a row-time error could then swap them: 3000 and
+    3100 Hz are 3.3 % apart, so with the row time 3 % off an LED at 3000 Hz reads 3090 Hz)."""
     if not (math.isfinite(period_rows) and period_rows > 0):
         return None
     measured = 1.0 / (period_rows * t_row_eff_s)
-    near = sorted(
-        (abs(math.log(measured / s.frequency_hz)), s)
+    band = math.log1p(max_error)
+    near = [
+        s
         for s in signatures
-        if not math.isfinite(duty) or abs(duty - s.duty) <= max_duty_error
-    )
-    if not near or near[0][0] > math.log1p(max_error):
-        return None
-    if len(near) > 1 and near[1][0] < 2.0 * near[0][0] + 1e-9:
-        return None
-    return near[0][1]
+        if abs(math.log(measured / s.frequency_hz)) <= band
+        and (not math.isfinite(duty) or abs(duty - s.duty) <= max_duty_error)
+    ]
+    return near[0] if len(near) == 1 else None
 
 
 def estimate_row_time(

@@ -12,7 +12,9 @@ Two signatures whose periods differ by less than ``RESOLUTION_SIGMAS`` sigma_P o
 duties differ by less than a row's worth of stripe, cannot be told apart in one frame: the tracks vote over
 frames and may never settle, or settle wrong. Single signatures are checked too: a stripe shorter than one
 output row (the nearest-neighbour resize can drop it whole, and the decoder refuses it), periods under two
-rows (aliasing), and blobs holding less than one period (too few stripes to read).
+rows (aliasing), and blobs holding less than one period (too few stripes to read). Pairs the decoder
+resolves but whose frequencies are closer than twice the row time's tolerance (3 %) are named as well: an
+error of half their separation in the stated row time reads one as the other, on every frame alike.
 """
 
 from __future__ import annotations
@@ -23,7 +25,13 @@ from dataclasses import dataclass
 
 from agent.vlp.model import CameraIntrinsics, LedMap
 
-__all__ = ["RESOLUTION_SIGMAS", "SignatureWarning", "check_signatures", "period_resolution_rows"]
+__all__ = [
+    "RESOLUTION_SIGMAS",
+    "ROW_TIME_TOLERANCE",
+    "SignatureWarning",
+    "check_signatures",
+    "period_resolution_rows",
+]
 
 # Edge position noise (rows) in the resolution model: uniform over one output row.
 SIGMA_EDGE_ROWS = 0.3
@@ -34,11 +42,14 @@ ROW_SPAN = 0.92
 # Least stripe (rows), least periods across the blob: as DecoderConfig's defaults.
 MIN_STRIPE_ROWS = 1.0
 MIN_PROFILE_PERIODS = 1.0
+# How far off a row time not calibrated by `vlp-agent calibrate row-time` may be (issue 19: 2-3 %).
+ROW_TIME_TOLERANCE = 0.03
 
 
 @dataclass(frozen=True, slots=True)
 class SignatureWarning:
-    """One problem of the map for this camera: ``kind`` is ``"too-close"`` (a pair, ``ids`` both),
+    """One problem of the map for this camera: ``kind`` is ``"too-close"`` or ``"row-time"`` (a pair,
+    ``ids`` both),
     ``"stripe-too-short"``, ``"aliased"`` or ``"too-few-stripes"`` (one signature); ``message`` says which
     and why, with the numbers."""
 
@@ -54,11 +65,16 @@ def period_resolution_rows(period_rows: float, blob_rows: float) -> float:
 
 
 def check_signatures(
-    led_map: LedMap, intrinsics: CameraIntrinsics, lens_height_m: float = 0.2
+    led_map: LedMap,
+    intrinsics: CameraIntrinsics,
+    lens_height_m: float = 0.2,
+    row_time_tolerance: float = ROW_TIME_TOLERANCE,
 ) -> list[SignatureWarning]:
     """Every pair of the map's signatures the camera cannot tell apart, and every signature it cannot read
     (see the module docstring). ``lens_height_m``: the lens above the floor (the mount's z), for the blobs'
-    sizes."""
+    sizes. ``row_time_tolerance``: how far off the stated row time may be (a fraction); pairs whose
+    frequencies are closer than twice that (and duties within a row of stripe) are named too (kind
+    ``"row-time"``): a row-time error of half their separation reads one as the other."""
     t_eff = intrinsics.t_row_eff_s
     f_px = min(intrinsics.fx_px, intrinsics.fy_px)
     blob: dict[str, float] = {}
@@ -104,6 +120,19 @@ def check_signatures(
         h = min(blob[a.id], blob[b.id])
         resolution = period_resolution_rows(max(pa, pb), h)
         duty_rows = abs(a.duty - b.duty) * min(pa, pb)
+        if duty_rows < 1.0 and abs(pa - pb) >= resolution:
+            apart = abs(math.log(a.frequency_hz / b.frequency_hz))
+            if apart < 2.0 * math.log1p(row_time_tolerance):
+                out.append(
+                    SignatureWarning(
+                        "row-time",
+                        (a.id, b.id),
+                        f"LED {a.id} ({a.frequency_hz:.0f} Hz) and LED {b.id} ({b.frequency_hz:.0f} Hz) are "
+                        f"{100.0 * math.expm1(apart):.1f} % apart: a row-time error of "
+                        f"{50.0 * math.expm1(apart):.1f} % reads one as the other; check the row time "
+                        "(vlp-agent calibrate row-time)",
+                    )
+                )
         if abs(pa - pb) < resolution and duty_rows < 1.0:
             out.append(
                 SignatureWarning(

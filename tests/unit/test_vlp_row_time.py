@@ -59,9 +59,12 @@ def test_recognition_allows_for_the_row_time_error_but_not_for_a_swap() -> None:
     p = 1.0 / (2500.0 * 1.03 * t_eff)
     assert match_signature(p, 0.6, ENV1, t_eff) == ENV1[1]
     assert match_signature(p, 0.6, ENV1, t_eff, max_error=0.01) is None
-    # Two signatures 4 % apart: a 3 % error could swap them, so neither is named.
-    close = (Signature("A", 2000.0, 0.5), Signature("B", 2080.0, 0.5))
-    assert match_signature(1.0 / (2030.0 * t_eff), 0.5, close, t_eff) is None
+    assert match_signature(p, 0.3, ENV1, t_eff) is None  # the duty says otherwise
+    # Signatures 3.3 % apart: with the row time 3 % off, 3000 Hz reads 3090 Hz, nearest 3100 Hz: both lie
+    # within the allowed error, so neither is named (the nearest would be the wrong one).
+    close = (Signature("A", 3000.0, 0.5), Signature("B", 3100.0, 0.5))
+    assert match_signature(1.0 / (3090.0 * t_eff), 0.5, close, t_eff) is None
+    assert match_signature(1.0 / (3090.0 * t_eff), 0.5, close, t_eff, max_error=0.005) == close[1]
     assert match_signature(math.nan, 0.5, ENV1, t_eff) is None
 
 

@@ -48,9 +48,23 @@ def test_a_pair_closer_than_the_resolution_is_named_with_the_numbers() -> None:
     # Far enough apart in frequency, or told apart by the duty: no warning.
     assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2300.0, 0.5)), MV_UB300) == []
     assert check_signatures(_map(("L3", 2000.0, 0.3), ("L7", 2050.0, 0.6)), MV_UB300) == []
-    # A larger blob resolves what a small one cannot.
-    assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.2), MV_UB300) == []
-    assert check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.05), MV_UB300)
+    # A larger blob resolves what a small one cannot (but a 2.5 % row-time error would still swap them).
+    large = check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.2), MV_UB300)
+    assert [w.kind for w in large] == ["row-time"]
+    small = check_signatures(_map(("L3", 2000.0, 0.5), ("L7", 2100.0, 0.5), diameter_m=0.05), MV_UB300)
+    assert [w.kind for w in small] == ["too-close"]
+
+
+def test_a_pair_a_row_time_error_would_swap_is_named() -> None:
+    """3000 and 3100 Hz on a 75-row blob: told apart by the decoder, but 3.3 % apart, so a row time 1.7 %
+    off reads one as the other on every frame (issue 19: 2-3 % is plausible)."""
+    leds = _map(("A", 3000.0, 0.5), ("B", 3100.0, 0.5), ("C", 4500.0, 0.5), diameter_m=0.2)
+    (warning,) = check_signatures(leds, MV_UB300)
+    assert warning.kind == "row-time" and warning.ids == ("A", "B")
+    assert "3.3 % apart: a row-time error of 1.7 % reads one as the other" in warning.message
+    assert "vlp-agent calibrate row-time" in warning.message
+    # With the row time calibrated to 1 %, no warning.
+    assert check_signatures(leds, MV_UB300, row_time_tolerance=0.01) == []
 
 
 @pytest.mark.parametrize(
