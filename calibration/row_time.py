@@ -158,7 +158,12 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             "view, or give --led-map with those far apart"
         )
     estimate = estimate_row_time(periods, frequencies, ids, intrinsics.sensor_rows_per_row)
-    return _result(estimate, intrinsics, len(frames), unknown, truth, view.source, output)
+    result = _result(estimate, intrinsics, len(frames), unknown, truth, view.source, output)
+    # What this camera cannot tell apart in the map (agent.vlp.signatures), as the pipeline says at load.
+    warnings = [w.message for w in pipeline.signature_warnings]
+    result.report += [f"WARNING (this camera): {text}" for text in warnings]
+    result.values["warnings"] = warnings
+    return result
 
 
 def _middle_of_nearest(leds: LedMap, start: tuple[float, float], mount: CameraMount) -> tuple[float, float]:

@@ -170,6 +170,10 @@ class Tally:
     ids_seen: int = 0
     ids_decoded: int = 0
     ids_frame_ok: int = 0
+    # Frames whose stripes named an id, and how many named a wrong one; refusals by their code.
+    ids_named: int = 0
+    ids_named_wrong: int = 0
+    refusals: Counter[str] = field(default_factory=Counter)
     ids_settled: int = 0
     ids_track_ok: int = 0
     assoc_seen: int = 0
@@ -218,6 +222,11 @@ class Tally:
                 # frame of an unsettled track counts as wrong.
                 self.ids_decoded += 1
                 self.ids_frame_ok += int(obs.frame_id == lt.id)
+            if obs.frame_id is not None:
+                self.ids_named += 1
+                self.ids_named_wrong += int(obs.frame_id != lt.id)
+            if obs.frame_reason:
+                self.refusals[obs.frame_reason.split(":")[0]] += 1
             if obs.id is not None:
                 self.ids_settled += 1
                 self.ids_track_ok += int(obs.id == lt.id)
@@ -550,6 +559,8 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "id_tracks_correct": f"{tracks_ok}/{len(cal_tally.tracks_final)}",
         "id_observations": cal_tally.ids_seen,
         "id_frames_decoded": cal_tally.ids_decoded,
+        "id_frame_wrong": _ratio(cal_tally.ids_named_wrong, cal_tally.ids_named),
+        "decode_refusals": dict(cal_tally.refusals),
         "association_accuracy": _ratio(cal_tally.assoc_ok, cal_tally.assoc_seen),
         "dispersion_offset_cm": disp_cal["offset_cm"],
         "dispersion_radius_cm": disp_cal["radius_cm"],

@@ -98,9 +98,10 @@ class DecoderConfig:
     not enough, as they are within 4 % even on a 19-row blob; the period itself stays the edges'),
     ``"always"`` (also every LED's period fitted: the row-time calibration, the benchmark).
     ``fit_noise_floor``: the least noise assumed on the normalised profile (a fraction of the stripe's
-    height) when the fit's residual is smaller. ``fit_min_periods``: the fitted period replaces the edges'
-    only on a profile this many periods long (on shorter ones the edges measure it as well or better; the
-    signatures are still compared by the fit).
+    height) when the fit's residual is smaller; ``fit_min_confidence``: the posterior a frame needs for the
+    fit to name one of close signatures (their frames vote all the same). ``fit_min_periods``: the fitted
+    period replaces the edges' only on a profile this many periods long (on shorter ones the edges measure
+    it as well or better; the signatures are still compared by the fit).
     Refusals (a :class:`Classification` with ``id`` None and a ``reason``, no vote): a profile with less
     than ``min_contrast_dn`` between its brightest and darkest rows (``low-contrast``); one shorter than
     ``min_profile_periods`` periods of the best signature (``blob-too-short``); a best signature whose
@@ -125,8 +126,9 @@ class DecoderConfig:
     period_fit: str = "ambiguous"
     ambiguous_fraction: float = 0.12
     ambiguous_duty: float = 0.15
-    fit_noise_floor: float = 0.03
+    fit_noise_floor: float = 0.06
     fit_min_periods: float = 4.5
+    fit_min_confidence: float = 0.9
     min_contrast_dn: float = 10.0
     min_stripe_rows: float = 1.0
     min_profile_periods: float = 1.0
@@ -1049,7 +1051,7 @@ class StripeDecoder:
                         ll[k] = base + v - top
                     best = ll.index(max(ll))
                     confidence = 1.0 / math.fsum(math.exp(v - ll[best]) for v in ll)
-                    chosen = signatures[best].id if confidence >= cfg.min_confidence else None
+                    chosen = signatures[best].id if confidence >= cfg.fit_min_confidence else None
                     reason = None if chosen else _undecided(2, 0.0, confidence, ll, signatures, cfg)
                     c = Classification(chosen, confidence, tuple(ll), reason)
         if c.id is None:
