@@ -29,40 +29,34 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agent.sim_view import nominal_intrinsics
 from agent.vlp.decode import DecoderConfig, RowTiming, StripeDecoder
 from agent.vlp.detect import DetectorConfig, find_blobs
 from agent.vlp.model import CameraIntrinsics, Signature
 from drivers.sim.render import RollingShutterRenderer
-from drivers.sim.world import CameraModel, Led, Mount, Pose2D
+from drivers.sim.world import CameraModel, Led, Mount, Pose2D, World
 
 FREQUENCIES_HZ = (1500.0, 2000.0, 3000.0, 4500.0)
 DIAMETERS_M = (0.05, 0.086, 0.14)
 
 
 def intrinsics_of(cam: CameraModel) -> CameraIntrinsics:
-    return CameraIntrinsics.from_sensor(
-        sensor_width_px=cam.sensor_width_px,
-        sensor_height_px=cam.sensor_height_px,
-        output_width_px=cam.output_width_px,
-        output_height_px=cam.output_height_px,
-        focal_length_px=cam.focal_length_px,
-        cx_sensor_px=(cam.sensor_width_px - 1) / 2.0,
-        cy_sensor_px=(cam.sensor_height_px - 1) / 2.0,
-        t_row_s=cam.t_row_s,
-        exposure_s=cam.exposure_s,
-    )
+    """The camera as the agent knows it (here: exactly)."""
+    return nominal_intrinsics(World("benchmark", camera=cam))
 
 
-def _stats(errors: list[float], truth: float) -> dict[str, float]:
+def _stats(errors: list[float], period: float, frequency_hz: float) -> dict[str, float]:
+    """Period errors (rows): bias, rms, max, and the rms as a frequency error (dP / P of f, in Hz)."""
     e = np.asarray(errors, dtype=np.float64)
     if e.size == 0:
         return {"n": 0}
+    rms = float(np.sqrt(np.mean(e * e)))
     return {
         "n": int(e.size),
         "bias_rows": round(float(e.mean()), 4),
-        "rms_rows": round(float(np.sqrt(np.mean(e * e))), 4),
+        "rms_rows": round(rms, 4),
         "max_rows": round(float(np.abs(e).max()), 4),
-        "rms_hz": round(float(np.sqrt(np.mean(e * e))) / truth * 1.0, 2),
+        "rms_hz": round(rms / period * frequency_hz, 2),
     }
 
 
@@ -115,11 +109,7 @@ def run_case(frequency_hz: float, diameter_m: float, frames: int, separation_hz:
     }
     for name in decoders:
         n = sum(ids[name].values())
-        stats = _stats(errors[name], period)
-        if stats.get("n"):
-            # Frequency error: dP / P relative, as Hz at this frequency.
-            e = np.asarray(errors[name])
-            stats["rms_hz"] = round(float(np.sqrt(np.mean((e / period) ** 2))) * frequency_hz, 2)
+        stats = _stats(errors[name], period, frequency_hz)
         out[name] = {
             "period_error": stats,
             "ids": {v: round(ids[name][v] / n, 3) if n else None for v in ("right", "wrong", "refused")},

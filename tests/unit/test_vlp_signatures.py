@@ -6,20 +6,12 @@ import logging
 
 import pytest
 
-from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap, MapLed
+from agent.vlp.model import CameraMount, LedMap, MapLed
 from agent.vlp.pipeline import VlpPipeline
 from agent.vlp.signatures import check_signatures, period_resolution_rows
+from tests.unit.test_vlp_decode import _intrinsics
 
-MV_UB300 = CameraIntrinsics.from_sensor(
-    sensor_width_px=2048,
-    sensor_height_px=1536,
-    output_width_px=800,
-    output_height_px=600,
-    focal_length_px=1250.0,
-    cx_sensor_px=1023.5,
-    cy_sensor_px=767.5,
-    t_row_s=32e-6,
-)
+MV_UB300 = _intrinsics()
 
 
 def _map(*signatures: tuple[str, float, float], diameter_m: float = 0.086) -> LedMap:
