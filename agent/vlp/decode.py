@@ -106,7 +106,10 @@ class DecoderConfig:
     than ``min_contrast_dn`` between its brightest and darkest rows (``low-contrast``); one shorter than
     ``min_profile_periods`` periods of the best signature (``blob-too-short``); a best signature whose
     shorter stripe (bright or dark) lasts less than ``min_stripe_rows`` output rows, which the
-    nearest-neighbour resize can drop whole (``stripe-too-short``)."""
+    nearest-neighbour resize can drop whole (``stripe-too-short``); a best signature whose period (more
+    than ``max_period_mismatch`` relative) or duty (more than ``max_duty_mismatch``) the profile's own
+    measurement contradicts, on a profile of two of its periods or more (``poor-fit``: an LED whose short
+    stripes were dropped, read as another)."""
 
     mode: str = "row_mean"
     interpolation: float = 3.9
@@ -132,6 +135,8 @@ class DecoderConfig:
     min_contrast_dn: float = 10.0
     min_stripe_rows: float = 1.0
     min_profile_periods: float = 1.0
+    max_period_mismatch: float = 0.1
+    max_duty_mismatch: float = 0.2
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -1068,6 +1073,24 @@ class StripeDecoder:
                 (),
                 f"stripe-too-short: {sig.id}'s {kind} stripe lasts {stripe:.2f} rows, under "
                 f"{cfg.min_stripe_rows:g}: the resize can drop it",
+            )
+        if (
+            math.isfinite(f.period_px)
+            and math.isfinite(f.duty)
+            and f.length_px >= 2.0 * p_best
+            and (
+                abs(f.period_px / p_best - 1.0) > cfg.max_period_mismatch
+                or abs(f.duty - d_best) > cfg.max_duty_mismatch
+            )
+        ):
+            # The edge template can fit a pattern that is not this signature's (an LED whose short stripes
+            # the resize dropped, read as another): its period and duty must be the signature's too.
+            return f, Classification(
+                None,
+                0.0,
+                (),
+                f"poor-fit: period {f.period_px:.2f} rows and duty {f.duty:.2f} measured, {sig.id}'s "
+                f"{p_best:.2f} and {d_best:.2f}",
             )
         if f.length_px < cfg.min_profile_periods * p_best:
             return f, Classification(

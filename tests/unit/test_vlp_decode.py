@@ -368,3 +368,24 @@ def test_what_the_frame_cannot_show_is_refused_with_the_reason() -> None:
     ((_, cls),) = decoder.decode_many(flat, [((400.0, 300.0), 10.0, 16.0, False)], ENV1, t_eff)
     assert cls.id is None and cls.log_likelihood == ()
     assert cls.reason is not None and cls.reason.startswith("low-contrast")
+
+
+def test_an_led_whose_short_stripes_were_dropped_is_not_read_as_another() -> None:
+    """Environment 1 with L4 at 6 kHz and duty 0.15 (0.31-row bright stripes, some dropped by the resize):
+    its profile can fit L3's edge template (3.49 rows, duty 0.4) with confidence 1.0 while its own period
+    and duty say 3.05 rows and 0.58 (this seed: 2 frames of 30 did). No frame of it names an id."""
+    intrinsics = _intrinsics()
+    t_eff = intrinsics.t_row_eff_s
+    signatures = (*ENV1[:3], Signature("L4", 6000.0, 0.15))
+    decoder = StripeDecoder(DecoderConfig(), RowTiming.of(intrinsics))
+    unchecked = StripeDecoder(
+        DecoderConfig(max_period_mismatch=9.0, max_duty_mismatch=9.0), RowTiming.of(intrinsics)
+    )
+    named = misread = 0
+    for image, blob in _single_led_frames(6000.0, 0.086, 30, seed=1):
+        request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
+        ((_, cls),) = decoder.decode_many(image, request, signatures, t_eff)
+        named += cls.id is not None
+        misread += unchecked.decode_many(image, request, signatures, t_eff)[0][1].id is not None
+    assert named == 0
+    assert misread >= 1  # the check is what stops them
