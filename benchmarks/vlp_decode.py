@@ -4,8 +4,9 @@ Single LEDs rendered by the simulator (``drivers.sim.render``: the MV-UB300 at 8
 resize, 32 us rows, 20 us exposure) straight above the camera at random offsets and headings, over a range
 of stripe periods (LED frequencies) and blob heights (LED diameters). Each frame is decoded twice:
 
-- ``edges``: the decoder as it was before the sub-row fit (``DecoderConfig(period_fit="never")``, no row
-  timing): the period from the interpolated edges, the id from the edge template;
+- ``edges``: the decoder without the sub-row fit (``DecoderConfig(period_fit="never")``, no row timing):
+  the period from the interpolated edges, the id from the edge template, as before issue 19 (the refusals
+  for what a frame cannot show apply to it too: on these frames they change its ids by under 1 %);
 - ``fit``: the decoder with the camera's row timing (``RowTiming.of``) and the sub-row fit
   (``period_fit="always"`` for the frequency, the default ``"ambiguous"`` for the ids).
 
