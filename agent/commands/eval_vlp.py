@@ -59,6 +59,7 @@ from agent.vlp.calibration import (
     validated_residual_correction,
 )
 from agent.vlp.model import (
+    Motion,
     PosePrior,
     VlpFix,
     VlpResult,
@@ -90,6 +91,10 @@ PASS_LENGTH_M = 4.0
 # The odometry-grade prior given when the map repeats ids (what the robot's odometry or last fix would know).
 PRIOR_SIGMA_XY_M = 0.2
 PRIOR_SIGMA_YAW_RAD = math.radians(10.0)
+# Driving, the base's velocity from wheel odometry (what the runtime passes the pipeline with its prior, for
+# the rolling-shutter correction): off by this fraction of the speed, and this much yaw rate (1 sigma).
+ODOMETRY_SPEED_SIGMA = 0.02
+ODOMETRY_YAW_RATE_SIGMA_RADPS = 0.02
 # A nominal (not degraded) fix farther than this from the truth is a wrong fix passed as good.
 UNFLAGGED_LIMIT_M = 0.05
 
@@ -286,6 +291,16 @@ class Bench:
             2.0 * PRIOR_SIGMA_YAW_RAD,
         )
 
+    def motion_for(self, vx_mps: float, vy_mps: float, yaw_rate_radps: float) -> Motion:
+        """The base's velocity as odometry gives it: the true one off by ``ODOMETRY_SPEED_SIGMA`` of the
+        speed (a wheel-radius error, slip) and ``ODOMETRY_YAW_RATE_SIGMA_RADPS``."""
+        scale = 1.0 + float(self.rng.normal(0.0, ODOMETRY_SPEED_SIGMA))
+        return Motion(
+            vx_mps * scale,
+            vy_mps * scale,
+            yaw_rate_radps + float(self.rng.normal(0.0, ODOMETRY_YAW_RATE_SIGMA_RADPS)),
+        )
+
     def random_pose(self, area: tuple[float, float, float, float], min_leds: int = 2) -> Pose2D:
         x0, y0, x1, y1 = area
         for _ in range(10_000):
@@ -476,9 +491,12 @@ def driving(
                 continue
             rendered = bench.frame(pose_at, t0)
             # Driving, the robot's odometry knows roughly where it is on every frame (the runtime passes the
-            # fused pose as the prior); it matters only where the map repeats ids.
+            # fused pose as the prior); it matters only where the map repeats ids. Its velocity (the runtime
+            # passes odometry's with the prior) is on every frame: the rolling-shutter correction needs it
+            # from the first frame of a pass, and at 1.5 m/s a frame's LEDs are imaged up to 7 cm apart.
             prior = bench.prior_for(rendered.truth.base_pose)
-            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior)
+            motion = bench.motion_for(speed * c, speed * s, 0.0)
+            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior, motion=motion)
             tally.add(result, rendered.truth)
     return tally
 

@@ -640,6 +640,8 @@ class RollingShutterRenderer:
         to the surviving pixels of its box (and, for blooming, what the sensor rows just above and below
         them collect)."""
         cam = self.camera
+        if any(cover.fraction >= 1.0 for cover in covers):
+            return  # hidden whole (its blurred rim too: the cover is wider than the disk)
         stray = self.scene.stray_lights[index - len(self.leds)] if index >= len(self.leds) else None
         rows = self._rows[r0:r1].astype(np.float64)
         cam_x, cam_y, yaw = self._camera_at_rows(knots, rows)
