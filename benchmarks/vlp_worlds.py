@@ -68,6 +68,7 @@ CASES: tuple[tuple[str, str, float], ...] = (
     ("unmapped", "unmapped", 0.0),
     ("camera_errors", "camera_errors", 0.0),
     ("led_drift", "led_drift", 0.0),
+    ("sig100_row3", "sig100_row3", 0.0),
     ("env1", "env1", 0.0),
 )
 

@@ -170,7 +170,8 @@ class ErrorModel:
 
     The true principal point is offset from the nominal one by ``principal_point_error_px``; the LED map
     the agent is given is off by ``led_survey_error_m`` (standard deviation, per axis) and
-    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch).
+    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch); its
+    true row time, focal length and distortion differ from the configured ones by the last three.
     """
 
     principal_point_error_px: tuple[float, float] = (0.0, 0.0)

@@ -242,3 +242,28 @@ def test_fixes_carry_their_integrity(perfect_env1) -> None:  # type: ignore[no-u
         assert 3.0 * result.sigma_xy_m < result.protection_level_m < 0.1
         assert error < result.protection_level_m
         assert result.work.hypotheses == 1 and not result.work.truncated
+
+
+def test_an_id_measured_nearly_as_close_to_another_signature_is_marginal() -> None:
+    """The id-margin check of two-LED fixes (flag ``id-marginal``): signatures 100 Hz apart at duty 0.5
+    read 3 % high (a row-time error) land between their own and their neighbour's."""
+    from types import SimpleNamespace
+
+    from agent.vlp.pipeline import _id_marginal
+
+    freq = np.array([2000.0, 2100.0, 2200.0, 2300.0])
+    duty = np.full(4, 0.5)
+
+    def marginal(own: int, measured: tuple[float, float] | None) -> bool:
+        return _id_marginal(SimpleNamespace(id_index=own, measured=measured), freq, duty)  # type: ignore[arg-type]
+
+    assert not marginal(1, (2104.0, 0.49))  # a good read of its own
+    assert marginal(1, (2060.0, 0.5))  # 2000 Hz read 3 % high: 40 Hz from 2100, 60 from 2000
+    assert marginal(0, (2045.0, 0.5))
+    assert not marginal(3, (2330.0, 0.5))  # beyond the last signature, clearly nearest its own
+    assert not marginal(0, None)  # never measured: nothing to judge
+    # Env1's signatures (1 kHz apart, duties 0.3-0.6): a 3 % error leaves every read clearly its own.
+    env1_f, env1_d = np.array([1500.0, 2500.0, 3500.0, 4500.0]), np.array([0.3, 0.6, 0.4, 0.5])
+    for k in range(4):
+        track = SimpleNamespace(id_index=k, measured=(env1_f[k] * 1.03, env1_d[k]))
+        assert not _id_marginal(track, env1_f, env1_d)  # type: ignore[arg-type]
