@@ -180,8 +180,6 @@ class LedTrack:
         # Consecutive decided frames, up to now, whose own best signature was the settled id.
         self.confirmations = 0
         self.frame: Classification | None = None
-        # The last decoded (frequency Hz, duty) of its stripes, for the pipeline's id-margin check.
-        self.measured: tuple[float, float] | None = None
         # The track's age at its last vote (its last decoded frame).
         self.voted_at = -1
         self._best_posterior: tuple[int, float] = (-1, 0.0)
