@@ -59,6 +59,7 @@ from agent.vlp.calibration import (
     validated_residual_correction,
 )
 from agent.vlp.model import (
+    Motion,
     PosePrior,
     VlpFix,
     VlpResult,
@@ -67,7 +68,7 @@ from agent.vlp.pipeline import VlpPipeline
 from drivers.errors import ConfigError
 from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer
 from drivers.sim.world import Pose2D, World
-from drivers.sim.worldfile import load_world
+from drivers.sim.worldfile import load_world, map_indices
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,10 @@ PASS_LENGTH_M = 4.0
 # The odometry-grade prior given when the map repeats ids (what the robot's odometry or last fix would know).
 PRIOR_SIGMA_XY_M = 0.2
 PRIOR_SIGMA_YAW_RAD = math.radians(10.0)
+# Driving, the base's velocity from wheel odometry (what the runtime passes the pipeline with its prior, for
+# the rolling-shutter correction): off by this fraction of the speed, and this much yaw rate (1 sigma).
+ODOMETRY_SPEED_SIGMA = 0.02
+ODOMETRY_YAW_RATE_SIGMA_RADPS = 0.02
 # A nominal (not degraded) fix farther than this from the truth is a wrong fix passed as good.
 UNFLAGGED_LIMIT_M = 0.05
 
@@ -131,7 +136,8 @@ def default_area(world: World) -> tuple[float, float, float, float]:
 
 
 def leds_in_view(renderer: RollingShutterRenderer, pose: Pose2D, margin_px: float) -> int:
-    """How many LED disks are entirely inside the image, ``margin_px`` from its border, at ``pose``."""
+    """How many lit LED disks (mapped or not) are entirely inside the image, ``margin_px`` from its border,
+    at ``pose``."""
     cam = renderer.camera
     mount = renderer.mount
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
@@ -140,6 +146,8 @@ def leds_in_view(renderer: RollingShutterRenderer, pose: Pose2D, margin_px: floa
     yaw = pose.yaw_rad + mount.yaw_rad
     count = 0
     for led in renderer.leds:
+        if led.dead:
+            continue
         u, v, depth = renderer.project(
             np.array([led.x_m]), np.array([led.y_m]), np.array([led.z_m]), lens_x, lens_y, yaw
         )
@@ -179,6 +187,8 @@ class Tally:
     assoc_seen: int = 0
     assoc_ok: int = 0
     tracks_final: dict[int, tuple[str, str | None]] = field(default_factory=dict)
+    # Each world LED's index in the agent's map (None: missing from it), for checking the association.
+    map_index: Sequence[int | None] = ()
     latency_ms: list[float] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(
         default_factory=lambda: {"acquire": [], "track": [], "decode": [], "solve": []}
@@ -233,7 +243,8 @@ class Tally:
             self.tracks_final[obs.track_id] = (lt.id, obs.id)
             if obs.map_index is not None:
                 self.assoc_seen += 1
-                self.assoc_ok += int(obs.map_index == lt.index)
+                truth_index = self.map_index[lt.index] if self.map_index else lt.index
+                self.assoc_ok += int(obs.map_index == truth_index)
 
 
 def _pct(values: Sequence[float], q: float) -> float:
@@ -260,9 +271,13 @@ class Bench:
         self.renderer = RollingShutterRenderer.for_world(world, seed=seed)
         self.fps = world.camera.frame_rate_hz
         self.rng = np.random.default_rng(seed + 1)
+        self.map_index = map_indices(world)
         self.repeats_ids = not self.view.led_map.ids_unique
         self.margin_px = 20.0 / 800.0 * world.camera.output_width_px
         self.clock = 1000.0
+
+    def tally(self) -> Tally:
+        return Tally(map_index=self.map_index)
 
     def frame(self, pose_at: PoseAt, t0: float) -> RenderedFrame:
         return self.renderer.render(pose_at, t0)
@@ -283,6 +298,16 @@ class Bench:
             pose.yaw_rad + float(self.rng.normal(0.0, PRIOR_SIGMA_YAW_RAD)),
             2.0 * PRIOR_SIGMA_XY_M,
             2.0 * PRIOR_SIGMA_YAW_RAD,
+        )
+
+    def motion_for(self, vx_mps: float, vy_mps: float, yaw_rate_radps: float) -> Motion:
+        """The base's velocity as odometry gives it: the true one off by ``ODOMETRY_SPEED_SIGMA`` of the
+        speed (a wheel-radius error, slip) and ``ODOMETRY_YAW_RATE_SIGMA_RADPS``."""
+        scale = 1.0 + float(self.rng.normal(0.0, ODOMETRY_SPEED_SIGMA))
+        return Motion(
+            vx_mps * scale,
+            vy_mps * scale,
+            yaw_rate_radps + float(self.rng.normal(0.0, ODOMETRY_YAW_RATE_SIGMA_RADPS)),
         )
 
     def random_pose(self, area: tuple[float, float, float, float], min_leds: int = 2) -> Pose2D:
@@ -378,7 +403,7 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
     est: list[tuple[float, float]] = []
     true: list[tuple[float, float]] = []
     x0, y0, x1, y1 = area
-    tally = Tally()
+    tally = bench.tally()
     for i in range(CALIBRATION_GRID):
         for j in range(CALIBRATION_GRID):
             fx = (i + 0.5) / CALIBRATION_GRID
@@ -426,7 +451,7 @@ def calibrate(bench: Bench, area: tuple[float, float, float, float], out_path: P
 def dispersion(bench: Bench, pipe: VlpPipeline, centre: Pose2D) -> dict[str, float]:
     """The paper's dispersion circle at one spot: fixes over twelve headings; offset = |mean - truth|,
     radius = the largest distance of a fix from the mean."""
-    tally = Tally()
+    tally = bench.tally()
     for h in range(DISPERSION_HEADINGS):
         yaw = (h + 0.37) * 2.0 * math.pi / DISPERSION_HEADINGS
         static_frames(bench, Pose2D(centre.x_m, centre.y_m, yaw), DISPERSION_FRAMES, [pipe], [tally])
@@ -444,7 +469,7 @@ def driving(
 ) -> Tally:
     """Straight passes at ``speed``, each through a random point of the area at a random heading, as long
     as the area's diagonal (at most ``PASS_LENGTH_M``), frames at the camera's rate while inside the area."""
-    tally = Tally()
+    tally = bench.tally()
     x0, y0, x1, y1 = area
     length = min(math.hypot(x1 - x0, y1 - y0), PASS_LENGTH_M)
     for _ in range(passes):
@@ -475,9 +500,12 @@ def driving(
                 continue
             rendered = bench.frame(pose_at, t0)
             # Driving, the robot's odometry knows roughly where it is on every frame (the runtime passes the
-            # fused pose as the prior); it matters only where the map repeats ids.
+            # fused pose as the prior); it matters only where the map repeats ids. Its velocity (the runtime
+            # passes odometry's with the prior) is on every frame: the rolling-shutter correction needs it
+            # from the first frame of a pass, and at 1.5 m/s a frame's LEDs are imaged up to 7 cm apart.
             prior = bench.prior_for(rendered.truth.base_pose)
-            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior)
+            motion = bench.motion_for(speed * c, speed * s, 0.0)
+            result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior, motion=motion)
             tally.add(result, rendered.truth)
     return tally
 
@@ -512,7 +540,7 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         report = calibrate(bench, area4, out)
         calibrated = VlpPipeline(view.intrinsics, view.led_map, view.mount, calibration=report.calibration)
         uncalibrated = VlpPipeline(view.intrinsics, view.led_map, view.mount)
-        cal_tally, uncal_tally = Tally(), Tally()
+        cal_tally, uncal_tally = bench.tally(), bench.tally()
         if args.speed > 0:
             cal_tally = driving(bench, calibrated, area4, args.points, args.speed)
             bench.rng = np.random.default_rng(args.seed + 1)

@@ -50,7 +50,7 @@ from agent.slam.scan import LaserGeometry
 from drivers.sim.route import RouteFollower
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import LaserModel, Led, Pose2D, World
-from drivers.sim.worldfile import surveyed_leds
+from drivers.sim.worldfile import survey
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -171,9 +171,13 @@ class _ModelledFixes:
         self.rate_hz = model.rate_hz
         self.rng = rng
         # The agent's LED map is the world's bent by the survey error; a fix inherits the mean error of
-        # the LEDs it was solved from (same order: ``surveyed_leds`` moves each LED of ``world.leds``).
+        # the LEDs it was solved from (``survey`` is aligned with ``world.leds``; an LED missing from the
+        # map adds no survey error).
         self.survey_error_m = np.array(
-            [(s.x_m - t.x_m, s.y_m - t.y_m) for t, s in zip(world.leds, surveyed_leds(world), strict=True)]
+            [
+                (0.0, 0.0) if s is None else (s.x_m - t.x_m, s.y_m - t.y_m)
+                for t, s in zip(world.leds, survey(world), strict=True)
+            ]
         ).reshape(-1, 2)
 
     def __call__(self, sim: Simulation, t_s: float, odometry: FloatArray) -> tuple[float, PoseFix, int] | str:

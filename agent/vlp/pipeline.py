@@ -69,6 +69,10 @@ Covariance3 = tuple[tuple[float, float, float], tuple[float, float, float], tupl
 # The yaw error bound at the fault-free risk, for the lens-to-base part of the protection level (3.3 sigma:
 # 1e-3 two-sided).
 _K_YAW = 3.29
+# Two signatures of the map within both of these are close (the world file warns of them; docs/world.md):
+# the duty does not tell them apart, and a few per cent of frequency error (row time, drift) swaps them.
+_CLOSE_FREQUENCY_HZ = 200.0
+_CLOSE_DUTY = 0.1
 # The stage timings of a result before the frame's are filled in (immutable, so one serves every frame).
 _NO_TIMINGS = StageTimings()
 
@@ -154,6 +158,11 @@ class VlpPipeline:
             self.mount = calibration.mount(self.mount)
         self.config = config = config if config is not None else VlpConfig()
         self.signatures = led_map.signatures
+        # For each signature, the map's others close to it (flag ``close-signature``).
+        self._rivals = _close_rivals(
+            np.array([sig.frequency_hz for sig in self.signatures], dtype=np.float64),
+            np.array([sig.duty for sig in self.signatures], dtype=np.float64),
+        )
         # Each LED's survey sigma where the map states it (else the solver's map_sigma_m); None: none does.
         self._map_sigmas_m = led_map.map_sigmas_m(config.solver.map_sigma_m)
         self.detector = config.detector if config.detector is not None else self._detector_for_map()
@@ -609,6 +618,21 @@ class VlpPipeline:
                     if a >= 0
                 ),
             ),
+            # An id with a close rival in the map (a signature within 200 Hz and 0.1 duty), in a fix whose
+            # redundancy cannot check it: a row time a few per cent off, or a drifting LED, shifts every
+            # frequency, and close signatures then read as their neighbours frame after frame, each read
+            # confident and confirmed (two LEDs misread together as a pair at the map's distance). No margin
+            # on the measured frequency tells a shifted read from a right one; only the geometry of three
+            # LEDs or more (or a calibrated row time) can.
+            (
+                "close-signature",
+                solution.protection is None
+                and any(
+                    bool(self._rivals[tracks[k].id_index or 0])
+                    for k, a in zip(usable, solution.assignment, strict=True)
+                    if a >= 0 and tracks[k].id_index is not None
+                ),
+            ),
             (
                 "prior-mismatch",
                 solution.prior_ignored
@@ -744,6 +768,21 @@ class VlpPipeline:
             chi2_limit,
             protection,
         )
+
+
+def _close_rivals(frequency_hz: FloatArray, duty: FloatArray) -> tuple[tuple[int, ...], ...]:
+    """For each signature, the others close to it: within ``_CLOSE_FREQUENCY_HZ`` and ``_CLOSE_DUTY``, where
+    the duty does not tell them apart and only the frequency does."""
+    return tuple(
+        tuple(
+            j
+            for j in range(frequency_hz.size)
+            if j != k
+            and abs(frequency_hz[j] - frequency_hz[k]) < _CLOSE_FREQUENCY_HZ
+            and abs(duty[j] - duty[k]) < _CLOSE_DUTY
+        )
+        for k in range(frequency_hz.size)
+    )
 
 
 def _far_from_prior(

@@ -126,6 +126,7 @@ class SimCamera(Camera):
             tilt_rad=world.errors.camera_tilt_rad,
             gain_db=self._gain_db,
             seed=self.seed,
+            scene=world.scene,
         )
         shape = (self.model.output_height_px, self.model.output_width_px)
         self._free = [np.empty(shape, dtype=np.uint8) for _ in range(3)]

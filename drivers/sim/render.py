@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from drivers.sim.world import CameraModel, Led, Mount, Pose2D, World
+from drivers.sim.world import CameraModel, Led, Mount, Pose2D, Scene, World
 
 FloatArray = npt.NDArray[np.float64]
 Float32Array = npt.NDArray[np.float32]
@@ -234,6 +234,11 @@ class RollingShutterRenderer:
         tilt_rad: extra (roll, pitch) on top of the mount's, e.g. the world's ``errors.camera_tilt_rad``.
         gain_db: analog gain ahead of the ADC: it scales signal and shot noise in DN, not read noise.
         seed: seeds the LEDs' free-running PWM phases and all noise, so a sequence of frames is repeatable.
+        scene: ambient light, stray bright objects and occluders (``World.scene``); none by default.
+
+    Each LED's ``brightness`` scales its light, a ``dead`` one is not drawn, and its PWM frequency drifts
+    by ``frequency_drift_hz_per_s`` (from the first frame on) and a random walk of
+    ``frequency_walk_hz_per_sqrt_s``; the camera's ``jpeg_quality`` compresses every frame.
 
     Not thread-safe: one renderer per camera thread. It keeps its scratch buffers between frames.
     """
@@ -247,19 +252,34 @@ class RollingShutterRenderer:
         tilt_rad: tuple[float, float] = (0.0, 0.0),
         gain_db: float = 0.0,
         seed: int = 0,
+        scene: Scene | None = None,
     ) -> None:
         self.camera = camera
         self.leds = tuple(leds)
+        self.scene = scene = Scene() if scene is None else scene
         self.mount = mount = Mount() if mount is None else mount
         self.roll_rad = mount.roll_rad + tilt_rad[0]
         self.pitch_rad = mount.pitch_rad + tilt_rad[1]
         self._rng = np.random.default_rng(seed)
         self._phases = self._rng.uniform(0.0, 1.0, len(self.leds))
-        self._led_x = np.array([led.x_m for led in self.leds], dtype=np.float64)
-        self._led_y = np.array([led.y_m for led in self.leds], dtype=np.float64)
-        self._led_z = np.array([led.z_m for led in self.leds], dtype=np.float64)
-        self._led_r = np.array([led.diameter_m / 2.0 for led in self.leds], dtype=np.float64)
+        # Emitters: the LEDs, then the stray lights (indices from len(leds) on); the stray lights' flicker
+        # phases come after the LEDs' so that a world without them draws the same noise as before.
+        stray = scene.stray_lights
+        self._stray_phases = self._rng.uniform(0.0, 1.0, len(stray)) if stray else np.zeros(0)
+        self._led_x = np.array([e.x_m for e in self.leds] + [e.x_m for e in stray], dtype=np.float64)
+        self._led_y = np.array([e.y_m for e in self.leds] + [e.y_m for e in stray], dtype=np.float64)
+        self._led_z = np.array([e.z_m for e in self.leds] + [e.z_m for e in stray], dtype=np.float64)
+        self._led_r = np.array(
+            [led.diameter_m / 2.0 for led in self.leds] + [s.extent_m for s in stray], dtype=np.float64
+        )
+        self._lit = np.array([not led.dead for led in self.leds] + [True] * len(stray), dtype=bool)
         self._t_epoch: float | None = None
+        # Frequency drift: each LED's random-walk offset (Hz), its integral (cycles) and when it was last
+        # advanced (s from the epoch), from a generator of its own (the noise stays as without drift).
+        self._walk_rng = np.random.default_rng([seed, 19])
+        self._walk_hz = np.zeros(len(self.leds))
+        self._walk_cycles = np.zeros(len(self.leds))
+        self._walk_at_s = np.zeros(len(self.leds))
 
         sw, sh = camera.sensor_width_px, camera.sensor_height_px
         ow, oh = camera.output_width_px, camera.output_height_px
@@ -280,6 +300,8 @@ class RollingShutterRenderer:
         # Photo-electrons <-> DN: the ADC spans the full well above the black level at 0 dB.
         self._dn_per_e = (255.0 - camera.black_level_dn) / camera.full_well_e * 10.0 ** (gain_db / 20.0)
         self._peak_e = camera.led_peak_dn / ((255.0 - camera.black_level_dn) / camera.full_well_e)
+        # Ambient light: photo-electrons every pixel collects besides the LEDs.
+        self._ambient_e = scene.ambient_dn / ((255.0 - camera.black_level_dn) / camera.full_well_e)
         # Pixel box (variance 1/12 px^2) and lens PSF add; the edge profile uses the total.
         self._sigma_px = math.sqrt(camera.blur_sigma_px**2 + 1.0 / 12.0)
 
@@ -294,7 +316,7 @@ class RollingShutterRenderer:
 
     @classmethod
     def for_world(cls, world: World, *, gain_db: float = 0.0, seed: int = 0) -> RollingShutterRenderer:
-        """The world's true camera: its mount plus the tilt error the world carries."""
+        """The world's true camera: its mount plus the tilt error the world carries, and its scene."""
         return cls(
             world.camera,
             world.leds,
@@ -302,6 +324,7 @@ class RollingShutterRenderer:
             tilt_rad=world.errors.camera_tilt_rad,
             gain_db=gain_db,
             seed=seed,
+            scene=world.scene,
         )
 
     # -- what the renderer knows -----------------------------------------------------------------------
@@ -370,8 +393,15 @@ class RollingShutterRenderer:
     def _background(self, n: int) -> ImageU8:
         cam = self.camera
         noise = self._rng.standard_normal(n, dtype=np.float32)
-        noise *= cam.read_noise_dn
-        noise += cam.black_level_dn
+        if self._ambient_e > 0.0:
+            # Ambient light: its level above black, and its shot noise (Poisson, as a Gaussian) with the
+            # read noise.
+            ambient_dn = self._ambient_e * self._dn_per_e
+            noise *= math.sqrt(cam.read_noise_dn**2 + ambient_dn * self._dn_per_e)
+            noise += cam.black_level_dn + ambient_dn
+        else:
+            noise *= cam.read_noise_dn
+            noise += cam.black_level_dn
         return np.clip(np.rint(noise), 0, 255).astype(np.uint8)
 
     # -- projection ------------------------------------------------------------------------------------
@@ -424,7 +454,7 @@ class RollingShutterRenderer:
         ``pose_at(t)`` gives the robot base's true pose at time ``t`` (three calls per frame: first, middle
         and last row; rows in between are interpolated quadratically). ``out``, if given, receives the image
         (shape (output height, output width), uint8) and is returned in the result. ``covers`` hide parts
-        of LEDs in this frame (occlusion).
+        of LEDs in this frame (occlusion), besides the scene's occluders that hide them at ``t0_s``.
         """
         cam = self.camera
         oh, ow = cam.output_height_px, cam.output_width_px
@@ -440,14 +470,22 @@ class RollingShutterRenderer:
         p_first, p_mid, p_last = pose_at(t_first), pose_at(t_mid), pose_at(t_last)
         knots = self._camera_knots(p_first, p_mid, p_last)
 
+        covers = [
+            *covers,
+            *(
+                LedCover(o.led_index, o.angle_rad, o.fraction)
+                for o in self.scene.occluders
+                if o.hides_at(t0_s)
+            ),
+        ]
         self._draw_background(out)
-        truths, boxes = self._place_leds(t0_s, knots)
-        for truth, box in zip(truths, boxes, strict=True):
-            self._accumulate(
-                truth.index, t0_s, knots, *box, covers=[c for c in covers if c.led_index == truth.index]
-            )
-        for r0, r1, c0, c1 in _merge_rects(boxes):
+        truths, placed = self._place_leds(t0_s, knots)
+        for index, box in placed:
+            self._accumulate(index, t0_s, knots, *box, covers=[c for c in covers if c.led_index == index])
+        for r0, r1, c0, c1 in _merge_rects([box for _, box in placed]):
             self._expose(out, r0, r1, c0, c1)
+        if cam.jpeg_quality > 0:
+            _compress(out, cam.jpeg_quality)
 
         mid_cam = knots[1]
         camera_pose = CameraPose(
@@ -478,13 +516,14 @@ class RollingShutterRenderer:
 
     def _place_leds(
         self, t0_s: float, knots: tuple[tuple[float, float, float], ...]
-    ) -> tuple[list[LedTruth], list[tuple[int, int, int, int]]]:
-        """Truth and surviving-pixel box (r0, r1, c0, c1) of every LED with at least one kept pixel.
+    ) -> tuple[list[LedTruth], list[tuple[int, tuple[int, int, int, int]]]]:
+        """Truth of every lit LED with at least one kept pixel, and the surviving-pixel box
+        (r0, r1, c0, c1) of every emitter (lit LEDs and stray lights) with one, by emitter index.
 
         Vectorised over LEDs: a frame costs a fixed handful of numpy calls whatever the LED count.
         """
         cam = self.camera
-        if not self.leds:
+        if self._led_x.size == 0:
             return [], []
         px, py, pz, radius_m = self._led_x, self._led_y, self._led_z, self._led_r
         mid = knots[1]
@@ -495,7 +534,8 @@ class RollingShutterRenderer:
         )
         with np.errstate(invalid="ignore"):
             keep = (
-                (depth > 1e-3)
+                self._lit
+                & (depth > 1e-3)
                 & (u_mid > -slack)
                 & (u_mid < cam.sensor_width_px - 1 + slack)
                 & (v_mid > -slack)
@@ -547,10 +587,13 @@ class RollingShutterRenderer:
         )
 
         truths: list[LedTruth] = []
-        boxes: list[tuple[int, int, int, int]] = []
+        boxes: list[tuple[int, tuple[int, int, int, int]]] = []
         height = pz - self.mount.z_m
         for k in np.flatnonzero(valid):
             index = int(idx[k])
+            boxes.append((index, (int(r0s[k]), int(r1s[k]), int(c0s[k]), int(c1s[k]))))
+            if index >= len(self.leds):
+                continue  # a stray light: drawn, but no LED of the world
             centre = self.sensor_to_output(float(u_c[k]), float(v_c[k]))
             centre_mid = self.sensor_to_output(float(u_mid[k]), float(v_mid[k]))
             in_image = (
@@ -569,7 +612,6 @@ class RollingShutterRenderer:
                     in_image,
                 )
             )
-            boxes.append((int(r0s[k]), int(r1s[k]), int(c0s[k]), int(c1s[k])))
         return truths, boxes
 
     def _draw_background(self, out: ImageU8) -> None:
@@ -594,18 +636,22 @@ class RollingShutterRenderer:
         c1: int,
         covers: Sequence[LedCover] = (),
     ) -> None:
-        """Add the LED's expected photo-electrons to the surviving pixels of its box (and, for blooming,
-        what the sensor rows just above and below them collect)."""
+        """Add emitter ``index``'s expected photo-electrons (an LED, or from ``len(leds)`` on a stray light)
+        to the surviving pixels of its box (and, for blooming, what the sensor rows just above and below
+        them collect)."""
         cam = self.camera
-        led = self.leds[index]
+        if any(cover.fraction >= 1.0 for cover in covers):
+            return  # hidden whole (its blurred rim too: the cover is wider than the disk)
+        stray = self.scene.stray_lights[index - len(self.leds)] if index >= len(self.leds) else None
         rows = self._rows[r0:r1].astype(np.float64)
         cam_x, cam_y, yaw = self._camera_at_rows(knots, rows)
-        height = led.z_m - self.mount.z_m
-        radius_m = led.diameter_m / 2.0
+        led_x, led_y = float(self._led_x[index]), float(self._led_y[index])
+        height = float(self._led_z[index]) - self.mount.z_m
+        radius_m = float(self._led_r[index])
 
         # Where each pixel's ray meets the LED plane, relative to the LED centre, in the camera's yaw frame:
         # rho = | lambda m_xy - Rz(-psi)(L - c) |, lambda = H / m_z (m: the tilted ray, c: the row's camera).
-        dx, dy = led.x_m - cam_x, led.y_m - cam_y
+        dx, dy = led_x - cam_x, led_y - cam_y
         cos_y, sin_y = np.cos(yaw), np.sin(yaw)
         ex = (cos_y * dx + sin_y * dy)[:, None]
         ey = (-sin_y * dx + cos_y * dy)[:, None]
@@ -613,35 +659,83 @@ class RollingShutterRenderer:
         lam = height / np.maximum(ray_z, 1e-9)
         ox = lam * self._ray_x[r0:r1, c0:c1] - ex
         oy = lam * self._ray_y[r0:r1, c0:c1] - ey
-        rho = np.sqrt(ox * ox + oy * oy)
 
-        # Blurred outline: signed distance to the rim in image pixels, through the Gaussian edge profile.
-        edge_px = (rho - radius_m) * (self._f_px / lam)
-        coverage = _gauss_tail(edge_px / self._sigma_px)
-        rel = np.minimum(rho / radius_m, 1.0)
-        for cover in covers:
-            # The cover's edge is the line (p - centre) . n = R (1 - 2 fraction) in the LED plane; n turned
-            # into each row's yaw frame like (ox, oy). Visible where the signed distance is negative.
-            nx, ny = math.cos(cover.angle_rad), math.sin(cover.angle_rad)
-            ncx = (cos_y * nx + sin_y * ny)[:, None]
-            ncy = (-sin_y * nx + cos_y * ny)[:, None]
-            beyond = ox * ncx + oy * ncy - radius_m * (1.0 - 2.0 * cover.fraction)
-            coverage = coverage * _gauss_tail(beyond * (self._f_px / lam) / self._sigma_px)
-        shape = coverage * (1.0 - cam.radial_falloff * rel * rel) * self._vignette[r0:r1, c0:c1]
+        if stray is not None and stray.shape == "rectangle":
+            # Signed distance to the rectangle's outline, in its own frame (turned by its yaw less the row's).
+            turn = stray.yaw_rad - yaw
+            ct, st = np.cos(turn)[:, None], np.sin(turn)[:, None]
+            qx = np.abs(ct * ox + st * oy) - stray.width_m / 2.0
+            qy = np.abs(-st * ox + ct * oy) - stray.length_m / 2.0
+            outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
+            signed = outside + np.minimum(np.maximum(qx, qy), 0.0)
+            coverage = _gauss_tail(signed * (self._f_px / lam) / self._sigma_px)
+            shape = coverage * self._vignette[r0:r1, c0:c1]
+        else:
+            # Blurred outline: signed distance to the rim in image pixels, through the Gaussian edge profile.
+            rho = np.sqrt(ox * ox + oy * oy)
+            edge_px = (rho - radius_m) * (self._f_px / lam)
+            coverage = _gauss_tail(edge_px / self._sigma_px)
+            for cover in covers:
+                # The cover's edge is the line (p - centre) . n = R (1 - 2 fraction) in the LED plane; n
+                # turned into each row's yaw frame like (ox, oy). Visible where the signed distance is < 0.
+                nx, ny = math.cos(cover.angle_rad), math.sin(cover.angle_rad)
+                ncx = (cos_y * nx + sin_y * ny)[:, None]
+                ncy = (-sin_y * nx + cos_y * ny)[:, None]
+                beyond = ox * ncx + oy * ncy - radius_m * (1.0 - 2.0 * cover.fraction)
+                coverage = coverage * _gauss_tail(beyond * (self._f_px / lam) / self._sigma_px)
+            if stray is None:
+                rel = np.minimum(rho / radius_m, 1.0)
+                shape = coverage * (1.0 - cam.radial_falloff * rel * rel) * self._vignette[r0:r1, c0:c1]
+            else:
+                shape = coverage * self._vignette[r0:r1, c0:c1]
 
         t_start = t0_s - (self._t_epoch or 0.0) + rows * cam.t_row_s
-        phase = float(self._phases[index])
-        on_here = pwm_exposure_fraction(t_start, cam.exposure_s, led.frequency_hz, led.duty, phase)
-        on_up = pwm_exposure_fraction(
-            t_start - cam.t_row_s, cam.exposure_s, led.frequency_hz, led.duty, phase
-        )
-        on_down = pwm_exposure_fraction(
-            t_start + cam.t_row_s, cam.exposure_s, led.frequency_hz, led.duty, phase
-        )
-        signal = self._peak_e * shape
+        if stray is None:
+            led = self.leds[index]
+            brightness = led.brightness
+            frequency, duty = led.frequency_hz, led.duty
+            phase = float(self._phases[index])
+            if led.frequency_drift_hz_per_s or led.frequency_walk_hz_per_sqrt_s:
+                frequency, phase = self._drifted(index, t0_s - (self._t_epoch or 0.0))
+                t_start = rows * cam.t_row_s
+        else:
+            brightness = stray.brightness
+            frequency, duty = stray.flicker_hz, stray.flicker_duty
+            phase = float(self._stray_phases[index - len(self.leds)])
+        if frequency > 0.0:
+            on_here = pwm_exposure_fraction(t_start, cam.exposure_s, frequency, duty, phase)
+            on_up = pwm_exposure_fraction(t_start - cam.t_row_s, cam.exposure_s, frequency, duty, phase)
+            on_down = pwm_exposure_fraction(t_start + cam.t_row_s, cam.exposure_s, frequency, duty, phase)
+        else:
+            on_here = on_up = on_down = np.ones_like(rows)  # a steady light
+        signal = (self._peak_e * brightness) * shape
         self._signal[r0:r1, c0:c1] += signal * on_here[:, None]
         self._signal_up[r0:r1, c0:c1] += signal * on_up[:, None]
         self._signal_down[r0:r1, c0:c1] += signal * on_down[:, None]
+
+    def _drifted(self, index: int, tau_s: float) -> tuple[float, float]:
+        """LED ``index``'s true PWM frequency at ``tau_s`` seconds from the epoch, and its phase then in
+        cycles (0..1): f(t) = f0 + a t + w(t), w a random walk; the phase is the integral of f. Within one
+        frame's readout the frequency is taken as constant (a drift of even 100 Hz/s moves it 5 Hz in 50 ms,
+        far below what one frame resolves)."""
+        led = self.leds[index]
+        if led.frequency_walk_hz_per_sqrt_s > 0.0 and tau_s > self._walk_at_s[index]:
+            dt = tau_s - self._walk_at_s[index]
+            before = self._walk_hz[index]
+            step = led.frequency_walk_hz_per_sqrt_s * math.sqrt(dt) * self._walk_rng.standard_normal()
+            after = before + step
+            self._walk_cycles[index] += 0.5 * (before + after) * dt
+            self._walk_hz[index] = after
+            self._walk_at_s[index] = tau_s
+        a = led.frequency_drift_hz_per_s
+        frequency = led.frequency_hz + a * tau_s + float(self._walk_hz[index])
+        cycles = (
+            float(self._phases[index])
+            + led.frequency_hz * tau_s
+            + 0.5 * a * tau_s * tau_s
+            + float(self._walk_cycles[index])
+        )
+        return max(frequency, 1.0), cycles - math.floor(cycles)
 
     def _expose(self, out: ImageU8, r0: int, r1: int, c0: int, c1: int) -> None:
         """Turn expected electrons into DN over one box: blooming, shot noise, full well, read noise, ADC."""
@@ -653,6 +747,8 @@ class RollingShutterRenderer:
             np.maximum(self._signal_up[box] - full_well, 0.0)
             + np.maximum(self._signal_down[box] - full_well, 0.0)
         )
+        if self._ambient_e > 0.0:
+            spill = spill + self._ambient_e
         electrons = self._rng.poisson(signal + spill).astype(np.float64)
         np.minimum(electrons, full_well, out=electrons)
         dn = cam.black_level_dn + self._dn_per_e * electrons
@@ -662,6 +758,18 @@ class RollingShutterRenderer:
         self._signal[box] = 0.0
         self._signal_up[box] = 0.0
         self._signal_down[box] = 0.0
+
+
+def _compress(image: ImageU8, quality: int) -> None:
+    """JPEG-compress ``image`` in place at ``quality`` (1..100), as a camera or a network link that sends
+    JPEG frames does: 8x8 block artefacts, ringing at the stripes' edges, smoothed noise."""
+    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("cv2.imencode could not encode the frame as JPEG")
+    decoded = cv2.imdecode(encoded, cv2.IMREAD_GRAYSCALE)
+    if decoded is None:
+        raise RuntimeError("cv2.imdecode could not decode the JPEG frame")
+    np.copyto(image, decoded)
 
 
 def _merge_rects(rects: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:

@@ -33,7 +33,7 @@ import numpy.typing as npt
 from drivers.child_process import child_connection, start_child, stop_child
 from drivers.errors import DeviceDisconnected
 from drivers.sim.render import FrameTruth, RenderedFrame, RollingShutterRenderer, pose_times_s, readout_time_s
-from drivers.sim.world import CameraModel, Led, Mount, Pose2D
+from drivers.sim.world import CameraModel, Led, Mount, Pose2D, Scene
 
 __all__ = ["RenderWorker"]
 
@@ -89,10 +89,16 @@ class RenderWorker:
         tilt_rad: tuple[float, float] = (0.0, 0.0),
         gain_db: float = 0.0,
         seed: int = 0,
+        scene: Scene | None = None,
     ) -> None:
         self.camera = camera
         self._args = (camera, tuple(leds), mount)
-        self._kwargs: dict[str, Any] = {"tilt_rad": tilt_rad, "gain_db": gain_db, "seed": seed}
+        self._kwargs: dict[str, Any] = {
+            "tilt_rad": tilt_rad,
+            "gain_db": gain_db,
+            "seed": seed,
+            "scene": scene,
+        }
         self._process, self._conn = start_child("drivers.sim.render_worker")
         self._conn.send((self._args, self._kwargs))
 

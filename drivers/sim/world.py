@@ -52,6 +52,16 @@ class Led:
     duty: float = 0.5
     # What the LED map given to the agent states as this LED's survey uncertainty (per axis); None: none.
     survey_sigma_m: float | None = None
+    # Light output relative to ``CameraModel.led_peak_dn`` (a dimmer or brighter fitting).
+    brightness: float = 1.0
+    # In the map but dark (a failed LED): the renderer draws nothing for it.
+    dead: bool = False
+    # False: lit but missing from the LED map the agent is given (an LED fitted after the survey).
+    mapped: bool = True
+    # The true PWM frequency drifts from ``frequency_hz`` (its value at the renderer's first frame, and what
+    # the map says): linearly, and as a random walk (standard deviation sqrt(t) times this after t seconds).
+    frequency_drift_hz_per_s: float = 0.0
+    frequency_walk_hz_per_sqrt_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,6 +93,8 @@ class CameraModel:
     radial_falloff: float = 0.3
     # Fraction of the charge above full well that spills into each vertical neighbour (blooming).
     bloom_fraction: float = 0.05
+    # JPEG-like compression of every output frame (cv2.imencode / imdecode at this quality); 0: none.
+    jpeg_quality: int = 0
 
     @property
     def focal_length_px(self) -> float:
@@ -158,16 +170,74 @@ class ErrorModel:
 
     The true principal point is offset from the nominal one by ``principal_point_error_px``; the LED map
     the agent is given is off by ``led_survey_error_m`` (standard deviation, per axis) and
-    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch); the
-    camera's true row time is the nominal one times (1 + ``row_time_error``).
+    ``led_height_error_m``; the camera is tilted on its mount by ``camera_tilt_rad`` (roll, pitch); its
+    true row time, focal length and distortion differ from the configured ones by the last three.
     """
 
     principal_point_error_px: tuple[float, float] = (0.0, 0.0)
     led_survey_error_m: float = 0.0
     led_height_error_m: float = 0.0
     camera_tilt_rad: tuple[float, float] = (0.0, 0.0)
+    # The true row time, focal length and distortion against the configured (nominal) ones: true =
+    # nominal x (1 + error) for the first two, true = nominal + error for the distortion.
+    t_row_error_fraction: float = 0.0
+    focal_length_error_fraction: float = 0.0
+    distortion_error: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     seed: int = 0
-    row_time_error: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class StrayLight:
+    """A bright object on the ceiling that is not an LED of the map: a lamp (``disk``) or a window or light
+    panel (``rectangle``), steady or flickering at ``flicker_hz`` (not an LED signature)."""
+
+    x_m: float
+    y_m: float
+    z_m: float
+    shape: str = "disk"
+    diameter_m: float = 0.3
+    width_m: float = 1.0
+    length_m: float = 0.5
+    yaw_rad: float = 0.0
+    brightness: float = 1.0
+    flicker_hz: float = 0.0
+    flicker_duty: float = 0.5
+
+    @property
+    def extent_m(self) -> float:
+        """The radius of the smallest circle about its centre that holds it."""
+        if self.shape == "disk":
+            return self.diameter_m / 2.0
+        return 0.5 * float((self.width_m**2 + self.length_m**2) ** 0.5)
+
+
+@dataclass(frozen=True, slots=True)
+class Occluder:
+    """Something that hides part or all of LED ``led_index`` (an index into ``World.leds``) at times: for
+    ``hidden_s`` of every ``period_s`` from ``phase_s`` on (always when ``period_s`` is 0). ``fraction`` of
+    the disk is covered from the side ``angle_rad`` points to (1: all of it)."""
+
+    led_index: int
+    fraction: float = 1.0
+    angle_rad: float = 0.0
+    period_s: float = 0.0
+    hidden_s: float = 0.0
+    phase_s: float = 0.0
+
+    def hides_at(self, t_s: float) -> bool:
+        if self.period_s <= 0.0:
+            return True
+        return (t_s - self.phase_s) % self.period_s < self.hidden_s
+
+
+@dataclass(frozen=True, slots=True)
+class Scene:
+    """What else the camera sees: ambient light over the whole frame (DN above black at 0 dB gain), stray
+    bright objects, occluders."""
+
+    ambient_dn: float = 0.0
+    stray_lights: tuple[StrayLight, ...] = ()
+    occluders: tuple[Occluder, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,4 +253,5 @@ class World:
     route: tuple[tuple[float, float], ...] = ()
     route_speed_mps: float = 0.2
     errors: ErrorModel = ErrorModel()
+    scene: Scene = Scene()
     source: str | None = field(default=None, compare=False)

@@ -39,15 +39,18 @@ from drivers.sim.world import (
     ErrorModel,
     LaserModel,
     Led,
+    Occluder,
     Person,
     RfidModel,
     RobotSpec,
+    Scene,
+    StrayLight,
     Wall,
     World,
 )
 from drivers.toml_table import TomlTable, as_float, as_int, type_name
 
-__all__ = ["load_world", "nominal_camera", "parse_world", "surveyed_leds"]
+__all__ = ["load_world", "map_indices", "nominal_camera", "parse_world", "survey", "surveyed_leds"]
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +70,27 @@ _MAX_SEARCHED_SIGNATURES = 48
 _MAX_TILT_RAD = math.radians(20.0)
 # A stated LED survey uncertainty beyond this is no survey (and would let any LED fit anywhere).
 _MAX_SURVEY_SIGMA_M = 1.0
+# A camera whose true row time or focal length is off its configured one by more than this is another
+# camera, not an error; a distortion coefficient (error) beyond this is no lens the model describes.
+_MAX_ERROR_FRACTION = 0.5
+_MAX_DISTORTION = 10.0
+# An LED or stray light brighter than this many times led_peak_dn only saturates a larger blob.
+_MAX_BRIGHTNESS = 100.0
+# An occluder's ``at`` must be within this of the LED it hides.
+_OCCLUDER_REACH_M = 0.5
+_SHAPES = ("disk", "rectangle")
+
+# LED keys of [led_defaults], [[leds]] and [[led_grids]] beyond position, size and signature: their checks.
+_LED_EXTRAS: dict[str, _Check] = {
+    "brightness": (
+        lambda v: 0 < v <= _MAX_BRIGHTNESS,
+        f"must be > 0 and at most {_MAX_BRIGHTNESS:g} (relative to camera.led_peak_dn; "
+        "a dark LED is dead = true)",
+    ),
+    "frequency_drift_hz_per_s": (lambda v: abs(v) <= 1000.0, "must be within +-1000 Hz/s"),
+    "frequency_walk_hz_per_sqrt_s": (lambda v: 0 <= v <= 1000.0, "must be in [0, 1000] Hz/sqrt(s)"),
+}
+_DEFAULT_EXTRAS = {"brightness": 1.0, "frequency_drift_hz_per_s": 0.0, "frequency_walk_hz_per_sqrt_s": 0.0}
 
 # Bounds on every count and size in a world file (docs/world.md, "Limits"). Each is checked on the number
 # itself, before anything is built from it, so that a slip such as ``ny = 100000000`` fails at once with
@@ -83,6 +107,7 @@ MAX_OUTLINE_POINTS = MAX_WALLS  # points of one [[walls]] or [[polygons]] entry
 MAX_PATH_POINTS = 256  # a person's path, the route's waypoints (each leg is checked against every wall)
 MAX_PEOPLE = 16
 MAX_DOORS = 64  # doors of one room
+MAX_STRAY_LIGHTS = 256  # [[scene.stray_lights]]: each is rendered every frame like an LED
 
 _Check = tuple[Callable[[Any], bool], str]
 _POSITIVE: _Check = (lambda v: v > 0, "must be > 0")
@@ -106,7 +131,6 @@ _RULES: dict[str, _Check] = {
     "CameraModel.pixel_size_m": _POSITIVE,
     "CameraModel.focal_length_m": _POSITIVE,
     "CameraModel.t_row_s": _POSITIVE,
-    "ErrorModel.row_time_error": (lambda v: -0.5 < v < 0.5, "must be between -0.5 and 0.5 (a fraction)"),
     "CameraModel.exposure_s": _POSITIVE,
     "CameraModel.output_width_px": _OUTPUT_SIDE,
     "CameraModel.output_height_px": _OUTPUT_SIDE,
@@ -118,6 +142,7 @@ _RULES: dict[str, _Check] = {
     "CameraModel.blur_sigma_px": _NON_NEGATIVE,
     "CameraModel.radial_falloff": _UNIT_INTERVAL,
     "CameraModel.bloom_fraction": (lambda v: 0 <= v <= 0.5, "must be between 0 and 0.5"),
+    "CameraModel.jpeg_quality": (lambda v: 0 <= v <= 100, "must be 0 (no compression) or a quality 1..100"),
     "LaserModel.min_range_mm": _NON_NEGATIVE,
     "LaserModel.max_range_mm": _up_to(MAX_RANGE_MM, "what SCIP can send"),
     "LaserModel.steps_per_rev": _up_to(MAX_STEPS_PER_REV, "SCIP step numbers have 4 digits"),
@@ -145,6 +170,18 @@ _RULES: dict[str, _Check] = {
     "Person.reaction_s": (lambda v: 0 <= v <= 1.5, "must be in [0, 1.5] s"),
     "ErrorModel.led_survey_error_m": _NON_NEGATIVE,
     "ErrorModel.led_height_error_m": _NON_NEGATIVE,
+    "ErrorModel.t_row_error_fraction": (
+        lambda v: abs(v) <= _MAX_ERROR_FRACTION,
+        f"must be within +-{_MAX_ERROR_FRACTION:g} (a fraction: 0.03 is 3 %)",
+    ),
+    "ErrorModel.focal_length_error_fraction": (
+        lambda v: abs(v) <= _MAX_ERROR_FRACTION,
+        f"must be within +-{_MAX_ERROR_FRACTION:g} (a fraction: 0.01 is 1 %)",
+    ),
+    "ErrorModel.distortion_error": (
+        lambda v: all(abs(c) <= _MAX_DISTORTION for c in v),
+        f"each coefficient must be within +-{_MAX_DISTORTION:g}",
+    ),
     "ErrorModel.camera_tilt_rad": (
         lambda v: all(abs(a) <= _MAX_TILT_RAD for a in v),
         f"each angle must be within +-{math.degrees(_MAX_TILT_RAD):.0f} degrees",
@@ -190,37 +227,65 @@ def parse_world(data: Mapping[str, Any] | str, source: str | None = None) -> Wor
 
 
 def surveyed_leds(world: World) -> tuple[Led, ...]:
-    """The LED map the agent is given: the true LEDs moved by the world's survey errors.
+    """The LED map the agent is given: the true LEDs moved by the world's survey errors, without the LEDs
+    missing from the map (``mapped = false``). Dead LEDs stay: the map does not know they are dark.
 
     Each coordinate is off by a normal draw with standard deviation ``errors.led_survey_error_m`` (x, y)
     and ``errors.led_height_error_m`` (z), seeded by ``errors.seed`` so every run sees the same map.
     """
+    return tuple(led for led in survey(world) if led is not None)
+
+
+def survey(world: World) -> tuple[Led | None, ...]:
+    """Each of ``world.leds`` as the map states it (see :func:`surveyed_leds`), None where the map leaves
+    it out: aligned with ``world.leds``, for comparing the map with the truth LED by LED. Every LED draws
+    its survey error, mapped or not, so marking one unmapped leaves the others where they were."""
     errors = world.errors
     rng = random.Random(errors.seed)
-    out = []
+    out: list[Led | None] = []
     for led in world.leds:
-        out.append(
-            dataclasses.replace(
-                led,
-                x_m=led.x_m + rng.gauss(0.0, errors.led_survey_error_m),
-                y_m=led.y_m + rng.gauss(0.0, errors.led_survey_error_m),
-                z_m=led.z_m + rng.gauss(0.0, errors.led_height_error_m),
-            )
+        moved = dataclasses.replace(
+            led,
+            x_m=led.x_m + rng.gauss(0.0, errors.led_survey_error_m),
+            y_m=led.y_m + rng.gauss(0.0, errors.led_survey_error_m),
+            z_m=led.z_m + rng.gauss(0.0, errors.led_height_error_m),
         )
+        out.append(moved if led.mapped else None)
+    return tuple(out)
+
+
+def map_indices(world: World) -> tuple[int | None, ...]:
+    """For each of ``world.leds``, its index in :func:`surveyed_leds` (None: not in the map)."""
+    out: list[int | None] = []
+    n = 0
+    for led in world.leds:
+        out.append(n if led.mapped else None)
+        n += int(led.mapped)
     return tuple(out)
 
 
 def nominal_camera(world: World) -> CameraModel:
     """The camera as the agent's calibration knows it.
 
-    ``world.camera`` is the truth (the renderer uses it); the nominal principal point is the true one minus
-    ``errors.principal_point_error_px`` (sensor pixels), i.e. the truth is off the nominal by the error;
-    the nominal row time is the true one over (1 + ``errors.row_time_error``).
+    ``world.camera`` is the truth (the renderer uses it). The nominal principal point is the true one minus
+    ``errors.principal_point_error_px`` (sensor pixels), i.e. the truth is off the nominal by the error; the
+    nominal row time and focal length are the true ones divided by (1 + their ``*_error_fraction``); the
+    nominal distortion is the true one minus ``errors.distortion_error``.
     """
-    cx, cy = world.camera.principal_point_px
-    ex, ey = world.errors.principal_point_error_px
-    t_row = world.camera.t_row_s / (1.0 + world.errors.row_time_error)
-    return dataclasses.replace(world.camera, cx_px=cx - ex, cy_px=cy - ey, t_row_s=t_row)
+    cam = world.camera
+    e = world.errors
+    cx, cy = cam.principal_point_px
+    ex, ey = e.principal_point_error_px
+    nominal = dataclasses.replace(cam, cx_px=cx - ex, cy_px=cy - ey)
+    if e.t_row_error_fraction or e.focal_length_error_fraction or any(e.distortion_error):
+        dist = tuple(t - d for t, d in zip(cam.distortion, e.distortion_error, strict=True))
+        nominal = dataclasses.replace(
+            nominal,
+            t_row_s=cam.t_row_s / (1.0 + e.t_row_error_fraction),
+            focal_length_m=cam.focal_length_m / (1.0 + e.focal_length_error_fraction),
+            distortion=(dist[0], dist[1], dist[2], dist[3], dist[4]),
+        )
+    return nominal
 
 
 # -- a table being read --------------------------------------------------------------------------------------
@@ -545,6 +610,7 @@ _SECTIONS = (
     "rooms",
     "people",
     "route",
+    "scene",
 )
 
 
@@ -576,6 +642,7 @@ class _WorldReader:
         leds_with_keys = self._leds(robot, camera)
         people = self._people(walls)
         route, speed = self._route(walls, robot)
+        scene = self._scene(leds_with_keys, robot, camera)
         root.finish()
         self._check_start(robot, walls)
         return World(
@@ -590,6 +657,7 @@ class _WorldReader:
             route=route,
             route_speed_mps=speed,
             errors=errors,
+            scene=scene,
             source=self.file,
         )
 
@@ -765,7 +833,7 @@ class _WorldReader:
     # -- LEDs --------------------------------------------------------------------------------------------
     def _leds(self, robot: RobotSpec, cam: CameraModel) -> list[_Placed]:
         defaults_table = self.root.table("led_defaults")
-        defaults_table.expect("z_m", "diameter_m", "frequency_hz", "duty", "survey_sigma_m")
+        defaults_table.expect("z_m", "diameter_m", "frequency_hz", "duty", "survey_sigma_m", *_LED_EXTRAS)
         base = Led("", 0.0, 0.0, 0.0)
         defaults = {
             "z_m": defaults_table.number("z_m") if defaults_table.has("z_m") else None,
@@ -774,6 +842,7 @@ class _WorldReader:
             "duty": defaults_table.number("duty", base.duty),
         }
         survey_sigma = self._survey_sigma(defaults_table, None)
+        extras = self._led_extras(defaults_table, _DEFAULT_EXTRAS)
         defaults_table.finish()
         for name in ("diameter_m", "frequency_hz", "duty"):
             rule = _RULES[f"Led.{name}"]
@@ -782,7 +851,20 @@ class _WorldReader:
 
         leds: list[_Placed] = []
         for t in self.root.tables("leds", MAX_LEDS):
-            t.expect("id", "x_m", "y_m", "z_m", "diameter_m", "frequency_hz", "duty", "survey_sigma_m")
+            t.expect(
+                "id",
+                "x_m",
+                "y_m",
+                "z_m",
+                "diameter_m",
+                "frequency_hz",
+                "duty",
+                "survey_sigma_m",
+                "dead",
+                "mapped",
+                *_LED_EXTRAS,
+            )
+            own = self._led_extras(t, extras)
             led = Led(
                 id=t.string("id", allow_int=True),
                 x_m=t.number("x_m", required=True),
@@ -792,13 +874,28 @@ class _WorldReader:
                 frequency_hz=self._led_number(t, "frequency_hz", defaults),
                 duty=self._led_number(t, "duty", defaults),
                 survey_sigma_m=self._survey_sigma(t, survey_sigma),
+                dead=t.boolean("dead", False),
+                mapped=t.boolean("mapped", True),
+                brightness=own["brightness"],
+                frequency_drift_hz_per_s=own["frequency_drift_hz_per_s"],
+                frequency_walk_hz_per_sqrt_s=own["frequency_walk_hz_per_sqrt_s"],
             )
             t.finish()
             leds.append(_Placed(led, t.path, t.path, t.path))
         for t in self.root.tables("led_grids", MAX_LEDS):
-            leds += self._led_grid(t, defaults, len(leds), survey_sigma)
+            leds += self._led_grid(t, defaults, len(leds), survey_sigma, extras)
         self._check_leds(leds, robot, cam)
         return leds
+
+    def _led_extras(self, t: _Table, defaults: Mapping[str, float]) -> dict[str, float]:
+        """An LED's brightness and frequency drift (:data:`_LED_EXTRAS`), ``defaults`` where not given."""
+        out = {}
+        for name, (check, reason) in _LED_EXTRAS.items():
+            value = t.number(name, defaults[name])
+            if not check(value):
+                raise t.error(name, f"{reason}, got {value:g}")
+            out[name] = value
+        return out
 
     def _led_number(self, t: _Table, name: str, defaults: Mapping[str, float | None]) -> float:
         default = defaults[name]
@@ -820,7 +917,12 @@ class _WorldReader:
         return value
 
     def _led_grid(
-        self, t: _Table, defaults: Mapping[str, float | None], placed: int, survey_sigma: float | None
+        self,
+        t: _Table,
+        defaults: Mapping[str, float | None],
+        placed: int,
+        survey_sigma: float | None,
+        extras: Mapping[str, float],
     ) -> list[_Placed]:
         """LEDs on a rectangular grid; signature k goes to LED (ix, iy) with k = (ix + row_shift iy) mod n.
         Neighbours along a row always differ (n > 1); the default row_shift keeps repeats farthest apart.
@@ -837,6 +939,7 @@ class _WorldReader:
             "signatures",
             "row_shift",
             "survey_sigma_m",
+            *_LED_EXTRAS,
         )
         x0, y0 = t.number("x0_m", required=True), t.number("y0_m", required=True)
         nx, ny = t.integer("nx"), t.integer("ny")
@@ -857,6 +960,7 @@ class _WorldReader:
         z = self._led_number(t, "z_m", defaults)
         diameter = self._led_number(t, "diameter_m", defaults)
         sigma = self._survey_sigma(t, survey_sigma)
+        grid_extras = self._led_extras(t, extras)
         signatures = []
         for s in t.tables("signatures", MAX_LEDS):
             s.expect("id", "frequency_hz", "duty")
@@ -879,7 +983,19 @@ class _WorldReader:
             for ix in range(nx):
                 k = (ix + row_shift * iy) % n
                 sid, freq, duty = signatures[k]
-                led = Led(sid, x0 + ix * dx, y0 + iy * dy, z, diameter, freq, duty, sigma)
+                led = Led(
+                    sid,
+                    x0 + ix * dx,
+                    y0 + iy * dy,
+                    z,
+                    diameter,
+                    freq,
+                    duty,
+                    sigma,
+                    brightness=grid_extras["brightness"],
+                    frequency_drift_hz_per_s=grid_extras["frequency_drift_hz_per_s"],
+                    frequency_walk_hz_per_sqrt_s=grid_extras["frequency_walk_hz_per_sqrt_s"],
+                )
                 out.append(_Placed(led, t.path, f"{t.path}.signatures[{k}]", f"{t.path} (ix={ix}, iy={iy})"))
         return out
 
@@ -964,6 +1080,79 @@ class _WorldReader:
                 f"the LED at {second.where} overlaps the one at {first.where} "
                 f"(centres {apart_m:.3f} m apart)",
             )
+
+    # -- the rest of the scene ---------------------------------------------------------------------------
+    def _scene(self, leds: list[_Placed], robot: RobotSpec, cam: CameraModel) -> Scene:
+        t = self.root.table("scene")
+        t.expect("ambient_dn", "stray_lights", "occluders")
+        ambient = t.number("ambient_dn", 0.0)
+        if not 0.0 <= ambient < 255.0 - cam.black_level_dn:
+            raise t.error(
+                "ambient_dn",
+                f"must be in [0, {255.0 - cam.black_level_dn:g}) DN (above black level, below white), "
+                f"got {ambient:g}",
+            )
+        stray = [self._stray_light(s, robot, cam) for s in t.tables("stray_lights", MAX_STRAY_LIGHTS)]
+        occluders = [self._occluder(o, leds) for o in t.tables("occluders", MAX_LEDS)]
+        t.finish()
+        return Scene(ambient, tuple(stray), tuple(occluders))
+
+    def _stray_light(self, t: _Table, robot: RobotSpec, cam: CameraModel) -> StrayLight:
+        light: StrayLight = _read_dataclass(StrayLight, t)
+        t.finish()
+        if light.shape not in _SHAPES:
+            raise t.error("shape", f"must be one of {list(_SHAPES)}, got {light.shape!r}")
+        if light.z_m <= robot.camera_mount.z_m:
+            raise t.error(
+                "z_m",
+                f"{light.z_m:g} m is not above the camera "
+                f"(robot.camera_mount.z_m = {robot.camera_mount.z_m:g} m)",
+            )
+        for name in ("diameter_m", "width_m", "length_m"):
+            if getattr(light, name) <= 0:
+                raise t.error(name, f"must be > 0, got {getattr(light, name):g}")
+        if not 0 < light.brightness <= _MAX_BRIGHTNESS:
+            raise t.error(
+                "brightness",
+                f"must be > 0 and at most {_MAX_BRIGHTNESS:g} (relative to camera.led_peak_dn), "
+                f"got {light.brightness:g}",
+            )
+        if light.flicker_hz < 0:
+            raise t.error("flicker_hz", f"must be >= 0 (0: steady), got {light.flicker_hz:g}")
+        if light.flicker_hz > 1.0 / (2.0 * cam.t_row_s):
+            raise t.error(
+                "flicker_hz",
+                f"{light.flicker_hz:g} Hz is above the rolling-shutter Nyquist limit "
+                f"1/(2 t_row) = {1.0 / (2.0 * cam.t_row_s):.0f} Hz",
+            )
+        if not 0 < light.flicker_duty < 1:
+            raise t.error("flicker_duty", f"must be strictly between 0 and 1, got {light.flicker_duty:g}")
+        return light
+
+    def _occluder(self, t: _Table, leds: list[_Placed]) -> Occluder:
+        t.expect("at", "fraction", "angle_rad", "angle_deg", "period_s", "hidden_s", "phase_s")
+        at = _as_point(t.take("at"), t.key("at"), self.file) if t.has("at") else None
+        if at is None:
+            raise t.error("at", "missing (the [x, y] in metres of the LED it hides is required)")
+        near = [(math.hypot(p.led.x_m - at[0], p.led.y_m - at[1]), i, p) for i, p in enumerate(leds)]
+        if not near or min(near)[0] > _OCCLUDER_REACH_M:
+            raise t.error("at", f"no LED within {_OCCLUDER_REACH_M:g} m of {at}")
+        _, index, _ = min(near, key=lambda e: (e[0], e[1]))
+        fraction = t.number("fraction", 1.0)
+        if not 0 < fraction <= 1:
+            raise t.error("fraction", f"must be > 0 and at most 1 (the whole disk), got {fraction:g}")
+        if t.has("angle_rad") and t.has("angle_deg"):
+            raise t.error("angle_deg", "give either angle_rad or angle_deg, not both")
+        angle = math.radians(t.number("angle_deg")) if t.has("angle_deg") else t.number("angle_rad", 0.0)
+        period = t.number("period_s", 0.0)
+        if period < 0:
+            raise t.error("period_s", f"must be >= 0 (0: always hidden), got {period:g}")
+        hidden = t.number("hidden_s", period / 2.0)
+        if period > 0 and not 0 < hidden <= period:
+            raise t.error("hidden_s", f"must be > 0 and at most period_s ({period:g} s), got {hidden:g}")
+        phase = t.number("phase_s", 0.0)
+        t.finish()
+        return Occluder(index, fraction, angle, period, hidden, phase)
 
     # -- things that move --------------------------------------------------------------------------------
     def _check_path(self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str) -> None:

@@ -17,7 +17,7 @@ ENV1 = REPO / "examples" / "worlds" / "env1.toml"
 
 
 def test_row_time_3_percent_off_is_found(tmp_path: Path) -> None:
-    text = ENV1.read_text().replace("[errors]\n", "[errors]\nrow_time_error = 0.03\n")
+    text = ENV1.read_text().replace("[errors]\n", "[errors]\nt_row_error_fraction = 0.03\n")
     world_file = tmp_path / "env1_row_time.toml"
     world_file.write_text(text)
     world = load_world(world_file)

@@ -242,3 +242,35 @@ def test_fixes_carry_their_integrity(perfect_env1) -> None:  # type: ignore[no-u
         assert 3.0 * result.sigma_xy_m < result.protection_level_m < 0.1
         assert error < result.protection_level_m
         assert result.work.hypotheses == 1 and not result.work.truncated
+
+
+def test_close_signatures_are_those_the_duty_does_not_tell_apart() -> None:
+    """Rivals for the ``close-signature`` flag: within 200 Hz and 0.1 duty (as the world file warns)."""
+    from agent.vlp.pipeline import _close_rivals
+
+    freq = np.array([2000.0, 2100.0, 2200.0, 2300.0])
+    assert _close_rivals(freq, np.full(4, 0.5)) == ((1,), (0, 2), (1, 3), (2,))  # 200 Hz apart is not close
+    # Environment 1's signatures (1 kHz apart), and close frequencies the duty tells apart: no rivals.
+    assert (
+        _close_rivals(np.array([1500.0, 2500.0, 3500.0, 4500.0]), np.array([0.3, 0.6, 0.4, 0.5])) == ((),) * 4
+    )
+    assert _close_rivals(np.array([2000.0, 2100.0]), np.array([0.3, 0.5])) == ((), ())
+
+
+def test_a_two_led_fix_over_close_signatures_is_degraded() -> None:
+    """sig100 (four signatures 100 Hz apart at duty 0.5): a fix from two LEDs, which nothing in its own
+    geometry can check, is flagged ``close-signature``; one from three or four is not."""
+    world = load_world(REPO / "examples" / "worlds" / "sig100.toml")
+    view = agent_view(world)
+    renderer = RollingShutterRenderer.for_world(world, seed=2)
+    seen: dict[int, set[bool]] = {}
+    # Near L1 and L3 (the north pair) two LEDs are in view; at the centre all four.
+    for pose in (Pose2D(0.0, 0.75, 0.0), Pose2D(0.0, 0.0, 0.0)):
+        pipe = VlpPipeline(view.intrinsics, view.led_map, view.mount)
+        for k in range(8):
+            rendered = renderer.render(lambda t, p=pose: p, 10.0 * (pose.y_m + 1) + k / 20)
+            result = pipe.process(rendered.image, rendered.truth.t_mid_s)
+            if isinstance(result, VlpFix):
+                seen.setdefault(len(result.ids), set()).add("close-signature" in result.flags)
+    assert seen.get(2) == {True}
+    assert seen.get(4) == {False}

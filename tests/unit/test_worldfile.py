@@ -22,9 +22,12 @@ from drivers.sim.world import (
     ErrorModel,
     LaserModel,
     Mount,
+    Occluder,
     Pose2D,
     RfidModel,
     RobotSpec,
+    Scene,
+    StrayLight,
     World,
 )
 from drivers.sim.worldfile import load_world, nominal_camera, parse_world, surveyed_leds
@@ -142,6 +145,7 @@ full_well_e = 8000.0
 blur_sigma_px = 1.0
 radial_falloff = 0.5
 bloom_fraction = 0.1
+jpeg_quality = 80
 
 [laser]
 model = "UTM-30LX"
@@ -165,8 +169,10 @@ principal_point_error_px = [1.0, -2.0]
 led_survey_error_m = 0.001
 led_height_error_m = 0.002
 camera_tilt_rad = [0.001, -0.002]
+t_row_error_fraction = 0.03
+focal_length_error_fraction = -0.01
+distortion_error = [0.01, 0.0, 0.0, 0.0, 0.0]
 seed = 42
-row_time_error = 0.03
 
 [[leds]]
 id = "X"
@@ -177,6 +183,35 @@ diameter_m = 0.1
 frequency_hz = 2500.0
 duty = 0.4
 survey_sigma_m = 0.01
+brightness = 0.5
+dead = true
+mapped = false
+frequency_drift_hz_per_s = 0.1
+frequency_walk_hz_per_sqrt_s = 0.5
+
+[scene]
+ambient_dn = 12.0
+
+[[scene.stray_lights]]
+x_m = 1.0
+y_m = 1.0
+z_m = 2.0
+shape = "rectangle"
+diameter_m = 0.2
+width_m = 0.8
+length_m = 0.6
+yaw_deg = 10.0
+brightness = 0.7
+flicker_hz = 100.0
+flicker_duty = 0.3
+
+[[scene.occluders]]
+at = [0.1, 0.25]
+fraction = 0.5
+angle_deg = 90.0
+period_s = 2.0
+hidden_s = 0.5
+phase_s = 0.25
 
 [[walls]]
 points = [[-3.0, -3.0], [3.0, -3.0]]
@@ -210,12 +245,22 @@ def test_every_dataclass_field_can_be_set_from_toml(tmp_path: Path) -> None:
         (world.robot.imu_mount, Mount()),
         (world.leds[0], type(world.leds[0])("", 0, 0, 0)),
         (world.people[0], type(world.people[0])("", "", ())),
+        (world.scene, Scene()),
+        (world.scene.stray_lights[0], StrayLight(0, 0, 0)),
+        (world.scene.occluders[0], Occluder(0)),
     ]
     for loaded, default in sections:
         for f in dataclasses.fields(loaded):
-            if f.name in ("id", "x_m", "y_m", "z_m", "name", "tag_id", "path") and not isinstance(
-                loaded, Mount
-            ):
+            if f.name in (
+                "id",
+                "x_m",
+                "y_m",
+                "z_m",
+                "name",
+                "tag_id",
+                "path",
+                "led_index",
+            ) and not isinstance(loaded, Mount):
                 continue  # required fields without defaults
             assert getattr(loaded, f.name) != getattr(default, f.name), f"{type(loaded).__name__}.{f.name}"
     assert world.route_speed_mps == 0.35 and world.route == ((0.0, 0.0), (1.0, 0.0))
@@ -288,8 +333,8 @@ BAD: list[tuple[str, str, str]] = [
     ('[[leds]]\nid = "A"\nx_m = "left"\ny_m = 0.0\nz_m = 2.0\n', "leds[0].x_m", "number"),
     ("[[leds]]\nid = true\nx_m = 0\ny_m = 0.0\nz_m = 2.0\n", "leds[0].id", "string"),
     (
-        '[[leds]]\nid = "A"\nx_m = 0\ny_m = 0.0\nz_m = 2.0\nbrightness = 3\n',
-        "leds[0].brightness",
+        '[[leds]]\nid = "A"\nx_m = 0\ny_m = 0.0\nz_m = 2.0\ncolour = 3\n',
+        "leds[0].colour",
         "unknown key",
     ),
     (
