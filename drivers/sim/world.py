@@ -145,11 +145,30 @@ class Person:
 
 @dataclass(frozen=True, slots=True)
 class RfidModel:
-    """The reader on the robot: which protocol it speaks, and how far it reads."""
+    """The reader on the robot: which protocol it speaks, and how far it reads.
+
+    With ``antenna_yaws_rad`` (Mercury only) the reader has one antenna per yaw (ports 1, 2, ...), each
+    on a circle of ``antenna_radius_m`` round the base centre at its yaw, and RSSI comes from the channel
+    model of ``drivers/sim/rfid_channel.py`` (path loss, antenna pattern, wall reflections, scatterers,
+    body loss, noise); a tag is read on a port when within ``range_m`` and its RSSI there is at least
+    ``sensitivity_dbm``. Without it, the legacy model: one read per cycle on the forward (or, with two
+    ports, the rear) antenna, free-space loss and a cosine pattern.
+    """
 
     protocol: str = "id12la"
     range_m: float = 1.5
     repeat_s: float = 0.25
+    antenna_yaws_rad: tuple[float, ...] = ()
+    antenna_radius_m: float = 0.1
+    beamwidth_rad: float = 1.2217304763960306  # 70 degrees, a circular patch
+    front_to_back_db: float = 15.0
+    rssi_at_1m_dbm: float = -50.0
+    sensitivity_dbm: float = -80.0
+    wall_reflection: float = 0.5
+    scatterers: int = 12
+    scatter_amplitude: float = 0.3
+    body_loss_db: float = 8.0
+    noise_db: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -135,6 +135,15 @@ _RULES: dict[str, _Check] = {
     "RobotSpec.radius_m": _POSITIVE,
     "RfidModel.range_m": _POSITIVE,
     "RfidModel.repeat_s": _POSITIVE,
+    "RfidModel.antenna_yaws_rad": (lambda v: len(v) <= 4, "at most 4 antennas (ports 1-4)"),
+    "RfidModel.antenna_radius_m": _NON_NEGATIVE,
+    "RfidModel.beamwidth_rad": (lambda v: 0 < v <= 2 * math.pi, "must be in (0, 2 pi]"),
+    "RfidModel.front_to_back_db": _NON_NEGATIVE,
+    "RfidModel.wall_reflection": _UNIT_INTERVAL,
+    "RfidModel.scatterers": (lambda v: 0 <= v <= 256, "must be 0..256"),
+    "RfidModel.scatter_amplitude": _UNIT_INTERVAL,
+    "RfidModel.body_loss_db": _NON_NEGATIVE,
+    "RfidModel.noise_db": _NON_NEGATIVE,
     "Led.diameter_m": _POSITIVE,
     "Led.frequency_hz": _POSITIVE,
     "Led.duty": _FRACTION_OPEN,
@@ -366,6 +375,8 @@ def _convert(tp: Any, table: _Table, name: str, scale: float) -> Any:
         args = typing.get_args(tp)
         if not isinstance(raw, list):
             raise ConfigError(key, f"must be an array, not {type_name(raw)}", table.file)
+        if len(args) == 2 and args[1] is Ellipsis and args[0] is float:
+            return tuple(as_float(v, f"{key}[{i}]", table.file) * scale for i, v in enumerate(raw))
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_as_point(p, f"{key}[{i}]", table.file) for i, p in enumerate(raw))
         if len(raw) != len(args):
@@ -655,6 +666,11 @@ class _WorldReader:
         if rfid.protocol not in protocols:
             raise self.error(
                 "rfid.protocol", f"unknown reader protocol {rfid.protocol!r}; choose one of {protocols}"
+            )
+        if rfid.antenna_yaws_rad and rfid.protocol != "mercury":
+            raise self.error(
+                "rfid.antenna_yaws_rad",
+                'antennas on ports are a Mercury (UHF) feature; set protocol = "mercury"',
             )
 
     def _check_errors(self, errors: ErrorModel, cam: CameraModel) -> None:
