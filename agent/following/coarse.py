@@ -78,19 +78,27 @@ def antenna_gain_db(offset_rad: FloatArray | float, beamwidth_rad: float, front_
 
 @dataclass(frozen=True, slots=True)
 class RadioModel:
-    """The physical prior: RSSI = rssi_at_1m - 10 n log10(r) + G(antenna) + fading, read when above
-    ``sensitivity_dbm``. ``fading_sd_db`` is the spread multipath and body shadowing add indoors."""
+    """The physical prior: RSSI = rssi_at_1m - 10 n log10(r) + G(antenna) - body + fading, read when above
+    ``sensitivity_dbm``. ``fading_sd_db`` is the spread multipath adds indoors; ``body_loss_db`` is lost
+    when the wearer's back is to the robot, which the model takes as half the time (a mean loss of half
+    of it, and as much again in spread)."""
 
     antennas: tuple[Antenna, ...]
     rssi_at_1m_dbm: float = -50.0
     path_loss_exponent: float = 2.0
     fading_sd_db: float = 5.0
     sensitivity_dbm: float = -80.0
+    body_loss_db: float = 8.0
+
+    @property
+    def spread_db(self) -> float:
+        """The RSSI spread about the mean: fading and the body's (0 or ``body_loss_db``, evenly)."""
+        return math.hypot(self.fading_sd_db, self.body_loss_db / 2.0)
 
     def mean_rssi_dbm(self, antenna: Antenna, bearing_rad: FloatArray, range_m: FloatArray) -> FloatArray:
         gain = antenna_gain_db(bearing_rad - antenna.yaw_rad, antenna.beamwidth_rad, antenna.front_to_back_db)
         loss = 10.0 * self.path_loss_exponent * np.log10(np.maximum(range_m, 0.1))
-        out: FloatArray = self.rssi_at_1m_dbm - loss + gain
+        out: FloatArray = self.rssi_at_1m_dbm - loss + gain - self.body_loss_db / 2.0
         return out
 
 
@@ -250,10 +258,10 @@ def default_table(model: RadioModel, grid: SectorGrid | None = None) -> Likeliho
     p, mu, sd = [], [], []
     for antenna in model.antennas:
         m = model.mean_rssi_dbm(antenna, bearing, rng)  # (S, R, k)
-        total_sd = np.sqrt(model.fading_sd_db**2 + m.var(axis=2))
+        total_sd = np.sqrt(model.spread_db**2 + m.var(axis=2))
         mu.append(m.mean(axis=2))
         sd.append(total_sd)
-        z = (m - model.sensitivity_dbm) / model.fading_sd_db
+        z = (m - model.sensitivity_dbm) / model.spread_db
         p.append(np.mean(_normal_cdf(z), axis=2))
     return LikelihoodTable(
         grid,
@@ -409,7 +417,7 @@ class CoarseFilter:
         leave = 1.0 - math.exp(-self.leave_rate_hz * dt_s)
         back = 1.0 - math.exp(-self.return_rate_hz * dt_s)
         absent = self.belief[n]
-        new = moved  # new[n]: the mass that walked beyond the grid
+        new: FloatArray = moved.astype(np.float64)  # new[n]: the mass that walked beyond the grid
         present = new[:n].sum()
         new[:n] *= 1.0 - leave
         new[n] += absent + leave * present - back * absent

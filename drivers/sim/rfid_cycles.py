@@ -105,7 +105,9 @@ def read_cycles(
                 px, py = sim.person_position(person)
                 dx, dy = px - pose.x_m, py - pose.y_m
                 bearing = math.atan2(dy, dx) - pose.yaw_rad
-                truth[person.name] = TruthBearing(math.hypot(dx, dy), math.atan2(math.sin(bearing), math.cos(bearing)))
+                truth[person.name] = TruthBearing(
+                    math.hypot(dx, dy), math.atan2(math.sin(bearing), math.cos(bearing))
+                )
             yield ReadCycle(clock.t, tuple(reads), pose, truth)
             reads = []
             cycle_end += cycle_s

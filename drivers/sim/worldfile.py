@@ -36,7 +36,9 @@ import numpy.typing as npt
 from drivers.errors import ConfigError
 from drivers.sim.world import (
     CameraModel,
+    Clothing,
     ErrorModel,
+    ForwardCameraModel,
     LaserModel,
     Led,
     Person,
@@ -83,6 +85,9 @@ MAX_OUTLINE_POINTS = MAX_WALLS  # points of one [[walls]] or [[polygons]] entry
 MAX_PATH_POINTS = 256  # a person's path, the route's waypoints (each leg is checked against every wall)
 MAX_PEOPLE = 16
 MAX_DOORS = 64  # doors of one room
+
+CLOTHING_PATTERNS = ("plain", "stripes", "checks")
+_RGB_REASON = "must be three numbers (red, green, blue), each 0-255"
 
 _Check = tuple[Callable[[Any], bool], str]
 _POSITIVE: _Check = (lambda v: v > 0, "must be > 0")
@@ -151,6 +156,26 @@ _RULES: dict[str, _Check] = {
     "Person.radius_m": _POSITIVE,
     # The simulation keeps 2 s of the robot's poses to look back on.
     "Person.reaction_s": (lambda v: 0 <= v <= 1.5, "must be in [0, 1.5] s"),
+    "ForwardCameraModel.width_px": _OUTPUT_SIDE,
+    "ForwardCameraModel.height_px": _OUTPUT_SIDE,
+    "ForwardCameraModel.hfov_rad": (lambda v: 0 < v < math.radians(170.0), "must be in (0, 170) degrees"),
+    "ForwardCameraModel.frame_rate_hz": _up_to(MAX_FRAME_RATE_HZ, "frames per second"),
+    "ForwardCameraModel.wall_height_m": _POSITIVE,
+    "ForwardCameraModel.wall_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.floor_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.ceiling_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.light_variation": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
+    "ForwardCameraModel.light_period_s": _POSITIVE,
+    "ForwardCameraModel.noise_dn": (lambda v: 0 <= v <= 50, "must be in [0, 50] DN"),
+    "Clothing.shirt_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.trousers_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.skin_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.hair_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.pattern_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.pattern": (lambda v: v in CLOTHING_PATTERNS, f"must be one of {list(CLOTHING_PATTERNS)}"),
+    "Clothing.pattern_period_m": (lambda v: 0.01 <= v <= 1.0, "must be 0.01-1 m"),
+    "Clothing.height_m": (lambda v: 0.5 <= v <= 2.3, "must be 0.5-2.3 m"),
+    "Person.start_s": _NON_NEGATIVE,
     "ErrorModel.led_survey_error_m": _NON_NEGATIVE,
     "ErrorModel.led_height_error_m": _NON_NEGATIVE,
     "ErrorModel.camera_tilt_rad": (
@@ -544,6 +569,7 @@ _SECTIONS = (
     "camera",
     "laser",
     "rfid",
+    "forward_camera",
     "errors",
     "led_defaults",
     "leds",
@@ -573,6 +599,12 @@ class _WorldReader:
         camera = self._section(CameraModel, "camera")
         laser = self._section(LaserModel, "laser")
         rfid = self._section(RfidModel, "rfid")
+        forward_camera = self._section(ForwardCameraModel, "forward_camera")
+        if forward_camera.mount.roll_rad or forward_camera.mount.pitch_rad:
+            raise self.error(
+                "forward_camera.mount",
+                "the forward camera is level (no roll or pitch); shift cy_px to look upwards",
+            )
         errors = self._section(ErrorModel, "errors")
         self._check_robot(robot)
         self._check_camera(camera)
@@ -594,6 +626,7 @@ class _WorldReader:
             camera=camera,
             laser=laser,
             rfid=rfid,
+            forward_camera=forward_camera,
             people=tuple(people),
             route=route,
             route_speed_mps=speed,
@@ -979,11 +1012,16 @@ class _WorldReader:
             )
 
     # -- things that move --------------------------------------------------------------------------------
-    def _check_path(self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str) -> None:
-        """A looped path must not go through a wall (people and the robot use the doors)."""
+    def _check_path(
+        self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str, loop: bool = True
+    ) -> None:
+        """A path (looped, or walked once) must not go through a wall (people and the robot use the doors)."""
         if len(pts) < 2:
             return
-        legs = list(zip(pts, pts[1:] + pts[:1], strict=True)) if len(pts) > 2 else [(pts[0], pts[1])]
+        if loop and len(pts) > 2:
+            legs = list(zip(pts, pts[1:] + pts[:1], strict=True))
+        else:
+            legs = list(itertools.pairwise(pts))
         boxes = _wall_boxes(walls)
         for i, (a, b) in enumerate(legs):
             for n in _walls_near(a, b, boxes, 0.0):
@@ -999,8 +1037,22 @@ class _WorldReader:
         people = []
         names: dict[str, str] = {}
         for t in self.root.tables("people", MAX_PEOPLE):
-            t.expect("name", "tag_id", "path", "speed_mps", "radius_m", "yields", "reaction_s")
+            t.expect(
+                "name",
+                "tag_id",
+                "path",
+                "speed_mps",
+                "radius_m",
+                "yields",
+                "reaction_s",
+                "loop",
+                "start_s",
+                "clothing",
+            )
             base = Person("", "", ())
+            clothing_table = t.table("clothing")
+            clothing = _read_dataclass(Clothing, clothing_table)
+            clothing_table.finish()
             person = Person(
                 name=t.string("name"),
                 tag_id=t.string("tag_id", allow_int=True),
@@ -1009,12 +1061,15 @@ class _WorldReader:
                 radius_m=self._checked(t, "Person", "radius_m", base.radius_m),
                 yields=t.boolean("yields", base.yields),
                 reaction_s=self._checked(t, "Person", "reaction_s", base.reaction_s),
+                loop=t.boolean("loop", base.loop),
+                start_s=self._checked(t, "Person", "start_s", base.start_s),
+                clothing=clothing,
             )
             t.finish()
             if person.name in names:
                 raise t.error("name", f"{person.name!r} is already the name of {names[person.name]}")
             names[person.name] = t.path
-            self._check_path(person.path, walls, t.key("path"), "the walk")
+            self._check_path(person.path, walls, t.key("path"), "the walk", person.loop)
             people.append(person)
         return people
 
