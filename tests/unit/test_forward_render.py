@@ -175,6 +175,6 @@ clothing = { shirt_rgb = [200, 30, 30], pattern = "stripes", pattern_period_m = 
     x, y, heading, walked = sim.person_pose(user)
     assert (x, y) == (5.0, 0.0) and heading == pytest.approx(0.0) and walked == pytest.approx(4.0)
     with pytest.raises(ConfigError, match=r"people\[0\].clothing.pattern"):
-        parse_world('[[people]]\nname = "a"\ntag_id = "1"\npath = [[0, 0]]\nclothing = { pattern = "dots" }\n')
+        parse_world('[[people]]\nname = "a"\ntag_id = "1"\npath = [[0, 0]]\nclothing = {pattern = "dots"}\n')
     with pytest.raises(ConfigError, match=r"forward_camera.mount"):
         parse_world("[forward_camera]\nmount = { pitch_deg = 5.0 }\n")

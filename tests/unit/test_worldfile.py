@@ -219,7 +219,16 @@ yields = false
 reaction_s = 0.6
 loop = false
 start_s = 1.0
-clothing = { shirt_rgb = [1, 2, 3], trousers_rgb = [4, 5, 6], skin_rgb = [7, 8, 9], hair_rgb = [1, 1, 1], pattern = "checks", pattern_rgb = [9, 9, 9], pattern_period_m = 0.2, height_m = 1.6 }
+
+[people.clothing]
+shirt_rgb = [1, 2, 3]
+trousers_rgb = [4, 5, 6]
+skin_rgb = [7, 8, 9]
+hair_rgb = [1, 1, 1]
+pattern = "checks"
+pattern_rgb = [9, 9, 9]
+pattern_period_m = 0.2
+height_m = 1.6
 
 [route]
 waypoints = [[0.0, 0.0], [1.0, 0.0]]
