@@ -9,6 +9,8 @@ Loops (one module each; each thread beats its own heartbeat; the critical ones g
     slam      slam_loop      scan + odometry at its time -> RBPF -> fuse the pose of each filter update
     servos    servo_loop     read wheels -> odometry -> fuse; send the velocity command (dead-man)
     imu       imu_loop       read -> gyro yaw rate -> fuse; accelerometer -> tilt for VLP
+    forward_camera  forward_camera_loop  grab the forward camera's colour frames (person following), newest
+                    kept in memory
     rfid      rfid_loop      read tags (kept for the status; person following and landmarks come later)
     output    output_loop    keeps the pose stream at rate_hz when nothing else writes
     commands  command_loop   the controller's commands on the pose port -> CommandArbiter -> statuses back;
@@ -60,6 +62,7 @@ from agent.runtime.output import PoseOutput
 from agent.runtime.output_loop import output_loop
 from agent.runtime.priority import CpuLatencyRequest
 from agent.runtime.recorder import Recorder
+from agent.runtime.forward_camera_loop import FORWARD_CAMERA, forward_camera_loop
 from agent.runtime.rfid_loop import rfid_loop
 from agent.runtime.servo_loop import servo_loop
 from agent.runtime.slam_loop import SlamLoop
@@ -189,6 +192,8 @@ class Agent:
             Source.IMU: int(fc.imu_timeout_s * 1e9),
         }
         self.frames: LatestMailbox[tuple[Frame, int]] = LatestMailbox()
+        # The forward camera's newest frame, for person following (never leaves the process).
+        self.forward_frames: LatestMailbox[Frame] = LatestMailbox()
         # SLAM gives way (between particles) while a frame waits for or is on the hot path.
         frames = self.frames
         self.hot_path = HotPath(lambda: frames.pending)
@@ -312,6 +317,16 @@ class Agent:
             still, tilt = self.still, self.tilt
             imu = partial(imu_loop, s, imu=d.imu, hot_path=hot, fusion=fusion, still=still, tilt=tilt)
             self._spawn("imu", self.critical("imu"), timeout, imu)
+        if d.forward_camera is not None:
+            forward = partial(
+                forward_camera_loop,
+                s,
+                camera=d.forward_camera,
+                hot_path=hot,
+                frames=self.forward_frames,
+                stall_s=self.config.health.camera_stall_s,
+            )
+            self._spawn(FORWARD_CAMERA, self.critical(FORWARD_CAMERA), timeout, forward)
         if d.rfid is not None:
             self._spawn("rfid", self.critical("rfid"), timeout, partial(rfid_loop, s, rfid=d.rfid))
         if self.output is not None:
@@ -347,6 +362,7 @@ class Agent:
         self.state.stop.set()
         self.hot_path.close()
         self.frames.close()
+        self.forward_frames.close()
         self.scans.close()
         self.slam_fixes.close()
         deadline = time.monotonic() + timeout_s
@@ -532,6 +548,9 @@ class Agent:
     def critical(self, name: str) -> bool:
         """Whether the watchdog waits for this device's loops (the config says; an injected device the
         config does not list: the default for its kind)."""
+        if name == FORWARD_CAMERA:
+            forward = self.config.forward_camera
+            return forward is not None and forward.critical
         device = self.config.devices.get(_kind(name))
         return device.critical if device is not None else name in ("camera", "laser", "servos")
 
