@@ -75,7 +75,8 @@ def forward_camera_class(name: str) -> Any:
     """Import and return the class of forward-camera backend ``name`` (``FORWARD_CAMERA_BACKENDS``)."""
     if name not in FORWARD_CAMERA_BACKENDS:
         raise ConfigError(
-            "camera.forward.backend", f"unknown backend {name!r}; choose one of {sorted(FORWARD_CAMERA_BACKENDS)}"
+            "camera.forward.backend",
+            f"unknown backend {name!r}; choose one of {sorted(FORWARD_CAMERA_BACKENDS)}",
         )
     return _import(FORWARD_CAMERA_BACKENDS[name], name, "camera.forward")
 

@@ -46,6 +46,7 @@ from agent.runtime.collector import IdleCollector
 from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
 from agent.runtime.drive_loop import DirectiveDrive, Navigator
+from agent.runtime.forward_camera_loop import FORWARD_CAMERA, forward_camera_loop
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
 from agent.runtime.imu_loop import imu_loop
@@ -62,7 +63,6 @@ from agent.runtime.output import PoseOutput
 from agent.runtime.output_loop import output_loop
 from agent.runtime.priority import CpuLatencyRequest
 from agent.runtime.recorder import Recorder
-from agent.runtime.forward_camera_loop import FORWARD_CAMERA, forward_camera_loop
 from agent.runtime.rfid_loop import rfid_loop
 from agent.runtime.servo_loop import servo_loop
 from agent.runtime.slam_loop import SlamLoop

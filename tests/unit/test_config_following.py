@@ -38,8 +38,9 @@ def test_a_forward_camera_alone_is_not_taken_for_the_ceiling_camera() -> None:
 def test_both_cameras_side_by_side_and_the_simulated_one() -> None:
     config = parse_config(
         REAL
-        + '[camera]\nbackend = "genicam"\ncti = "x.cti"\n[camera.forward]\nbackend = "genicam"\ncti = "y.cti"\n'
-        "[vlp]\nenabled = false\n"
+        + '[camera]\nbackend = "genicam"\ncti = "x.cti"\n'
+        + '[camera.forward]\nbackend = "genicam"\ncti = "y.cti"\n'
+        + "[vlp]\nenabled = false\n"
     )
     assert config.devices[DeviceKind.CAMERA].options["cti"] == "x.cti"
     assert config.forward_camera is not None and config.forward_camera.options["cti"] == "y.cti"

@@ -160,18 +160,28 @@ def test_filter_tells_left_from_right_on_a_simulated_walk(side: float) -> None:
     assert math.degrees(float(np.median(errors))) < 60.0
 
 
-def test_filter_follows_a_person_walking_round_the_robot() -> None:
-    # A loop round the robot, everywhere within reach: the estimate tracks it, loosely (a weak cue).
+def test_calibration_walk_then_the_filter_follows_a_person_walking_round_the_robot() -> None:
+    # Calibrate on one walk (circles round the robot, seed 11), then track another (a loop, seed 7).
+    from calibration.rfid import record_sim_walk
+
     world = parse_world(walk_world("[[1.5, -1.5], [2.5, 0.0], [1.5, 1.5], [-1.5, 1.5], [-1.5, -1.5]]", 0.6))
-    table = default_table(MODEL)
-    f = CoarseFilter(table)
-    errors = []
-    for k, cycle in enumerate(read_cycles(world, duration_s=45.0, seed=7)):
-        f.predict(0.25)
-        f.update(observation_from_reads(cycle.reads, table.ports, wire_tag_id(TAG, "mercury")))
-        if k >= 20:
-            truth = cycle.truth["user"].bearing_rad
-            errors.append(abs(math.remainder(f.estimate().bearing_rad - truth, math.tau)))
-    errors_deg = np.degrees(errors)
-    assert np.median(errors_deg) < 45.0
-    assert np.mean(errors_deg < 90.0) > 0.75
+    prior = default_table(MODEL)
+    walk, _ = record_sim_walk(world, TAG, (1, 2), 0.25, 0.7, 11, (0.5, 1.5, 2.5))
+    table, counts = fit_table(prior, walk.bearing_rad, walk.range_m, walk.detected, walk.rssi_dbm)
+    assert np.all(counts[:, :3] >= 3)
+    medians = {}
+    for name, t in (("model", prior), ("calibrated", table)):
+        f = CoarseFilter(t)
+        errors = []
+        for k, cycle in enumerate(read_cycles(world, duration_s=45.0, seed=7)):
+            f.predict(0.25)
+            f.update(observation_from_reads(cycle.reads, t.ports, wire_tag_id(TAG, "mercury")))
+            if k >= 20:
+                truth = cycle.truth["user"].bearing_rad
+                errors.append(abs(math.remainder(f.estimate().bearing_rad - truth, math.tau)))
+        medians[name] = float(np.degrees(np.median(errors)))
+        if name == "calibrated":
+            assert np.mean(np.degrees(errors) < 90.0) > 0.7
+    # A loose tracker (a weak cue), better calibrated than from the model alone.
+    assert medians["calibrated"] < 50.0
+    assert medians["calibrated"] < medians["model"]
