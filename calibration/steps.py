@@ -79,18 +79,18 @@ STEPS: tuple[StepInfo, ...] = (
         "leds.toml",
     ),
     StepInfo(
-        "rfid",
-        "calibration.rfid",
-        "RFID likelihood table of person following: reads of the tag walked round the robot",
-        "the reader's antennas mounted; the person's tag; marks on the floor every 45 deg at 1, 2 and 3 m",
-        "rfid_table.toml",
-    ),
-    StepInfo(
         "vlp-error",
         "calibration.vlp_error",
         "VLP error calibration: rotation centre (turn in place) and residual correction at known points",
         "the LED map and camera calibration; the robot under 2+ LEDs; a few marked points",
         "vlp.toml",
+    ),
+    StepInfo(
+        "rfid",
+        "calibration.rfid",
+        "RFID likelihood table of person following: reads of the tag walked round the robot",
+        "the reader's antennas mounted; the person's tag; marks on the floor every 45 deg at 1, 2 and 3 m",
+        "rfid_table.toml",
     ),
 )
 
