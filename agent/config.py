@@ -941,10 +941,12 @@ class _Reader:
             return None
         camera = dict(camera)  # the caller's table stays as it was
         value = camera.pop("forward")
+        top = self.top.data
+        assert isinstance(top, dict)  # _Reader made it one
         if not camera and sim is None:
-            del self.top.data["camera"]
+            del top["camera"]
         else:
-            self.top.data["camera"] = camera
+            top["camera"] = camera
         if not isinstance(value, dict):
             raise ConfigError("camera.forward", f"must be a table, not {type_name(value)}", self.file)
         t = _Table(value, "camera.forward", self.file)
