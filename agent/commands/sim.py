@@ -698,6 +698,7 @@ def _summary(
             for name, d in status.devices.items()
         },
         "unavailable": status.unavailable,
+        "following": status.following,
         "faults": injector.applied,
         "counts": counts,
         "files": files,
