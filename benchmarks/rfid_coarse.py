@@ -35,7 +35,7 @@ from agent.following.coarse import (
 from calibration.rfid import left_right_correlation, record_sim_walk
 from drivers.fakes.rfid import wire_tag_id
 from drivers.sim.rfid_cycles import read_cycles
-from drivers.sim.worldfile import parse_world
+from drivers.sim.worldfile import load_world, parse_world
 
 TAG = "E200001122334455"
 WORLD = f"""
@@ -63,13 +63,20 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[2, 3, 4])
     p.add_argument("--calibration-seed", type=int, default=11)
     p.add_argument("--seconds", type=float, default=60.0, help="simulated seconds of each walk (default 60)")
+    p.add_argument(
+        "--world",
+        help="a world file instead of the room (e.g. examples/worlds/follow_straight.toml): calibrated round "
+        "its robot's start, tracking its first person while they are within the grid's reach",
+    )
     p.add_argument("--likelihood-weight", type=float, default=None, help="the filter's (default: its own)")
     args = p.parse_args()
-    world = parse_world(WORLD)
+    world = parse_world(WORLD) if args.world is None else load_world(args.world)
+    person = world.people[0]
     prior = default_table(RadioModel((Antenna(1, math.radians(50.0)), Antenna(2, math.radians(-50.0)))))
-    walk, _ = record_sim_walk(world, TAG, (1, 2), 0.25, 0.7, args.calibration_seed, (0.5, 1.5, 2.5))
+    radii = (0.5, 1.5, 2.5) if args.world is None else (0.5, 1.5, 2.5, 3.75)
+    walk, _ = record_sim_walk(world, TAG, (1, 2), 0.25, 0.7, args.calibration_seed, radii)
     table, _ = fit_table(prior, walk.bearing_rad, walk.range_m, walk.detected, walk.rssi_dbm)
-    wire = wire_tag_id(TAG, "mercury")
+    wire = wire_tag_id(person.tag_id, "mercury")
     out: dict[str, object] = {
         "left_right_correlation": round(left_right_correlation(walk), 3),
         "seeds": args.seeds,
@@ -88,7 +95,9 @@ def main() -> None:
                 if k < 20:
                     continue
                 e = f.estimate()
-                truth = cycle.truth["user"].bearing_rad
+                if cycle.truth[person.name].range_m >= t.grid.max_range_m:
+                    continue  # beyond the grid: "absent" is the right answer there
+                truth = cycle.truth[person.name].bearing_rad
                 errors.append(abs(math.remainder(e.bearing_rad - truth, math.tau)))
                 confidence.append(e.confidence)
                 centre = t.grid.bearings_rad[e.sector]

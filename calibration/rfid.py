@@ -125,7 +125,8 @@ def walk_path(
 ) -> tuple[tuple[float, float], ...]:
     """Circles round the robot's start at ``radii_m``, each kept only when it stays ``clearance_m`` clear
     of every wall, joined by radial steps: the walker's path (walked once). A circle of radius r is
-    walked ceil(3 m / r) times, so that the short inner ones give every sector a few read cycles too."""
+    walked ceil(3 m / r) times, so that the short inner ones give every sector a few read cycles too; then
+    spokes out and back every 45 degrees between the innermost and outermost circles."""
     x0, y0 = world.robot.start.x_m, world.robot.start.y_m
     path: list[tuple[float, float]] = []
     for r in radii_m:
@@ -147,6 +148,18 @@ def walk_path(
             continue
         laps = max(1, math.ceil(3.0 / r))
         path += ring[:-1] * laps + ring[-1:]
+    kept = [r for r in radii_m if any(math.isclose(math.dist(p, (x0, y0)), r) for p in path)]
+    if len(kept) >= 2:
+        # Spokes: out and back every 45 degrees between the innermost and outermost circle kept, so the
+        # walker is seen walking away (their body between the tag and the robot) and towards the robot.
+        r0, r1 = min(kept), max(kept)
+        for k in range(8):
+            a = 2 * math.pi * k / 8
+            inner = (x0 + r0 * math.cos(a), y0 + r0 * math.sin(a))
+            outer = (x0 + r1 * math.cos(a), y0 + r1 * math.sin(a))
+            if _crosses(path[-1], inner, world.walls) or _crosses(inner, outer, world.walls):
+                continue
+            path += [inner, outer, inner]
     return tuple(path)
 
 
