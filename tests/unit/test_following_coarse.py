@@ -188,3 +188,31 @@ def test_calibration_walk_then_the_filter_follows_a_person_walking_round_the_rob
     # A loose tracker (a weak cue), better calibrated than from the model alone.
     assert medians["calibrated"] < 50.0
     assert medians["calibrated"] < medians["model"]
+
+
+def test_the_runtime_layer_closes_cycles_with_the_robot_motion() -> None:
+    from agent.runtime.rfid_loop import CoarseLayer
+
+    table = default_table(MODEL)
+    pose = [0.0, 0.0, 0.0]
+    layer = CoarseLayer(CoarseFilter(table, person_speed_mps=0.0, floor=0.0), TAG, 0.25, lambda: tuple(pose))
+    layer.filter.belief[:] = 0.0
+    layer.filter.belief[4 * table.grid.n_ranges + 1] = 1.0  # 90 degrees left, 1-2 m
+    layer.tick(0)  # starts the first cycle
+    assert layer.latest is None
+    layer.add(TagRead("OTHER", 1, "r", -50.0, 1))  # someone else's tag: ignored
+    layer.tick(100_000_000)  # not due yet
+    assert layer.latest is None
+    pose[2] = table.grid.sector_width_rad  # the robot turned one sector left during the cycle
+    layer.filter.likelihood_weight = 0.0  # only the prediction matters here
+    layer.tick(250_000_000)
+    latest = layer.latest
+    assert latest is not None and latest.cycles == 1 and latest.estimate.sector == 3
+    assert set(latest.as_dict()) == {
+        "bearing_deg",
+        "spread_deg",
+        "range_m",
+        "confidence",
+        "p_absent",
+        "cycles",
+    }
