@@ -178,3 +178,24 @@ clothing = { shirt_rgb = [200, 30, 30], pattern = "stripes", pattern_period_m = 
         parse_world('[[people]]\nname = "a"\ntag_id = "1"\npath = [[0, 0]]\nclothing = {pattern = "dots"}\n')
     with pytest.raises(ConfigError, match=r"forward_camera.mount"):
         parse_world("[forward_camera]\nmount = { pitch_deg = 5.0 }\n")
+
+
+def test_genicam_buffers_give_bgr8_frames_from_bgr8_or_rgb8_lines_with_padding() -> None:
+    from types import SimpleNamespace
+
+    from drivers.camera.genicam import GenicamCamera
+    from drivers.errors import DeviceError
+
+    def buffer(fmt: str, lines: np.ndarray, width: int, padding: int) -> SimpleNamespace:
+        component = SimpleNamespace(
+            data_format=fmt, width=width, height=lines.shape[0], data=lines.ravel(), x_padding=padding
+        )
+        return SimpleNamespace(payload=SimpleNamespace(components=[component]))
+
+    rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    padded = np.concatenate([rgb.reshape(2, 9), np.full((2, 2), 255, np.uint8)], axis=1)
+    cam = GenicamCamera("x.cti", settings=CameraSettings(pixel_format="BGR8"))
+    np.testing.assert_array_equal(cam._image(buffer("RGB8", padded, 3, 2)), rgb[:, :, ::-1])
+    np.testing.assert_array_equal(cam._image(buffer("BGR8", padded, 3, 2)), rgb)
+    with pytest.raises(DeviceError, match="sent Mono8, not BGR8"):
+        cam._image(buffer("Mono8", padded, 9, 2))
