@@ -6,7 +6,8 @@ model of ``drivers/sim/rfid_channel.py``. The table is calibrated on one walk (c
 person walking a loop round the robot on other seeds (``--seeds``), with the physical model's table and
 with the calibrated one. Prints one JSON object: per table the bearing error's median and p90 (degrees),
 the share within 45 degrees, the mean reported confidence and the hit rate it should match (the truth
-within one sector of the estimate), over all seeds; and the left/right correlation of the calibration walk.
+within one sector of the estimate), the median range error (m), over all seeds; and the left/right
+correlation of the calibration walk.
 
     python benchmarks/rfid_coarse.py
     python benchmarks/rfid_coarse.py --seeds 2 3 4 5 --seconds 90
@@ -82,7 +83,7 @@ def main() -> None:
         "seeds": args.seeds,
     }
     for name, t in (("model", prior), ("calibrated", table)):
-        errors, confidence, hits = [], [], []
+        errors, confidence, hits, range_errors, ranges = [], [], [], [], []
         for seed in args.seeds:
             f = (
                 CoarseFilter(t)
@@ -98,6 +99,8 @@ def main() -> None:
                 if cycle.truth[person.name].range_m >= t.grid.max_range_m:
                     continue  # beyond the grid: "absent" is the right answer there
                 truth = cycle.truth[person.name].bearing_rad
+                range_errors.append(abs(e.range_m - cycle.truth[person.name].range_m))
+                ranges.append(cycle.truth[person.name].range_m)
                 errors.append(abs(math.remainder(e.bearing_rad - truth, math.tau)))
                 confidence.append(e.confidence)
                 centre = t.grid.bearings_rad[e.sector]
@@ -110,6 +113,11 @@ def main() -> None:
             "within_45_deg": round(float(np.mean(deg < 45.0)), 3),
             "confidence_mean": round(float(np.mean(confidence)), 3),
             "hit_rate": round(float(np.mean(hits)), 3),
+            "range_error_m_median": round(float(np.median(range_errors)), 2),
+            # The floor to beat: always answering the walk's median range.
+            "range_error_m_median_constant": round(
+                float(np.median(np.abs(np.subtract(ranges, np.median(ranges))))), 2
+            ),
         }
     print(json.dumps(out))
 
