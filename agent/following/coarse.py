@@ -19,7 +19,8 @@ so the filter is a prior for the camera, not a tracker: its output carries a spr
 Phase: a Mercury module reports the reply's phase (0-180 degrees), but it is not used. It wraps every
 lambda/4 = 8 cm of range (round trip, 915 MHz), the reader hops over 50 channels (each with its own phase
 offset) and reads a tag a few times a second, while a walking person moves 20 cm between reads: the phase
-cannot be unwrapped into range or radial speed at that rate.
+cannot be unwrapped into range or radial speed at that rate; and the two ports' phase difference (antennas
+0.15 m apart) wraps several times over the possible angles of arrival.
 
 Pure numpy: no threads, ports or files; time and robot motion are passed in.
 """
