@@ -26,6 +26,7 @@ from drivers.camera.base import Camera, CameraSettings
 from drivers.errors import DeviceError, DeviceTimeout
 from drivers.samples import Frame
 from drivers.sim.forward_render import ForwardRenderer, ForwardTruth, PersonState
+from drivers.sim.forward_render_worker import ForwardRenderWorker
 from drivers.sim.raycast import walls_array
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import ForwardCameraModel
@@ -55,6 +56,8 @@ class SimForwardCamera(Camera):
             ``pixel_format`` BGR8 (default) or Mono8.
         seed: seeds the sensor noise.
         truth_history: how many recent frames keep their ground truth.
+        render_process: draw the frames in a child process (:mod:`drivers.sim.forward_render_worker`), as
+            a real camera delivers them without loading the process that reads them; the same frames.
     """
 
     def __init__(
@@ -64,6 +67,7 @@ class SimForwardCamera(Camera):
         settings: CameraSettings | None = None,
         seed: int = 0,
         truth_history: int = 64,
+        render_process: bool = False,
         name: str = "sim-forward-camera",
     ) -> None:
         super().__init__(name, settings if settings is not None else CameraSettings(pixel_format="BGR8"))
@@ -78,7 +82,8 @@ class SimForwardCamera(Camera):
         if wanted.frame_rate_hz is not None:
             model = dataclasses.replace(model, frame_rate_hz=wanted.frame_rate_hz)
         self.model: ForwardCameraModel = model
-        self._renderer: ForwardRenderer | None = None
+        self.render_process = render_process
+        self._renderer: ForwardRenderer | ForwardRenderWorker | None = None
         self._truths: collections.OrderedDict[int, ForwardTruth] = collections.OrderedDict()
         self._truth_history = truth_history
         self._truth_lock = threading.Lock()
@@ -97,7 +102,8 @@ class SimForwardCamera(Camera):
     # -- lifecycle ---------------------------------------------------------------------------------------
     def _open(self) -> None:
         world = self.simulation.world
-        self._renderer = ForwardRenderer(self.model, walls_array(world.walls), seed=self.seed)
+        kind = ForwardRenderWorker if self.render_process else ForwardRenderer
+        self._renderer = kind(self.model, walls_array(world.walls), seed=self.seed)
         self._free = [self._new_buffer() for _ in range(3)]
         self._t_open = self.simulation.now()
         self._last_sequence = -1
@@ -105,6 +111,8 @@ class SimForwardCamera(Camera):
             self._truths.clear()
 
     def _close(self) -> None:
+        if isinstance(self._renderer, ForwardRenderWorker):
+            self._renderer.close()
         self._renderer = None
         self._free = []
 

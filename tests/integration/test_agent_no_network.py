@@ -92,7 +92,7 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
     # Both cameras: the ceiling camera of the pose and the forward camera of person following.
     config.write_text(
         (examples / "sim.toml").read_text().replace('"worlds/', f'"{examples}/worlds/')
-        + "\n[camera.forward]\nframe_rate_hz = 10.0\n"
+        + "\n[camera.forward]\nframe_rate_hz = 10.0\nrender_process = true\n"
     )
     env = {
         **os.environ,
@@ -132,10 +132,10 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
         notify.close()
     assert proc.returncode == 0, stderr[-2000:]
     lines = log.read_text().splitlines()
-    # One "hook" line per process that started: the agent, its SLAM process and the simulated camera's
-    # render process (render_process = true), which both checks watch too.
-    assert lines[0] == "hook" and lines.count("hook") >= 3
-    assert len(pids_seen) >= 3
+    # One "hook" line per process that started: the agent, its SLAM process and the simulated cameras'
+    # render processes (render_process = true), which both checks watch too.
+    assert lines[0] == "hook" and lines.count("hook") >= 4
+    assert len(pids_seen) >= 4
     families = {int(line.split()[0]) for line in lines if line != "hook"}
     # The positive control: sd_notify's AF_UNIX datagram socket was seen, by both checks.
     assert int(socket.AF_UNIX) in families and seen_sockets

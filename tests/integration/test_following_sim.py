@@ -21,7 +21,7 @@ def test_forward_camera_stall_is_survived_and_the_coarse_layer_runs(tmp_path: Pa
         .read_text()
         .replace('"worlds/office.toml"', f'"{examples}/worlds/follow_straight.toml"')
         .replace('backend = "id12la"', 'backend = "mercury"')
-        + '\n[camera.forward]\n\n[following]\ntag_id = "E2000017221101441890ABCD"\n'
+        + '\n[camera.forward]\nrender_process = true\n\n[following]\ntag_id = "E2000017221101441890ABCD"\n'
     )
     out = subprocess.run(
         [

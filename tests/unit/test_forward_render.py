@@ -24,6 +24,16 @@ ROOM = (Wall(-2, -4, 8, -4), Wall(8, -4, 8, 4), Wall(8, 4, -2, 4), Wall(-2, 4, -
 QUIET = ForwardCameraModel(noise_dn=0.0, light_variation=0.0)
 
 
+class Clock:
+    """The simulation's clock, set by the test."""
+
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
 def person(name: str, shirt: tuple[float, float, float], pattern: str = "plain") -> Person:
     return Person(name, name.upper(), ((0.0, 0.0),), clothing=Clothing(shirt_rgb=shirt, pattern=pattern))
 
@@ -199,3 +209,22 @@ def test_genicam_buffers_give_bgr8_frames_from_bgr8_or_rgb8_lines_with_padding()
     np.testing.assert_array_equal(cam._image(buffer("BGR8", padded, 3, 2)), rgb)
     with pytest.raises(DeviceError, match="sent Mono8, not BGR8"):
         cam._image(buffer("Mono8", padded, 9, 2))
+
+
+def test_the_render_process_draws_the_same_frames() -> None:
+    world = World(
+        "forward",
+        walls=ROOM,
+        forward_camera=dataclasses.replace(ForwardCameraModel(), width_px=160, height_px=120),
+        people=(dataclasses.replace(person("user", RED, "checks"), path=((3.0, 0.0), (4.0, 0.0))),),
+    )
+    frames = []
+    for render_process in (False, True):
+        clock = Clock(50.0)
+        sim = Simulation(world, clock=clock)
+        with SimForwardCamera(sim, seed=4, render_process=render_process) as camera:
+            clock.t += 0.35
+            frame = camera.grab(timeout_s=5.0)
+            frames.append((frame.image, camera.truth(frame.sequence)))
+    np.testing.assert_array_equal(frames[0][0], frames[1][0])
+    assert frames[0][1] == frames[1][1]
