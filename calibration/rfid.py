@@ -60,12 +60,23 @@ MIN_CYCLES = 3
 
 @dataclass
 class Recording:
-    """Cycles with known truth: bearing and range (N,), per port read or not and mean RSSI (N, A)."""
+    """Cycles with known truth: bearing and range (N,), per port read or not and mean RSSI (N, A), and
+    whether the person had their back to the robot (N,)."""
 
     bearing_rad: FloatArray
     range_m: FloatArray
     detected: npt.NDArray[np.bool_]
     rssi_dbm: FloatArray
+    away: npt.NDArray[np.bool_]
+
+    def subset(self, keep: npt.NDArray[np.bool_]) -> Recording:
+        return Recording(
+            self.bearing_rad[keep],
+            self.range_m[keep],
+            self.detected[keep],
+            self.rssi_dbm[keep],
+            self.away[keep],
+        )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -85,6 +96,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--seconds", type=float, default=6.0, help="robot: seconds of reads per station (default 6)"
     )
     p.add_argument("--walk-speed", type=float, default=0.7, help="--sim: walking speed, m/s (default 0.7)")
+    p.add_argument(
+        "--facing",
+        choices=("away", "both"),
+        default="both",
+        help="fit on all cycles (both, the default) or only on those with the person's back to the robot, "
+        "as a follower sees them (away: their body between the tag and the antennas lowers the RSSI)",
+    )
 
 
 def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Namespace:
@@ -126,7 +144,7 @@ def walk_path(
     """Circles round the robot's start at ``radii_m``, each kept only when it stays ``clearance_m`` clear
     of every wall, joined by radial steps: the walker's path (walked once). A circle of radius r is
     walked ceil(3 m / r) times, so that the short inner ones give every sector a few read cycles too; then
-    spokes out and back every 45 degrees between the innermost and outermost circles."""
+    spokes out and back every 22.5 degrees between the innermost and outermost circles."""
     x0, y0 = world.robot.start.x_m, world.robot.start.y_m
     path: list[tuple[float, float]] = []
     for r in radii_m:
@@ -150,11 +168,11 @@ def walk_path(
         path += ring[:-1] * laps + ring[-1:]
     kept = [r for r in radii_m if any(math.isclose(math.dist(p, (x0, y0)), r) for p in path)]
     if len(kept) >= 2:
-        # Spokes: out and back every 45 degrees between the innermost and outermost circle kept, so the
+        # Spokes: out and back every 22.5 degrees between the innermost and outermost circle kept, so the
         # walker is seen walking away (their body between the tag and the robot) and towards the robot.
         r0, r1 = min(kept), max(kept)
-        for k in range(8):
-            a = 2 * math.pi * k / 8
+        for k in range(16):
+            a = 2 * math.pi * k / 16
             inner = (x0 + r0 * math.cos(a), y0 + r0 * math.sin(a))
             outer = (x0 + r1 * math.cos(a), y0 + r1 * math.sin(a))
             if _crosses(path[-1], inner, world.walls) or _crosses(inner, outer, world.walls):
@@ -185,20 +203,28 @@ def record_sim_walk(
     walk = dataclasses.replace(world, people=(walker,))
     length = sum(math.dist(a, b) for a, b in itertools.pairwise(path))
     wire = wire_tag_id(tag_id, "mercury")
-    rows: list[tuple[float, float, npt.NDArray[np.bool_], FloatArray]] = []
+    rows: list[Row] = []
+    last_range = None
     for cycle in read_cycles(walk, duration_s=length / speed_mps, cycle_s=cycle_s, ports=ports, seed=seed):
         obs = observation_from_reads(cycle.reads, ports, wire)
         truth = cycle.truth[walker.name]
-        rows.append((truth.bearing_rad, truth.range_m, obs.detected, obs.rssi_dbm))
+        # Walking away (their back to the robot): the range grew over the cycle.
+        away = last_range is not None and truth.range_m - last_range > 0.3 * speed_mps * cycle_s
+        rows.append((truth.bearing_rad, truth.range_m, obs.detected, obs.rssi_dbm, away))
+        last_range = truth.range_m
     return _recording(rows), length
 
 
-def _recording(rows: list[tuple[float, float, npt.NDArray[np.bool_], FloatArray]]) -> Recording:
+Row = tuple[float, float, npt.NDArray[np.bool_], FloatArray, bool]
+
+
+def _recording(rows: list[Row]) -> Recording:
     return Recording(
         np.array([r[0] for r in rows]),
         np.array([r[1] for r in rows]),
         np.array([r[2] for r in rows], dtype=np.bool_),
         np.array([r[3] for r in rows], dtype=np.float64),
+        np.array([r[4] for r in rows], dtype=np.bool_),
     )
 
 
@@ -212,13 +238,13 @@ def _record_stations(
     ranges: tuple[float, ...],
 ) -> Recording:
     rig = Rig.for_context(ctx)
-    rows: list[tuple[float, float, npt.NDArray[np.bool_], FloatArray]] = []
+    rows: list[Row] = []
     with rig:
         reader = rig.rfid()
         for r in ranges:
             for k in range(8):
                 bearing = math.radians(45.0 * k)
-                for facing in ("facing the robot", "with your back to the robot"):
+                for away, facing in ((False, "facing the robot"), (True, "with your back to the robot")):
                     ask_line(
                         ctx.console,
                         f"stand at {math.degrees(math.remainder(bearing, math.tau)):+.0f} deg, {r:g} m, "
@@ -234,7 +260,7 @@ def _record_stations(
                             if read is not None:
                                 reads.append(read)
                         obs = observation_from_reads(reads, ports, tag_id)
-                        rows.append((math.remainder(bearing, math.tau), r, obs.detected, obs.rssi_dbm))
+                        rows.append((math.remainder(bearing, math.tau), r, obs.detected, obs.rssi_dbm, away))
                     ctx.console.status(f"  {len(rows)} cycles")
     return _recording(rows)
 
@@ -287,10 +313,10 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         recording = _record_stations(
             ctx, options.tag.upper(), ports, options.cycle_s, options.seconds, ranges
         )
-    table, counts = fit_table(
-        prior, recording.bearing_rad, recording.range_m, recording.detected, recording.rssi_dbm
-    )
-    return _result(table, prior, counts, recording, output)
+    used = recording.subset(recording.away) if options.facing == "away" else recording
+    console.say(f"  fitting on {len(used.range_m)} cycles ({options.facing})")
+    table, counts = fit_table(prior, used.bearing_rad, used.range_m, used.detected, used.rssi_dbm)
+    return _result(table, prior, counts, used, output)
 
 
 def left_right_correlation(recording: Recording) -> float:

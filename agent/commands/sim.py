@@ -793,6 +793,14 @@ def _print_summary(s: dict[str, Any]) -> None:
             print(f"  device faults     {_device_text(name, device)}")
     if s["faults"]:
         print(f"  injected          {_faults_text(s['faults'])}")
+    following = s.get("following")
+    if following:
+        f = following
+        print(
+            f"  following (RFID)  the tag at {f['bearing_deg']:+.0f} deg +-{f['spread_deg']:.0f}, "
+            f"~{f['range_m']:.1f} m, confidence {f['confidence']:.2f}, absent {f['p_absent']:.2f} "
+            f"(after {f['cycles']} read cycles)"
+        )
     parts = s.get("peak_rss_mb_parts", {})
     split = f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f})" if parts else ""
     print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB{split}")

@@ -44,6 +44,7 @@ __all__ = [
     "Observation",
     "RadioModel",
     "SectorGrid",
+    "WindowEstimate",
     "antenna_gain_db",
     "default_table",
     "fit_table",
@@ -338,7 +339,10 @@ class CoarseEstimate:
     """The filter's answer. ``bearing_rad``: the most likely direction (CCW from forward), refined inside
     the best sector; ``spread_rad``: the circular standard deviation of the whole bearing posterior;
     ``confidence``: the probability that the person is present and within one sector of ``bearing_rad``;
-    ``p_absent``: the probability of the "absent" state; ``range_m``: expected range when present."""
+    ``p_absent``: the probability of the "absent" state; ``range_m``: expected range when present;
+    ``p_front``: the probability that the person is present and ahead (|bearing| < 90 degrees): two
+    forward-looking antennas tell front from back poorly (the RSSI level is all they have for it), so a
+    follower should look ahead when this is not small, whatever ``bearing_rad`` says."""
 
     bearing_rad: float
     spread_rad: float
@@ -346,6 +350,17 @@ class CoarseEstimate:
     confidence: float
     p_absent: float
     sector: int
+    p_front: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class WindowEstimate:
+    """The posterior inside a window of bearings (a camera's field of view): ``probability`` that the person
+    is present there, and their most likely ``bearing_rad`` within it (the circular mean of the window's
+    mass; NaN when it holds none)."""
+
+    probability: float
+    bearing_rad: float
 
 
 @dataclass
@@ -488,7 +503,19 @@ class CoarseFilter:
         cells = self.belief[:n].reshape(grid.n_sectors, grid.n_ranges)
         ring = cells.sum(axis=0)
         range_m = float(ring @ grid.range_centres_m / ring.sum()) if ring.sum() > 0 else math.nan
-        return CoarseEstimate(bearing, min(spread, math.pi), range_m, confidence, p_absent, best)
+        p_front = (1.0 - p_absent) * float(m[np.abs(bearings) < math.pi / 2].sum())
+        return CoarseEstimate(bearing, min(spread, math.pi), range_m, confidence, p_absent, best, p_front)
+
+    def within(self, centre_rad: float, half_width_rad: float) -> WindowEstimate:
+        """The posterior inside bearings ``centre_rad`` +- ``half_width_rad`` (sectors whose centre is
+        inside): for the fine layer, where in the camera's view to look, and how likely they are there."""
+        grid = self.grid
+        m = self.bearing_posterior() * (1.0 - float(self.belief[grid.n_cells]))
+        offset = np.abs(np.remainder(grid.bearings_rad - centre_rad + np.pi, 2.0 * np.pi) - np.pi)
+        inside = offset <= half_width_rad
+        mass = float(m[inside].sum())
+        z = np.sum(m[inside] * np.exp(1j * grid.bearings_rad[inside]))
+        return WindowEstimate(mass, float(np.angle(z)) if mass > 0 else math.nan)
 
 
 def fit_table(

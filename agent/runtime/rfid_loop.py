@@ -37,6 +37,7 @@ class CoarseStatus:
             "range_m": round(e.range_m, 2),
             "confidence": round(e.confidence, 3),
             "p_absent": round(e.p_absent, 3),
+            "p_front": round(e.p_front, 3),
             "cycles": self.cycles,
         }
 

@@ -136,6 +136,7 @@ class FakeRfidReader:
                 body_loss_db=model.body_loss_db,
                 noise_db=model.noise_db,
                 seed=seed,
+                layout_seed=model.scatter_seed,
             )
         antennas = 1 if antennas is None else antennas
         if self.channel is None and antennas not in (1, 2):

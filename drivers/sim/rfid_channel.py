@@ -61,6 +61,7 @@ class RfidChannel:
         body_loss_db: float,
         noise_db: float,
         seed: int = 0,
+        layout_seed: int = 0,
         reach_m: float = 8.0,
     ) -> None:
         self.segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
@@ -73,7 +74,8 @@ class RfidChannel:
         self.body_loss_db = body_loss_db
         self.noise_db = noise_db
         self.reach_m = reach_m
-        rng = np.random.default_rng(seed)
+        # The scatterers are the world's (its furniture: ``layout_seed``); the noise is the run's (``seed``).
+        rng = np.random.default_rng(layout_seed)
         if self.segments.size:
             lo = np.minimum(self.segments[:, [0, 1]], self.segments[:, [2, 3]]).min(axis=0)
             hi = np.maximum(self.segments[:, [0, 1]], self.segments[:, [2, 3]]).max(axis=0)
@@ -82,7 +84,7 @@ class RfidChannel:
         self.scatter_xy = rng.uniform(lo, hi, size=(scatterers, 2))
         # Each scatterer re-radiates with its own phase (its shape), fixed for the world.
         self.scatter_phase = rng.uniform(0.0, 2.0 * math.pi, size=scatterers)
-        self._rng = np.random.default_rng(seed + 1)
+        self._rng = np.random.default_rng(seed)
 
     def gain_db(self, offset_rad: FloatArray) -> FloatArray:
         theta = np.abs(np.remainder(offset_rad + np.pi, 2.0 * np.pi) - np.pi)

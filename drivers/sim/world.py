@@ -227,6 +227,7 @@ class RfidModel:
     wall_reflection: float = 0.6
     scatterers: int = 24
     scatter_amplitude: float = 0.6
+    scatter_seed: int = 0  # where the scatterers stand: part of the world, the same in every run
     body_loss_db: float = 8.0
     noise_db: float = 1.0
 

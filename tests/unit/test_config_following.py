@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from agent.config import parse_config
+from agent.config import load_config, parse_config
 from agent.following.coarse import Antenna, RadioModel, default_table
 from agent.shipped import WORLDS
 from drivers.errors import ConfigError
@@ -107,3 +107,14 @@ def test_following_reads_the_calibrated_table(tmp_path: Path) -> None:
     path.write_text("ports = [1]\n", encoding="utf-8")
     with pytest.raises(ConfigError, match="not an RFID likelihood table"):
         parse_config(REAL + '[following]\nrfid_table = "rfid_table.toml"\n', str(tmp_path / "robot.toml"))
+
+
+def test_the_following_example_loads() -> None:
+    from agent.shipped import shipped
+
+    config = load_config(shipped("follow.toml"))
+    assert config.sim is not None and config.sim.world.name == "follow_straight"
+    assert config.devices[DeviceKind.RFID].backend == "mercury"
+    assert config.forward_camera is not None and config.forward_camera.backend == "sim"
+    assert config.forward_camera.options["render_process"] is True
+    assert config.following.tag_id == config.sim.world.people[0].tag_id

@@ -214,5 +214,22 @@ def test_the_runtime_layer_closes_cycles_with_the_robot_motion() -> None:
         "range_m",
         "confidence",
         "p_absent",
+        "p_front",
         "cycles",
     }
+
+
+def test_the_front_probability_and_a_window_of_the_posterior() -> None:
+    f = CoarseFilter(default_table(MODEL))
+    grid = f.grid
+    f.belief[:] = 0.0
+    f.belief[1 * grid.n_ranges + 1] = 0.6  # 22.5 degrees left
+    f.belief[8 * grid.n_ranges + 1] = 0.3  # behind
+    f.belief[grid.n_cells] = 0.1  # absent
+    estimate = f.estimate()
+    assert estimate.p_front == pytest.approx(0.6) and estimate.p_absent == pytest.approx(0.1)
+    view = f.within(0.0, math.radians(35.0))  # a 70 degree camera looking ahead
+    assert view.probability == pytest.approx(0.6)
+    assert view.bearing_rad == pytest.approx(grid.sector_width_rad)
+    assert f.within(math.pi, math.radians(10.0)).probability == pytest.approx(0.3)
+    assert math.isnan(f.within(-math.pi / 2, math.radians(10.0)).bearing_rad)

@@ -170,6 +170,7 @@ sensitivity_dbm = -75.0
 wall_reflection = 0.4
 scatterers = 4
 scatter_amplitude = 0.2
+scatter_seed = 7
 body_loss_db = 6.0
 noise_db = 2.0
 
