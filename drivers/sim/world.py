@@ -223,7 +223,8 @@ class RfidModel:
     rssi_at_1m_dbm: float = -50.0
     sensitivity_dbm: float = -80.0
     # Multipath strong enough that the left/right cue is as weak as measured indoors (reference/eco.md §3:
-    # corr(RSSI difference, sin bearing) 0.45-0.75 spinning in place): 0.67 on the calibration walk.
+    # corr(RSSI difference, sin bearing) 0.45-0.75 spinning in place): 0.54-0.74 on the calibration walks
+    # of benchmarks/rfid_coarse.py and the follow worlds.
     wall_reflection: float = 0.6
     scatterers: int = 24
     scatter_amplitude: float = 0.6
