@@ -36,7 +36,13 @@ from typing import Any
 from agent.exploration.config import ExploreConfig, ExplorerKind
 from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
-from drivers.registry import BACKENDS, DeviceKind, backend_class
+from drivers.registry import (
+    BACKENDS,
+    FORWARD_CAMERA_BACKENDS,
+    DeviceKind,
+    backend_class,
+    forward_camera_class,
+)
 from drivers.sim.world import World
 from drivers.sim.worldfile import MAX_LEDS
 from drivers.toml_table import TomlTable, type_name
@@ -45,6 +51,7 @@ __all__ = [
     "AgentConfig",
     "ControlConfig",
     "DeviceConfig",
+    "FollowingConfig",
     "FusionConfig",
     "HealthConfig",
     "IntrinsicsConfig",
@@ -93,6 +100,7 @@ _SECTIONS = (
     "scheduling",
     "navigation",
     "exploration",
+    "following",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
@@ -340,6 +348,40 @@ class SchedulingConfig:
 
 
 @dataclass(frozen=True)
+class FollowingConfig:
+    """``[following]``: whom the robot follows and how its RFID layer reads the reader.
+
+    ``tag_id``: the followed person's tag as the reader reports it (None: following is not set up);
+    ``rfid_table``: the likelihood table file ``vlp-agent calibrate rfid`` wrote, read now into ``table``
+    (None: the physical model of ``antenna_yaws_rad``, one yaw per port of ``[rfid] antenna_ports``);
+    ``cycle_s``: the read cycle the coarse filter updates at."""
+
+    tag_id: str | None = None
+    rfid_table: Path | None = None
+    table: Any = None  # agent.following.coarse.LikelihoodTable
+    antenna_yaws_rad: tuple[float, ...] = (math.radians(50.0), math.radians(-50.0))
+    cycle_s: float = 0.25
+
+
+def read_rfid_table(path: Path, key: str, file: str) -> Any:
+    """The likelihood table in ``path`` (``docs/following.md``); ConfigError naming ``key`` when it cannot be
+    read or is malformed."""
+    from agent.following.coarse import LikelihoodTable
+
+    try:
+        with open(path, "rb") as fp:
+            data = tomllib.load(fp)
+    except OSError as exc:
+        raise ConfigError(key, f"cannot read the RFID table {path}: {exc.strerror or exc}", file) from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(key, f"{path} is not valid TOML: {exc}", file) from exc
+    try:
+        return LikelihoodTable.from_dict(data)
+    except ValueError as exc:
+        raise ConfigError(key, f"{path} is not an RFID likelihood table: {exc}", file) from exc
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     file: str
     devices: Mapping[DeviceKind, DeviceConfig]
@@ -355,6 +397,8 @@ class AgentConfig:
     navigation: NavConfig = field(default_factory=NavConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     exploration: ExploreConfig = field(default_factory=ExploreConfig)
+    forward_camera: DeviceConfig | None = None
+    following: FollowingConfig = field(default_factory=FollowingConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -553,9 +597,10 @@ def _accepted_types(hint: Any) -> tuple[type, ...] | None:
     return None
 
 
-def backend_options(kind: DeviceKind, backend: str) -> dict[str, _Option]:
-    """The options a device table may give for ``backend``, from its class's ``__init__`` signature."""
-    cls = backend_class(kind, backend)
+def backend_options(kind: DeviceKind, backend: str, cls: Any = None) -> dict[str, _Option]:
+    """The options a device table may give for ``backend``, from its class's ``__init__`` signature
+    (``cls``: that class, when it is not the registry's for ``kind``, as the forward camera's)."""
+    cls = backend_class(kind, backend) if cls is None else cls
     signature = inspect.signature(cls.__init__)
     hints = typing.get_type_hints(cls.__init__)
     options: dict[str, _Option] = {}
@@ -779,6 +824,7 @@ class _Reader:
         top = self.top
         top.known.update(_SECTIONS)
         sim = self._sim()
+        forward = self._forward_camera(sim)
         devices: dict[DeviceKind, DeviceConfig] = {}
         for kind in DeviceKind:
             device = self._device(kind, sim)
@@ -795,6 +841,7 @@ class _Reader:
         scheduling = self._scheduling()
         navigation = self._navigation()
         exploration = self._exploration()
+        following = self._following()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
@@ -815,6 +862,8 @@ class _Reader:
             navigation,
             recorder,
             exploration,
+            forward,
+            following,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -883,6 +932,89 @@ class _Reader:
         if settings:
             options["settings"] = self._camera_settings(settings, t)
         return DeviceConfig(kind, backend, options, critical)
+
+    def _forward_camera(self, sim: SimConfig | None) -> DeviceConfig | None:
+        """``[camera.forward]``, taken out of ``[camera]`` before that is read as the ceiling camera (which
+        it leaves out when it held nothing else). Not critical by default: the robot localizes without it."""
+        camera = self.top.data.get("camera")
+        if not isinstance(camera, dict) or "forward" not in camera:
+            return None
+        camera = dict(camera)  # the caller's table stays as it was
+        value = camera.pop("forward")
+        top = self.top.data
+        assert isinstance(top, dict)  # _Reader made it one
+        if not camera and sim is None:
+            del top["camera"]
+        else:
+            top["camera"] = camera
+        if not isinstance(value, dict):
+            raise ConfigError("camera.forward", f"must be a table, not {type_name(value)}", self.file)
+        t = _Table(value, "camera.forward", self.file)
+        if not t.boolean("enabled", True):
+            return None
+        if t.has("backend"):
+            backend = t.choice("backend", "", FORWARD_CAMERA_BACKENDS)
+        elif sim is not None:
+            backend = "sim"
+        else:
+            raise t.error("backend", f"missing (one of {sorted(FORWARD_CAMERA_BACKENDS)})")
+        if sim is not None and backend != "sim":
+            raise t.error("backend", "the simulated robot's forward camera is backend = 'sim'")
+        if sim is None and backend == "sim":
+            raise t.error("backend", "'sim' needs the simulated robot ([sim])")
+        critical = t.boolean("critical", False)
+        try:
+            known = backend_options(DeviceKind.CAMERA, backend, forward_camera_class(backend))
+        except BackendUnavailable as exc:
+            raise t.error("backend", str(exc)) from exc
+        t.known.update(known)
+        t.known.update(CAMERA_SETTINGS)
+        options: dict[str, Any] = {}
+        settings: dict[str, Any] = {"pixel_format": "BGR8"}
+        for name in list(t.data):
+            if name in ("backend", "enabled", "critical"):
+                continue
+            if name in CAMERA_SETTINGS:
+                settings[name] = t.take(name)
+            elif name in known:
+                options[name] = _check_option_size(name, _convert_option(known[name], t.take(name), t), t)
+        t.finish()
+        for name, option in known.items():
+            if option.required and name not in options:
+                raise t.error(name, f"missing ({option.describe()}; required by the {backend!r} backend)")
+        options["settings"] = self._camera_settings(settings, t)
+        return DeviceConfig(DeviceKind.CAMERA, backend, options, critical)
+
+    def _following(self) -> FollowingConfig:
+        t = self.top.table("following") or _Table({}, "following", self.file)
+        d = FollowingConfig()
+        tag_id = t.string("tag_id")
+        path = t.path_value("rfid_table", self.base)
+        table = read_rfid_table(path, t.key("rfid_table"), self.file) if path is not None else None
+        yaws = d.antenna_yaws_rad
+        if t.has("antenna_yaws_rad") or t.has("antenna_yaws_deg"):
+            name = "antenna_yaws_rad" if t.has("antenna_yaws_rad") else "antenna_yaws_deg"
+            scale = 1.0 if name.endswith("_rad") else math.pi / 180.0
+            value = t.take(name)
+            if (
+                not isinstance(value, list)
+                or not 1 <= len(value) <= 15
+                or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            ):
+                raise t.error(
+                    name, f"must be an array of 1 to 15 numbers (one per antenna port), not {value!r}"
+                )
+            yaws = tuple(float(v) * scale for v in value)
+        t.known.update({"antenna_yaws_rad", "antenna_yaws_deg"})
+        following = FollowingConfig(
+            tag_id=tag_id,
+            rfid_table=path,
+            table=table,
+            antenna_yaws_rad=yaws,
+            cycle_s=t.number("cycle_s", d.cycle_s, (lambda v: 0.05 <= v <= 5.0, "must be 0.05..5 s")),
+        )
+        t.finish()
+        return following
 
     def _camera_settings(self, values: dict[str, Any], t: _Table) -> Any:
         from drivers.camera.base import CameraSettings

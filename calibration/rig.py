@@ -23,6 +23,7 @@ from drivers.errors import ConfigError, DeviceError
 from drivers.imu.base import Imu
 from drivers.laser.base import LaserScanner
 from drivers.registry import DeviceKind, backend_class
+from drivers.rfid.base import RfidReader
 from drivers.servos.base import WheelServos
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import Mount, World
@@ -200,6 +201,14 @@ class Rig:
     def imu(self) -> Imu:
         imu: Imu = self._device(DeviceKind.IMU)
         return imu
+
+    def rfid(self) -> RfidReader:
+        backend = self._tables.get(DeviceKind.RFID, ("", {}))[0]
+        overrides = (
+            {} if "protocol" in self._tables.get(DeviceKind.RFID, ("", {}))[1] else {"protocol": backend}
+        )
+        reader: RfidReader = self._device(DeviceKind.RFID, **overrides)
+        return reader
 
     # -- lifecycle --------------------------------------------------------------------------------------
     def close(self) -> None:

@@ -92,6 +92,13 @@ STEPS: tuple[StepInfo, ...] = (
         "the LED map and camera calibration; the robot under 2+ LEDs; a few marked points",
         "vlp.toml",
     ),
+    StepInfo(
+        "rfid",
+        "calibration.rfid",
+        "RFID likelihood table of person following: reads of the tag walked round the robot",
+        "the reader's antennas mounted; the person's tag; marks on the floor every 45 deg at 1, 2 and 3 m",
+        "rfid_table.toml",
+    ),
 )
 
 

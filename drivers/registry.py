@@ -43,6 +43,14 @@ BACKENDS: dict[DeviceKind, dict[str, str]] = {
     },
 }
 
+# The forward camera of person following ([camera.forward]): the same real backends as the ceiling camera,
+# and its own simulated one (a colour view of the world's walls and people).
+FORWARD_CAMERA_BACKENDS: dict[str, str] = {
+    "genicam": "drivers.camera.genicam:GenicamCamera",
+    "v4l2": "drivers.camera.v4l2:V4l2Camera",
+    "sim": "drivers.camera.sim_forward:SimForwardCamera",
+}
+
 INSTALL_HINTS = {
     "harvesters": "pip install harvesters genicam",
     "genicam": "pip install genicam",
@@ -60,7 +68,21 @@ def backend_class(kind: DeviceKind | str, name: str) -> Any:
     table = BACKENDS[kind]
     if name not in table:
         raise ConfigError(f"{kind.value}.backend", f"unknown backend {name!r}; choose one of {sorted(table)}")
-    module_name, _, class_name = table[name].partition(":")
+    return _import(table[name], name, kind.value)
+
+
+def forward_camera_class(name: str) -> Any:
+    """Import and return the class of forward-camera backend ``name`` (``FORWARD_CAMERA_BACKENDS``)."""
+    if name not in FORWARD_CAMERA_BACKENDS:
+        raise ConfigError(
+            "camera.forward.backend",
+            f"unknown backend {name!r}; choose one of {sorted(FORWARD_CAMERA_BACKENDS)}",
+        )
+    return _import(FORWARD_CAMERA_BACKENDS[name], name, "camera.forward")
+
+
+def _import(target: str, name: str, device: str) -> Any:
+    module_name, _, class_name = target.partition(":")
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
@@ -68,6 +90,6 @@ def backend_class(kind: DeviceKind | str, name: str) -> Any:
         hint = INSTALL_HINTS.get(missing, f"pip install {missing}")
         raise BackendUnavailable(
             f"backend {name!r} needs the Python module {missing!r}, which is not installed: {hint}",
-            device=kind.value,
+            device=device,
         ) from exc
     return getattr(module, class_name)

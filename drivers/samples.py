@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 @dataclass(frozen=True, slots=True)
 class Frame:
-    """One camera image, single channel 8-bit, shape (height, width)."""
+    """One camera image, 8-bit: shape (height, width) for Mono8, (height, width, 3) in BGR order for BGR8."""
 
     image: npt.NDArray[np.uint8]
     sequence: int

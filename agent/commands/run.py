@@ -134,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
             k: {"ok": v.ok, "reason": v.reason, "failures": v.failures} for k, v in status.devices.items()
         },
         "unavailable": status.unavailable,
+        "following": status.following,
         "frames_received": controller.frames if controller is not None else None,
         "map_files": map_files,
     }

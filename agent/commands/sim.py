@@ -15,7 +15,7 @@ summary (``--json``: one JSON object), a trajectory plot and, when SLAM built on
 applied (for good without; the summary's ``faults`` says when each was applied, ``done_s`` when that had
 returned):
 ``laser`` (the URG's USB cable pulled), ``camera`` (frames stop), ``servo`` (the left wheel servo stops
-answering).
+answering), ``forward_camera`` (person following's forward camera stops; needs ``[camera.forward]``).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ from firmware_protocol.pose_frame import PoseFlags
 log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
-FAULT_KINDS = ("laser", "camera", "servo")
+FAULT_KINDS = ("laser", "camera", "servo", "forward_camera")
 _AUTOPILOT_PERIOD_S = 0.05
 LATENCY_DEFINITION = (
     "latency: a camera frame captured by the computer (handed over complete by the camera driver) -> the "
@@ -260,6 +260,11 @@ class FaultInjector:
             stall(on)
         elif kind == "servo":
             self.robot.servos.mute(self.robot.world.robot.left_id, on)
+        elif kind == "forward_camera":
+            stall = getattr(self.agent.devices.forward_camera, "stall", None)
+            if stall is None:
+                raise ConfigError("--fault", "forward_camera needs the simulated one ([camera.forward])")
+            stall(on)
 
 
 def _goal_argument(text: str) -> tuple[float, float, float | None]:
@@ -698,6 +703,7 @@ def _summary(
             for name, d in status.devices.items()
         },
         "unavailable": status.unavailable,
+        "following": status.following,
         "faults": injector.applied,
         "counts": counts,
         "files": files,
@@ -787,6 +793,14 @@ def _print_summary(s: dict[str, Any]) -> None:
             print(f"  device faults     {_device_text(name, device)}")
     if s["faults"]:
         print(f"  injected          {_faults_text(s['faults'])}")
+    following = s.get("following")
+    if following:
+        f = following
+        print(
+            f"  following (RFID)  the tag at {f['bearing_deg']:+.0f} deg +-{f['spread_deg']:.0f}, "
+            f"~{f['range_m']:.1f} m, confidence {f['confidence']:.2f}, absent {f['p_absent']:.2f} "
+            f"(after {f['cycles']} read cycles)"
+        )
     parts = s.get("peak_rss_mb_parts", {})
     split = f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f})" if parts else ""
     print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB{split}")

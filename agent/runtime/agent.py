@@ -9,6 +9,8 @@ Loops (one module each; each thread beats its own heartbeat; the critical ones g
     slam      slam_loop      scan + odometry at its time -> RBPF -> fuse the pose of each filter update
     servos    servo_loop     read wheels -> odometry -> fuse; send the velocity command (dead-man)
     imu       imu_loop       read -> gyro yaw rate -> fuse; accelerometer -> tilt for VLP
+    forward_camera  forward_camera_loop  grab the forward camera's colour frames (person following), newest
+                    kept in memory
     rfid      rfid_loop      read tags (kept for the status; person following and landmarks come later)
     output    output_loop    keeps the pose stream at rate_hz when nothing else writes
     commands  command_loop   the controller's commands on the pose port -> CommandArbiter -> statuses back;
@@ -35,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from agent.config import AgentConfig, MountConfig
+from agent.following.coarse import Antenna, CoarseFilter, RadioModel, default_table
 from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
 from agent.recording.messages import FusedSample, SlamStartSample, fusion_record_time
 from agent.recording.writer import McapRecorder
@@ -44,6 +47,7 @@ from agent.runtime.collector import IdleCollector
 from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
 from agent.runtime.drive_loop import DirectiveDrive, Navigator
+from agent.runtime.forward_camera_loop import FORWARD_CAMERA, forward_camera_loop
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
 from agent.runtime.imu_loop import imu_loop
@@ -60,7 +64,7 @@ from agent.runtime.output import PoseOutput
 from agent.runtime.output_loop import output_loop
 from agent.runtime.priority import CpuLatencyRequest
 from agent.runtime.recorder import Recorder
-from agent.runtime.rfid_loop import rfid_loop
+from agent.runtime.rfid_loop import CoarseLayer, rfid_loop
 from agent.runtime.servo_loop import servo_loop
 from agent.runtime.slam_loop import SlamLoop
 from agent.runtime.types import AbsoluteFix
@@ -114,6 +118,8 @@ class AgentStatus:
     # the driving step's passes by source) and the last goal statuses sent back, oldest first.
     commands: dict[str, int] = field(default_factory=dict)
     command_statuses: tuple[GoalStatus, ...] = ()
+    # Person following's coarse layer (``[following] tag_id``): bearing, spread, range, confidence, ...
+    following: dict[str, float | int] | None = None
 
 
 class Agent:
@@ -189,6 +195,10 @@ class Agent:
             Source.IMU: int(fc.imu_timeout_s * 1e9),
         }
         self.frames: LatestMailbox[tuple[Frame, int]] = LatestMailbox()
+        # Person following's RFID layer, made by start() when [following] names a tag.
+        self.coarse: CoarseLayer | None = None
+        # The forward camera's newest frame, for person following (never leaves the process).
+        self.forward_frames: LatestMailbox[Frame] = LatestMailbox()
         # SLAM gives way (between particles) while a frame waits for or is on the hot path.
         frames = self.frames
         self.hot_path = HotPath(lambda: frames.pending)
@@ -312,8 +322,20 @@ class Agent:
             still, tilt = self.still, self.tilt
             imu = partial(imu_loop, s, imu=d.imu, hot_path=hot, fusion=fusion, still=still, tilt=tilt)
             self._spawn("imu", self.critical("imu"), timeout, imu)
+        if d.forward_camera is not None:
+            forward = partial(
+                forward_camera_loop,
+                s,
+                camera=d.forward_camera,
+                hot_path=hot,
+                frames=self.forward_frames,
+                stall_s=self.config.health.camera_stall_s,
+            )
+            self._spawn(FORWARD_CAMERA, self.critical(FORWARD_CAMERA), timeout, forward)
         if d.rfid is not None:
-            self._spawn("rfid", self.critical("rfid"), timeout, partial(rfid_loop, s, rfid=d.rfid))
+            self.coarse = self._coarse_layer(d.rfid)
+            rfid = partial(rfid_loop, s, rfid=d.rfid, coarse=self.coarse)
+            self._spawn("rfid", self.critical("rfid"), timeout, rfid)
         if self.output is not None:
             output = partial(output_loop, s, output=self.output, publish=self._publish)
             self._spawn("output", True, timeout, output)
@@ -347,6 +369,7 @@ class Agent:
         self.state.stop.set()
         self.hot_path.close()
         self.frames.close()
+        self.forward_frames.close()
         self.scans.close()
         self.slam_fixes.close()
         deadline = time.monotonic() + timeout_s
@@ -497,7 +520,12 @@ class Agent:
             self.health.is_ready,
             (cpu_ms[0], cpu_ms[1]),
             *self._command_status(),
+            self._following_status(),
         )
+
+    def _following_status(self) -> dict[str, float | int] | None:
+        latest = self.coarse.latest if self.coarse is not None else None
+        return latest.as_dict() if latest is not None else None
 
     def _command_status(self) -> tuple[dict[str, int], tuple[GoalStatus, ...]]:
         if self.commands is None or self.arbiter is None or self.drive_step is None:
@@ -528,10 +556,41 @@ class Agent:
     def tags(self) -> list[TagRead]:
         return list(self.state.tags)
 
+    def _coarse_layer(self, reader: Any) -> CoarseLayer | None:
+        """Person following's RFID layer when ``[following] tag_id`` names the tag: the calibrated table,
+        or the physical model of ``antenna_yaws_rad`` on the reader's antenna ports."""
+        fc = self.config.following
+        if fc.tag_id is None:
+            return None
+        table = fc.table
+        if table is None:
+            ports = tuple(getattr(reader, "antenna_ports", (1,)))
+            if len(ports) != len(fc.antenna_yaws_rad):
+                log.warning(
+                    "[following] antenna_yaws_rad gives %d yaws for the reader's %d antenna ports %s; "
+                    "using the first %d",
+                    len(fc.antenna_yaws_rad),
+                    len(ports),
+                    ports,
+                    min(len(ports), len(fc.antenna_yaws_rad)),
+                )
+            antennas = tuple(Antenna(p, y) for p, y in zip(ports, fc.antenna_yaws_rad, strict=False))
+            table = default_table(RadioModel(antennas))
+        fusion = self.fusion
+
+        def pose() -> tuple[float, float, float]:
+            e = fusion.estimate()
+            return e.x_m, e.y_m, e.yaw_rad
+
+        return CoarseLayer(CoarseFilter(table), fc.tag_id, fc.cycle_s, pose)
+
     # -- helpers -----------------------------------------------------------------------------------
     def critical(self, name: str) -> bool:
         """Whether the watchdog waits for this device's loops (the config says; an injected device the
         config does not list: the default for its kind)."""
+        if name == FORWARD_CAMERA:
+            forward = self.config.forward_camera
+            return forward is not None and forward.critical
         device = self.config.devices.get(_kind(name))
         return device.critical if device is not None else name in ("camera", "laser", "servos")
 

@@ -17,11 +17,11 @@ from drivers.device import Device
 from drivers.errors import ConfigError
 from drivers.imu.base import Imu
 from drivers.laser.base import LaserScanner
-from drivers.registry import DeviceKind, backend_class
+from drivers.registry import DeviceKind, backend_class, forward_camera_class
 from drivers.rfid.base import RfidReader
 from drivers.servos.base import WheelServos
 
-__all__ = ["Devices", "build_device", "build_devices"]
+__all__ = ["Devices", "build_device", "build_devices", "build_forward_camera"]
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +35,7 @@ class Devices:
     servos: WheelServos | None = None
     imu: Imu | None = None
     rfid: RfidReader | None = None
+    forward_camera: Camera | None = None  # [camera.forward], person following's colour camera
 
     def all(self) -> dict[str, Device]:
         out: dict[str, Device] = {}
@@ -42,6 +43,8 @@ class Devices:
             device = getattr(self, kind.value)
             if device is not None:
                 out[kind.value] = device
+        if self.forward_camera is not None:
+            out["forward_camera"] = self.forward_camera
         return out
 
 
@@ -67,8 +70,25 @@ def build_device(device: DeviceConfig, config_file: str, robot: Any | None = Non
     return built
 
 
+def build_forward_camera(device: DeviceConfig, config_file: str, robot: Any | None = None) -> Camera:
+    """The forward camera of ``[camera.forward]``; under ``[sim]`` the simulated robot's."""
+    cls = forward_camera_class(device.backend)
+    kwargs: dict[str, Any] = dict(device.options)
+    kwargs.setdefault("name", "forward-camera")
+    if robot is not None:
+        kwargs["simulation"] = robot.simulation
+        kwargs.setdefault("seed", robot.seed)
+    try:
+        built: Camera = cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(exc.key, exc.reason, config_file) from exc
+    return built
+
+
 def build_devices(config: AgentConfig, robot: Any | None = None) -> Devices:
     devices = Devices()
     for kind, device in config.devices.items():
         setattr(devices, kind.value, build_device(device, config.file, robot))
+    if config.forward_camera is not None:
+        devices.forward_camera = build_forward_camera(config.forward_camera, config.file, robot)
     return devices

@@ -120,6 +120,7 @@ class LoopState:
         self.tags: collections.deque[TagRead] = collections.deque(maxlen=64)
         # Written by one loop each, read by the status word.
         self.last_frame_ns = 0
+        self.last_forward_frame_ns = 0
         self.last_scan_ns = 0
         self.slam_good = False  # the last SLAM filter update matched and was fused
         self.hardware_error = (0, 0)

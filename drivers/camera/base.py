@@ -26,8 +26,9 @@ __all__ = ["PIXEL_FORMATS", "Camera", "CameraSettings"]
 
 log = logging.getLogger(__name__)
 
-# Frames are single-channel 8-bit (drivers.samples.Frame); the pipeline has no use for colour or 16 bits.
-PIXEL_FORMATS = ("Mono8",)
+# Frames are 8-bit (drivers.samples.Frame): single channel for the ceiling camera, whose pipeline has no use
+# for colour; BGR8 (OpenCV's channel order) for the forward camera, whose tracker follows clothing colours.
+PIXEL_FORMATS = ("Mono8", "BGR8")
 _MIN_TIMEOUT_S = 1e-3
 
 
@@ -63,7 +64,7 @@ class CameraSettings:
 
 
 class Camera(Device):
-    """A camera producing single-channel 8-bit frames.
+    """A camera producing 8-bit frames: (height, width) for Mono8, (height, width, 3) for BGR8.
 
     Subclasses implement ``_open``/``_close`` (from :class:`~drivers.device.Device`), ``_acquire`` and
     ``settings``. One thread fetches at a time; ``close()`` may come from another thread.

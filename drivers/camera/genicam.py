@@ -201,6 +201,8 @@ class GenicamCamera(Camera):
             )
             return
         offered = tuple(str(s) for s in getattr(node, "symbolics", ()))
+        if offered and pixel_format == "BGR8" and "BGR8" not in offered and "RGB8" in offered:
+            pixel_format = "RGB8"  # swapped to BGR as frames come (_image)
         if offered and pixel_format not in offered:
             raise DeviceError(
                 f"the device does not offer {pixel_format} (it offers {list(offered)})", self.name
@@ -322,20 +324,27 @@ class GenicamCamera(Camera):
     def _image(self, buffer: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
         component = buffer.payload.components[0]
         data_format = str(component.data_format)
-        if data_format != "Mono8":
-            raise DeviceError(f"the device sent {data_format}, not Mono8", self.name)
+        wanted = self.requested.pixel_format
+        # BGR8 frames from a BGR8 or RGB8 device (the channels swapped in a copy); Mono8 from Mono8.
+        if data_format != wanted and not (wanted == "BGR8" and data_format == "RGB8"):
+            raise DeviceError(f"the device sent {data_format}, not {wanted}", self.name)
+        channels = 1 if data_format == "Mono8" else 3
         width, height = int(component.width), int(component.height)
         data = component.data
         # The component's data is flat; lines may carry x padding (harvesters does not strip it).
-        stride = width + int(getattr(component, "x_padding", 0) or 0)
+        stride = width * channels + int(getattr(component, "x_padding", 0) or 0)
         if data is None or data.size < stride * height:
             raise DeviceError(
                 f"short buffer: {0 if data is None else data.size} bytes for {width}x{height}", self.name
             )
-        image: np.ndarray[Any, np.dtype[np.uint8]] = data[: stride * height].reshape(height, stride)[
-            :, :width
-        ]
-        return image
+        lines = data[: stride * height].reshape(height, stride)[:, : width * channels]
+        if channels == 1:
+            image: np.ndarray[Any, np.dtype[np.uint8]] = lines
+            return image
+        colour: np.ndarray[Any, np.dtype[np.uint8]] = lines.reshape(height, width, 3)
+        if data_format == "RGB8":
+            colour = np.ascontiguousarray(colour[:, :, ::-1])
+        return colour
 
     def _frame_id(self, buffer: Any) -> int:
         try:

@@ -162,7 +162,7 @@ class V4l2Camera(Camera):
         actual = CameraSettings(
             width=None if not width else int(width),
             height=None if not height else int(height),
-            pixel_format="Mono8",
+            pixel_format=wanted.pixel_format,
             exposure_s=None if exposure_steps is None else exposure_steps * EXPOSURE_UNIT_S,
             gain_db=None,
             frame_rate_hz=fps or None,
@@ -197,12 +197,22 @@ class V4l2Camera(Camera):
             if not os.path.exists(self.device_path):
                 raise DeviceDisconnected(f"{self.device_path} is gone", self.name)
             raise DeviceTimeout("no frame (OpenCV's V4L2 wait ran out, or the stream stalled)", self.name)
-        grey = self._to_grey(image)
+        grey = self._to_grey(image) if self.requested.pixel_format == "Mono8" else self._to_bgr(image)
         self._sequence += 1
         pos_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC))
         device_ns = round(pos_ms * 1e6) if pos_ms > 0 else None
         # OpenCV hands back a fresh array each read: nothing is borrowed, nothing to give back.
         return Frame(grey, self._sequence, host_ns, device_ns, self._actual.exposure_s), _nothing
+
+    def _to_bgr(self, image: Any) -> npt.NDArray[np.uint8]:
+        """BGR8 frames: OpenCV's V4L2 backend converts to BGR by itself; a grey device is widened."""
+        array = np.asarray(image)
+        if array.ndim == 2 or (array.ndim == 3 and array.shape[2] == 1):
+            array = np.asarray(self._cv2.cvtColor(array.reshape(array.shape[:2]), self._cv2.COLOR_GRAY2BGR))
+        if array.ndim != 3 or array.shape[2] != 3 or array.dtype != np.uint8:
+            raise DeviceError(f"unusable frame: {array.dtype} {array.shape}", self.name)
+        bgr: npt.NDArray[np.uint8] = array
+        return bgr
 
     def _to_grey(self, image: Any) -> npt.NDArray[np.uint8]:
         array = np.asarray(image)

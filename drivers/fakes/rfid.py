@@ -12,6 +12,11 @@ the pty. What it sends depends on ``world.rfid.protocol``:
   ``repeat_s`` (Gen2 anti-collision reads them all) plus a keep-alive every ``keepalive_s``, as the captures
   in SparkFun's "Example Communication Logs" show. RSSI falls with distance (log-distance path loss) and
   with the angle off the antenna's boresight; with two antennas, port 1 looks forward and port 2 back.
+  When the world gives ``rfid.antenna_yaws_rad``, the reader has those antennas instead and works as an
+  M6e Micro does: every repeat it reads each port of the antenna search list the host set (command 91h;
+  port 1 alone until it sets one) in turn, and a tag is read on a port when its RSSI there, from the
+  channel model of :mod:`drivers.sim.rfid_channel` (walls' reflections, scatterers, the wearer's body),
+  reaches ``rfid.sensitivity_dbm``; the phase is the channel's.
 
 Fault switches for tests: :attr:`FakeRfidReader.silent` (the reader stops answering and sending),
 :meth:`FakeRfidReader.inject` (raw junk on the line), :meth:`FakeRfidReader.corrupt_next` (frames with a
@@ -33,6 +38,8 @@ import threading
 
 import numpy as np
 
+from drivers.sim.raycast import walls_array
+from drivers.sim.rfid_channel import AntennaSite, RfidChannel
 from drivers.sim.simulation import Simulation, TagInRange
 from firmware_protocol.rfid import (
     GEN2_PROTOCOL,
@@ -94,7 +101,7 @@ class FakeRfidReader:
         *,
         range_m: float | None = None,
         repeat_s: float | None = None,
-        antennas: int = 1,
+        antennas: int | None = None,
         keepalive_s: float = 1.0,
         rssi_at_1m_dbm: float = -50.0,
         rssi_noise_db: float = 1.0,
@@ -106,7 +113,33 @@ class FakeRfidReader:
         self.protocol = protocol if protocol is not None else model.protocol
         if self.protocol not in ("id12la", "rdm6300", "mercury"):
             raise ValueError(f"unknown RFID protocol {self.protocol!r}")
-        if antennas not in (1, 2):
+        self.channel: RfidChannel | None = None
+        if model.antenna_yaws_rad and self.protocol == "mercury":
+            antennas = len(model.antenna_yaws_rad) if antennas is None else antennas
+            if antennas != len(model.antenna_yaws_rad):
+                raise ValueError(
+                    f"the world's reader has {len(model.antenna_yaws_rad)} antennas, not {antennas}"
+                )
+            sites = tuple(
+                AntennaSite(model.antenna_radius_m * math.cos(y), model.antenna_radius_m * math.sin(y), y)
+                for y in model.antenna_yaws_rad
+            )
+            self.channel = RfidChannel(
+                walls_array(sim.world.walls),
+                sites,
+                beamwidth_rad=model.beamwidth_rad,
+                front_to_back_db=model.front_to_back_db,
+                rssi_at_1m_dbm=model.rssi_at_1m_dbm,
+                wall_reflection=model.wall_reflection,
+                scatterers=model.scatterers,
+                scatter_amplitude=model.scatter_amplitude,
+                body_loss_db=model.body_loss_db,
+                noise_db=model.noise_db,
+                seed=seed,
+                layout_seed=model.scatter_seed,
+            )
+        antennas = 1 if antennas is None else antennas
+        if self.channel is None and antennas not in (1, 2):
             raise ValueError("antennas must be 1 or 2")
         self.range_m = model.range_m if range_m is None else range_m
         self.repeat_s = model.repeat_s if repeat_s is None else repeat_s
@@ -124,6 +157,11 @@ class FakeRfidReader:
         self._silent = False
         self._streaming = False
         self._last_keepalive = 0.0
+        # Mercury: the ports of the host's antenna search list (command 91h, option 02); 1 at power-on.
+        self.search_ports: tuple[int, ...] = (1,)
+        self._cycle_due = -math.inf
+        self._seen_at: dict[str, tuple[float, float]] = {}
+        self._heading: dict[str, tuple[float, float]] = {}
         self.received: collections.deque[MercuryRequest] = collections.deque(maxlen=64)
         self.requests_received = 0
         self.frames_sent = 0
@@ -166,6 +204,7 @@ class FakeRfidReader:
             self._streaming = False
             self._requests.reset()
             self._last_sent.clear()
+            self.search_ports = (1,)
 
     # -- ByteDevice ------------------------------------------------------------------------------------
     def receive(self, data: bytes, now: float) -> bytes:
@@ -232,6 +271,17 @@ class FakeRfidReader:
             if int.from_bytes(data, "big") != GEN2_PROTOCOL:
                 return encode_response(op, MercuryStatus.INVALID_PARAMETER_VALUE)
             return encode_response(op)
+        if op == MercuryOpcode.SET_ANTENNA_PORT and len(data) >= 3 and data[0] == 0x02 and len(data) % 2 == 1:
+            ports = tuple(data[i] for i in range(1, len(data), 2))  # (TX, RX) pairs: the TX ports
+            if not all(1 <= p <= self.antennas for p in ports):
+                return encode_response(op, MercuryStatus.INVALID_PARAMETER_VALUE)
+            self.search_ports = ports
+            return encode_response(op)
+        if op == MercuryOpcode.SET_ANTENNA_PORT and len(data) == 2:
+            if not 1 <= data[0] <= self.antennas:
+                return encode_response(op, MercuryStatus.INVALID_PARAMETER_VALUE)
+            self.search_ports = (data[0],)
+            return encode_response(op)
         if op in (
             MercuryOpcode.SET_REGION,
             MercuryOpcode.SET_ANTENNA_PORT,
@@ -256,6 +306,8 @@ class FakeRfidReader:
         if now - self._last_keepalive >= self.keepalive_s:
             self._last_keepalive = now
             out += encode_response(MercuryOpcode.READ_TAG_ID_MULTIPLE, MercuryStatus.NO_TAGS_FOUND)
+        if self.channel is not None:
+            return bytes(out + self._stream_channel(now))
         for tag in self.sim.tags_in_range(self.range_m):
             if now - self._last_sent.get(tag.tag_id, -math.inf) < self.repeat_s:
                 continue
@@ -267,6 +319,72 @@ class FakeRfidReader:
             self.frames_sent += 1
             out += frame
         return bytes(out)
+
+    def _stream_channel(self, now: float) -> bytes:
+        """One read cycle every ``repeat_s``: each search-list port in turn, each tag in range."""
+        channel = self.channel
+        assert channel is not None
+        if now < self._cycle_due:
+            return b""
+        self._cycle_due = now + self.repeat_s
+        out = bytearray()
+        base = self.sim.pose()
+        people = {p.name: p for p in self.sim.world.people}
+        sensitivity = self.sim.world.rfid.sensitivity_dbm
+        for tag in self.sim.tags_in_range(self.range_m):
+            person = people[tag.person]
+            x, y = self.sim.person_position(person)
+            away = self._walking_away(person.name, (x, y), (base.x_m, base.y_m))
+            frequency_khz = _HOP_TABLE_KHZ[int(self._rng.integers(len(_HOP_TABLE_KHZ)))]
+            rssi, phase = channel.read((base.x_m, base.y_m), base.yaw_rad, (x, y), away, frequency_khz * 1e3)
+            for port in self.search_ports:
+                if rssi[port - 1] < sensitivity:
+                    continue
+                frame = bytearray(
+                    encode_tag_read(
+                        self._tag_read(
+                            tag, now, float(rssi[port - 1]), port, frequency_khz, float(phase[port - 1])
+                        )
+                    )
+                )
+                if self._corrupt:
+                    self._corrupt -= 1
+                    frame[-1] ^= 0x5A
+                self.frames_sent += 1
+                out += frame
+        return bytes(out)
+
+    def _walking_away(self, name: str, xy: tuple[float, float], robot_xy: tuple[float, float]) -> bool:
+        """Whether the wearer's back is to the robot: they face where they last walked (kept while they
+        stand), and the robot is more than 90 degrees off that."""
+        last = self._seen_at.setdefault(name, xy)
+        dx, dy = xy[0] - last[0], xy[1] - last[1]
+        if math.hypot(dx, dy) > 0.05:
+            self._heading[name] = (dx, dy)
+            self._seen_at[name] = xy
+        heading = self._heading.get(name)
+        if heading is None:
+            return False
+        to_robot = (robot_xy[0] - xy[0], robot_xy[1] - xy[1])
+        return heading[0] * to_robot[0] + heading[1] * to_robot[1] < 0.0
+
+    def _tag_read(
+        self, tag: TagInRange, now: float, rssi: float, port: int, frequency_khz: int, phase_deg: float
+    ) -> MercuryTagRead:
+        epc = bytes.fromhex(wire_tag_id(tag.tag_id, "mercury"))
+        pc = (len(epc) // 2) << 11
+        return MercuryTagRead(
+            rssi_dbm=int(max(-110, min(-20, round(rssi)))),
+            tx_antenna=port,
+            rx_antenna=port,
+            frequency_khz=frequency_khz,
+            timestamp_ms=max(0, int((now - self._last_keepalive) * 1000)),
+            phase_deg=round(phase_deg) % 181,
+            protocol=GEN2_PROTOCOL,
+            pc=pc,
+            epc=epc,
+            epc_crc=crc16_gen2(pc.to_bytes(2, "big") + epc),
+        )
 
     def _record(self, tag: TagInRange, now: float) -> MercuryTagRead:
         # Antenna 1 looks forward (bearing 0), antenna 2 backward; each has a cosine-shaped pattern, 0 dB on

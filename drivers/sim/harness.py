@@ -119,10 +119,16 @@ class SimulatedRobot:
                 # latency timer before a reply counts as missing.
                 "latency_timer_ms": 50,
             },
-            "rfid": {"backend": self.world.rfid.protocol, "url": self.rfid_url},
+            "rfid": self._rfid_table(),
             "imu": {"backend": "mpu6050", "bus": self.imu_bus},
             "camera": {"backend": "sim"},
         }
+
+    def _rfid_table(self) -> dict[str, Any]:
+        table: dict[str, Any] = {"backend": self.world.rfid.protocol, "url": self.rfid_url}
+        if self.world.rfid.antenna_yaws_rad:  # a multi-antenna Mercury: read every port
+            table["antenna_ports"] = tuple(range(1, len(self.world.rfid.antenna_yaws_rad) + 1))
+        return table
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def start(self) -> None:

@@ -37,19 +37,29 @@ Piece = tuple[float, tuple[float, float], float, float, float]
 
 
 class WalkPath:
-    """A person's looped path, by distance walked (``s_m`` grows without bound; it wraps here)."""
+    """A person's path, by distance walked: looped (``s_m`` grows without bound; it wraps here), or walked
+    once (``loop=False``: past the end the person stands at the last point)."""
 
-    def __init__(self, points: tuple[tuple[float, float], ...]) -> None:
+    def __init__(self, points: tuple[tuple[float, float], ...], loop: bool = True) -> None:
         self.points = points
+        self.loop = loop
         n = len(points)
-        self.legs = [(points[i], points[(i + 1) % n]) for i in range(n)] if n > 1 else []
+        if loop:
+            self.legs = [(points[i], points[(i + 1) % n]) for i in range(n)] if n > 1 else []
+        else:
+            self.legs = [(points[i], points[i + 1]) for i in range(n - 1)]
         self.lengths = [math.dist(a, b) for a, b in self.legs]
         self.total_m = sum(self.lengths)
 
+    def _wrap(self, s_m: float) -> float:
+        return s_m % self.total_m if self.loop else min(max(s_m, 0.0), self.total_m)
+
     def point_at(self, s_m: float) -> tuple[float, float]:
         if self.total_m <= 0.0:
-            return self.points[0]
-        d = s_m % self.total_m
+            return self.points[0] if self.loop or not self.legs else self.points[-1]
+        if not self.loop and s_m >= self.total_m:
+            return self.points[-1]
+        d = self._wrap(s_m)
         for (a, b), length in zip(self.legs, self.lengths, strict=True):
             if d <= length and length > 0:
                 w = d / length
@@ -63,7 +73,11 @@ class WalkPath:
         out: list[Piece] = []
         if self.total_m <= 0.0:
             return out
-        d = s_m % self.total_m
+        if not self.loop:
+            if s_m >= self.total_m:
+                return out
+            ahead_m = min(ahead_m, self.total_m - s_m)
+        d = self._wrap(s_m)
         done = 0.0
         i = 0
         # The leg holding d.
@@ -71,7 +85,7 @@ class WalkPath:
             d -= self.lengths[i]
             i += 1
         i %= len(self.legs)
-        while done < ahead_m:
+        while done < ahead_m - 1e-12:
             (a, b), length = self.legs[i], self.lengths[i]
             if length > 0:
                 ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length

@@ -68,7 +68,7 @@ class Simulation:
         self._a_long_mps2 = 0.0
         self._omega_radps = 0.0
         # People: distance walked along each one's path (they stop for the robot: drivers/sim/pedestrians.py).
-        self._paths = [WalkPath(p.path) for p in world.people]
+        self._paths = [WalkPath(p.path, p.loop) for p in world.people]
         self._walkers = [Walker(0.0, p.speed_mps) for p in world.people]
         self._person_index = {p.name: i for i, p in enumerate(world.people)}
         self._times: collections.deque[float] = collections.deque()
@@ -101,7 +101,11 @@ class Simulation:
 
     def _step_people(self, dt: float) -> None:
         radius = self.world.robot.radius_m
+        elapsed = self._t - self.t_start
         for person, path, walker in zip(self.world.people, self._paths, self._walkers, strict=True):
+            if elapsed < person.start_s:
+                walker.v_mps = 0.0  # waiting for their cue
+                continue
             seen: tuple[float, float] | None = None
             if person.yields:
                 px, py = path.point_at(walker.s_m)
@@ -111,6 +115,8 @@ class Simulation:
                     x, y, _ = self._interpolate(self._t - person.reaction_s)
                     seen = (x, y)
             step_walker(walker, person, path, dt, seen, radius)
+            if not path.loop and walker.s_m >= path.total_m:
+                walker.s_m, walker.v_mps = path.total_m, 0.0  # arrived: they stand at the end
 
     def _integrate_to(self, t: float) -> None:
         robot = self.world.robot
@@ -214,6 +220,22 @@ class Simulation:
             s1 = self._walked[i][k]
             s = s1 if i == 0 or w >= 1.0 else self._walked[i - 1][k] + w * (s1 - self._walked[i - 1][k])
             return self._paths[k].point_at(s)
+
+    def person_pose(self, person: Person, t: float | None = None) -> tuple[float, float, float, float]:
+        """(x, y, heading, distance walked) of a person at time ``t`` (now by default): they face along
+        their path (along its last leg once a walk-once path has ended)."""
+        with self._lock:
+            t = self.clock() if t is None else t
+            self._integrate_to(max(t, self._t))
+            k = self._person_index[person.name]
+            i, w = self._bracket(t)
+            s1 = self._walked[i][k]
+            s = s1 if i == 0 or w >= 1.0 else self._walked[i - 1][k] + w * (s1 - self._walked[i - 1][k])
+            path = self._paths[k]
+            x, y = path.point_at(s)
+            ahead = path.pieces(min(s, path.total_m - 1e-3) if not path.loop else s, 1e-3)
+            heading = math.atan2(ahead[0][3], ahead[0][2]) if ahead else 0.0
+            return x, y, heading, s
 
     def person_speed_mps(self, person: Person) -> float:
         """How fast a person walks now (0 while they stand for the robot)."""

@@ -6,6 +6,7 @@ the frame of the building's LED survey. ``worldfile`` builds these from TOML (do
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 
@@ -142,8 +143,24 @@ class RobotSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class Clothing:
+    """How a person looks to the forward camera: colours as (red, green, blue) 0-255, the shirt's
+    texture (``plain``, ``stripes``: horizontal bands, ``checks``) in ``pattern_rgb`` with a period of
+    ``pattern_period_m``, and the body's height."""
+
+    shirt_rgb: tuple[float, float, float] = (40.0, 90.0, 170.0)
+    trousers_rgb: tuple[float, float, float] = (50.0, 50.0, 60.0)
+    skin_rgb: tuple[float, float, float] = (205.0, 160.0, 130.0)
+    hair_rgb: tuple[float, float, float] = (60.0, 40.0, 30.0)
+    pattern: str = "plain"
+    pattern_rgb: tuple[float, float, float] = (230.0, 230.0, 230.0)
+    pattern_period_m: float = 0.1
+    height_m: float = 1.72
+
+
+@dataclass(frozen=True, slots=True)
 class Person:
-    """Someone walking a looped path, carrying an RFID tag."""
+    """Someone walking a path (looped, or once and then standing at its end), carrying an RFID tag."""
 
     name: str
     tag_id: str
@@ -153,15 +170,79 @@ class Person:
     # A pedestrian stops for the robot's body in their way ahead (``drivers/sim/pedestrians.py``).
     yields: bool = True
     reaction_s: float = 0.4
+    loop: bool = True
+    # Seconds the person stands at the path's first point before walking (a passer-by's cue).
+    start_s: float = 0.0
+    clothing: Clothing = Clothing()
+
+
+@dataclass(frozen=True, slots=True)
+class ForwardCameraModel:
+    """The forward-looking colour camera of person following: a level pinhole camera (no roll or pitch;
+    ``cy_px`` above the centre looks upwards as a tilted camera would, with verticals kept vertical), global
+    shutter, BGR8 frames. ``mount``: its place on the base (x forward, y left, z up; yaw only).
+
+    The scene: walls ``wall_height_m`` high in ``wall_rgb`` (each wall a little lighter or darker, flat
+    shaded by its orientation to the light), floor and ceiling, people as bodies in their clothing. The
+    lighting gain is 1 + ``light_variation`` sin(2 pi t / ``light_period_s``) (lamps dimming, a cloud over a
+    window); sensor noise is Gaussian with ``noise_dn`` per channel."""
+
+    width_px: int = 640
+    height_px: int = 480
+    hfov_rad: float = 1.2217304763960306  # 70 degrees
+    cx_px: float | None = None
+    cy_px: float | None = None
+    frame_rate_hz: float = 15.0
+    mount: Mount = Mount(0.1, 0.0, 1.3)
+    wall_height_m: float = 2.5
+    wall_rgb: tuple[float, float, float] = (200.0, 195.0, 180.0)
+    floor_rgb: tuple[float, float, float] = (120.0, 110.0, 100.0)
+    ceiling_rgb: tuple[float, float, float] = (225.0, 225.0, 220.0)
+    light_variation: float = 0.15
+    light_period_s: float = 11.0
+    noise_dn: float = 3.0
+
+    @property
+    def focal_length_px(self) -> float:
+        return (self.width_px / 2.0) / math.tan(self.hfov_rad / 2.0)
+
+    @property
+    def principal_point_px(self) -> tuple[float, float]:
+        cx = (self.width_px - 1) / 2.0 if self.cx_px is None else self.cx_px
+        cy = (self.height_px - 1) / 2.0 if self.cy_px is None else self.cy_px
+        return cx, cy
 
 
 @dataclass(frozen=True, slots=True)
 class RfidModel:
-    """The reader on the robot: which protocol it speaks, and how far it reads."""
+    """The reader on the robot: which protocol it speaks, and how far it reads.
+
+    With ``antenna_yaws_rad`` (Mercury only) the reader has one antenna per yaw (ports 1, 2, ...), each
+    on a circle of ``antenna_radius_m`` round the base centre at its yaw, and RSSI comes from the channel
+    model of ``drivers/sim/rfid_channel.py`` (path loss, antenna pattern, wall reflections, scatterers,
+    body loss, noise); a tag is read on a port when within ``range_m`` and its RSSI there is at least
+    ``sensitivity_dbm``. Without it, the legacy model: one read per cycle on the forward (or, with two
+    ports, the rear) antenna, free-space loss and a cosine pattern.
+    """
 
     protocol: str = "id12la"
     range_m: float = 1.5
     repeat_s: float = 0.25
+    antenna_yaws_rad: tuple[float, ...] = ()
+    antenna_radius_m: float = 0.1
+    beamwidth_rad: float = 1.2217304763960306  # 70 degrees, a circular patch
+    front_to_back_db: float = 15.0
+    rssi_at_1m_dbm: float = -50.0
+    sensitivity_dbm: float = -80.0
+    # Multipath strong enough that the left/right cue is as weak as measured indoors (reference/eco.md §3:
+    # corr(RSSI difference, sin bearing) 0.45-0.75 spinning in place): 0.54-0.74 on the calibration walks
+    # of benchmarks/rfid_coarse.py and the follow worlds.
+    wall_reflection: float = 0.6
+    scatterers: int = 24
+    scatter_amplitude: float = 0.6
+    scatter_seed: int = 0  # where the scatterers stand: part of the world, the same in every run
+    body_loss_db: float = 8.0
+    noise_db: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,6 +330,7 @@ class World:
     camera: CameraModel = CameraModel()
     laser: LaserModel = LaserModel()
     rfid: RfidModel = RfidModel()
+    forward_camera: ForwardCameraModel = ForwardCameraModel()
     people: tuple[Person, ...] = ()
     route: tuple[tuple[float, float], ...] = ()
     route_speed_mps: float = 0.2

@@ -36,7 +36,9 @@ import numpy.typing as npt
 from drivers.errors import ConfigError
 from drivers.sim.world import (
     CameraModel,
+    Clothing,
     ErrorModel,
+    ForwardCameraModel,
     LaserModel,
     Led,
     Occluder,
@@ -109,6 +111,9 @@ MAX_PEOPLE = 16
 MAX_DOORS = 64  # doors of one room
 MAX_STRAY_LIGHTS = 256  # [[scene.stray_lights]]: each is rendered every frame like an LED
 
+CLOTHING_PATTERNS = ("plain", "stripes", "checks")
+_RGB_REASON = "must be three numbers (red, green, blue), each 0-255"
+
 _Check = tuple[Callable[[Any], bool], str]
 _POSITIVE: _Check = (lambda v: v > 0, "must be > 0")
 _NON_NEGATIVE: _Check = (lambda v: v >= 0, "must be >= 0")
@@ -161,6 +166,15 @@ _RULES: dict[str, _Check] = {
     "RobotSpec.radius_m": _POSITIVE,
     "RfidModel.range_m": _POSITIVE,
     "RfidModel.repeat_s": _POSITIVE,
+    "RfidModel.antenna_yaws_rad": (lambda v: len(v) <= 4, "at most 4 antennas (ports 1-4)"),
+    "RfidModel.antenna_radius_m": _NON_NEGATIVE,
+    "RfidModel.beamwidth_rad": (lambda v: 0 < v <= 2 * math.pi, "must be in (0, 2 pi]"),
+    "RfidModel.front_to_back_db": _NON_NEGATIVE,
+    "RfidModel.wall_reflection": _UNIT_INTERVAL,
+    "RfidModel.scatterers": (lambda v: 0 <= v <= 256, "must be 0..256"),
+    "RfidModel.scatter_amplitude": _UNIT_INTERVAL,
+    "RfidModel.body_loss_db": _NON_NEGATIVE,
+    "RfidModel.noise_db": _NON_NEGATIVE,
     "Led.diameter_m": _POSITIVE,
     "Led.frequency_hz": _POSITIVE,
     "Led.duty": _FRACTION_OPEN,
@@ -168,6 +182,26 @@ _RULES: dict[str, _Check] = {
     "Person.radius_m": _POSITIVE,
     # The simulation keeps 2 s of the robot's poses to look back on.
     "Person.reaction_s": (lambda v: 0 <= v <= 1.5, "must be in [0, 1.5] s"),
+    "ForwardCameraModel.width_px": _OUTPUT_SIDE,
+    "ForwardCameraModel.height_px": _OUTPUT_SIDE,
+    "ForwardCameraModel.hfov_rad": (lambda v: 0 < v < math.radians(170.0), "must be in (0, 170) degrees"),
+    "ForwardCameraModel.frame_rate_hz": _up_to(MAX_FRAME_RATE_HZ, "frames per second"),
+    "ForwardCameraModel.wall_height_m": _POSITIVE,
+    "ForwardCameraModel.wall_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.floor_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.ceiling_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "ForwardCameraModel.light_variation": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
+    "ForwardCameraModel.light_period_s": _POSITIVE,
+    "ForwardCameraModel.noise_dn": (lambda v: 0 <= v <= 50, "must be in [0, 50] DN"),
+    "Clothing.shirt_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.trousers_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.skin_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.hair_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.pattern_rgb": (lambda v: all(0 <= c <= 255 for c in v), _RGB_REASON),
+    "Clothing.pattern": (lambda v: v in CLOTHING_PATTERNS, f"must be one of {list(CLOTHING_PATTERNS)}"),
+    "Clothing.pattern_period_m": (lambda v: 0.01 <= v <= 1.0, "must be 0.01-1 m"),
+    "Clothing.height_m": (lambda v: 0.5 <= v <= 2.3, "must be 0.5-2.3 m"),
+    "Person.start_s": _NON_NEGATIVE,
     "ErrorModel.led_survey_error_m": _NON_NEGATIVE,
     "ErrorModel.led_height_error_m": _NON_NEGATIVE,
     "ErrorModel.t_row_error_fraction": (
@@ -434,6 +468,8 @@ def _convert(tp: Any, table: _Table, name: str, scale: float) -> Any:
         args = typing.get_args(tp)
         if not isinstance(raw, list):
             raise ConfigError(key, f"must be an array, not {type_name(raw)}", table.file)
+        if len(args) == 2 and args[1] is Ellipsis and args[0] is float:
+            return tuple(as_float(v, f"{key}[{i}]", table.file) * scale for i, v in enumerate(raw))
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_as_point(p, f"{key}[{i}]", table.file) for i, p in enumerate(raw))
         if len(raw) != len(args):
@@ -601,6 +637,7 @@ _SECTIONS = (
     "camera",
     "laser",
     "rfid",
+    "forward_camera",
     "errors",
     "led_defaults",
     "leds",
@@ -631,6 +668,12 @@ class _WorldReader:
         camera = self._section(CameraModel, "camera")
         laser = self._section(LaserModel, "laser")
         rfid = self._section(RfidModel, "rfid")
+        forward_camera = self._section(ForwardCameraModel, "forward_camera")
+        if forward_camera.mount.roll_rad or forward_camera.mount.pitch_rad:
+            raise self.error(
+                "forward_camera.mount",
+                "the forward camera is level (no roll or pitch); shift cy_px to look upwards",
+            )
         errors = self._section(ErrorModel, "errors")
         self._check_robot(robot)
         self._check_camera(camera)
@@ -653,6 +696,7 @@ class _WorldReader:
             camera=camera,
             laser=laser,
             rfid=rfid,
+            forward_camera=forward_camera,
             people=tuple(people),
             route=route,
             route_speed_mps=speed,
@@ -726,6 +770,11 @@ class _WorldReader:
         if rfid.protocol not in protocols:
             raise self.error(
                 "rfid.protocol", f"unknown reader protocol {rfid.protocol!r}; choose one of {protocols}"
+            )
+        if rfid.antenna_yaws_rad and rfid.protocol != "mercury":
+            raise self.error(
+                "rfid.antenna_yaws_rad",
+                'antennas on ports are a Mercury (UHF) feature; set protocol = "mercury"',
             )
 
     def _check_errors(self, errors: ErrorModel, cam: CameraModel) -> None:
@@ -1155,11 +1204,16 @@ class _WorldReader:
         return Occluder(index, fraction, angle, period, hidden, phase)
 
     # -- things that move --------------------------------------------------------------------------------
-    def _check_path(self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str) -> None:
-        """A looped path must not go through a wall (people and the robot use the doors)."""
+    def _check_path(
+        self, pts: tuple[Point, ...], walls: list[Wall], key: str, what: str, loop: bool = True
+    ) -> None:
+        """A path (looped, or walked once) must not go through a wall (people and the robot use the doors)."""
         if len(pts) < 2:
             return
-        legs = list(zip(pts, pts[1:] + pts[:1], strict=True)) if len(pts) > 2 else [(pts[0], pts[1])]
+        if loop and len(pts) > 2:
+            legs = list(zip(pts, pts[1:] + pts[:1], strict=True))
+        else:
+            legs = list(itertools.pairwise(pts))
         boxes = _wall_boxes(walls)
         for i, (a, b) in enumerate(legs):
             for n in _walls_near(a, b, boxes, 0.0):
@@ -1175,8 +1229,22 @@ class _WorldReader:
         people = []
         names: dict[str, str] = {}
         for t in self.root.tables("people", MAX_PEOPLE):
-            t.expect("name", "tag_id", "path", "speed_mps", "radius_m", "yields", "reaction_s")
+            t.expect(
+                "name",
+                "tag_id",
+                "path",
+                "speed_mps",
+                "radius_m",
+                "yields",
+                "reaction_s",
+                "loop",
+                "start_s",
+                "clothing",
+            )
             base = Person("", "", ())
+            clothing_table = t.table("clothing")
+            clothing = _read_dataclass(Clothing, clothing_table)
+            clothing_table.finish()
             person = Person(
                 name=t.string("name"),
                 tag_id=t.string("tag_id", allow_int=True),
@@ -1185,12 +1253,15 @@ class _WorldReader:
                 radius_m=self._checked(t, "Person", "radius_m", base.radius_m),
                 yields=t.boolean("yields", base.yields),
                 reaction_s=self._checked(t, "Person", "reaction_s", base.reaction_s),
+                loop=t.boolean("loop", base.loop),
+                start_s=self._checked(t, "Person", "start_s", base.start_s),
+                clothing=clothing,
             )
             t.finish()
             if person.name in names:
                 raise t.error("name", f"{person.name!r} is already the name of {names[person.name]}")
             names[person.name] = t.path
-            self._check_path(person.path, walls, t.key("path"), "the walk")
+            self._check_path(person.path, walls, t.key("path"), "the walk", person.loop)
             people.append(person)
         return people
 

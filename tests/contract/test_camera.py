@@ -1,6 +1,7 @@
 """The camera contract, run on every backend that can run here.
 
 * ``sim``: the simulated camera on the reference paper's Environment 1 (always).
+* ``sim-forward``: the simulated forward camera of person following (``follow_straight``; always).
 * ``genicam``: harvesters + the simulated GenTL producer ``viky.cti`` from the genicam wheel (always; the
   acceptance test of the GenICam backend is ``test_genicam_viky_acceptance``).
 * ``v4l2-fake``: the V4L2 backend over a stand-in for ``cv2.VideoCapture`` that behaves like a UVC driver
@@ -29,6 +30,7 @@ import pytest
 from drivers.camera.base import Camera, CameraSettings
 from drivers.camera.genicam import GenicamCamera, viky_cti_path
 from drivers.camera.sim import SimCamera
+from drivers.camera.sim_forward import SimForwardCamera
 from drivers.camera.v4l2 import EXPOSURE_UNIT_S, V4l2Camera
 from drivers.errors import (
     BackendUnavailable,
@@ -45,6 +47,7 @@ from drivers.sim.worldfile import load_world
 
 REPO = Path(__file__).resolve().parents[2]
 ENV1 = REPO / "examples" / "worlds" / "env1.toml"
+FOLLOW = REPO / "examples" / "worlds" / "follow_straight.toml"
 VIKY = viky_cti_path()
 HARDWARE = os.environ.get("VLP_TEST_CAMERA")
 
@@ -155,6 +158,7 @@ def hardware_camera(settings: CameraSettings) -> Camera:
 
 BACKENDS = [
     "sim",
+    "sim-forward",
     "genicam",
     "v4l2-fake",
     pytest.param(
@@ -177,6 +181,8 @@ def make_camera(request: pytest.FixtureRequest) -> Iterator[Callable[[CameraSett
         if request.param == "sim":
             # The real clock: the contract's "host time is not in the future" holds on it.
             cam = SimCamera(Simulation(load_world(ENV1)), settings=settings)
+        elif request.param == "sim-forward":
+            cam = SimForwardCamera(Simulation(load_world(FOLLOW)), settings=settings)
         elif request.param == "genicam":
             cam = GenicamCamera(VIKY, settings=settings)
         elif request.param == "v4l2-fake":
@@ -244,6 +250,22 @@ def test_lifecycle_is_explicit_and_close_is_idempotent(
         cam.grab(timeout_s=0.5)
     with cam:  # and it opens again
         assert cam.grab(timeout_s=2.0).image.shape == (480, 640)
+
+
+@pytest.mark.parametrize("backend", ["sim-forward", "v4l2-fake"])
+def test_bgr8_frames_when_asked(backend: str) -> None:
+    """The forward camera's format: (height, width, 3) uint8 in OpenCV's channel order."""
+    settings = CameraSettings(width=640, height=480, pixel_format="BGR8")
+    cam: Camera
+    if backend == "sim-forward":
+        cam = SimForwardCamera(Simulation(load_world(FOLLOW)), settings=settings)
+    else:
+        cam = make_v4l2(settings)[0]
+    with cam:
+        assert cam.settings().pixel_format == "BGR8"
+        with cam.fetch(timeout_s=2.0) as frame:
+            assert frame.image.dtype == np.uint8 and frame.image.shape == (480, 640, 3)
+            assert frame.host_time_ns <= time.monotonic_ns()
 
 
 # -- the GenICam backend on viky.cti -------------------------------------------------------------------------

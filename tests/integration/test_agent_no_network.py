@@ -1,6 +1,7 @@
 """The agent process opens no network socket: no camera image (nor anything else) can leave the robot over IP.
 
-Two independent checks on the real process (``vlp-agent run`` on the simulated robot, with systemd's
+Two independent checks on the real process (``vlp-agent run`` on the simulated robot with both cameras,
+the ceiling camera and the forward camera of person following, with systemd's
 notification socket set so that the one socket it *should* open, AF_UNIX for sd_notify, is there):
 
 * a ``sitecustomize`` installs a ``sys.addaudithook`` before any of the agent's code runs and logs every
@@ -13,6 +14,7 @@ notification socket set so that the one socket it *should* open, AF_UNIX for sd_
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import socket
@@ -87,7 +89,11 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
     notify.bind(str(notify_path))
     examples = REPO / "examples"
     config = tmp_path / "robot.toml"
-    config.write_text((examples / "sim.toml").read_text().replace('"worlds/', f'"{examples}/worlds/'))
+    # Both cameras: the ceiling camera of the pose and the forward camera of person following.
+    config.write_text(
+        (examples / "sim.toml").read_text().replace('"worlds/', f'"{examples}/worlds/')
+        + "\n[camera.forward]\nframe_rate_hz = 10.0\nrender_process = true\n"
+    )
     env = {
         **os.environ,
         "PYTHONPATH": f"{tmp_path / 'hook'}{os.pathsep}{REPO}",
@@ -96,7 +102,7 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
         "WATCHDOG_USEC": "2000000",
     }
     proc = subprocess.Popen(
-        vlp_agent("run", "--config", str(config), "--seconds", "5"),
+        vlp_agent("run", "--config", str(config), "--seconds", "5", "--json"),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -118,7 +124,7 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
                     continue
                 pids_seen.add(pid)
             time.sleep(0.2)
-        _, stderr = proc.communicate(timeout=30)
+        stdout, stderr = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -126,12 +132,14 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
         notify.close()
     assert proc.returncode == 0, stderr[-2000:]
     lines = log.read_text().splitlines()
-    # One "hook" line per process that started: the agent, its SLAM process and the simulated camera's
-    # render process (render_process = true), which both checks watch too.
-    assert lines[0] == "hook" and lines.count("hook") >= 3
-    assert len(pids_seen) >= 3
+    # One "hook" line per process that started: the agent, its SLAM process and the simulated cameras'
+    # render processes (render_process = true), which both checks watch too.
+    assert lines[0] == "hook" and lines.count("hook") >= 4
+    assert len(pids_seen) >= 4
     families = {int(line.split()[0]) for line in lines if line != "hook"}
     # The positive control: sd_notify's AF_UNIX datagram socket was seen, by both checks.
     assert int(socket.AF_UNIX) in families and seen_sockets
     assert families == {int(socket.AF_UNIX)}, f"socket families created: {families}"
     assert ip_in_use == set()
+    # The forward camera did run (its frames stayed in the process).
+    assert json.loads(stdout.strip().splitlines()[-1])["counts"].get("forward_frames", 0) > 0

@@ -19,7 +19,9 @@ from drivers.errors import ConfigError
 from drivers.sim.raycast import cast_rays, walls_array
 from drivers.sim.world import (
     CameraModel,
+    Clothing,
     ErrorModel,
+    ForwardCameraModel,
     LaserModel,
     Mount,
     Occluder,
@@ -160,9 +162,37 @@ range_noise_mm = 30.0
 dropout = 0.01
 
 [rfid]
-protocol = "rdm6300"
+protocol = "mercury"
 range_m = 0.1
 repeat_s = 0.5
+antenna_yaws_deg = [45.0, -45.0]
+antenna_radius_m = 0.15
+beamwidth_deg = 60.0
+front_to_back_db = 20.0
+rssi_at_1m_dbm = -45.0
+sensitivity_dbm = -75.0
+wall_reflection = 0.4
+scatterers = 4
+scatter_amplitude = 0.2
+scatter_seed = 7
+body_loss_db = 6.0
+noise_db = 2.0
+
+[forward_camera]
+width_px = 320
+height_px = 240
+hfov_deg = 60.0
+cx_px = 150.0
+cy_px = 100.0
+frame_rate_hz = 10.0
+mount = { x_m = 0.2, y_m = 0.01, z_m = 1.0, yaw_deg = 2.0 }
+wall_height_m = 3.0
+wall_rgb = [100, 100, 100]
+floor_rgb = [90, 90, 90]
+ceiling_rgb = [200, 200, 200]
+light_variation = 0.2
+light_period_s = 5.0
+noise_dn = 2.0
 
 [errors]
 principal_point_error_px = [1.0, -2.0]
@@ -224,6 +254,18 @@ speed_mps = 1.1
 radius_m = 0.25
 yields = false
 reaction_s = 0.6
+loop = false
+start_s = 1.0
+
+[people.clothing]
+shirt_rgb = [1, 2, 3]
+trousers_rgb = [4, 5, 6]
+skin_rgb = [7, 8, 9]
+hair_rgb = [1, 1, 1]
+pattern = "checks"
+pattern_rgb = [9, 9, 9]
+pattern_period_m = 0.2
+height_m = 1.6
 
 [route]
 waypoints = [[0.0, 0.0], [1.0, 0.0]]
@@ -248,6 +290,8 @@ def test_every_dataclass_field_can_be_set_from_toml(tmp_path: Path) -> None:
         (world.scene, Scene()),
         (world.scene.stray_lights[0], StrayLight(0, 0, 0)),
         (world.scene.occluders[0], Occluder(0)),
+        (world.forward_camera, ForwardCameraModel()),
+        (world.people[0].clothing, Clothing()),
     ]
     for loaded, default in sections:
         for f in dataclasses.fields(loaded):

@@ -1,0 +1,6 @@
+"""Person following (``docs/following.md``): pure algorithms, numpy arrays and small dataclasses in,
+estimates out, time passed in; no threads, files or ports.
+
+Modules: ``coarse`` (the RFID layer: a recursive Bayes filter over bearing sectors and range bins from the
+reader's per-antenna reads, with its likelihood table).
+"""
