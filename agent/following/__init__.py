@@ -1,0 +1,11 @@
+"""Person following: the fine layer (the camera tracker) as pure algorithms.
+
+* ``lbp``: local binary patterns, the texture feature.
+* ``meanshift``: multi-feature mean shift (colour and LBP texture under a silhouette kernel), with scale,
+  occlusion, coasting and re-acquisition; the colour-only baseline is the same code.
+* ``prelocate``: the head-shoulder pre-locator (OpenCV 4.x HOG people detector or the upper-body cascade
+  shipped with OpenCV; no model download) that starts and re-acquires the tracker.
+* ``otb``: OTB-style sequences and their scores, for ``vlp-agent eval track``.
+
+``docs/following.md`` describes them and the measurements.
+"""
