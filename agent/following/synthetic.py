@@ -38,6 +38,7 @@ class CrossingScene:
     stripe_px: int = 8  # the target's horizontal stripes
     check_px: int = 2  # the passer-by's check
     noise_grey: float = 3.0  # sensor noise (standard deviation)
+    passer: bool = True  # False: the target alone
     seed: int = 0
 
 
@@ -77,8 +78,9 @@ def crossing_sequence(scene: CrossingScene | None = None) -> Iterator[tuple[Imag
         frame = background.copy()
         centre_t = (tx + scene.target_speed_px * i, ty)
         _paste(frame, target_skin, target_mask, centre_t)
-        centre_p = (px0 + scene.passer_speed_px * i, ty + 2.0)
-        _paste(frame, passer_skin, passer_mask, centre_p)
+        if scene.passer:
+            centre_p = (px0 + scene.passer_speed_px * i, ty + 2.0)
+            _paste(frame, passer_skin, passer_mask, centre_p)
         frame += rng.normal(0.0, scene.noise_grey, size=frame.shape)
         image = np.clip(frame, 0, 255).astype(np.uint8)
         box = np.array([centre_t[0] - tw / 2.0, centre_t[1] - th / 2.0, float(tw), float(th)])
