@@ -34,9 +34,10 @@ Additions, each a standard one:
   ``update_ratio`` times ``rho_ref``: slow, and never on an occluder.
 
 Images are BGR ``uint8`` (H, W, 3), as OpenCV reads them; boxes are ``(x, y, w, h)`` floats, top-left
-corner and size in pixels, 0-based. Only the pixels of a window around the target are quantised and
-LBP-labelled each frame, and large boxes are sampled on a coarser grid (``max_pixels``), so the cost per
-frame does not grow with the image.
+corner and size in pixels, 0-based. Only a window around the target is quantised and LBP-labelled each
+frame, and a large box's window is first shrunk (``cv2.resize``, area averaging) so that the kernel holds
+about ``max_pixels`` cells: the cost per frame grows neither with the image nor with the person, and the
+texture is measured at a scale relative to the person.
 """
 
 from __future__ import annotations
@@ -141,17 +142,32 @@ class TrackResult:
 
 @dataclass
 class _Window:
-    """The feature images of one frame's window: colour bin and LBP label per pixel, and where the window
-    sits in the frame."""
+    """The feature images of one frame's window: colour bin and LBP label per cell, where the window sits
+    in the frame, and its cell size: ``factor`` x ``factor`` frame pixels averaged into one (large boxes
+    are tracked on a coarser grid, their LBP at a scale relative to the person)."""
 
     x0: int
     y0: int
     colour: npt.NDArray[np.int32]
     texture: ImageU8 | None
+    factor: int = 1
 
     @property
     def shape(self) -> tuple[int, int]:
         return (self.colour.shape[0], self.colour.shape[1])
+
+    @property
+    def end(self) -> tuple[int, int]:
+        """The frame pixel (x, y) just past the window's last cell."""
+        return (self.x0 + self.shape[1] * self.factor, self.y0 + self.shape[0] * self.factor)
+
+    def cells(self, xs: IntArray, ys: IntArray) -> tuple[IntArray, IntArray, npt.NDArray[np.bool_]]:
+        """Frame pixels -> (rows, cols) of the cells holding them, and which lie inside the window."""
+        cols = (xs - self.x0) // self.factor
+        rows = (ys - self.y0) // self.factor
+        h, w = self.shape
+        valid = (xs >= self.x0) & (ys >= self.y0) & (cols < w) & (rows < h)
+        return rows, cols, valid
 
 
 @dataclass(frozen=True)
@@ -395,10 +411,7 @@ class MeanShiftTracker:
         """Unweighted feature counts under the silhouette at ``size``, in pixels (each sample stands for
         step^2 of them)."""
         kernel = self._kernel(size)
-        cols = round(centre[0]) + kernel.dx - window.x0
-        rows = round(centre[1]) + kernel.dy - window.y0
-        h, w = window.shape
-        valid = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        rows, cols, valid = window.cells(round(centre[0]) + kernel.dx, round(centre[1]) + kernel.dy)
         cols, rows = cols[valid], rows[valid]
         area = float(kernel.step**2)
         counts = [np.bincount(window.colour[rows, cols], minlength=self._bins).astype(np.float64) * area]
@@ -421,15 +434,25 @@ class MeanShiftTracker:
     # -- features and histograms ------------------------------------------------------------------------
 
     def _window(self, frame: ImageU8, centre: FloatArray, extent: FloatArray) -> _Window:
-        """Colour bins and LBP labels of the frame's pixels within ``extent`` (w, h) around ``centre``."""
+        """Colour bins and LBP labels of the frame within ``extent`` (w, h) around ``centre``, on cells of
+        the current kernel's sampling step."""
+        import cv2
+
+        factor = self._kernel(self._size).step
         height, width = frame.shape[:2]
         x0 = max(0, math.floor(centre[0] - extent[0] / 2.0))
         y0 = max(0, math.floor(centre[1] - extent[1] / 2.0))
         x1 = min(width, math.ceil(centre[0] + extent[0] / 2.0) + 1)
         y1 = min(height, math.ceil(centre[1] + extent[1] / 2.0) + 1)
+        # Whole cells only.
+        x1 = x0 + (x1 - x0) // factor * factor
+        y1 = y0 + (y1 - y0) // factor * factor
         if x1 <= x0 or y1 <= y0:  # the window left the frame: an empty window, every sample invalid
             return _Window(0, 0, np.zeros((0, 0), np.int32), None)
         patch = frame[y0:y1, x0:x1]
+        if factor > 1:
+            cells = ((x1 - x0) // factor, (y1 - y0) // factor)
+            patch = np.asarray(cv2.resize(patch, cells, interpolation=cv2.INTER_AREA), dtype=np.uint8)
         shift = 8 - round(math.log2(self._levels)) if self._levels & (self._levels - 1) == 0 else 0
         if shift:
             q = (patch >> np.uint8(shift)).astype(np.int32)
@@ -438,20 +461,16 @@ class MeanShiftTracker:
         colour = (q[..., 0] * self._levels + q[..., 1]) * self._levels + q[..., 2]
         texture = None
         if self._texture:
-            # One pixel more on each side where the frame has it, so the LBP at the window's edge sees
-            # real neighbours.
-            gx0, gy0 = max(0, x0 - 1), max(0, y0 - 1)
-            gx1, gy1 = min(width, x1 + 1), min(height, y1 + 1)
-            gray = _grey(frame[gy0:gy1, gx0:gx1])
-            labels = self._lut[lbp_codes(gray, self.config.lbp_threshold)]
-            texture = labels[y0 - gy0 : y0 - gy0 + (y1 - y0), x0 - gx0 : x0 - gx0 + (x1 - x0)]
-        return _Window(x0, y0, colour, texture)
+            # The window reaches well past the target, so its edge cells (compared with the edge
+            # replicated) are background.
+            texture = self._lut[lbp_codes(_grey(patch), self.config.lbp_threshold)]
+        return _Window(x0, y0, colour, texture, factor)
 
     def _window_union(
         self, frame: ImageU8, window: _Window, centres: list[FloatArray], size: FloatArray
     ) -> _Window:
-        xs = [window.x0, window.x0 + window.shape[1]]
-        ys = [window.y0, window.y0 + window.shape[0]]
+        xs = [window.x0, window.end[0]]
+        ys = [window.y0, window.end[1]]
         for c in centres:
             xs += [c[0] - size[0], c[0] + size[0]]
             ys += [c[1] - size[1], c[1] + size[1]]
@@ -488,14 +507,12 @@ class MeanShiftTracker:
         """Candidate histograms at ``centre`` (eqs. 7, 9), rho against the model (eq. 10) and the weights
         of eq. 12. ``model=False``: the histograms only (building or updating the model)."""
         kernel = self._kernel(size)
-        cx, cy = round(centre[0]), round(centre[1])
-        cols = cx + kernel.dx - window.x0
-        rows = cy + kernel.dy - window.y0
-        h, w = window.shape
-        valid = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        xs = round(centre[0]) + kernel.dx
+        ys = round(centre[1]) + kernel.dy
+        rows, cols, valid = window.cells(xs, ys)
         cols, rows, k = cols[valid], rows[valid], kernel.k[valid]
-        x = (cols + window.x0).astype(np.float64)
-        y = (rows + window.y0).astype(np.float64)
+        x = xs[valid].astype(np.float64)
+        y = ys[valid].astype(np.float64)
         total = float(np.sum(k))
         if len(k) < 8 or total <= 0.0:
             empty = np.zeros(self._bins)
@@ -560,12 +577,13 @@ class MeanShiftTracker:
         self, window: _Window, centre: FloatArray, grown: FloatArray
     ) -> tuple[FloatArray, FloatArray | None]:
         h, w = window.shape
-        step = self._kernel(self._size).step
-        gy, gx = np.mgrid[0:h:step, 0:w:step]
-        u = (gx + window.x0 - centre[0]) / (self._size[0] / 2.0)
-        v = (gy + window.y0 - centre[1]) / (self._size[1] / 2.0)
-        outer_u = (gx + window.x0 - centre[0]) / (grown[0] / 2.0)
-        outer_v = (gy + window.y0 - centre[1]) / (grown[1] / 2.0)
+        gy, gx = np.mgrid[0:h, 0:w]
+        f = window.factor
+        # Cell centres in frame pixels.
+        dx = window.x0 + (gx + 0.5) * f - 0.5 - centre[0]
+        dy = window.y0 + (gy + 0.5) * f - 0.5 - centre[1]
+        u, v = dx / (self._size[0] / 2.0), dy / (self._size[1] / 2.0)
+        outer_u, outer_v = dx / (grown[0] / 2.0), dy / (grown[1] / 2.0)
         ring = (np.maximum(np.abs(u), np.abs(v)) > 1.0) & (
             np.maximum(np.abs(outer_u), np.abs(outer_v)) <= 1.0
         )

@@ -33,11 +33,12 @@ def test_texture_holds_the_target_where_colour_follows_the_passer_by(seed: int) 
     full_errors = centre_errors(full, truth)
     colour_errors = centre_errors(colour, truth)
     # The passer-by has the target's colours in the target's proportions: colour-only mean shift is
-    # dragged off with it and ends far away; colour and texture stay on the striped target throughout.
+    # dragged off with it for a fifth of the sequence or more (and on some seeds never comes back);
+    # colour and texture stay on the striped target throughout.
     assert precision_at(full_errors, 20.0) >= 0.95
     assert full_errors[-1] < 10.0
-    assert colour_errors[-1] > 40.0
     assert precision_at(colour_errors, 20.0) < 0.8
+    assert np.max(colour_errors) > 50.0
 
 
 def _occlusion_scene(frames: int = 70) -> list[tuple[np.ndarray, np.ndarray]]:
