@@ -67,13 +67,32 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument(
         "--frames", type=int, metavar="N", help="score only the first N frames of each target (quick runs)"
     )
+    p.add_argument(
+        "--sre",
+        action="store_true",
+        help="also OTB's spatial robustness evaluation: each target tracked 12 more times from its first "
+        "box shifted by 10 %% of its size in 8 directions and scaled by 0.8, 0.9, 1.1, 1.2; "
+        "sre_precision_20px and sre_success_auc are the means over those runs (13 times the time)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
+def sre_boxes(box: FloatArray) -> list[FloatArray]:
+    """OTB's spatial robustness starts (Wu, Lim, Yang 2013): the box shifted by 10 % of its width and
+    height in the 8 directions, and scaled about its centre by 0.8, 0.9, 1.1 and 1.2."""
+    x, y, w, h = (float(v) for v in box)
+    out = []
+    for dx, dy in ((-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)):
+        out.append(np.array([x + 0.1 * dx * w, y + 0.1 * dy * h, w, h]))
+    for s in (0.8, 0.9, 1.1, 1.2):
+        out.append(np.array([x + w * (1 - s) / 2, y + h * (1 - s) / 2, w * s, h * s]))
+    return out
+
+
 def track_target(
-    frames: list[Path], boxes: FloatArray, features: Features, silhouette: Silhouette
+    frames: list[Path], start: FloatArray, features: Features, silhouette: Silhouette
 ) -> tuple[FloatArray, dict[str, float]]:
-    """Track one target from its first box over ``frames``; its boxes (N, 4) and timing/counters."""
+    """Track one target from ``start`` (its first box) over ``frames``; its boxes (N, 4) and timing."""
     import cv2
 
     from agent.following.meanshift import MeanShiftTracker, TrackerConfig, TrackState
@@ -92,8 +111,8 @@ def track_target(
         image = np.asarray(decoded, dtype=np.uint8)
         t0 = time.perf_counter()
         if i == 0:
-            tracker.start(image, boxes[0])
-            out[0] = boxes[0]
+            tracker.start(image, start)
+            out[0] = start
         else:
             result = tracker.update(image)
             out[i] = result.box
@@ -109,7 +128,11 @@ def track_target(
 
 
 def evaluate_sequence(
-    directory: str, features: Features, silhouette: Silhouette, max_frames: int | None = None
+    directory: str,
+    features: Features,
+    silhouette: Silhouette,
+    max_frames: int | None = None,
+    sre: bool = False,
 ) -> dict[str, Any]:
     from agent.following.otb import centre_errors, load_sequence, overlaps, precision_at, success_auc
 
@@ -118,20 +141,24 @@ def evaluate_sequence(
     for target in sequence.targets:
         n = len(target.boxes) if max_frames is None else min(max_frames, len(target.boxes))
         truth = target.boxes[:n]
-        boxes, timing = track_target(list(sequence.frames[:n]), truth, features, silhouette)
+        frames = list(sequence.frames[:n])
+        boxes, timing = track_target(frames, truth[0], features, silhouette)
         errors = centre_errors(boxes, truth)
         ious = overlaps(boxes, truth)
-        targets.append(
-            {
-                "target": target.name,
-                "groundtruth": target.groundtruth_file.name,
-                "frames": n,
-                "precision_20px": precision_at(errors, 20.0),
-                "success_auc": success_auc(ious),
-                "mean_centre_error_px": float(np.mean(errors)),
-                **timing,
-            }
-        )
+        row: dict[str, Any] = {
+            "target": target.name,
+            "groundtruth": target.groundtruth_file.name,
+            "frames": n,
+            "precision_20px": precision_at(errors, 20.0),
+            "success_auc": success_auc(ious),
+            "mean_centre_error_px": float(np.mean(errors)),
+            **timing,
+        }
+        if sre:
+            runs = [track_target(frames, start, features, silhouette)[0] for start in sre_boxes(truth[0])]
+            row["sre_precision_20px"] = float(np.mean([precision_at(centre_errors(b, truth)) for b in runs]))
+            row["sre_success_auc"] = float(np.mean([success_auc(overlaps(b, truth)) for b in runs]))
+        targets.append(row)
     return {
         "sequence": sequence.name,
         "path": str(directory),
@@ -141,7 +168,8 @@ def evaluate_sequence(
 
 
 def _means(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    keys = ("precision_20px", "success_auc", "fps", "fps_with_decode", "mean_centre_error_px")
+    keys = ["precision_20px", "success_auc", "fps", "fps_with_decode", "mean_centre_error_px"]
+    keys += [k for k in ("sre_precision_20px", "sre_success_auc") if all(k in r for r in rows)]
     out: dict[str, Any] = {k: float(np.mean([r[k] for r in rows])) for k in keys}
     out["frames"] = int(sum(r["frames"] for r in rows))
     return out
@@ -156,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     silhouette = Silhouette(args.silhouette)
     sequences = []
     for directory in args.sequence:
-        sequences.append(evaluate_sequence(directory, features, silhouette, args.frames))
+        sequences.append(evaluate_sequence(directory, features, silhouette, args.frames, args.sre))
         if not args.json:
             print(f"  {Path(directory).name} done", file=sys.stderr, flush=True)
     summary: dict[str, Any] = {"tracker": features.value, "silhouette": silhouette.value}
@@ -171,16 +199,23 @@ def run(args: argparse.Namespace) -> int:
         print(dumps_json(summary, sort_keys=True))
         return 0
     print(f"tracker {features.value}, silhouette {silhouette.value}")
-    print(f"{'target':<14} {'frames':>6} {'prec@20':>8} {'AUC':>6} {'fps':>7} {'occluded':>8}")
+    sre = " SRE@20 SRE-AUC" if args.sre else ""
+    print(f"{'target':<14} {'frames':>6} {'prec@20':>8} {'AUC':>6} {'fps':>7} {'occluded':>8}{sre}")
+
+    def line(name: str, row: dict[str, Any], occluded: str) -> str:
+        text = (
+            f"{name:<14} {row['frames']:>6} {row['precision_20px']:>8.3f} {row['success_auc']:>6.3f} "
+            f"{row['fps']:>7.0f} {occluded:>8}"
+        )
+        if args.sre:
+            text += f" {row['sre_precision_20px']:>6.3f} {row['sre_success_auc']:>7.3f}"
+        return text
+
     for s in sequences:
         for t in s["targets"]:
-            print(
-                f"{t['target']:<14} {t['frames']:>6} {t['precision_20px']:>8.3f} {t['success_auc']:>6.3f} "
-                f"{t['fps']:>7.0f} {t['occluded_frames']:>8}"
-            )
+            print(line(t["target"], t, str(t["occluded_frames"])))
+        if len(s["targets"]) > 1:
+            print(line(f"{s['sequence']} (mean)", s, ""))
     if len(sequences) > 1:
-        print(
-            f"{'mean (seq.)':<14} {summary['frames']:>6} {summary['precision_20px']:>8.3f} "
-            f"{summary['success_auc']:>6.3f} {summary['fps']:>7.0f}"
-        )
+        print(line("mean (seq.)", summary, ""))
     return 0
