@@ -9,6 +9,8 @@ scored the way OTB scores a one-pass evaluation: precision at 20 px and success 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import enum
 import sys
 import textwrap
 import time
@@ -18,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from agent.commands.args import dumps_json
-from agent.following.meanshift import Features, Silhouette
+from agent.following.meanshift import Features, Silhouette, TrackerConfig
 
 FloatArray = np.ndarray[Any, np.dtype[np.float64]]
 
@@ -68,6 +70,14 @@ def add_parser(subparsers: Any) -> None:
         "--frames", type=int, metavar="N", help="score only the first N frames of each target (quick runs)"
     )
     p.add_argument(
+        "--param",
+        metavar="NAME=VALUE",
+        action="append",
+        default=[],
+        help="set one of the tracker's parameters (agent.following.meanshift.TrackerConfig, listed in "
+        "docs/following.md), e.g. --param scale_gain=0 --param adaptive_weights=false; repeat for several",
+    )
+    p.add_argument(
         "--sre",
         action="store_true",
         help="also OTB's spatial robustness evaluation: each target tracked 12 more times from its first "
@@ -89,15 +99,45 @@ def sre_boxes(box: FloatArray) -> list[FloatArray]:
     return out
 
 
+def tracker_config(features: Features, silhouette: Silhouette, params: list[str]) -> TrackerConfig:
+    """The tracker's configuration with ``NAME=VALUE`` overrides, each VALUE read as its field's type."""
+    from drivers.errors import ConfigError
+
+    fields = {f.name: f for f in dataclasses.fields(TrackerConfig)}
+    values: dict[str, Any] = {"features": features, "silhouette": silhouette}
+    for item in params:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in fields or name in ("features", "silhouette"):
+            known = ", ".join(n for n in fields if n not in ("features", "silhouette"))
+            raise ConfigError("--param", f"{item!r}: want NAME=VALUE with NAME one of {known}")
+        default = getattr(TrackerConfig(), name)
+        try:
+            if isinstance(default, bool):
+                if text.strip().lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                values[name] = text.strip().lower() in ("true", "1")
+            elif isinstance(default, enum.Enum):
+                values[name] = type(default)(text.strip())
+            else:
+                values[name] = type(default)(text)
+        except ValueError:
+            raise ConfigError("--param", f"{item!r}: not a {type(default).__name__}") from None
+    try:
+        return TrackerConfig(**values)
+    except ValueError as exc:
+        raise ConfigError("--param", str(exc)) from None
+
+
 def track_target(
-    frames: list[Path], start: FloatArray, features: Features, silhouette: Silhouette
+    frames: list[Path], start: FloatArray, config: TrackerConfig
 ) -> tuple[FloatArray, dict[str, float]]:
     """Track one target from ``start`` (its first box) over ``frames``; its boxes (N, 4) and timing."""
     import cv2
 
-    from agent.following.meanshift import MeanShiftTracker, TrackerConfig, TrackState
+    from agent.following.meanshift import MeanShiftTracker, TrackState
 
-    tracker = MeanShiftTracker(TrackerConfig(features=features, silhouette=silhouette))
+    tracker = MeanShiftTracker(config)
     out = np.zeros((len(frames), 4))
     track_s = 0.0
     occluded = 0
@@ -128,11 +168,7 @@ def track_target(
 
 
 def evaluate_sequence(
-    directory: str,
-    features: Features,
-    silhouette: Silhouette,
-    max_frames: int | None = None,
-    sre: bool = False,
+    directory: str, config: TrackerConfig, max_frames: int | None = None, sre: bool = False
 ) -> dict[str, Any]:
     from agent.following.otb import centre_errors, load_sequence, overlaps, precision_at, success_auc
 
@@ -142,7 +178,7 @@ def evaluate_sequence(
         n = len(target.boxes) if max_frames is None else min(max_frames, len(target.boxes))
         truth = target.boxes[:n]
         frames = list(sequence.frames[:n])
-        boxes, timing = track_target(frames, truth[0], features, silhouette)
+        boxes, timing = track_target(frames, truth[0], config)
         errors = centre_errors(boxes, truth)
         ious = overlaps(boxes, truth)
         row: dict[str, Any] = {
@@ -155,7 +191,7 @@ def evaluate_sequence(
             **timing,
         }
         if sre:
-            runs = [track_target(frames, start, features, silhouette)[0] for start in sre_boxes(truth[0])]
+            runs = [track_target(frames, start, config)[0] for start in sre_boxes(truth[0])]
             row["sre_precision_20px"] = float(np.mean([precision_at(centre_errors(b, truth)) for b in runs]))
             row["sre_success_auc"] = float(np.mean([success_auc(overlaps(b, truth)) for b in runs]))
         targets.append(row)
@@ -165,6 +201,10 @@ def evaluate_sequence(
         "targets": targets,
         **_means(targets),
     }
+
+
+def _named(params: list[str]) -> set[str]:
+    return {item.partition("=")[0].strip() for item in params}
 
 
 def _means(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -182,12 +222,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--frames", "must be at least 2")
     features = Features(args.tracker)
     silhouette = Silhouette(args.silhouette)
+    config = tracker_config(features, silhouette, args.param)
     sequences = []
     for directory in args.sequence:
-        sequences.append(evaluate_sequence(directory, features, silhouette, args.frames, args.sre))
+        sequences.append(evaluate_sequence(directory, config, args.frames, args.sre))
         if not args.json:
             print(f"  {Path(directory).name} done", file=sys.stderr, flush=True)
     summary: dict[str, Any] = {"tracker": features.value, "silhouette": silhouette.value}
+    if args.param:
+        summary["params"] = {k: str(v) for k, v in sorted(vars(config).items()) if k in _named(args.param)}
     if len(sequences) == 1:
         summary.update(sequences[0])
     else:
@@ -198,7 +241,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(dumps_json(summary, sort_keys=True))
         return 0
-    print(f"tracker {features.value}, silhouette {silhouette.value}")
+    overrides = "".join(f", {k}={v}" for k, v in summary.get("params", {}).items())
+    print(f"tracker {features.value}, silhouette {silhouette.value}{overrides}")
     sre = " SRE@20 SRE-AUC" if args.sre else ""
     print(f"{'target':<14} {'frames':>6} {'prec@20':>8} {'AUC':>6} {'fps':>7} {'occluded':>8}{sre}")
 

@@ -48,6 +48,11 @@ def test_eval_track_on_a_synthetic_otb_folder(tmp_path: Path, capsys: pytest.Cap
         assert summary["precision_20px"] == 1.0 and summary["success_auc"] > 0.6
         assert summary["mean_centre_error_px"] < 5.0
 
+    # A parameter set from the command line, and said in the output.
+    fixed = _run(capsys, "--sequence", str(folder), "--frames", "10", "--param", "scale_gain=0")
+    assert fixed["params"] == {"scale_gain": "0.0"}
+    assert all(t["frames"] == 10 for t in fixed["targets"])
+
     # Two sequences: one row each, and the means.
     assert (
         main(["eval", "track", "--sequence", str(folder), "--sequence", str(folder), "--frames", "10"]) == 0
@@ -66,6 +71,15 @@ def test_eval_track_refuses_what_is_not_a_sequence(
     (tmp_path / "bad" / "groundtruth_rect.txt").write_text("1,2,3\n")
     assert main(["eval", "track", "--sequence", str(tmp_path / "bad")]) == 1
     assert "groundtruth_rect.txt:1: expected 4 numbers" in capsys.readouterr().err
+    good = _otb_folder(tmp_path / "good", CrossingScene(frames=3, passer=False))
+    for param, message in (
+        ("no_such=1", "want NAME=VALUE"),
+        ("scale_gain=fast", "not a float"),
+        ("adaptive_weights=maybe", "not a bool"),
+        ("occlusion_ratio=0.99", "reacquire_ratio"),
+    ):
+        assert main(["eval", "track", "--sequence", str(good), "--param", param]) == 1
+        assert message in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("tracker", ["full", "colour"])
