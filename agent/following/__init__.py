@@ -5,6 +5,9 @@
   occlusion, coasting and re-acquisition; the colour-only baseline is the same code.
 * ``prelocate``: the head-shoulder pre-locator (OpenCV 4.x HOG people detector or the upper-body cascade
   shipped with OpenCV; no model download) that starts and re-acquires the tracker.
+* ``fine``: the two together: the pre-locator starts the tracker in the coarse layer's band and feeds it
+  re-acquisition hints while the target is hidden.
+* ``synthetic``: a seeded scene with exact ground truth (a same-colour passer-by crossing the target).
 * ``otb``: OTB-style sequences and their scores, for ``vlp-agent eval track``.
 
 ``docs/following.md`` describes them and the measurements.
