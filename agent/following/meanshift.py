@@ -345,8 +345,10 @@ class MeanShiftTracker:
             self._centre = centre
             self.frames_lost = 0
             return self._result(ev, iterations)
-        self._centre = predicted
-        coast = self._evaluate(window, predicted, size)
+        # Coast, but not out of the frame: a person who walked out is searched for at its edge.
+        height, width = frame.shape[:2]
+        self._centre = np.clip(predicted, 0.0, [width - 1.0, height - 1.0])
+        coast = self._evaluate(window, self._centre, size)
         return self._result(coast, iterations)
 
     def _climb(
