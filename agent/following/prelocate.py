@@ -51,6 +51,9 @@ class PreLocatorConfig:
     scale_step: float = 1.1  # image-pyramid step
     hog_hit_threshold: float = 0.0  # SVM margin a HOG window needs
     cascade_min_neighbours: int = 3
+    # Smallest head-and-shoulders the cascade looks for, in pixels of the (shrunk) band: its own window is
+    # 22 x 18, and the small scales are most of its cost; a user a metre or three ahead is far larger.
+    cascade_min_width_px: int = 44
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,7 @@ class HeadShoulderLocator:
                 gray,
                 scaleFactor=self.config.scale_step,
                 minNeighbors=self.config.cascade_min_neighbours,
+                minSize=(self.config.cascade_min_width_px, round(self.config.cascade_min_width_px * 18 / 22)),
                 outputRejectLevels=True,
             )
             for rect, weight in zip(rects, np.ravel(weights), strict=False):
