@@ -57,8 +57,9 @@ def add_parser(subparsers: Any) -> None:
         "--tracker",
         choices=[f.value for f in Features],
         default=Features.FULL.value,
-        help="'full': colour and texture, rho = rho_colour * rho_texture (default); 'colour': colour-only "
-        "mean shift, the same code without the texture",
+        help="'full': colour and texture, rho = rho_colour^a * rho_texture^b (default; a = b = 1 is the "
+        "seed paper's product, --param adaptive_weights=false); 'colour': colour-only mean shift, the same "
+        "code without the texture",
     )
     p.add_argument(
         "--silhouette",
