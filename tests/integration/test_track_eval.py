@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from agent.cli import main
+from agent.commands.eval_track import sre_boxes
 from agent.following.synthetic import CrossingScene, crossing_sequence
 
 
@@ -52,6 +53,10 @@ def test_eval_track_on_a_synthetic_otb_folder(tmp_path: Path, capsys: pytest.Cap
     fixed = _run(capsys, "--sequence", str(folder), "--frames", "10", "--param", "scale_gain=0")
     assert fixed["params"] == {"scale_gain": "0.0"}
     assert all(t["frames"] == 10 for t in fixed["targets"])
+
+    # OTB's spatial robustness: 12 more starts, shifted and scaled; a lone walker is held from all.
+    robust = _run(capsys, "--sequence", str(folder), "--frames", "15", "--sre")
+    assert robust["sre_precision_20px"] >= 0.9 and 0.0 < robust["sre_success_auc"] <= 1.0
 
     # Two sequences: one row each, and the means.
     assert (
@@ -93,3 +98,13 @@ def test_eval_track_on_the_first_frames_of_real_woman(
     assert summary["frames"] == 60
     assert summary["precision_20px"] >= 0.9
     assert summary["success_auc"] >= 0.5
+
+
+def test_sre_starts_are_otbs() -> None:
+    starts = sre_boxes(np.array([10.0, 20.0, 40.0, 100.0]))
+    assert len(starts) == 12
+    shifts = {(round(b[0] - 10.0, 6), round(b[1] - 20.0, 6)) for b in starts[:8]}
+    assert shifts == {(dx * 4.0, dy * 10.0) for dx in (-1, 0, 1) for dy in (-1, 0, 1)} - {(0.0, 0.0)}
+    for box, s in zip(starts[8:], (0.8, 0.9, 1.1, 1.2), strict=True):
+        np.testing.assert_allclose(box[2:], [40.0 * s, 100.0 * s])
+        np.testing.assert_allclose(box[:2] + box[2:] / 2, [30.0, 70.0])  # about the same centre
