@@ -100,6 +100,7 @@ class TrackerConfig:
     lbp_threshold: int = 3  # grey levels (lbp.py: keeps flat cloth flat)
     lbp_mapping: LbpMapping = LbpMapping.RIU2
     background_weighting: bool = True
+    background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
     min_feature_weight: float = 0.5  # floor of a and b
     max_iterations: int = 12
@@ -125,6 +126,8 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if not 2 <= self.colour_levels <= 32:
             raise ValueError("colour_levels must be 2..32")
+        if self.background_every < 1:
+            raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
             raise ValueError("need 0 < occlusion_ratio <= reacquire_ratio <= 1")
 
@@ -226,6 +229,8 @@ class MeanShiftTracker:
         self._q_texture = np.zeros(self._labels)
         self._rho_ref = 1.0
         self._exponents = (1.0, 1.0)  # a, b in rho = rho_c^a * rho_t^b
+        self._colour_factor = np.ones(self._bins)  # the background weighting of the colour bins
+        self._updates = 0
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = False
@@ -292,13 +297,17 @@ class MeanShiftTracker:
         self._velocity = cfg.velocity_gain * step + (1.0 - cfg.velocity_gain) * self._velocity
         self._centre = centre
         if ev.rho >= cfg.update_ratio * self._rho_ref:
-            # q <- (1 - a) q + a p(y): slow, and only on a confident match.
+            # q <- (1 - a) q + a p(y): slow, and only on a confident match; p(y) at the new size.
             a = cfg.update_rate
             cur = self._evaluate(window, centre, self._size, model=False)
             self._q_colour_raw = (1.0 - a) * self._q_colour_raw + a * cur.p_colour
             if cur.p_texture is not None:
                 self._q_texture_raw = (1.0 - a) * self._q_texture_raw + a * cur.p_texture
-            self._background(window)
+            self._updates += 1
+            if self._updates % cfg.background_every == 0:
+                self._background(window)
+            else:
+                self._reweight()
         self._rho_ref += cfg.rho_ref_rate * (ev.rho - self._rho_ref)
 
     def _search(
@@ -556,14 +565,12 @@ class MeanShiftTracker:
         less (Jia et al.'s AMF-MS weighs its features adaptively too). Without it, a = b = 1, the
         paper's eq. 10."""
         cfg = self.config
-        q_colour = self._q_colour_raw
-        q_texture = self._q_texture_raw
         if cfg.background_weighting or (cfg.adaptive_weights and self._texture):
             grown = self._size * math.sqrt(3.0)
             bg_colour, bg_texture = self._ring(window, self._centre, grown)
             if cfg.adaptive_weights and bg_texture is not None:
-                d_c = 1.0 - _bhattacharyya(bg_colour, _normalised(q_colour))
-                d_t = 1.0 - _bhattacharyya(bg_texture, _normalised(q_texture))
+                d_c = 1.0 - _bhattacharyya(bg_colour, _normalised(self._q_colour_raw))
+                d_t = 1.0 - _bhattacharyya(bg_texture, _normalised(self._q_texture_raw))
                 top = max(d_c, d_t)
                 a, b = (d_c / top, d_t / top) if top > 1e-6 else (1.0, 1.0)
                 self._exponents = (max(a, cfg.min_feature_weight), max(b, cfg.min_feature_weight))
@@ -571,9 +578,14 @@ class MeanShiftTracker:
                 # Colour only: with ten texture labels, "plain" is common in any background, and
                 # weighting it down leaves a model of the target's rarest texture, which a busy
                 # passer-by matches better than the target (measured on the crossing scene).
-                q_colour = q_colour * _background_factor(bg_colour)
-        self._q_colour = _normalised(q_colour)
-        self._q_texture = _normalised(q_texture)
+                self._colour_factor = _background_factor(bg_colour)
+        self._reweight()
+
+    def _reweight(self) -> None:
+        """The models the candidates are compared with: the raw histograms, colour scaled by the last
+        background factor."""
+        self._q_colour = _normalised(self._q_colour_raw * self._colour_factor)
+        self._q_texture = _normalised(self._q_texture_raw)
 
     def _ring(
         self, window: _Window, centre: FloatArray, grown: FloatArray
