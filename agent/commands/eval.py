@@ -18,6 +18,7 @@ EVALUATIONS: dict[str, str] = {
     "explore": "agent.commands.eval_explore",
     "nav": "agent.commands.eval_nav",
     "slam": "agent.commands.eval_slam",
+    "track": "agent.commands.eval_track",
     "vlp": "agent.commands.eval_vlp",
 }
 

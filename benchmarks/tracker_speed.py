@@ -1,0 +1,139 @@
+"""The person tracker's cost per 640 x 480 frame while tracking, and the head-shoulder pre-locator's cost
+when it runs, on one core. Prints one JSON object.
+
+    python benchmarks/tracker_speed.py [--frames 120] [--repeats 5]
+
+Budgets (issue 23): the fine layer <= 5 ms median per 640 x 480 frame while tracking; the pre-locator
+<= 30 ms. The frames are the synthetic scene (``agent.following.synthetic``, no passer-by) at 640 x 480 with
+the target at two sizes a forward camera sees a person behind whom the robot follows: a whole body
+(120 x 300 px, ellipse kernel) and head and shoulders (160 x 160 px, Omega silhouette). Beside them, in the
+same run and on the same frames, one plain pass over the frame (``numpy.sum`` of every byte) is timed, so a
+slow or busy machine shows as a ratio that stays put (``*_over_plain_pass``).
+
+The pre-locator runs on a real frame when ``../shared/data/person`` is there (OTB Couple frame 1, two
+people, scaled to 640 x 480), else on a synthetic frame: over the whole frame shrunk to 320 and to 160 px
+wide (a user close ahead is large), and over a band of a third of the width (the coarse layer's sector)
+at full resolution.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agent.following.meanshift import Features, MeanShiftTracker, Silhouette, TrackerConfig
+from agent.following.prelocate import HeadShoulderLocator, LocatorKind, PreLocatorConfig
+from agent.following.synthetic import CrossingScene, crossing_sequence
+
+SHARED = Path(os.environ.get("VLP_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+
+
+def _ms(samples: list[float]) -> dict[str, float]:
+    ordered = sorted(samples)
+    return {
+        "median_ms": round(statistics.median(ordered), 3),
+        "p95_ms": round(ordered[int(0.95 * (len(ordered) - 1))], 3),
+    }
+
+
+def tracker_case(size: tuple[int, int], silhouette: Silhouette, frames: int) -> dict[str, object]:
+    scene = CrossingScene(
+        width_px=640,
+        height_px=480,
+        frames=frames,
+        target_size_px=size,
+        target_start_px=(200.0, 240.0),
+        passer=False,  # every frame a tracking frame; the passer-by's cost is the p95's business
+        seed=0,
+    )
+    sequence = list(crossing_sequence(scene))
+    plain = []
+    for image, _ in sequence:
+        t0 = time.perf_counter()
+        np.sum(image, dtype=np.uint64)
+        plain.append((time.perf_counter() - t0) * 1e3)
+    out: dict[str, object] = {"target_px": list(size), "silhouette": silhouette.value}
+    plain_ms = statistics.median(plain)
+    out["plain_pass_ms_median"] = round(plain_ms, 3)
+    for features in Features:
+        tracker = MeanShiftTracker(TrackerConfig(features=features, silhouette=silhouette))
+        tracker.start(sequence[0][0], sequence[0][1])
+        times = []
+        tracking = 0
+        for image, _ in sequence[1:]:
+            t0 = time.perf_counter()
+            result = tracker.update(image)
+            elapsed = (time.perf_counter() - t0) * 1e3
+            if result.state.value == "tracking":  # the budget is "while tracking"
+                times.append(elapsed)
+                tracking += 1
+        stats = _ms(times)
+        out[features.value] = {
+            **stats,
+            "tracking_frames": tracking,
+            "median_over_plain_pass": round(stats["median_ms"] / plain_ms, 1),
+        }
+    return out
+
+
+def prelocator_frame() -> tuple[np.ndarray, str]:
+    path = SHARED / "data/person/Couple/img/0001.jpg"
+    image = cv2.imread(str(path)) if path.is_file() else None
+    if image is not None:
+        return cv2.resize(image, (640, 480), interpolation=cv2.INTER_LINEAR), "OTB Couple frame 1 at 640x480"
+    frame, _ = next(iter(crossing_sequence(CrossingScene(width_px=640, height_px=480))))
+    return frame, "synthetic crossing scene (../shared absent)"
+
+
+def prelocator_case(repeats: int) -> dict[str, object]:
+    frame, source = prelocator_frame()
+    out: dict[str, object] = {"frame": source}
+    for kind in LocatorKind:
+        for name, band, width in (
+            ("whole_frame_at_320px", None, 320),
+            ("whole_frame_at_160px", None, 160),
+            ("band_third_full_res", (213, 427), 640),
+        ):
+            locator = HeadShoulderLocator(PreLocatorConfig(kind=kind, max_width_px=width))
+            locator.locate(frame, band)  # warm-up
+            times = []
+            found = 0
+            for _ in range(repeats):
+                found = len(locator.locate(frame, band))
+                times.append(locator.last_ms)
+            out[f"{kind.value}_{name}"] = {**_ms(times), "detections": found}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=120, help="frames per tracker case (default 120)")
+    parser.add_argument("--repeats", type=int, default=5, help="pre-locator calls per case (default 5)")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    result: dict[str, object] = {
+        "frame_px": [640, 480],
+        "budget_ms": {"tracker_median": 5.0, "prelocator": 30.0},
+        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames),
+        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames),
+        "prelocator": prelocator_case(args.repeats),
+    }
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
