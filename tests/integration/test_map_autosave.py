@@ -55,7 +55,7 @@ def test_kill_9_at_random_instants_and_inside_saves_leaves_the_last_saved_map(tm
         assert "map.yaml" in record["files"]
         # Whatever was left is a temporary file or an image no description names, never the map.
         assert all(name.endswith(".tmp") or name.endswith(".pgm") for name in record["left_over"]), record
-        assert 0.0 <= record["age_s"] < LOST_BOUND_S, record
+        assert record["age_s"] is not None and 0.0 <= record["age_s"] < LOST_BOUND_S, record
         assert record["mcap_messages"] > 0 and record["mcap_files_cut"] <= 1, record
         assert 0.0 <= record["mcap_lost_s"] < MCAP_LOST_BOUND_S, record
 

@@ -115,7 +115,7 @@ def one_of_each(t_ns: int) -> list[tuple[str, Any]]:
     return [
         ("scan", scan(1, t_ns)),
         ("wheels", WheelState((0.1, 0.2), (1.0, 1.1), t_ns)),
-        ("wheel_command", WheelCommandSample(t_ns, 1.0, -1.0)),
+        ("wheel_command", WheelCommandSample(t_ns, 1.0, -1.0, 0.0, -0.5)),
         ("imu", ImuSample((0.0, 0.1, 9.8), (0.0, 0.0, 0.3), 31.0, t_ns)),
         ("tag", TagRead("E200", t_ns, "m6e", rssi_dbm=-63.0, antenna=1)),
         ("vlp_fix", fix),
