@@ -171,8 +171,9 @@ def test_the_close_starts_its_lead_ahead_of_the_newest_stamp_on_disk_growing_old
 def test_the_newest_message_on_disk_is_never_older_than_chunk_s(tmp_path: Path) -> None:
     """The writer thread's loop on a fake clock: IMU samples at 100 Hz stamped with the clock, each sample
     and each close costing the writer 1 ms (a drain of a quarter second costs 25 ms), and once a wake-up
-    0.3 s late (a stall): at every 10 ms step after the first close, the newest message on disk (what a kill leaves)
-    is at most chunk_s old; the recorder's own figure is checked against the file at every close."""
+    0.3 s late (a stall): at every 10 ms step after the first close, the newest message on disk (what a
+    kill leaves) is at most chunk_s old; the recorder's own figure is checked against the file at every
+    close."""
     chunk_s = 1.0
     rec, clock, _ = recorder(tmp_path, chunk_s=chunk_s)
     stall = {"at": 12.0, "done": False}
