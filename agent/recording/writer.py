@@ -24,6 +24,11 @@ With ``snapshot_s`` > 0 the writer also keeps the last ``snapshot_s`` of encoded
 (``agent.recording.snapshot``, at most ``snapshot_mb``) and writes them to ``<stem>-snapshot-<n>.mcap``
 when asked (:meth:`McapRecorder.request_snapshot`, SIGUSR2 under ``run`` and ``sim``) or when a device
 health event goes bad; ``continuous = false`` keeps only that memory (nothing is written until asked).
+Snapshots count in ``total_mb``: once one is written (under its temporary name), files are deleted until
+the kept ones, the open file at its full ``file_mb`` and the snapshot fit, the oldest recording files
+first and the oldest snapshots only after them; a snapshot that would not fit even then, or leaves less
+than ``min_free_mb`` free, is removed instead of renamed (logged, ``snapshot_skipped_cap`` /
+``snapshot_skipped_disk``), and none is begun below ``min_free_mb``.
 """
 
 from __future__ import annotations
@@ -46,7 +51,7 @@ from agent.config import RecorderConfig
 from agent.recording.messages import CHANNELS, messages_for
 from agent.recording.reader import FORMAT_VERSION, recording_files
 from agent.recording.schemas import SCHEMAS
-from agent.recording.snapshot import SnapshotRing, next_snapshot_path, write_snapshot
+from agent.recording.snapshot import SnapshotRing, next_snapshot_path, snapshot_files, write_snapshot
 
 __all__ = [
     "PROFILE",
@@ -316,12 +321,36 @@ class McapRecorder:
             reason = self._snapshot_requests.popleft()
             path = next_snapshot_path(self.path)
             self.give_way()
+            if self._disk_low():
+                self._snapshot_refused(reason, "disk", f"less than {self.config.min_free_mb:g} MB free")
+                continue
+
+            def admit(size: int, reason: str = reason) -> bool:
+                # Written under a temporary name: the disk's free space now counts it.
+                if self._disk_low():
+                    self._snapshot_refused(
+                        reason, "disk", f"it would leave less than {self.config.min_free_mb:g} MB free"
+                    )
+                    return False
+                # The open file may still grow to file_mb: room for it stays reserved.
+                reserve = size + (self.config.file_mb * 1e6 if self._writer is not None else 0.0)
+                if not self._enforce_total_cap(reserve):
+                    self._snapshot_refused(
+                        reason,
+                        "cap",
+                        f"{size} bytes do not fit in total_mb = {self.config.total_mb:g} with the open file",
+                    )
+                    return False
+                return True
+
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                n = write_snapshot(path, ring.entries(), reason, PROFILE)
+                n = write_snapshot(path, ring.entries(), reason, PROFILE, admit)
             except OSError as exc:
                 self.counts["snapshot_errors"] += 1
                 log.warning("recorder: snapshot (%s) to %s failed: %s", reason, path, exc)
+                continue
+            if n is None:
                 continue
             self.snapshots.append(path)
             log.warning("recorder: snapshot (%s): %d messages to %s", reason, n, path)
@@ -350,6 +379,10 @@ class McapRecorder:
         if newest is not None and (self.flushed_newest_ns is None or newest > self.flushed_newest_ns):
             self.flushed_newest_ns = newest
         self._chunk_oldest_ns = self._chunk_newest_ns = None
+
+    def _snapshot_refused(self, reason: str, why: str, detail: str) -> None:
+        self.counts[f"snapshot_skipped_{why}"] += 1
+        log.warning("recorder: snapshot (%s) not written: %s (%s)", reason, detail, self.path.parent)
 
     def _maybe_close_chunk(self) -> None:
         if self._writer is None:
@@ -398,7 +431,7 @@ class McapRecorder:
         if self.paused:
             self.paused = False
             log.warning("recorder: free space is back above %g MB: recording again", self.config.min_free_mb)
-        self._enforce_total_cap()
+        self._enforce_total_cap(self.config.file_mb * 1e6)
         return self._open_next(now)
 
     def _open_next(self, now_s: float) -> Writer | None:
@@ -456,15 +489,23 @@ class McapRecorder:
             stream.close()
             self._chunk_oldest_ns = self._chunk_newest_ns = None
 
-    def _enforce_total_cap(self) -> None:
-        """Delete the oldest files until the closed ones and a full new one fit in ``total_mb``."""
-        budget = self.config.total_mb * 1e6 - self.config.file_mb * 1e6
-        files = recording_files(self.path)
-        sizes = {p: p.stat().st_size for _, p in files}
+    def _enforce_total_cap(self, reserve_bytes: float) -> bool:
+        """Delete files until the ones kept plus ``reserve_bytes`` (a new file's ``file_mb``, a snapshot
+        about to be written) fit in ``total_mb``: the oldest recording files first, then the oldest
+        snapshots; never the open file. False when even that does not make room."""
+        files = [p for _, p in recording_files(self.path) if p != self._file]
+        candidates = files + snapshot_files(self.path)
+        sizes = {}
+        for p in candidates:
+            with contextlib.suppress(OSError):
+                sizes[p] = p.stat().st_size
         total = sum(sizes.values())
-        for _, oldest in files:
+        budget = self.config.total_mb * 1e6 - reserve_bytes
+        for oldest in candidates:
             if total <= budget:
                 break
+            if oldest not in sizes:
+                continue
             try:
                 oldest.unlink()
             except OSError as exc:
@@ -478,9 +519,12 @@ class McapRecorder:
                 sizes[oldest],
                 self.config.total_mb,
             )
+        return total <= budget
 
     def _disk_low(self) -> bool:
+        """Whether the folder has less than ``min_free_mb`` free."""
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             free = self.free_space(self.path.parent)
         except OSError as exc:
             log.warning("recorder: cannot read the free space of %s: %s", self.path.parent, exc)

@@ -3,19 +3,20 @@ written whole and atomically, on request and on a device going bad, with or with
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from agent.config import parse_config
+from agent.config import RecorderConfig, parse_config
 from agent.recording.messages import HealthSample
 from agent.recording.reader import read_recording
 from agent.recording.snapshot import SnapshotRing, snapshot_files, write_snapshot
-from agent.recording.writer import close_lead_s, close_target_s, next_wait_s, recording_files
+from agent.recording.writer import McapRecorder, close_lead_s, close_target_s, next_wait_s, recording_files
 from drivers.errors import ConfigError
 from drivers.samples import ImuSample
-from tests.unit.test_recording import OFFICE, feed_scans, recorder, sequences
+from tests.unit.test_recording import OFFICE, FakeClock, feed_scans, recorder, sequences
 
 
 def test_the_ring_keeps_the_last_span_of_log_time_and_counts_what_it_let_go() -> None:
@@ -220,3 +221,74 @@ def test_the_newest_message_on_disk_is_never_older_than_chunk_s(tmp_path: Path) 
 
 def imu_sample(t_ns: int) -> ImuSample:
     return ImuSample((0.0, 0.0, 9.81), (0.0, 0.0, 0.01), 30.0, t_ns)
+
+
+def test_snapshots_count_in_the_total_cap_the_recording_files_going_first(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A continuous recording in small files beside snapshots, all under total_mb: the oldest recording
+    files are deleted to make room for a snapshot, then the oldest snapshots; never the open file."""
+    caplog.set_level(logging.WARNING, logger="agent.recording.writer")
+    total_mb = 0.12
+    rec, clock, _ = recorder(tmp_path, snapshot_s=2.0, file_mb=0.02, total_mb=total_mb, chunk_s=0.2)
+
+    def on_disk() -> int:
+        return sum(p.stat().st_size for p in tmp_path.glob("*.mcap"))
+
+    for k in range(8):
+        feed_scans(rec, clock, 40 * k, 40)
+        rec.request_snapshot()
+        rec.pump()
+        assert on_disk() <= total_mb * 1e6, k  # the open file included: the cap holds at every step
+    rec.close()
+    snaps = snapshot_files(tmp_path / "run.mcap")
+    deleted_snaps = [p for p in rec.deleted if "snapshot" in p.name]
+    assert deleted_snaps and not any(p.exists() for p in rec.deleted)
+    # Each snapshot was deleted only once no recording file but the open one was left to delete.
+    assert deleted_snaps == rec.snapshots[: len(deleted_snaps)]  # the oldest snapshots
+    assert snaps == rec.snapshots[len(deleted_snaps) :] and snaps
+    assert sequences(snaps[-1])[-1] == 319  # the newest kept
+    assert any("deleted" in r.getMessage() and "snapshot" in r.getMessage() for r in caplog.records)
+
+
+def test_a_snapshot_that_would_fill_the_disk_is_not_written_and_said(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The disk's free space goes down by what is written in the folder: a snapshot that leaves less than
+    min_free_mb is removed (its temporary file too), one asked for below it is not begun; with room again
+    the next is written."""
+    caplog.set_level(logging.WARNING, logger="agent.recording.writer")
+    free = {"mb": 100.01}
+
+    def disk(folder: Path) -> int:
+        used = sum(p.stat().st_size for p in folder.iterdir())
+        return int(free["mb"] * 1e6) - used
+
+    config = RecorderConfig(
+        path=tmp_path / "run.mcap", snapshot_s=5.0, continuous=False, min_free_mb=100, chunk_s=0.2
+    )
+    clock = FakeClock()
+    rec = McapRecorder(config, free_space=disk, clock_s=clock)
+    feed_scans(rec, clock, 0, 30)  # a snapshot of ~3 s of scans: more than the 10 kB left above the guard
+    rec.request_snapshot()
+    rec.pump()
+    assert list(tmp_path.iterdir()) == [] and rec.counters()["snapshot_skipped_disk"] == 1
+    assert any("would leave less than 100 MB free" in r.getMessage() for r in caplog.records)
+    free["mb"] = 99.0  # below the guard already: not begun
+    rec.request_snapshot()
+    rec.pump()
+    assert list(tmp_path.iterdir()) == [] and rec.counters()["snapshot_skipped_disk"] == 2
+    free["mb"] = 101.0  # room again: the next request is written
+    rec.request_snapshot()
+    rec.pump()
+    assert len(snapshot_files(tmp_path / "run.mcap")) == 1
+    rec.close()
+
+
+def test_a_snapshot_larger_than_the_cap_is_not_written(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, snapshot_s=5.0, continuous=False, total_mb=0.001, chunk_s=0.2)
+    feed_scans(rec, clock, 0, 30)
+    rec.request_snapshot()
+    rec.pump()
+    rec.close()
+    assert snapshot_files(tmp_path / "run.mcap") == [] and rec.counters()["snapshot_skipped_cap"] == 1
