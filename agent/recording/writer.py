@@ -533,6 +533,7 @@ class McapRecorder:
 
     def _pause(self) -> None:
         self._finish_file()
+        self.flushed_newest_ns = None  # nothing recorded while paused: the bound starts again after it
         self._paused_until_s = self.clock_s() + _DISK_RECHECK_S
         if not self.paused:
             self.paused = True
@@ -546,7 +547,7 @@ class McapRecorder:
     def _fail(self, exc: OSError) -> None:
         log.warning("recorder: %s: recording paused", exc)
         self._writer = None
-        self._chunk_oldest_ns = self._chunk_newest_ns = None
+        self._chunk_oldest_ns = self._chunk_newest_ns = self.flushed_newest_ns = None
         stream, self._stream, self._file = self._stream, None, None
         if stream is not None:
             with contextlib.suppress(OSError):
