@@ -227,6 +227,8 @@ def check(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             "dropped": recorded.get("record_dropped"),
             "chunks": recorded.get("record_chunks"),
             "chunks_late": recorded.get("record_chunks_late", 0),
+            "close_lead_ms": recorded.get("record_close_lead_ms"),
+            "writer_cpu_ms": recorded.get("record_writer_cpu_ms"),
         },
         "tolerance": {
             "rate": [tolerance.rate_low, tolerance.rate_high],
