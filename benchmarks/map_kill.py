@@ -13,8 +13,11 @@ the YAML's rename. Then, per instant:
 
 * ``loads``: ``map.yaml`` and the image it names load whole (``agent.slam.mapio.load_map``), and so does
   ``map.prev.yaml`` when there is one;
-* ``age_s``: the kill time minus the commit time of that map (the YAML's mtime): the mapping lost, which
-  should stay under one interval plus one save's duration;
+* ``age_s``: the kill time minus the *content time* of that map (when the SLAM loop took it out of the
+  mapper: every scan mapped by then is in it; the saver writes it into the image's header,
+  ``content_monotonic_ns``, both on ``CLOCK_MONOTONIC``): the mapping lost. The saver starts each save
+  its measured lead early so that this stays within one interval at every instant
+  (``agent.runtime.map_saver``); ``commit_age_s`` is the kill time minus the YAML's mtime (the commit);
 * ``left_over``: temporary files and unnamed images the kill left (never ``map.yaml`` itself: that is
   only ever a rename), and whether ``tidy_map_folder`` (what the next start runs) removes every one while
   the map still loads.
@@ -24,7 +27,9 @@ the YAML's rename. Then, per instant:
   and ``mcap_files_cut`` (files that read only up to a cut, at most the last one).
 
 Prints one JSON object: the per-instant records and ``all_loaded``, ``max_age_s``, ``max_left_over`` and
-``max_mcap_lost_s``.
+``max_mcap_lost_s``; and the verdict: ``checks`` (each bound with its figure and whether it held: every map
+loads and nothing left over survives the tidy; ``max_age_s`` <= the interval; ``max_mcap_lost_s`` <= the
+recorder's ``chunk_s``), ``pass`` and ``reasons`` (the checks that failed). Exit status 1 when one failed.
 """
 
 from __future__ import annotations
@@ -44,7 +49,9 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from agent.config import RecorderConfig  # noqa: E402
 from agent.recording.reader import read_recording, recording_files  # noqa: E402
+from agent.runtime.map_saver import content_stamp_ns  # noqa: E402
 from agent.slam.mapio import load_map, tidy_map_folder  # noqa: E402
 from drivers.errors import ConfigError  # noqa: E402
 
@@ -76,6 +83,19 @@ def _save_under_way(out: Path, known: set[str]) -> bool:
     except OSError:
         return False
     return any(n.endswith(".tmp") or (n.endswith(".pgm") and n not in known) for n in names)
+
+
+def content_ns(yaml_file: Path) -> int | None:
+    """The content time (monotonic ns) of the map ``yaml_file`` describes, from its image's header."""
+    try:
+        for line in yaml_file.read_text(encoding="utf-8").splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "image":
+                image = yaml_file.parent / value.split("#", 1)[0].strip().strip("'\"")
+                return content_stamp_ns(image.read_bytes())
+    except OSError:
+        return None
+    return None
 
 
 def mcap_after_kill(record: Path, killed_ns: int) -> dict[str, Any]:
@@ -142,14 +162,17 @@ def kill_once(
     loads = _loads(yaml_file)
     previous = out / "map.prev.yaml"
     previous_loads = _loads(previous) if previous.exists() else None
-    age_s = killed_at - yaml_file.stat().st_mtime
+    commit_age_s = killed_at - yaml_file.stat().st_mtime
+    content = content_ns(yaml_file)
+    age_s = None if content is None else (killed_ns - content) / 1e9
     removed = tidy_map_folder(yaml_file)
     return {
         "delay_s": round(delay_s, 3),
         "mid_save": mid_save,
         "loads": loads,
         "previous_loads": previous_loads,
-        "age_s": round(age_s, 3),
+        "age_s": None if age_s is None else round(age_s, 3),
+        "commit_age_s": round(commit_age_s, 3),
         "files": names,
         "left_over": [p.name for p in removed],
         "loads_after_tidy": _loads(yaml_file),
@@ -174,23 +197,50 @@ def run(
         folder.mkdir(parents=True)
         delay_s = rng.uniform(0.0, span_s)
         records.append(kill_once(folder, interval_s, delay_s, k >= instants - mid_save, record))
+    ages = [r["age_s"] for r in records]
+    # None when a map had no content time, or a run kept no readable message at all: worse than any figure.
+    max_age_s = None if None in ages else max(ages)
+    max_mcap_lost_s = (
+        max(r["mcap_lost_s"] for r in records)
+        if record and all(r["mcap_lost_s"] is not None for r in records)
+        else None
+    )
+    all_loaded = all(
+        r["loads"] and r["loads_after_tidy"] and r["previous_loads"] is not False for r in records
+    )
+    chunk_s = RecorderConfig().chunk_s  # what `vlp-agent sim --record` writes with
+    checks = {
+        "maps_load": {
+            "bound": "every map and its previous load, nothing left as the map",
+            "ok": all_loaded and all(not r["tmp_after_tidy"] for r in records),
+        },
+        "map_lost": {
+            "bound_s": interval_s,
+            "max_s": max_age_s,
+            "ok": max_age_s is not None and max_age_s <= interval_s,
+        },
+    }
+    if record:
+        checks["mcap_lost"] = {
+            "bound_s": chunk_s,
+            "max_s": max_mcap_lost_s,
+            "ok": max_mcap_lost_s is not None and max_mcap_lost_s <= chunk_s,
+        }
+    reasons = [f"{name}: {check}" for name, check in checks.items() if not check["ok"]]
     return {
         "instants": instants,
         "mid_save": mid_save,
         "interval_s": interval_s,
         "span_s": span_s,
         "seed": seed,
-        "all_loaded": all(
-            r["loads"] and r["loads_after_tidy"] and r["previous_loads"] is not False for r in records
-        ),
-        "max_age_s": max(r["age_s"] for r in records),
+        "all_loaded": all_loaded,
+        "max_age_s": max_age_s,
+        "max_commit_age_s": max(r["commit_age_s"] for r in records),
         "max_left_over": max(len(r["left_over"]) for r in records),
-        # None when a run kept no readable message at all (or nothing was recorded): worse than any figure.
-        "max_mcap_lost_s": (
-            max(r["mcap_lost_s"] for r in records)
-            if record and all(r["mcap_lost_s"] is not None for r in records)
-            else None
-        ),
+        "max_mcap_lost_s": max_mcap_lost_s,
+        "checks": checks,
+        "pass": not reasons,
+        "reasons": reasons,
         "records": records,
     }
 
@@ -213,7 +263,7 @@ def main() -> int:
             args.instants, args.interval, args.span, args.seed, Path(tmp), args.mid_save, not args.no_record
         )
     print(json.dumps(result, indent=1))
-    return 0
+    return 0 if result["pass"] else 1
 
 
 if __name__ == "__main__":

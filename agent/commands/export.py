@@ -5,7 +5,10 @@ files were written under). OUT is the bag folder to make (rosbag2 with MCAP stor
 OUT/metadata.yaml); it must not exist or be empty. The bag holds standard message types: /scan
 (sensor_msgs/msg/LaserScan), /odom (nav_msgs/msg/Odometry), /pose, /slam/pose and /vlp/pose
 (geometry_msgs/msg/PoseWithCovarianceStamped), /map (nav_msgs/msg/OccupancyGrid), /tf and /tf_static
-(tf2_msgs/msg/TFMessage: map -> base_link, base_link -> laser), in Unix time. A cut or
+(tf2_msgs/msg/TFMessage: map -> base_link, base_link -> laser), /imu (sensor_msgs/msg/Imu), /cmd_vel
+and /controller/cmd_vel (geometry_msgs/msg/TwistStamped: the velocity sent to the wheels, the
+controller's velocity commands), /goal_pose (geometry_msgs/msg/PoseStamped: the controller's goals) and
+/diagnostics (diagnostic_msgs/msg/DiagnosticArray: the devices' health), in Unix time. A cut or
 corrupt recording is exported up to where it stops being readable, and the output says where
 (docs/recording.md).
 """

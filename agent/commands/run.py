@@ -20,7 +20,6 @@ import argparse
 import contextlib
 import logging
 import os
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -32,7 +31,7 @@ from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
-from agent.runtime.shutdown import ShutdownRequest, SignalCall
+from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 
 log = logging.getLogger(__name__)
 
@@ -80,10 +79,8 @@ def run(args: argparse.Namespace) -> int:
     notifier = _notifier()
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
-        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
-        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
-        # SIGUSR2 asks the flight recorder for a snapshot (its last [recorder] snapshot_s); dropped likewise.
-        snapshot_request = stack.enter_context(SignalCall(signal.SIGUSR2, lambda: None))
+        # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
+        requests = stack.enter_context(AgentRequests())
         robot = None
         if config.sim is not None:
             from drivers.sim.harness import SimulatedRobot
@@ -102,9 +99,8 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
-        save_request.action = agent.request_map_save
-        if agent.flight_recorder is not None:
-            snapshot_request.action = agent.flight_recorder.request_snapshot
+        recorder = agent.flight_recorder
+        requests.attach(agent.request_map_save, recorder.request_snapshot if recorder is not None else None)
         give_way_to_agent(agent, robot)
         agent.start()
         agent.settle_heap()

@@ -27,7 +27,6 @@ import logging
 import math
 import os
 import resource
-import signal
 import sys
 import threading
 import time
@@ -47,7 +46,7 @@ from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
-from agent.runtime.shutdown import ShutdownRequest, SignalCall
+from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
 from agent.sim_score import Scorer
 from agent.slam.render import MapPath
@@ -362,10 +361,8 @@ def run(args: argparse.Namespace) -> int:
     world = config.sim.world
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
-        # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
-        save_request = stack.enter_context(SignalCall(signal.SIGUSR1, lambda: None))
-        # SIGUSR2 asks the flight recorder for a snapshot (its last [recorder] snapshot_s); dropped likewise.
-        snapshot_request = stack.enter_context(SignalCall(signal.SIGUSR2, lambda: None))
+        # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
+        requests = stack.enter_context(AgentRequests())
         robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
@@ -388,9 +385,8 @@ def run(args: argparse.Namespace) -> int:
             observer=scorer.observe,
             map_dir=out_dir if mapping else None,
         )
-        save_request.action = agent.request_map_save
-        if agent.flight_recorder is not None:
-            snapshot_request.action = agent.flight_recorder.request_snapshot
+        recorder = agent.flight_recorder
+        requests.attach(agent.request_map_save, recorder.request_snapshot if recorder is not None else None)
         if agent.flight_recorder is not None:
             scorer.on_truth = _truth_recorder(agent.flight_recorder)
         if agent.mapper is not None:

@@ -68,9 +68,14 @@ LASER_FRAME = "laser"
 
 @dataclass(frozen=True, slots=True)
 class WheelCommandSample:
+    """The wheel speeds sent, and the base velocity they were made from (after the dead-man: 0 when it
+    stopped the robot)."""
+
     host_time_ns: int
     left_radps: float
     right_radps: float
+    v_mps: float = 0.0
+    omega_radps: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -222,7 +227,13 @@ def _wheels(w: Any) -> Iterable[tuple[str, Message]]:
 def _wheel_command(c: WheelCommandSample) -> Iterable[tuple[str, Message]]:
     yield (
         "/wheels/command",
-        {"host_time_ns": c.host_time_ns, "left_radps": c.left_radps, "right_radps": c.right_radps},
+        {
+            "host_time_ns": c.host_time_ns,
+            "left_radps": c.left_radps,
+            "right_radps": c.right_radps,
+            "v_mps": c.v_mps,
+            "omega_radps": c.omega_radps,
+        },
     )
 
 

@@ -16,6 +16,11 @@ bag topic               type                                           from
 ``/map``                nav_msgs/msg/OccupancyGrid (frame ``map``)     ``/map``
 ``/tf``                 tf2_msgs/msg/TFMessage (map -> base_link)      ``/tf`` (the fused pose)
 ``/tf_static``          tf2_msgs/msg/TFMessage (base_link -> laser)    ``/slam/setup``'s laser mount
+``/imu``                sensor_msgs/msg/Imu (frame ``imu``)            ``/imu``
+``/cmd_vel``            geometry_msgs/msg/TwistStamped (``base_link``)  ``/wheels/command`` (sent)
+``/controller/cmd_vel`` geometry_msgs/msg/TwistStamped (``base_link``)  ``/commands/received`` velocity
+``/goal_pose``          geometry_msgs/msg/PoseStamped (``map``)         ``/commands/received`` goal
+``/diagnostics``        diagnostic_msgs/msg/DiagnosticArray            ``/health``
 ======================  =============================================  ==============================
 
 ``/map`` and ``/tf_static`` are offered transient-local (latched), as map servers and static transform
@@ -24,9 +29,17 @@ publishers offer them, so that RViz started after ``ros2 bag play`` still gets t
 Times are Unix time (the recording's monotonic times plus its ``unix_minus_monotonic_ns``), in the headers
 and as the bag's receive times. A scan's error codes (below ``min_range_mm``) become NaN ("erroneous" in
 REP 117), beyond ``max_range_mm`` +inf; ``time_increment`` and ``scan_time`` are 0 (not in the
-recording). Covariances are 6x6 over (x, y, z, roll, pitch, yaw) with the recorded 3x3 over (x, y, yaw) in
-place and 0 for the three a planar robot does not measure (as AMCL publishes); a VLP fix without a heading
-has yaw variance 1e6. The odometry's twist is the wheel interval's mean speed.
+recording). The IMU has no orientation estimate (``orientation_covariance[0] = -1``, REP 145) and its
+other covariances are 0 ("unknown"); its frame ``imu`` has no transform in the bag (the recording holds
+no IMU mount). ``/cmd_vel`` is the base velocity each wheel command sent was made from (after the
+dead-man: zero when it stopped the robot; recordings made before those fields were recorded have none);
+``/controller/cmd_vel`` and ``/goal_pose`` are the controller's velocity and goal commands as received (a
+goal with any final heading has yaw 0); its stop, resume and cancel commands have no standard message
+and are left out. A ``/health`` event is one DiagnosticStatus: ``name`` ``vlp-agent/<device>``,
+``hardware_id`` the device, ``level`` OK (0) when it came up or recovered and ERROR (2) when it went bad,
+``message`` the reason. Covariances are 6x6 over (x, y, z, roll, pitch, yaw) with the recorded 3x3 over
+(x, y, yaw) in place and 0 for the three a planar robot does not measure (as AMCL publishes); a VLP fix
+without a heading has yaw variance 1e6. The odometry's twist is the wheel interval's mean speed.
 """
 
 from __future__ import annotations
@@ -44,11 +57,15 @@ from mcap_ros2.writer import Writer
 
 from agent.recording.reader import Recording
 from agent.recording.ros2_types import (
+    DIAGNOSTIC_ARRAY,
+    IMU,
     LASER_SCAN,
     OCCUPANCY_GRID,
     ODOMETRY,
+    POSE_STAMPED,
     POSE_WITH_COVARIANCE_STAMPED,
     TF_MESSAGE,
+    TWIST_STAMPED,
     msgdef,
 )
 from agent.recording.slam_log import integrate_odometry
@@ -209,6 +226,66 @@ def _odometry(t_ns: int, pose: tuple[float, float, float], v: float, w: float) -
     }
 
 
+def _vector(values: list[float]) -> Message:
+    x, y, z = (float(v) for v in values[:3])
+    return {"x": x, "y": y, "z": z}
+
+
+def _imu(d: Message, offset: int) -> Message:
+    unknown = [0.0] * 9
+    return {
+        "header": _header(int(d["host_time_ns"]) + offset, "imu"),
+        "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0},
+        "orientation_covariance": [-1.0] + [0.0] * 8,  # REP 145: no orientation estimate
+        "angular_velocity": _vector(d["gyro_radps"]),
+        "angular_velocity_covariance": unknown,
+        "linear_acceleration": _vector(d["accel_mps2"]),
+        "linear_acceleration_covariance": unknown,
+    }
+
+
+def _twist(t_ns: int, v_mps: float, omega_radps: float) -> Message:
+    return {
+        "header": _header(t_ns, "base_link"),
+        "twist": {
+            "linear": {"x": float(v_mps), "y": 0.0, "z": 0.0},
+            "angular": {"x": 0.0, "y": 0.0, "z": float(omega_radps)},
+        },
+    }
+
+
+_OK, _ERROR = 0, 2  # diagnostic_msgs/DiagnosticStatus levels
+
+
+def _diagnostics(t_ns: int, d: Message) -> Message:
+    device = str(d["device"])
+    ok = bool(d["ok"])
+    return {
+        "header": _header(t_ns, ""),
+        "status": [
+            {
+                "level": _OK if ok else _ERROR,
+                "name": f"vlp-agent/{device}",
+                "message": str(d["reason"]) or ("up" if ok else "bad"),
+                "hardware_id": device,
+                "values": [{"key": "ok", "value": "true" if ok else "false"}],
+            }
+        ],
+    }
+
+
+def _command(t_ns: int, d: Message) -> tuple[str, str, Message] | None:
+    """A received command with a standard message: velocity -> TwistStamped, goal -> PoseStamped."""
+    fields = d.get("fields", {})
+    if d["kind"] == "velocity":
+        return "/controller/cmd_vel", TWIST_STAMPED, _twist(t_ns, fields["v_mps"], fields["omega_radps"])
+    if d["kind"] == "goal":
+        yaw = fields.get("yaw_rad")
+        pose = _pose(float(fields["x_m"]), float(fields["y_m"]), 0.0 if yaw is None else float(yaw))
+        return "/goal_pose", POSE_STAMPED, {"header": _header(t_ns, "map"), "pose": pose}
+    return None
+
+
 def _bag_messages(recordings: Iterable[Recording]) -> list[tuple[int, str, str, Message]]:
     """(time ns, bag topic, type, message) for every message that has a ROS counterpart, in time order."""
     out: list[tuple[int, str, str, Message]] = []
@@ -235,6 +312,16 @@ def _bag_messages(recordings: Iterable[Recording]) -> list[tuple[int, str, str, 
                 out.append((t, "/tf", TF_MESSAGE, _transforms(d, offset)))
             elif m.topic == "/slam/setup":
                 mount = d["mount"]
+            elif m.topic == "/imu":
+                out.append((t, "/imu", IMU, _imu(d, offset)))
+            elif m.topic == "/wheels/command" and "v_mps" in d:
+                out.append((t, "/cmd_vel", TWIST_STAMPED, _twist(t, d["v_mps"], d["omega_radps"])))
+            elif m.topic == "/commands/received":
+                command = _command(t, d)
+                if command is not None:
+                    out.append((t, *command))
+            elif m.topic == "/health":
+                out.append((t, "/diagnostics", DIAGNOSTIC_ARRAY, _diagnostics(t, d)))
             elif m.topic == "/fusion/input" and d.get("k") == "odometry":
                 odometry.append(d)
         for t_ns, pose, v, w in integrate_odometry(odometry):

@@ -3,7 +3,8 @@
 ``=`` and ``MSG: pkg/Type``), pure data.
 
 The fields are those of ROS 2's ``common_interfaces`` (sensor_msgs, nav_msgs, geometry_msgs,
-std_msgs), ``geometry2``'s tf2_msgs and ``rcl_interfaces/builtin_interfaces``, unchanged since Humble,
+std_msgs, diagnostic_msgs with its constants), ``geometry2``'s tf2_msgs and
+``rcl_interfaces/builtin_interfaces``, unchanged since Humble,
 without comments and default values (neither changes the wire format). The export test compares them with
 rosbags' Humble type store and decodes the bag with it, so a field that differed would fail there.
 """
@@ -11,11 +12,15 @@ rosbags' Humble type store and decodes the bag with it, so a field that differed
 from __future__ import annotations
 
 __all__ = [
+    "DIAGNOSTIC_ARRAY",
+    "IMU",
     "LASER_SCAN",
     "OCCUPANCY_GRID",
     "ODOMETRY",
+    "POSE_STAMPED",
     "POSE_WITH_COVARIANCE_STAMPED",
     "TF_MESSAGE",
+    "TWIST_STAMPED",
     "TYPES",
     "msgdef",
 ]
@@ -49,6 +54,19 @@ _FIELDS: dict[str, str] = {
         "geometry_msgs/Pose origin"
     ),
     "nav_msgs/OccupancyGrid": "std_msgs/Header header\nnav_msgs/MapMetaData info\nint8[] data",
+    "geometry_msgs/PoseStamped": "std_msgs/Header header\ngeometry_msgs/Pose pose",
+    "geometry_msgs/TwistStamped": "std_msgs/Header header\ngeometry_msgs/Twist twist",
+    "sensor_msgs/Imu": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+        "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
+        "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance"
+    ),
+    "diagnostic_msgs/KeyValue": "string key\nstring value",
+    "diagnostic_msgs/DiagnosticStatus": (
+        "byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\nbyte level\nstring name\nstring message\n"
+        "string hardware_id\ndiagnostic_msgs/KeyValue[] values"
+    ),
+    "diagnostic_msgs/DiagnosticArray": "std_msgs/Header header\ndiagnostic_msgs/DiagnosticStatus[] status",
     "sensor_msgs/LaserScan": (
         "std_msgs/Header header\nfloat32 angle_min\nfloat32 angle_max\nfloat32 angle_increment\n"
         "float32 time_increment\nfloat32 scan_time\nfloat32 range_min\nfloat32 range_max\n"
@@ -92,4 +110,18 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-TYPES = (LASER_SCAN, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED, OCCUPANCY_GRID, TF_MESSAGE)
+IMU = "sensor_msgs/msg/Imu"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+TYPES = (
+    LASER_SCAN,
+    ODOMETRY,
+    POSE_WITH_COVARIANCE_STAMPED,
+    OCCUPANCY_GRID,
+    TF_MESSAGE,
+    IMU,
+    TWIST_STAMPED,
+    POSE_STAMPED,
+    DIAGNOSTIC_ARRAY,
+)

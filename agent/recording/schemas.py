@@ -192,8 +192,14 @@ SCHEMAS: dict[str, Schema] = {
     ),
     "vlp_agent.WheelCommand": _project(
         "vlp_agent.WheelCommand",
-        "The wheel velocities sent to the servos (left, right)",
-        {"host_time_ns": _INTEGER, "left_radps": _NUMBER, "right_radps": _NUMBER},
+        "The wheel velocities sent to the servos (left, right) and the base velocity they were made from",
+        {
+            "host_time_ns": _INTEGER,
+            "left_radps": _NUMBER,
+            "right_radps": _NUMBER,
+            "v_mps": _NUMBER,
+            "omega_radps": _NUMBER,
+        },
     ),
     "vlp_agent.ImuSample": _project(
         "vlp_agent.ImuSample",

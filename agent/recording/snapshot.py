@@ -13,7 +13,7 @@ import collections
 import json
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,9 +103,17 @@ def next_snapshot_path(path: Path) -> Path:
     return path.parent / f"{path.stem}-snapshot-{1 + max(numbers, default=0):04d}.mcap"
 
 
-def write_snapshot(path: Path, entries: Iterable[SnapshotEntry], reason: str, profile: str) -> int:
+def write_snapshot(
+    path: Path,
+    entries: Iterable[SnapshotEntry],
+    reason: str,
+    profile: str,
+    admit: Callable[[int], bool] | None = None,
+) -> int | None:
     """Write ``entries`` as one MCAP file at ``path`` (a temporary name, fsync, then the rename: a reader
-    never sees half a snapshot). Returns the number of messages written. Raises OSError."""
+    never sees half a snapshot). ``admit``: asked with the file's size before the rename (the recorder's
+    total cap and disk guard); False removes it, and None is returned. Returns the number of messages
+    written. Raises OSError."""
     tmp = path.with_name(f".{path.name}.tmp")
     count = 0
     try:
@@ -138,6 +146,9 @@ def write_snapshot(path: Path, entries: Iterable[SnapshotEntry], reason: str, pr
             writer.finish()  # type: ignore[no-untyped-call]
             stream.flush()
             os.fsync(stream.fileno())
+        if admit is not None and not admit(tmp.stat().st_size):
+            tmp.unlink(missing_ok=True)
+            return None
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

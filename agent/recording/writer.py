@@ -4,9 +4,14 @@ The loops call :meth:`McapRecorder.record` with a kind and the sample they hold:
 (no lock, no encoding, no I/O); a full queue drops the sample and counts it. A writer thread drains the
 queue every ``chunk_s / 4`` (giving way to the hot path before each sample), turns each sample into
 channel messages (``agent.recording.messages``), encodes them as JSON and adds them to the open MCAP
-file, whose chunk it closes every ``chunk_s``: a
-chunk on disk is whole and indexed by its own records, so a file cut by a kill or a power cut reads up to
-its last whole chunk (``agent.recording.reader``).
+file. A chunk on disk is whole and indexed by its own records, so a file cut by a kill or a power cut
+reads up to its last whole chunk (``agent.recording.reader``). The writer closes the open chunk before the
+newest message on disk is ``chunk_s`` old by the messages' own stamps (the agent's monotonic clock): it
+wakes ``lead`` ahead of that instant, ``lead`` being 1.5 times the longest a recent close took from its
+wake-up target to the data in the kernel (at least 10 ms, at most ``chunk_s / 2``). So a kill loses at
+most the last ``chunk_s`` of messages, by construction and not by luck, as long as no close takes 1.5
+times longer than the longest of the last 32 (``record_chunks_late`` counts the ones that did). A chunk
+is also closed ``chunk_s`` after the last one on the writer's clock (stamps from another clock, a test's).
 
 Files are ``<stem>-<n>.mcap`` beside the configured path (n counts up, also across restarts). A file is
 closed and the next one begun at ``file_mb`` or after ``file_s``; before a file is begun the oldest files
@@ -19,6 +24,11 @@ With ``snapshot_s`` > 0 the writer also keeps the last ``snapshot_s`` of encoded
 (``agent.recording.snapshot``, at most ``snapshot_mb``) and writes them to ``<stem>-snapshot-<n>.mcap``
 when asked (:meth:`McapRecorder.request_snapshot`, SIGUSR2 under ``run`` and ``sim``) or when a device
 health event goes bad; ``continuous = false`` keeps only that memory (nothing is written until asked).
+Snapshots count in ``total_mb``: once one is written (under its temporary name), files are deleted until
+the kept ones, the open file at its full ``file_mb`` and the snapshot fit, the oldest recording files
+first and the oldest snapshots only after them; a snapshot that would not fit even then, or leaves less
+than ``min_free_mb`` free, is removed instead of renamed (logged, ``snapshot_skipped_cap`` /
+``snapshot_skipped_disk``), and none is begun below ``min_free_mb``.
 """
 
 from __future__ import annotations
@@ -31,7 +41,7 @@ import os
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
@@ -41,9 +51,17 @@ from agent.config import RecorderConfig
 from agent.recording.messages import CHANNELS, messages_for
 from agent.recording.reader import FORMAT_VERSION, recording_files
 from agent.recording.schemas import SCHEMAS
-from agent.recording.snapshot import SnapshotRing, next_snapshot_path, write_snapshot
+from agent.recording.snapshot import SnapshotRing, next_snapshot_path, snapshot_files, write_snapshot
 
-__all__ = ["PROFILE", "McapRecorder", "free_bytes", "recording_files"]
+__all__ = [
+    "PROFILE",
+    "McapRecorder",
+    "close_lead_s",
+    "close_target_s",
+    "free_bytes",
+    "next_wait_s",
+    "recording_files",
+]
 
 log = logging.getLogger(__name__)
 
@@ -57,13 +75,45 @@ def _no_wait() -> None:
     pass
 
 
-def next_wait_s(now_s: float, last_chunk_s: float, chunk_s: float, period_s: float, open_file: bool) -> float:
-    """How long the writer thread sleeps: its pass period, but no later than when the open chunk is due,
-    so a chunk is closed ``chunk_s`` after the last one rather than up to a period later (a kill then
-    loses at most ``chunk_s``, not ``chunk_s`` plus a period)."""
-    if not open_file:
+# The close's lead over its deadline: a multiple of the longest recent close, within bounds.
+_LEAD_FACTOR = 1.5
+_MIN_LEAD_S = 0.01
+_LEAD_HISTORY = 32
+
+
+def next_wait_s(now_s: float, due_s: float | None, period_s: float) -> float:
+    """How long the writer thread sleeps: its pass period, but no later than when the open chunk is due
+    (``due_s``, None: no chunk open), so it is closed then rather than up to a period later."""
+    if due_s is None:
         return period_s
-    return min(period_s, max(0.0, last_chunk_s + chunk_s - now_s))
+    return min(period_s, max(0.0, due_s - now_s))
+
+
+def close_lead_s(costs: Iterable[float], chunk_s: float) -> float:
+    """How far ahead of its deadline a chunk close starts, from what recent closes took (seconds from the
+    instant the writer meant to start to the data in the kernel): 1.5 times the longest, at least 10 ms,
+    at most half a chunk (beyond that the bound cannot be kept without writing chunks of almost nothing)."""
+    longest = max(costs, default=0.0)
+    return min(max(_LEAD_FACTOR * longest, _MIN_LEAD_S), 0.5 * chunk_s)
+
+
+def close_target_s(
+    flushed_newest_ns: int | None,
+    chunk_oldest_ns: int | None,
+    chunk_newest_ns: int | None,
+    chunk_s: float,
+    lead_s: float,
+) -> float | None:
+    """When (monotonic seconds) the writer starts closing the open chunk so that the newest message on
+    disk is never more than ``chunk_s`` old by the messages' stamps: ``chunk_s - lead_s`` after the newest
+    stamp already on disk (the open chunk's oldest, before anything is). None when the open chunk holds
+    nothing newer than what is on disk (closing it would not make the disk any fresher)."""
+    if chunk_newest_ns is None or chunk_oldest_ns is None:
+        return None
+    if flushed_newest_ns is not None and chunk_newest_ns <= flushed_newest_ns:
+        return None
+    base_ns = chunk_oldest_ns if flushed_newest_ns is None else flushed_newest_ns
+    return base_ns * 1e-9 + chunk_s - lead_s
 
 
 def free_bytes(folder: Path) -> int:
@@ -102,6 +152,12 @@ class McapRecorder:
         self._file: Path | None = None
         self._file_opened_s = 0.0
         self._last_chunk_s = 0.0
+        # Message stamps (ns) of the open chunk and of the newest message on disk (over all files).
+        self._chunk_oldest_ns: int | None = None
+        self._chunk_newest_ns: int | None = None
+        self.flushed_newest_ns: int | None = None
+        self._close_costs: collections.deque[float] = collections.deque(maxlen=_LEAD_HISTORY)
+        self.lead_s = close_lead_s((), config.chunk_s)
         self._channel_ids: dict[str, int] = {}
         self._next_index = 1 + max((n for n, _ in recording_files(self.path)), default=0)
         self._paused_until_s = 0.0
@@ -176,6 +232,7 @@ class McapRecorder:
         out["record_files_deleted"] = len(self.deleted)
         out["record_paused"] = int(self.paused)
         out["record_writer_cpu_ms"] = round(1e3 * self.writer_cpu_s)
+        out["record_close_lead_ms"] = round(1e3 * self.lead_s)
         if self.ring is not None:
             out["snapshot_files"] = len(self.snapshots)
             out["snapshot_ring_messages"] = len(self.ring)
@@ -187,11 +244,7 @@ class McapRecorder:
     def _run(self) -> None:
         period_s = max(self.config.chunk_s / 4.0, 0.01)
         c0 = time.thread_time()
-        while not self._stop.wait(
-            next_wait_s(
-                self.clock_s(), self._last_chunk_s, self.config.chunk_s, period_s, self._writer is not None
-            )
-        ):
+        while not self._stop.wait(next_wait_s(self.clock_s(), self.close_due_s(), period_s)):
             self.pump()
             self.writer_cpu_s = time.thread_time() - c0
         self._drain()
@@ -246,6 +299,10 @@ class McapRecorder:
                 channel = self._register(writer, topic)
             writer.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data, sequence=0)
             self.counts[topic] += 1
+        if self._chunk_oldest_ns is None or t_ns < self._chunk_oldest_ns:
+            self._chunk_oldest_ns = t_ns
+        if self._chunk_newest_ns is None or t_ns > self._chunk_newest_ns:
+            self._chunk_newest_ns = t_ns
 
     def _fault(self, t_ns: int, what: str) -> None:
         """A device went bad: snapshot what led up to it, at most once per ``snapshot_s`` (a flapping
@@ -264,21 +321,76 @@ class McapRecorder:
             reason = self._snapshot_requests.popleft()
             path = next_snapshot_path(self.path)
             self.give_way()
+            if self._disk_low():
+                self._snapshot_refused(reason, "disk", f"less than {self.config.min_free_mb:g} MB free")
+                continue
+
+            def admit(size: int, reason: str = reason) -> bool:
+                # Written under a temporary name: the disk's free space now counts it.
+                if self._disk_low():
+                    self._snapshot_refused(
+                        reason, "disk", f"it would leave less than {self.config.min_free_mb:g} MB free"
+                    )
+                    return False
+                # The open file may still grow to file_mb: room for it stays reserved.
+                reserve = size + (self.config.file_mb * 1e6 if self._writer is not None else 0.0)
+                if not self._enforce_total_cap(reserve):
+                    self._snapshot_refused(
+                        reason,
+                        "cap",
+                        f"{size} bytes do not fit in total_mb = {self.config.total_mb:g} with the open file",
+                    )
+                    return False
+                return True
+
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
-                n = write_snapshot(path, ring.entries(), reason, PROFILE)
+                n = write_snapshot(path, ring.entries(), reason, PROFILE, admit)
             except OSError as exc:
                 self.counts["snapshot_errors"] += 1
                 log.warning("recorder: snapshot (%s) to %s failed: %s", reason, path, exc)
                 continue
+            if n is None:
+                continue
             self.snapshots.append(path)
             log.warning("recorder: snapshot (%s): %d messages to %s", reason, n, path)
+
+    def _stamp_target_s(self) -> float | None:
+        return close_target_s(
+            self.flushed_newest_ns,
+            self._chunk_oldest_ns,
+            self._chunk_newest_ns,
+            self.config.chunk_s,
+            self.lead_s,
+        )
+
+    def close_due_s(self) -> float | None:
+        """When the open chunk is to be closed (monotonic seconds; None: no file open): by the stamps, or
+        ``chunk_s`` after the last close on the writer's clock, whichever comes first."""
+        if self._writer is None:
+            return None
+        by_clock = self._last_chunk_s + self.config.chunk_s
+        by_stamps = self._stamp_target_s()
+        return by_clock if by_stamps is None else min(by_clock, by_stamps)
+
+    def _chunk_flushed(self) -> None:
+        """The open chunk is on disk: its newest stamp is the disk's newest."""
+        newest = self._chunk_newest_ns
+        if newest is not None and (self.flushed_newest_ns is None or newest > self.flushed_newest_ns):
+            self.flushed_newest_ns = newest
+        self._chunk_oldest_ns = self._chunk_newest_ns = None
+
+    def _snapshot_refused(self, reason: str, why: str, detail: str) -> None:
+        self.counts[f"snapshot_skipped_{why}"] += 1
+        log.warning("recorder: snapshot (%s) not written: %s (%s)", reason, detail, self.path.parent)
 
     def _maybe_close_chunk(self) -> None:
         if self._writer is None:
             return
         now = self.clock_s()
-        if now - self._last_chunk_s < self.config.chunk_s:
+        target = self._stamp_target_s()
+        by_stamps = target is not None and now >= target
+        if not by_stamps and now - self._last_chunk_s < self.config.chunk_s:
             return
         self._last_chunk_s = now
         self.give_way()
@@ -287,6 +399,16 @@ class McapRecorder:
         except OSError as exc:
             self._fail(exc)
             return
+        if by_stamps and target is not None:
+            # From the instant the close was meant to start to the data in the kernel: the wake-up's lateness,
+            # the drain before it, giving way, compressing and writing. The next lead covers the longest.
+            cost = self.clock_s() - target
+            self._close_costs.append(cost)
+            if cost > self.lead_s:
+                self.counts["record_chunks_late"] += 1
+            self.lead_s = close_lead_s(self._close_costs, self.config.chunk_s)
+        self.counts["record_chunks"] += 1
+        self._chunk_flushed()
         assert self._stream is not None
         if (
             self._stream.tell() >= self.config.file_mb * 1e6
@@ -309,7 +431,7 @@ class McapRecorder:
         if self.paused:
             self.paused = False
             log.warning("recorder: free space is back above %g MB: recording again", self.config.min_free_mb)
-        self._enforce_total_cap()
+        self._enforce_total_cap(self.config.file_mb * 1e6)
         return self._open_next(now)
 
     def _open_next(self, now_s: float) -> Writer | None:
@@ -361,18 +483,29 @@ class McapRecorder:
             os.fsync(stream.fileno())
         except OSError as exc:
             log.warning("recorder: closing %s: %s", path, exc)
+        else:
+            self._chunk_flushed()
         finally:
             stream.close()
+            self._chunk_oldest_ns = self._chunk_newest_ns = None
 
-    def _enforce_total_cap(self) -> None:
-        """Delete the oldest files until the closed ones and a full new one fit in ``total_mb``."""
-        budget = self.config.total_mb * 1e6 - self.config.file_mb * 1e6
-        files = recording_files(self.path)
-        sizes = {p: p.stat().st_size for _, p in files}
+    def _enforce_total_cap(self, reserve_bytes: float) -> bool:
+        """Delete files until the ones kept plus ``reserve_bytes`` (a new file's ``file_mb``, a snapshot
+        about to be written) fit in ``total_mb``: the oldest recording files first, then the oldest
+        snapshots; never the open file. False when even that does not make room."""
+        files = [p for _, p in recording_files(self.path) if p != self._file]
+        candidates = files + snapshot_files(self.path)
+        sizes = {}
+        for p in candidates:
+            with contextlib.suppress(OSError):
+                sizes[p] = p.stat().st_size
         total = sum(sizes.values())
-        for _, oldest in files:
+        budget = self.config.total_mb * 1e6 - reserve_bytes
+        for oldest in candidates:
             if total <= budget:
                 break
+            if oldest not in sizes:
+                continue
             try:
                 oldest.unlink()
             except OSError as exc:
@@ -386,9 +519,12 @@ class McapRecorder:
                 sizes[oldest],
                 self.config.total_mb,
             )
+        return total <= budget
 
     def _disk_low(self) -> bool:
+        """Whether the folder has less than ``min_free_mb`` free."""
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             free = self.free_space(self.path.parent)
         except OSError as exc:
             log.warning("recorder: cannot read the free space of %s: %s", self.path.parent, exc)
@@ -397,6 +533,7 @@ class McapRecorder:
 
     def _pause(self) -> None:
         self._finish_file()
+        self.flushed_newest_ns = None  # nothing recorded while paused: the bound starts again after it
         self._paused_until_s = self.clock_s() + _DISK_RECHECK_S
         if not self.paused:
             self.paused = True
@@ -410,6 +547,7 @@ class McapRecorder:
     def _fail(self, exc: OSError) -> None:
         log.warning("recorder: %s: recording paused", exc)
         self._writer = None
+        self._chunk_oldest_ns = self._chunk_newest_ns = self.flushed_newest_ns = None
         stream, self._stream, self._file = self._stream, None, None
         if stream is not None:
             with contextlib.suppress(OSError):

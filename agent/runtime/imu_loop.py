@@ -15,7 +15,7 @@ from drivers.imu.base import Imu
 
 __all__ = ["imu_loop"]
 
-_IMU_PERIOD_S = 0.01
+IMU_PERIOD_S = 0.01
 # The IMU tilt is only learnt while odometry this recent says the base stands still.
 _TILT_ODOMETRY_AGE_NS = 60_000_000
 
@@ -52,4 +52,4 @@ def imu_loop(
         if still.still_at(sample.host_time_ns, _TILT_ODOMETRY_AGE_NS):
             # Only a base that stands still feels gravity alone (see TiltEstimator).
             tilt.update(sample.host_time_ns, sample.accel_mps2)
-        t_next = state.wait_period(t_next, _IMU_PERIOD_S)
+        t_next = state.wait_period(t_next, IMU_PERIOD_S)

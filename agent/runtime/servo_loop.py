@@ -127,5 +127,6 @@ def servo_loop(
         else:
             if state.recording:
                 sent_ns = state.clock_ns()
-                state.record("wheel_command", sent_ns, WheelCommandSample(sent_ns, left, right))
+                sample = WheelCommandSample(sent_ns, left, right, command.v_mps, command.omega_radps)
+                state.record("wheel_command", sent_ns, sample)
         t_next = state.wait_period(t_next, period_s)

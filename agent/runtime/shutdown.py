@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable
 from types import FrameType, TracebackType
 from typing import Any
 
-__all__ = ["ShutdownRequest", "SignalCall"]
+__all__ = ["AgentRequests", "ShutdownRequest", "SignalCall"]
 
 _Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
@@ -101,3 +101,40 @@ class SignalCall:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         signal.signal(self.signum, self._previous if self._previous is not None else signal.SIG_DFL)
+
+
+def _dropped() -> None:
+    """A request before there is anyone to take it: dropped, not fatal."""
+
+
+class AgentRequests:
+    """The agent's two operator signals, for ``vlp-agent run`` and ``sim`` alike: SIGUSR1 saves the map
+    now, SIGUSR2 writes a flight-recorder snapshot (``systemctl kill -s USR1 vlp-agent``). Installed on
+    enter, before the agent exists (a signal then is dropped, not the default's death); :meth:`attach`
+    points them at the agent once it does; the previous handlers come back on exit. The actions run inside
+    the signal handler, so they only set a flag or append to a deque (:class:`SignalCall`)."""
+
+    def __init__(self) -> None:
+        self.map_save = SignalCall(signal.SIGUSR1, _dropped)
+        self.snapshot = SignalCall(signal.SIGUSR2, _dropped)
+
+    def attach(self, map_save: Callable[[], None], snapshot: Callable[[], None] | None) -> None:
+        """``map_save``: e.g. ``Agent.request_map_save``; ``snapshot``: the flight recorder's
+        ``request_snapshot`` (None: no recorder, the signal stays dropped)."""
+        self.map_save.action = map_save
+        self.snapshot.action = snapshot if snapshot is not None else _dropped
+
+    def __enter__(self) -> AgentRequests:
+        self.map_save.__enter__()
+        try:
+            self.snapshot.__enter__()
+        except BaseException:
+            self.map_save.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.snapshot.__exit__(exc_type, exc, tb)
+        self.map_save.__exit__(exc_type, exc, tb)

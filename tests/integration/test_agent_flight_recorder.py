@@ -1,8 +1,12 @@
 """The flight recorder on the whole agent: ``vlp-agent sim --record`` for 15 s, driving to a goal the
 simulated controller sent, with a laser fault in the middle. Every channel is there (the ones that depend on
-what happened, when it happened), every message validates against the JSON schema embedded in the file,
-the counts match what the agent itself counted (nothing dropped): scans at ~10 Hz, a fix per camera frame;
-and the fusion and SLAM replayed from the recording reproduce every pose written."""
+what happened, when it happened), every message validates against the JSON schema embedded in the file
+(the ``jsonschema`` package), the counts match what the agent itself counted (nothing dropped), and each
+periodic channel runs at its device's rate (``agent.recording.check``: scans at the laser's 10 Hz, IMU
+samples at 100 Hz, wheels at the servo loop's 50 Hz, a VLP result per camera frame and the frames at the
+camera's 30 Hz), measured over the time the device was up by the recording's own stamps; and the fusion and
+SLAM replayed from the recording reproduce every pose written. ``benchmarks/recording_check.py`` is the
+same check on 60 s with tight tolerances."""
 
 from __future__ import annotations
 
@@ -12,14 +16,23 @@ import subprocess
 import time
 from pathlib import Path
 
+import jsonschema
+
+from agent.config import load_config
+from agent.recording.check import Tolerance, check_channels, expected_rates
 from agent.recording.messages import CHANNELS
 from agent.recording.reader import read_recording
 from agent.recording.slam_replay import SlamReplayResult, replay_slam
+from agent.runtime.imu_loop import IMU_PERIOD_S
 from agent.runtime.recorder import replay
+from agent.shipped import DEFAULT_SIM_CONFIG
 from tests.integration.test_agent_accuracy import REPO, vlp_agent
-from tests.unit.test_recording import schema_errors
 
 SECONDS = 15.0
+# Beside a CPU hog a loop may miss periods and the renderer draws fewer frames: a rate within half to 1.15
+# times its device's still shows a loop that stopped, or samples lost or doubled on the way; the benchmark
+# holds the same rates to 10 %. Every VLP result is also checked against the frames the agent counted.
+HOG_TOLERANCE = Tolerance(rate_low=0.5, rate_high=1.15, results_per_frame_low=0.8)
 
 
 def test_a_sim_recording_has_every_channel_and_every_message_validates(tmp_path: Path) -> None:
@@ -53,32 +66,44 @@ def test_a_sim_recording_has_every_channel_and_every_message_validates(tmp_path:
     assert recording.complete and recording.stopped_at is None
     by_topic = recording.by_topic()
 
-    # The schemas embedded in the file are the ones every message is checked against.
+    # The schemas embedded in the file (each a valid JSON Schema) are the ones every message is checked
+    # against, by an independent validator.
+    validators = {}
+    for name, schema in recording.schemas.items():
+        cls = jsonschema.validators.validator_for(schema, default=jsonschema.Draft202012Validator)
+        cls.check_schema(schema)
+        validators[name] = cls(schema)
     for message in recording.messages:
         assert message.schema_name == CHANNELS[message.topic]
-        errors = schema_errors(message.data, recording.schemas[message.schema_name])
+        errors = [e.message for e in validators[message.schema_name].iter_errors(message.data)]
         assert errors == [], (message.topic, errors[:3])
 
+    # Every channel; each count what the agent counted (nothing dropped on the way); each periodic one at
+    # its device's rate over the time the device was up (the laser less its fault), by the file's stamps.
+    config = load_config(DEFAULT_SIM_CONFIG)
+    assert config.sim is not None
+    world = config.sim.world
+    rates = expected_rates(
+        laser_hz=world.laser.scan_rpm / 60.0,
+        camera_hz=world.camera.frame_rate_hz,
+        imu_hz=1.0 / IMU_PERIOD_S,
+        servo_hz=config.control.loop_rate_hz,
+    )
+    checked = check_channels(recording.messages, summary, rates, HOG_TOLERANCE, config.recorder.map_period_s)
+    assert checked["failures"] == [], checked
+    channels = checked["channels"]
+    assert {t for t, c in channels.items() if c["count"] and t in CHANNELS} >= set(CHANNELS) - {
+        "/vlp/no_fix",
+        "/rfid/tags",
+    }
+    assert channels["/laser/scan"]["up_s"] < channels["/imu"]["up_s"] - 1.5  # the fault's 2 s left out
+    assert all(channels[t]["ratio"] > 0 for t in rates)
     counts = summary["counts"]
-    optional = {"/vlp/no_fix": summary["no_fix"], "/rfid/tags": counts.get("tag_reads", 0)}
-    expected = {topic for topic in CHANNELS if topic not in optional} | {t for t, n in optional.items() if n}
-    assert set(by_topic) == expected, set(CHANNELS) - set(by_topic)
 
     def n(topic: str) -> int:
         return len(by_topic.get(topic, []))
 
-    # Exactly what the agent counted: nothing dropped on the way.
-    assert n("/laser/scan") == n("/laser/scan_raw") == counts["scans"]
-    assert n("/wheels/state") == counts["wheel_reads"]
-    assert n("/imu") == counts["imu_samples"]
-    assert n("/vlp/fix") == summary["fixes"] and n("/vlp/no_fix") == summary["no_fix"]
-    assert n("/rfid/tags") == counts.get("tag_reads", 0)
-    assert n("/pose") == n("/pose/fused") == n("/tf") == summary["frames_out"]
     assert n("/commands/received") >= 1 and by_topic["/commands/received"][0].data["kind"] == "goal"
-    assert n("/goals/status") == summary["goals"]["statuses_decoded"]
-    # Rates: the URG's 10 Hz less the 2 s without the laser; a fix for nearly every 30 Hz camera frame.
-    assert 0.7 * 10 * (SECONDS - 2) <= counts["scans"] <= 1.1 * 10 * SECONDS
-    assert 0.5 * 30 * SECONDS <= n("/vlp/fix") + n("/vlp/no_fix") <= summary["camera_frames"]
     # SLAM's poses, each handed to the fusion (fused or rejected) as it was recorded. How many there are
     # depends on how soon the SLAM process was up: 3 in 15 s beside a CPU hog (a hog run), ~13 idle.
     assert n("/slam/pose") == counts.get("slam_fused", 0) + counts.get("slam_rejected", 0) >= 1

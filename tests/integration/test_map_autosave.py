@@ -14,20 +14,19 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from agent.slam.mapio import load_map
 from agent.slam.render import OccupancyImage
-from firmware_protocol.pose_frame import PoseFrameDecoder
-from tests.integration.test_agent_accuracy import REPO, PtyReader, vlp_agent
-from tests.integration.test_agent_shutdown import wait_for_frames
+from tests.integration.sim_pty import SimOnPty
+from tests.integration.test_agent_accuracy import REPO, vlp_agent
 
 _SPEC = importlib.util.spec_from_file_location("map_kill", REPO / "benchmarks" / "map_kill.py")
 assert _SPEC is not None and _SPEC.loader is not None
@@ -55,7 +54,7 @@ def test_kill_9_at_random_instants_and_inside_saves_leaves_the_last_saved_map(tm
         assert "map.yaml" in record["files"]
         # Whatever was left is a temporary file or an image no description names, never the map.
         assert all(name.endswith(".tmp") or name.endswith(".pgm") for name in record["left_over"]), record
-        assert 0.0 <= record["age_s"] < LOST_BOUND_S, record
+        assert record["age_s"] is not None and 0.0 <= record["age_s"] < LOST_BOUND_S, record
         assert record["mcap_messages"] > 0 and record["mcap_files_cut"] <= 1, record
         assert 0.0 <= record["mcap_lost_s"] < MCAP_LOST_BOUND_S, record
 
@@ -114,43 +113,30 @@ def test_saved_while_running_continued_after_a_restart_and_untouched_when_locali
     assert not (tmp_path / "localize" / "map.yaml").exists()
 
 
-def test_sigusr1_to_the_whole_group_saves_the_map_now_and_stops_nothing(tmp_path: Path) -> None:
+def test_sigusr1_to_the_whole_group_saves_the_map_now_and_stops_nothing(
+    tmp_path: Path, sim_on_pty: Callable[..., SimOnPty]
+) -> None:
     """No periodic saves (interval 0): SIGUSR1, sent to every process as ``systemctl kill`` does, is the
     only way a map gets to disk before the stop; the agent, its SLAM process and the rest go on."""
     out = tmp_path / "out"
     config = map_kill.mapping_config(tmp_path, 0.0)
-    reader = PtyReader()
-    command = vlp_agent("sim", "--config", str(config), "--seconds", "120", "--json", "--out", str(out))
-    proc = subprocess.Popen(
-        [*command, "--output", reader.path],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        wait_for_frames(reader, proc, 50)  # the agent is up (a signal during Python's start-up is fatal)
-        deadline = time.monotonic() + 90.0
-        # Before SLAM's first filter update there is no map: the request is dropped; ask again each second.
-        while not (out / "map.yaml").exists():
-            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-            assert time.monotonic() < deadline, "no map saved on SIGUSR1"
-            os.killpg(proc.pid, signal.SIGUSR1)
-            time.sleep(1.0)
+    sim = sim_on_pty("--config", str(config), "--seconds", "120", "--json", "--out", str(out))
+    proc = sim.proc
+    deadline = time.monotonic() + 90.0
+    # Before SLAM's first filter update there is no map: the request is dropped; ask again each second.
+    while not (out / "map.yaml").exists():
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        assert time.monotonic() < deadline, "no map saved on SIGUSR1"
+        sim.signal_group(signal.SIGUSR1)
         time.sleep(1.0)
-        assert proc.poll() is None
-        load_map(out / "map.yaml")
-        frames_before = len(PoseFrameDecoder().feed(reader.snapshot()))
-        time.sleep(1.0)
-        assert len(PoseFrameDecoder().feed(reader.snapshot())) > frames_before  # still localizing, writing
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        reader.close()
+    time.sleep(1.0)
+    assert proc.poll() is None
+    load_map(out / "map.yaml")
+    frames_before = sim.frames()
+    time.sleep(1.0)
+    assert sim.frames() > frames_before  # still localizing, writing
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 0, stderr[-3000:]
     summary = json.loads(stdout)
     assert summary["counts"]["map_saves"] >= 1

@@ -6,26 +6,24 @@ fault makes the laser go bad."""
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from agent.recording.reader import read_recording
 from agent.recording.snapshot import snapshot_files
 from agent.recording.writer import recording_files
-from tests.integration.test_agent_accuracy import REPO, PtyReader, vlp_agent
-from tests.integration.test_agent_shutdown import wait_for_frames
+from tests.integration.sim_pty import SimOnPty
 
 SPAN_S = 3.0
 
 
-def test_snapshot_only_writes_on_sigusr2_and_on_a_fault(tmp_path: Path) -> None:
+def test_snapshot_only_writes_on_sigusr2_and_on_a_fault(
+    tmp_path: Path, sim_on_pty: Callable[..., SimOnPty]
+) -> None:
     record = tmp_path / "rec" / "run.mcap"
-    reader = PtyReader()
-    command = vlp_agent(
-        "sim",
+    sim = sim_on_pty(
         "--seconds",
         "12",
         "--json",
@@ -38,28 +36,13 @@ def test_snapshot_only_writes_on_sigusr2_and_on_a_fault(tmp_path: Path) -> None:
         "--snapshot-only",
         "--fault",
         "laser@7+2",
-        "--output",
-        reader.path,
+        frames=60,
     )
-    proc = subprocess.Popen(
-        command,
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        wait_for_frames(reader, proc, 60)  # the agent is up (a signal during Python's start-up is fatal)
-        time.sleep(1.0)
-        os.killpg(proc.pid, signal.SIGUSR2)
-        signalled_ns = time.monotonic_ns()
-        stdout, stderr = proc.communicate(timeout=90)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        reader.close()
+    proc = sim.proc
+    time.sleep(1.0)
+    sim.signal_group(signal.SIGUSR2)
+    signalled_ns = time.monotonic_ns()
+    stdout, stderr = proc.communicate(timeout=90)
     assert proc.returncode == 0, stderr[-3000:]
     summary = json.loads(stdout.splitlines()[0])
     recording = summary["recording"]

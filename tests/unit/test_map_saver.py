@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.runtime.map_saver import MapSaver
+from agent.runtime.map_saver import MapSaver, content_stamp_ns
 from agent.slam.mapio import load_map
 from agent.slam.render import OccupancyImage, occupancy_image
 
@@ -130,3 +130,63 @@ def test_a_failing_disk_is_counted_and_the_saver_goes_on(tmp_path: Path) -> None
     finally:
         saver.close()
     assert saver.failures == 2 and saver.saves == 0
+
+
+def test_the_next_save_is_due_its_lead_before_the_last_content_time_plus_the_interval(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each save takes 0.2 s of the saver's clock from when it was due to its commit: the next is due 1.5
+    times that before the last map's content time plus the interval, so the map on disk is never more than
+    one interval behind; the content time is in the image's header."""
+    from agent.slam import mapio
+
+    clock = Clock()
+    real_save = mapio.save_map
+
+    def slow_save(*args: object, **kwargs: object) -> object:
+        clock.now_s += 0.2
+        return real_save(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(mapio, "save_map", slow_save)
+    saver = MapSaver(tmp_path, 1.0, clock_s=clock)
+    try:
+        assert saver.due_at_s() == pytest.approx(100.99)  # the minimum lead before any save
+        clock.now_s = 100.995
+        assert saver.due() and saver.seconds_until_due() == 0.0
+        saver.submit(image(-3.0), fetch_s=0.0, content_s=100.995)  # taken out 5 ms after it was due
+        assert saver.flush()
+        # The lag, from when it was due: the 5 ms the SLAM thread took to get to it, then 0.2 s writing.
+        assert saver.counters()["map_save_lag_max_us"] == pytest.approx(205_000, abs=2)
+        assert saver.lead_s == pytest.approx(1.5 * 0.205)
+        assert saver.due_at_s() == pytest.approx(100.995 + 1.0 - 1.5 * 0.205)
+        assert saver.late == 1  # that first one took longer than the 10 ms lead of its time
+        assert saver.seconds_until_due() == pytest.approx(saver.due_at_s() - clock.now_s)
+        # The image names its content time.
+        pgm = next(tmp_path.glob("map.*.pgm")).read_bytes()
+        assert content_stamp_ns(pgm) == round(100.995e9)
+        assert saver.committed_content_s == 100.995
+        # The next, due on time and as slow: committed within one interval of the last content time.
+        clock.now_s = saver.due_at_s() or 0.0
+        content = clock.now_s
+        saver.submit(image(3.0), fetch_s=0.0, content_s=content)
+        assert saver.flush()
+        assert clock.now_s - 100.995 <= 1.0 and saver.late == 1
+    finally:
+        saver.close()
+
+
+def test_a_requested_save_counts_its_lag_from_the_fetch_and_no_interval_means_no_schedule(
+    tmp_path: Path,
+) -> None:
+    clock = Clock()
+    saver = MapSaver(tmp_path, 0.0, clock_s=clock)
+    try:
+        assert saver.due_at_s() is None and saver.seconds_until_due() is None
+        saver.request()
+        assert saver.seconds_until_due() == 0.0
+        saver.submit(image(3.0), fetch_s=0.0, content_s=clock.now_s)
+        assert saver.flush()
+        assert saver.counters()["map_saves_late"] == 0  # no interval: no bound to keep
+    finally:
+        saver.close()
+    assert content_stamp_ns(b"P5\n# vlp-agent slam\n40 40\n255\n") is None

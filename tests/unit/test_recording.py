@@ -115,7 +115,7 @@ def one_of_each(t_ns: int) -> list[tuple[str, Any]]:
     return [
         ("scan", scan(1, t_ns)),
         ("wheels", WheelState((0.1, 0.2), (1.0, 1.1), t_ns)),
-        ("wheel_command", WheelCommandSample(t_ns, 1.0, -1.0)),
+        ("wheel_command", WheelCommandSample(t_ns, 1.0, -1.0, 0.0, -0.5)),
         ("imu", ImuSample((0.0, 0.1, 9.8), (0.0, 0.0, 0.3), 31.0, t_ns)),
         ("tag", TagRead("E200", t_ns, "m6e", rssi_dbm=-63.0, antenna=1)),
         ("vlp_fix", fix),
@@ -521,7 +521,8 @@ def test_the_writer_gives_way_before_each_sample_and_each_chunk(tmp_path: Path) 
     calls: list[int] = []
     rec.give_way = lambda: calls.append(len(rec._queue))
     for i in range(10):
-        rec.record("imu", i, ImuSample((0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 30.0, i))
+        t_ns = round(clock.t_s * 1e9) + i  # stamped now: no chunk due yet by the stamps
+        rec.record("imu", t_ns, ImuSample((0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 30.0, t_ns))
     rec.pump()  # ten samples: the hot path is asked before each one is encoded
     assert calls == list(range(10, 0, -1))
     clock.t_s += 1.0

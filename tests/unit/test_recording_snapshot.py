@@ -3,18 +3,20 @@ written whole and atomically, on request and on a device going bad, with or with
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from agent.config import parse_config
+from agent.config import RecorderConfig, parse_config
 from agent.recording.messages import HealthSample
 from agent.recording.reader import read_recording
 from agent.recording.snapshot import SnapshotRing, snapshot_files, write_snapshot
-from agent.recording.writer import next_wait_s, recording_files
+from agent.recording.writer import McapRecorder, close_lead_s, close_target_s, next_wait_s, recording_files
 from drivers.errors import ConfigError
-from tests.unit.test_recording import OFFICE, feed_scans, recorder, sequences
+from drivers.samples import ImuSample
+from tests.unit.test_recording import OFFICE, FakeClock, feed_scans, recorder, sequences
 
 
 def test_the_ring_keeps_the_last_span_of_log_time_and_counts_what_it_let_go() -> None:
@@ -146,8 +148,147 @@ def test_the_snapshot_config_keys() -> None:
 
 
 def test_the_writer_wakes_when_the_chunk_is_due_not_a_period_later() -> None:
-    # chunk_s 1 s, a pass every 0.25 s: the last chunk closed at 10.0, now 10.9 -> wake at 11.0, not 11.15.
-    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=True) == pytest.approx(0.1)
-    assert next_wait_s(10.2, 10.0, 1.0, 0.25, open_file=True) == 0.25
-    assert next_wait_s(11.3, 10.0, 1.0, 0.25, open_file=True) == 0.0  # overdue: at once
-    assert next_wait_s(10.9, 10.0, 1.0, 0.25, open_file=False) == 0.25  # no chunk open: nothing due
+    # A pass every 0.25 s; the open chunk due at 11.0: at 10.9 the writer sleeps 0.1 s, not 0.25.
+    assert next_wait_s(10.9, 11.0, 0.25) == pytest.approx(0.1)
+    assert next_wait_s(10.2, 11.0, 0.25) == 0.25
+    assert next_wait_s(11.3, 11.0, 0.25) == 0.0  # overdue: at once
+    assert next_wait_s(10.9, None, 0.25) == 0.25  # no chunk open: nothing due
+
+
+def test_the_close_starts_its_lead_ahead_of_the_newest_stamp_on_disk_growing_old() -> None:
+    # Nothing on disk yet: chunk_s after the open chunk's oldest message, less the lead.
+    assert close_target_s(None, 5_000_000_000, 5_500_000_000, 1.0, 0.1) == pytest.approx(5.9)
+    # The newest message on disk at 7.2 s: close by 8.2 s, started 0.1 s ahead.
+    assert close_target_s(7_200_000_000, 7_000_000_000, 7_600_000_000, 1.0, 0.1) == pytest.approx(8.1)
+    # Nothing newer than the disk's newest (only late-stamped messages): closing would not freshen it.
+    assert close_target_s(7_200_000_000, 7_000_000_000, 7_100_000_000, 1.0, 0.1) is None
+    assert close_target_s(None, None, None, 1.0, 0.1) is None
+    # The lead: 1.5 times the longest recent close, at least 10 ms, at most half a chunk.
+    assert close_lead_s([], 1.0) == 0.01
+    assert close_lead_s([0.02, 0.1, 0.04], 1.0) == pytest.approx(0.15)
+    assert close_lead_s([0.9], 1.0) == 0.5
+
+
+def test_the_newest_message_on_disk_is_never_older_than_chunk_s(tmp_path: Path) -> None:
+    """The writer thread's loop on a fake clock: IMU samples at 100 Hz stamped with the clock, each sample
+    and each close costing the writer 1 ms (a drain of a quarter second costs 25 ms), and once a wake-up
+    0.3 s late (a stall): at every 10 ms step after the first close, the newest message on disk (what a
+    kill leaves) is at most chunk_s old; the recorder's own figure is checked against the file at every
+    close."""
+    chunk_s = 1.0
+    rec, clock, _ = recorder(tmp_path, chunk_s=chunk_s)
+    stall = {"at": 12.0, "done": False}
+
+    def give_way() -> None:
+        clock.t_s += 0.001
+
+    rec.give_way = give_way
+    next_sample_s = clock.t_s
+    ages: list[tuple[float, float]] = []  # (instant, how old the newest message on disk is then)
+    closes = 0
+    max_lead = 0.0
+    while clock.t_s < 130.0:
+        due = rec.close_due_s()
+        wake = clock.t_s + next_wait_s(clock.t_s, due, chunk_s / 4)
+        if not stall["done"] and wake >= 100.0 + stall["at"] and due is not None and wake >= due:
+            stall["done"] = True
+            wake += 0.3  # woken for a close, the thread was not scheduled for 0.3 s
+        # Samples arrive (and the disk ages) while the writer sleeps.
+        while next_sample_s <= wake:
+            clock.t_s = next_sample_s
+            if rec.flushed_newest_ns is not None:
+                ages.append((clock.t_s - 100.0, clock.t_s - rec.flushed_newest_ns * 1e-9))
+            rec.record("imu", round(next_sample_s * 1e9), imu_sample(round(next_sample_s * 1e9)))
+            next_sample_s += 0.01
+        clock.t_s = wake
+        before = rec.counts["record_chunks"]
+        rec.pump()
+        max_lead = max(max_lead, rec.lead_s)
+        if rec.counts["record_chunks"] > before:
+            closes += 1
+            [path] = rec.files
+            on_disk = max(m.log_time_ns for m in read_recording(path).messages)
+            assert on_disk == rec.flushed_newest_ns
+    rec.close()
+    assert closes > 25
+    # The stall (a close 0.3 s late) was later than the lead of the time: counted, and the lead grew for it.
+    assert rec.counts["record_chunks_late"] >= 1 and max_lead >= 0.45
+    # The bound held at every instant but around the stall (its own close ran over the lead of the time).
+    stalled = [age for t, age in ages if stall["at"] - 0.5 <= t <= stall["at"] + 1.5]
+    assert max(stalled) > chunk_s  # the stall did break it: the check can fail
+    assert max(age for t, age in ages if not stall["at"] - 0.5 <= t <= stall["at"] + 1.5) <= chunk_s
+
+
+def imu_sample(t_ns: int) -> ImuSample:
+    return ImuSample((0.0, 0.0, 9.81), (0.0, 0.0, 0.01), 30.0, t_ns)
+
+
+def test_snapshots_count_in_the_total_cap_the_recording_files_going_first(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A continuous recording in small files beside snapshots, all under total_mb: the oldest recording
+    files are deleted to make room for a snapshot, then the oldest snapshots; never the open file."""
+    caplog.set_level(logging.WARNING, logger="agent.recording.writer")
+    total_mb = 0.12
+    rec, clock, _ = recorder(tmp_path, snapshot_s=2.0, file_mb=0.02, total_mb=total_mb, chunk_s=0.2)
+
+    def on_disk() -> int:
+        return sum(p.stat().st_size for p in tmp_path.glob("*.mcap"))
+
+    for k in range(8):
+        feed_scans(rec, clock, 40 * k, 40)
+        rec.request_snapshot()
+        rec.pump()
+        assert on_disk() <= total_mb * 1e6, k  # the open file included: the cap holds at every step
+    rec.close()
+    snaps = snapshot_files(tmp_path / "run.mcap")
+    deleted_snaps = [p for p in rec.deleted if "snapshot" in p.name]
+    assert deleted_snaps and not any(p.exists() for p in rec.deleted)
+    # Each snapshot was deleted only once no recording file but the open one was left to delete.
+    assert deleted_snaps == rec.snapshots[: len(deleted_snaps)]  # the oldest snapshots
+    assert snaps == rec.snapshots[len(deleted_snaps) :] and snaps
+    assert sequences(snaps[-1])[-1] == 319  # the newest kept
+    assert any("deleted" in r.getMessage() and "snapshot" in r.getMessage() for r in caplog.records)
+
+
+def test_a_snapshot_that_would_fill_the_disk_is_not_written_and_said(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The disk's free space goes down by what is written in the folder: a snapshot that leaves less than
+    min_free_mb is removed (its temporary file too), one asked for below it is not begun; with room again
+    the next is written."""
+    caplog.set_level(logging.WARNING, logger="agent.recording.writer")
+    free = {"mb": 100.01}
+
+    def disk(folder: Path) -> int:
+        used = sum(p.stat().st_size for p in folder.iterdir())
+        return int(free["mb"] * 1e6) - used
+
+    config = RecorderConfig(
+        path=tmp_path / "run.mcap", snapshot_s=5.0, continuous=False, min_free_mb=100, chunk_s=0.2
+    )
+    clock = FakeClock()
+    rec = McapRecorder(config, free_space=disk, clock_s=clock)
+    feed_scans(rec, clock, 0, 30)  # a snapshot of ~3 s of scans: more than the 10 kB left above the guard
+    rec.request_snapshot()
+    rec.pump()
+    assert list(tmp_path.iterdir()) == [] and rec.counters()["snapshot_skipped_disk"] == 1
+    assert any("would leave less than 100 MB free" in r.getMessage() for r in caplog.records)
+    free["mb"] = 99.0  # below the guard already: not begun
+    rec.request_snapshot()
+    rec.pump()
+    assert list(tmp_path.iterdir()) == [] and rec.counters()["snapshot_skipped_disk"] == 2
+    free["mb"] = 101.0  # room again: the next request is written
+    rec.request_snapshot()
+    rec.pump()
+    assert len(snapshot_files(tmp_path / "run.mcap")) == 1
+    rec.close()
+
+
+def test_a_snapshot_larger_than_the_cap_is_not_written(tmp_path: Path) -> None:
+    rec, clock, _ = recorder(tmp_path, snapshot_s=5.0, continuous=False, total_mb=0.001, chunk_s=0.2)
+    feed_scans(rec, clock, 0, 30)
+    rec.request_snapshot()
+    rec.pump()
+    rec.close()
+    assert snapshot_files(tmp_path / "run.mcap") == [] and rec.counters()["snapshot_skipped_cap"] == 1

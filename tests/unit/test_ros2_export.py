@@ -16,12 +16,20 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from agent.config import MountConfig, SlamConfig
-from agent.recording.messages import FusedSample, occupancy_cells
+from agent.recording.messages import (
+    CommandSample,
+    FusedSample,
+    HealthSample,
+    WheelCommandSample,
+    occupancy_cells,
+)
 from agent.recording.reader import read_recording
 from agent.recording.ros2_types import TYPES, msgdef
 from agent.recording.slam_replay import slam_setup
 from agent.runtime.types import AbsoluteFix
 from agent.slam.render import OccupancyImage
+from drivers.samples import ImuSample
+from firmware_protocol.command_frame import GoalCommand, StopCommand, VelocityCommand
 from tests.unit.test_recording import recorder, scan
 
 UNIX_OFFSET_NS = 1_700_000_000_000_000_000  # fixed in the test (the recorder writes the real one)
@@ -30,8 +38,9 @@ T0_NS = 3_000_000_000
 
 def _recorded(tmp_path: Path, seconds: float = 6.0) -> Path:
     """A recording of ``seconds``: scans at 10 Hz, wheel odometry at 50 Hz (the fusion's records, driving
-    0.2 m/s on a 0.1 rad/s turn), a fused pose at 20 Hz, a VLP fix without heading and a SLAM pose each
-    second, a map every 2 s; a chunk every 0.2 s of the fake clock."""
+    0.2 m/s on a 0.1 rad/s turn), IMU samples and wheel commands at 50 Hz, a fused pose at 20 Hz, a VLP fix
+    without heading and a SLAM pose each second, a map every 2 s; a velocity command, a goal and a stop
+    received; the laser up, then lost at 3 s; a chunk every 0.2 s of the fake clock."""
     from agent.fusion import Estimate
 
     rec, clock, _ = recorder(tmp_path / "rec", chunk_s=0.2)
@@ -53,6 +62,16 @@ def _recorded(tmp_path: Path, seconds: float = 6.0) -> Path:
             rec.record("slam_pose", t, AbsoluteFix(t, 1.5, 2.5, 0.25, np.diag([1e-4, 2e-4, 3e-4])))
         if k % 100 == 0:
             rec.record("map", t, (t, OccupancyImage(pixels, 0.05, (-1.0, -2.0, 0.0))))
+        rec.record("imu", t, ImuSample((0.1, -0.2, 9.81), (0.01, 0.02, 0.1), 31.0, t))
+        rec.record("wheel_command", t, WheelCommandSample(t, 5.0, 6.0, 0.2, 0.1))
+        if k == 0:
+            rec.record("command", t, CommandSample(t, VelocityCommand(1, 0.15, -0.3, 0.5)))
+            rec.record("health", t, HealthSample(t, "laser", True, "up"))
+        if k == 100:
+            rec.record("command", t, CommandSample(t, GoalCommand(2, 7, 3.5, -1.25, None)))
+            rec.record("command", t, CommandSample(t, StopCommand(3)))  # no standard message: left out
+        if k == 150:
+            rec.record("health", t, HealthSample(t, "laser", False, "no scan for 0.5 s"))
         if k % 10 == 0:
             estimate = Estimate(
                 t, 1.0, 2.0, 0.5, 0.1, 0.0, np.diag([1e-4, 2e-4, 1e-5, 1e-3, 1e-3]), 0, 0.2, k
@@ -120,6 +139,11 @@ def test_a_recording_exports_to_a_ros2_bag_that_an_independent_reader_decodes(
         "/slam/pose": 6,
         "/vlp/pose": 6,
         "/map": 3,
+        "/imu": 300,
+        "/cmd_vel": 300,
+        "/controller/cmd_vel": 1,
+        "/goal_pose": 1,
+        "/diagnostics": 2,
     }
     assert sorted(p.name for p in bag.iterdir()) == ["bag_0.mcap", "metadata.yaml"]
     messages, types, qos = _read_bag(bag)
@@ -132,8 +156,36 @@ def test_a_recording_exports_to_a_ros2_bag_that_an_independent_reader_decodes(
         "/slam/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
         "/vlp/pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
         "/map": "nav_msgs/msg/OccupancyGrid",
+        "/imu": "sensor_msgs/msg/Imu",
+        "/cmd_vel": "geometry_msgs/msg/TwistStamped",
+        "/controller/cmd_vel": "geometry_msgs/msg/TwistStamped",
+        "/goal_pose": "geometry_msgs/msg/PoseStamped",
+        "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     }
     assert {topic: len(m) for topic, m in messages.items()} == result["topics"]
+
+    # IMU: no orientation (REP 145), the gyro and the accelerometer as recorded, in frame imu.
+    t_imu, imu = messages["/imu"][1]
+    assert t_imu == _stamp_ns(imu.header) == T0_NS + 20_000_000 + UNIX_OFFSET_NS
+    assert imu.header.frame_id == "imu" and imu.orientation_covariance[0] == -1.0
+    gyro, accel = imu.angular_velocity, imu.linear_acceleration
+    assert (gyro.x, gyro.y, gyro.z) == (0.01, 0.02, 0.1) and (accel.x, accel.y, accel.z) == (0.1, -0.2, 9.81)
+    # Commands: the base velocity sent with each wheel command; the controller's velocity and goal.
+    _, sent = messages["/cmd_vel"][0]
+    assert sent.header.frame_id == "base_link" and (sent.twist.linear.x, sent.twist.angular.z) == (0.2, 0.1)
+    _, received = messages["/controller/cmd_vel"][0]
+    assert (received.twist.linear.x, received.twist.angular.z) == (0.15, -0.3)
+    t_goal, goal = messages["/goal_pose"][0]
+    assert t_goal == T0_NS + 100 * 20_000_000 + UNIX_OFFSET_NS and goal.header.frame_id == "map"
+    assert (goal.pose.position.x, goal.pose.position.y, goal.pose.orientation.w) == (3.5, -1.25, 1.0)
+    # Health: one status per event, OK then ERROR with the reason.
+    statuses = [m.status[0] for _, m in messages["/diagnostics"]]
+    assert [(st.level, st.name, st.hardware_id) for st in statuses] == [
+        (0, "vlp-agent/laser", "laser"),
+        (2, "vlp-agent/laser", "laser"),
+    ]
+    assert statuses[1].message == "no scan for 0.5 s"
+    assert [(kv.key, kv.value) for kv in statuses[1].values] == [("ok", "false")]
 
     # Scans: metres, the error codes as NaN, the angles and limits of the recorded scan, Unix time.
     t_first, first = messages["/scan"][0]

@@ -7,7 +7,7 @@ import signal
 import threading
 import time
 
-from agent.runtime.shutdown import ShutdownRequest
+from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 
 
 def test_signal_wakes_the_wait_at_once_and_is_remembered() -> None:
@@ -40,3 +40,19 @@ def test_handler_is_safe_while_the_main_thread_holds_a_lock() -> None:
             if shutdown.requested:
                 break
         assert shutdown.requested
+
+
+def test_the_agent_requests_are_dropped_until_attached_then_reach_the_agent() -> None:
+    calls: list[str] = []
+    before = (signal.getsignal(signal.SIGUSR1), signal.getsignal(signal.SIGUSR2))
+    with AgentRequests() as requests:
+        os.kill(os.getpid(), signal.SIGUSR1)  # before the agent exists: dropped, the process lives on
+        os.kill(os.getpid(), signal.SIGUSR2)
+        requests.attach(lambda: calls.append("map"), lambda: calls.append("snapshot"))
+        os.kill(os.getpid(), signal.SIGUSR1)
+        os.kill(os.getpid(), signal.SIGUSR2)
+        requests.attach(lambda: calls.append("map again"), None)  # no flight recorder: SIGUSR2 dropped
+        os.kill(os.getpid(), signal.SIGUSR2)
+        os.kill(os.getpid(), signal.SIGUSR1)
+    assert calls == ["map", "snapshot", "map again"]
+    assert (signal.getsignal(signal.SIGUSR1), signal.getsignal(signal.SIGUSR2)) == before
