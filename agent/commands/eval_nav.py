@@ -100,13 +100,19 @@ def rasterize_walls(world: World, resolution_m: float) -> tuple[GridSpec, BoolAr
         (x0, y0), resolution_m, (math.ceil((y1 - y0) / resolution_m), math.ceil((x1 - x0) / resolution_m))
     )
     occupied = np.zeros(spec.shape, dtype=bool)
-    for ax, ay, bx, by in segments:
+    draw_segments(spec, occupied, segments)
+    return spec, occupied
+
+
+def draw_segments(spec: GridSpec, occupied: BoolArray, segments: FloatArray) -> None:
+    """Mark the cells the (N, 4) segments pass through occupied (sampled every quarter cell)."""
+    resolution_m = spec.resolution_m
+    for ax, ay, bx, by in np.asarray(segments, dtype=np.float64).reshape(-1, 4):
         n = max(math.ceil(math.hypot(bx - ax, by - ay) / (resolution_m * 0.25)), 1) + 1
         t = np.linspace(0.0, 1.0, n)
         cells = spec.to_cell(np.stack([ax + t * (bx - ax), ay + t * (by - ay)], axis=1))
         cells = cells[spec.inside(cells)]
         occupied[cells[:, 0], cells[:, 1]] = True
-    return spec, occupied
 
 
 class ShortestPaths:

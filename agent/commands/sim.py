@@ -168,6 +168,14 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "when the last goal has ended, or at --seconds",
     )
     p.add_argument(
+        "--explore",
+        action="store_true",
+        help="explore the world from an empty map with the config's [exploration] explorer instead of "
+        "driving the world's route: the explorer's targets go to the navigation as mission goals; the "
+        "run ends when the explorer says complete or failed, or at --seconds. The summary's "
+        "'exploration' says how much of the reachable free area the SLAM map saw, and why it stopped",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -391,11 +399,23 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
+        if args.explore:
+            if goals:
+                raise UsageError("--explore and --goal: the robot drives one mission at a time")
+            if not agent.enable_exploration():
+                raise UsageError(
+                    "--explore needs the navigation: SLAM, a laser, wheels and the pose output "
+                    "([navigation] enabled)"
+                )
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
-        # The world's route, driven from the agent's own pose, unless goals drive the robot.
-        route = () if goals else world.route
+        if agent.exploration is not None:
+            from agent.exploration import Command
+
+            agent.exploration.command(Command.START)
+        # The world's route, driven from the agent's own pose, unless goals or exploring drive the robot.
+        route = () if goals or args.explore else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -424,6 +444,7 @@ def run(args: argparse.Namespace) -> int:
             args, out_dir, robot.simulation, scorer, agent.mapper if mapping else None, slam_path
         )
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
+        summary["exploration"] = _exploration_summary(agent, robot.simulation)
         summary["t0_us"] = t0_us
         if agent.flight_recorder is not None:
             summary["recording"] = {
@@ -490,6 +511,8 @@ def _watch(
         if now >= next_status:
             next_status += 1.0
             if args.goal and controller is not None and controller.counts().goals_done:
+                return
+            if agent.exploration is not None and agent.exploration.ended:
                 return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
@@ -637,6 +660,30 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
     }
 
 
+def _exploration_summary(agent: Agent, sim: Simulation) -> dict[str, Any] | None:
+    """With --explore: the explorer's end and how much of the true reachable free area (the doors as they
+    are at the end) the last SLAM map it was given had seen (None: not exploring)."""
+    loop = agent.exploration
+    if loop is None:
+        return None
+    from agent.commands.eval_explore import explored_share
+
+    out = loop.status()
+    grid = loop.last_grid
+    fraction, area_m2 = explored_share(grid, sim.world, sim) if grid is not None else (0.0, math.nan)
+    out["explored_fraction"] = round(fraction, 4)
+    out["reachable_free_m2"] = None if math.isnan(area_m2) else round(area_m2, 2)
+    out["stopped_reason"] = (
+        f"{out['state']}: {out['reason']}"
+        if loop.ended
+        else f"--seconds spent ({out['state']}: {out['reason']})"
+    )
+    out["door_events"] = [
+        {"t_s": round(t_s, 1), "door": name, "closed": closed} for t_s, name, closed in sim.door_events()
+    ]
+    return out
+
+
 def _summary(
     config: AgentConfig,
     elapsed: float,
@@ -760,6 +807,12 @@ def _print_summary(s: dict[str, Any]) -> None:
     print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
     share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
     print(f"  sources live      {share} of frames")
+    exploration = s.get("exploration")
+    if exploration:
+        print(
+            f"  exploration       {100 * exploration['explored_fraction']:.1f} % of "
+            f"{exploration['reachable_free_m2']} m2 seen; {exploration['stopped_reason']}"
+        )
     goals = s.get("goals")
     if goals:
         outcomes = ", ".join(f"{goal_id} {text.lower()}" for goal_id, text in goals["outcomes"].items())

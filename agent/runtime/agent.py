@@ -44,6 +44,7 @@ from agent.runtime.collector import IdleCollector
 from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
 from agent.runtime.drive_loop import DirectiveDrive, Navigator
+from agent.runtime.exploration_loop import ExplorationLoop
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
 from agent.runtime.imu_loop import imu_loop
@@ -218,6 +219,8 @@ class Agent:
         # is in force. None: nothing navigates, and the controller's goals are answered NOT_LOCALIZED.
         self.navigator: Navigator | None = None
         self.navigation: NavigationLoop | None = None
+        # A local exploration mission (``enable_exploration``); None: none.
+        self.exploration: ExplorationLoop | None = None
         self.arbiter: CommandArbiter | None = None
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
@@ -288,7 +291,7 @@ class Agent:
                 slam_fixes=self.slam_fixes,
                 hot_path=hot,
                 odometry_track=self.odometry_track if d.servos is not None else None,
-                on_map=self.navigation.on_map if self.navigation is not None else None,
+                on_map=self._on_map if self.navigation is not None else None,
                 saver=self.map_saver,
             )
             scans = self.scans if self.mapper is not None else None
@@ -317,6 +320,9 @@ class Agent:
         if self.output is not None:
             output = partial(output_loop, s, output=self.output, publish=self._publish)
             self._spawn("output", True, timeout, output)
+        if self.exploration is not None:
+            # Not critical: without it the robot stands still, and the dead-man covers the wheels.
+            self._spawn("explore", False, max(timeout, 5.0), partial(self.exploration.run, stop=s.stop))
         if self.commands is not None and self.drive_step is not None:
             # Not critical: a controller that sends nothing is no fault, and the dead-man covers this loop.
             commands = partial(self.commands.run, stop=s.stop, then=self.drive_step.step)
@@ -564,6 +570,37 @@ class Agent:
         )
         self.navigator = self.navigation
         return True
+
+    def enable_exploration(self) -> bool:
+        """Explore with the configured explorer (``[exploration]``) as a local mission, once started: the
+        SLAM map and the fused pose in, mission goals to the navigation out (``exploration_loop``). Needs
+        the navigation (:meth:`enable_navigation`); False, saying why in the log, without it. Before
+        :meth:`start`."""
+        if self.navigation is None or self.arbiter is None or self.commands is None:
+            log.warning("exploration off: it needs the navigation")
+            return False
+        from agent.exploration import make_explorer
+        from agent.runtime.exploration_loop import ExplorationLoop
+
+        explorer = make_explorer(self.config.exploration, self.config.navigation)
+        commands = self.commands
+        self.exploration = ExplorationLoop(
+            explorer,
+            self.arbiter,
+            lambda status: commands.answer(status, None),
+            self._navigation_pose,
+            self.clock_ns,
+        )
+        commands.listeners.append(self.exploration.on_status)
+        return True
+
+    def _on_map(self, image: Any) -> None:
+        """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the exploration's
+        map."""
+        if self.navigation is not None:
+            self.navigation.on_map(image)
+        if self.exploration is not None:
+            self.exploration.on_map(image)
 
     def _navigation_pose(self) -> tuple[float, float, float] | None:
         """The fused pose while a position source is live (a stale hold is not driven on)."""

@@ -209,6 +209,14 @@ class CommandArbiter:
             self._mission = goal
             return self._status(NO_SEQUENCE, goal.goal_id, GoalState.ACCEPTED)
 
+    def cancel_mission(self, goal_id: int) -> GoalStatus | None:
+        """The mission ends its own goal (CANCELLED); None if ``goal_id`` is not the mission goal in force."""
+        with self._lock:
+            if self._mission is None or self._mission.goal_id != goal_id:
+                return None
+            self._mission = None
+            return self._status(NO_SEQUENCE, goal_id, GoalState.CANCELLED)
+
     def directive(self, now_s: float) -> tuple[Directive, GoalStatus | None]:
         """What drives the base now, and the dead-man's status if a velocity just expired."""
         with self._lock:

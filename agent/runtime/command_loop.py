@@ -85,6 +85,8 @@ class CommandLoop:
         self.statuses: collections.deque[GoalStatus] = collections.deque(maxlen=256)  # for the summary
         # The flight recorder's entry (kind, time ns, sample); set by the agent when it records.
         self.record: Callable[[str, int, object], None] | None = None
+        # Told of every status sent (the exploration loop learns its mission goals' outcomes so).
+        self.listeners: list[Callable[[GoalStatus], None]] = []
         self._decoder: _Decoder
         self._encode: Callable[[GoalStatus, CommandType | None], bytes]
         if output_format is OutputFormat.MAVLINK:
@@ -99,6 +101,8 @@ class CommandLoop:
     def answer(self, status: GoalStatus, answers: CommandType | None = CommandType.GOAL) -> None:
         """Send one status (also the navigator's ACTIVE / REACHED / FAILED reports, through the caller)."""
         self.statuses.append(status)
+        for listener in self.listeners:
+            listener(status)
         if self.record is not None:
             now_ns = int(self.clock_s() * 1e9)
             self.record("goal_status", now_ns, GoalSample(now_ns, status))
