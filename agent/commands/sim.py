@@ -46,6 +46,7 @@ from agent.recording.messages import TruthSample
 from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import ShutdownRequest, SignalCall
 from agent.shipped import DEFAULT_SIM_CONFIG
@@ -56,6 +57,15 @@ from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
 from drivers.sim.route import RouteFollower
 from drivers.sim.simulation import Simulation
+from firmware_protocol.command_frame import (
+    NO_SEQUENCE,
+    ExploreAction,
+    ExploreCommand,
+    GoalReason,
+    GoalState,
+    GoalStatus,
+    PlaceCommand,
+)
 from firmware_protocol.pose_frame import PoseFlags
 
 log = logging.getLogger(__name__)
@@ -176,6 +186,17 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "'exploration' says how much of the reachable free area the SLAM map saw, and why it stopped",
     )
     p.add_argument(
+        "--deliver",
+        metavar="A,B",
+        type=_deliver_argument,
+        default=None,
+        help="a delivery: explore first (as --explore), then go to the world's place A ([[places]], "
+        "docs/world.md), then to B and back to A, as go-to-place missions (the second with come-back); "
+        "instead of the route. The run ends when they have ended (or one was refused: an unknown place, "
+        "no pose, a robot inside an obstacle, a map with no free space), or at --seconds; the summary's "
+        "'delivery' has each mission's answer and end and the true position's error at each end",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -268,6 +289,14 @@ class FaultInjector:
             stall(on)
         elif kind == "servo":
             self.robot.servos.mute(self.robot.world.robot.left_id, on)
+
+
+def _deliver_argument(text: str) -> tuple[str, str]:
+    """``A,B``: two place names."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or not all(parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected A,B (two place names)")
+    return parts[0], parts[1]
 
 
 def _goal_argument(text: str) -> tuple[float, float, float | None]:
@@ -399,23 +428,31 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
-        if args.explore:
+        script: MissionScript | None = None
+        if args.explore or args.deliver:
             if goals:
-                raise UsageError("--explore and --goal: the robot drives one mission at a time")
-            if not agent.enable_exploration():
+                raise UsageError("--goal with --explore or --deliver: the robot drives one mission at a time")
+            places = {p.name: NamedPlace(p.name, p.x_m, p.y_m, p.yaw_rad) for p in world.places}
+            unknown = [name for name in args.deliver or () if name not in places]
+            if unknown:
                 raise UsageError(
-                    "--explore needs the navigation: SLAM, a laser, wheels and the pose output "
-                    "([navigation] enabled)"
+                    f"--deliver: no place {', '.join(map(repr, unknown))} in the world "
+                    f"({', '.join(places) or 'it names no [[places]]'})"
                 )
+            if not agent.enable_missions(places):
+                raise UsageError(
+                    "--explore and --deliver need the navigation: SLAM, a laser, wheels and the pose "
+                    "output ([navigation] enabled)"
+                )
+            assert agent.missions is not None
+            script = MissionScript(agent.missions, robot.simulation, args.deliver)
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
-        if agent.exploration is not None:
-            from agent.exploration import Command
-
-            agent.exploration.command(Command.START)
-        # The world's route, driven from the agent's own pose, unless goals or exploring drive the robot.
-        route = () if goals or args.explore else world.route
+        if script is not None:
+            threading.Thread(target=script.run, args=(stop,), name="sim-missions", daemon=True).start()
+        # The world's route, driven from the agent's own pose, unless goals or missions drive the robot.
+        route = () if goals or script is not None else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -427,7 +464,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         t0_us = time.monotonic_ns() // 1000
         try:
-            _watch(args, agent, scorer, injector, shutdown, t0, live, controller)
+            _watch(args, agent, scorer, injector, shutdown, t0, live, controller, script)
         finally:
             stop.set()
             autopilot.join(1.0)
@@ -444,7 +481,10 @@ def run(args: argparse.Namespace) -> int:
             args, out_dir, robot.simulation, scorer, agent.mapper if mapping else None, slam_path
         )
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
-        summary["exploration"] = _exploration_summary(agent, robot.simulation)
+        if script is not None:
+            summary["exploration"] = _exploration_summary(agent, robot.simulation)
+        if script is not None and args.deliver:
+            summary["delivery"] = script.delivery()
         summary["t0_us"] = t0_us
         if agent.flight_recorder is not None:
             summary["recording"] = {
@@ -496,8 +536,10 @@ def _watch(
     t0: float,
     live: bool,
     controller: SimulatedController | None = None,
+    script: MissionScript | None = None,
 ) -> None:
-    """Until --seconds, a stop request, or (with --goal) the last goal's end; the status line each second."""
+    """Until --seconds, a stop request, (with --goal) the last goal's end, or (with --explore,
+    --deliver) the missions' end; the status line each second."""
     next_status = t0 + 1.0
     last_counts: dict[str, int] = {}
     last_t = t0
@@ -512,7 +554,7 @@ def _watch(
             next_status += 1.0
             if args.goal and controller is not None and controller.counts().goals_done:
                 return
-            if agent.exploration is not None and agent.exploration.ended:
+            if script is not None and script.done:
                 return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
@@ -660,10 +702,99 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
     }
 
 
+class MissionScript:
+    """--explore and --deliver: the missions, handed to the agent's mission loop as the serial link's
+    explore and go-to-place commands would be (``MissionLoop.take``); a mission refused for want of a pose
+    (the agent just started) is asked again every half second, any other refusal ends the script."""
+
+    RETRY_S = 0.5
+
+    def __init__(self, missions: MissionLoop, sim: Simulation, deliver: tuple[str, str] | None) -> None:
+        self.missions = missions
+        self.sim = sim
+        self.deliver = deliver
+        self.done = False
+        self.answers: list[dict[str, Any]] = []  # each mission: its command, answer and end
+        self.ends: list[dict[str, Any]] = []  # each leg reached: the place, the true position's error
+
+    def _plan(self) -> list[ExploreCommand | PlaceCommand]:
+        """Explore (the map starts empty: a place needs a map with free space around it and a way there);
+        then, delivering, to A, and to B and back."""
+        plan: list[ExploreCommand | PlaceCommand] = [ExploreCommand(NO_SEQUENCE, 1, ExploreAction.START)]
+        if self.deliver is not None:
+            a, b = self.deliver
+            plan += [PlaceCommand(NO_SEQUENCE, 2, a), PlaceCommand(NO_SEQUENCE, 3, b, come_back=True)]
+        return plan
+
+    def run(self, stop: threading.Event) -> None:
+        try:
+            for command in self._plan():
+                if not self._one(command, stop):
+                    return
+        finally:
+            self.done = True
+
+    def _one(self, command: ExploreCommand | PlaceCommand, stop: threading.Event) -> bool:
+        loop = self.missions
+        while True:
+            status = loop.take(command)
+            loop.answer(status)
+            if status.reason is not GoalReason.NOT_LOCALIZED or stop.wait(self.RETRY_S):
+                break
+        entry: dict[str, Any] = {"command": _command_text(command), "answer": _status_text(status)}
+        self.answers.append(entry)
+        if status.state is not GoalState.ACCEPTED:
+            return False
+        places = [command.place] if isinstance(command, PlaceCommand) else []
+        if isinstance(command, PlaceCommand) and command.come_back and self.deliver is not None:
+            places.append(self.deliver[0])
+        legs_before = loop.counts["legs_reached"]
+        while not stop.wait(0.05):
+            reached = loop.counts["legs_reached"] - legs_before
+            while places and reached > len(entry.setdefault("legs", [])):
+                self._record_end(entry, places[len(entry["legs"])])
+            end = loop.ended.get(command.mission_id)
+            if end is not None:
+                entry["end"] = _status_text(end)
+                return end.state is GoalState.REACHED
+        return False
+
+    def _record_end(self, entry: dict[str, Any], place: str) -> None:
+        truth = self.sim.pose()
+        where = self.missions.places[place]
+        error = math.hypot(truth.x_m - where.x_m, truth.y_m - where.y_m)
+        leg = {"place": place, "error_m": round(error, 4), "t_s": round(self.sim.elapsed_s(), 1)}
+        entry["legs"].append(leg)
+        self.ends.append(leg)
+
+    def delivery(self) -> dict[str, Any]:
+        errors = [leg["error_m"] for leg in self.ends]
+        complete = len(self.answers) == 3 and all(a.get("end") == "REACHED" for a in self.answers)
+        return {
+            "places": list(self.deliver or ()),
+            "missions": self.answers,
+            "complete": complete,
+            "ends": self.ends,
+            "max_end_error_m": max(errors) if errors else None,
+        }
+
+
+def _command_text(command: ExploreCommand | PlaceCommand) -> str:
+    if isinstance(command, ExploreCommand):
+        return f"explore {command.action.name.lower()} (mission {command.mission_id})"
+    back = " and back" if command.come_back else ""
+    return f"go to {command.place}{back} (mission {command.mission_id})"
+
+
+def _status_text(status: GoalStatus) -> str:
+    reason = "" if status.reason is GoalReason.NONE else f" {status.reason.name}"
+    return f"{status.state.name}{reason}"
+
+
 def _exploration_summary(agent: Agent, sim: Simulation) -> dict[str, Any] | None:
     """With --explore: the explorer's end and how much of the true reachable free area (the doors as they
     are at the end) the last SLAM map it was given had seen (None: not exploring)."""
-    loop = agent.exploration
+    loop = agent.missions
     if loop is None:
         return None
     from agent.commands.eval_explore import explored_share
@@ -675,7 +806,7 @@ def _exploration_summary(agent: Agent, sim: Simulation) -> dict[str, Any] | None
     out["reachable_free_m2"] = None if math.isnan(area_m2) else round(area_m2, 2)
     out["stopped_reason"] = (
         f"{out['state']}: {out['reason']}"
-        if loop.ended
+        if loop.exploration_ended
         else f"--seconds spent ({out['state']}: {out['reason']})"
     )
     out["door_events"] = [
@@ -807,6 +938,17 @@ def _print_summary(s: dict[str, Any]) -> None:
     print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
     share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
     print(f"  sources live      {share} of frames")
+    delivery = s.get("delivery")
+    if delivery:
+        for mission in delivery["missions"]:
+            legs = ", ".join(
+                f"{leg['place']} {100 * leg['error_m']:.1f} cm" for leg in mission.get("legs", [])
+            )
+            print(
+                f"  mission           {mission['command']}: {mission['answer']}"
+                + (f", ended {mission['end']}" if "end" in mission else "")
+                + (f" (at {legs})" if legs else "")
+            )
     exploration = s.get("exploration")
     if exploration:
         print(

@@ -27,7 +27,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -44,7 +44,6 @@ from agent.runtime.collector import IdleCollector
 from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
 from agent.runtime.drive_loop import DirectiveDrive, Navigator
-from agent.runtime.exploration_loop import ExplorationLoop
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
 from agent.runtime.imu_loop import imu_loop
@@ -54,6 +53,7 @@ from agent.runtime.loop_state import DeviceState, LoopState
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import ScanMapper
+from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.monitor_loop import MonitorLoop
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator
 from agent.runtime.navigation_loop import NavigationLoop
@@ -219,8 +219,8 @@ class Agent:
         # is in force. None: nothing navigates, and the controller's goals are answered NOT_LOCALIZED.
         self.navigator: Navigator | None = None
         self.navigation: NavigationLoop | None = None
-        # A local exploration mission (``enable_exploration``); None: none.
-        self.exploration: ExplorationLoop | None = None
+        # Local missions, exploring and going to places (``enable_missions``); None: none.
+        self.missions: MissionLoop | None = None
         self.arbiter: CommandArbiter | None = None
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
@@ -320,9 +320,9 @@ class Agent:
         if self.output is not None:
             output = partial(output_loop, s, output=self.output, publish=self._publish)
             self._spawn("output", True, timeout, output)
-        if self.exploration is not None:
+        if self.missions is not None:
             # Not critical: without it the robot stands still, and the dead-man covers the wheels.
-            self._spawn("explore", False, max(timeout, 5.0), partial(self.exploration.run, stop=s.stop))
+            self._spawn("missions", False, max(timeout, 5.0), partial(self.missions.run, stop=s.stop))
         if self.commands is not None and self.drive_step is not None:
             # Not critical: a controller that sends nothing is no fault, and the dead-man covers this loop.
             commands = partial(self.commands.run, stop=s.stop, then=self.drive_step.step)
@@ -571,36 +571,39 @@ class Agent:
         self.navigator = self.navigation
         return True
 
-    def enable_exploration(self) -> bool:
-        """Explore with the configured explorer (``[exploration]``) as a local mission, once started: the
-        SLAM map and the fused pose in, mission goals to the navigation out (``exploration_loop``). Needs
-        the navigation (:meth:`enable_navigation`); False, saying why in the log, without it. Before
-        :meth:`start`."""
+    def enable_missions(self, places: Mapping[str, NamedPlace] | None = None) -> bool:
+        """Run local missions (``mission_loop``): exploring with the configured explorer
+        (``[exploration]``) and going to the named ``places``, as commands on the serial link (explore,
+        go to place) or from the caller (``missions.take``). The SLAM map and the fused pose in, mission
+        goals to the navigation out. Needs the navigation (:meth:`enable_navigation`); False, saying why
+        in the log, without it. Before :meth:`start`."""
         if self.navigation is None or self.arbiter is None or self.commands is None:
-            log.warning("exploration off: it needs the navigation")
+            log.warning("missions off: they need the navigation")
             return False
         from agent.exploration import make_explorer
-        from agent.runtime.exploration_loop import ExplorationLoop
 
         explorer = make_explorer(self.config.exploration, self.config.navigation)
         commands = self.commands
-        self.exploration = ExplorationLoop(
+        self.missions = MissionLoop(
             explorer,
+            self.config.navigation,
             self.arbiter,
             lambda status: commands.answer(status, None),
             self._navigation_pose,
             self.clock_ns,
+            places=places,
         )
-        commands.listeners.append(self.exploration.on_status)
+        commands.listeners.append(self.missions.on_status)
+        commands.missions = self.missions.take
         return True
 
     def _on_map(self, image: Any) -> None:
-        """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the exploration's
+        """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the missions'
         map."""
         if self.navigation is not None:
             self.navigation.on_map(image)
-        if self.exploration is not None:
-            self.exploration.on_map(image)
+        if self.missions is not None:
+            self.missions.on_map(image)
 
     def _navigation_pose(self) -> tuple[float, float, float] | None:
         """The fused pose while a position source is live (a stale hold is not driven on)."""
