@@ -69,16 +69,34 @@ def place(world: World, name: str, option: str) -> Place:
 
 
 def run_delivery(
-    world: World, a: Place, b: Place, trips: int, seed: int, tolerance_m: float = DEFAULT_TOLERANCE_M
+    world: World,
+    a: Place,
+    b: Place,
+    trips: int,
+    seed: int,
+    tolerance_m: float = DEFAULT_TOLERANCE_M,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """The evaluation (see the module docstring) as a JSON-ready dict."""
     legs = [a] + [p for _ in range(trips) for p in (b, a)]
     results: list[GoalResult] = []
+
+    def ended(r: GoalResult) -> None:
+        results.append(r)
+        if progress:
+            leg = legs[len(results) - 1]
+            print(
+                f"  leg {len(results):3d}/{len(legs)} to {leg.name}: {r.status}, {100 * r.error_m:.1f} cm, "
+                f"{r.time_s:.0f} s, {r.collisions} collisions",
+                file=sys.stderr,
+                flush=True,
+            )
+
     nav = run_eval(
         world,
         len(legs),
         seed,
-        on_goal=results.append,
+        on_goal=ended,
         goal_list=[(p.x_m, p.y_m, p.yaw_rad) for p in legs],
     )
     ends: list[dict[str, Any]] = []
@@ -141,8 +159,12 @@ def run(args: argparse.Namespace) -> int:
     a, b = place(world, args.place_a, "--from"), place(world, args.place_b, "--to")
     if a.name == b.name:
         raise ConfigError("--to", "must name another place than --from")
-    print(f"vlp-agent eval deliver: {path}, {a.name} <-> {b.name}, {args.trips} trips", file=sys.stderr)
-    s = run_delivery(world, a, b, args.trips, args.seed, args.tolerance_m)
+    print(
+        f"vlp-agent eval deliver: {path}, {a.name} <-> {b.name}, {args.trips} trips "
+        "(each leg's end on stderr)",
+        file=sys.stderr,
+    )
+    s = run_delivery(world, a, b, args.trips, args.seed, args.tolerance_m, progress=True)
     if args.json:
         print(json.dumps(s, sort_keys=True))
         return 0
