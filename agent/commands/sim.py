@@ -57,15 +57,6 @@ from drivers.sim.controller import SimulatedController
 from drivers.sim.harness import SimulatedRobot
 from drivers.sim.route import RouteFollower
 from drivers.sim.simulation import Simulation
-from firmware_protocol.command_frame import (
-    NO_SEQUENCE,
-    ExploreAction,
-    ExploreCommand,
-    GoalReason,
-    GoalState,
-    GoalStatus,
-    PlaceCommand,
-)
 from firmware_protocol.pose_frame import PoseFlags
 
 log = logging.getLogger(__name__)
@@ -315,7 +306,7 @@ def _goal_argument(text: str) -> tuple[float, float, float | None]:
 def serve_pose_stream(
     stack: contextlib.ExitStack,
     config: AgentConfig,
-    goals: Sequence[tuple[float, float, float | None]] = (),
+    goals: Sequence[tuple[Any, ...]] = (),
     allow_unknown: bool = True,
     record: str | None = None,
 ) -> tuple[str | None, SimulatedController | None]:
@@ -402,13 +393,19 @@ def run(args: argparse.Namespace) -> int:
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         goals: list[tuple[float, float, float | None]] = args.goal
-        if goals and (config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK):
+        missions = args.explore or args.deliver is not None
+        if (goals or missions) and (
+            config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK
+        ):
             raise UsageError(
-                "--goal needs the simulated controller on a pty sending command frames "
-                '([output] url = "pty", format "frame")'
+                "--goal, --explore and --deliver need the simulated controller on a pty sending command "
+                'frames ([output] url = "pty", format "frame")'
             )
+        if goals and missions:
+            raise UsageError("--goal with --explore or --deliver: the robot drives one mission at a time")
+        commands: list[tuple[Any, ...]] = mission_items(args.deliver) if missions else list(goals)
         url, controller = serve_pose_stream(
-            stack, config, goals, not args.goals_known_map, args.controller_record
+            stack, config, commands, not args.goals_known_map, args.controller_record
         )
         mapping = config.slam.mode is not SlamMode.LOCALIZATION
         if mapping:
@@ -429,9 +426,7 @@ def run(args: argparse.Namespace) -> int:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
         script: MissionScript | None = None
-        if args.explore or args.deliver:
-            if goals:
-                raise UsageError("--goal with --explore or --deliver: the robot drives one mission at a time")
+        if missions:
             places = {p.name: NamedPlace(p.name, p.x_m, p.y_m, p.yaw_rad) for p in world.places}
             unknown = [name for name in args.deliver or () if name not in places]
             if unknown:
@@ -449,8 +444,6 @@ def run(args: argparse.Namespace) -> int:
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
-        if script is not None:
-            threading.Thread(target=script.run, args=(stop,), name="sim-missions", daemon=True).start()
         # The world's route, driven from the agent's own pose, unless goals or missions drive the robot.
         route = () if goals or script is not None else world.route
         autopilot = threading.Thread(
@@ -464,7 +457,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         t0_us = time.monotonic_ns() // 1000
         try:
-            _watch(args, agent, scorer, injector, shutdown, t0, live, controller, script)
+            _watch(args, agent, scorer, injector, shutdown, t0, live, controller)
         finally:
             stop.set()
             autopilot.join(1.0)
@@ -484,7 +477,7 @@ def run(args: argparse.Namespace) -> int:
         if script is not None:
             summary["exploration"] = _exploration_summary(agent, robot.simulation)
         if script is not None and args.deliver:
-            summary["delivery"] = script.delivery()
+            summary["delivery"] = script.delivery(controller)
         summary["t0_us"] = t0_us
         if agent.flight_recorder is not None:
             summary["recording"] = {
@@ -536,7 +529,6 @@ def _watch(
     t0: float,
     live: bool,
     controller: SimulatedController | None = None,
-    script: MissionScript | None = None,
 ) -> None:
     """Until --seconds, a stop request, (with --goal) the last goal's end, or (with --explore,
     --deliver) the missions' end; the status line each second."""
@@ -552,9 +544,8 @@ def _watch(
         scorer.drain()
         if now >= next_status:
             next_status += 1.0
-            if args.goal and controller is not None and controller.counts().goals_done:
-                return
-            if script is not None and script.done:
+            missions = args.explore or args.deliver is not None
+            if (args.goal or missions) and controller is not None and controller.counts().goals_done:
                 return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
@@ -687,6 +678,8 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
         return None
     ended: dict[int, tuple[str, str]] = {}
     for goal_id, state, reason in counts.statuses:
+        if not 1 <= goal_id <= counts.goals_sent:
+            continue  # a mission's own goals (ids from 0xC000), not the controller's
         if state in ("REACHED", "FAILED", "REJECTED", "CANCELLED"):
             ended[goal_id] = (state, reason)  # the last: a goal rejected NOT_LOCALIZED is sent again
     outcome = [s for s, _ in ended.values()]
@@ -702,93 +695,69 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
     }
 
 
-class MissionScript:
-    """--explore and --deliver: the missions, handed to the agent's mission loop as the serial link's
-    explore and go-to-place commands would be (``MissionLoop.take``); a mission refused for want of a pose
-    (the agent just started) is asked again every half second, any other refusal ends the script."""
+def mission_items(deliver: tuple[str, str] | None) -> list[tuple[Any, ...]]:
+    """What the simulated controller sends for --explore / --deliver: explore (the map starts empty: a
+    place needs a map with free space around it and a way there); then, delivering, go to A, and go to B
+    and come back."""
+    items: list[tuple[Any, ...]] = [("explore",)]
+    if deliver is not None:
+        a, b = deliver
+        items += [("place", a, False), ("place", b, True)]
+    return items
 
-    RETRY_S = 0.5
+
+class MissionScript:
+    """--explore and --deliver: the missions go to the agent as its controller sends them, explore and
+    go-to-place command frames on the serial line (the simulated controller, ``mission_items``; mission
+    ids 1, 2, 3); this watches them: the true position's error at each place reached (the mission loop's
+    ``on_leg``) and, from the statuses the controller decoded, each mission's answer and end."""
 
     def __init__(self, missions: MissionLoop, sim: Simulation, deliver: tuple[str, str] | None) -> None:
         self.missions = missions
         self.sim = sim
         self.deliver = deliver
-        self.done = False
-        self.answers: list[dict[str, Any]] = []  # each mission: its command, answer and end
+        self.items = mission_items(deliver)
         self.ends: list[dict[str, Any]] = []  # each leg reached: the place, the true position's error
+        missions.on_leg = self._leg
 
-    def _plan(self) -> list[ExploreCommand | PlaceCommand]:
-        """Explore (the map starts empty: a place needs a map with free space around it and a way there);
-        then, delivering, to A, and to B and back."""
-        plan: list[ExploreCommand | PlaceCommand] = [ExploreCommand(NO_SEQUENCE, 1, ExploreAction.START)]
-        if self.deliver is not None:
-            a, b = self.deliver
-            plan += [PlaceCommand(NO_SEQUENCE, 2, a), PlaceCommand(NO_SEQUENCE, 3, b, come_back=True)]
-        return plan
-
-    def run(self, stop: threading.Event) -> None:
-        try:
-            for command in self._plan():
-                if not self._one(command, stop):
-                    return
-        finally:
-            self.done = True
-
-    def _one(self, command: ExploreCommand | PlaceCommand, stop: threading.Event) -> bool:
-        loop = self.missions
-        while True:
-            status = loop.take(command)
-            loop.answer(status)
-            if status.reason is not GoalReason.NOT_LOCALIZED or stop.wait(self.RETRY_S):
-                break
-        entry: dict[str, Any] = {"command": _command_text(command), "answer": _status_text(status)}
-        self.answers.append(entry)
-        if status.state is not GoalState.ACCEPTED:
-            return False
-        places = [command.place] if isinstance(command, PlaceCommand) else []
-        if isinstance(command, PlaceCommand) and command.come_back and self.deliver is not None:
-            places.append(self.deliver[0])
-        legs_before = loop.counts["legs_reached"]
-        while not stop.wait(0.05):
-            reached = loop.counts["legs_reached"] - legs_before
-            while places and reached > len(entry.setdefault("legs", [])):
-                self._record_end(entry, places[len(entry["legs"])])
-            end = loop.ended.get(command.mission_id)
-            if end is not None:
-                entry["end"] = _status_text(end)
-                return end.state is GoalState.REACHED
-        return False
-
-    def _record_end(self, entry: dict[str, Any], place: str) -> None:
+    def _leg(self, mission_id: int, leg: int) -> None:
+        if self.deliver is None or not 2 <= mission_id <= 3:
+            return
+        a, b = self.deliver
+        place = a if mission_id == 2 or leg == 1 else b
         truth = self.sim.pose()
         where = self.missions.places[place]
         error = math.hypot(truth.x_m - where.x_m, truth.y_m - where.y_m)
-        leg = {"place": place, "error_m": round(error, 4), "t_s": round(self.sim.elapsed_s(), 1)}
-        entry["legs"].append(leg)
-        self.ends.append(leg)
+        end = {"mission": mission_id, "place": place, "error_m": round(error, 4)}
+        self.ends.append({**end, "t_s": round(self.sim.elapsed_s(), 1)})
 
-    def delivery(self) -> dict[str, Any]:
+    def delivery(self, controller: SimulatedController | None) -> dict[str, Any]:
+        statuses = controller.counts().statuses if controller is not None else ()
+        missions = []
+        for mission_id, item in enumerate(self.items, start=1):
+            mine = [f"{s} {r}".replace(" NONE", "") for goal_id, s, r in statuses if goal_id == mission_id]
+            answers = [t for t in mine if t.split()[0] in ("ACCEPTED", "REJECTED")]
+            ends = [t for t in mine if t.split()[0] in ("REACHED", "FAILED", "CANCELLED")]
+            what = (
+                "explore" if item[0] == "explore" else f"go to {item[1]}" + (" and back" if item[2] else "")
+            )
+            missions.append(
+                {
+                    "mission": mission_id,
+                    "command": what,
+                    "answers": answers,  # a mission refused for want of a pose is sent again
+                    "end": ends[-1] if ends else None,
+                    "legs": [e for e in self.ends if e["mission"] == mission_id],
+                }
+            )
         errors = [leg["error_m"] for leg in self.ends]
-        complete = len(self.answers) == 3 and all(a.get("end") == "REACHED" for a in self.answers)
         return {
             "places": list(self.deliver or ()),
-            "missions": self.answers,
-            "complete": complete,
+            "missions": missions,
+            "complete": all(m["end"] == "REACHED" for m in missions),
             "ends": self.ends,
             "max_end_error_m": max(errors) if errors else None,
         }
-
-
-def _command_text(command: ExploreCommand | PlaceCommand) -> str:
-    if isinstance(command, ExploreCommand):
-        return f"explore {command.action.name.lower()} (mission {command.mission_id})"
-    back = " and back" if command.come_back else ""
-    return f"go to {command.place}{back} (mission {command.mission_id})"
-
-
-def _status_text(status: GoalStatus) -> str:
-    reason = "" if status.reason is GoalReason.NONE else f" {status.reason.name}"
-    return f"{status.state.name}{reason}"
 
 
 def _exploration_summary(agent: Agent, sim: Simulation) -> dict[str, Any] | None:
@@ -941,12 +910,10 @@ def _print_summary(s: dict[str, Any]) -> None:
     delivery = s.get("delivery")
     if delivery:
         for mission in delivery["missions"]:
-            legs = ", ".join(
-                f"{leg['place']} {100 * leg['error_m']:.1f} cm" for leg in mission.get("legs", [])
-            )
+            legs = ", ".join(f"{leg['place']} {100 * leg['error_m']:.1f} cm" for leg in mission["legs"])
             print(
-                f"  mission           {mission['command']}: {mission['answer']}"
-                + (f", ended {mission['end']}" if "end" in mission else "")
+                f"  mission {mission['mission']}         {mission['command']}: "
+                f"{', '.join(mission['answers']) or 'no answer'}, ended {mission['end'] or 'not yet'}"
                 + (f" (at {legs})" if legs else "")
             )
     exploration = s.get("exploration")

@@ -98,6 +98,7 @@ class _Route:
     mission_id: int
     legs: list[tuple[float, float, float | None]]
     sent: bool = False  # the current leg's goal has been handed over
+    done: int = 0  # legs reached
 
 
 class MissionLoop:
@@ -126,6 +127,8 @@ class MissionLoop:
         self.last_grid: GridMap | None = None
         # How each mission ended, by mission id (the status sent), for a caller that waits on one.
         self.ended: dict[int, GoalStatus] = {}
+        # Told (mission id, leg index) when a go-to-place leg is reached (the simulator reads the truth).
+        self.on_leg: Callable[[int, int], None] | None = None
         self._lock = threading.Lock()
         self._commands: list[Command] = []
         self._outcomes: list[GoalStatus] = []
@@ -319,6 +322,9 @@ class MissionLoop:
             if status.state is GoalState.REACHED:
                 self.counts["legs_reached"] += 1
                 route.legs.pop(0)
+                if self.on_leg is not None:
+                    self.on_leg(route.mission_id, route.done)
+                route.done += 1
                 return
             with self._lock:
                 self._route = None

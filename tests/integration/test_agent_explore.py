@@ -1,6 +1,7 @@
 """The whole agent explores: ``vlp-agent sim --explore`` on a small world (a room and a side room through
-a door) from an empty map, in real time, with its processes and the fakes: it looks around, the explorer's
-targets go to the navigation as mission goals, and it ends complete with the side room seen, no contact.
+a door) from an empty map, in real time, with its processes and the fakes: the simulated controller sends
+the explore command frame on the serial line, the agent looks around, the explorer's targets go to the
+navigation as mission goals, and the mission ends REACHED (complete) with the side room seen, no contact.
 
 No wall-clock assertion: ``--seconds`` is a cap (the run ends when the explorer does, ~30 s on an idle
 machine); beside a CPU hog it takes longer within it.
@@ -77,5 +78,9 @@ def test_sim_explore_explores_a_small_world_to_completion(tmp_path: Path) -> Non
     # The side room (5 of the 12.75 m2) is seen: the robot went through the door or looked through it.
     assert exploration["explored_fraction"] >= 0.95, exploration
     assert exploration["look_around_turns"] >= 1 and exploration["targets_sent"] >= 1, exploration
+    # The explore command went over the serial line as a command frame (v1.1), and its end came back.
+    goals = summary["goals"]
+    assert goals["sent"] == 1 and goals["outcomes"] == {"1": "REACHED NONE"}, goals
+    assert summary["frames_rejected_by_receiver"] == 0
     assert summary["collisions"] == 0, summary["clearance_wall_m_min"]
     assert summary["distance_m"] > 0.5
