@@ -182,7 +182,7 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         type=_deliver_argument,
         default=None,
         help="a delivery: explore first (as --explore), then go to the world's place A ([[places]], "
-        "docs/world.md), then to B and back to A, as go-to-place missions (the second with come-back); "
+        "docs/world.md), then to B and back to A, as go-to-place missions the simulated controller sends; "
         "instead of the route. The run ends when they have ended (or one was refused: an unknown place, "
         "no pose, a robot inside an obstacle, a map with no free space), or at --seconds; the summary's "
         "'delivery' has each mission's answer and end and the true position's error at each end",
@@ -697,19 +697,20 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
 
 def mission_items(deliver: tuple[str, str] | None) -> list[tuple[Any, ...]]:
     """What the simulated controller sends for --explore / --deliver: explore (the map starts empty: a
-    place needs a map with free space around it and a way there); then, delivering, go to A, and go to B
-    and come back."""
+    place needs a map with free space around it and a way there); then, delivering, go to A, go to B, go
+    to A. (Not "B and come back": that returns to where the robot *thought* it was at A, its localization
+    error at A added to the one at the end.)"""
     items: list[tuple[Any, ...]] = [("explore",)]
     if deliver is not None:
         a, b = deliver
-        items += [("place", a, False), ("place", b, True)]
+        items += [("place", a, False), ("place", b, False), ("place", a, False)]
     return items
 
 
 class MissionScript:
     """--explore and --deliver: the missions go to the agent as its controller sends them, explore and
     go-to-place command frames on the serial line (the simulated controller, ``mission_items``; mission
-    ids 1, 2, 3); this watches them: the true position's error at each place reached (the mission loop's
+    ids 1 to 4); this watches them: the true position's error at each place reached (the mission loop's
     ``on_leg``) and, from the statuses the controller decoded, each mission's answer and end."""
 
     def __init__(self, missions: MissionLoop, sim: Simulation, deliver: tuple[str, str] | None) -> None:
@@ -721,10 +722,9 @@ class MissionScript:
         missions.on_leg = self._leg
 
     def _leg(self, mission_id: int, leg: int) -> None:
-        if self.deliver is None or not 2 <= mission_id <= 3:
+        if self.deliver is None or not 2 <= mission_id <= len(self.items):
             return
-        a, b = self.deliver
-        place = a if mission_id == 2 or leg == 1 else b
+        place = self.items[mission_id - 1][1]
         truth = self.sim.pose()
         where = self.missions.places[place]
         error = math.hypot(truth.x_m - where.x_m, truth.y_m - where.y_m)
