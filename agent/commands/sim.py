@@ -383,6 +383,12 @@ def run(args: argparse.Namespace) -> int:
     live = sys.stderr.isatty() and not args.json
     out_dir = Path(args.out)
     world = config.sim.world
+    unknown = [name for name in args.deliver or () if name not in {p.name for p in world.places}]
+    if unknown:
+        raise UsageError(
+            f"--deliver: no place {', '.join(map(repr, unknown))} in the world "
+            f"({', '.join(p.name for p in world.places) or 'it names no [[places]]'})"
+        )
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1 asks for a map save (`kill -USR1 PID`); until the agent exists one is dropped, not fatal.
@@ -428,12 +434,6 @@ def run(args: argparse.Namespace) -> int:
         script: MissionScript | None = None
         if missions:
             places = {p.name: NamedPlace(p.name, p.x_m, p.y_m, p.yaw_rad) for p in world.places}
-            unknown = [name for name in args.deliver or () if name not in places]
-            if unknown:
-                raise UsageError(
-                    f"--deliver: no place {', '.join(map(repr, unknown))} in the world "
-                    f"({', '.join(places) or 'it names no [[places]]'})"
-                )
             if not agent.enable_missions(places):
                 raise UsageError(
                     "--explore and --deliver need the navigation: SLAM, a laser, wheels and the pose "

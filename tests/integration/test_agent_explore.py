@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.strict_json import strict_loads
 
 REPO = Path(__file__).resolve().parents[2]
@@ -84,3 +86,22 @@ def test_sim_explore_explores_a_small_world_to_completion(tmp_path: Path) -> Non
     assert summary["frames_rejected_by_receiver"] == 0
     assert summary["collisions"] == 0, summary["clearance_wall_m_min"]
     assert summary["distance_m"] > 0.5
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [("W1,Kitchen", "no place 'Kitchen' in the world (S, W1, W3, E1b, E2)"), ("W1", "expected A,B")],
+)
+def test_sim_deliver_refuses_places_the_world_does_not_name(value: str, words: str) -> None:
+    ward = REPO / "examples" / "worlds" / "ward.toml"
+    out = subprocess.run(
+        [sys.executable, "-m", "agent.cli", "sim", "--world", str(ward), "--deliver", value],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO,
+        check=False,
+    )
+    assert out.returncode == 2, out.stderr  # a usage error, before anything starts
+    assert words in out.stderr and "Traceback" not in out.stderr
