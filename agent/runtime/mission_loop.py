@@ -289,6 +289,9 @@ class MissionLoop:
             self._end_explore(GoalState.REACHED, GoalReason.NONE)
         elif self.explorer.state is ExploreState.FAILED:
             self._end_explore(GoalState.FAILED, GoalReason.EXPLORED)
+        elif self.explorer.state is ExploreState.IDLE:
+            # Home again before it was finished (return home), or cancelled: the mission is over.
+            self._end_explore(GoalState.CANCELLED, GoalReason.NONE)
 
     def _end_explore(self, state: GoalState, reason: GoalReason) -> None:
         with self._lock:

@@ -226,3 +226,20 @@ def test_a_mission_without_a_mission_loop_is_refused_by_the_arbiter() -> None:
     (status,) = arbiter.command(PlaceCommand(4, 12, "desk"), 0.0)
     assert (status.state, status.reason, status.goal_id) == (GoalState.REJECTED, GoalReason.UNKNOWN_TYPE, 12)
     assert status.command_sequence != NO_SEQUENCE
+
+
+def test_return_home_drives_to_the_start_and_ends_the_unfinished_mission() -> None:
+    rig = Rig()
+    rig.loop.on_map(room_image())
+    rig.loop.take(ExploreCommand(1, 40))
+    rig.step()  # started at (1, 2): the look-around's first turn is out
+    rig.pose = (1.5, 2.5, 0.0)
+    assert rig.loop.take(ExploreCommand(2, 40, ExploreAction.RETURN_HOME)).state is GoalState.ACCEPTED
+    rig.step()
+    home = rig.mission()
+    assert home is not None and (home.x_m, home.y_m) == (1.0, 2.0)  # type: ignore[attr-defined]
+    assert rig.explorer.state is ExploreState.RETURNING
+    rig.finish(GoalState.REACHED)
+    rig.step()
+    assert rig.explorer.state is ExploreState.IDLE
+    assert rig.loop.ended[40].state is GoalState.CANCELLED  # home, exploration not finished
