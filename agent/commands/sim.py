@@ -172,9 +172,10 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--explore",
         action="store_true",
         help="explore the world from an empty map with the config's [exploration] explorer instead of "
-        "driving the world's route: the explorer's targets go to the navigation as mission goals; the "
-        "run ends when the explorer says complete or failed, or at --seconds. The summary's "
-        "'exploration' says how much of the reachable free area the SLAM map saw, and why it stopped",
+        "driving the world's route: the simulated controller sends an explore command frame, the "
+        "explorer's targets go to the navigation as mission goals; the run ends when the mission ends "
+        "(complete or failed), or at --seconds. The summary's 'exploration' says how much of the "
+        "reachable free area the SLAM map saw, and why it stopped",
     )
     p.add_argument(
         "--deliver",
