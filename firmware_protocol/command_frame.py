@@ -3,9 +3,10 @@
 They share the pose frame's link (``COBS(payload || CRC-16/CCITT-FALSE LE) || 00``, see
 :mod:`firmware_protocol.framing`) and line. Every payload starts with a type byte and a version byte::
 
-     0  u8   type      0x21 velocity, 0x22 goal, 0x23 cancel, 0x24 stop, 0x25 resume (controller -> agent)
+     0  u8   type      0x21 velocity, 0x22 goal, 0x23 cancel, 0x24 stop, 0x25 resume,
+                       0x26 explore, 0x27 go to place (since v1.1) (controller -> agent)
                        0xA1 goal status (agent -> controller)
-     1  u8   version   major << 4 | minor: 0x10
+     1  u8   version   major << 4 | minor: 0x10 (0x11 for the types added in v1.1)
      2  u16  sequence  the sender's counter, +1 per frame, wrapping; a goal status echoes the command's
 
 The type byte never has 0x1 in its high nibble, which is the pose frame's version byte (0x1m), so a receiver
@@ -22,8 +23,16 @@ reserved, ``i32 x``, ``i32 y`` (0.1 mm, map frame), ``i16 yaw`` (2*pi/65536 rad)
 goal_id`` (0xFFFF: none), ``u8 state`` (:class:`GoalState`), ``u8 reason`` (:class:`GoalReason`), ``u16
 remaining`` (cm along the path, 0xFFFF unknown).
 
+Explore (8 bytes, v1.1): ``u16 mission_id``, ``u8 action`` (:class:`ExploreAction`), ``u8`` reserved.
+Go to place (24 bytes, v1.1): ``u16 mission_id``, ``u8 options`` (bit 0: then come back to where the
+robot was when the command came), ``u8`` reserved, ``name`` 16 bytes of UTF-8, padded with 0x00 (1 to 16
+bytes, no 0x00 inside). Both are answered, and end, with goal statuses whose ``goal_id`` is the
+``mission_id``.
+
 Versioning as the pose frame's: a decoder rejects other majors, accepts any minor of its own and ignores
-fields appended after the v1.0 layout; a v1.0 payload has exactly its type's length.
+fields appended after the layout of the minor version that introduced the type; a payload of that minor
+version has exactly its type's length. The types of v1.0 are still sent as 1.0 (their bytes unchanged);
+explore and go-to-place are sent as 1.1, and a frame of theirs claiming 1.0 is a version error.
 """
 
 from __future__ import annotations
@@ -49,11 +58,14 @@ __all__ = [
     "CommandDecoder",
     "CommandFrameError",
     "CommandType",
+    "ExploreAction",
+    "ExploreCommand",
     "GoalCommand",
     "GoalReason",
     "GoalState",
     "GoalStatus",
     "GoalStatusDecoder",
+    "PlaceCommand",
     "ResumeCommand",
     "StopCommand",
     "VelocityCommand",
@@ -65,8 +77,9 @@ __all__ = [
 ]
 
 VERSION_MAJOR = 1
-VERSION_MINOR = 0
-VERSION = VERSION_MAJOR << 4 | VERSION_MINOR
+VERSION_MINOR = 1  # the newest minor version this codec reads and writes
+VERSION = VERSION_MAJOR << 4  # v1.0: the version byte of the types v1.0 defined (their bytes unchanged)
+PLACE_NAME_LENGTH = 16  # bytes of a place's name in a go-to-place frame
 MAX_PAYLOAD_LENGTH = 64  # the longest payload a later v1.x may send; bounds every decoder's buffer
 NO_GOAL = 0xFFFF
 NO_SEQUENCE = 0xFFFF
@@ -82,6 +95,7 @@ _REMAINING_PER_M = 100  # remaining: cm
 
 OPTION_YAW = 0x01
 OPTION_ALLOW_UNKNOWN = 0x02
+OPTION_COME_BACK = 0x01  # go to place: then back to where the robot was
 
 
 class CommandType(enum.IntEnum):
@@ -90,7 +104,23 @@ class CommandType(enum.IntEnum):
     CANCEL = 0x23
     STOP = 0x24
     RESUME = 0x25
+    EXPLORE = 0x26  # since v1.1
+    GO_TO_PLACE = 0x27  # since v1.1
     GOAL_STATUS = 0xA1
+
+
+# The minor version that introduced each type (0: v1.0).
+_SINCE_MINOR = {CommandType.EXPLORE: 1, CommandType.GO_TO_PLACE: 1}
+
+
+class ExploreAction(enum.IntEnum):
+    """What an explore command asks (the exploration's lifecycle, docs/exploration.md)."""
+
+    START = 0
+    PAUSE = 1
+    RESUME = 2
+    RETURN_HOME = 3
+    CANCEL = 4
 
 
 class GoalState(enum.IntEnum):
@@ -122,6 +152,11 @@ class GoalReason(enum.IntEnum):
     UNKNOWN_GOAL = 14  # a cancel for a goal id that is not active
     DEAD_MAN = 15  # commands stopped arriving within their timeout: the robot stopped
     BUSY = 16  # a command of higher precedence is in force
+    # Since v1.1 (missions):
+    UNKNOWN_PLACE = 17  # a go-to-place names a place the agent does not know
+    NO_FREE_SPACE = 18  # the map has no free space to drive in
+    START_BLOCKED = 19  # the robot stands inside an obstacle on the map: no way out to plan from
+    EXPLORED = 20  # (FAILED) exploration ended with reachable space it could not get to
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,7 +195,32 @@ class ResumeCommand:
     sequence: int
 
 
-Command = VelocityCommand | GoalCommand | CancelCommand | StopCommand | ResumeCommand
+@dataclass(frozen=True, slots=True)
+class ExploreCommand:
+    sequence: int
+    mission_id: int
+    action: ExploreAction = ExploreAction.START
+
+
+@dataclass(frozen=True, slots=True)
+class PlaceCommand:
+    """Go to a named place (docs/world.md ``[[places]]``), and with ``come_back`` back again."""
+
+    sequence: int
+    mission_id: int
+    place: str
+    come_back: bool = False
+
+
+Command = (
+    VelocityCommand
+    | GoalCommand
+    | CancelCommand
+    | StopCommand
+    | ResumeCommand
+    | ExploreCommand
+    | PlaceCommand
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +252,8 @@ _LAYOUTS: dict[CommandType, struct.Struct] = {
     CommandType.CANCEL: struct.Struct("<BBHH"),
     CommandType.STOP: _HEADER,
     CommandType.RESUME: _HEADER,
+    CommandType.EXPLORE: struct.Struct("<BBHHBB"),
+    CommandType.GO_TO_PLACE: struct.Struct(f"<BBHHBB{PLACE_NAME_LENGTH}s"),
     CommandType.GOAL_STATUS: struct.Struct("<BBHHHBBH"),
 }
 T = TypeVar("T")
@@ -263,6 +325,25 @@ def _encode_payload(message: Command | GoalStatus) -> bytes:
         return _HEADER.pack(CommandType.STOP, VERSION, seq)
     if isinstance(message, ResumeCommand):
         return _HEADER.pack(CommandType.RESUME, VERSION, seq)
+    if isinstance(message, ExploreCommand):
+        return _LAYOUTS[CommandType.EXPLORE].pack(
+            CommandType.EXPLORE,
+            VERSION_MAJOR << 4 | 1,
+            seq,
+            _u16(message.mission_id, "mission_id"),
+            ExploreAction(message.action),
+            0,
+        )
+    if isinstance(message, PlaceCommand):
+        return _LAYOUTS[CommandType.GO_TO_PLACE].pack(
+            CommandType.GO_TO_PLACE,
+            VERSION_MAJOR << 4 | 1,
+            seq,
+            _u16(message.mission_id, "mission_id"),
+            OPTION_COME_BACK if message.come_back else 0,
+            0,
+            _place_name(message.place),
+        )
     remaining = REMAINING_UNKNOWN
     if message.remaining_m is not None:
         # Farther than 655 m reads as 655.34 m: the frame says "far", never "unknown".
@@ -279,6 +360,15 @@ def _encode_payload(message: Command | GoalStatus) -> bytes:
     )
 
 
+def _place_name(name: str) -> bytes:
+    raw = name.encode("utf-8")
+    if not 1 <= len(raw) <= PLACE_NAME_LENGTH or b"\x00" in raw:
+        raise CommandFrameError(
+            "value", f"a place name is 1 to {PLACE_NAME_LENGTH} bytes of UTF-8 without NUL, got {name!r}"
+        )
+    return raw
+
+
 def _checked_type(payload: bytes) -> CommandType:
     """The payload's type after the versioning and length rules; :class:`CommandFrameError` if it fails."""
     try:
@@ -290,8 +380,15 @@ def _checked_type(payload: bytes) -> CommandType:
         raise CommandFrameError(
             "version", f"{kind.name.lower()} frame version {major}.{minor}: this decoder reads 1.x", payload
         )
+    since = _SINCE_MINOR.get(kind, 0)
+    if minor < since:
+        raise CommandFrameError(
+            "version",
+            f"{kind.name.lower()} frames start at version 1.{since}, this one says 1.{minor}",
+            payload,
+        )
     size = _LAYOUTS[kind].size
-    if (minor == 0 and len(payload) != size) or not size <= len(payload) <= MAX_PAYLOAD_LENGTH:
+    if (minor == since and len(payload) != size) or not size <= len(payload) <= MAX_PAYLOAD_LENGTH:
         raise CommandFrameError(
             "length", f"a v1.{minor} {kind.name.lower()} payload is {size} bytes, got {len(payload)}", payload
         )
@@ -322,6 +419,21 @@ def _decode_command_payload(payload: bytes) -> Command:
         return CancelCommand(seq, fields[3])
     if kind is CommandType.STOP:
         return StopCommand(seq)
+    if kind is CommandType.EXPLORE:
+        try:
+            action = ExploreAction(fields[4])
+        except ValueError:
+            raise CommandFrameError("value", f"unknown explore action {fields[4]}", payload) from None
+        return ExploreCommand(seq, fields[3], action)
+    if kind is CommandType.GO_TO_PLACE:
+        raw = fields[6].rstrip(b"\x00")
+        try:
+            name = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise CommandFrameError("value", "the place name is not UTF-8", payload) from None
+        if not name or b"\x00" in raw:
+            raise CommandFrameError("value", "the place name is empty or has a NUL inside", payload)
+        return PlaceCommand(seq, fields[3], name, bool(fields[4] & OPTION_COME_BACK))
     return ResumeCommand(seq)
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 # Evaluation name -> module; each module adds its own parser under `eval` and runs it.
 EVALUATIONS: dict[str, str] = {
+    "deliver": "agent.commands.eval_deliver",
     "explore": "agent.commands.eval_explore",
     "nav": "agent.commands.eval_nav",
     "slam": "agent.commands.eval_slam",

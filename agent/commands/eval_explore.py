@@ -40,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agent import figure
-from agent.commands.eval_nav import CONTROL_EVERY, FIX_GAIN, rasterize_walls
+from agent.commands.eval_nav import CONTROL_EVERY, FIX_GAIN, draw_segments, rasterize_walls
 from agent.exploration import (
     Command,
     Decision,
@@ -244,7 +244,6 @@ def run_eval(
     from agent.slam.fix import PoseFix
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
-    from drivers.sim.raycast import walls_array
     from drivers.sim.simulation import Simulation
 
     robot = world.robot
@@ -257,9 +256,10 @@ def run_eval(
     sensors = simulated_sensors(world, seed)
     clock, sim, geometry = sensors.clock, sensors.sim, sensors.geometry
     scanner, odometry, fixes = sensors.scanner, sensors.odometry, sensors.fixes
-    spec, true_occupied = rasterize_walls(world, nav.resolution_m)
+    spec, walls_occupied = rasterize_walls(world, nav.resolution_m)
     start = robot.start
-    target_area = reachable_free(spec, true_occupied, (start.x_m, start.y_m))
+    target_area = _true_area(spec, walls_occupied, sim, (start.x_m, start.y_m))
+    area_at_start_m2 = float(target_area.sum()) * spec.resolution_m**2
     scan_map = ScanMap(spec) if map_source is MapSource.TRUTH_POSE else None
     slam_map = SlamMap(world, spec, seed) if map_source is MapSource.SLAM else None
     all_unknown = np.ones(spec.shape, dtype=bool)
@@ -270,7 +270,6 @@ def run_eval(
         (mount.x_m, mount.y_m, mount.yaw_rad),
     )
     explorer = make_explorer(config, nav)
-    segments = walls_array(world.walls)
     min_m, max_m = world.laser.min_range_mm / 1000.0, world.laser.max_range_mm / 1000.0
     scan_every = max(round(60.0 / world.laser.scan_rpm / TICK_S), 1)
     fix_every = max(round(1.0 / fixes.rate_hz / TICK_S), 1)
@@ -295,7 +294,7 @@ def run_eval(
         truth = sim.pose()
         run.path_m += math.hypot(truth.x_m - last[0], truth.y_m - last[1])
         last = (truth.x_m, truth.y_m)
-        _contact(run, sim, world, segments, last)
+        _contact(run, sim, world, sim.segments(), last)
         odometry.update(sim.wheels().position_rad)
         if tick % fix_every == 0:
             got = fixes(sim, t, odometry.pose)
@@ -379,6 +378,10 @@ def run_eval(
     sim.set_body_velocity(0.0, 0.0)
     wall_s = time.perf_counter() - wall_start
     grid = _grid(spec, scan_map, slam_map)
+    # Judged on the building as it is at the end: a door that closed during the run cuts off what lies
+    # behind it (the robot, wherever it is, could not get there now).
+    if world.doors:
+        target_area = _true_area(spec, walls_occupied, sim, last)
     known = target_area & ~grid.unknown
     summary = {
         "world": world.name,
@@ -387,6 +390,10 @@ def run_eval(
         "map_source": map_source.value,
         "explored_fraction": round(float(np.count_nonzero(known)) / max(int(target_area.sum()), 1), 4),
         "reachable_free_m2": round(float(target_area.sum()) * spec.resolution_m**2, 2),
+        "reachable_free_m2_at_start": round(area_at_start_m2, 2),
+        "door_events": [
+            {"t_s": round(t_s, 1), "door": name, "closed": closed} for t_s, name, closed in sim.door_events()
+        ],
         "complete": explorer.state is ExploreState.COMPLETE,
         "state": explorer.state.value,
         "stopped_reason": stopped_reason,
@@ -414,6 +421,31 @@ def run_eval(
     }
     picture = explore_picture(grid, run, world.name, summary)
     return summary, picture
+
+
+def explored_share(grid: GridMap, world: World, sim: Any) -> tuple[float, float]:
+    """The share of the true reachable free area (the world's walls and its doors as they are now,
+    rasterized at the grid's resolution, 4-connected to the robot's true position) that ``grid`` has
+    seen, and that area in m²: ``eval explore``'s ``explored_fraction`` for a map of any extent (the
+    agent's SLAM map grows as it goes)."""
+    spec, walls = rasterize_walls(world, grid.spec.resolution_m)
+    truth = sim.pose()
+    area = _true_area(spec, walls, sim, (truth.x_m, truth.y_m))
+    cells = np.argwhere(area)
+    centres = spec.to_world(cells)
+    theirs = grid.spec.to_cell(centres)
+    inside = grid.spec.inside(theirs)
+    seen = np.zeros(len(cells), dtype=bool)
+    seen[inside] = ~grid.unknown[theirs[inside, 0], theirs[inside, 1]]
+    total = max(len(cells), 1)
+    return float(np.count_nonzero(seen)) / total, float(len(cells)) * spec.resolution_m**2
+
+
+def _true_area(spec: GridSpec, walls: BoolArray, sim: Any, xy: tuple[float, float]) -> BoolArray:
+    """The free cells 4-connected to ``xy`` with the walls and the doors closed now."""
+    occupied = walls.copy()
+    draw_segments(spec, occupied, sim.segments())
+    return reachable_free(spec, occupied, xy)
 
 
 def _grid(spec: GridSpec, scan_map: ScanMap | None, slam_map: SlamMap | None) -> GridMap:

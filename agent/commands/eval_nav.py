@@ -35,7 +35,7 @@ import math
 import sys
 import textwrap
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -100,13 +100,19 @@ def rasterize_walls(world: World, resolution_m: float) -> tuple[GridSpec, BoolAr
         (x0, y0), resolution_m, (math.ceil((y1 - y0) / resolution_m), math.ceil((x1 - x0) / resolution_m))
     )
     occupied = np.zeros(spec.shape, dtype=bool)
-    for ax, ay, bx, by in segments:
+    draw_segments(spec, occupied, segments)
+    return spec, occupied
+
+
+def draw_segments(spec: GridSpec, occupied: BoolArray, segments: FloatArray) -> None:
+    """Mark the cells the (N, 4) segments pass through occupied (sampled every quarter cell)."""
+    resolution_m = spec.resolution_m
+    for ax, ay, bx, by in np.asarray(segments, dtype=np.float64).reshape(-1, 4):
         n = max(math.ceil(math.hypot(bx - ax, by - ay) / (resolution_m * 0.25)), 1) + 1
         t = np.linspace(0.0, 1.0, n)
         cells = spec.to_cell(np.stack([ax + t * (bx - ax), ay + t * (by - ay)], axis=1))
         cells = cells[spec.inside(cells)]
         occupied[cells[:, 0], cells[:, 1]] = True
-    return spec, occupied
 
 
 class ShortestPaths:
@@ -182,9 +188,11 @@ def run_eval(
     seed: int,
     config: NavConfig | None = None,
     on_goal: Callable[[GoalResult], None] | None = None,
+    goal_list: Sequence[tuple[float, float, float | None]] | None = None,
 ) -> dict[str, Any]:
     """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict.
-    ``on_goal`` is told each goal's result as it ends."""
+    ``on_goal`` is told each goal's result as it ends. ``goal_list``: drive these (x, y, yaw or None for
+    any heading) in order instead (``eval deliver``); ``goals`` is then their number."""
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
     from drivers.sim.raycast import distance_to_segments, walls_array
@@ -217,13 +225,18 @@ def run_eval(
     tick = 0
     position = (start.x_m, start.y_m)
     wall_start = time.perf_counter()
-    for _ in range(goals):
-        candidates = goal_cells(world, Costmap(spec, occupied, np.zeros(spec.shape, bool), config), position)
-        far = candidates[np.hypot(*(candidates - np.array(position)).T) >= MIN_GOAL_DISTANCE_M]
-        if not len(far):
-            break
-        gx, gy = far[rng.integers(len(far))]
-        gyaw = float(rng.uniform(-math.pi, math.pi))
+    for k in range(len(goal_list) if goal_list is not None else goals):
+        gyaw: float | None
+        if goal_list is not None:
+            gx, gy, gyaw = goal_list[k]
+        else:
+            free = Costmap(spec, occupied, np.zeros(spec.shape, bool), config)
+            candidates = goal_cells(world, free, position)
+            far = candidates[np.hypot(*(candidates - np.array(position)).T) >= MIN_GOAL_DISTANCE_M]
+            if not len(far):
+                break
+            gx, gy = far[rng.integers(len(far))]
+            gyaw = float(rng.uniform(-math.pi, math.pi))
         truth = sim.pose()
         shortest_m = shortest.length_m((truth.x_m, truth.y_m), (float(gx), float(gy)))
         goal = Goal(float(gx), float(gy), gyaw)
@@ -293,12 +306,12 @@ def run_eval(
         sim.set_body_velocity(0.0, 0.0)
         truth = sim.pose()
         error = math.hypot(truth.x_m - goal.x_m, truth.y_m - goal.y_m)
-        yaw_error = abs(math.degrees(math.remainder(truth.yaw_rad - gyaw, math.tau)))
+        yaw_error = 0.0 if gyaw is None else abs(math.degrees(math.remainder(truth.yaw_rad - gyaw, math.tau)))
         plan_ms = [p.plan_ms for p in navigator.plans if p.searched]
         plan_cpu_ms = [p.cpu_ms for p in navigator.plans if p.searched]
         results.append(
             GoalResult(
-                (goal.x_m, goal.y_m, gyaw),
+                (goal.x_m, goal.y_m, math.nan if gyaw is None else gyaw),
                 navigator.status.value,
                 navigator.reason,
                 navigator.status is NavStatus.REACHED and error <= REACHED_M and yaw_error <= REACHED_DEG,

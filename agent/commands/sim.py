@@ -45,6 +45,7 @@ from agent.recording.messages import TruthSample
 from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
@@ -167,6 +168,26 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "when the last goal has ended, or at --seconds",
     )
     p.add_argument(
+        "--explore",
+        action="store_true",
+        help="explore the world from an empty map with the config's [exploration] explorer instead of "
+        "driving the world's route: the simulated controller sends an explore command frame, the "
+        "explorer's targets go to the navigation as mission goals; the run ends when the mission ends "
+        "(complete or failed), or at --seconds. The summary's 'exploration' says how much of the "
+        "reachable free area the SLAM map saw, and why it stopped",
+    )
+    p.add_argument(
+        "--deliver",
+        metavar="A,B",
+        type=_deliver_argument,
+        default=None,
+        help="a delivery: explore first (as --explore), then go to the world's place A ([[places]], "
+        "docs/world.md), then to B and back to A, as go-to-place missions the simulated controller sends; "
+        "instead of the route. The run ends when they have ended (or one was refused: an unknown place, "
+        "no pose, a robot inside an obstacle, a map with no free space), or at --seconds; the summary's "
+        "'delivery' has each mission's answer and end and the true position's error at each end",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -266,6 +287,14 @@ class FaultInjector:
             stall(on)
 
 
+def _deliver_argument(text: str) -> tuple[str, str]:
+    """``A,B``: two place names."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or not all(parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected A,B (two place names)")
+    return parts[0], parts[1]
+
+
 def _goal_argument(text: str) -> tuple[float, float, float | None]:
     """``X,Y`` or ``X,Y,YAW_DEG``: finite numbers."""
     parts = text.split(",")
@@ -282,7 +311,7 @@ def _goal_argument(text: str) -> tuple[float, float, float | None]:
 def serve_pose_stream(
     stack: contextlib.ExitStack,
     config: AgentConfig,
-    goals: Sequence[tuple[float, float, float | None]] = (),
+    goals: Sequence[tuple[Any, ...]] = (),
     allow_unknown: bool = True,
     record: str | None = None,
 ) -> tuple[str | None, SimulatedController | None]:
@@ -359,6 +388,12 @@ def run(args: argparse.Namespace) -> int:
     live = sys.stderr.isatty() and not args.json
     out_dir = Path(args.out)
     world = config.sim.world
+    unknown = [name for name in args.deliver or () if name not in {p.name for p in world.places}]
+    if unknown:
+        raise UsageError(
+            f"--deliver: no place {', '.join(map(repr, unknown))} in the world "
+            f"({', '.join(p.name for p in world.places) or 'it names no [[places]]'})"
+        )
     with contextlib.ExitStack() as stack:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
@@ -367,13 +402,19 @@ def run(args: argparse.Namespace) -> int:
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         goals: list[tuple[float, float, float | None]] = args.goal
-        if goals and (config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK):
+        missions = args.explore or args.deliver is not None
+        if (goals or missions) and (
+            config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK
+        ):
             raise UsageError(
-                "--goal needs the simulated controller on a pty sending command frames "
-                '([output] url = "pty", format "frame")'
+                "--goal, --explore and --deliver need the simulated controller on a pty sending command "
+                'frames ([output] url = "pty", format "frame")'
             )
+        if goals and missions:
+            raise UsageError("--goal with --explore or --deliver: the robot drives one mission at a time")
+        commands: list[tuple[Any, ...]] = mission_items(args.deliver) if missions else list(goals)
         url, controller = serve_pose_stream(
-            stack, config, goals, not args.goals_known_map, args.controller_record
+            stack, config, commands, not args.goals_known_map, args.controller_record
         )
         mapping = config.slam.mode is not SlamMode.LOCALIZATION
         if mapping:
@@ -392,11 +433,21 @@ def run(args: argparse.Namespace) -> int:
         if agent.mapper is not None:
             # Last: the map is saved through it once the agent has stopped (a SLAM process ends here).
             stack.callback(agent.mapper.close)
+        script: MissionScript | None = None
+        if missions:
+            places = {p.name: NamedPlace(p.name, p.x_m, p.y_m, p.yaw_rad) for p in world.places}
+            if not agent.enable_missions(places):
+                raise UsageError(
+                    "--explore and --deliver need the navigation: SLAM, a laser, wheels and the pose "
+                    "output ([navigation] enabled)"
+                )
+            assert agent.missions is not None
+            script = MissionScript(agent.missions, robot.simulation, args.deliver)
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
         agent.start()
-        # The world's route, driven from the agent's own pose, unless goals drive the robot.
-        route = () if goals else world.route
+        # The world's route, driven from the agent's own pose, unless goals or missions drive the robot.
+        route = () if goals or script is not None else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -425,6 +476,10 @@ def run(args: argparse.Namespace) -> int:
             args, out_dir, robot.simulation, scorer, agent.mapper if mapping else None, slam_path
         )
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
+        if script is not None:
+            summary["exploration"] = _exploration_summary(agent, robot.simulation)
+        if script is not None and args.deliver:
+            summary["delivery"] = script.delivery(controller)
         summary["t0_us"] = t0_us
         if agent.flight_recorder is not None:
             summary["recording"] = {
@@ -477,7 +532,8 @@ def _watch(
     live: bool,
     controller: SimulatedController | None = None,
 ) -> None:
-    """Until --seconds, a stop request, or (with --goal) the last goal's end; the status line each second."""
+    """Until --seconds, a stop request, (with --goal) the last goal's end, or (with --explore,
+    --deliver) the missions' end; the status line each second."""
     next_status = t0 + 1.0
     last_counts: dict[str, int] = {}
     last_t = t0
@@ -490,7 +546,8 @@ def _watch(
         scorer.drain()
         if now >= next_status:
             next_status += 1.0
-            if args.goal and controller is not None and controller.counts().goals_done:
+            missions = args.explore or args.deliver is not None
+            if (args.goal or missions) and controller is not None and controller.counts().goals_done:
                 return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
@@ -623,6 +680,8 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
         return None
     ended: dict[int, tuple[str, str]] = {}
     for goal_id, state, reason in counts.statuses:
+        if not 1 <= goal_id <= counts.goals_sent:
+            continue  # a mission's own goals (ids from 0xC000), not the controller's
         if state in ("REACHED", "FAILED", "REJECTED", "CANCELLED"):
             ended[goal_id] = (state, reason)  # the last: a goal rejected NOT_LOCALIZED is sent again
     outcome = [s for s, _ in ended.values()]
@@ -636,6 +695,95 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
         "all_ended": counts.goals_done,
         "statuses_decoded": len(counts.statuses),
     }
+
+
+def mission_items(deliver: tuple[str, str] | None) -> list[tuple[Any, ...]]:
+    """What the simulated controller sends for --explore / --deliver: explore (the map starts empty: a
+    place needs a map with free space around it and a way there); then, delivering, go to A, go to B, go
+    to A. (Not "B and come back": that returns to where the robot *thought* it was at A, its localization
+    error at A added to the one at the end.)"""
+    items: list[tuple[Any, ...]] = [("explore",)]
+    if deliver is not None:
+        a, b = deliver
+        items += [("place", a, False), ("place", b, False), ("place", a, False)]
+    return items
+
+
+class MissionScript:
+    """--explore and --deliver: the missions go to the agent as its controller sends them, explore and
+    go-to-place command frames on the serial line (the simulated controller, ``mission_items``; mission
+    ids 1 to 4); this watches them: the true position's error at each place reached (the mission loop's
+    ``on_leg``) and, from the statuses the controller decoded, each mission's answer and end."""
+
+    def __init__(self, missions: MissionLoop, sim: Simulation, deliver: tuple[str, str] | None) -> None:
+        self.missions = missions
+        self.sim = sim
+        self.deliver = deliver
+        self.items = mission_items(deliver)
+        self.ends: list[dict[str, Any]] = []  # each leg reached: the place, the true position's error
+        missions.on_leg = self._leg
+
+    def _leg(self, mission_id: int, leg: int) -> None:
+        if self.deliver is None or not 2 <= mission_id <= len(self.items):
+            return
+        place = self.items[mission_id - 1][1]
+        truth = self.sim.pose()
+        where = self.missions.places[place]
+        error = math.hypot(truth.x_m - where.x_m, truth.y_m - where.y_m)
+        end = {"mission": mission_id, "place": place, "error_m": round(error, 4)}
+        self.ends.append({**end, "t_s": round(self.sim.elapsed_s(), 1)})
+
+    def delivery(self, controller: SimulatedController | None) -> dict[str, Any]:
+        statuses = controller.counts().statuses if controller is not None else ()
+        missions = []
+        for mission_id, item in enumerate(self.items, start=1):
+            mine = [f"{s} {r}".replace(" NONE", "") for goal_id, s, r in statuses if goal_id == mission_id]
+            answers = [t for t in mine if t.split()[0] in ("ACCEPTED", "REJECTED")]
+            ends = [t for t in mine if t.split()[0] in ("REACHED", "FAILED", "CANCELLED")]
+            what = (
+                "explore" if item[0] == "explore" else f"go to {item[1]}" + (" and back" if item[2] else "")
+            )
+            missions.append(
+                {
+                    "mission": mission_id,
+                    "command": what,
+                    "answers": answers,  # a mission refused for want of a pose is sent again
+                    "end": ends[-1] if ends else None,
+                    "legs": [e for e in self.ends if e["mission"] == mission_id],
+                }
+            )
+        errors = [leg["error_m"] for leg in self.ends]
+        return {
+            "places": list(self.deliver or ()),
+            "missions": missions,
+            "complete": all(m["end"] == "REACHED" for m in missions),
+            "ends": self.ends,
+            "max_end_error_m": max(errors) if errors else None,
+        }
+
+
+def _exploration_summary(agent: Agent, sim: Simulation) -> dict[str, Any] | None:
+    """With --explore: the explorer's end and how much of the true reachable free area (the doors as they
+    are at the end) the last SLAM map it was given had seen (None: not exploring)."""
+    loop = agent.missions
+    if loop is None:
+        return None
+    from agent.commands.eval_explore import explored_share
+
+    out = loop.status()
+    grid = loop.last_grid
+    fraction, area_m2 = explored_share(grid, sim.world, sim) if grid is not None else (0.0, math.nan)
+    out["explored_fraction"] = round(fraction, 4)
+    out["reachable_free_m2"] = None if math.isnan(area_m2) else round(area_m2, 2)
+    out["stopped_reason"] = (
+        f"{out['state']}: {out['reason']}"
+        if loop.exploration_ended
+        else f"--seconds spent ({out['state']}: {out['reason']})"
+    )
+    out["door_events"] = [
+        {"t_s": round(t_s, 1), "door": name, "closed": closed} for t_s, name, closed in sim.door_events()
+    ]
+    return out
 
 
 def _summary(
@@ -762,6 +910,21 @@ def _print_summary(s: dict[str, Any]) -> None:
     print(f"  SLAM              {updates} filter updates, {applied} VLP fixes applied")
     share = ", ".join(f"{k} {100 * v:.0f} %" for k, v in s["source_share"].items())
     print(f"  sources live      {share} of frames")
+    delivery = s.get("delivery")
+    if delivery:
+        for mission in delivery["missions"]:
+            legs = ", ".join(f"{leg['place']} {100 * leg['error_m']:.1f} cm" for leg in mission["legs"])
+            print(
+                f"  mission {mission['mission']}         {mission['command']}: "
+                f"{', '.join(mission['answers']) or 'no answer'}, ended {mission['end'] or 'not yet'}"
+                + (f" (at {legs})" if legs else "")
+            )
+    exploration = s.get("exploration")
+    if exploration:
+        print(
+            f"  exploration       {100 * exploration['explored_fraction']:.1f} % of "
+            f"{exploration['reachable_free_m2']} m2 seen; {exploration['stopped_reason']}"
+        )
     goals = s.get("goals")
     if goals:
         outcomes = ", ".join(f"{goal_id} {text.lower()}" for goal_id, text in goals["outcomes"].items())

@@ -29,7 +29,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -57,6 +57,7 @@ from agent.runtime.loop_state import DeviceState, LoopState
 from agent.runtime.mailbox import BoundedQueue, LatestMailbox, MailboxClosed
 from agent.runtime.map_saver import MapSaver
 from agent.runtime.mapper import ScanMapper
+from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.monitor_loop import MonitorLoop
 from agent.runtime.motion import DriveCommand, OdometryTrack, StillDetector, TiltEstimator
 from agent.runtime.navigation_loop import NavigationLoop
@@ -228,6 +229,8 @@ class Agent:
         # is in force. None: nothing navigates, and the controller's goals are answered NOT_LOCALIZED.
         self.navigator: Navigator | None = None
         self.navigation: NavigationLoop | None = None
+        # Local missions, exploring and going to places (``enable_missions``); None: none.
+        self.missions: MissionLoop | None = None
         self.arbiter: CommandArbiter | None = None
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
@@ -298,7 +301,7 @@ class Agent:
                 slam_fixes=self.slam_fixes,
                 hot_path=hot,
                 odometry_track=self.odometry_track if d.servos is not None else None,
-                on_map=self.navigation.on_map if self.navigation is not None else None,
+                on_map=self._on_map if self.navigation is not None else None,
                 saver=self.map_saver,
             )
             scans = self.scans if self.mapper is not None else None
@@ -339,6 +342,9 @@ class Agent:
         if self.output is not None:
             output = partial(output_loop, s, output=self.output, publish=self._publish)
             self._spawn("output", True, timeout, output)
+        if self.missions is not None:
+            # Not critical: without it the robot stands still, and the dead-man covers the wheels.
+            self._spawn("missions", False, max(timeout, 5.0), partial(self.missions.run, stop=s.stop))
         if self.commands is not None and self.drive_step is not None:
             # Not critical: a controller that sends nothing is no fault, and the dead-man covers this loop.
             commands = partial(self.commands.run, stop=s.stop, then=self.drive_step.step)
@@ -623,6 +629,40 @@ class Agent:
         )
         self.navigator = self.navigation
         return True
+
+    def enable_missions(self, places: Mapping[str, NamedPlace] | None = None) -> bool:
+        """Run local missions (``mission_loop``): exploring with the configured explorer
+        (``[exploration]``) and going to the named ``places``, as commands on the serial link (explore,
+        go to place) or from the caller (``missions.take``). The SLAM map and the fused pose in, mission
+        goals to the navigation out. Needs the navigation (:meth:`enable_navigation`); False, saying why
+        in the log, without it. Before :meth:`start`."""
+        if self.navigation is None or self.arbiter is None or self.commands is None:
+            log.warning("missions off: they need the navigation")
+            return False
+        from agent.exploration import make_explorer
+
+        explorer = make_explorer(self.config.exploration, self.config.navigation)
+        commands = self.commands
+        self.missions = MissionLoop(
+            explorer,
+            self.config.navigation,
+            self.arbiter,
+            lambda status: commands.answer(status, None),
+            self._navigation_pose,
+            self.clock_ns,
+            places=places,
+        )
+        commands.listeners.append(self.missions.on_status)
+        commands.missions = self.missions.take
+        return True
+
+    def _on_map(self, image: Any) -> None:
+        """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the missions'
+        map."""
+        if self.navigation is not None:
+            self.navigation.on_map(image)
+        if self.missions is not None:
+            self.missions.on_map(image)
 
     def _navigation_pose(self) -> tuple[float, float, float] | None:
         """The fused pose while a position source is live (a stale hold is not driven on)."""

@@ -33,10 +33,12 @@ from firmware_protocol.command_frame import (
     CancelCommand,
     Command,
     CommandFrameError,
+    ExploreCommand,
     GoalCommand,
     GoalReason,
     GoalState,
     GoalStatus,
+    PlaceCommand,
     ResumeCommand,
     StopCommand,
     VelocityCommand,
@@ -131,6 +133,13 @@ class CommandArbiter:
                 return [self._status(command.sequence, goal_id, GoalState.REJECTED, GoalReason.STOPPED)]
             if isinstance(command, VelocityCommand):
                 return self._take_velocity(command, now_s)
+            if isinstance(command, (ExploreCommand, PlaceCommand)):
+                # Missions are the mission loop's (the command loop routes them there); without one:
+                return [
+                    self._status(
+                        command.sequence, command.mission_id, GoalState.REJECTED, GoalReason.UNKNOWN_TYPE
+                    )
+                ]
             return self._take_goal(command)
 
     def _stop(self, command: StopCommand) -> list[GoalStatus]:
@@ -208,6 +217,33 @@ class CommandArbiter:
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, reason)
             self._mission = goal
             return self._status(NO_SEQUENCE, goal.goal_id, GoalState.ACCEPTED)
+
+    @property
+    def stopped(self) -> bool:
+        """A stop command holds the base (until resume)."""
+        with self._lock:
+            return self._stopped
+
+    @property
+    def controller_in_force(self) -> bool:
+        """A controller's velocity or goal drives the base (a mission would not)."""
+        with self._lock:
+            return self._goal is not None or self._velocity is not None
+
+    def mission_status(
+        self, command_sequence: int, mission_id: int, state: GoalState, reason: GoalReason = GoalReason.NONE
+    ) -> GoalStatus:
+        """A status about a mission (its answer, its end), numbered with the arbiter's statuses."""
+        with self._lock:
+            return self._status(command_sequence, mission_id, state, reason)
+
+    def cancel_mission(self, goal_id: int) -> GoalStatus | None:
+        """The mission ends its own goal (CANCELLED); None if ``goal_id`` is not the mission goal in force."""
+        with self._lock:
+            if self._mission is None or self._mission.goal_id != goal_id:
+                return None
+            self._mission = None
+            return self._status(NO_SEQUENCE, goal_id, GoalState.CANCELLED)
 
     def directive(self, now_s: float) -> tuple[Directive, GoalStatus | None]:
         """What drives the base now, and the dead-man's status if a velocity just expired."""

@@ -26,8 +26,10 @@ from firmware_protocol.command_frame import (
     CommandDecoder,
     CommandFrameError,
     CommandType,
+    ExploreCommand,
     GoalCommand,
     GoalStatus,
+    PlaceCommand,
     ResumeCommand,
     StopCommand,
     VelocityCommand,
@@ -52,6 +54,10 @@ class _Decoder(Protocol):
 
 
 def _kind(command: Command) -> CommandType:
+    if isinstance(command, ExploreCommand):
+        return CommandType.EXPLORE
+    if isinstance(command, PlaceCommand):
+        return CommandType.GO_TO_PLACE
     if isinstance(command, VelocityCommand):
         return CommandType.VELOCITY
     if isinstance(command, GoalCommand):
@@ -85,6 +91,11 @@ class CommandLoop:
         self.statuses: collections.deque[GoalStatus] = collections.deque(maxlen=256)  # for the summary
         # The flight recorder's entry (kind, time ns, sample); set by the agent when it records.
         self.record: Callable[[str, int, object], None] | None = None
+        # Told of every status sent (the exploration loop learns its mission goals' outcomes so).
+        self.listeners: list[Callable[[GoalStatus], None]] = []
+        # The mission loop's entry for explore and go-to-place commands (its answer); None: none runs,
+        # and the arbiter rejects them.
+        self.missions: Callable[[ExploreCommand | PlaceCommand], GoalStatus] | None = None
         self._decoder: _Decoder
         self._encode: Callable[[GoalStatus, CommandType | None], bytes]
         if output_format is OutputFormat.MAVLINK:
@@ -99,6 +110,8 @@ class CommandLoop:
     def answer(self, status: GoalStatus, answers: CommandType | None = CommandType.GOAL) -> None:
         """Send one status (also the navigator's ACTIVE / REACHED / FAILED reports, through the caller)."""
         self.statuses.append(status)
+        for listener in self.listeners:
+            listener(status)
         if self.record is not None:
             now_ns = int(self.clock_s() * 1e9)
             self.record("goal_status", now_ns, GoalSample(now_ns, status))
@@ -121,6 +134,9 @@ class CommandLoop:
                 now_ns = int(self.clock_s() * 1e9)
                 self.record("command", now_ns, CommandSample(now_ns, command))
             self.counts[f"command_{_kind(command).name.lower()}"] += 1
+            if isinstance(command, (ExploreCommand, PlaceCommand)) and self.missions is not None:
+                self.answer(self.missions(command), _kind(command))
+                continue
             for i, status in enumerate(self.arbiter.command(command, self.clock_s())):
                 self.answer(status, _kind(command) if i == 0 else CommandType.GOAL)
         return len(commands)

@@ -25,6 +25,11 @@ another; a goal rejected NOT_LOCALIZED (no map or pose yet) is sent again a seco
 a file that gets every byte the agent sent, for an independent decoder (the reference C code) to read
 afterwards. Goals are command frames only; with MAVLink output the controller
 only decodes (the MAVLink commands are tested on their own).
+
+Missions (``vlp-agent sim --explore``, ``--deliver``) go the same way, one after another: an item
+``("explore",)`` is sent as an explore command frame (start), ``("place", NAME, COME_BACK)`` as a
+go-to-place frame (command frames v1.1); the mission id is the item's place in the list, as a goal's
+id is, and the mission's end is a status of that id.
 """
 
 from __future__ import annotations
@@ -74,7 +79,7 @@ class _Commander:
 
     def __init__(
         self,
-        goals: Sequence[tuple[float, float, float | None]],
+        goals: Sequence[tuple[Any, ...]],
         allow_unknown: bool,
         retry_s: float = 1.0,
         retries: int = 120,
@@ -124,9 +129,16 @@ class _Commander:
             return b""
         from firmware_protocol.command_frame import GoalCommand, encode_command
 
-        x, y, yaw = self.goals[self.sent - 1]
+        item = self.goals[self.sent - 1]
         self.sequence = (self.sequence + 1) & 0xFFFF
         self._waiting = True
+        if item and isinstance(item[0], str):
+            from firmware_protocol.command_frame import ExploreCommand, PlaceCommand
+
+            if item[0] == "explore":
+                return encode_command(ExploreCommand(self.sequence, self.sent))
+            return encode_command(PlaceCommand(self.sequence, self.sent, str(item[1]), bool(item[2])))
+        x, y, yaw = item
         goal = GoalCommand(self.sequence, self.sent, x, y, yaw, allow_unknown=self.allow_unknown)
         return encode_command(goal)
 
@@ -255,12 +267,13 @@ class SimulatedController:
     """The controller child: ``url`` is the pty to write the pose stream to; :meth:`counts` what it decoded
     so far; :meth:`stop` takes in the rest and ends it (its last counts stay readable). ``goals``: (x, y,
     yaw or None) to send one after another as goal commands (``allow_unknown``: their option to cross unknown
-    space); ``record``: a file for every byte received."""
+    space), or missions (``("explore",)``, ``("place", name, come_back)``); ``record``: a file for every
+    byte received."""
 
     def __init__(
         self,
         mavlink: bool = False,
-        goals: Sequence[tuple[float, float, float | None]] = (),
+        goals: Sequence[tuple[Any, ...]] = (),
         allow_unknown: bool = False,
         record: str | None = None,
     ) -> None:

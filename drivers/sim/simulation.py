@@ -22,7 +22,7 @@ import numpy.typing as npt
 
 from drivers.sim.pedestrians import Walker, WalkPath, lookahead_m, step_walker
 from drivers.sim.raycast import cast_rays, distance_to_segments, walls_array
-from drivers.sim.world import Person, Pose2D, World
+from drivers.sim.world import Person, Pose2D, World, door_scheduled_closed
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -56,7 +56,13 @@ class Simulation:
         self.clock = clock
         self.rng = np.random.default_rng(seed)
         self._lock = threading.RLock()
-        self._segments = walls_array(world.walls)
+        self._walls = walls_array(world.walls)
+        # Doors (``World.doors``): a wall while closed. The state changes on the schedule, except that a
+        # door does not close on the robot: it waits until its footprint is clear of the doorway.
+        self._door_segments = walls_array(world.doors)
+        self._door_closed = np.zeros(len(world.doors), dtype=bool)
+        self._door_events: list[tuple[float, str, bool]] = []  # (elapsed s, name, closed)
+        self._segments = self._walls
         robot = world.robot
         self._t = clock()
         self.t_start = self._t
@@ -75,6 +81,8 @@ class Simulation:
         self._poses: collections.deque[tuple[float, float, float]] = collections.deque()
         self._walked: collections.deque[tuple[float, ...]] = collections.deque()
         self._record()
+        if len(self._door_closed):
+            self._update_doors()  # the doors closed at the start
 
     # -- time ----------------------------------------------------------------------------------------
     def now(self) -> float:
@@ -146,6 +154,43 @@ class Simulation:
             self._step_people(dt)
             self._t += dt
             self._record()
+            if len(self._door_closed):
+                self._update_doors()
+
+    def _update_doors(self) -> None:
+        elapsed = self._t - self.t_start
+        changed = False
+        clear_m = self.world.robot.radius_m + 0.02
+        for i, door in enumerate(self.world.doors):
+            want = door_scheduled_closed(door, elapsed)
+            if want == self._door_closed[i]:
+                continue
+            if want and distance_to_segments((self._x, self._y), self._door_segments[i : i + 1]) < clear_m:
+                continue  # the robot is in the doorway: the door waits
+            self._door_closed[i] = want
+            self._door_events.append((elapsed, door.name, want))
+            changed = True
+        if changed:
+            self._segments = np.vstack([self._walls, self._door_segments[self._door_closed]])
+
+    # -- doors ---------------------------------------------------------------------------------------
+    def segments(self) -> FloatArray:
+        """The (N, 4) wall segments now: the walls and the doors that are closed."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return self._segments
+
+    def doors_closed(self) -> dict[str, bool]:
+        """Each door's state now, by name (True: closed)."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return {d.name: bool(c) for d, c in zip(self.world.doors, self._door_closed, strict=True)}
+
+    def door_events(self) -> list[tuple[float, str, bool]]:
+        """Every change of a door so far: (simulated seconds from the start, name, closed)."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            return list(self._door_events)
 
     # -- the robot -----------------------------------------------------------------------------------
     def set_wheel_velocity(self, left_radps: float, right_radps: float) -> None:
@@ -272,7 +317,7 @@ class Simulation:
         """The gaps between the robot's footprint (a circle of ``robot.radius_m`` at ``x_m, y_m``) and the
         nearest wall and the nearest person at time ``t``: <= 0 is contact (``inf`` where there is none)."""
         radius = self.world.robot.radius_m
-        wall = distance_to_segments((x_m, y_m), self._segments) - radius
+        wall = distance_to_segments((x_m, y_m), self.segments()) - radius
         person = float("inf")
         for p in self.world.people:
             px, py = self.person_position(p, t)

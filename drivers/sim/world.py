@@ -1,4 +1,4 @@
-"""The description of a simulated world: plain frozen dataclasses, no behaviour.
+"""The description of a simulated world: plain frozen dataclasses (and a door's schedule read off one).
 
 Units are in the names. Angles are counter-clockwise, radians; the world frame is x east, y north, z up,
 the frame of the building's LED survey. ``worldfile`` builds these from TOML (documented in docs/world.md).
@@ -38,6 +38,46 @@ class Wall:
     y1_m: float
     x2_m: float
     y2_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class Door:
+    """A door as a line segment across a doorway: a wall while it is closed, nothing while it is open.
+
+    Open at the start unless only ``opens_at_s`` is given; ``closes_at_s`` / ``opens_at_s`` are simulated
+    seconds from the start (None: never). Both given: closed between them (or, with ``opens_at_s`` first,
+    open between them). A door does not close on the robot: it waits until the doorway is clear
+    (``drivers.sim.simulation``)."""
+
+    name: str
+    x1_m: float
+    y1_m: float
+    x2_m: float
+    y2_m: float
+    closes_at_s: float | None = None
+    opens_at_s: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Place:
+    """A named point of the world (a room, a desk, a charging spot): where missions go."""
+
+    name: str
+    x_m: float
+    y_m: float
+    yaw_rad: float | None = None
+
+
+def door_scheduled_closed(door: Door, t_s: float) -> bool:
+    """Whether ``door``'s schedule has it closed ``t_s`` simulated seconds after the start."""
+    closes, opens = door.closes_at_s, door.opens_at_s
+    if closes is None:
+        return opens is not None and t_s < opens
+    if opens is None:
+        return t_s >= closes
+    if closes < opens:
+        return closes <= t_s < opens
+    return t_s < opens or t_s >= closes
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,6 +365,8 @@ class Scene:
 class World:
     name: str
     walls: tuple[Wall, ...] = ()
+    doors: tuple[Door, ...] = ()
+    places: tuple[Place, ...] = ()
     leds: tuple[Led, ...] = ()
     robot: RobotSpec = RobotSpec()
     camera: CameraModel = CameraModel()

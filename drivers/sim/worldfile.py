@@ -37,18 +37,21 @@ from drivers.errors import ConfigError
 from drivers.sim.world import (
     CameraModel,
     Clothing,
+    Door,
     ErrorModel,
     ForwardCameraModel,
     LaserModel,
     Led,
     Occluder,
     Person,
+    Place,
     RfidModel,
     RobotSpec,
     Scene,
     StrayLight,
     Wall,
     World,
+    door_scheduled_closed,
 )
 from drivers.toml_table import TomlTable, as_float, as_int, type_name
 
@@ -110,6 +113,8 @@ MAX_PATH_POINTS = 256  # a person's path, the route's waypoints (each leg is che
 MAX_PEOPLE = 16
 MAX_DOORS = 64  # doors of one room
 MAX_STRAY_LIGHTS = 256  # [[scene.stray_lights]]: each is rendered every frame like an LED
+MAX_SCHEDULED_DOORS = 256  # [[doors]]: doors that open and close
+MAX_PLACES = 256  # [[places]]
 
 CLOTHING_PATTERNS = ("plain", "stripes", "checks")
 _RGB_REASON = "must be three numbers (red, green, blue), each 0-255"
@@ -626,6 +631,14 @@ class _Placed(typing.NamedTuple):
     where: str
 
 
+def _ever_closed(door: Door) -> bool:
+    return door.closes_at_s is not None or door.opens_at_s is not None
+
+
+def _closed_at_start(door: Door) -> bool:
+    return door_scheduled_closed(door, 0.0)
+
+
 def _wall_ends(w: Wall) -> tuple[Point, Point]:
     return (w.x1_m, w.y1_m), (w.x2_m, w.y2_m)
 
@@ -645,6 +658,8 @@ _SECTIONS = (
     "walls",
     "polygons",
     "rooms",
+    "doors",
+    "places",
     "people",
     "route",
     "scene",
@@ -682,15 +697,22 @@ class _WorldReader:
         self._check_errors(errors, camera)
 
         walls = self._walls()
+        doors = self._doors()
+        places = self._places(walls, robot)
         leds_with_keys = self._leds(robot, camera)
-        people = self._people(walls)
-        route, speed = self._route(walls, robot)
+        # People and the robot's route go through doorways, not through doors that close.
+        closing = [Wall(d.x1_m, d.y1_m, d.x2_m, d.y2_m) for d in doors if _ever_closed(d)]
+        people = self._people(walls + closing)
+        route, speed = self._route(walls + closing, robot)
         scene = self._scene(leds_with_keys, robot, camera)
         root.finish()
         self._check_start(robot, walls)
+        self._check_start_doors(robot, doors)
         return World(
             name=name,
             walls=tuple(walls),
+            doors=tuple(doors),
+            places=tuple(places),
             leds=tuple(placed.led for placed in leds_with_keys),
             robot=robot,
             camera=camera,
@@ -878,6 +900,66 @@ class _WorldReader:
                     walls.append(Wall(a[0] + ux * cursor, a[1] + uy * cursor, a[0] + ux * lo, a[1] + uy * lo))
                 cursor = hi
         return walls
+
+    # -- doors and places --------------------------------------------------------------------------------
+    def _doors(self) -> list[Door]:
+        """``[[doors]]``: a segment across a doorway that is a wall while closed, on a schedule."""
+        doors: list[Door] = []
+        names: dict[str, str] = {}
+        for t in self.root.tables("doors", MAX_SCHEDULED_DOORS):
+            t.expect("name", "points", "closes_at_s", "opens_at_s")
+            name = t.string("name", t.path)
+            pts = t.points("points", minimum=2, maximum=2)
+            times: dict[str, float | None] = {}
+            for key in ("closes_at_s", "opens_at_s"):
+                value = t.number(key) if t.has(key) else None
+                if value is not None and not (math.isfinite(value) and value >= 0.0):
+                    raise t.error(key, f"must be a finite number of seconds >= 0, got {value:g}")
+                times[key] = value
+            t.finish()
+            if math.dist(pts[0], pts[1]) < 1e-6:
+                raise t.error("points", "the door's two ends must differ")
+            closes, opens = times["closes_at_s"], times["opens_at_s"]
+            if closes is not None and opens is not None and closes == opens:
+                raise t.error("opens_at_s", f"must differ from closes_at_s ({closes:g} s)")
+            if name in names:
+                raise t.error("name", f"{name!r} is already the name of {names[name]}")
+            names[name] = t.path
+            (x1, y1), (x2, y2) = pts
+            doors.append(Door(name, x1, y1, x2, y2, closes, opens))
+        return doors
+
+    def _places(self, walls: list[Wall], robot: RobotSpec) -> list[Place]:
+        """``[[places]]``: named points missions go to; the robot must fit there."""
+        places: list[Place] = []
+        names: dict[str, str] = {}
+        for t in self.root.tables("places", MAX_PLACES):
+            t.expect("name", "x_m", "y_m", "yaw_rad", "yaw_deg")
+            name = t.string("name")
+            x, y = t.number("x_m", required=True), t.number("y_m", required=True)
+            if t.has("yaw_rad") and t.has("yaw_deg"):
+                raise t.error("yaw_deg", "give either yaw_rad or yaw_deg, not both")
+            yaw = None
+            if t.has("yaw_rad"):
+                yaw = t.number("yaw_rad")
+            elif t.has("yaw_deg"):
+                yaw = math.radians(t.number("yaw_deg"))
+            t.finish()
+            if not (math.isfinite(x) and math.isfinite(y) and (yaw is None or math.isfinite(yaw))):
+                raise t.error("x_m", "the position and heading must be finite numbers")
+            if name in names:
+                raise t.error("name", f"{name!r} is already the name of {names[name]}")
+            names[name] = t.path
+            for w in walls:
+                gap = _point_segment_distance((x, y), *_wall_ends(w))
+                if gap < robot.radius_m:
+                    raise t.error(
+                        "x_m",
+                        f"the robot ({robot.radius_m:g} m radius) at ({x:g}, {y:g}) would overlap the wall "
+                        f"({w.x1_m:g}, {w.y1_m:g})-({w.x2_m:g}, {w.y2_m:g})",
+                    )
+            places.append(Place(name, x, y, yaw))
+        return places
 
     # -- LEDs --------------------------------------------------------------------------------------------
     def _leds(self, robot: RobotSpec, cam: CameraModel) -> list[_Placed]:
@@ -1298,6 +1380,17 @@ class _WorldReader:
                         )
                         break
         return waypoints, speed
+
+    def _check_start_doors(self, robot: RobotSpec, doors: list[Door]) -> None:
+        start = (robot.start.x_m, robot.start.y_m)
+        for i, d in enumerate(doors):
+            gap = _point_segment_distance(start, (d.x1_m, d.y1_m), (d.x2_m, d.y2_m))
+            if _closed_at_start(d) and gap < robot.radius_m:
+                raise self.error(
+                    "robot.start",
+                    f"the robot ({robot.radius_m:g} m radius) at {start} overlaps the door doors[{i}] "
+                    f"({d.name}), closed at the start",
+                )
 
     def _check_start(self, robot: RobotSpec, walls: list[Wall]) -> None:
         start = (robot.start.x_m, robot.start.y_m)

@@ -144,7 +144,7 @@ status_result_t goal_status_parse(const uint8_t *decoded, size_t len, goal_statu
     out->command_sequence = get_u16(decoded + 4);
     out->goal_id = get_u16(decoded + 6);
     out->state = decoded[8];
-    out->reason = (decoded[9] > REASON_BUSY) ? (uint8_t)REASON_NONE : decoded[9];
+    out->reason = (decoded[9] > REASON_EXPLORED) ? (uint8_t)REASON_NONE : decoded[9];
     out->remaining = get_u16(decoded + 10);
     return STATUS_OK;
 }

@@ -21,11 +21,14 @@ from firmware_protocol.command_frame import (
     Command,
     CommandDecoder,
     CommandFrameError,
+    ExploreAction,
+    ExploreCommand,
     GoalCommand,
     GoalReason,
     GoalState,
     GoalStatus,
     GoalStatusDecoder,
+    PlaceCommand,
     ResumeCommand,
     StopCommand,
     VelocityCommand,
@@ -50,6 +53,10 @@ DOC_MESSAGES: dict[str, Command | GoalStatus] = {
     "status: active, 4.37 m to go": GoalStatus(2, NO_SEQUENCE, 42, GoalState.ACTIVE, remaining_m=4.37),
     "status: rejected, unreachable": GoalStatus(3, 9, 43, GoalState.REJECTED, GoalReason.UNREACHABLE),
     "status: reached": GoalStatus(4, NO_SEQUENCE, 42, GoalState.REACHED, remaining_m=0.0),
+    "explore: start, mission 7": ExploreCommand(13, 7, ExploreAction.START),
+    "explore: pause, mission 7": ExploreCommand(14, 7, ExploreAction.PAUSE),
+    "go to place: S3 and back, mission 8": PlaceCommand(15, 8, "S3", come_back=True),
+    "status: rejected, unknown place": GoalStatus(5, 15, 8, GoalState.REJECTED, GoalReason.UNKNOWN_PLACE),
 }
 
 
@@ -82,7 +89,8 @@ def test_the_doc_vectors_are_the_codecs_bytes_both_ways() -> None:
 
 
 def test_frame_lengths_on_the_wire() -> None:
-    assert [len(wire(m)) for m in DOC_MESSAGES.values()] == [14, 26, 26, 10, 8, 8, 16, 16, 16, 16]
+    lengths = [14, 26, 26, 10, 8, 8, 16, 16, 16, 16, 12, 12, 28, 16]
+    assert [len(wire(m)) for m in DOC_MESSAGES.values()] == lengths
 
 
 def test_no_type_byte_looks_like_a_pose_version() -> None:
@@ -153,7 +161,7 @@ def test_a_far_goal_saturates_its_remaining_distance_instead_of_reading_unknown(
 @pytest.mark.parametrize(
     ("payload", "kind"),
     [
-        (bytes([0x26, 0x10, 0, 0]), "type"),  # an unknown type
+        (bytes([0x2F, 0x10, 0, 0]), "type"),  # an unknown type
         (bytes([0x10]) + bytes(29), "type"),  # a pose payload sent to the agent
         (bytes([0xA1, 0x10, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]), "type"),  # a status sent to the agent
         (bytes([0x24, 0x20, 0, 0]), "version"),  # major 2
@@ -269,3 +277,79 @@ def test_the_stream_decoders_never_raise_and_cuts_do_not_matter(data: bytes, cut
 
 def test_cancel_defaults_to_whatever_goal_is_active() -> None:
     assert decode_command(encode_command(CancelCommand(1))) == CancelCommand(1, NO_GOAL)
+
+
+# -- missions (v1.1) ----------------------------------------------------------------------------------------
+@given(st.integers(0, 0xFFFF), st.integers(0, 0xFFFF), st.sampled_from(list(ExploreAction)))
+def test_explore_round_trip(seq: int, mission: int, action: ExploreAction) -> None:
+    command = ExploreCommand(seq, mission, action)
+    assert decode_command(encode_command(command)) == command
+
+
+@given(
+    st.integers(0, 0xFFFF),
+    st.text(st.characters(blacklist_characters="\x00", blacklist_categories=("Cs",)), min_size=1).filter(
+        lambda t: len(t.encode("utf-8")) <= 16
+    ),
+    st.booleans(),
+)
+def test_place_round_trip(mission: int, name: str, back: bool) -> None:
+    command = PlaceCommand(3, mission, name, back)
+    assert decode_command(encode_command(command)) == command
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        PlaceCommand(1, 1, ""),
+        PlaceCommand(1, 1, "a" * 17),
+        PlaceCommand(1, 1, "é" * 9),  # 18 bytes of UTF-8
+        PlaceCommand(1, 1, "a\x00b"),
+        ExploreCommand(1, 0x10000),
+    ],
+)
+def test_mission_values_that_cannot_cross_the_wire_raise(bad: Command) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        encode_command(bad)
+    assert info.value.kind == "value"
+
+
+def place_payload(name: bytes, version: int = 0x11, extra: bytes = b"") -> bytes:
+    return bytes([0x27, version, 1, 0, 8, 0, 0, 0]) + name.ljust(16, b"\x00")[:16] + extra
+
+
+@pytest.mark.parametrize(
+    ("payload", "kind"),
+    [
+        (bytes([0x26, 0x11, 1, 0, 7, 0, 9, 0]), "value"),  # no explore action 9
+        (bytes([0x26, 0x10, 1, 0, 7, 0, 0, 0]), "version"),  # explore frames start at 1.1
+        (bytes([0x26, 0x11, 1, 0, 7, 0, 0]), "length"),  # cut short
+        (bytes([0x26, 0x11, 1, 0, 7, 0, 0, 0, 0]), "length"),  # a stray byte at 1.1
+        (place_payload(b"S3", 0x10), "version"),
+        (place_payload(b""), "value"),  # no name
+        (place_payload(b"\xff\xfe"), "value"),  # not UTF-8
+        (place_payload(b"S\x003"), "value"),  # a NUL inside
+        (place_payload(b"S3")[:-1], "length"),
+    ],
+)
+def test_malformed_mission_frames_are_rejected_with_their_kind(payload: bytes, kind: str) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        decode_command(encode_link_frame(payload))
+    assert info.value.kind == kind, info.value
+
+
+def test_a_later_minor_mission_frame_with_appended_fields_is_read() -> None:
+    assert decode_command(encode_link_frame(place_payload(b"S3", 0x12, b"later"))) == PlaceCommand(1, 8, "S3")
+
+
+def test_mission_frames_in_a_stream_with_junk() -> None:
+    decoder = CommandDecoder()
+    good = [ExploreCommand(1, 7), PlaceCommand(2, 8, "N4", True)]
+    stream = (
+        b"\x13\x37\x00"
+        + encode_command(good[0])
+        + encode_link_frame(place_payload(b""))
+        + encode_command(good[1])
+    )
+    assert decoder.feed(stream) == good
+    assert decoder.errors["value"] == 1

@@ -14,10 +14,13 @@ from agent.runtime.command_loop import CommandLoop
 from agent.runtime.output import PoseOutput
 from firmware_protocol.command_frame import (
     NO_SEQUENCE,
+    ExploreCommand,
     GoalCommand,
     GoalReason,
     GoalState,
+    GoalStatus,
     GoalStatusDecoder,
+    PlaceCommand,
     StopCommand,
     VelocityCommand,
     encode_command,
@@ -124,3 +127,31 @@ def test_junk_never_raises_and_never_moves_the_base(pty: tuple[int, str], junk: 
     _, loop, _ = setup(path)
     pump(loop, master, junk + b"\x00", lambda reply: False, rounds=10)
     assert loop.arbiter.directive(0.0)[0].source is DriveSource.NONE
+
+
+def test_mission_frames_go_to_the_mission_loop_or_are_refused_without_one(pty: tuple[int, str]) -> None:
+    master, path = pty
+    _, loop, _ = setup(path)
+    read_all(master)
+    # No mission loop: the arbiter answers UNKNOWN_TYPE with the mission id.
+    reply = pump(loop, master, encode_command(PlaceCommand(5, 21, "S3")), statuses(1))
+    (answer,) = GoalStatusDecoder().feed(reply)
+    assert (answer.command_sequence, answer.goal_id, answer.reason) == (5, 21, GoalReason.UNKNOWN_TYPE)
+    taken: list[object] = []
+
+    def missions(command: ExploreCommand | PlaceCommand) -> GoalStatus:
+        taken.append(command)
+        return loop.arbiter.mission_status(command.sequence, command.mission_id, GoalState.ACCEPTED)
+
+    loop.missions = missions
+    heard: list[GoalStatus] = []
+    loop.listeners.append(heard.append)
+    stream = encode_command(ExploreCommand(6, 22)) + encode_command(PlaceCommand(7, 23, "N4", True))
+    reply = pump(loop, master, stream, statuses(2))
+    answers = GoalStatusDecoder().feed(reply)
+    assert [(s.command_sequence, s.goal_id, s.state) for s in answers] == [
+        (6, 22, GoalState.ACCEPTED),
+        (7, 23, GoalState.ACCEPTED),
+    ]
+    assert taken == [ExploreCommand(6, 22), PlaceCommand(7, 23, "N4", True)]
+    assert heard == answers and loop.counts["command_go_to_place"] == 2  # the refused one too
