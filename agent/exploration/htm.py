@@ -151,7 +151,8 @@ class Htm:
     # -- regions ------------------------------------------------------------------------------------------
     def set_regions(self, regions: list[tuple[Polygon, float]]) -> list[int]:
         """Replace the REGION nodes by ``regions`` (outline, free area; largest first is best); each keeps
-        the id and name of the old region whose centre it contains (the first, largest, new one wins),
+        the id and name of an old region whose centre it contains or that contains its centre (a named one
+        first; the first, largest, new region wins),
         otherwise it gets a new id. The REGION ids, in order. Nodes' ``region`` are not touched: call
         ``assign_regions`` (by outline) or set them from a label image."""
         old = [n for n in self.nodes.values() if n.kind is NodeKind.REGION]
@@ -161,11 +162,13 @@ class Htm:
             if len(polygon) < 3:
                 raise ValueError("a region's outline needs at least 3 points")
             heir = None
+            cx, cy = polygon_centre(polygon)
             for o in sorted(old, key=lambda o: (o.name == "", -o.area_m2)):
-                if o.id not in taken and point_in_polygon((o.x_m, o.y_m), polygon):
+                if o.id in taken:
+                    continue
+                if point_in_polygon((o.x_m, o.y_m), polygon) or point_in_polygon((cx, cy), o.polygon):
                     heir = o
                     break
-            cx, cy = polygon_centre(polygon)
             if heir is not None:
                 taken.add(heir.id)
                 heir.x_m, heir.y_m, heir.polygon, heir.area_m2 = cx, cy, tuple(polygon), area

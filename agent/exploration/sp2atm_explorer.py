@@ -16,7 +16,10 @@ progress watch, blacklist and the end are the frontier explorer's, which this on
 4. the **possible-node filter** (step 3 of §1.1): a tip is kept only if the robot can reach its cell
    with room to spare (the Dijkstra's cost is finite, the cell clear of the footprint by
    ``target_clearance_m``), no blacklist entry covers it, and it has information to gain: at least
-   ``min_frontier_size_m`` of frontier within ``gain_radius_m`` (a tip in the explored interior has none);
+   ``min_frontier_size_m`` of frontier within ``gain_radius_m`` (a tip in the explored interior has none),
+   counting only frontier cells beside unknown space that survives a 3 x 3 opening (a sliver of unknown
+   one or two cells wide between a far scan's beams has frontier on both sides and nothing behind it);
+   the frontiers' targets pass the same gain test;
 5. the **HTM** (``htm.Htm``): tips are appended / rebound from the current place (an edge as long as the
    branch); each frontier's target is bound to the nearest place that sees it in a straight line (an
    edge that long), else to the current place (an edge costing the path); POSSIBLE nodes no candidate
@@ -46,18 +49,19 @@ import logging
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from agent.exploration.admissible_tree import grid_scan, scan_branches, to_world
 from agent.exploration.config import ExploreConfig
 from agent.exploration.frontier_explorer import Candidate, FrontierExplorer, Pose, Survey
-from agent.exploration.frontiers import GridMap
+from agent.exploration.frontiers import GridMap, dilate
 from agent.exploration.htm import Htm, NodeKind
-from agent.exploration.lifecycle import Command, Decision, Target
+from agent.exploration.lifecycle import Command, Decision, ExploreState, Target
 from agent.exploration.regions import find_regions
 from agent.exploration.topology import to_geojson
 from agent.navigation.config import NavConfig
-from agent.navigation.costmap import FloatArray, IntArray, segment_cells
+from agent.navigation.costmap import BoolArray, FloatArray, IntArray, segment_cells
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +84,7 @@ class Sp2atmExplorer(FrontierExplorer):
         self.labels: IntArray | None = None  # the last region label image (0: none, k: region_ids[k-1])
         self.region_ids: list[int] = []
         self.backtracks = 0
+        self._slivers_now = 0  # frontier targets passed over as slivers in the last search
         self._next_pose = 0
         self._driven_m = 0.0  # since the current place
         self._last_xy: tuple[float, float] | None = None
@@ -131,6 +136,11 @@ class Sp2atmExplorer(FrontierExplorer):
 
     def _choose(self, survey: Survey, pose: Pose, t_s: float) -> None:
         super()._choose(survey, pose, t_s)
+        if self.state is ExploreState.COMPLETE and self._slivers_now:
+            self._set(
+                ExploreState.COMPLETE,
+                f"{self.reason}; {self._slivers_now} slivers (frontiers with nothing behind them) passed over",
+            )
         best = survey.best
         if best is not None and self.target == best.target and isinstance(best, NodeCandidate):
             self._target_node = best.node
@@ -159,13 +169,18 @@ class Sp2atmExplorer(FrontierExplorer):
         cfg, nav = self.config, self.nav
         spec = field.seen.spec
         place = self._place_at(pose)
-        # Information gain: metres of frontier near a point.
-        fpoints = np.concatenate([f.points_m for f in base.frontiers]) if base.frontiers else np.zeros((0, 2))
-        owner = (
-            np.concatenate([np.full(len(f.points_m), i) for i, f in enumerate(base.frontiers)])
-            if base.frontiers
-            else np.zeros(0, dtype=np.intp)
-        )
+        self._slivers_now = 0
+        # Information gain: metres of frontier near a point, counting only frontier cells that border
+        # unknown space a 3 x 3 opening keeps (a sliver one or two cells wide between the beams of a far
+        # scan has frontier on both sides and nothing behind it).
+        informative = dilate(_opened(field.seen.unknown), 2)
+        fpoints_list, owner_list = [], []
+        for i, f in enumerate(base.frontiers):
+            keep = informative[f.cells[:, 0], f.cells[:, 1]]
+            fpoints_list.append(f.points_m[keep])
+            owner_list.append(np.full(int(keep.sum()), i, dtype=np.intp))
+        fpoints = np.concatenate(fpoints_list) if fpoints_list else np.zeros((0, 2))
+        owner = np.concatenate(owner_list) if owner_list else np.zeros(0, dtype=np.intp)
 
         def gain(points: FloatArray) -> tuple[FloatArray, IntArray]:
             if len(fpoints) == 0 or len(points) == 0:
@@ -220,10 +235,13 @@ class Sp2atmExplorer(FrontierExplorer):
         fr_pts = np.array([[c.target.x_m, c.target.y_m] for c in base.candidates]).reshape(-1, 2)
         fr_gain, _ = gain(fr_pts)
         for c, g in zip(base.candidates, fr_gain, strict=True):
+            if g < cfg.min_frontier_size_m:
+                self._slivers_now += 1  # nothing behind it worth the trip (the filter above)
+                continue
             spot = (c.target.x_m, c.target.y_m)
             src, cost_edge = self._seen_from(field.seen, spot, place, c.path_m)
             (node,) = self.htm.integrate(src, [spot], costs=[cost_edge], anchor=self._place_pose(src))
-            g_m = max(float(g), c.frontier.length_m if g == 0.0 else 0.0)
+            g_m = float(g)
             cost = cfg.potential_scale * c.path_m - cfg.gain_scale * g_m
             candidates.append(NodeCandidate(c.frontier, c.target, c.path_m, cost, "frontier", g_m, node))
         bound = {c.node for c in candidates}
@@ -341,3 +359,10 @@ class Sp2atmExplorer(FrontierExplorer):
             return None
         k = int(self.labels[cell[0], cell[1]])
         return self.region_ids[k - 1] if 0 < k <= len(self.region_ids) else None
+
+
+def _opened(mask: BoolArray) -> BoolArray:
+    """``mask`` after a 3 x 3 morphological opening: parts narrower than 3 cells removed."""
+    kernel = np.ones((3, 3), np.uint8)
+    out: BoolArray = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+    return out
