@@ -139,7 +139,7 @@ class Sp2atmExplorer(FrontierExplorer):
         if self.state is ExploreState.COMPLETE and self._slivers_now:
             self._set(
                 ExploreState.COMPLETE,
-                f"{self.reason}; {self._slivers_now} slivers (frontiers with nothing behind them) passed over",
+                f"{self.reason}; {self._slivers_now} slivers (frontier, nothing behind it) passed over",
             )
         best = survey.best
         if best is not None and self.target == best.target and isinstance(best, NodeCandidate):
