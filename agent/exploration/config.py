@@ -44,6 +44,9 @@ class ExploreConfig:
     merge_m: float = 0.75  # a possible node this close to an HTM node is bound to it (rebind), not added
     place_spacing_m: float = 1.0  # the robot farther than this from every place: a new PLACE node
     gain_radius_m: float = 1.5  # information gain: metres of frontier within this of a candidate
+    min_gain_m2: float = (
+        0.25  # unknown pockets smaller than this (after a 3 x 3 opening) are not worth a trip
+    )
     ast_beams: int = 180  # beams of the scan cast on the map the AST is grown from
     ast_range_m: float = 5.0  # their range
     locality_m: float = 3.0  # a candidate outside the current place and room wins only if this much cheaper

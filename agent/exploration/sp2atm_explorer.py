@@ -171,9 +171,8 @@ class Sp2atmExplorer(FrontierExplorer):
         place = self._place_at(pose)
         self._slivers_now = 0
         # Information gain: metres of frontier near a point, counting only frontier cells that border
-        # unknown space a 3 x 3 opening keeps (a sliver one or two cells wide between the beams of a far
-        # scan has frontier on both sides and nothing behind it).
-        informative = dilate(_opened(field.seen.unknown), 2)
+        # unknown space worth a look (``informative_unknown``).
+        informative = dilate(informative_unknown(field.seen, cfg.min_gain_m2), 2)
         fpoints_list, owner_list = [], []
         for i, f in enumerate(base.frontiers):
             keep = informative[f.cells[:, 0], f.cells[:, 1]]
@@ -361,8 +360,30 @@ class Sp2atmExplorer(FrontierExplorer):
         return self.region_ids[k - 1] if 0 < k <= len(self.region_ids) else None
 
 
-def _opened(mask: BoolArray) -> BoolArray:
-    """``mask`` after a 3 x 3 morphological opening: parts narrower than 3 cells removed."""
-    kernel = np.ones((3, 3), np.uint8)
-    out: BoolArray = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+ENCLOSED = 0.8  # a small unknown pocket with this share of its border occupied is the inside of an obstacle
+ENCLOSED_MAX_M2 = 2.0  # ... up to this size (an unexplored room seen through its door is bordered by walls
+# seen from its neighbours too: it must never count as enclosed)
+
+
+def informative_unknown(grid: GridMap, min_area_m2: float) -> BoolArray:
+    """The unknown cells worth a trip: the unknown space after a 3 x 3 opening (a sliver one or two cells
+    wide between the beams of a far scan has frontier on both sides and nothing behind it), in pockets of
+    at least ``min_area_m2``, leaving out small pockets (``ENCLOSED_MAX_M2``) whose border is mostly
+    occupied (``ENCLOSED``: the inside of a cupboard or a box, which no position of the robot shows)."""
+    unknown = np.asarray(
+        cv2.morphologyEx(grid.unknown.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    )
+    if not unknown.any():
+        return unknown.astype(bool)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(unknown, connectivity=4, ltype=cv2.CV_32S)
+    # Each pocket's border: the cells one step outside it, labelled by the pocket next to them.
+    grown = np.asarray(cv2.dilate(labels.astype(np.float32), np.ones((3, 3), np.uint8))).astype(np.int32)
+    border = (grown > 0) & (unknown == 0)
+    total = np.bincount(grown[border], minlength=count)
+    walls = np.bincount(grown[border & grid.occupied], minlength=count)
+    area = stats[:, cv2.CC_STAT_AREA] * grid.spec.resolution_m**2
+    enclosed = (walls >= ENCLOSED * np.maximum(total, 1)) & (area < ENCLOSED_MAX_M2)
+    keep = (area >= min_area_m2) & ~enclosed
+    keep[0] = False
+    out: BoolArray = keep[labels]
     return out
