@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -189,6 +190,12 @@ class Htm:
             if n.kind is NodeKind.REGION:
                 continue
             n.region = next((r.id for r in regions if point_in_polygon((n.x_m, n.y_m), r.polygon)), None)
+
+    def assign_regions_from(self, region_at: Callable[[tuple[float, float]], int | None]) -> None:
+        """Every PLACE / POSSIBLE node's ``region`` from a lookup (a label image's)."""
+        for n in self.nodes.values():
+            if n.kind is not NodeKind.REGION:
+                n.region = region_at((n.x_m, n.y_m))
 
     def name_region(self, region: int, name: str) -> None:
         if region not in self.nodes or self.nodes[region].kind is not NodeKind.REGION:

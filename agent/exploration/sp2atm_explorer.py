@@ -29,10 +29,11 @@ progress watch, blacklist and the end are the frontier explorer's, which this on
 7. the **choice**: every candidate costs ``potential_scale`` x path cost (m) - ``gain_scale`` x gain (m
    of frontier within ``gain_radius_m``): both metres, as the frontier explorer's. SP2ATM's rule, with
    the room level first: the cheapest candidate in the robot's room (finish a room before leaving it;
-   one elsewhere wins only when it is cheaper by ``locality_m``); none there: the cheapest POSSIBLE child
-   of the current place; none: **backtrack**: Bellman-Ford over the HTM from the current place to the
-   nearest place that still has POSSIBLE children, and the cheapest of those (the navigator drives there
-   on the grid); none connected: the cheapest of all;
+   one elsewhere wins only when it is cheaper by ``locality_m``; a region touching more than
+   ``ROOM_MAX_DOORS`` others is a hub, a corridor, not a room to finish); none there: the cheapest
+   POSSIBLE child of the current place; none: **backtrack**: Bellman-Ford over the HTM from the current
+   place to the nearest place that still has POSSIBLE children, and the cheapest of those (the navigator
+   drives there on the grid); none connected: the cheapest of all;
 8. hysteresis as the frontier explorer's: the current target is kept unless the new one is cheaper by
    ``switch_margin``.
 
@@ -65,6 +66,9 @@ from agent.navigation.costmap import BoolArray, FloatArray, IntArray, segment_ce
 
 log = logging.getLogger(__name__)
 
+REGIONS_EVERY_S = 4.0  # the rooms are re-found this often (and whenever a target has ended)
+ROOM_MAX_DOORS = 2  # a region touching more regions than this is a hub (a corridor), not a room to finish
+
 
 @dataclass(frozen=True)
 class NodeCandidate(Candidate):
@@ -83,12 +87,15 @@ class Sp2atmExplorer(FrontierExplorer):
         self.place: int | None = None  # the current place
         self.labels: IntArray | None = None  # the last region label image (0: none, k: region_ids[k-1])
         self.region_ids: list[int] = []
+        self.neighbours_of_region: dict[int, int] = {}  # region id -> how many regions it touches
         self.backtracks = 0
         self._slivers_now = 0  # frontier targets passed over as slivers in the last search
         self._next_pose = 0
         self._driven_m = 0.0  # since the current place
         self._last_xy: tuple[float, float] | None = None
         self._target_node: int | None = None
+        self._t_regions = -math.inf
+        self._wanted_regions = True
 
     # -- SLAM coupling ---------------------------------------------------------------------------------
     @property
@@ -118,6 +125,7 @@ class Sp2atmExplorer(FrontierExplorer):
         return super().update(grid, pose, t_s)
 
     def report_reached(self, t_s: float) -> None:
+        self._wanted_regions = True
         node = self._target_node
         target = self.target
         super().report_reached(t_s)
@@ -247,8 +255,12 @@ class Sp2atmExplorer(FrontierExplorer):
         for n in self.htm.possible():
             if n not in bound:
                 self.htm.remove(n)
-        # 6: regions.
-        self._update_regions(field.seen)
+        # 6: regions (rooms change slowly: at most every REGIONS_EVERY_S, and at once when a target ended).
+        if self._wanted_regions or t_s - self._t_regions >= REGIONS_EVERY_S:
+            self._update_regions(field.seen)
+            self._t_regions, self._wanted_regions = t_s, False
+        else:
+            self.htm.assign_regions_from(self._region_at)
         # 7: the choice.
         best = self._pick(candidates, place, pose)
         candidates.sort(key=lambda c: c.cost)
@@ -267,6 +279,8 @@ class Sp2atmExplorer(FrontierExplorer):
             return None
         overall = min(candidates, key=lambda c: c.cost)
         room = self._region_at((pose[0], pose[1]))
+        if room is not None and self.neighbours_of_region.get(room, 0) > ROOM_MAX_DOORS:
+            room = None  # a hub (a corridor with many doors) is no room to finish first
         mine = [c for c in candidates if room is not None and self.htm.nodes[c.node].region == room]
         if mine:  # the robot's room first: finish it before leaving
             best = min(mine, key=lambda c: c.cost)
@@ -345,9 +359,22 @@ class Sp2atmExplorer(FrontierExplorer):
         labels, regions = find_regions(grid, self.config.door_width_m, self.config.min_region_m2)
         self.region_ids = self.htm.set_regions([(r.polygon, r.area_m2) for r in regions])
         self.labels = labels
-        for n in self.htm.nodes.values():
-            if n.kind is not NodeKind.REGION:
-                n.region = self._region_at((n.x_m, n.y_m))
+        self.htm.assign_regions_from(self._region_at)
+        # Which regions touch which (a door's cells go to one side, so the two sides touch there).
+        pairs = np.concatenate(
+            [
+                np.stack([labels[:, :-1].ravel(), labels[:, 1:].ravel()], axis=1),
+                np.stack([labels[:-1, :].ravel(), labels[1:, :].ravel()], axis=1),
+            ]
+        )
+        pairs = pairs[(pairs[:, 0] > 0) & (pairs[:, 1] > 0) & (pairs[:, 0] != pairs[:, 1])]
+        pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+        degree: dict[int, int] = {}
+        for a, b in pairs:
+            for k in (int(a), int(b)):
+                rid = self.region_ids[k - 1]
+                degree[rid] = degree.get(rid, 0) + 1
+        self.neighbours_of_region = degree
 
     def _region_at(self, xy: tuple[float, float]) -> int | None:
         if self.labels is None or self.field is None:

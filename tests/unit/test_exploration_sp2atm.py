@@ -307,3 +307,19 @@ def test_the_explorer_writes_its_topology_and_moves_it_with_corrected_poses() ->
         assert (explorer.htm.nodes[i].x_m, explorer.htm.nodes[i].y_m) == pytest.approx((x + 0.2, y))
     back = from_geojson(json.loads(json.dumps(explorer.topology())))
     assert set(back.nodes) == set(explorer.htm.nodes)
+
+
+def test_only_unknown_worth_a_trip_gives_information() -> None:
+    from agent.exploration.sp2atm_explorer import informative_unknown
+
+    grid = _rooms(unknown_east=True)  # the east room unseen behind its door: worth it
+    occupied, unknown = grid.occupied.copy(), grid.unknown.copy()
+    unknown[_cells(1.0, 1.0, 3.0, 1.1)] = True  # a sliver 2 cells wide between far beams
+    box = _cells(1.0, 2.5, 2.0, 3.3)  # a box: walls seen, inside never
+    occupied[box] = True
+    unknown[box[0].start + 1 : box[0].stop - 1, box[1].start + 1 : box[1].stop - 1] = True
+    occupied[box[0].start + 1 : box[0].stop - 1, box[1].start + 1 : box[1].stop - 1] = False
+    keep = informative_unknown(GridMap(SPEC, occupied, unknown), 0.25)
+    assert keep[_cells(6.0, 2.0, 6.05, 2.05)].all()  # the east room
+    assert not keep[_cells(1.0, 1.0, 3.0, 1.1)].any()  # the sliver
+    assert not keep[_cells(1.2, 2.7, 1.8, 3.1)].any()  # the box's inside
