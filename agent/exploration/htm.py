@@ -12,12 +12,11 @@ REGION nodes (rooms), with the update rules and the backtracking search (referen
 * **backtrack**: single-source shortest paths (Bellman-Ford, scipy's; the weights are non-negative so it
   equals Dijkstra, kept for the seed's sake and for negative preferences later) from the current place
   to the nearest PLACE that still has a POSSIBLE neighbour; the way there as node ids;
-* **done** when no POSSIBLE node is left.
-
+* **done** when no POSSIBLE node is left;
 * **regions**: REGION nodes (rooms) replace each other as the map grows (``set_regions``, from
   ``agent.exploration.regions``); a new region keeps the id and the user's name of the old region whose
-  centre lies inside it, so a room named once stays named while it is mapped further (and after a load);
-  every PLACE and POSSIBLE node records the region it lies in;
+  centre lies inside it (or that holds its centre), so a room named once stays named while it is mapped
+  further (and after a load); every PLACE and POSSIBLE node records the region it lies in;
 * **anchors** (reference/eco.md §1.1 step 9): a node can be anchored to a pose id (a SLAM keyframe: the
   pose the robot had when it made the node) with its offset in that pose's frame; ``reproject`` moves every
   anchored node when poses are corrected (a loop closure, a resampling), so the HTM stays on the map.
@@ -28,6 +27,7 @@ Pure: no I/O, no clock.
 from __future__ import annotations
 
 import enum
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
+
+log = logging.getLogger(__name__)
 
 
 class NodeKind(enum.StrEnum):
@@ -250,9 +252,23 @@ class Htm:
         # A zero-cost edge would vanish from a sparse matrix; the floor keeps it an edge.
         costs = [max(c, 1e-9) for c in self.edges.values()] * 2
         matrix = sparse.csr_matrix((costs, (rows, cols)), shape=(len(ids), len(ids)))
-        distances, predecessors = csgraph.bellman_ford(
-            matrix, directed=False, indices=index[place], return_predecessors=True
-        )
+        try:
+            distances, predecessors = csgraph.bellman_ford(
+                matrix, directed=False, indices=index[place], return_predecessors=True
+            )
+        except csgraph.NegativeCycleError:
+            # Seen once (office, seed 2) on a graph whose every cost is >= 1e-9: scipy's check misfired.
+            # With no negative cost Dijkstra's answer is the same (reference/eco.md §1.1 step 6).
+            log.warning(
+                "htm: Bellman-Ford reported a negative cycle on %d nodes, %d edges, smallest cost %.3g; "
+                "using Dijkstra",
+                len(ids),
+                len(self.edges),
+                min(costs, default=0.0),
+            )
+            distances, predecessors = csgraph.dijkstra(
+                matrix, directed=False, indices=index[place], return_predecessors=True
+            )
         open_places = set()
         for a, b in self.edges:
             ka, kb = self.nodes[a].kind, self.nodes[b].kind

@@ -323,3 +323,23 @@ def test_only_unknown_worth_a_trip_gives_information() -> None:
     assert keep[_cells(6.0, 2.0, 6.05, 2.05)].all()  # the east room
     assert not keep[_cells(1.0, 1.0, 3.0, 1.1)].any()  # the sliver
     assert not keep[_cells(1.2, 2.7, 1.8, 3.1)].any()  # the box's inside
+
+
+def test_backtracking_survives_a_misfired_negative_cycle_check(monkeypatch: pytest.MonkeyPatch) -> None:
+    """scipy's Bellman-Ford once reported a negative cycle on a graph of costs >= 1e-9 (office, seed 2)
+    and ended the run; with no negative cost, Dijkstra's way is the same."""
+    from scipy.sparse import csgraph
+
+    htm = Htm(merge_m=0.5)
+    home = htm.add_place((0.0, 0.0))
+    near, _ = htm.integrate(home, [(2.0, 0.0), (-5.0, 0.0)])
+    htm.visit(near)
+    (here,) = htm.integrate(near, [(3.0, 0.0)])
+    htm.visit(here)
+    expected = htm.backtrack(here)
+
+    def misfire(*args: object, **kwargs: object) -> None:
+        raise csgraph.NegativeCycleError("misfired")
+
+    monkeypatch.setattr(csgraph, "bellman_ford", misfire)
+    assert htm.backtrack(here) == expected == [here, near, home]
