@@ -249,15 +249,16 @@ class Htm:
         index = {n: i for i, n in enumerate(ids)}
         rows = [index[a] for a, b in self.edges] + [index[b] for a, b in self.edges]
         cols = [index[b] for a, b in self.edges] + [index[a] for a, b in self.edges]
-        # A zero-cost edge would vanish from a sparse matrix; the floor keeps it an edge.
-        costs = [max(c, 1e-9) for c in self.edges.values()] * 2
+        # A zero-cost edge would vanish from a sparse matrix; the floor (a millimetre) keeps it an edge,
+        # large enough that adding it to a distance is never lost to rounding.
+        costs = [max(c, 1e-3) for c in self.edges.values()] * 2
         matrix = sparse.csr_matrix((costs, (rows, cols)), shape=(len(ids), len(ids)))
         try:
             distances, predecessors = csgraph.bellman_ford(
                 matrix, directed=False, indices=index[place], return_predecessors=True
             )
         except csgraph.NegativeCycleError:
-            # Seen once (office, seed 2) on a graph whose every cost is >= 1e-9: scipy's check misfired.
+            # Seen on the office (seed 2) with a 1e-9 floor on the costs, no cost negative: scipy's check misfired.
             # With no negative cost Dijkstra's answer is the same (reference/eco.md §1.1 step 6).
             log.warning(
                 "htm: Bellman-Ford reported a negative cycle on %d nodes, %d edges, smallest cost %.3g; "
