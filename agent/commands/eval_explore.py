@@ -20,6 +20,9 @@ The map (``--map``):
 Judged on the truth: ``explored_fraction`` is the share of the true map's reachable free area (the free
 cells 4-connected to the start inside the walls, the walls rasterized at the map's resolution) that the
 map knows (free or occupied: seen); ``collisions`` the world robot's footprint touching a wall or a person.
+
+The sp2atm explorer's topological map (HTM: places, possible nodes, edges, rooms) is drawn on the picture
+and written beside it as GeoJSON (``agent.exploration.topology``; ``--topology`` to put it elsewhere).
 """
 
 from __future__ import annotations
@@ -84,7 +87,9 @@ def add_parser(subparsers: Any) -> None:
             time: the laser builds the map, the explorer picks targets, the navigation stack drives
             there. Reports the share of the reachable free area explored, whether it completed and why
             it stopped, the localization error, the path length, the decisions and their time, and
-            collisions; writes the map with the path and the frontiers as one PNG. Progress on stderr."""
+            collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
+            rooms, places, edges) as one PNG, and sp2atm's topological map as GeoJSON beside it
+            (docs/exploration.md). Progress on stderr."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
