@@ -258,7 +258,8 @@ class Htm:
                 matrix, directed=False, indices=index[place], return_predecessors=True
             )
         except csgraph.NegativeCycleError:
-            # Seen on the office (seed 2) with a 1e-9 floor on the costs, no cost negative: scipy's check misfired.
+            # Seen on the office (seed 2) with a 1e-9 floor on the costs, none negative: scipy's check
+            # misfired (rounding, most likely).
             # With no negative cost Dijkstra's answer is the same (reference/eco.md §1.1 step 6).
             log.warning(
                 "htm: Bellman-Ford reported a negative cycle on %d nodes, %d edges, smallest cost %.3g; "
