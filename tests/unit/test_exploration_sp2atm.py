@@ -343,3 +343,25 @@ def test_backtracking_survives_a_misfired_negative_cycle_check(monkeypatch: pyte
 
     monkeypatch.setattr(csgraph, "bellman_ford", misfire)
     assert htm.backtrack(here) == expected == [here, near, home]
+
+
+def test_the_office_is_cut_into_its_eight_rooms_and_the_corridor() -> None:
+    from agent.commands.eval_explore import reachable_free
+    from agent.commands.eval_nav import rasterize_walls
+    from agent.shipped import WORLDS
+    from drivers.sim.worldfile import load_world
+
+    world = load_world(WORLDS / "office.toml")
+    spec, walls = rasterize_walls(world, 0.05)
+    inside = reachable_free(spec, walls, (world.robot.start.x_m, world.robot.start.y_m))
+    grid = GridMap(spec, walls, ~inside & ~walls)  # the whole floor mapped
+    labels, regions = find_regions(grid, door_width_m=1.2)
+    assert len(regions) == 9
+    assert 35.0 < regions[0].area_m2 < 42.0  # the corridor, 20 x 2 m less its walls
+    assert all(20.0 < r.area_m2 < 26.0 for r in regions[1:])  # the 5 x 5 m rooms
+    cell = spec.to_cell(np.array([10.0, 6.0]))[0]
+    assert labels[cell[0], cell[1]] == regions[0].label  # the corridor's middle
+    centres = [(2.5 + 5.0 * i, y) for i in range(4) for y in (2.5, 9.5)]
+    for r in regions[1:]:  # each room's outline holds one room's centre
+        assert sum(point_in_polygon(c, r.polygon) for c in centres) == 1
+    assert all(sum(point_in_polygon(c, r.polygon) for r in regions) == 1 for c in centres)
