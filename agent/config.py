@@ -1374,8 +1374,8 @@ class _Reader:
 
     # [exploration] -------------------------------------------------------------------------------
     def _exploration(self) -> ExploreConfig:
-        """Every :class:`ExploreConfig` field is a key: ``explorer`` by name, counts >= 1, the rest > 0
-        (``gain_scale`` and ``switch_margin`` >= 0)."""
+        """Every :class:`ExploreConfig` field is a key: ``explorer`` by name, counts >= 1 (``ast_beams``
+        8..3600), the rest > 0 (``gain_scale``, ``switch_margin`` and ``locality_m`` >= 0)."""
         t = self.top.table("exploration") or _Table({}, "exploration", self.file)
         d = ExploreConfig()
         values: dict[str, Any] = {}
@@ -1387,10 +1387,12 @@ class _Reader:
                 )
             elif isinstance(default, bool):
                 values[f.name] = t.boolean(f.name, default)
+            elif f.name == "ast_beams":
+                values[f.name] = t.integer(f.name, default, (lambda v: 8 <= v <= 3600, "must be 8..3600"))
             elif isinstance(default, int):
                 values[f.name] = t.integer(f.name, default, (lambda v: v >= 1, "must be >= 1"))
             else:
-                zero_ok = f.name in ("gain_scale", "switch_margin")
+                zero_ok = f.name in ("gain_scale", "switch_margin", "locality_m")
                 values[f.name] = t.number(f.name, default, _NON_NEGATIVE if zero_ok else _POSITIVE)
         t.finish()
         return ExploreConfig(**values)

@@ -20,6 +20,9 @@ The map (``--map``):
 Judged on the truth: ``explored_fraction`` is the share of the true map's reachable free area (the free
 cells 4-connected to the start inside the walls, the walls rasterized at the map's resolution) that the
 map knows (free or occupied: seen); ``collisions`` the world robot's footprint touching a wall or a person.
+
+The sp2atm explorer's topological map (HTM: places, possible nodes, edges, rooms) is drawn on the picture
+and written beside it as GeoJSON (``agent.exploration.topology``; ``--topology`` to put it elsewhere).
 """
 
 from __future__ import annotations
@@ -48,8 +51,10 @@ from agent.exploration import (
     ExplorerKind,
     ExploreState,
     GridMap,
+    Sp2atmExplorer,
     make_explorer,
 )
+from agent.exploration.htm import Htm, NodeKind
 from agent.navigation.config import NavConfig
 from agent.navigation.costmap import BoolArray, Costmap, FloatArray, GridSpec
 from agent.navigation.navigator import Goal, Navigator, NavStatus
@@ -82,7 +87,9 @@ def add_parser(subparsers: Any) -> None:
             time: the laser builds the map, the explorer picks targets, the navigation stack drives
             there. Reports the share of the reachable free area explored, whether it completed and why
             it stopped, the localization error, the path length, the decisions and their time, and
-            collisions; writes the map with the path and the frontiers as one PNG. Progress on stderr."""
+            collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
+            rooms, places, edges) as one PNG, and sp2atm's topological map as GeoJSON beside it
+            (docs/exploration.md). Progress on stderr."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -109,6 +116,13 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--png", metavar="FILE", default="explore.png", help="the picture to write (default: explore.png)"
+    )
+    p.add_argument(
+        "--topology",
+        metavar="FILE",
+        default=None,
+        help="where the sp2atm explorer's topological map (GeoJSON, docs/exploration.md) is written "
+        "(default: beside the picture, <png stem>.topology.geojson); the frontier explorer has none",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
 
@@ -229,6 +243,7 @@ class _Run:
     touching: bool = False
     path_m: float = 0.0
     last_decision: Decision | None = None
+    htm: Htm | None = None  # the sp2atm explorer's topology map at the end
 
 
 def run_eval(
@@ -239,8 +254,9 @@ def run_eval(
     budget_s: float = DEFAULT_BUDGET_S,
     progress: bool = False,
     config: ExploreConfig | None = None,
-) -> tuple[dict[str, Any], npt.NDArray[np.uint8]]:
-    """Explore ``world`` (see the module docstring); the summary as a JSON-ready dict and the picture."""
+) -> tuple[dict[str, Any], npt.NDArray[np.uint8], dict[str, Any] | None]:
+    """Explore ``world`` (see the module docstring); the summary as a JSON-ready dict, the picture, and the
+    topological map (GeoJSON dict) for an explorer that makes one (sp2atm), else None."""
     from agent.slam.fix import PoseFix
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
@@ -419,8 +435,18 @@ def run_eval(
             else "agent.slam RBPF (30 particles) with VLP fixes: its map and its pose"
         ),
     }
+    topology: dict[str, Any] | None = None
+    if isinstance(explorer, Sp2atmExplorer):
+        run.htm = explorer.htm
+        kinds = [n.kind for n in explorer.htm.nodes.values()]
+        summary["htm_places"] = kinds.count(NodeKind.PLACE)
+        summary["htm_possible"] = kinds.count(NodeKind.POSSIBLE)
+        summary["htm_edges"] = len(explorer.htm.edges)
+        summary["regions"] = kinds.count(NodeKind.REGION)
+        summary["backtracks"] = explorer.backtracks
+        topology = explorer.topology(map_name=f"{world.name} (eval explore, seed {seed})")
     picture = explore_picture(grid, run, world.name, summary)
-    return summary, picture
+    return summary, picture, topology
 
 
 def explored_share(grid: GridMap, world: World, sim: Any) -> tuple[float, float]:
@@ -482,11 +508,36 @@ MIN_MAP_PX = 800
 MARGIN_LEFT, MARGIN_TOP, MARGIN_BOTTOM, GAP, PANEL_MIN = 80, 66, 62, 24, 260
 
 
+HTM_PLACE: figure.Colour = (160, 60, 0)  # dark blue: PLACE nodes
+HTM_POSSIBLE: figure.Colour = (0, 100, 230)  # orange-red rings: POSSIBLE nodes
+HTM_EDGE: figure.Colour = (210, 150, 60)  # light blue: HTM edges
+HTM_REGION: figure.Colour = (150, 40, 150)  # purple: region outlines
+
+
+def draw_htm(canvas: npt.NDArray[np.uint8], axes: figure.Axes, htm: Htm) -> None:
+    """The HTM over the map: region outlines with their ids and names, edges, places, possible nodes."""
+    for r in htm.regions():
+        pts = np.array([axes.to_px(x, y) for x, y in r.polygon], np.int32).reshape(-1, 1, 2)
+        cv2.polylines(canvas, [pts], True, HTM_REGION, 2, cv2.LINE_AA)
+        label = f"R{r.id}" + (f" {r.name}" if r.name else "")
+        cx, cy = axes.to_px(r.x_m, r.y_m)
+        figure.text(canvas, label, (cx - 14, cy), 0.5, HTM_REGION)
+    for (a, b), _ in htm.edges.items():
+        na, nb = htm.nodes[a], htm.nodes[b]
+        cv2.line(canvas, axes.to_px(na.x_m, na.y_m), axes.to_px(nb.x_m, nb.y_m), HTM_EDGE, 1, cv2.LINE_AA)
+    for n in htm.nodes.values():
+        if n.kind is NodeKind.PLACE:
+            cv2.circle(canvas, axes.to_px(n.x_m, n.y_m), 5, HTM_PLACE, -1, cv2.LINE_AA)
+        elif n.kind is NodeKind.POSSIBLE:
+            cv2.circle(canvas, axes.to_px(n.x_m, n.y_m), 6, HTM_POSSIBLE, 2, cv2.LINE_AA)
+
+
 def explore_picture(
     grid: GridMap, run: _Run, world_name: str, summary: dict[str, Any]
 ) -> npt.NDArray[np.uint8]:
     """The final map (free white, unknown grey, occupied black), the true path, the estimated path, every
-    target chosen, the frontier cells left at the end; a legend, a scale bar, axes in metres, the figures."""
+    target chosen, the frontier cells left at the end, the sp2atm explorer's HTM (regions, edges, places,
+    possible nodes); a legend, a scale bar, axes in metres, the figures."""
     from agent.exploration.frontiers import frontier_mask
 
     spec = grid.spec
@@ -517,6 +568,8 @@ def explore_picture(
         cv2.drawMarker(canvas, local.to_px(tx, ty), TARGET, cv2.MARKER_TILTED_CROSS, 14, 2)
         if i == len(run.targets) - 1:
             cv2.circle(canvas, local.to_px(tx, ty), 10, TARGET, 2, cv2.LINE_AA)
+    if run.htm is not None:
+        draw_htm(canvas, local, run.htm)
     entries = [
         figure.Entry("true path", figure.TRUTH),
         figure.Entry("estimated path", figure.FUSED),
@@ -525,6 +578,13 @@ def explore_picture(
         figure.Entry("occupied", (0, 0, 0)),
         figure.Entry("unknown", (205, 205, 205)),
     ]
+    if run.htm is not None:
+        entries += [
+            figure.Entry("HTM place (visited)", HTM_PLACE, figure.Mark.DOT),
+            figure.Entry("HTM possible node", HTM_POSSIBLE, figure.Mark.RING),
+            figure.Entry("HTM edge", HTM_EDGE),
+            figure.Entry("region (room) outline, R<id>", HTM_REGION),
+        ]
     legend_w, legend_h = figure.legend_size(entries)
     panel_w = max(legend_w, PANEL_MIN)
     lines = [
@@ -556,7 +616,7 @@ def explore_picture(
 
 def run(args: argparse.Namespace) -> int:
     from agent.commands.worlds import resolve_world
-    from agent.slam.mapio import write_png
+    from agent.slam.mapio import TOPOLOGY_SUFFIX, save_topology, write_png
     from drivers.errors import ConfigError
     from drivers.sim.worldfile import load_world
 
@@ -569,11 +629,14 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    summary, picture = run_eval(
+    summary, picture, topology = run_eval(
         world, ExplorerKind(args.explorer), args.seed, MapSource(args.map), args.budget_s, progress=True
     )
     png = write_png(Path(args.png), picture)
     summary["png"] = str(png)
+    if topology is not None:
+        where = Path(args.topology) if args.topology else png.with_name(png.stem + TOPOLOGY_SUFFIX)
+        summary["topology"] = str(save_topology(topology, where))
     if args.json:
         print(json.dumps(summary, sort_keys=True))
         return 0
@@ -592,4 +655,9 @@ def run(args: argparse.Namespace) -> int:
         f"people {s['collisions_people']})"
     )
     print(f"  picture            {png}")
+    if "topology" in s:
+        print(
+            f"  topology           {s['topology']} ({s['htm_places']} places, {s['htm_possible']} possible, "
+            f"{s['regions']} regions, {s['backtracks']} backtracks)"
+        )
     return 0

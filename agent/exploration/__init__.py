@@ -4,9 +4,9 @@ threads, files or ports.
 
 Every explorer offers one interface (:class:`~agent.exploration.lifecycle.Explorer`); the config's
 ``[exploration] explorer`` picks one by name (:func:`make_explorer`). Implemented: ``frontier``
-(explore_lite's algorithm, its cost defect fixed). SP2ATM has two tested building blocks and no explorer
-yet: ``admissible_tree`` (the AST's first level: branches to one scan's gaps) and ``htm`` (the topology
-map's append / rebind / remove rules and Bellman-Ford backtracking).
+(explore_lite's algorithm, its cost defect fixed) and ``sp2atm`` (``sp2atm_explorer``: the AST's gaps and
+the grid's frontiers as candidates, the HTM of ``htm`` with REGION nodes from ``regions``, Bellman-Ford
+backtracking); ``topology`` reads and writes the HTM as nav2-route-style GeoJSON.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from agent.exploration.config import ExploreConfig, ExplorerKind
 from agent.exploration.frontier_explorer import FrontierExplorer
 from agent.exploration.frontiers import Frontier, GridMap, detect_frontiers, frontier_mask
 from agent.exploration.lifecycle import Command, Decision, Explorer, ExploreState, Target
+from agent.exploration.sp2atm_explorer import Sp2atmExplorer
 from agent.navigation.config import NavConfig
 
 
@@ -23,7 +24,9 @@ def make_explorer(config: ExploreConfig, nav: NavConfig) -> Explorer:
     """The explorer ``config.explorer`` names."""
     if config.explorer is ExplorerKind.FRONTIER:
         return FrontierExplorer(config, nav)
-    raise ValueError(f"no explorer {config.explorer!r}")  # unreachable while the enum has one member
+    if config.explorer is ExplorerKind.SP2ATM:
+        return Sp2atmExplorer(config, nav)
+    raise ValueError(f"no explorer {config.explorer!r}")
 
 
 __all__ = [
@@ -38,6 +41,7 @@ __all__ = [
     "Frontier",
     "FrontierExplorer",
     "GridMap",
+    "Sp2atmExplorer",
     "Target",
     "detect_frontiers",
     "frontier_mask",

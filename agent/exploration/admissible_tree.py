@@ -13,9 +13,12 @@ return counted as reaching it:
   stays inside the scan's free polygon eroded by ``r`` (every point of it within the range seen along its
   bearing, less ``r``, and at least ``r`` from every return). The branch's tip is a *possible node*.
 
-Not written yet: sub-branches from gaps seen through a gap (the tree's depth), the possible-node filter
-against the grid (step 3), and everything above it (HTM rules live in ``htm.py``; the SP2ATM explorer
-behind the ``Explorer`` interface does not exist).
+``grid_scan`` casts such a scan on an occupancy grid from a pose (a beam ends closed at an occupied cell,
+open where unknown space begins or at the range limit): the SP2ATM explorer grows its AST from the map as
+it is, the robot's memory of every scan, so the tree sees the same gaps from the same place whether the
+last scan was blocked by a person or not. The possible-node filter against the grid (step 3) is the
+explorer's (``sp2atm_explorer``). Not written: sub-branches from gaps seen through a gap (the tree's
+depth); the grid's frontiers give the explorer what lies beyond.
 
 numpy in, numpy out: no I/O, no clock.
 """
@@ -28,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.navigation.costmap import FloatArray
+from agent.exploration.frontiers import GridMap
+from agent.navigation.costmap import BoolArray, FloatArray
 
 
 class GapKind(enum.StrEnum):
@@ -52,15 +56,21 @@ def scan_branches(
     radius_m: float,
     margin_m: float = 0.1,
     open_fraction: float = 0.95,
+    opened: BoolArray | None = None,
 ) -> list[Branch]:
-    """The AST's branches for one scan (see the module docstring), in beam order."""
+    """The AST's branches for one scan (see the module docstring), in beam order. ``opened`` marks the
+    open beams explicitly (a scan cast on a grid: a beam that ran into unknown space is open where the
+    unknown begins); by default a beam is open at ``open_fraction`` of the range limit."""
     angles = np.asarray(angles_rad, dtype=np.float64)
     rho = np.asarray(ranges_m, dtype=np.float64)
     if angles.shape != rho.shape or angles.ndim != 1:
         raise ValueError(f"angles {angles.shape} and ranges {rho.shape} must be the same 1-D shape")
     rho = np.where((rho <= 0.0) | ~np.isfinite(rho), max_range_m, np.minimum(rho, max_range_m))
     ends = np.stack([rho * np.cos(angles), rho * np.sin(angles)], axis=1)
-    opened = rho >= open_fraction * max_range_m
+    if opened is None:
+        opened = rho >= open_fraction * max_range_m
+    elif opened.shape != rho.shape:
+        raise ValueError(f"opened {opened.shape} must match the ranges {rho.shape}")
     returns = ends[~opened]
     chords: list[tuple[GapKind, int, int]] = []
     i, n = 0, len(rho)
@@ -128,3 +138,36 @@ def to_world(pose: tuple[float, float, float], xy_m: tuple[float, float]) -> tup
     """A point in the laser's frame at ``pose`` (the laser's pose in the world) -> world x, y."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     return pose[0] + c * xy_m[0] - s * xy_m[1], pose[1] + s * xy_m[0] + c * xy_m[1]
+
+
+def grid_scan(
+    grid: GridMap, pose: tuple[float, float, float], beams: int, max_range_m: float
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """A 360° scan of ``beams`` beams cast on ``grid`` from ``pose`` (angles relative to its heading, from
+    behind, -pi, round to just short of pi): each beam's range and whether it is open (it ran into unknown
+    space or off the grid, or reached ``max_range_m`` in free space) or closed (it hit an occupied
+    cell)."""
+    if beams < 3 or max_range_m <= 0.0:
+        raise ValueError("a grid scan needs at least 3 beams and a positive range")
+    spec = grid.spec
+    res = spec.resolution_m
+    angles: FloatArray = -math.pi + np.arange(beams, dtype=np.float64) * (2.0 * math.pi / beams)
+    steps = np.arange(res / 2.0, max_range_m + res / 4.0, res / 2.0)
+    theta = pose[2] + angles
+    x = pose[0] + np.cos(theta)[:, None] * steps[None, :]
+    y = pose[1] + np.sin(theta)[:, None] * steps[None, :]
+    col = np.floor((x - spec.origin_m[0]) / res).astype(np.intp)
+    row = np.floor((y - spec.origin_m[1]) / res).astype(np.intp)
+    rows, cols = spec.shape
+    inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    rc, cc = np.clip(row, 0, rows - 1), np.clip(col, 0, cols - 1)
+    hit = grid.occupied[rc, cc] & inside
+    blind = grid.unknown[rc, cc] | ~inside
+    stop = hit | blind
+    first = np.where(stop.any(axis=1), stop.argmax(axis=1), len(steps))
+    ranges = np.where(first < len(steps), steps[np.minimum(first, len(steps) - 1)], max_range_m)
+    idx = np.arange(beams)
+    closed = (first < len(steps)) & hit[idx, np.minimum(first, len(steps) - 1)]
+    opened: BoolArray = ~closed
+    out_ranges: FloatArray = np.asarray(ranges, dtype=np.float64)
+    return angles, out_ranges, opened

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 class ExplorerKind(enum.StrEnum):
     FRONTIER = "frontier"
+    SP2ATM = "sp2atm"
 
 
 @dataclass(frozen=True)
@@ -39,3 +40,15 @@ class ExploreConfig:
     max_failures: int = 3  # failures at one place before it is given up for good
     # the end
     return_home: bool = False  # drive back to where exploration started once it is complete
+    # SP2ATM (explorer = "sp2atm"; docs/exploration.md)
+    merge_m: float = 0.75  # a possible node this close to an HTM node is bound to it (rebind), not added
+    place_spacing_m: float = 1.0  # the robot farther than this from every place: a new PLACE node
+    gain_radius_m: float = 1.5  # information gain: metres of frontier within this of a candidate
+    min_gain_m2: float = (
+        0.25  # unknown pockets smaller than this (after a 3 x 3 opening) are not worth a trip
+    )
+    ast_beams: int = 180  # beams of the scan cast on the map the AST is grown from
+    ast_range_m: float = 5.0  # their range
+    locality_m: float = 3.0  # a candidate outside the current place and room wins only if this much cheaper
+    door_width_m: float = 1.2  # passages narrower than this separate regions (rooms)
+    min_region_m2: float = 1.0  # a region's core (the part wider than a door) at least this large

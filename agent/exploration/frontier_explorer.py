@@ -49,7 +49,7 @@ from agent.exploration.config import ExploreConfig
 from agent.exploration.frontiers import Frontier, GridMap, detect_frontiers, dilate, disk
 from agent.exploration.lifecycle import STOPPED, TRANSITIONS, Command, Decision, ExploreState, Target
 from agent.navigation.config import NavConfig
-from agent.navigation.costmap import Costmap, FloatArray
+from agent.navigation.costmap import BoolArray, Costmap, FloatArray
 from agent.navigation.planner import build_graph
 
 log = logging.getLogger(__name__)
@@ -66,6 +66,17 @@ class Candidate:
     target: Target
     path_m: float
     cost: float
+
+
+@dataclass(frozen=True)
+class Field:
+    """What one decision's search computed on the map, for an explorer built on this one (SP2ATM): the
+    map with the robot's footprint known free, the path cost (m) from the robot to every cell (inf:
+    unreachable) and the cells with room for a target."""
+
+    seen: GridMap
+    path_m: FloatArray
+    roomy: BoolArray
 
 
 @dataclass(frozen=True)
@@ -98,6 +109,7 @@ class FrontierExplorer:
         self._finished = False  # exploration ended complete (returning home afterwards)
         self._wanted = True  # a decision is due now, not at the next replan period
         self.decisions = 0
+        self.field: Field | None = None  # the last search's map, path costs and roomy cells
 
     @property
     def state(self) -> ExploreState:
@@ -313,11 +325,13 @@ class FrontierExplorer:
         costmap = Costmap(spec, occupied, unknown, nav)
         path_m = self._path_costs(costmap, pose)
         if path_m is None:
+            self.field = None
             return Survey(frontiers, None, (), 0, 0, len(frontiers), False)
         reach_cells = max(round(cfg.target_reach_m / spec.resolution_m), 0)
         # A target with room round it: the navigator's costmap adds the scans' marks (noise on walls, a
         # person), and a target right at the forbidden edge would fail there at once.
         roomy = costmap.distance_m() >= nav.inscribed_m + cfg.target_clearance_m
+        self.field = Field(seen, path_m, roomy)
         rows, cols = spec.shape
         candidates: list[Candidate] = []
         waiting = given_up = unreachable = 0

@@ -17,6 +17,7 @@ through a temporary file in the same folder, fsync and rename, with the permissi
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import os
@@ -339,6 +340,48 @@ def load_map(yaml_path: str | Path) -> OccupancyImage:
     if negate:
         pixels = (255 - pixels).astype(np.uint8)
     return OccupancyImage(pixels, resolution, origin, occupied, free)
+
+
+TOPOLOGY_SUFFIX = ".topology.geojson"
+
+
+def topology_path(yaml_path: str | Path) -> Path:
+    """Where the topological map of the map ``<stem>.yaml`` lives: ``<stem>.topology.geojson`` beside it
+    (format: docs/exploration.md, "The topological map file")."""
+    path = Path(yaml_path)
+    return path.with_name(path.stem + TOPOLOGY_SUFFIX)
+
+
+def save_topology(data: dict[str, object], path: str | Path) -> Path:
+    """Write the topological map (``agent.exploration.topology.to_geojson``'s dict) as GeoJSON, atomically
+    (a temporary file, fsync, rename: a kill leaves the old file or the new one)."""
+    target = Path(path)
+    try:
+        text = json.dumps(data, indent=1, sort_keys=False, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError("topology", f"not JSON: {exc}", str(target)) from exc
+    try:
+        write_atomic(target, (text + "\n").encode("utf-8"))
+        fsync_dir(target.parent)
+    except OSError as exc:
+        raise ConfigError("topology", f"cannot write: {exc.strerror or exc}", str(target)) from exc
+    log.info("topological map written to %s", target)
+    return target
+
+
+def load_topology(path: str | Path) -> dict[str, object]:
+    """Read a topological map file back as its JSON object (``agent.exploration.topology.from_geojson``
+    makes the HTM of it)."""
+    source = Path(path)
+    try:
+        data = json.loads(source.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError("topology", f"cannot read: {exc.strerror or exc}", str(source)) from exc
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError("topology", f"not JSON: {exc}", str(source)) from exc
+    if not isinstance(data, dict):
+        raise ConfigError("topology", "not a JSON object", str(source))
+    return data
 
 
 def write_png(path: str | Path, picture: Uint8Array) -> Path:

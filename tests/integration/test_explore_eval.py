@@ -60,3 +60,30 @@ def test_a_run_cut_short_is_not_complete(tmp_path: Path, capsys: pytest.CaptureF
     assert summary["explored_fraction"] < 0.95
     picture = cv2.imread(str(png))
     assert np.all(picture == np.array(FRONTIER, np.uint8), axis=2).any()  # frontiers left, drawn
+
+
+def test_eval_explore_with_sp2atm_writes_its_topology_beside_the_picture(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agent.commands.eval_explore import HTM_PLACE, HTM_REGION
+    from agent.exploration.htm import NodeKind
+    from agent.exploration.topology import from_geojson
+    from agent.slam.mapio import load_topology
+
+    png = tmp_path / "sp2atm.png"
+    world = str(WORLDS / "two_rooms.toml")
+    argv = ["eval", "explore", "--world", world, "--explorer", "sp2atm", "--json", "--png", str(png)]
+    assert main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["explorer"] == "sp2atm" and summary["complete"] is True
+    assert summary["explored_fraction"] >= 0.95 and summary["collisions"] == 0
+    topology = Path(summary["topology"])
+    assert topology == tmp_path / "sp2atm.topology.geojson"
+    htm = from_geojson(load_topology(topology))
+    kinds = [n.kind for n in htm.nodes.values()]
+    assert kinds.count(NodeKind.PLACE) == summary["htm_places"] >= 2
+    assert kinds.count(NodeKind.REGION) == summary["regions"] >= 2  # the two rooms (and the passage)
+    assert htm.done  # complete: nothing possible left
+    picture = cv2.imread(str(png))
+    for colour in (HTM_PLACE, HTM_REGION):
+        assert np.all(picture == np.array(colour, np.uint8), axis=2).any()

@@ -15,6 +15,15 @@ def test_without_the_table_the_defaults_apply() -> None:
     assert parse_config(BASE).exploration == ExploreConfig()
 
 
+def test_the_sp2atm_explorer_and_its_keys_are_read() -> None:
+    config = parse_config(
+        BASE + '[exploration]\nexplorer = "sp2atm"\nmerge_m = 0.5\nast_beams = 90\nlocality_m = 0\n'
+        "door_width_m = 1.0\n"
+    ).exploration
+    assert config.explorer is ExplorerKind.SP2ATM
+    assert (config.merge_m, config.ast_beams, config.locality_m, config.door_width_m) == (0.5, 90, 0.0, 1.0)
+
+
 def test_keys_are_read() -> None:
     config = parse_config(
         BASE + '[exploration]\nexplorer = "frontier"\nmin_frontier_size_m = 0.5\nmax_failures = 2\n'
@@ -28,7 +37,9 @@ def test_keys_are_read() -> None:
 @pytest.mark.parametrize(
     ("text", "key"),
     [
-        ('explorer = "sp2atm"', "exploration.explorer"),  # not written yet: refused, not silently ignored
+        ('explorer = "sp2atm2"', "exploration.explorer"),
+        ("ast_beams = 4", "exploration.ast_beams"),
+        ("locality_m = -1", "exploration.locality_m"),
         ("min_frontier_size_m = 0", "exploration.min_frontier_size_m"),
         ("max_failures = 0", "exploration.max_failures"),
         ("gain_scale = -1", "exploration.gain_scale"),
