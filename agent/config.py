@@ -216,6 +216,11 @@ class VlpConfig:
     calibration_file: str | None = None
     sigma_floor_m: float = 0.005
     sigma_floor_yaw_rad: float = math.radians(0.5)
+    # Integrity (agent.fusion.IntegrityPolicy): the largest position error the application tolerates; a
+    # fix flagged degraded, or whose protection level exceeds it, is fused only under the guard, its
+    # sigmas multiplied by degraded_sigma_scale (0: never fused).
+    alert_limit_m: float = 0.10
+    degraded_sigma_scale: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -954,6 +959,10 @@ class _Reader:
         floor_yaw = t.angle("sigma_floor_yaw", d.sigma_floor_yaw_rad)
         if floor_yaw < 0:
             raise t.error("sigma_floor_yaw_rad", "must be >= 0")
+        alert_limit = t.number("alert_limit_m", d.alert_limit_m, _POSITIVE)
+        sigma_scale = t.number(
+            "degraded_sigma_scale", d.degraded_sigma_scale, (lambda v: v == 0 or v >= 1, "must be 0 or >= 1")
+        )
         t.finish()
         if enabled and sim is None:
             if intrinsics is None:
@@ -975,6 +984,8 @@ class _Reader:
             str(calibration_path) if calibration_path else None,
             floor_m,
             floor_yaw,
+            alert_limit,
+            sigma_scale,
         )
 
     def _calibration(self, path: Path, key: str) -> str:
