@@ -217,10 +217,11 @@ class VlpConfig:
     sigma_floor_m: float = 0.005
     sigma_floor_yaw_rad: float = math.radians(0.5)
     # Integrity (agent.fusion.IntegrityPolicy): the largest position error the application tolerates; a
-    # fix flagged degraded, or whose protection level exceeds it, is fused only under the guard, its
-    # sigmas multiplied by degraded_sigma_scale (0: never fused).
+    # fix whose protection level exceeds it is fused only under the guard, its sigmas multiplied by
+    # guarded_sigma_scale (0: never fused); a fix flagged degraded is not fused (fuse_degraded: guarded).
     alert_limit_m: float = 0.10
-    degraded_sigma_scale: float = 3.0
+    guarded_sigma_scale: float = 3.0
+    fuse_degraded: bool = False
 
 
 @dataclass(frozen=True)
@@ -961,8 +962,9 @@ class _Reader:
             raise t.error("sigma_floor_yaw_rad", "must be >= 0")
         alert_limit = t.number("alert_limit_m", d.alert_limit_m, _POSITIVE)
         sigma_scale = t.number(
-            "degraded_sigma_scale", d.degraded_sigma_scale, (lambda v: v == 0 or v >= 1, "must be 0 or >= 1")
+            "guarded_sigma_scale", d.guarded_sigma_scale, (lambda v: v == 0 or v >= 1, "must be 0 or >= 1")
         )
+        fuse_degraded = t.boolean("fuse_degraded", d.fuse_degraded)
         t.finish()
         if enabled and sim is None:
             if intrinsics is None:
@@ -986,6 +988,7 @@ class _Reader:
             floor_yaw,
             alert_limit,
             sigma_scale,
+            fuse_degraded,
         )
 
     def _calibration(self, path: Path, key: str) -> str:

@@ -24,13 +24,14 @@ State (map frame, SI units)::
   each other means the filter, not the camera, is lost: it is re-initialised on the fix (relocalisation,
   ``reset_counter`` + 1).
 * **Integrity** (:class:`FixIntegrity`, :class:`IntegrityPolicy`): a fix its source flags ``degraded``, or
-  whose protection level exceeds the alert limit, is never fused as nominal. It is *guarded*: fused only
-  when the gate against the predicted pose can check it to within the alert limit (the largest position
-  innovation the gate passes, ``sqrt(chi2_2(gate) lambda_max(S_xy))`` with the fix's own covariance, is at
-  most ``alert_limit_m``) and it passes that gate, and then with its covariance inflated by
-  ``sigma_scale**2``; it never relocalises the filter. Otherwise it is refused (counted, not fused) and the
-  source's fixes stop counting as live (:meth:`PoseFilter.live`) until one is fused again: the pose coasts on
-  the other sources, as when no fix comes.
+  whose protection level exceeds the alert limit, is never fused as nominal. A degraded one is refused
+  (unless the policy's ``fuse_degraded``); one past the alert limit is *guarded*: fused only when the gate
+  against the predicted pose can check it to within the alert limit (the largest position innovation the
+  gate passes, ``sqrt(chi2_2(gate) lambda_max(S_xy))`` with the fix's own covariance, is at most
+  ``alert_limit_m``) and it passes that gate, and then with its covariance inflated by
+  ``sigma_scale**2``; it never relocalises the filter. A refused fix is counted, not fused, and the source
+  stops counting as live (:meth:`PoseFilter.live`) until one of its fixes is fused again: the pose coasts
+  on the other sources, as when no fix comes.
 * **Late measurements**: a VLP fix is stamped with the frame's capture time and arrives a frame period
   later, a SLAM pose with its scan's time a filter update later. :class:`PoseFilter` keeps the measurements
   of the last ``history_s`` seconds in time order with the filter state after each; a late one is inserted
@@ -127,12 +128,13 @@ class IntegrityPolicy:
     """How fixes that carry a :class:`FixIntegrity` are fused.
 
     ``alert_limit_m``: the largest position error the application tolerates (the aviation notion): a fix
-    whose protection level exceeds it is not nominal. ``sigma_scale``: a guarded fix's (degraded, or past
-    the alert limit) standard deviations are multiplied by this before it is fused; 0: guarded fixes are
-    never fused."""
+    whose protection level exceeds it is not nominal. ``sigma_scale``: a guarded fix's (past the alert
+    limit) standard deviations are multiplied by this before it is fused; 0: such fixes are never fused.
+    ``fuse_degraded``: a fix its source flagged degraded is guarded too, not refused."""
 
     alert_limit_m: float = 0.10
     sigma_scale: float = 3.0
+    fuse_degraded: bool = False
 
     def __post_init__(self) -> None:
         if not (self.alert_limit_m > 0.0 and math.isfinite(self.alert_limit_m)):
@@ -347,8 +349,9 @@ class _Event:
     accepted: bool = False
     d2: float = math.nan
     # A guarded fix (FixIntegrity: degraded or past the alert limit): fused only within the alert limit
-    # of the prediction, with R inflated; refused otherwise.
+    # of the prediction, with R inflated; refused otherwise (always, with ``refuse``).
     guarded: bool = False
+    refuse: bool = False
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -591,6 +594,7 @@ class PoseFilter:
             if integrity is not None:
                 if integrity.degraded:
                     event.guarded, refusal = True, Refusal.INTEGRITY
+                    event.refuse = not self.integrity.fuse_degraded
                 elif not integrity.protection_level_m <= self.integrity.alert_limit_m:
                     event.guarded, refusal = True, Refusal.ALERT_LIMIT
             arrival = arrival_ns if arrival_ns is not None else t_ns
@@ -785,7 +789,12 @@ class PoseFilter:
         a, b, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
         lambda_max = 0.5 * (a + d) + math.sqrt(0.25 * (a - d) ** 2 + b * b)
         window_m = math.sqrt(self.gate[2] * lambda_max)
-        if policy.sigma_scale == 0.0 or window_m > policy.alert_limit_m or not d2 <= self.gate[event.z.size]:
+        if (
+            event.refuse
+            or policy.sigma_scale == 0.0
+            or window_m > policy.alert_limit_m
+            or not d2 <= self.gate[event.z.size]
+        ):
             event.accepted = False
             return x, P
         R = event.R * policy.sigma_scale**2

@@ -181,7 +181,9 @@ class Agent:
             history_s=fc.history_s,
             odometry_hold_s=fc.odometry_timeout_s,
             observer=_fusion_observer(recorder, flight_recorder),
-            integrity=IntegrityPolicy(config.vlp.alert_limit_m, config.vlp.degraded_sigma_scale),
+            integrity=IntegrityPolicy(
+                config.vlp.alert_limit_m, config.vlp.guarded_sigma_scale, config.vlp.fuse_degraded
+            ),
         )
         self.timeouts_ns = {
             Source.VLP: int(fc.vlp_timeout_s * 1e9),

@@ -118,29 +118,35 @@ def test_a_refused_fix_takes_vlp_off_at_once_and_a_fused_one_puts_it_back() -> N
     assert not f.integrity_alert(Source.VLP)
 
 
-def test_a_right_degraded_fix_is_fused_under_the_guard_with_less_weight() -> None:
-    # A degraded fix that agrees with a well-known prediction (a single-LED fix under the last full one)
-    # is used, inflated: it pulls the pose a third as far as the same fix taken as nominal would
-    # (sigma_scale 3: weight 1/9).
+@pytest.mark.parametrize("fuse_degraded", [False, True])
+def test_a_right_fix_past_the_alert_limit_is_fused_under_the_guard_with_less_weight(
+    fuse_degraded: bool,
+) -> None:
+    # A two-LED fix (PL infinite) that agrees with a well-known prediction is used, inflated: it pulls the
+    # pose far less than the same fix taken as nominal would (sigma_scale 3: weight 1/9). A degraded one
+    # is refused, unless the policy says to guard those too.
     offset = 0.01
 
     def pulled(integrity: FixIntegrity) -> float:
-        f = new_filter()
+        f = new_filter(integrity=IntegrityPolicy(fuse_degraded=fuse_degraded))
         for k in range(10):  # settle the filter on nominal fixes at the origin
             f.add_pose(Source.VLP, (k + 1) * 10 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=GOOD)
         r = f.add_pose(Source.VLP, 110 * MS, offset, 0.0, 0.0, FIX_COV, integrity=integrity)
-        assert r.accepted and r.guarded == integrity.degraded
+        assert r.guarded == (integrity is not GOOD)
+        assert r.accepted == (not integrity.degraded or fuse_degraded)
         return f.estimate().x_m
 
     nominal = pulled(GOOD)
-    guarded = pulled(FixIntegrity(True, math.inf))
+    guarded = pulled(FixIntegrity(False, math.inf))
     assert 0.0 < guarded < 0.5 * nominal
+    degraded = pulled(FixIntegrity(True, math.inf))
+    assert degraded == pytest.approx(guarded if fuse_degraded else 0.0, abs=1e-12)
 
 
 def test_guarded_fixes_are_refused_once_the_prediction_cannot_check_them_to_the_alert_limit() -> None:
     # After a long coast the prediction is too uncertain for its gate to bound a fix within the alert
-    # limit: even a right degraded fix is refused (it could be 0.9 m off and still pass).
-    f = new_filter()
+    # limit: even a right guarded fix is refused (it could be 0.9 m off and still pass).
+    f = new_filter(integrity=IntegrityPolicy(fuse_degraded=True))
     f.add_pose(Source.VLP, 10 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=GOOD)
     t = 10 * MS
     for _ in range(300):  # 6 s without odometry: the position random walk grows the covariance
@@ -149,16 +155,20 @@ def test_guarded_fixes_are_refused_once_the_prediction_cannot_check_them_to_the_
     assert f.estimate().sigma_xy_m > 0.05
     r = f.add_pose(Source.VLP, t + MS, 0.0, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(True, 0.02))
     assert not r.accepted and r.refused is Refusal.INTEGRITY
+    r = f.add_pose(Source.VLP, t + MS, 0.0, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(False, math.inf))
+    assert not r.accepted and r.refused is Refusal.ALERT_LIMIT
     # A nominal fix within the alert limit is fused as before (the ordinary gate).
     r = f.add_pose(Source.VLP, t + 2 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=GOOD)
     assert r.accepted and not r.guarded
 
 
 def test_sigma_scale_zero_refuses_every_guarded_fix_and_the_policy_is_checked() -> None:
-    f = new_filter(integrity=IntegrityPolicy(alert_limit_m=0.10, sigma_scale=0.0))
+    f = new_filter(integrity=IntegrityPolicy(alert_limit_m=0.10, sigma_scale=0.0, fuse_degraded=True))
     f.add_pose(Source.VLP, 10 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=GOOD)
     r = f.add_pose(Source.VLP, 20 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(True, 0.01))
     assert not r.accepted and r.refused is Refusal.INTEGRITY
+    r = f.add_pose(Source.VLP, 30 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(False, math.inf))
+    assert not r.accepted and r.refused is Refusal.ALERT_LIMIT
     # An alert limit of 1 cm makes a 1.2 cm protection level too much.
     g = new_filter(integrity=IntegrityPolicy(alert_limit_m=0.01))
     r = g.add_pose(Source.VLP, 10 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=GOOD)
@@ -172,7 +182,8 @@ def test_the_integrity_policy_and_the_fixes_integrity_replay_from_a_recording() 
     from agent.runtime.recorder import replay_records
 
     records: list[dict[str, object]] = []
-    f = new_filter(observer=records.append, integrity=IntegrityPolicy(alert_limit_m=0.05, sigma_scale=2.0))
+    policy = IntegrityPolicy(alert_limit_m=0.05, sigma_scale=2.0, fuse_degraded=True)
+    f = new_filter(observer=records.append, integrity=policy)
     drive(f, FixIntegrity(True, math.inf), seconds=3.0)
     est = f.estimate()
     header = {"k": "header", "fusion": f.parameters}
