@@ -29,9 +29,11 @@ State (map frame, SI units)::
   against the predicted pose can check it to within the alert limit (the largest position innovation the
   gate passes, ``sqrt(chi2_2(gate) lambda_max(S_xy))`` with the fix's own covariance, is at most
   ``alert_limit_m``) and it passes that gate, and then with its covariance inflated by
-  ``sigma_scale**2``; it never relocalises the filter. A refused fix is counted, not fused, and the source
-  stops counting as live (:meth:`PoseFilter.live`) until one of its fixes is fused again: the pose coasts
-  on the other sources, as when no fix comes.
+  ``sigma_scale**2``; it never relocalises the filter. Acquisition: while no fix of the source has been
+  fused yet (the pose is the configured initial guess, which nothing else can check a fix against), an
+  unflagged fix past the alert limit is checked by the gate alone. A refused fix is counted and not fused:
+  the pose coasts on the other sources, as when no fix comes, and the source stops counting as live
+  (:meth:`PoseFilter.live`) at its timeout.
 * **Late measurements**: a VLP fix is stamped with the frame's capture time and arrives a frame period
   later, a SLAM pose with its scan's time a filter update later. :class:`PoseFilter` keeps the measurements
   of the last ``history_s`` seconds in time order with the filter state after each; a late one is inserted
@@ -352,6 +354,7 @@ class _Event:
     # of the prediction, with R inflated; refused otherwise (always, with ``refuse``).
     guarded: bool = False
     refuse: bool = False
+    acquiring: bool = False  # no fix of its source fused yet: the gate alone checks it
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -597,6 +600,7 @@ class PoseFilter:
                     event.refuse = not self.integrity.fuse_degraded
                 elif not integrity.protection_level_m <= self.integrity.alert_limit_m:
                     event.guarded, refusal = True, Refusal.ALERT_LIMIT
+                    event.acquiring = source not in self.last_accepted_ns
             arrival = arrival_ns if arrival_ns is not None else t_ns
             result = self._insert(event, arrival)
             if event.guarded:
@@ -671,15 +675,10 @@ class PoseFilter:
             )
 
     def live(self, now_ns: int, timeouts_ns: dict[Source, int]) -> set[Source]:
-        """The sources fused (accepted) within their timeout before ``now_ns``, less those whose newest
-        fix was refused for integrity (an integrity alert: the source is not used now, whatever came
-        before)."""
+        """The sources fused (accepted) within their timeout before ``now_ns`` (a fix refused for integrity
+        is not fused: a source whose fixes are all refused drops out at its timeout)."""
         with self._lock:
-            return {
-                s
-                for s, t in self.last_accepted_ns.items()
-                if now_ns - t <= timeouts_ns.get(s, 0) and self.last_refused_ns.get(s, -1) < t
-            }
+            return {s for s, t in self.last_accepted_ns.items() if now_ns - t <= timeouts_ns.get(s, 0)}
 
     def integrity_alert(self, source: Source) -> bool:
         """Whether ``source``'s newest fix was refused for integrity (nothing fused from it since)."""
@@ -792,7 +791,7 @@ class PoseFilter:
         if (
             event.refuse
             or policy.sigma_scale == 0.0
-            or window_m > policy.alert_limit_m
+            or (window_m > policy.alert_limit_m and not event.acquiring)
             or not d2 <= self.gate[event.z.size]
         ):
             event.accepted = False

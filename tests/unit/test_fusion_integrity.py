@@ -101,21 +101,38 @@ def test_flagged_wrong_fixes_do_not_move_the_pose(wrong: FixIntegrity) -> None:
     assert f.live(now, TIMEOUTS) == {Source.ODOMETRY}
 
 
-def test_a_refused_fix_takes_vlp_off_at_once_and_a_fused_one_puts_it_back() -> None:
+def test_refused_fixes_take_vlp_off_at_its_timeout_and_a_fused_one_puts_it_back() -> None:
     f = new_filter()
     cov = FIX_COV
     f.add_pose(Source.VLP, 10 * MS, 0.0, 0.0, 0.0, cov, arrival_ns=10 * MS, integrity=GOOD)
     assert f.live(20 * MS, TIMEOUTS) == {Source.VLP}
-    r = f.add_pose(
-        Source.VLP, 20 * MS, 0.0, 0.9, 0.0, cov, arrival_ns=20 * MS, integrity=FixIntegrity(True, math.inf)
-    )
-    assert not r.accepted and r.guarded and r.refused is Refusal.INTEGRITY
-    # Well within the VLP timeout of the last fused fix, yet not live: its newest fix was refused.
-    assert f.live(30 * MS, TIMEOUTS) == set()
-    r = f.add_pose(Source.VLP, 30 * MS, 0.0, 0.0, 0.0, cov, arrival_ns=30 * MS, integrity=GOOD)
+    for k in range(12):  # 600 ms of refused fixes: nothing fused, as if none came
+        t = (60 + 50 * k) * MS
+        r = f.add_pose(
+            Source.VLP, t, 0.0, 0.9, 0.0, cov, arrival_ns=t, integrity=FixIntegrity(True, math.inf)
+        )
+        assert not r.accepted and r.guarded and r.refused is Refusal.INTEGRITY
+        assert f.integrity_alert(Source.VLP)
+    assert f.live(500 * MS, TIMEOUTS) == {Source.VLP}  # the last fused fix is within the timeout
+    assert f.live(600 * MS, TIMEOUTS) == set()
+    r = f.add_pose(Source.VLP, 650 * MS, 0.0, 0.0, 0.0, cov, arrival_ns=650 * MS, integrity=GOOD)
     assert r.accepted and not r.guarded and r.refused is Refusal.NONE
-    assert f.live(40 * MS, TIMEOUTS) == {Source.VLP}
+    assert f.live(660 * MS, TIMEOUTS) == {Source.VLP}
     assert not f.integrity_alert(Source.VLP)
+
+
+def test_acquisition_the_first_unflagged_fix_past_the_alert_limit_is_checked_by_the_gate_alone() -> None:
+    # At start the pose is the configured guess (here 5 cm): no window within the alert limit, and no
+    # other source to check a fix with. An unflagged two-LED fix within the gate is taken (inflated);
+    # after it the window applies. A flagged one is refused all the same.
+    f = PoseFilter(np.zeros(3), np.diag([0.05**2, 0.05**2, 0.03**2]), 0)
+    r = f.add_pose(Source.VLP, 10 * MS, 0.0, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(True, math.inf))
+    assert not r.accepted and r.refused is Refusal.INTEGRITY
+    r = f.add_pose(Source.VLP, 20 * MS, 0.9, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(False, math.inf))
+    assert not r.accepted and r.refused is Refusal.ALERT_LIMIT  # outside the gate
+    r = f.add_pose(Source.VLP, 30 * MS, 0.02, 0.0, 0.0, FIX_COV, integrity=FixIntegrity(False, math.inf))
+    assert r.accepted and r.guarded
+    assert f.estimate().sigma_xy_m < 0.025
 
 
 @pytest.mark.parametrize("fuse_degraded", [False, True])
