@@ -68,6 +68,7 @@ __all__ = [
     "FixIntegrity",
     "IntegrityPolicy",
     "PoseFilter",
+    "Refusal",
     "Source",
     "UpdateResult",
     "ekf_predict",
@@ -149,7 +150,7 @@ class Refusal(enum.StrEnum):
     """Why a fix with integrity information was not fused (besides the ordinary gate)."""
 
     NONE = ""
-    INTEGRITY = "integrity"  # degraded by its source, and not checkable or not passing the guard
+    INTEGRITY = "integrity"  # degraded by its source (refused; with fuse_degraded: failed the guard)
     ALERT_LIMIT = "alert_limit"  # nominal by its source, but its protection level exceeds the alert limit
 
 
@@ -450,7 +451,7 @@ class PoseFilter:
         self._relocalizer = _Relocalizer(needed=relocalize_after)
         self.last_accepted_ns: dict[Source, int] = {}
         # Arrival of each source's last fix refused for integrity (FixIntegrity): newer than its last
-        # fused one, the source is not live.
+        # fused one, an integrity alert (integrity_alert(), for the status line).
         self.last_refused_ns: dict[Source, int] = {}
         self.counts: dict[str, int] = {}
         self.replayed_events = 0
