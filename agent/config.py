@@ -224,6 +224,12 @@ class VlpConfig:
     calibration_file: str | None = None
     sigma_floor_m: float = 0.005
     sigma_floor_yaw_rad: float = math.radians(0.5)
+    # Integrity (agent.fusion.IntegrityPolicy): the largest position error the application tolerates; a
+    # fix whose protection level exceeds it is fused only under the guard, its sigmas multiplied by
+    # guarded_sigma_scale (0: never fused); a fix flagged degraded is not fused (fuse_degraded: guarded).
+    alert_limit_m: float = 0.10
+    guarded_sigma_scale: float = 3.0
+    fuse_degraded: bool = False
 
 
 @dataclass(frozen=True)
@@ -1086,6 +1092,11 @@ class _Reader:
         floor_yaw = t.angle("sigma_floor_yaw", d.sigma_floor_yaw_rad)
         if floor_yaw < 0:
             raise t.error("sigma_floor_yaw_rad", "must be >= 0")
+        alert_limit = t.number("alert_limit_m", d.alert_limit_m, _POSITIVE)
+        sigma_scale = t.number(
+            "guarded_sigma_scale", d.guarded_sigma_scale, (lambda v: v == 0 or v >= 1, "must be 0 or >= 1")
+        )
+        fuse_degraded = t.boolean("fuse_degraded", d.fuse_degraded)
         t.finish()
         if enabled and sim is None:
             if intrinsics is None:
@@ -1107,6 +1118,9 @@ class _Reader:
             str(calibration_path) if calibration_path else None,
             floor_m,
             floor_yaw,
+            alert_limit,
+            sigma_scale,
+            fuse_degraded,
         )
 
     def _calibration(self, path: Path, key: str) -> str:

@@ -23,6 +23,17 @@ State (map frame, SI units)::
   ``gate_probability``; an outlier is counted and not fused. A run of rejected VLP fixes that agree with
   each other means the filter, not the camera, is lost: it is re-initialised on the fix (relocalisation,
   ``reset_counter`` + 1).
+* **Integrity** (:class:`FixIntegrity`, :class:`IntegrityPolicy`): a fix its source flags ``degraded``, or
+  whose protection level exceeds the alert limit, is never fused as nominal. A degraded one is refused
+  (unless the policy's ``fuse_degraded``); one past the alert limit is *guarded*: fused only when the gate
+  against the predicted pose can check it to within the alert limit (the largest position innovation the
+  gate passes, ``sqrt(chi2_2(gate) lambda_max(S_xy))`` with the fix's own covariance, is at most
+  ``alert_limit_m``) and it passes that gate, and then with its covariance inflated by
+  ``sigma_scale**2``; it never relocalises the filter. Acquisition: while no fix of the source has been
+  fused yet (the pose is the configured initial guess, which nothing else can check a fix against), an
+  unflagged fix past the alert limit is checked by the gate alone. A refused fix is counted and not fused:
+  the pose coasts on the other sources, as when no fix comes, and the source stops counting as live
+  (:meth:`PoseFilter.live`) at its timeout.
 * **Late measurements**: a VLP fix is stamped with the frame's capture time and arrives a frame period
   later, a SLAM pose with its scan's time a filter update later. :class:`PoseFilter` keeps the measurements
   of the last ``history_s`` seconds in time order with the filter state after each; a late one is inserted
@@ -54,7 +65,10 @@ __all__ = [
     "N_STATE",
     "Estimate",
     "FilterNoise",
+    "FixIntegrity",
+    "IntegrityPolicy",
     "PoseFilter",
+    "Refusal",
     "Source",
     "UpdateResult",
     "ekf_predict",
@@ -103,14 +117,56 @@ class FilterNoise:
 
 
 @dataclass(frozen=True, slots=True)
+class FixIntegrity:
+    """What a fix's source says of its integrity: ``degraded`` (the source's own tests flagged it) and its
+    protection level (the largest position error it cannot rule out; inf: none can be, e.g. a two-LED VLP
+    fix)."""
+
+    degraded: bool = False
+    protection_level_m: float = math.inf
+
+
+@dataclass(frozen=True, slots=True)
+class IntegrityPolicy:
+    """How fixes that carry a :class:`FixIntegrity` are fused.
+
+    ``alert_limit_m``: the largest position error the application tolerates (the aviation notion): a fix
+    whose protection level exceeds it is not nominal. ``sigma_scale``: a guarded fix's (past the alert
+    limit) standard deviations are multiplied by this before it is fused; 0: such fixes are never fused.
+    ``fuse_degraded``: a fix its source flagged degraded is guarded too, not refused."""
+
+    alert_limit_m: float = 0.10
+    sigma_scale: float = 3.0
+    fuse_degraded: bool = False
+
+    def __post_init__(self) -> None:
+        if not (self.alert_limit_m > 0.0 and math.isfinite(self.alert_limit_m)):
+            raise ValueError(f"alert_limit_m must be finite and > 0, got {self.alert_limit_m}")
+        if not (self.sigma_scale == 0.0 or 1.0 <= self.sigma_scale < math.inf):
+            raise ValueError(f"sigma_scale must be 0 or >= 1, got {self.sigma_scale}")
+
+
+class Refusal(enum.StrEnum):
+    """Why a fix with integrity information was not fused (besides the ordinary gate)."""
+
+    NONE = ""
+    INTEGRITY = "integrity"  # degraded by its source (refused; with fuse_degraded: failed the guard)
+    ALERT_LIMIT = "alert_limit"  # nominal by its source, but its protection level exceeds the alert limit
+
+
+@dataclass(frozen=True, slots=True)
 class UpdateResult:
-    """What one measurement did: fused or not, and its squared Mahalanobis distance."""
+    """What one measurement did: fused or not, and its squared Mahalanobis distance. ``guarded``: a fix
+    fused (or tried) under the integrity guard; ``refused``: why a fix with integrity information was not
+    fused (``Refusal.NONE`` when it was, or when the ordinary gate rejected a nominal fix)."""
 
     source: Source
     accepted: bool
     mahalanobis_d2: float
     too_old: bool = False
     relocalized: bool = False
+    guarded: bool = False
+    refused: Refusal = Refusal.NONE
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,6 +193,11 @@ class Estimate:
     @property
     def sigma_yaw_rad(self) -> float:
         return math.sqrt(max(float(self.covariance[2, 2]), 0.0))
+
+
+def _json_float(value: float) -> float | str:
+    """A float a JSON recording can hold (inf as the string "inf")."""
+    return value if math.isfinite(value) else str(value)
 
 
 def _wrap(angle_rad: float) -> float:
@@ -290,6 +351,11 @@ class _Event:
     R: FloatArray
     accepted: bool = False
     d2: float = math.nan
+    # A guarded fix (FixIntegrity: degraded or past the alert limit): fused only within the alert limit
+    # of the prediction, with R inflated; refused otherwise (always, with ``refuse``).
+    guarded: bool = False
+    refuse: bool = False
+    acquiring: bool = False  # no fix of its source fused yet: the gate alone checks it
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -349,9 +415,11 @@ class PoseFilter:
         odometry_hold_s: float = 0.3,
         relocalize_after: int = 5,
         observer: Callable[[dict[str, Any]], None] | None = None,
+        integrity: IntegrityPolicy = IntegrityPolicy(),
     ) -> None:
         """``observer``: called with every input, in the order the filter applies them (under its lock),
-        as a dict a recording can hold (``agent.runtime.recorder``); it must not block."""
+        as a dict a recording can hold (``agent.runtime.recorder``); it must not block. ``integrity``: how
+        fixes given with a :class:`FixIntegrity` are fused."""
         x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
         P0 = np.asarray(P0, dtype=np.float64)
         if x0.shape == (3,):
@@ -367,6 +435,7 @@ class PoseFilter:
         if not 0.0 < gate_probability < 1.0:
             raise ValueError(f"gate_probability must be in (0, 1), got {gate_probability}")
         self.noise = noise
+        self.integrity = integrity
         self.gate = {n: gate_threshold(n, gate_probability) for n in (1, 2, 3)}
         self.history_ns = int(history_s * 1e9)
         self.hold_ns = int(odometry_hold_s * 1e9)
@@ -381,6 +450,9 @@ class PoseFilter:
         self.reset_counter = 0
         self._relocalizer = _Relocalizer(needed=relocalize_after)
         self.last_accepted_ns: dict[Source, int] = {}
+        # Arrival of each source's last fix refused for integrity (FixIntegrity): newer than its last
+        # fused one, an integrity alert (integrity_alert(), for the status line).
+        self.last_refused_ns: dict[Source, int] = {}
         self.counts: dict[str, int] = {}
         self.replayed_events = 0
         self.inputs = 0
@@ -394,6 +466,7 @@ class PoseFilter:
             "history_s": history_s,
             "odometry_hold_s": odometry_hold_s,
             "relocalize_after": relocalize_after,
+            "integrity": dataclasses.asdict(integrity),
         }
 
     @classmethod
@@ -408,6 +481,8 @@ class PoseFilter:
             history_s=float(parameters["history_s"]),
             odometry_hold_s=float(parameters["odometry_hold_s"]),
             relocalize_after=int(parameters["relocalize_after"]),
+            # A recording made before the integrity policy existed fused every fix as nominal.
+            integrity=IntegrityPolicy(**parameters.get("integrity", {})),
         )
 
     def _observe(self, record: dict[str, Any]) -> None:
@@ -479,10 +554,14 @@ class PoseFilter:
         covariance: FloatArray,
         arrival_ns: int | None = None,
         relocalize: bool = False,
+        integrity: FixIntegrity | None = None,
     ) -> UpdateResult:
         """An absolute pose (VLP, SLAM) taken at ``t_ns``; ``yaw_rad`` None for a position-only fix, with a
         2x2 ``covariance`` then (else 3x3). ``relocalize``: a run of rejected fixes from this source may
-        re-initialise the filter (for a source that is right when the filter is not: VLP)."""
+        re-initialise the filter (for a source that is right when the filter is not: VLP). ``integrity``:
+        what the source says of the fix; a degraded one, or one whose protection level exceeds the policy's
+        alert limit, is fused only under the guard (module docstring) and never relocalises; None: the
+        fix is taken as nominal (SLAM)."""
         cov = np.asarray(covariance, dtype=np.float64)
         if yaw_rad is None:
             if cov.shape[0] >= 2:
@@ -507,12 +586,34 @@ class PoseFilter:
                     "cov": np.asarray(covariance, dtype=np.float64).tolist(),
                     "a": arrival_ns,
                     "reloc": relocalize,
+                    **(
+                        {}
+                        if integrity is None
+                        else {"deg": integrity.degraded, "pl": _json_float(integrity.protection_level_m)}
+                    ),
                 }
             )
             event = self._new_event(t_ns, kind, source, z, 0.5 * (cov + cov.T))
+            refusal = Refusal.NONE
+            if integrity is not None:
+                if integrity.degraded:
+                    event.guarded, refusal = True, Refusal.INTEGRITY
+                    event.refuse = not self.integrity.fuse_degraded
+                elif not integrity.protection_level_m <= self.integrity.alert_limit_m:
+                    event.guarded, refusal = True, Refusal.ALERT_LIMIT
+                    event.acquiring = source not in self.last_accepted_ns
             arrival = arrival_ns if arrival_ns is not None else t_ns
             result = self._insert(event, arrival)
-            if relocalize and not result.too_old:
+            if event.guarded:
+                if not result.too_old:
+                    if result.accepted:
+                        self._count(f"{source}_fused_guarded")
+                    else:
+                        self._count(f"{source}_refused_{refusal}")
+                        self.last_refused_ns[source] = max(self.last_refused_ns.get(source, 0), arrival)
+                        result = dataclasses.replace(result, refused=refusal)
+                result = dataclasses.replace(result, guarded=True)
+            elif relocalize and not result.too_old:
                 if result.accepted:
                     self._relocalizer.accepted()
                 elif self._relocalizer.rejected(
@@ -575,9 +676,15 @@ class PoseFilter:
             )
 
     def live(self, now_ns: int, timeouts_ns: dict[Source, int]) -> set[Source]:
-        """The sources fused (accepted) within their timeout before ``now_ns``."""
+        """The sources fused (accepted) within their timeout before ``now_ns`` (a fix refused for integrity
+        is not fused: a source whose fixes are all refused drops out at its timeout)."""
         with self._lock:
             return {s for s, t in self.last_accepted_ns.items() if now_ns - t <= timeouts_ns.get(s, 0)}
+
+    def integrity_alert(self, source: Source) -> bool:
+        """Whether ``source``'s newest fix was refused for integrity (nothing fused from it since)."""
+        with self._lock:
+            return self.last_refused_ns.get(source, -1) >= self.last_accepted_ns.get(source, 0)
 
     def counters(self) -> dict[str, int]:
         with self._lock:
@@ -659,8 +766,40 @@ class PoseFilter:
             H, yaw_row = _H_POSE, 2
         else:
             H, yaw_row = _H_POSITION, None
+        if event.guarded:
+            return self._apply_guarded(event, x, P, H, yaw_row)
         x, P, d2, ok = ekf_update(x, P, event.z, H, event.R, self.gate[event.z.size], yaw_row)
         event.accepted, event.d2 = ok, d2
+        return x, P
+
+    def _apply_guarded(
+        self, event: _Event, x: FloatArray, P: FloatArray, H: FloatArray, yaw_row: int | None
+    ) -> tuple[FloatArray, FloatArray]:
+        """A fix that cannot vouch for itself: checked against the prediction, fused only if the check
+        bounds it within the alert limit and it passes, then with its covariance inflated."""
+        policy = self.integrity
+        y = event.z - H @ x
+        if yaw_row is not None:
+            y[yaw_row] = _wrap(float(y[yaw_row]))
+        S = H @ P @ H.T + event.R
+        d2 = float(y @ _inverse_small(S) @ y)
+        event.d2 = d2
+        # The largest position innovation the gate lets through (the worst direction of S's position
+        # block): a wrong fix that passes is at most this far from the prediction.
+        a, b, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
+        lambda_max = 0.5 * (a + d) + math.sqrt(0.25 * (a - d) ** 2 + b * b)
+        window_m = math.sqrt(self.gate[2] * lambda_max)
+        if (
+            event.refuse
+            or policy.sigma_scale == 0.0
+            or (window_m > policy.alert_limit_m and not event.acquiring)
+            or not d2 <= self.gate[event.z.size]
+        ):
+            event.accepted = False
+            return x, P
+        R = event.R * policy.sigma_scale**2
+        x, P, _, ok = ekf_update(x, P, event.z, H, R, math.inf, yaw_row)
+        event.accepted = ok
         return x, P
 
     def _insert(self, event: _Event, arrival_ns: int, replay_from_ns: int | None = None) -> UpdateResult:

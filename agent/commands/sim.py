@@ -812,7 +812,10 @@ def _summary(
         "camera_frames": counts.get("frames", 0),
         "fixes": counts.get("fixes", 0),
         "fixes_fused": counts.get("fixes_fused", 0),
+        "fixes_fused_guarded": counts.get("fixes_fused_guarded", 0),
         "fixes_rejected": counts.get("fixes_rejected", 0),
+        "fixes_rejected_integrity": counts.get("fixes_rejected_integrity", 0),
+        "fixes_rejected_alert_limit": counts.get("fixes_rejected_alert_limit", 0),
         "no_fix": counts.get("no_fix", 0),
         "no_fix_reasons": status.no_fix_reasons,
         "dropped": int(sum(status.drops.values())),
@@ -902,8 +905,9 @@ def _print_summary(s: dict[str, Any]) -> None:
         f"{num(s['exposure_age_ms_p50'], '.1f')} ms, p99 {num(s['exposure_age_ms_p99'], '.1f')} ms"
     )
     print(
-        f"  VLP               {s['fixes']} fixes from {s['camera_frames']} frames, {s['fixes_fused']} fused, "
-        f"{s['fixes_rejected']} gated out"
+        f"  VLP               {s['fixes']} fixes from {s['camera_frames']} frames, {s['fixes_fused']} fused "
+        f"({s['fixes_fused_guarded']} under the integrity guard), {s['fixes_rejected']} gated out, refused "
+        f"{s['fixes_rejected_integrity']} degraded and {s['fixes_rejected_alert_limit']} past the alert limit"
     )
     slam = s["slam"]
     updates, applied = slam.get("filter_updates", 0), slam.get("fixes_applied", 0)

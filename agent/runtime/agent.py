@@ -38,7 +38,7 @@ import numpy as np
 
 from agent.config import AgentConfig, MountConfig
 from agent.following.coarse import Antenna, CoarseFilter, RadioModel, default_table
-from agent.fusion import Estimate, FilterNoise, PoseFilter, Source
+from agent.fusion import Estimate, FilterNoise, IntegrityPolicy, PoseFilter, Source
 from agent.recording.messages import FusedSample, SlamStartSample, fusion_record_time
 from agent.recording.writer import McapRecorder
 from agent.runtime.arbiter import CommandArbiter
@@ -188,6 +188,9 @@ class Agent:
             history_s=fc.history_s,
             odometry_hold_s=fc.odometry_timeout_s,
             observer=_fusion_observer(recorder, flight_recorder),
+            integrity=IntegrityPolicy(
+                config.vlp.alert_limit_m, config.vlp.guarded_sigma_scale, config.vlp.fuse_degraded
+            ),
         )
         self.timeouts_ns = {
             Source.VLP: int(fc.vlp_timeout_s * 1e9),
@@ -549,6 +552,9 @@ class Agent:
         est = self.fusion.estimate()
         flags = self.flags()
         names = [f.name for f in PoseFlags if f & flags and f.name] or ["no source"]
+        if self.localizer is not None and self.fusion.integrity_alert(Source.VLP):
+            # The newest VLP fix was refused for integrity: VLP is off the pose until one is fused again.
+            names.append("VLP-INTEGRITY-ALERT")
         prefix = "" if flags & _POSITION_FLAGS else f"NOT LOCALIZING: {self.not_localizing_reason()}; "
         latency = ""
         if self.output is not None and len(self.output.latency):

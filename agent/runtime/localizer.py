@@ -82,6 +82,7 @@ class VlpLocalizer:
                 "flags": result.flags,
                 "leds": result.leds,
             },
+            float(result.protection_level_m),
         )
 
 

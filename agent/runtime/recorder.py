@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from agent.fusion import Estimate, PoseFilter, Source
+from agent.fusion import Estimate, FixIntegrity, PoseFilter, Source
 
 __all__ = ["Recorder", "ReplayResult", "read_recording", "replay", "replay_records"]
 
@@ -209,6 +209,7 @@ def replay_records(records: list[dict[str, Any]]) -> ReplayResult:
                 r["cov"],
                 arrival_ns=r["a"],
                 relocalize=r["reloc"],
+                integrity=FixIntegrity(bool(r["deg"]), float(r["pl"])) if "deg" in r else None,
             )
         else:
             continue

@@ -47,6 +47,8 @@ class AbsoluteFix:
 
     ``yaw_rad`` None: position only, and ``covariance`` is 2x2; otherwise 3x3 over (x, y, yaw).
     ``detail``: what the source says about it (LED ids, residual, the filter's state), for logs and status.
+    ``degraded`` and ``protection_level_m``: its integrity, as the source judges it (the fusion honours
+    them, ``agent.fusion.FixIntegrity``).
     """
 
     t_ns: int
@@ -56,6 +58,9 @@ class AbsoluteFix:
     covariance: FloatArray
     degraded: bool = False
     detail: dict[str, object] = field(default_factory=dict)
+    # The largest position error the fix cannot rule out (VLP's protection level; inf: none can be, e.g.
+    # two LEDs; NaN: the source gives none, e.g. SLAM).
+    protection_level_m: float = math.nan
 
     @property
     def sigma_xy_m(self) -> float:

@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 
 from agent.config import VlpConfig
-from agent.fusion import PoseFilter, Source
+from agent.fusion import FixIntegrity, PoseFilter, Source
 from agent.runtime.collector import IdleCollector
 from agent.runtime.health import Heartbeat
 from agent.runtime.hotpath import HotPath
@@ -141,14 +141,19 @@ class VlpLoop:
             vlp_covariance(result, state.config.vlp),
             arrival_ns=state.clock_ns(),
             relocalize=True,
+            integrity=FixIntegrity(result.degraded, result.protection_level_m),
         )
         if fused.relocalized:
             log.warning("fusion relocalized on VLP (reset counter %d)", self.fusion.reset_counter)
             state.count("relocalizations")
         if not fused.accepted:
-            state.count("fixes_rejected")
+            # Refused for integrity (a degraded fix, or one past the alert limit, the prediction could not
+            # vouch for), or gated out (a nominal fix that disagrees with the fused pose).
+            state.count(f"fixes_rejected_{fused.refused}" if fused.refused else "fixes_rejected")
             return
         state.count("fixes_fused")
+        if fused.guarded:
+            state.count("fixes_fused_guarded")  # of fixes_fused: degraded or past the alert limit
         self.publish(t, arrival_ns)
         if self.slam_fixes is not None and t - self._last_slam_fix_ns >= _SLAM_FIX_INTERVAL_NS:
             self._last_slam_fix_ns = t

@@ -163,6 +163,35 @@ def test_a_disabled_device_is_left_out_and_degrees_are_accepted(tmp_path: Path) 
     assert math.isclose(config.fusion.initial_pose[2], math.pi / 2)
 
 
+def test_the_vlp_integrity_keys(tmp_path: Path) -> None:
+    default = parse_config(sim_config(), str(tmp_path / "c.toml")).vlp
+    assert (default.alert_limit_m, default.guarded_sigma_scale, default.fuse_degraded) == (0.10, 3.0, False)
+    config = parse_config(
+        sim_config(
+            """
+            [vlp]
+            alert_limit_m = 0.25
+            guarded_sigma_scale = 0
+            fuse_degraded = true
+            """
+        ),
+        str(tmp_path / "c.toml"),
+    )
+    assert (config.vlp.alert_limit_m, config.vlp.guarded_sigma_scale, config.vlp.fuse_degraded) == (
+        0.25,
+        0.0,
+        True,
+    )
+    for text, key in (
+        ("alert_limit_m = 0", "vlp.alert_limit_m"),
+        ("guarded_sigma_scale = 0.5", "vlp.guarded_sigma_scale"),
+        ('fuse_degraded = "yes"', "vlp.fuse_degraded"),
+    ):
+        with pytest.raises(ConfigError) as info:
+            parse_config(sim_config(f"[vlp]\n{text}\n"), str(tmp_path / "c.toml"))
+        assert info.value.key == key
+
+
 # -- mistakes --------------------------------------------------------------------------------------------
 BAD = [
     # (config text, the key the error names, words of the reason)
