@@ -16,6 +16,7 @@ view cost the map.
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5
     python benchmarks/slam_office.py --seeds $(seq 0 23) --out office.json
     python benchmarks/slam_office.py --seeds 0 1 2 --people none --seconds 60 --wheels nominal
+    python benchmarks/slam_office.py --seeds 0 1 2 3 4 5 --edge-sigma 0.005 0.005 0.001 --match-sigma 0.1
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import absolute_trajectory_error, aligned_trajectory_error
 from agent.slam.rbpf import RbpfConfig
 from agent.slam.replay import replay
@@ -64,8 +66,26 @@ def with_people(world: World, people: str) -> World:
     return dataclasses.replace(world, people=walkers)
 
 
+def loop_config(
+    edge_sigma: tuple[float, float, float] | None, match_sigma: float | None
+) -> LoopClosureConfig:
+    """The loop closure's defaults with the pose graph's edge sigmas and loop-factor covariance set."""
+    config = LoopClosureConfig()
+    if edge_sigma is not None:
+        config = dataclasses.replace(config, motion_sigma=edge_sigma)
+    if match_sigma is not None:
+        config = dataclasses.replace(config, match_sigma_m=match_sigma)
+    return config
+
+
 def run_seed(
-    world: World, seed: int, seconds: float, wheels: str, loop_closure: bool = True
+    world: World,
+    seed: int,
+    seconds: float,
+    wheels: str,
+    loop_closure: bool = True,
+    edge_sigma: tuple[float, float, float] | None = None,
+    match_sigma: float | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -79,7 +99,7 @@ def run_seed(
         noise=MOTION_NOISE,
         initial_pose=simulated.start_pose(from_fix=False),
         seed=seed,
-        loop_closure=RbpfConfig().loop_closure if loop_closure else None,
+        loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
     )
     t0, c0 = time.perf_counter(), time.process_time()
     result = replay(simulated.log, config)
@@ -127,13 +147,24 @@ def main() -> int:
     parser.add_argument("--wheels", choices=("calibrated", "nominal"), default="calibrated")
     parser.add_argument("--people", choices=("yield", "walk", "none"), default="yield")
     parser.add_argument("--loop-closure", choices=("on", "off"), default="on")
+    parser.add_argument(
+        "--edge-sigma",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "YAW"),
+        help="the pose graph's front-end edge sigmas (LoopClosureConfig.motion_sigma)",
+    )
+    parser.add_argument("--match-sigma", type=float, help="loop factors with the match's covariance")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
     args = parser.parse_args()
     world = with_people(load_world(args.world), args.people)
     rows = []
     for seed in args.seeds:
-        row = run_seed(world, seed, args.seconds, args.wheels, args.loop_closure == "on")
+        edge = tuple(args.edge_sigma) if args.edge_sigma else None
+        row = run_seed(
+            world, seed, args.seconds, args.wheels, args.loop_closure == "on", edge, args.match_sigma
+        )
         rows.append(row)
         print(json.dumps(row), flush=True)
     tuned = [r for r in rows if r["seed"] in args.tune]
@@ -144,6 +175,8 @@ def main() -> int:
         "wheels": args.wheels,
         "seconds": args.seconds,
         "loop_closure": args.loop_closure,
+        "edge_sigma": args.edge_sigma,
+        "match_sigma": args.match_sigma,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),
