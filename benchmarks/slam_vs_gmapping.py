@@ -181,10 +181,29 @@ def run_gmapping(
 # -- ours, in a process of its own --------------------------------------------------------------------------
 
 
+def graph_knobs(args: argparse.Namespace) -> list[str]:
+    """The pose-graph options of ``args`` as command-line arguments again (for the worker)."""
+    out: list[str] = []
+    if args.edge_sigma is not None:
+        out += ["--edge-sigma", *(str(v) for v in args.edge_sigma)]
+    if args.match_sigma is not None:
+        out += ["--match-sigma", str(args.match_sigma)]
+    return out
+
+
 def ours_worker(
-    log_path: str, log_format: str, seed: int, particles: int, out_npy: str, loop_closure: bool = True
+    log_path: str,
+    log_format: str,
+    seed: int,
+    particles: int,
+    out_npy: str,
+    loop_closure: bool = True,
+    edge_sigma: Sequence[float] | None = None,
+    match_sigma: float | None = None,
 ) -> int:
-    """Run our filter as ``vlp-agent eval slam --log`` configures it; save the poses, print the figures."""
+    """Run our filter as ``vlp-agent eval slam --log`` configures it (``edge_sigma``, ``match_sigma``: the
+    loop closure's ``motion_sigma`` and ``match_sigma_m`` instead of the defaults); save the poses, print
+    the figures."""
     import cv2
 
     from agent.commands.eval_slam import log_config
@@ -192,7 +211,15 @@ def ours_worker(
 
     cv2.setNumThreads(1)
     log = read_log(log_path, log_format)
-    result = replay(log, log_config(log_format, seed=seed, particles=particles, loop_closure=loop_closure))
+    config = log_config(log_format, seed=seed, particles=particles, loop_closure=loop_closure)
+    if config.loop_closure is not None and (edge_sigma is not None or match_sigma is not None):
+        loop = config.loop_closure
+        if edge_sigma is not None:
+            loop = dataclasses.replace(loop, motion_sigma=tuple(edge_sigma))
+        if match_sigma is not None:
+            loop = dataclasses.replace(loop, match_sigma_m=match_sigma)
+        config = dataclasses.replace(config, loop_closure=loop)
+    result = replay(log, config)
     np.save(out_npy, result.poses)
     slam = result.slam
     print(
@@ -235,7 +262,13 @@ def slam_extras(slam: Any) -> dict[str, Any]:
 
 
 def run_ours(
-    log_path: Path, log_format: LogFormat, seed: int, particles: int, out_npy: Path, loop_closure: bool
+    log_path: Path,
+    log_format: LogFormat,
+    seed: int,
+    particles: int,
+    out_npy: Path,
+    loop_closure: bool,
+    knobs: Sequence[str] = (),
 ) -> tuple[FloatArray, dict[str, Any]]:
     done = subprocess.run(
         [
@@ -249,6 +282,7 @@ def run_ours(
             str(out_npy),
             "--loop-closure",
             "on" if loop_closure else "off",
+            *knobs,
         ],
         capture_output=True,
         text=True,
@@ -300,6 +334,8 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
         "seeds": args.seeds,
         "span": args.span,
         "loop_closure": args.loop_closure,
+        "edge_sigma": args.edge_sigma,
+        "match_sigma": args.match_sigma,
         "gmapping": {"driver": str(driver), "urange_frac": args.urange_frac}
         if driver
         else {"skipped": skip_reason},
@@ -320,7 +356,13 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
             for system in order:
                 if system == "ours":
                     poses, figures = run_ours(
-                        path, log_format, seed, args.particles, work / "ours.npy", args.loop_closure == "on"
+                        path,
+                        log_format,
+                        seed,
+                        args.particles,
+                        work / "ours.npy",
+                        args.loop_closure == "on",
+                        graph_knobs(args),
                     )
                 elif driver is not None and gm_input is not None:
                     poses, figures = run_gmapping(
@@ -357,12 +399,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--loop-closure", choices=("on", "off"), default="on", help="ours with loop closure or without"
     )
+    parser.add_argument(
+        "--edge-sigma",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "YAW"),
+        help="ours: the pose graph's front-end edge sigmas (LoopClosureConfig.motion_sigma)",
+    )
+    parser.add_argument(
+        "--match-sigma", type=float, help="ours: loop factors with the match's covariance (match_sigma_m)"
+    )
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
     if args.worker:
         log_path, log_format, seed, particles, out_npy = args.worker
         return ours_worker(
-            log_path, log_format, int(seed), int(particles), out_npy, args.loop_closure == "on"
+            log_path,
+            log_format,
+            int(seed),
+            int(particles),
+            out_npy,
+            args.loop_closure == "on",
+            args.edge_sigma,
+            args.match_sigma,
         )
     started = time.time()
     result = benchmark(args)

@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from agent.slam.matcher import DistanceField, MatcherConfig, match, world_points
 from agent.slam.pose import between, compose, transform_points, wrap_angle
-from agent.slam.posegraph import AbsoluteFactors, GraphResult, RelativeFactors, optimize
+from agent.slam.posegraph import AbsoluteFactors, GraphResult, RelativeFactors, optimize, sqrt_information
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -63,6 +63,12 @@ class LoopClosureConfig:
     # Standard deviations of the factors (x, y in the first node's frame; yaw).
     motion_sigma: tuple[float, float, float] = (0.03, 0.03, 0.01)
     loop_sigma: tuple[float, float, float] = (0.05, 0.05, 0.01)
+    # A loop factor's covariance is diag(loop_sigma²) plus the match's own, s² (Σ J Jᵀ)⁻¹ with s this
+    # (an endpoint's residual, inflated for neighbouring endpoints that err together): where the old walls
+    # fix a direction poorly (along a corridor) the factor then says little in it instead of pulling the
+    # graph to wherever the match slid. None (the default): loop_sigma alone. With the front end's edges at
+    # 3 cm / 0.01 rad it let Intel fold (seed 0: ate_aligned_m 0.26 -> 2.02 m): docs/slam.md.
+    match_sigma_m: float | None = None
     huber: float = 3.0
     # A front-end edge's yaw standard deviation grows with how far the scan match moved it from odometry:
     # sigma_yaw = max(motion_sigma yaw, share * |yaw_match - yaw_odometry|) (likewise in x, y): where the
@@ -82,6 +88,8 @@ class LoopConstraint:
     j: int
     z: FloatArray  # x_j in x_i's frame
     inlier_fraction: float
+    # The match's covariance of z (3 x 3, in x_i's frame; LoopClosureConfig.match_sigma_m), or None.
+    covariance: FloatArray | None = None
 
 
 def old_map_field(
@@ -230,7 +238,20 @@ def find_loop(
     if not refined.ok[0] or fraction < config.min_inlier_fraction:
         log.debug("node %d vs %d: %.2f of the endpoints on the old map", j, i, fraction)
         return None
-    return LoopConstraint(i, j, between(poses[i], refined.poses[0]), fraction)
+    covariance = None
+    if config.match_sigma_m is not None:
+        covariance = match_covariance(refined.information[0], float(poses[i, 2]), config.match_sigma_m)
+    return LoopConstraint(i, j, between(poses[i], refined.poses[0]), fraction, covariance)
+
+
+def match_covariance(information: FloatArray, yaw_i_rad: float, sigma_m: float) -> FloatArray:
+    """The covariance of a matched pose, s² (Σ J Jᵀ)⁻¹ (``information`` in world x, y, yaw), turned into
+    the frame of a node at heading ``yaw_i_rad`` (a relative factor's z = between(x_i, x_j))."""
+    c, s = math.cos(yaw_i_rad), math.sin(yaw_i_rad)
+    a = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    world = sigma_m**2 * np.linalg.inv(np.asarray(information) + 1e-6 * np.eye(3))
+    covariance: FloatArray = a @ world @ a.T
+    return 0.5 * (covariance + covariance.T)
 
 
 def optimize_graph(
@@ -259,7 +280,14 @@ def optimize_graph(
             np.tile(np.asarray(config.loop_sigma), (len(loops), 1)),
         ]
     )
-    return optimize(poses, RelativeFactors(i, j, z, sigma), absolute, huber=config.huber)
+    whitening = None
+    if any(c.covariance is not None for c in loops):
+        floor = np.diag(np.square(np.asarray(config.loop_sigma)))
+        covariances = np.array([floor + (c.covariance if c.covariance is not None else 0.0) for c in loops])
+        factors = RelativeFactors(i, j, z, sigma)
+        whitening = factors.whitening()
+        whitening[n - 1 :] = sqrt_information(covariances)
+    return optimize(poses, RelativeFactors(i, j, z, sigma, whitening), absolute, huber=config.huber)
 
 
 def yaw_doubt(motions: FloatArray, odometry_motions: FloatArray, config: LoopClosureConfig) -> float:

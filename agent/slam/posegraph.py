@@ -5,6 +5,9 @@ with standard deviations s = (s_x, s_y, s_yaw) in x_i's frame; its residual is
 
     r = diag(1/s) [ R(yaw_i)ᵀ (t_j - t_i) - z_t ;  wrap(yaw_j - yaw_i - z_yaw) ]
 
+or, for a factor with a full covariance C (a scan match that fixes some directions better than others:
+a corridor says little along itself), r = S [ ... ] with SᵀS = C⁻¹ (``RelativeFactors.sqrt_information``).
+
 An absolute factor (k, z, s) (a VLP fix) says that x_k is z: r = diag(1/s) (x_k - z), the yaw wrapped.
 Each factor's squared Mahalanobis norm e² = |r|² is weighted by Huber's kernel (weight 1 up to ``huber``,
 huber / e beyond): a wrong loop closure pulls with a bounded force instead of bending the whole graph.
@@ -35,6 +38,25 @@ class RelativeFactors:
     j: IntArray  # (M,)
     z: FloatArray  # (M, 3): x_j in x_i's frame
     sigma: FloatArray  # (M, 3)
+    # (M, 3, 3) or None: per factor S with SᵀS its information matrix (in x_i's frame), used instead of
+    # diag(1 / sigma) where given; ``sqrt_information`` builds it from covariances.
+    sqrt_information: FloatArray | None = None
+
+    def whitening(self) -> FloatArray:
+        """(M, 3, 3): each factor's S (diag(1 / sigma) where no full information is given)."""
+        if self.sqrt_information is not None:
+            return self.sqrt_information
+        m = self.sigma.shape[0]
+        out = np.zeros((m, 3, 3))
+        out[:, [0, 1, 2], [0, 1, 2]] = 1.0 / self.sigma
+        return out
+
+
+def sqrt_information(covariance: FloatArray) -> FloatArray:
+    """S (..., 3, 3) with SᵀS = C⁻¹ for covariances C (..., 3, 3): S = L⁻¹, C = L Lᵀ (Cholesky)."""
+    lower = np.linalg.cholesky(covariance)
+    inverse: FloatArray = np.linalg.inv(lower)
+    return inverse
 
 
 @dataclass(frozen=True)
@@ -66,6 +88,9 @@ def relative_residuals(poses: FloatArray, f: RelativeFactors) -> FloatArray:
         ],
         axis=1,
     )
+    if f.sqrt_information is not None:
+        full: FloatArray = np.einsum("mab,mb->ma", f.sqrt_information, r)
+        return full
     whitened: FloatArray = r / f.sigma
     return whitened
 
@@ -123,9 +148,14 @@ def optimize(
         jj[:, 0, 0], jj[:, 0, 1] = c, s
         jj[:, 1, 0], jj[:, 1, 1] = -s, c
         jj[:, 2, 2] = 1.0
-        scale = (np.sqrt(weights_rel)[:, None] / relative.sigma)[:, :, None]
-        ji *= scale
-        jj *= scale
+        if relative.sqrt_information is not None:
+            whiten = relative.sqrt_information * np.sqrt(weights_rel)[:, None, None]
+            ji = np.einsum("mab,mbc->mac", whiten, ji)
+            jj = np.einsum("mab,mbc->mac", whiten, jj)
+        else:
+            scale = (np.sqrt(weights_rel)[:, None] / relative.sigma)[:, :, None]
+            ji *= scale
+            jj *= scale
         rw = r * np.sqrt(weights_rel)[:, None]
         rows = np.arange(3 * m).reshape(m, 3)
         data = [ji.reshape(-1), jj.reshape(-1)]

@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from agent.slam.loops import LoopClosureConfig, chain_poses, find_loop, optimize_graph
+from agent.slam.loops import LoopClosureConfig, chain_poses, find_loop, match_covariance, optimize_graph
 from agent.slam.pose import between, compose, inverse, transform_points
-from agent.slam.posegraph import AbsoluteFactors, RelativeFactors, optimize
+from agent.slam.posegraph import AbsoluteFactors, RelativeFactors, optimize, sqrt_information
 
 
 def _square(side_steps: int = 10, step_m: float = 1.0) -> np.ndarray:
@@ -148,3 +148,32 @@ def test_the_graph_spreads_a_closure_over_the_edges_the_matcher_bent() -> None:
     loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
     result = optimize_graph(path, front_end, loops, LoopClosureConfig(), odometry_motions=odometry)
     assert np.hypot(*(result.poses[:, :2] - truth[:, :2]).T).max() < 0.1
+
+
+def test_a_loop_factor_with_full_covariance_pulls_only_where_the_match_is_sure() -> None:
+    # A straight run of 10 one-metre edges; a loop factor 0 -> 10 that is 0.5 m off along the run (a
+    # corridor match that slid) and right across it. With the match's covariance (long along x) the graph
+    # keeps the chain's length; with a plain 5 cm factor it stretches the chain towards the slide.
+    truth = chain_poses(np.zeros(3), np.vstack([np.zeros(3), np.tile([1.0, 0.0, 0.0], (10, 1))]))
+    n = truth.shape[0]
+    chain = np.arange(1, n)
+    z_loop = between(truth[0], truth[-1]) + np.array([0.5, 0.0, 0.0])
+    i = np.concatenate([chain - 1, [0]])
+    j = np.concatenate([chain, [n - 1]])
+    z = np.vstack([between(truth[:-1], truth[1:]), z_loop])
+    sigma = np.vstack([np.tile([0.03, 0.03, 0.01], (n - 1, 1)), [[0.05, 0.05, 0.01]]])
+    plain = optimize(truth, RelativeFactors(i, j, z, sigma))
+    assert plain.poses[-1, 0] - truth[-1, 0] > 0.2
+    information = np.diag([0.01, 400.0, 4000.0])  # the match: next to nothing along x (sigma 1 m)
+    loop_cov = np.diag([0.05**2, 0.05**2, 0.01**2]) + match_covariance(information, 0.0, 0.1)
+    factors = RelativeFactors(i, j, z, sigma)
+    whitening = factors.whitening()
+    whitening[-1] = sqrt_information(loop_cov)
+    full = optimize(truth, RelativeFactors(i, j, z, sigma, whitening))
+    assert abs(full.poses[-1, 0] - truth[-1, 0]) < 0.02
+    # Without full information the whitening is diag(1 / sigma): the same optimum either way.
+    same = optimize(truth, RelativeFactors(i, j, z, sigma, factors.whitening()))
+    np.testing.assert_allclose(same.poses, plain.poses, atol=1e-9)
+    # The covariance turns with the node's heading (x_i's frame).
+    turned = match_covariance(np.diag([1.0, 400.0, 4000.0]), math.pi / 2, 0.1)
+    assert turned[1, 1] > 100 * turned[0, 0]
