@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from firmware_protocol.errors import ProtocolError
 
@@ -184,10 +184,10 @@ _TYPES: dict[int, type[PoseMessage | StatusMessage | GoalStateMessage | PeerPose
 }
 
 
-def _unpack(layout: struct.Struct, payload: bytes, what: str) -> tuple[int | float, ...]:
+def _unpack(layout: struct.Struct, payload: bytes, what: str) -> tuple[Any, ...]:
     if len(payload) != layout.size:
         raise LocalProtocolError(f"{what}: payload of {len(payload)} bytes, expected {layout.size}", payload)
-    return layout.unpack(payload)  # type: ignore[no-any-return]
+    return layout.unpack(payload)
 
 
 def encode(message: Message) -> bytes:

@@ -179,7 +179,7 @@ def _float(obj: dict[str, Any], name: str, *, optional: bool = False) -> float:
     value = obj.get(name)
     if value is None and optional:
         return math.nan
-    if type(value) not in (int, float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise FleetPayloadError(f"{name!r} must be a finite number, not {value!r}")
     return float(value)
 

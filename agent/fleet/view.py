@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -77,14 +78,17 @@ class FleetView:
             else:
                 seen.status = decoded
 
+    def _handler(self, kind: str) -> Callable[[Any], None]:
+        return lambda sample: self._on(kind, sample)
+
     def listen(self, seconds: float, stop: threading.Event | None = None) -> list[RobotSeen]:
         """Listen ``seconds`` (or until ``stop``); the robots heard, by name."""
         import zenoh
 
-        session = zenoh.open(self.zenoh.zenoh_config())
+        session: Any = zenoh.open(self.zenoh.zenoh_config())
         try:
-            subs = [
-                session.declare_subscriber(f"{self.key_prefix}/*/{kind}", lambda s, k=kind: self._on(k, s))
+            subs: list[Any] = [
+                session.declare_subscriber(f"{self.key_prefix}/*/{kind}", self._handler(kind))
                 for kind in ("pose", "status")
             ]
             (stop or threading.Event()).wait(seconds)

@@ -73,11 +73,11 @@ def test_pose_arrives_under_the_robots_key_and_a_malformed_goal_is_counted(tmp_p
     config = tmp_path / "robot.toml"
     text = (REPO / "examples" / "sim.toml").read_text().replace('"worlds/', f'"{OFFICE.parent}/')
     config.write_text(text + f'\n[fleet]\nsocket = "{sock}"\npose_rate_hz = 10\n')
-    port = _free_port()
+    port, view_port = _free_port(), _free_port()
     bridge_config = tmp_path / "bridge.toml"
     bridge_config.write_text(
-        f'[bridge]\nrobot = "r1"\nsocket = "{sock}"\nstatus_period_s = 0.5\n'
-        f'[zenoh]\nmode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]\n'
+        f'[bridge]\nrobot = "r1"\nsocket = "{sock}"\nstatus_period_s = 0.5\n[zenoh]\nmode = "peer"\n'
+        f'connect = ["tcp/127.0.0.1:{port}", "tcp/127.0.0.1:{view_port}"]\n'
     )
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
@@ -132,6 +132,23 @@ def test_pose_arrives_under_the_robots_key_and_a_malformed_goal_is_counted(tmp_p
             TIMEOUT_S,
             "poses still coming after the malformed message",
         )
+        # The fleet view on "another machine": it listens where the bridge also connects.
+        robots: list[dict[str, Any]] = []
+        for _ in range(3):  # the bridge retries its connect endpoints with a back-off
+            view = subprocess.run(
+                vlp_agent(
+                    "fleet", "list", "--listen", f"tcp/127.0.0.1:{view_port}", "--seconds", "8", "--json"
+                ),
+                cwd=REPO,
+                capture_output=True,
+                text=True,
+                timeout=TIMEOUT_S,
+            )
+            assert view.returncode == 0, view.stderr[-2000:]
+            robots = json.loads(view.stdout)["robots"]
+            if robots:
+                break
+        assert [r["robot"] for r in robots] == ["r1"] and robots[0]["pose"] is not None
         for proc in procs:
             assert proc.poll() is None, _stop(proc)[1][-2000:]
     finally:
