@@ -488,6 +488,8 @@ class Agent:
         counts["hot_path_wait_timeouts"] = self.hot_path.timeouts
         if self.map_saver is not None:
             counts.update(self.map_saver.counters())
+        if self.fleet is not None:
+            counts.update(self.fleet.counters())
         # Garbage collections run between frames (agent.runtime.collector), by generation.
         for generation, n in enumerate(self.collector.collections):
             counts[f"gc_between_frames_{generation}"] = n

@@ -77,6 +77,15 @@ class FleetLoop:
         self._client: socket.socket | None = None
         self._decoder = FrameDecoder()
 
+    def _count(self, what: str) -> None:
+        with self._lock:
+            self.counts[what] += 1
+
+    def counters(self) -> dict[str, int]:
+        """The loop's counters, named ``fleet_*`` (for the agent's status)."""
+        with self._lock:
+            return {f"fleet_{key}": n for key, n in self.counts.items()}
+
     # -- listeners -------------------------------------------------------------------------------------
     def on_status(self, status: GoalStatus) -> None:
         """A goal status the agent sent its controller: forwarded to the fleet too."""
@@ -116,7 +125,7 @@ class FleetLoop:
             int(flags),
         )
         if self._send(message):
-            self.counts["poses_sent"] += 1
+            self._count("poses_sent")
 
     def _send_goal_states(self, now_ns: int) -> None:
         with self._lock:
@@ -149,7 +158,7 @@ class FleetLoop:
                     self._drop("replaced by a new connection")
                 conn.settimeout(SEND_TIMEOUT_S)
                 self._client, self._decoder = conn, FrameDecoder()
-                self.counts["bridge_connections"] += 1
+                self._count("bridge_connections")
                 log.info("fleet: bridge connected")
         if client is not None and client in readable and client is self._client:
             self._receive(client)
@@ -168,7 +177,7 @@ class FleetLoop:
         try:
             messages = self._decoder.feed(data)
         except LocalProtocolError as exc:
-            self.counts["malformed_frames"] += 1
+            self._count("malformed_frames")
             self._drop(f"malformed frame: {exc}")
             return
         for message in messages:
@@ -178,13 +187,13 @@ class FleetLoop:
         if isinstance(message, PeerPoseMessage):
             with self._lock:
                 self.peers[message.robot] = (message.pose, self.clock_ns())
-            self.counts["peer_poses"] += 1
+            self._count("peer_poses")
         elif isinstance(message, GoalMessage):
             # Not yet a command source (docs/fleet.md, "Missing"): counted, never driven.
-            self.counts["fleet_goals_refused"] += 1
+            self._count("goals_refused")
             log.info("fleet: goal %d refused (fleet goals are not driven yet)", message.goal_id)
         else:
-            self.counts["unexpected_messages"] += 1
+            self._count("unexpected_messages")
 
     def _send(self, message: Message) -> bool:
         client = self._client
@@ -193,7 +202,7 @@ class FleetLoop:
         try:
             client.sendall(encode(message))
         except TimeoutError:
-            self.counts["send_timeouts"] += 1
+            self._count("send_timeouts")
             self._drop("the bridge stopped reading")
             return False
         except OSError as exc:
@@ -206,7 +215,7 @@ class FleetLoop:
         if client is not None:
             with contextlib.suppress(OSError):
                 client.close()
-            self.counts["bridge_disconnects"] += 1
+            self._count("bridge_disconnects")
             log.info("fleet: bridge gone: %s", reason)
 
     def peer_poses(self) -> dict[str, tuple[PoseMessage, int]]:

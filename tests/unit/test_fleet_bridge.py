@@ -166,9 +166,11 @@ def test_malformed_and_oversized_network_messages_are_counted_and_never_reach_th
     counts = bridge.counters()
     assert counts["rejected_goal"] == 3 and counts["rejected_pose"] == 2
     session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))
-    _wait(lambda: loop.counts["fleet_goals_refused"] >= 1)  # the one valid goal reached the agent
-    assert loop.counts["fleet_goals_refused"] == 1 and "r3" not in loop.peer_poses()
+    _wait(lambda: loop.counts["goals_refused"] >= 1)  # the one valid goal reached the agent
+    assert loop.counts["goals_refused"] == 1 and "r3" not in loop.peer_poses()
     assert loop.counts["malformed_frames"] == 0
+    counters = loop.counters()
+    assert counters.get("fleet_peer_poses", 0) == 0 and counters["fleet_bridge_connections"] == 1
 
 
 def _goal() -> Any:
