@@ -1,6 +1,7 @@
 """The fleet loop: the agent's end of the local protocol (``agent.fleet.local_protocol``) on a Unix socket.
 
-The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is replaced) and serves one
+The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is replaced; a folder that is
+not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one
 bridge at a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's
 fused pose; every ``status_period_s``: the status flags; at once: each goal status the agent sends (the
 command loop's answers). From it: the other robots' poses (kept in :attr:`FleetLoop.peers`, newest per
@@ -41,11 +42,12 @@ from agent.runtime.health import Heartbeat
 from firmware_protocol.command_frame import GoalStatus
 from firmware_protocol.pose_frame import PoseFlags
 
-__all__ = ["SEND_TIMEOUT_S", "FleetLoop"]
+__all__ = ["LISTEN_RETRY_S", "SEND_TIMEOUT_S", "FleetLoop"]
 
 log = logging.getLogger(__name__)
 
 SEND_TIMEOUT_S = 0.05
+LISTEN_RETRY_S = 2.0
 _QUEUED_STATUSES = 64
 
 
@@ -94,7 +96,11 @@ class FleetLoop:
 
     # -- the loop --------------------------------------------------------------------------------------
     def run(self, beat: Heartbeat, *, stop: threading.Event) -> None:
-        self._listen()
+        while not self._listen():
+            # A folder that is not there yet, a file in the way: said once, retried; the robot works alone.
+            beat.beat()
+            if stop.wait(LISTEN_RETRY_S):
+                return
         next_pose_ns = next_status_ns = 0
         try:
             while not stop.is_set():
@@ -135,17 +141,27 @@ class FleetLoop:
             remaining = s.remaining_m if s.remaining_m is not None else float("nan")
             self._send(GoalStateMessage(now_ns // 1000, s.goal_id, int(s.state), int(s.reason), remaining))
 
-    def _listen(self) -> None:
-        with contextlib.suppress(FileNotFoundError):
-            if stat.S_ISSOCK(os.lstat(self.path).st_mode):
-                os.unlink(self.path)  # a stale socket of an earlier run
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+    def _listen(self) -> bool:
+        """Listen on the socket path; False (said once, counted) when it cannot be done now."""
         server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        server.bind(os.fspath(self.path))
-        server.listen(1)
+        try:
+            with contextlib.suppress(FileNotFoundError):
+                if stat.S_ISSOCK(os.lstat(self.path).st_mode):
+                    os.unlink(self.path)  # a stale socket of an earlier run
+            server.bind(os.fspath(self.path))
+            server.listen(1)
+        except OSError as exc:
+            server.close()
+            if not self.counts["listen_failures"]:
+                log.warning(
+                    "fleet: cannot listen on %s: %s (retrying every %g s)", self.path, exc, LISTEN_RETRY_S
+                )
+            self._count("listen_failures")
+            return False
         server.setblocking(False)
         self._server = server
         log.info("fleet: serving the bridge on %s", self.path)
+        return True
 
     def _poll(self, timeout_s: float) -> None:
         server, client = self._server, self._client

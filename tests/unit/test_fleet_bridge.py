@@ -229,3 +229,23 @@ def test_fleet_config_is_off_by_default_and_checked() -> None:
     with pytest.raises(ConfigError) as info:
         parse_config(base + "[fleet]\npose_rate_hz = 0\n")
     assert info.value.key == "fleet.pose_rate_hz"
+
+
+def test_a_socket_path_that_cannot_be_listened_on_is_retried_not_fatal(tmp_path: Path) -> None:
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    loop = FleetLoop(
+        blocker / "fleet.sock",
+        pose_rate_hz=10.0,
+        status_period_s=1.0,
+        pose=lambda: (_estimate(0.0), PoseFlags(0)),
+        status_bits=lambda: 0,
+        clock_ns=time.monotonic_ns,
+    )
+    stop = threading.Event()
+    thread = threading.Thread(target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": stop})
+    thread.start()
+    _wait(lambda: loop.counters().get("fleet_listen_failures", 0) >= 1)
+    stop.set()
+    thread.join(TIMEOUT_S)
+    assert not thread.is_alive()
