@@ -249,3 +249,41 @@ def test_a_socket_path_that_cannot_be_listened_on_is_retried_not_fatal(tmp_path:
     stop.set()
     thread.join(TIMEOUT_S)
     assert not thread.is_alive()
+
+
+def test_the_agent_carries_on_through_a_bridge_restart(tmp_path: Path) -> None:
+    sock = tmp_path / "fleet.sock"
+    loop = FleetLoop(
+        sock,
+        pose_rate_hz=50.0,
+        status_period_s=0.1,
+        pose=lambda: (_estimate(1.0), PoseFlags.ODOMETRY),
+        status_bits=lambda: 3,
+        clock_ns=time.monotonic_ns,
+    )
+    config = parse_bridge_config(
+        {
+            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.1, "reconnect_s": 0.05},
+            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
+        }
+    )
+    agent_stop = threading.Event()
+    agent = threading.Thread(
+        target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": agent_stop}
+    )
+    agent.start()
+    try:
+        for round_ in (1, 2):
+            session = FakeSession()
+            bridge = Bridge(config, open_session=lambda conf, s=session: s)
+            stop = threading.Event()
+            thread = threading.Thread(target=bridge.run, args=(stop,))
+            thread.start()
+            payloads.decode_pose(session.wait_for("fleet/r1/pose"), "r1")
+            stop.set()  # the bridge goes away (its socket closes); the agent notices and waits for the next
+            thread.join(TIMEOUT_S)
+            _wait(lambda r=round_: loop.counters().get("fleet_bridge_disconnects", 0) >= r)
+        assert agent.is_alive() and loop.counters()["fleet_bridge_connections"] == 2
+    finally:
+        agent_stop.set()
+        agent.join(TIMEOUT_S)
