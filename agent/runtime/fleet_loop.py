@@ -3,10 +3,10 @@
 The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is replaced; a folder that is
 not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one
 bridge at a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's
-fused pose; every ``status_period_s``: the status flags; at once: each goal status the agent sends (the
-command loop's answers). From it: the other robots' poses (kept in :attr:`FleetLoop.peers`, newest per
-robot) and goals for this robot (counted and refused for now: fleet goals are not yet a command source,
-docs/fleet.md). This process opens no network socket: the bridge is another process.
+fused pose; every ``status_period_s``: the status flags; with the next pose: each goal status the agent
+sends (the command loop's answers). From it: the other robots' poses (kept in :attr:`FleetLoop.peers`,
+newest per robot) and goals for this robot (counted and refused for now: fleet goals are not yet a
+command source, docs/fleet.md). This process opens no network socket: the bridge is another process.
 
 Sends never block the loop for long: a bridge that stops reading for ``SEND_TIMEOUT_S`` is disconnected
 (counted) and may reconnect. A malformed frame from it closes the connection (counted).
@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 
 SEND_TIMEOUT_S = 0.05
 LISTEN_RETRY_S = 2.0
+_IDLE_WAIT_S = 0.25
 _QUEUED_STATUSES = 64
 
 
@@ -114,8 +115,14 @@ class FleetLoop:
                         next_status_ns = now + int(self.status_period_s * 1e9)
                         self._send(StatusMessage(now // 1000, int(self.pose()[1]), self.status_bits()))
                     self._send_goal_states(now)
-                wait_s = max(0.0, min(next_pose_ns - self.clock_ns(), int(self.period_s * 1e9)) * 1e-9)
-                self._poll(min(wait_s, 0.25))
+                # Asleep until the next pose or status is due; with no bridge, until one connects (select
+                # wakes on the listening socket), looking at the stop event four times a second.
+                wait_s = _IDLE_WAIT_S
+                if self._client is not None:
+                    wait_s = min(
+                        wait_s, max(0.0, (min(next_pose_ns, next_status_ns) - self.clock_ns()) * 1e-9)
+                    )
+                self._poll(wait_s)
         finally:
             self.close()
 

@@ -142,7 +142,7 @@ def test_pose_status_and_goal_state_go_out_under_the_robots_keys(pair: Any) -> N
 
 def test_other_robots_poses_reach_the_agent_and_our_own_does_not(pair: Any) -> None:
     loop, bridge, session = pair
-    _wait(lambda: bridge.counters().get("agent_connections", 0) >= 1 and loop._client is not None)
+    _wait(lambda: loop._client is not None and bridge._agent is not None)  # both ends connected
     other = PoseMessage(5, 3.0, 4.0, 0.1, 0.0625, 0.015625, 1)  # sigmas exact in float32
     session.deliver("fleet/r2/pose", payloads.encode_pose("r2", other))
     session.deliver("fleet/r1/pose", payloads.encode_pose("r1", other))  # our own echo: ignored
@@ -153,7 +153,7 @@ def test_other_robots_poses_reach_the_agent_and_our_own_does_not(pair: Any) -> N
 
 def test_malformed_and_oversized_network_messages_are_counted_and_never_reach_the_agent(pair: Any) -> None:
     loop, bridge, session = pair
-    _wait(lambda: loop._client is not None)
+    _wait(lambda: loop._client is not None and bridge._agent is not None)  # both ends connected
     bad = [
         ("fleet/r1/goal", b"\x00garbage"),
         ("fleet/r1/goal", b'{"v":1,"robot":"r2","goal_id":1,"x_m":0,"y_m":0}'),  # not our name
@@ -287,3 +287,25 @@ def test_the_agent_carries_on_through_a_bridge_restart(tmp_path: Path) -> None:
     finally:
         agent_stop.set()
         agent.join(TIMEOUT_S)
+
+
+def test_with_no_bridge_the_loop_sleeps_instead_of_spinning(tmp_path: Path) -> None:
+    loop = FleetLoop(
+        tmp_path / "fleet.sock",
+        pose_rate_hz=100.0,
+        status_period_s=0.05,
+        pose=lambda: (_estimate(0.0), PoseFlags(0)),
+        status_bits=lambda: 0,
+        clock_ns=time.monotonic_ns,
+    )
+    beat, stop = Heartbeat("fleet", False, 10.0), threading.Event()
+    thread = threading.Thread(target=loop.run, args=(beat,), kwargs={"stop": stop})
+    thread.start()
+    _wait(lambda: (tmp_path / "fleet.sock").exists())
+    before = beat.beats
+    time.sleep(1.0)
+    # A quarter-second idle wait: about 4 passes in that second (a loaded machine makes fewer, never more);
+    # a loop that spins makes thousands.
+    assert beat.beats - before <= 12
+    stop.set()
+    thread.join(TIMEOUT_S)
