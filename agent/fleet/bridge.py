@@ -34,6 +34,7 @@ from agent.fleet.local_protocol import (
     StatusMessage,
     encode,
 )
+from drivers.errors import DeviceNotFound
 from firmware_protocol.errors import ProtocolError
 
 __all__ = ["Bridge"]
@@ -75,7 +76,12 @@ class Bridge:
         import zenoh
 
         opener = self._open_session or zenoh.open
-        self._session = session = opener(self.config.zenoh.zenoh_config())
+        z = self.config.zenoh
+        try:
+            self._session = session = opener(z.zenoh_config())
+        except Exception as exc:  # zenoh's ZError: an endpoint that cannot be resolved, bound or parsed
+            where = f"listen {list(z.listen)}, connect {list(z.connect)}"
+            raise DeviceNotFound(f"cannot open the Zenoh session ({where}): {exc}", "zenoh") from exc
         for kind in ("pose", "status", "goal_state"):
             self._publishers[kind] = session.declare_publisher(self._key(kind))
         prefix = self.config.key_prefix

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -34,3 +36,20 @@ def test_help_points_at_the_docs_and_the_endpoints(argv: list[str], capsys: Any)
     assert info.value.code == 0
     out = capsys.readouterr().out
     assert "scouting" in out
+
+
+def test_bridge_on_an_endpoint_in_use_says_which(tmp_path: Path, capsys: Any) -> None:
+    pytest.importorskip("zenoh")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        config = tmp_path / "bridge.toml"
+        config.write_text(
+            f'[bridge]\nrobot = "r1"\nsocket = "{tmp_path / "a.sock"}"\n'
+            f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
+        )
+        assert cli.main(["bridge", "--config", str(config), "--json"]) == 1
+    captured = capsys.readouterr()
+    assert "cannot open the Zenoh session" in captured.err and f"127.0.0.1:{port}" in captured.err
+    assert json.loads(captured.out)["error"] is not None
