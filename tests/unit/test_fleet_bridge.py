@@ -309,3 +309,40 @@ def test_with_no_bridge_the_loop_sleeps_instead_of_spinning(tmp_path: Path) -> N
     assert beat.beats - before <= 12
     stop.set()
     thread.join(TIMEOUT_S)
+
+
+def test_a_bridge_without_its_agent_says_so_and_connects_when_it_comes(tmp_path: Path) -> None:
+    sock = tmp_path / "fleet.sock"
+    config = parse_bridge_config(
+        {
+            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.05, "reconnect_s": 0.05},
+            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
+        }
+    )
+    session = FakeSession()
+    bridge = Bridge(config, open_session=lambda conf: session)
+    stop = threading.Event()
+    thread = threading.Thread(target=bridge.run, args=(stop,))
+    thread.start()
+    try:
+        status = payloads.decode_status(session.wait_for("fleet/r1/status"), "r1")
+        assert status.state == "agent-down" and not status.agent_connected
+        session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))  # nobody to hand it to
+        assert bridge.counters()["to_agent_dropped_no_agent"] == 1
+        loop = FleetLoop(
+            sock, 50.0, 0.05, lambda: (_estimate(3.0), PoseFlags.ODOMETRY), lambda: 3, time.monotonic_ns
+        )
+        agent_stop = threading.Event()
+        agent = threading.Thread(
+            target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": agent_stop}
+        )
+        agent.start()
+        try:
+            pose = payloads.decode_pose(session.wait_for("fleet/r1/pose"), "r1")
+            assert pose.x_m == 3.0
+        finally:
+            agent_stop.set()
+            agent.join(TIMEOUT_S)
+    finally:
+        stop.set()
+        thread.join(TIMEOUT_S)
