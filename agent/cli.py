@@ -33,6 +33,8 @@ COMMANDS: dict[str, str] = {
     "calibrate": "agent.commands.calibrate",
     "replay": "agent.commands.replay",
     "export": "agent.commands.export",
+    "bridge": "agent.commands.bridge",
+    "fleet": "agent.commands.fleet",
 }
 
 log = logging.getLogger("vlp_agent")

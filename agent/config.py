@@ -51,6 +51,7 @@ __all__ = [
     "AgentConfig",
     "ControlConfig",
     "DeviceConfig",
+    "FleetConfig",
     "FollowingConfig",
     "FusionConfig",
     "HealthConfig",
@@ -101,6 +102,7 @@ _SECTIONS = (
     "navigation",
     "exploration",
     "following",
+    "fleet",
 )
 # pyserial URL handlers that open network sockets: never for the pose stream (nothing leaves over IP).
 _NETWORK_SCHEMES = ("socket", "rfc2217")
@@ -388,6 +390,21 @@ def read_rfid_table(path: Path, key: str, file: str) -> Any:
 
 
 @dataclass(frozen=True)
+class FleetConfig:
+    """``[fleet]``: the Unix socket the agent serves its bridge on (``agent.runtime.fleet_loop``; None: no
+    fleet), how often this robot's pose goes to it, and how often its status. No network socket: the
+    bridge process (``vlp-agent bridge``) holds those."""
+
+    socket: Path | None = None
+    pose_rate_hz: float = 10.0
+    status_period_s: float = 1.0
+
+
+# A Unix socket path is at most 107 bytes (sun_path) on Linux.
+MAX_SOCKET_PATH = 107
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     file: str
     devices: Mapping[DeviceKind, DeviceConfig]
@@ -405,6 +422,7 @@ class AgentConfig:
     exploration: ExploreConfig = field(default_factory=ExploreConfig)
     forward_camera: DeviceConfig | None = None
     following: FollowingConfig = field(default_factory=FollowingConfig)
+    fleet: FleetConfig = field(default_factory=FleetConfig)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -848,6 +866,7 @@ class _Reader:
         navigation = self._navigation()
         exploration = self._exploration()
         following = self._following()
+        fleet = self._fleet()
         top.finish()
         if not (DeviceKind.SERVOS in devices or (DeviceKind.CAMERA in devices and vlp.enabled)):
             raise ConfigError(
@@ -870,6 +889,7 @@ class _Reader:
             exploration,
             forward,
             following,
+            fleet,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -1490,6 +1510,24 @@ class _Reader:
         )
         t.finish()
         return SchedulingConfig(realtime_priority=int(priority), cpu_latency_us=int(latency))
+
+    def _fleet(self) -> FleetConfig:
+        t = self.top.table("fleet") or _Table({}, "fleet", self.file)
+        d = FleetConfig()
+        socket = t.path_value("socket", self.base)
+        if socket is not None and len(os.fsencode(socket)) > MAX_SOCKET_PATH:
+            raise t.error("socket", f"a Unix socket path is at most {MAX_SOCKET_PATH} bytes: {socket}")
+        fleet = FleetConfig(
+            socket=socket,
+            pose_rate_hz=t.number(
+                "pose_rate_hz", d.pose_rate_hz, (lambda v: 0.1 <= v <= 100, "must be 0.1..100")
+            ),
+            status_period_s=t.number(
+                "status_period_s", d.status_period_s, (lambda v: 0.05 <= v <= 60, "must be 0.05..60")
+            ),
+        )
+        t.finish()
+        return fleet
 
     def _health(self) -> HealthConfig:
         t = self.top.table("health") or _Table({}, "health", self.file)

@@ -47,6 +47,7 @@ from agent.runtime.collector import IdleCollector
 from agent.runtime.command_loop import CommandLoop
 from agent.runtime.devices import Devices
 from agent.runtime.drive_loop import DirectiveDrive, Navigator
+from agent.runtime.fleet_loop import FleetLoop
 from agent.runtime.forward_camera_loop import FORWARD_CAMERA, forward_camera_loop
 from agent.runtime.health import HealthMonitor, Heartbeat, NotifierLike
 from agent.runtime.hotpath import HotPath
@@ -235,6 +236,7 @@ class Agent:
         # Local missions, exploring and going to places (``enable_missions``); None: none.
         self.missions: MissionLoop | None = None
         self.arbiter: CommandArbiter | None = None
+        self.fleet: FleetLoop | None = None  # the bridge's Unix socket ([fleet] socket)
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
         if output is not None:
@@ -345,6 +347,9 @@ class Agent:
         if self.output is not None:
             output = partial(output_loop, s, output=self.output, publish=self._publish)
             self._spawn("output", True, timeout, output)
+        if self.config.fleet.socket is not None:  # not critical: the robot works alone without its bridge
+            self.fleet = FleetLoop.for_agent(self)
+            self._spawn("fleet", False, timeout, partial(self.fleet.run, stop=s.stop))
         if self.missions is not None:
             # Not critical: without it the robot stands still, and the dead-man covers the wheels.
             self._spawn("missions", False, max(timeout, 5.0), partial(self.missions.run, stop=s.stop))
@@ -486,6 +491,8 @@ class Agent:
         counts["hot_path_wait_timeouts"] = self.hot_path.timeouts
         if self.map_saver is not None:
             counts.update(self.map_saver.counters())
+        if self.fleet is not None:
+            counts.update(self.fleet.counters())
         # Garbage collections run between frames (agent.runtime.collector), by generation.
         for generation, n in enumerate(self.collector.collections):
             counts[f"gc_between_frames_{generation}"] = n

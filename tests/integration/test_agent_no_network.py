@@ -89,10 +89,12 @@ def test_the_agent_process_opens_no_network_socket(tmp_path: Path) -> None:
     notify.bind(str(notify_path))
     examples = REPO / "examples"
     config = tmp_path / "robot.toml"
-    # Both cameras: the ceiling camera of the pose and the forward camera of person following.
+    # Both cameras: the ceiling camera of the pose and the forward camera of person following; and the
+    # fleet loop serving its bridge (a Unix socket: the bridge, another process, holds the network).
     config.write_text(
         (examples / "sim.toml").read_text().replace('"worlds/', f'"{examples}/worlds/')
         + "\n[camera.forward]\nframe_rate_hz = 10.0\nrender_process = true\n"
+        + f'\n[fleet]\nsocket = "{tmp_path / "fleet.sock"}"\n'
     )
     env = {
         **os.environ,

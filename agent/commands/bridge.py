@@ -1,0 +1,70 @@
+"""``vlp-agent bridge --config FILE``: the fleet bridge process, the agent's Unix socket <-> Zenoh.
+
+Runs until SIGTERM or Ctrl-C, then prints its counters (``--json``: one JSON object). docs/fleet.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from agent.commands.args import dumps_json
+from agent.fleet.bridge_config import load_bridge_config
+from agent.runtime.shutdown import ShutdownRequest
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "bridge",
+        help="the fleet bridge: this robot's agent <-> the fleet over Zenoh",
+        description="Connect to the local agent's fleet socket ([fleet] socket in its config) and to the "
+        "fleet over Zenoh (peer mode, explicit endpoints, multicast scouting off unless configured). "
+        "Publishes <prefix>/<robot>/pose, /status and /goal_state; hands the other robots' poses and this "
+        "robot's goals to the agent. Malformed network messages are counted and dropped. Runs until "
+        "SIGTERM or Ctrl-C, then prints its counters. The config file is described in docs/fleet.md.",
+    )
+    p.add_argument("--config", metavar="FILE", required=True, help="bridge config (TOML, docs/fleet.md)")
+    p.add_argument("--json", action="store_true", help="print the counters at exit as one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    from agent.fleet.bridge import Bridge
+
+    config = load_bridge_config(args.config)
+    bridge = Bridge(config)
+    stop = threading.Event()
+    failure: list[BaseException] = []
+
+    def body() -> None:
+        try:
+            bridge.run(stop)
+        except Exception as exc:  # reported by the main thread: a session that cannot open, say
+            failure.append(exc)
+
+    with ShutdownRequest() as shutdown:
+        thread = threading.Thread(target=body, name="bridge", daemon=True)
+        thread.start()
+        print(f"bridge {config.robot}: agent {config.socket}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        while not shutdown.requested and thread.is_alive():
+            shutdown.wait(0.5)
+        stop.set()
+        thread.join(5.0)
+    counts = bridge.counters()
+    if args.json:
+        print(
+            dumps_json(
+                {"robot": config.robot, "counters": counts, "error": str(failure[0]) if failure else None}
+            )
+        )
+    else:
+        for name in sorted(counts):
+            print(f"{name}: {counts[name]}")
+    if failure:
+        print(f"vlp-agent bridge: {failure[0]}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,260 @@
+"""The local protocol between the agent and its bridge over a Unix stream socket: a sans-I/O codec.
+
+Every message is one frame (docs/fleet.md, "Local protocol")::
+
+    magic "VF" (2) | version (u8) | type (u8) | payload length (u32, little-endian) | payload
+
+A frame's payload is at most :data:`MAX_PAYLOAD` bytes and has the exact size its type fixes (a peer pose:
+the fixed part plus the robot name's length). Agent -> bridge: :class:`PoseMessage`, :class:`StatusMessage`,
+:class:`GoalStateMessage`; bridge -> agent: :class:`PeerPoseMessage`, :class:`GoalMessage`.
+
+The stream is reliable and local, so there is no resync: the first malformed frame raises
+:class:`LocalProtocolError` (a :class:`~firmware_protocol.errors.ProtocolError`) and the reader closes the
+connection; the other side reconnects. :class:`FrameDecoder` buffers at most one frame.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from firmware_protocol.errors import ProtocolError
+
+__all__ = [
+    "HEADER",
+    "MAGIC",
+    "MAX_NAME_BYTES",
+    "MAX_PAYLOAD",
+    "VERSION",
+    "FrameDecoder",
+    "GoalMessage",
+    "GoalStateMessage",
+    "LocalProtocolError",
+    "Message",
+    "PeerPoseMessage",
+    "PoseMessage",
+    "StatusMessage",
+    "decode_frame",
+    "encode",
+    "valid_robot_name",
+]
+
+MAGIC = b"VF"
+VERSION = 1
+HEADER = struct.Struct("<2sBBI")
+MAX_PAYLOAD = 1024  # the largest message (a peer pose with a 32-byte name) is 85 bytes
+MAX_NAME_BYTES = 32
+
+_POSE = struct.Struct("<QdddffI")  # t_us, x_m, y_m, yaw_rad, sigma_xy_m, sigma_yaw_rad, pose flags
+_STATUS = struct.Struct("<QII")  # t_us, pose flags, status bits
+_GOAL_STATE = struct.Struct("<QHBBf")  # t_us, goal_id, state, reason, remaining_m (NaN: unknown)
+_GOAL = struct.Struct("<QHddd")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading)
+
+
+class LocalProtocolError(ProtocolError):
+    """Bytes on the agent's fleet socket that are not a frame of this protocol."""
+
+
+def valid_robot_name(name: str) -> bool:
+    """A robot name is 1..32 bytes of ASCII letters, digits, ``_`` and ``-`` (it is a Zenoh key chunk)."""
+    return 0 < len(name) <= MAX_NAME_BYTES and all(c.isascii() and (c.isalnum() or c in "_-") for c in name)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseMessage:
+    """This robot's fused pose (agent -> bridge). ``t_us``: the agent's monotonic clock."""
+
+    TYPE: ClassVar[int] = 0x01
+    t_us: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    sigma_xy_m: float
+    sigma_yaw_rad: float
+    flags: int  # firmware_protocol.pose_frame.PoseFlags
+
+    def payload(self) -> bytes:
+        return _POSE.pack(
+            self.t_us, self.x_m, self.y_m, self.yaw_rad, self.sigma_xy_m, self.sigma_yaw_rad, self.flags
+        )
+
+    @classmethod
+    def parse(cls, payload: bytes) -> PoseMessage:
+        return cls(*_unpack(_POSE, payload, "pose"))
+
+
+@dataclass(frozen=True, slots=True)
+class StatusMessage:
+    """The agent's status flags (agent -> bridge): the pose flags and :attr:`READY` | :attr:`LOCALIZED`
+    (other bits reserved, sent as 0)."""
+
+    TYPE: ClassVar[int] = 0x02
+    READY: ClassVar[int] = 1  # every critical loop alive (what systemd's READY=1 says)
+    LOCALIZED: ClassVar[int] = 2  # a position source is live
+    t_us: int
+    pose_flags: int
+    bits: int
+
+    def payload(self) -> bytes:
+        return _STATUS.pack(self.t_us, self.pose_flags, self.bits)
+
+    @classmethod
+    def parse(cls, payload: bytes) -> StatusMessage:
+        return cls(*_unpack(_STATUS, payload, "status"))
+
+
+@dataclass(frozen=True, slots=True)
+class GoalStateMessage:
+    """A goal status of this robot (agent -> bridge): ``state`` and ``reason`` are
+    ``firmware_protocol.command_frame.GoalState`` / ``GoalReason`` values."""
+
+    TYPE: ClassVar[int] = 0x03
+    t_us: int
+    goal_id: int
+    state: int
+    reason: int
+    remaining_m: float = math.nan
+
+    def payload(self) -> bytes:
+        return _GOAL_STATE.pack(self.t_us, self.goal_id, self.state, self.reason, self.remaining_m)
+
+    @classmethod
+    def parse(cls, payload: bytes) -> GoalStateMessage:
+        return cls(*_unpack(_GOAL_STATE, payload, "goal state"))
+
+
+@dataclass(frozen=True, slots=True)
+class PeerPoseMessage:
+    """Another robot's pose from the fleet (bridge -> agent): its name, then a :class:`PoseMessage`'s
+    fields with ``t_us`` on the *sender's* clock (only for ordering and staleness per robot)."""
+
+    TYPE: ClassVar[int] = 0x10
+    robot: str
+    pose: PoseMessage
+
+    def payload(self) -> bytes:
+        name = self.robot.encode("ascii")
+        return bytes([len(name)]) + name + self.pose.payload()
+
+    @classmethod
+    def parse(cls, payload: bytes) -> PeerPoseMessage:
+        if not payload:
+            raise LocalProtocolError("peer pose: empty payload", payload)
+        n = payload[0]
+        if 1 + n + _POSE.size != len(payload):
+            raise LocalProtocolError(
+                f"peer pose: a {n}-byte name needs {1 + n + _POSE.size} bytes, got {len(payload)}", payload
+            )
+        try:
+            robot = payload[1 : 1 + n].decode("ascii")
+        except UnicodeDecodeError:
+            robot = ""
+        if not valid_robot_name(robot):
+            raise LocalProtocolError("peer pose: not a robot name", payload[: 1 + n])
+        return cls(robot, PoseMessage.parse(payload[1 + n :]))
+
+
+@dataclass(frozen=True, slots=True)
+class GoalMessage:
+    """A goal for this robot from the fleet (bridge -> agent), in the shared map frame."""
+
+    TYPE: ClassVar[int] = 0x11
+    t_us: int
+    goal_id: int
+    x_m: float
+    y_m: float
+    yaw_rad: float = math.nan
+
+    def payload(self) -> bytes:
+        return _GOAL.pack(self.t_us, self.goal_id, self.x_m, self.y_m, self.yaw_rad)
+
+    @classmethod
+    def parse(cls, payload: bytes) -> GoalMessage:
+        goal = cls(*_unpack(_GOAL, payload, "goal"))
+        if not (math.isfinite(goal.x_m) and math.isfinite(goal.y_m)) or math.isinf(goal.yaw_rad):
+            raise LocalProtocolError("goal: a position that is not finite", payload)
+        return goal
+
+
+Message = PoseMessage | StatusMessage | GoalStateMessage | PeerPoseMessage | GoalMessage
+_TYPES: dict[int, type[PoseMessage | StatusMessage | GoalStateMessage | PeerPoseMessage | GoalMessage]] = {
+    cls.TYPE: cls for cls in (PoseMessage, StatusMessage, GoalStateMessage, PeerPoseMessage, GoalMessage)
+}
+
+
+def _unpack(layout: struct.Struct, payload: bytes, what: str) -> tuple[Any, ...]:
+    if len(payload) != layout.size:
+        raise LocalProtocolError(f"{what}: payload of {len(payload)} bytes, expected {layout.size}", payload)
+    return layout.unpack(payload)
+
+
+def encode(message: Message) -> bytes:
+    """One whole frame. Raises LocalProtocolError for a value the frame cannot carry (a bad robot name, an
+    integer out of its field's range)."""
+    if isinstance(message, PeerPoseMessage) and not valid_robot_name(message.robot):
+        raise LocalProtocolError(f"cannot encode the robot name {message.robot!r}")
+    try:
+        payload = message.payload()
+    except struct.error as exc:
+        raise LocalProtocolError(f"cannot encode {type(message).__name__}: {exc}") from exc
+    return HEADER.pack(MAGIC, VERSION, message.TYPE, len(payload)) + payload
+
+
+def _check_header(header: bytes) -> tuple[int, int]:
+    magic, version, kind, length = HEADER.unpack(header)
+    if magic != MAGIC:
+        raise LocalProtocolError("not a fleet frame (bad magic)", header)
+    if version != VERSION:
+        raise LocalProtocolError(f"protocol version {version}, this side speaks {VERSION}", header)
+    if kind not in _TYPES:
+        raise LocalProtocolError(f"unknown message type 0x{kind:02x}", header)
+    if length > MAX_PAYLOAD:
+        raise LocalProtocolError(f"payload of {length} bytes, at most {MAX_PAYLOAD}", header)
+    return kind, length
+
+
+def decode_frame(frame: bytes) -> Message:
+    """Exactly one whole frame -> its message; LocalProtocolError for anything else (truncated, trailing
+    bytes, oversized, garbage)."""
+    if len(frame) < HEADER.size:
+        raise LocalProtocolError(f"truncated header ({len(frame)} of {HEADER.size} bytes)", frame)
+    kind, length = _check_header(frame[: HEADER.size])
+    if len(frame) != HEADER.size + length:
+        what = "truncated" if len(frame) < HEADER.size + length else "trailing bytes after"
+        raise LocalProtocolError(f"{what} a {length}-byte payload ({len(frame)} bytes given)", frame[:64])
+    return _TYPES[kind].parse(frame[HEADER.size :])
+
+
+class FrameDecoder:
+    """Bytes from the stream in, whole messages out. Buffers at most one frame (header + MAX_PAYLOAD);
+    the first bad frame raises LocalProtocolError and the decoder stays failed (close the connection)."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+        self._failed: LocalProtocolError | None = None
+
+    @property
+    def pending(self) -> int:
+        """Bytes of an incomplete frame held (non-zero at the end of a stream: it was cut)."""
+        return len(self._buffer)
+
+    def feed(self, data: bytes) -> list[Message]:
+        if self._failed is not None:
+            raise self._failed
+        self._buffer += data
+        out: list[Message] = []
+        try:
+            while len(self._buffer) >= HEADER.size:
+                _, length = _check_header(bytes(self._buffer[: HEADER.size]))
+                end = HEADER.size + length
+                if len(self._buffer) < end:
+                    break
+                out.append(decode_frame(bytes(self._buffer[:end])))
+                del self._buffer[:end]
+        except LocalProtocolError as exc:
+            self._failed = exc
+            self._buffer.clear()
+            raise
+        return out
