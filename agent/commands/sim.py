@@ -168,6 +168,14 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "when the last goal has ended, or at --seconds",
     )
     p.add_argument(
+        "--follow",
+        action="store_true",
+        help="follow the tagged person ([following] tag_id) instead of driving the world's route: the laser "
+        "person tracker seeded by the RFID layer, the follower keeping [following] distance_m behind them "
+        "through the navigation's collision checks; the summary adds 'follow' (distance kept, time lost, "
+        "identity switches, collisions, stop latency: docs/following.md)",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -398,9 +406,24 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(agent.mapper.close)
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
+        follow = None
+        if args.follow:
+            if goals:
+                raise UsageError("--follow and --goal both drive the robot: give one")
+            from agent.runtime.agent import laser_mount_for
+            from agent.sim_follow import FollowScore, make_follow_loop
+
+            m = laser_mount_for(config, world)
+            loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad))
+            follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
         agent.start()
-        # The world's route, driven from the agent's own pose, unless goals drive the robot.
-        route = () if goals else world.route
+        if follow is not None:
+            for target, name in ((follow.loop.run, "sim-follow"), (follow.run, "sim-follow-score")):
+                thread = threading.Thread(target=target, args=(stop,), name=name, daemon=True)
+                thread.start()
+                stack.callback(thread.join, 1.0)
+        # The world's route, driven from the agent's own pose, unless goals drive the robot or it follows.
+        route = () if goals or follow is not None else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -430,6 +453,8 @@ def run(args: argparse.Namespace) -> int:
         )
         summary = _summary(config, elapsed, status, scorer, controller, injector, files)
         summary["t0_us"] = t0_us
+        if follow is not None:
+            summary["follow"] = follow.figures()
         if agent.flight_recorder is not None:
             summary["recording"] = {
                 "files": [str(p) for p in agent.flight_recorder.files],

@@ -1,0 +1,201 @@
+"""The follow loop: person following on top of navigation (``docs/following.md``, "The follower").
+
+* :meth:`FollowLoop.on_scan` (the laser loop, every scan): the scan's person-sized clusters off the static
+  map (the navigation costmap's static layer, when there is one) update the person's track
+  (``agent.following.person``), or start one inside the RFID layer's band when there is none;
+* :meth:`FollowLoop.step` (its own thread, every ``period_s``): the follower's command
+  (``agent.following.follower``) from the fused pose and the track, checked against the costmap (the point
+  the robot would reach in ``lookahead_s`` must be free) and put through the collision monitor
+  (``NavigationLoop.guard``), then sent as a velocity command (a local mission: the controller's commands
+  take precedence, ``Agent.command_velocity``).
+
+Acquisition uses the coarse layer's window ahead (``within(0, acquire_half_width)``, the camera's view) as
+``docs/following.md`` advises (the global maximum is often the mirror image behind the robot), and, when
+that holds little, its ``bearing_rad``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.following.follower import FollowCommand, Follower, FollowState
+from agent.following.person import DetectorConfig, PersonEstimate, PersonTracker, detect_people
+from agent.runtime.rfid_loop import CoarseLayer
+from drivers.samples import Scan
+
+__all__ = ["FollowLoop", "FollowSnapshot"]
+
+log = logging.getLogger(__name__)
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class FollowSnapshot:
+    t_s: float
+    command: FollowCommand
+    person: PersonEstimate | None
+    sent: tuple[float, float]  # what went to the wheels after the safety checks
+
+
+class FollowLoop:
+    def __init__(
+        self,
+        follower: Follower,
+        tracker: PersonTracker,
+        laser_mount: Pose,
+        pose: Callable[[], Pose | None],
+        coarse: CoarseLayer | None,
+        send: Callable[[float, float], None],
+        clock_s: Callable[[], float],
+        *,
+        guard: Callable[[float, float, float], tuple[float, float]] | None = None,
+        costmap: Callable[[], object | None] = lambda: None,
+        detector: DetectorConfig | None = None,
+        acquire_half_width_rad: float = math.radians(35.0),
+        acquire_min_mass: float = 0.2,
+        lookahead_s: float = 0.5,
+        period_s: float = 0.05,
+    ) -> None:
+        self.follower = follower
+        self.tracker = tracker
+        self.laser_mount = laser_mount
+        self.pose = pose
+        self.coarse = coarse
+        self.send = send
+        self.clock_s = clock_s
+        self.guard = guard
+        self.costmap = costmap
+        self.detector = detector or DetectorConfig()
+        self.acquire_half_width_rad = acquire_half_width_rad
+        self.acquire_min_mass = acquire_min_mass
+        self.lookahead_s = lookahead_s
+        self.period_s = period_s
+        self.counts: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+        self.latest: FollowSnapshot | None = None
+
+    # -- the RFID layer's word -------------------------------------------------------------------------
+
+    def _coarse(self) -> tuple[float | None, float | None, tuple[float, float] | None]:
+        """(p_absent, bearing to search toward, acquisition window (centre, half width)) in the robot
+        frame; Nones without an RFID answer."""
+        if self.coarse is None:
+            return 0.0, None, (0.0, self.acquire_half_width_rad)  # no reader: look ahead
+        latest = self.coarse.latest
+        if latest is None:
+            return None, None, None
+        est = latest.estimate
+        ahead = self.coarse.filter.within(0.0, self.acquire_half_width_rad)
+        if ahead.probability >= self.acquire_min_mass:
+            window = (0.0, self.acquire_half_width_rad)
+        elif est.confidence >= self.acquire_min_mass:
+            window = (est.bearing_rad, max(est.spread_rad, self.acquire_half_width_rad))
+        else:
+            window = None
+        return est.p_absent, est.bearing_rad, window
+
+    # -- scans --------------------------------------------------------------------------------------
+
+    def on_scan(self, scan: Scan) -> None:
+        pose = self.pose()
+        if pose is None:
+            return
+        mx, my, myaw = self.laser_mount
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        laser = (pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + myaw)
+        angles = scan.angles_rad()
+        ranges = scan.ranges_mm.astype(np.float64) / 1000.0
+        ranges[(ranges < scan.min_range_mm / 1000.0) | (ranges > scan.max_range_mm / 1000.0)] = np.nan
+        static = self._static(laser, angles, ranges)
+        detections = detect_people(angles, ranges, laser, static, self.detector)
+        t_s = scan.host_time_ns * 1e-9
+        p_absent, _, window = self._coarse()
+        with self._lock:
+            self.counts["scans"] += 1
+            self.counts["detections"] += len(detections)
+            if self.tracker.tracking:
+                self.tracker.update_detections(t_s, detections)
+            elif (
+                window is not None
+                and (p_absent is None or p_absent < self.follower.config.absent_probability)
+                and self.tracker.acquire(t_s, detections, pose, window[0], window[1])
+            ):
+                log.info("following: person acquired (track %d)", self.tracker.track_id)
+
+    def _static(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
+        costmap = self.costmap()
+        if costmap is None:
+            return None
+        spec = costmap.spec  # type: ignore[attr-defined]
+        occupied = costmap.static_occupied  # type: ignore[attr-defined]
+        theta = angles + laser[2]
+        ok = np.isfinite(ranges)
+        r = np.where(ok, ranges, 0.0)
+        xy = np.stack([laser[0] + r * np.cos(theta), laser[1] + r * np.sin(theta)], axis=1)
+        cells = spec.to_cell(xy)
+        inside = spec.inside(cells) & ok
+        static = np.zeros(len(ranges), dtype=bool)
+        rows, cols = cells[inside, 0], cells[inside, 1]
+        # A return on or next to an occupied cell of the static map is the map's (one cell of slack).
+        hit = np.zeros(int(np.count_nonzero(inside)), dtype=bool)
+        shape = occupied.shape
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr = np.clip(rows + dr, 0, shape[0] - 1)
+                cc = np.clip(cols + dc, 0, shape[1] - 1)
+                hit |= occupied[rr, cc]
+        static[inside] = hit
+        return static
+
+    # -- the command --------------------------------------------------------------------------------
+
+    def step(self) -> FollowSnapshot:
+        t_s = self.clock_s()
+        pose = self.pose()
+        p_absent, bearing, _ = self._coarse()
+        with self._lock:
+            self.tracker.predict(t_s)
+            person = self.tracker.estimate()
+        if pose is None:
+            command = FollowCommand(0.0, 0.0, FollowState.LOST, "no pose: stopped")
+        else:
+            command = self.follower.step(t_s, pose, person, p_absent, bearing)
+        v, w = command.v_mps, command.omega_radps
+        if pose is not None and v > 0.0 and not self._free_ahead(pose, v):
+            v = 0.0
+            self.counts["costmap_stops"] += 1
+        if self.guard is not None:
+            v, w = self.guard(v, w, t_s)
+        self.send(v, w)
+        self.counts[f"state_{command.state.value}"] += 1
+        snap = FollowSnapshot(t_s, command, person, (v, w))
+        self.latest = snap
+        return snap
+
+    def _free_ahead(self, pose: Pose, v: float) -> bool:
+        costmap = self.costmap()
+        if costmap is None:
+            return True
+        d = v * self.lookahead_s
+        xy = np.array([[pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])]])
+        return bool(np.isfinite(costmap.cost_at(xy, allow_unknown=True))[0])  # type: ignore[attr-defined]
+
+    def run(self, stop: threading.Event) -> None:
+        """Step every ``period_s`` until ``stop``; stop the wheels when it ends."""
+        try:
+            while not stop.wait(self.period_s):
+                try:
+                    self.step()
+                except Exception:  # a bad step stops the robot, it does not end following
+                    log.exception("follow step failed")
+                    self.send(0.0, 0.0)
+        finally:
+            self.send(0.0, 0.0)
