@@ -364,7 +364,7 @@ class FollowingConfig:
     # The follower (agent.following.follower, docs/following.md).
     distance_m: float = 1.0
     min_gap_m: float = 0.6
-    max_speed_mps: float = 0.8
+    max_speed_mps: float = 0.95
     lost_after_s: float = 1.0
     search_after_s: float = 1.0
 

@@ -28,7 +28,7 @@ from agent.config import AgentConfig
 from agent.following.follower import Follower, FollowerConfig, FollowState
 from agent.following.person import PersonTracker, TrackerConfig
 from agent.runtime.agent import Agent
-from agent.runtime.follow_loop import FollowLoop
+from agent.runtime.follow_loop import NO_POSE, FollowLoop
 from drivers.sim.harness import SimulatedRobot
 from firmware_protocol.pose_frame import PoseFlags
 
@@ -69,7 +69,7 @@ def make_follow_loop(
         tracker,
         laser_mount,
         pose,
-        agent.coarse,
+        lambda: agent.coarse,
         agent.command_velocity,
         lambda: agent.clock_ns() * 1e-9,
         guard=agent.navigation.guard if agent.navigation is not None else None,
@@ -89,6 +89,7 @@ class FollowScore:
         band_m: float = 0.25,
     ) -> None:
         self.sim = robot.simulation
+        self.sim.hold_people()  # until the robot has a pose (sample())
         self.loop = loop
         people = self.sim.world.people
         tag = (tag_id or "").upper()
@@ -118,6 +119,7 @@ class FollowScore:
         self._lost_since: float | None = None
         self._was_lost = False
         self.latencies: list[float] = []
+        self.cued = False
 
     def sample(self) -> None:
         sim = self.sim
@@ -143,7 +145,7 @@ class FollowScore:
             if self.user is not None:
                 ux, uy = positions[self.user.name]
                 d_user = math.hypot(ux - base.x_m, uy - base.y_m)
-                if sim.person_speed_mps(self.user) > 0.05 and sim.elapsed_s() > self.user.start_s:
+                if sim.person_speed_mps(self.user) > 0.05:
                     self.walking_s += dt
                     within = abs(d_user - self.distance_m) <= self.band_m
                     self.within_s += dt if within else 0.0
@@ -155,6 +157,10 @@ class FollowScore:
             snap = self.loop.latest
             if snap is None:
                 return
+            if not self.cued and snap.command.reason != NO_POSE:
+                # The scenario starts when the robot has a pose: the user waits for it, as a real one would.
+                sim.cue_people()
+                self.cued = True
             state = snap.command.state
             if snap.person is not None:
                 self.acquired = True

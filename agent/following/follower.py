@@ -44,7 +44,7 @@ class FollowState(enum.StrEnum):
 class FollowerConfig:
     distance_m: float = 1.0  # kept between the robot's centre and the person's
     min_gap_m: float = 0.6  # nearer than this the robot does not move toward them
-    max_speed_mps: float = 0.8
+    max_speed_mps: float = 0.95
     max_turn_radps: float = 1.5
     gain_distance: float = 1.2  # 1/s: m/s of pull per metre off the set distance
     gain_heading: float = 2.5  # 1/s: rad/s of turn per radian off the person's bearing

@@ -120,6 +120,8 @@ class TrackerConfig:
     initial_speed_sd_mps: float = 1.0
     lost_after_s: float = 1.0  # no accepted measurement for this long: the track is dropped
     max_acquire_range_m: float = 4.5  # the coarse layer's grid ends here
+    reacquire_s: float = 5.0  # after a loss, prefer candidates near where the lost track would be by now
+    reacquire_m: float = 1.0  # ... within this of it (plus 0.5 m per second since the loss)
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,6 +152,7 @@ class PersonTracker:
         self.last_seen_s = -math.inf
         self.track_id = 0
         self.counts: dict[str, int] = {"acquired": 0, "lost": 0, "updates": 0, "rejected": 0}
+        self.last_lost: PersonEstimate | None = None  # the track when it was dropped
 
     @property
     def tracking(self) -> bool:
@@ -160,8 +163,7 @@ class PersonTracker:
         if self.x is None or self.p is None:
             return
         if t_s - self.last_seen_s > self.config.lost_after_s:
-            self.x = self.p = None
-            self.counts["lost"] += 1
+            self.drop()
             return
         dt = t_s - self.t_s
         if dt <= 0.0:
@@ -188,6 +190,15 @@ class PersonTracker:
         bearing = np.arctan2(d[:, 1], d[:, 0]) - robot[2]
         off = np.abs(np.remainder(bearing - centre_rad + np.pi, 2 * np.pi) - np.pi)
         ok = (off <= half_width_rad) & (rng <= self.config.max_acquire_range_m)
+        lost = self.last_lost
+        if lost is not None and t_s - lost.last_seen_s <= self.config.reacquire_s:
+            # Where the lost person would be by now (walking on at their speed, at most 1.5 s of it).
+            ahead = min(t_s - lost.last_seen_s, 1.5)
+            guess = np.array(lost.xy) + ahead * np.array(lost.velocity)
+            near = np.hypot(*(detections.centres - guess).T)
+            reach = self.config.reacquire_m + 0.5 * (t_s - lost.last_seen_s)
+            if np.any(ok & (near <= reach)):
+                ok &= near <= reach
         if not np.any(ok):
             return False
         k = int(np.flatnonzero(ok)[np.argmin(rng[ok])])
@@ -261,4 +272,5 @@ class PersonTracker:
     def drop(self) -> None:
         if self.x is not None:
             self.counts["lost"] += 1
+            self.last_lost = self.estimate()
         self.x = self.p = None

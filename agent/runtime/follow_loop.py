@@ -30,7 +30,9 @@ from agent.following.person import DetectorConfig, PersonEstimate, PersonTracker
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Scan
 
-__all__ = ["FollowLoop", "FollowSnapshot"]
+__all__ = ["NO_POSE", "FollowLoop", "FollowSnapshot"]
+
+NO_POSE = "no pose: stopped"
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +54,7 @@ class FollowLoop:
         tracker: PersonTracker,
         laser_mount: Pose,
         pose: Callable[[], Pose | None],
-        coarse: CoarseLayer | None,
+        coarse: Callable[[], CoarseLayer | None],
         send: Callable[[float, float], None],
         clock_s: Callable[[], float],
         *,
@@ -61,7 +63,10 @@ class FollowLoop:
         detector: DetectorConfig | None = None,
         acquire_half_width_rad: float = math.radians(35.0),
         acquire_min_mass: float = 0.2,
-        lookahead_s: float = 0.5,
+        acquire_sure: float = 0.5,
+        lookahead_s: float = 1.0,
+        decel_mps2: float = 1.0,
+        person_clear_m: float = 0.5,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -76,7 +81,10 @@ class FollowLoop:
         self.detector = detector or DetectorConfig()
         self.acquire_half_width_rad = acquire_half_width_rad
         self.acquire_min_mass = acquire_min_mass
+        self.acquire_sure = acquire_sure
         self.lookahead_s = lookahead_s
+        self.decel_mps2 = decel_mps2
+        self.person_clear_m = person_clear_m
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -84,22 +92,20 @@ class FollowLoop:
 
     # -- the RFID layer's word -------------------------------------------------------------------------
 
-    def _coarse(self) -> tuple[float | None, float | None, tuple[float, float] | None]:
-        """(p_absent, bearing to search toward, acquisition window (centre, half width)) in the robot
-        frame; Nones without an RFID answer."""
-        if self.coarse is None:
-            return 0.0, None, (0.0, self.acquire_half_width_rad)  # no reader: look ahead
-        latest = self.coarse.latest
+    def _coarse(self) -> tuple[float | None, float | None, tuple[float, float, float] | None]:
+        """(p_absent, bearing to search toward, acquisition window (centre, half width,
+        probability the person is in it)) in the robot frame; Nones without an RFID answer."""
+        coarse = self.coarse()
+        if coarse is None:
+            return 0.0, None, (0.0, self.acquire_half_width_rad, 0.0)  # no reader: look ahead
+        latest = coarse.latest
         if latest is None:
             return None, None, None
         est = latest.estimate
-        ahead = self.coarse.filter.within(0.0, self.acquire_half_width_rad)
-        if ahead.probability >= self.acquire_min_mass:
-            window = (0.0, self.acquire_half_width_rad)
-        elif est.confidence >= self.acquire_min_mass:
-            window = (est.bearing_rad, max(est.spread_rad, self.acquire_half_width_rad))
-        else:
-            window = None
+        ahead = coarse.filter.within(0.0, self.acquire_half_width_rad)
+        # Only ahead (the camera's view): the global maximum is often the mirror image behind the robot.
+        ok = ahead.probability >= self.acquire_min_mass
+        window = (0.0, self.acquire_half_width_rad, ahead.probability) if ok else None
         return est.p_absent, est.bearing_rad, window
 
     # -- scans --------------------------------------------------------------------------------------
@@ -115,20 +121,30 @@ class FollowLoop:
         ranges = scan.ranges_mm.astype(np.float64) / 1000.0
         ranges[(ranges < scan.min_range_mm / 1000.0) | (ranges > scan.max_range_mm / 1000.0)] = np.nan
         static = self._static(laser, angles, ranges)
-        detections = detect_people(angles, ranges, laser, static, self.detector)
+        # A new track only off the static map; a track keeps its person even where the map has taken them in
+        # (SLAM maps a person who stands still).
+        fresh = detect_people(angles, ranges, laser, static, self.detector)
+        detections = (
+            detect_people(angles, ranges, laser, None, self.detector) if static is not None else fresh
+        )
         t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
             self.counts["scans"] += 1
-            self.counts["detections"] += len(detections)
+            self.counts["detections"] += len(fresh)
             if self.tracker.tracking:
                 self.tracker.update_detections(t_s, detections)
-            elif (
-                window is not None
-                and (p_absent is None or p_absent < self.follower.config.absent_probability)
-                and self.tracker.acquire(t_s, detections, pose, window[0], window[1])
+            elif window is not None and (
+                p_absent is None or p_absent < self.follower.config.absent_probability
             ):
-                log.info("following: person acquired (track %d)", self.tracker.track_id)
+                # Off the static map first; then, where the RFID layer is sure they are ahead, a person-sized
+                # cluster the map has taken in (a user who stood still while SLAM mapped them).
+                got = self.tracker.acquire(t_s, fresh, pose, window[0], window[1])
+                if not got and window[2] >= self.acquire_sure:
+                    got = self.tracker.acquire(t_s, detections, pose, window[0], window[1])
+                    self.counts["acquired_on_map"] += int(got)
+                if got:
+                    log.info("following: person acquired (track %d)", self.tracker.track_id)
 
     def _static(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
         costmap = self.costmap()
@@ -165,11 +181,11 @@ class FollowLoop:
             self.tracker.predict(t_s)
             person = self.tracker.estimate()
         if pose is None:
-            command = FollowCommand(0.0, 0.0, FollowState.LOST, "no pose: stopped")
+            command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
         else:
             command = self.follower.step(t_s, pose, person, p_absent, bearing)
         v, w = command.v_mps, command.omega_radps
-        if pose is not None and v > 0.0 and not self._free_ahead(pose, v):
+        if pose is not None and v > 0.0 and not self._free_ahead(pose, v, person):
             v = 0.0
             self.counts["costmap_stops"] += 1
         if self.guard is not None:
@@ -178,15 +194,48 @@ class FollowLoop:
         self.counts[f"state_{command.state.value}"] += 1
         snap = FollowSnapshot(t_s, command, person, (v, w))
         self.latest = snap
+        import os
+        import sys
+
+        if os.environ.get("F3DEBUG") and self.counts["steps"] % 10 == 0:
+            print(
+                f"t={t_s:.1f} pose={pose} person={person.xy if person else None} cmd={command.state} {command.v_mps:.2f},{command.omega_radps:.2f} sent={v:.2f},{w:.2f} {command.reason}",
+                file=sys.stderr,
+            )
+        self.counts["steps"] += 1
         return snap
 
-    def _free_ahead(self, pose: Pose, v: float) -> bool:
+    def _free_ahead(self, pose: Pose, v: float, person: PersonEstimate | None) -> bool:
+        """Whether the straight line ahead, ``lookahead_s`` of driving plus the stopping distance at
+        ``decel_mps2`` (short of the followed person by ``person_clear_m``: they are the target, the
+        collision monitor keeps the robot off them), keeps the footprint clear of the costmap's scanned
+        obstacles and the walkers' predicted sweeps. The static layer is left to those: SLAM maps a person
+        who stood still, and a wall ahead is in the scan."""
         costmap = self.costmap()
         if costmap is None:
             return True
-        d = v * self.lookahead_s
-        xy = np.array([[pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])]])
-        return bool(np.isfinite(costmap.cost_at(xy, allow_unknown=True))[0])  # type: ignore[attr-defined]
+        reach = v * self.lookahead_s + v * v / (2.0 * self.decel_mps2)
+        if person is not None:
+            reach = min(reach, math.dist(pose[:2], person.xy) - self.person_clear_m)
+        spec = costmap.spec  # type: ignore[attr-defined]
+        blocked = costmap.obstacles | costmap.predicted  # type: ignore[attr-defined]
+        res = spec.resolution_m
+        d = np.arange(0.5 * res, reach, 0.5 * res)
+        if len(d) == 0:
+            return True
+        xy = np.stack([pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])], axis=1)
+        cells = spec.to_cell(xy)
+        r = math.ceil(costmap.config.inscribed_m / res)  # type: ignore[attr-defined]
+        here = spec.to_cell(np.array([pose[:2]]))[0]
+        for dr in range(-r, r + 1):
+            for dc in range(-r, r + 1):
+                if dr * dr + dc * dc > r * r:
+                    continue
+                near = cells + np.array([dr, dc])
+                ok = spec.inside(near) & np.any(near != here, axis=1)
+                if np.any(blocked[near[ok, 0], near[ok, 1]]):
+                    return False
+        return True
 
     def run(self, stop: threading.Event) -> None:
         """Step every ``period_s`` until ``stop``; stop the wheels when it ends."""
