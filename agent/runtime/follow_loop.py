@@ -82,6 +82,7 @@ class FollowLoop:
         self.acquire_half_width_rad = acquire_half_width_rad
         self.acquire_min_mass = acquire_min_mass
         self.acquire_sure = acquire_sure
+        self.absent = follower.config.absent_probability
         self.lookahead_s = lookahead_s
         self.decel_mps2 = decel_mps2
         self.person_clear_m = person_clear_m
@@ -194,13 +195,18 @@ class FollowLoop:
         self.counts[f"state_{command.state.value}"] += 1
         snap = FollowSnapshot(t_s, command, person, (v, w))
         self.latest = snap
-        import os
-        import sys
-
-        if os.environ.get("F3DEBUG") and self.counts["steps"] % 10 == 0:
-            print(
-                f"t={t_s:.1f} pose={pose} person={person.xy if person else None} cmd={command.state} {command.v_mps:.2f},{command.omega_radps:.2f} sent={v:.2f},{w:.2f} {command.reason}",
-                file=sys.stderr,
+        if self.counts["steps"] % 20 == 0:
+            log.debug(
+                "follow t=%.1f pose=%s person=%s %s v=%.2f w=%.2f sent=%.2f,%.2f: %s",
+                t_s,
+                pose,
+                person.xy if person is not None else None,
+                command.state.value,
+                command.v_mps,
+                command.omega_radps,
+                v,
+                w,
+                command.reason,
             )
         self.counts["steps"] += 1
         return snap
