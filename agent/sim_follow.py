@@ -27,6 +27,7 @@ from typing import Any
 from agent.config import AgentConfig
 from agent.following.follower import Follower, FollowerConfig, FollowState
 from agent.following.person import PersonTracker, TrackerConfig
+from agent.navigation.navigator import Navigator
 from agent.runtime.agent import Agent
 from agent.runtime.follow_loop import NO_POSE, FollowLoop
 from drivers.sim.harness import SimulatedRobot
@@ -35,6 +36,7 @@ from firmware_protocol.pose_frame import PoseFlags
 __all__ = ["FollowScore", "make_follow_loop"]
 
 STOPPED_MPS = 0.02
+CUE_LATEST_S = 5.0
 
 
 def make_follow_loop(
@@ -60,9 +62,8 @@ def make_follow_loop(
             return None
         return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
 
-    def costmap() -> object | None:
-        nav = agent.navigation
-        return nav.navigator.costmap if nav is not None and nav.navigator is not None else None
+    def navigator() -> Navigator | None:
+        return agent.navigation.navigator if agent.navigation is not None else None
 
     loop = FollowLoop(
         follower,
@@ -73,7 +74,7 @@ def make_follow_loop(
         agent.command_velocity,
         lambda: agent.clock_ns() * 1e-9,
         guard=agent.navigation.guard if agent.navigation is not None else None,
-        costmap=costmap,
+        navigator=navigator,
     )
     agent.scan_listeners.append(loop.on_scan)
     return loop
@@ -120,6 +121,7 @@ class FollowScore:
         self._was_lost = False
         self.latencies: list[float] = []
         self.cued = False
+        self.ready_t: float | None = None
 
     def sample(self) -> None:
         sim = self.sim
@@ -157,8 +159,15 @@ class FollowScore:
             snap = self.loop.latest
             if snap is None:
                 return
-            if not self.cued and snap.command.reason != NO_POSE:
-                # The scenario starts when the robot has a pose: the user waits for it, as a real one would.
+            if self.ready_t is None and snap.command.reason != NO_POSE:
+                self.ready_t = t
+            if (
+                not self.cued
+                and self.ready_t is not None
+                and (snap.person is not None or t - self.ready_t >= CUE_LATEST_S)
+            ):
+                # The scenario starts when the robot has locked on (a pose and a track; at the latest
+                # CUE_LATEST_S after the pose): the user waits for it, as a real one would.
                 sim.cue_people()
                 self.cued = True
             state = snap.command.state

@@ -8,15 +8,16 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
 * ``following``: a point ``distance_m`` short of the person on the line robot -> person is the target;
   the forward speed is a proportional pull toward it plus the person's own speed along the line
   (feed-forward), never backwards, zero when they are nearer than ``min_gap_m`` (the person is an
-  obstacle), scaled down while the heading is off; the turn keeps the person ahead (in the camera's
-  view);
+  obstacle), scaled down while the heading is off (turning in place beyond ``turn_first_rad``); the turn
+  keeps the person ahead (in the camera's view);
 * ``waiting``: the person stands (slower than ``standing_mps``) and the robot is at its distance: stop;
 * ``lost``: the track is gone: stop at once; after ``search_after_s`` turn in place toward the RFID
   bearing (the coarse layer's prediction step carries the turn, which separates front from back) until the
   tracker re-acquires;
 * ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop.
 
-The command then goes through the navigation's collision monitor and costmap (the runtime's job).
+The command then goes through the navigation's costmap, the walkers' motion (:func:`safe_speed`) and the
+collision monitor (the runtime's job, ``agent/runtime/follow_loop.py``).
 Pure: time passed in.
 """
 
@@ -26,9 +27,12 @@ import enum
 import math
 from dataclasses import dataclass
 
+import numpy as np
+import numpy.typing as npt
+
 from agent.following.person import PersonEstimate
 
-__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig"]
+__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed"]
 
 Pose = tuple[float, float, float]
 
@@ -48,6 +52,7 @@ class FollowerConfig:
     max_turn_radps: float = 1.5
     gain_distance: float = 1.2  # 1/s: m/s of pull per metre off the set distance
     gain_heading: float = 2.5  # 1/s: rad/s of turn per radian off the person's bearing
+    turn_first_rad: float = math.radians(60.0)  # the person further off the heading: turn in place
     standing_mps: float = 0.12  # slower than this the person stands
     tolerance_m: float = 0.1  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
@@ -123,6 +128,35 @@ class Follower:
                 0.0, omega, FollowState.FOLLOWING, "too near the person: not closing in", dist
             )
         v = cfg.gain_distance * error + max(along, 0.0)
-        v *= max(math.cos(bearing), 0.0) ** 2  # turn first when they are well off to the side
+        # Turn first when they are well off to the side (out of the camera's view), slow down on the way.
+        v = 0.0 if abs(bearing) > cfg.turn_first_rad else v * math.cos(bearing) ** 2
         v = _clip(v, 0.0, cfg.max_speed_mps)
         return FollowCommand(v, omega, FollowState.FOLLOWING, "keeping the distance", dist)
+
+
+def safe_speed(
+    pose: Pose,
+    v_mps: float,
+    walkers: npt.NDArray[np.float64],
+    clearance_m: float,
+    horizon_s: float = 2.5,
+    dt_s: float = 0.1,
+    fractions: tuple[float, ...] = (1.0, 0.66, 0.33),
+) -> float:
+    """The largest of ``v_mps`` x ``fractions`` at which the robot, driving straight on, keeps more than
+    ``clearance_m`` (centre to centre) from every walker (rows x, y, vx, vy in the map frame, walking on at
+    their velocity) over ``horizon_s``; 0 when none does. A walker who crosses far ahead is let pass or
+    crossed in front of, by when they get there, rather than waited for as their whole sweep would have
+    it."""
+    if v_mps <= 0.0 or len(walkers) == 0:
+        return v_mps
+    tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    wx = walkers[:, 0:1] + walkers[:, 2:3] * tau  # (n, t)
+    wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
+    for fraction in fractions:
+        v = v_mps * fraction
+        rx, ry = pose[0] + c * v * tau, pose[1] + s * v * tau
+        if float(np.min(np.hypot(wx - rx, wy - ry))) > clearance_m:
+            return v
+    return 0.0

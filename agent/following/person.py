@@ -47,7 +47,7 @@ class DetectorConfig:
     min_points: int = 3
     jump_m: float = 0.12  # consecutive returns further apart than this (or 3 beam spacings) split clusters
     static_fraction: float = 0.5  # a cluster with more of its returns on static occupied cells is the map
-    centre_offset_m: float = 0.1  # from the near surface to the body's centre, along the ray
+    centre_offset_m: float = 0.15  # from the near returns' mean to the body's centre (0.2 m round), along the ray
     max_range_m: float = 5.0
 
 
@@ -181,8 +181,10 @@ class PersonTracker:
     def acquire(
         self, t_s: float, detections: PersonDetections, robot: Pose, centre_rad: float, half_width_rad: float
     ) -> bool:
-        """Start a track on the candidate nearest the robot whose bearing (robot frame) is within
-        ``centre_rad`` +- ``half_width_rad`` and range within ``max_acquire_range_m``; False if none."""
+        """Start a track on a candidate whose bearing (robot frame) is within ``centre_rad`` +-
+        ``half_width_rad`` and range within ``max_acquire_range_m``: within ``reacquire_s`` of a loss the one
+        nearest where the lost person would be by now, if one is near it; else the one nearest the robot.
+        False if none."""
         if len(detections) == 0:
             return False
         d = detections.centres - np.array(robot[:2])
@@ -197,11 +199,14 @@ class PersonTracker:
             guess = np.array(lost.xy) + ahead * np.array(lost.velocity)
             near = np.hypot(*(detections.centres - guess).T)
             reach = self.config.reacquire_m + 0.5 * (t_s - lost.last_seen_s)
-            if np.any(ok & (near <= reach)):
-                ok &= near <= reach
+            close = ok & (near <= reach)
+            if np.any(close):
+                return self._start(t_s, detections, int(np.flatnonzero(close)[np.argmin(near[close])]))
         if not np.any(ok):
             return False
-        k = int(np.flatnonzero(ok)[np.argmin(rng[ok])])
+        return self._start(t_s, detections, int(np.flatnonzero(ok)[np.argmin(rng[ok])]))
+
+    def _start(self, t_s: float, detections: PersonDetections, k: int) -> bool:
         cfg = self.config
         self.x = np.array([*detections.centres[k], 0.0, 0.0])
         self.p = np.diag([cfg.position_sd_m**2] * 2 + [cfg.initial_speed_sd_mps**2] * 2)

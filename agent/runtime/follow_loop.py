@@ -25,8 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.following.follower import FollowCommand, Follower, FollowState
+from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed
 from agent.following.person import DetectorConfig, PersonEstimate, PersonTracker, detect_people
+from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Scan
 
@@ -59,14 +60,15 @@ class FollowLoop:
         clock_s: Callable[[], float],
         *,
         guard: Callable[[float, float, float], tuple[float, float]] | None = None,
-        costmap: Callable[[], object | None] = lambda: None,
+        navigator: Callable[[], Navigator | None] = lambda: None,
         detector: DetectorConfig | None = None,
         acquire_half_width_rad: float = math.radians(35.0),
         acquire_min_mass: float = 0.2,
-        acquire_sure: float = 0.5,
+        acquire_sure: float = 0.3,
         lookahead_s: float = 1.0,
         decel_mps2: float = 1.0,
         person_clear_m: float = 0.5,
+        walker_clear_m: float = 0.65,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -77,7 +79,7 @@ class FollowLoop:
         self.send = send
         self.clock_s = clock_s
         self.guard = guard
-        self.costmap = costmap
+        self.navigator = navigator
         self.detector = detector or DetectorConfig()
         self.acquire_half_width_rad = acquire_half_width_rad
         self.acquire_min_mass = acquire_min_mass
@@ -86,6 +88,7 @@ class FollowLoop:
         self.lookahead_s = lookahead_s
         self.decel_mps2 = decel_mps2
         self.person_clear_m = person_clear_m
+        self.walker_clear_m = walker_clear_m
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -148,11 +151,11 @@ class FollowLoop:
                     log.info("following: person acquired (track %d)", self.tracker.track_id)
 
     def _static(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
-        costmap = self.costmap()
-        if costmap is None:
+        nav = self.navigator()
+        if nav is None:
             return None
-        spec = costmap.spec  # type: ignore[attr-defined]
-        occupied = costmap.static_occupied  # type: ignore[attr-defined]
+        spec = nav.costmap.spec
+        occupied = nav.costmap.static_occupied
         theta = angles + laser[2]
         ok = np.isfinite(ranges)
         r = np.where(ok, ranges, 0.0)
@@ -186,9 +189,8 @@ class FollowLoop:
         else:
             command = self.follower.step(t_s, pose, person, p_absent, bearing)
         v, w = command.v_mps, command.omega_radps
-        if pose is not None and v > 0.0 and not self._free_ahead(pose, v, person):
-            v = 0.0
-            self.counts["costmap_stops"] += 1
+        if pose is not None:
+            v = self._safe(pose, v, person)
         if self.guard is not None:
             v, w = self.guard(v, w, t_s)
         self.send(v, w)
@@ -211,37 +213,46 @@ class FollowLoop:
         self.counts["steps"] += 1
         return snap
 
-    def _free_ahead(self, pose: Pose, v: float, person: PersonEstimate | None) -> bool:
-        """Whether the straight line ahead, ``lookahead_s`` of driving plus the stopping distance at
-        ``decel_mps2`` (short of the followed person by ``person_clear_m``: they are the target, the
-        collision monitor keeps the robot off them), keeps the footprint clear of the costmap's scanned
-        obstacles and the walkers' predicted sweeps. The static layer is left to those: SLAM maps a person
-        who stood still, and a wall ahead is in the scan."""
-        costmap = self.costmap()
-        if costmap is None:
-            return True
+    def _safe(self, pose: Pose, v: float, person: PersonEstimate | None) -> float:
+        """``v`` as the costmap and the walkers allow it: the straight line ahead (``lookahead_s`` of
+        driving plus the stopping distance at ``decel_mps2``, short of the followed person by
+        ``person_clear_m``: they are the target, the collision monitor keeps the robot off them) must keep
+        the footprint off the scanned obstacles, and the robot must keep ``walker_clear_m`` from every
+        other walker the navigation tracks, over their next seconds (:func:`safe_speed`). The static layer
+        is left to the scan: SLAM maps a person who stood still, and a wall ahead is in the scan."""
+        nav = self.navigator()
+        if nav is None or v <= 0.0:
+            return v
+        costmap = nav.costmap
         reach = v * self.lookahead_s + v * v / (2.0 * self.decel_mps2)
         if person is not None:
             reach = min(reach, math.dist(pose[:2], person.xy) - self.person_clear_m)
-        spec = costmap.spec  # type: ignore[attr-defined]
-        blocked = costmap.obstacles | costmap.predicted  # type: ignore[attr-defined]
+        spec = costmap.spec
         res = spec.resolution_m
         d = np.arange(0.5 * res, reach, 0.5 * res)
-        if len(d) == 0:
-            return True
-        xy = np.stack([pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])], axis=1)
-        cells = spec.to_cell(xy)
-        r = math.ceil(costmap.config.inscribed_m / res)  # type: ignore[attr-defined]
-        here = spec.to_cell(np.array([pose[:2]]))[0]
-        for dr in range(-r, r + 1):
-            for dc in range(-r, r + 1):
-                if dr * dr + dc * dc > r * r:
-                    continue
-                near = cells + np.array([dr, dc])
-                ok = spec.inside(near) & np.any(near != here, axis=1)
-                if np.any(blocked[near[ok, 0], near[ok, 1]]):
-                    return False
-        return True
+        if len(d):
+            xy = np.stack([pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])], axis=1)
+            cells = spec.to_cell(xy)
+            r = math.ceil(costmap.config.inscribed_m / res)
+            here = spec.to_cell(np.array([pose[:2]]))[0]
+            for dr in range(-r, r + 1):
+                for dc in range(-r, r + 1):
+                    if dr * dr + dc * dc > r * r:
+                        continue
+                    near = cells + np.array([dr, dc])
+                    ok = spec.inside(near) & np.any(near != here, axis=1)
+                    if np.any(costmap.obstacles[near[ok, 0], near[ok, 1]]):
+                        self.counts["costmap_stops"] += 1
+                        return 0.0
+        walkers = [
+            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
+            for w in nav.moving.moving()
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.person_clear_m
+        ]
+        safe = safe_speed(pose, v, np.array(walkers).reshape(-1, 4), self.walker_clear_m)
+        if safe < v:
+            self.counts["walker_slowdowns"] += 1
+        return safe
 
     def run(self, stop: threading.Event) -> None:
         """Step every ``period_s`` until ``stop``; stop the wheels when it ends."""
