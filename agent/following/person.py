@@ -47,7 +47,7 @@ class DetectorConfig:
     min_points: int = 3
     jump_m: float = 0.12  # consecutive returns further apart than this (or 3 beam spacings) split clusters
     static_fraction: float = 0.5  # a cluster with more of its returns on static occupied cells is the map
-    centre_offset_m: float = 0.15  # from the near returns' mean to the body's centre (0.2 m round), along the ray
+    centre_offset_m: float = 0.15  # from the returns' mean to the centre of a 0.2 m round body, along the ray
     max_range_m: float = 5.0
 
 
