@@ -83,3 +83,17 @@ def test_a_followed_walker_is_kept_within_the_band_in_closed_loop() -> None:
             n += 1
             inside += abs(math.hypot(px - x, py - y) - 1.0) <= 0.25
     assert inside / n >= 0.95
+
+
+def test_safe_speed_lets_a_near_crosser_pass_and_crosses_in_front_of_a_far_one() -> None:
+    from agent.following.follower import safe_speed
+
+    robot = (0.0, 0.0, 0.0)
+    # A walker 0.8 m ahead and 1 m to the side, crossing the robot's line at 1 m/s: wait for them.
+    near = np.array([[0.8, 1.0, 0.0, -1.0]])
+    assert safe_speed(robot, 0.9, near, 0.65) == 0.0
+    # The same walker 5 m to the side: the robot is past their line long before they get there.
+    far = np.array([[1.0, 5.0, 0.0, -1.0]])
+    assert safe_speed(robot, 0.9, far, 0.65) == 0.9
+    # Nobody about: unchanged.
+    assert safe_speed(robot, 0.5, np.zeros((0, 4)), 0.65) == 0.5

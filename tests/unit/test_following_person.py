@@ -17,9 +17,7 @@ from drivers.sim.raycast import cast_rays
 
 ANGLES = np.linspace(-math.pi * 2 / 3, math.pi * 2 / 3, 682)
 # A 10 x 6 m room round the laser at (2, 3), facing +x.
-WALLS = np.array(
-    [[0.0, 0.0, 10.0, 0.0], [10.0, 0.0, 10.0, 6.0], [10.0, 6.0, 0.0, 6.0], [0.0, 6.0, 0.0, 0.0]]
-)
+WALLS = np.array([[0.0, 0.0, 10.0, 0.0], [10.0, 0.0, 10.0, 6.0], [10.0, 6.0, 0.0, 6.0], [0.0, 6.0, 0.0, 0.0]])
 
 
 def scan(people: list[tuple[float, float, float]], laser=(2.0, 3.0, 0.0)) -> np.ndarray:
