@@ -19,6 +19,7 @@ reports
 
 from __future__ import annotations
 
+import logging
 import math
 import statistics
 import threading
@@ -34,6 +35,8 @@ from drivers.sim.harness import SimulatedRobot
 from firmware_protocol.pose_frame import PoseFlags
 
 __all__ = ["FollowScore", "make_follow_loop"]
+
+log = logging.getLogger(__name__)
 
 STOPPED_MPS = 0.02
 CUE_LATEST_S = 5.0
@@ -152,6 +155,16 @@ class FollowScore:
                     within = abs(d_user - self.distance_m) <= self.band_m
                     self.within_s += dt if within else 0.0
                     self.distances.append(d_user)
+                    if len(self.distances) % 5 == 0:
+                        log.debug(
+                            "follow truth t=%.2f user=%.2f,%.2f robot=%.2f,%.2f d=%.2f",
+                            t,
+                            ux,
+                            uy,
+                            base.x_m,
+                            base.y_m,
+                            d_user,
+                        )
                     self.reached |= within
                     if self.reached:
                         self.after_s += dt
@@ -219,6 +232,7 @@ class FollowScore:
                 "lost_events": self.lost_events,
                 "stop_latency_s_max": r(max(self.latencies)) if self.latencies else None,
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
+                "safety": {k: self.loop.counts.get(k, 0) for k in ("costmap_stops", "walker_slowdowns")},
                 "tracker": dict(self.loop.tracker.counts),
                 "last_reason": self.loop.latest.command.reason if self.loop.latest is not None else None,
             }

@@ -69,6 +69,7 @@ class FollowLoop:
         decel_mps2: float = 1.0,
         person_clear_m: float = 0.5,
         walker_clear_m: float = 0.65,
+        walker_is_person_m: float = 0.8,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -89,6 +90,7 @@ class FollowLoop:
         self.decel_mps2 = decel_mps2
         self.person_clear_m = person_clear_m
         self.walker_clear_m = walker_clear_m
+        self.walker_is_person_m = walker_is_person_m
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -218,8 +220,10 @@ class FollowLoop:
         driving plus the stopping distance at ``decel_mps2``, short of the followed person by
         ``person_clear_m``: they are the target, the collision monitor keeps the robot off them) must keep
         the footprint off the scanned obstacles, and the robot must keep ``walker_clear_m`` from every
-        other walker the navigation tracks, over their next seconds (:func:`safe_speed`). The static layer
-        is left to the scan: SLAM maps a person who stood still, and a wall ahead is in the scan."""
+        other walker the navigation tracks over their next seconds (:func:`safe_speed`); those within
+        ``walker_is_person_m`` of the followed person's track are them (the navigation's tracks sit on a
+        body's near surface, and lag). The static layer is left to the scan: SLAM maps a person who stood
+        still, and a wall ahead is in the scan."""
         nav = self.navigator()
         if nav is None or v <= 0.0:
             return v
@@ -247,7 +251,7 @@ class FollowLoop:
         walkers = [
             (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
             for w in nav.moving.moving()
-            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.person_clear_m
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
         ]
         safe = safe_speed(pose, v, np.array(walkers).reshape(-1, 4), self.walker_clear_m)
         if safe < v:
