@@ -13,8 +13,9 @@ reports
   ``match_m``) changes from one person to another;
 * ``collisions_people``: contacts (footprint touching a body) begun; ``min_person_gap_m`` (footprint to
   body), ``min_person_distance_m`` (centre to centre);
-* ``stop_latency_s_max``: per entry into ``lost`` from a moving robot, the time until its true speed is
-  below 0.02 m/s (the acceptance: 0.5 s), and ``lost_events``.
+* ``stop_latency_s_max``: per entry into ``lost`` (or ``no_tag``) after the first acquisition, the time
+  until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s);
+  ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one.
 """
 
 from __future__ import annotations
@@ -123,6 +124,7 @@ class FollowScore:
         self._lost_since: float | None = None
         self._was_lost = False
         self.latencies: list[float] = []
+        self.lost_speeds: list[float] = []
         self.cued = False
         self.ready_t: float | None = None
 
@@ -194,8 +196,9 @@ class FollowScore:
             lost = state in (FollowState.LOST, FollowState.NO_TAG)
             if self.acquired and lost:
                 self.lost_s += dt
-            if lost and not self._was_lost and self.acquired and speed > STOPPED_MPS:
+            if lost and not self._was_lost and self.acquired:
                 self.lost_events += 1
+                self.lost_speeds.append(speed)
                 self._lost_since = t
             if self._lost_since is not None and (not lost or speed <= STOPPED_MPS):
                 if speed <= STOPPED_MPS:
@@ -231,6 +234,7 @@ class FollowScore:
                 "min_person_distance_m": r(self.min_dist),
                 "lost_events": self.lost_events,
                 "stop_latency_s_max": r(max(self.latencies)) if self.latencies else None,
+                "lost_speed_mps_max": r(max(self.lost_speeds)) if self.lost_speeds else None,
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
                 "safety": {k: self.loop.counts.get(k, 0) for k in ("costmap_stops", "walker_slowdowns")},
                 "tracker": dict(self.loop.tracker.counts),

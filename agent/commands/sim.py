@@ -45,6 +45,7 @@ from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_co
 from agent.recording.messages import TruthSample
 from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
+from agent.runtime.follow_loop import FollowLoop
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import ShutdownRequest, SignalCall
@@ -61,7 +62,7 @@ from firmware_protocol.pose_frame import PoseFlags
 log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
-FAULT_KINDS = ("laser", "camera", "servo", "forward_camera")
+FAULT_KINDS = ("laser", "camera", "servo", "forward_camera", "person")
 _AUTOPILOT_PERIOD_S = 0.05
 LATENCY_DEFINITION = (
     "latency: a camera frame captured by the computer (handed over complete by the camera driver) -> the "
@@ -239,6 +240,7 @@ class FaultInjector:
             (f.start_s, f.kind, True, f.duration_s) for f in faults
         )
         self.applied: list[dict[str, Any]] = []
+        self.follow_loop: FollowLoop | None = None  # with --follow: the person fault hides the person
 
     def step(self, elapsed_s: float, t0_s: float | None = None) -> None:
         """Apply what is due at ``elapsed_s``. Each applied fault records ``t_s`` (``elapsed_s``: when this
@@ -273,6 +275,11 @@ class FaultInjector:
             if stall is None:
                 raise ConfigError("--fault", "forward_camera needs the simulated one ([camera.forward])")
             stall(on)
+        elif kind == "person":
+            follow = self.follow_loop
+            if follow is None:
+                raise ConfigError("--fault", "person needs --follow")
+            follow.blind = on
 
 
 def _goal_argument(text: str) -> tuple[float, float, float | None]:
@@ -416,6 +423,7 @@ def run(args: argparse.Namespace) -> int:
             m = laser_mount_for(config, world)
             loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad))
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
+            injector.follow_loop = loop
         agent.start()
         if follow is not None:
             for target, name in ((follow.loop.run, "sim-follow"), (follow.run, "sim-follow-score")):

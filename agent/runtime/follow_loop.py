@@ -26,7 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed
-from agent.following.person import DetectorConfig, PersonEstimate, PersonTracker, detect_people
+from agent.following.person import (
+    DetectorConfig,
+    PersonDetections,
+    PersonEstimate,
+    PersonTracker,
+    detect_people,
+)
 from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Scan
@@ -95,6 +101,7 @@ class FollowLoop:
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
         self.latest: FollowSnapshot | None = None
+        self.blind = False  # drop the scans' detections (``vlp-agent sim --fault person``: the person hidden)
 
     # -- the RFID layer's word -------------------------------------------------------------------------
 
@@ -133,6 +140,8 @@ class FollowLoop:
         detections = (
             detect_people(angles, ranges, laser, None, self.detector) if static is not None else fresh
         )
+        if self.blind:
+            fresh = detections = PersonDetections(np.zeros((0, 2)), np.zeros(0))
         t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
