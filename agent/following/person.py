@@ -120,7 +120,7 @@ class TrackerConfig:
     initial_speed_sd_mps: float = 1.0
     lost_after_s: float = 1.0  # no accepted measurement for this long: the track is dropped
     max_acquire_range_m: float = 4.5  # the coarse layer's grid ends here
-    reacquire_s: float = 5.0  # after a loss, prefer candidates near where the lost track would be by now
+    reacquire_s: float = 5.0  # after a loss, only candidates near where the lost track would be by now
     reacquire_m: float = 1.0  # ... within this of it (plus 0.5 m per second since the loss)
 
 
@@ -182,8 +182,8 @@ class PersonTracker:
         self, t_s: float, detections: PersonDetections, robot: Pose, centre_rad: float, half_width_rad: float
     ) -> bool:
         """Start a track on a candidate whose bearing (robot frame) is within ``centre_rad`` +-
-        ``half_width_rad`` and range within ``max_acquire_range_m``: within ``reacquire_s`` of a loss the one
-        nearest where the lost person would be by now, if one is near it; else the one nearest the robot.
+        ``half_width_rad`` and range within ``max_acquire_range_m``: within ``reacquire_s`` of a loss only one
+        near where the lost person would be by now (the nearest to it), later the one nearest the robot.
         False if none."""
         if len(detections) == 0:
             return False
@@ -200,8 +200,9 @@ class PersonTracker:
             near = np.hypot(*(detections.centres - guess).T)
             reach = self.config.reacquire_m + 0.5 * (t_s - lost.last_seen_s)
             close = ok & (near <= reach)
-            if np.any(close):
-                return self._start(t_s, detections, int(np.flatnonzero(close)[np.argmin(near[close])]))
+            if not np.any(close):
+                return False  # nobody where they would be: rather no track than someone else's
+            return self._start(t_s, detections, int(np.flatnonzero(close)[np.argmin(near[close])]))
         if not np.any(ok):
             return False
         return self._start(t_s, detections, int(np.flatnonzero(ok)[np.argmin(rng[ok])]))

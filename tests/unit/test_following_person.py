@@ -99,10 +99,21 @@ def test_a_track_without_measurements_is_lost_after_the_timeout() -> None:
     assert tracker.tracking
     tracker.predict(1.2)
     assert not tracker.tracking and tracker.counts["lost"] == 1
-    # Re-acquisition prefers where the lost person would be by now over someone nearer the robot.
+    # Re-acquisition takes the one near where the lost person would be by now, not someone nearer the robot.
     assert tracker.acquire(1.5, dets((1.0, 0.5), (2.3, 0.0)), (0.0, 0.0, 0.0), 0.0, 1.0)
     est = tracker.estimate()
     assert est is not None and est.xy == (2.3, 0.0) and est.track_id == 2
+
+
+def test_soon_after_a_loss_nobody_far_from_the_lost_person_is_taken() -> None:
+    tracker = PersonTracker(TrackerConfig(lost_after_s=1.0, reacquire_s=5.0))
+    tracker.acquire(0.0, dets((2.0, 0.0)), (0.0, 0.0, 0.0), 0.0, 1.0)
+    tracker.predict(1.2)
+    assert not tracker.tracking
+    # A passer-by 2.5 m to the side of where the user was: not them, not yet anyone.
+    assert not tracker.acquire(1.5, dets((2.0, 2.5)), (0.0, 0.0, 0.0), 0.0, 1.5)
+    # Long after the loss the nearest in the window is taken again.
+    assert tracker.acquire(7.0, dets((2.0, 2.5)), (0.0, 0.0, 0.0), 0.0, 1.5)
 
 
 def test_a_bearing_measurement_pulls_the_track_sideways_only() -> None:
