@@ -14,7 +14,8 @@ reports
 * ``collisions_people``: contacts (footprint touching a body) begun; ``min_person_gap_m`` (footprint to
   body), ``min_person_distance_m`` (centre to centre);
 * ``stop_latency_s_max``: per entry into ``lost`` (or ``no_tag``) after the first acquisition, the time
-  until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s);
+  until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s) or it
+  steps out of a walker's way (``lost_then_aside`` counts those);
   ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one.
 """
 
@@ -41,6 +42,7 @@ log = logging.getLogger(__name__)
 
 STOPPED_MPS = 0.02
 CUE_LATEST_S = 5.0
+SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
 
 
 def make_follow_loop(
@@ -125,6 +127,7 @@ class FollowScore:
         self._was_lost = False
         self.latencies: list[float] = []
         self.lost_speeds: list[float] = []
+        self.aside_ended = 0  # losses whose stop was cut short by a step out of a walker's way
         self.cued = False
         self.ready_t: float | None = None
 
@@ -200,9 +203,10 @@ class FollowScore:
                 self.lost_events += 1
                 self.lost_speeds.append(speed)
                 self._lost_since = t
-            if self._lost_since is not None and (not lost or speed <= STOPPED_MPS):
-                if speed <= STOPPED_MPS:
+            if self._lost_since is not None and (not lost or speed <= STOPPED_MPS or snap.aside):
+                if speed <= STOPPED_MPS or snap.aside:
                     self.latencies.append(t - self._lost_since)
+                    self.aside_ended += int(snap.aside and speed > STOPPED_MPS)
                 self._lost_since = None
             self._was_lost = lost
 
@@ -235,8 +239,12 @@ class FollowScore:
                 "lost_events": self.lost_events,
                 "stop_latency_s_max": r(max(self.latencies)) if self.latencies else None,
                 "lost_speed_mps_max": r(max(self.lost_speeds)) if self.lost_speeds else None,
+                "lost_then_aside": self.aside_ended,
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
-                "safety": {k: self.loop.counts.get(k, 0) for k in ("costmap_stops", "walker_slowdowns")},
+                "safety": {
+                    k: self.loop.counts.get(k, 0)
+                    for k in ("costmap_stops", "walker_slowdowns", "steps_aside")
+                },
                 "tracker": dict(self.loop.tracker.counts),
                 "last_reason": self.loop.latest.command.reason if self.loop.latest is not None else None,
             }

@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from agent.following.person import PersonEstimate
 
-__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed"]
+__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed", "walker_threat"]
 
 Pose = tuple[float, float, float]
 
@@ -160,3 +160,21 @@ def safe_speed(
         if float(np.min(np.hypot(wx - rx, wy - ry))) > clearance_m:
             return v
     return 0.0
+
+
+def walker_threat(
+    pose: Pose,
+    walkers: npt.NDArray[np.float64],
+    clearance_m: float,
+    horizon_s: float = 2.5,
+    dt_s: float = 0.1,
+) -> bool:
+    """Whether a walker (rows x, y, vx, vy), walking on at their velocity, comes within ``clearance_m`` of
+    the robot standing at ``pose`` over ``horizon_s``: standing still will not keep it clear, it must step
+    aside."""
+    if len(walkers) == 0:
+        return False
+    tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
+    wx = walkers[:, 0:1] + walkers[:, 2:3] * tau
+    wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
+    return float(np.min(np.hypot(wx - pose[0], wy - pose[1]))) <= clearance_m

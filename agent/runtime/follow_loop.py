@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed
+from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
 from agent.following.person import (
     DetectorConfig,
     PersonDetections,
@@ -33,6 +33,7 @@ from agent.following.person import (
     PersonTracker,
     detect_people,
 )
+from agent.navigation.give_way import aside_target
 from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Scan
@@ -52,6 +53,7 @@ class FollowSnapshot:
     command: FollowCommand
     person: PersonEstimate | None
     sent: tuple[float, float]  # what went to the wheels after the safety checks
+    aside: bool = False  # stepping out of a walker's way (the sent command is that, not the follower's)
 
 
 class FollowLoop:
@@ -76,6 +78,8 @@ class FollowLoop:
         person_clear_m: float = 0.5,
         walker_clear_m: float = 0.65,
         walker_is_person_m: float = 0.8,
+        aside_reach_m: float = 0.8,
+        aside_speed_mps: float = 0.3,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -97,6 +101,8 @@ class FollowLoop:
         self.person_clear_m = person_clear_m
         self.walker_clear_m = walker_clear_m
         self.walker_is_person_m = walker_is_person_m
+        self.aside_reach_m = aside_reach_m
+        self.aside_speed_mps = aside_speed_mps
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -200,13 +206,19 @@ class FollowLoop:
         else:
             command = self.follower.step(t_s, pose, person, p_absent, bearing)
         v, w = command.v_mps, command.omega_radps
+        stepping_aside = False
         if pose is not None:
             v = self._safe(pose, v, person)
+            if v <= 0.0:
+                aside = self._aside(pose, person)
+                if aside is not None:
+                    v, w = aside
+                    stepping_aside = True
         if self.guard is not None:
             v, w = self.guard(v, w, t_s)
         self.send(v, w)
         self.counts[f"state_{command.state.value}"] += 1
-        snap = FollowSnapshot(t_s, command, person, (v, w))
+        snap = FollowSnapshot(t_s, command, person, (v, w), stepping_aside)
         self.latest = snap
         if self.counts["steps"] % 20 == 0:
             log.debug(
@@ -223,6 +235,34 @@ class FollowLoop:
             )
         self.counts["steps"] += 1
         return snap
+
+    def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
+        """The navigation's moving tracks (x, y, vx, vy) but the followed person's."""
+        walkers = [
+            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
+            for w in nav.moving.moving()
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
+        ]
+        return np.array(walkers, dtype=np.float64).reshape(-1, 4)
+
+    def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
+        """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
+        (``give_way.aside_target``), or None when no walker threatens or there is nowhere to go."""
+        nav = self.navigator()
+        if nav is None or not walker_threat(pose, self._walkers(nav, person), self.walker_clear_m):
+            return None
+        target = aside_target(nav.costmap, pose, self.aside_reach_m, True)
+        if target is None:
+            return None
+        self.counts["steps_aside"] += 1
+        bearing = math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], math.tau)
+        w = max(-1.5, min(1.5, 2.5 * bearing))
+        # Forward when the target is ahead, backward when behind, turning toward the nearer of the two.
+        if abs(bearing) > math.pi / 2:
+            back = math.remainder(bearing + math.pi, math.tau)
+            w = max(-1.5, min(1.5, 2.5 * back))
+            return (-self.aside_speed_mps * math.cos(back) ** 2 if abs(back) < 0.6 else 0.0), w
+        return (self.aside_speed_mps * math.cos(bearing) ** 2 if abs(bearing) < 0.6 else 0.0), w
 
     def _safe(self, pose: Pose, v: float, person: PersonEstimate | None) -> float:
         """``v`` as the costmap and the walkers allow it: the straight line ahead (``lookahead_s`` of
@@ -257,12 +297,7 @@ class FollowLoop:
                     if np.any(costmap.obstacles[near[ok, 0], near[ok, 1]]):
                         self.counts["costmap_stops"] += 1
                         return 0.0
-        walkers = [
-            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
-            for w in nav.moving.moving()
-            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
-        ]
-        safe = safe_speed(pose, v, np.array(walkers).reshape(-1, 4), self.walker_clear_m)
+        safe = safe_speed(pose, v, self._walkers(nav, person), self.walker_clear_m)
         if safe < v:
             self.counts["walker_slowdowns"] += 1
         return safe

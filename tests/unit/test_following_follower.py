@@ -97,3 +97,12 @@ def test_safe_speed_lets_a_near_crosser_pass_and_crosses_in_front_of_a_far_one()
     assert safe_speed(robot, 0.9, far, 0.65) == 0.9
     # Nobody about: unchanged.
     assert safe_speed(robot, 0.5, np.zeros((0, 4)), 0.65) == 0.5
+
+
+def test_a_walker_coming_at_the_standing_robot_is_a_threat_one_passing_wide_is_not() -> None:
+    from agent.following.follower import walker_threat
+
+    robot = (0.0, 0.0, 0.0)
+    assert walker_threat(robot, np.array([[0.1, 2.0, 0.0, -1.0]]), 0.65)  # walks through the robot
+    assert not walker_threat(robot, np.array([[1.5, 2.0, 0.0, -1.0]]), 0.65)  # passes 1.5 m ahead
+    assert not walker_threat(robot, np.zeros((0, 4)), 0.65)
