@@ -369,6 +369,12 @@ class FollowingConfig:
     table: Any = None  # agent.following.coarse.LikelihoodTable
     antenna_yaws_rad: tuple[float, ...] = (math.radians(50.0), math.radians(-50.0))
     cycle_s: float = 0.25
+    # The follower (agent.following.follower, docs/following.md).
+    distance_m: float = 1.0
+    min_gap_m: float = 0.6
+    max_speed_mps: float = 0.95
+    lost_after_s: float = 1.0
+    search_after_s: float = 1.0
 
 
 def read_rfid_table(path: Path, key: str, file: str) -> Any:
@@ -1038,7 +1044,20 @@ class _Reader:
             table=table,
             antenna_yaws_rad=yaws,
             cycle_s=t.number("cycle_s", d.cycle_s, (lambda v: 0.05 <= v <= 5.0, "must be 0.05..5 s")),
+            distance_m=t.number("distance_m", d.distance_m, (lambda v: 0.3 <= v <= 4.0, "must be 0.3..4 m")),
+            min_gap_m=t.number("min_gap_m", d.min_gap_m, (lambda v: 0.2 <= v <= 4.0, "must be 0.2..4 m")),
+            max_speed_mps=t.number(
+                "max_speed_mps", d.max_speed_mps, (lambda v: 0.0 < v <= 3.0, "must be > 0 and <= 3 m/s")
+            ),
+            lost_after_s=t.number(
+                "lost_after_s", d.lost_after_s, (lambda v: 0.1 <= v <= 10.0, "must be 0.1..10 s")
+            ),
+            search_after_s=t.number(
+                "search_after_s", d.search_after_s, (lambda v: 0.0 <= v <= 60.0, "must be 0..60 s")
+            ),
         )
+        if following.min_gap_m >= following.distance_m:
+            raise t.error("min_gap_m", f"must be below distance_m ({following.distance_m} m)")
         t.finish()
         return following
 

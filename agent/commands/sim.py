@@ -44,6 +44,7 @@ from agent.config import AgentConfig, OutputFormat, SimConfig, SlamMode, load_co
 from agent.recording.messages import TruthSample
 from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
+from agent.runtime.follow_loop import FollowLoop
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.priority import SWITCH_INTERVAL_S
@@ -61,7 +62,7 @@ from firmware_protocol.pose_frame import PoseFlags
 log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = DEFAULT_SIM_CONFIG
-FAULT_KINDS = ("laser", "camera", "servo", "forward_camera")
+FAULT_KINDS = ("laser", "camera", "servo", "forward_camera", "person")
 _AUTOPILOT_PERIOD_S = 0.05
 LATENCY_DEFINITION = (
     "latency: a camera frame captured by the computer (handed over complete by the camera driver) -> the "
@@ -188,6 +189,14 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "'delivery' has each mission's answer and end and the true position's error at each end",
     )
     p.add_argument(
+        "--follow",
+        action="store_true",
+        help="follow the tagged person ([following] tag_id) instead of driving the world's route: the laser "
+        "person tracker seeded by the RFID layer, the follower keeping [following] distance_m behind them "
+        "through the navigation's collision checks; the summary adds 'follow' (distance kept, time lost, "
+        "identity switches, collisions, stop latency: docs/following.md)",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -251,6 +260,7 @@ class FaultInjector:
             (f.start_s, f.kind, True, f.duration_s) for f in faults
         )
         self.applied: list[dict[str, Any]] = []
+        self.follow_loop: FollowLoop | None = None  # with --follow: the person fault hides the person
 
     def step(self, elapsed_s: float, t0_s: float | None = None) -> None:
         """Apply what is due at ``elapsed_s``. Each applied fault records ``t_s`` (``elapsed_s``: when this
@@ -285,6 +295,11 @@ class FaultInjector:
             if stall is None:
                 raise ConfigError("--fault", "forward_camera needs the simulated one ([camera.forward])")
             stall(on)
+        elif kind == "person":
+            follow = self.follow_loop
+            if follow is None:
+                raise ConfigError("--fault", "person needs --follow")
+            follow.blind = on
 
 
 def _deliver_argument(text: str) -> tuple[str, str]:
@@ -445,9 +460,25 @@ def run(args: argparse.Namespace) -> int:
             script = MissionScript(agent.missions, robot.simulation, args.deliver)
         give_way_to_agent(agent, robot)
         injector = FaultInjector(faults, robot, agent)
+        follow = None
+        if args.follow:
+            if goals or missions:
+                raise UsageError("--follow, --goal and --explore/--deliver each drive the robot: give one")
+            from agent.runtime.agent import laser_mount_for
+            from agent.sim_follow import FollowScore, make_follow_loop
+
+            m = laser_mount_for(config, world)
+            loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad))
+            follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
+            injector.follow_loop = loop
         agent.start()
-        # The world's route, driven from the agent's own pose, unless goals or missions drive the robot.
-        route = () if goals or script is not None else world.route
+        if follow is not None:
+            for target, name in ((follow.loop.run, "sim-follow"), (follow.run, "sim-follow-score")):
+                thread = threading.Thread(target=target, args=(stop,), name=name, daemon=True)
+                thread.start()
+                stack.callback(thread.join, 1.0)
+        # The world's route, driven from the agent's own pose, unless goals, missions or following drive it.
+        route = () if goals or script is not None or follow is not None else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -481,6 +512,8 @@ def run(args: argparse.Namespace) -> int:
         if script is not None and args.deliver:
             summary["delivery"] = script.delivery(controller)
         summary["t0_us"] = t0_us
+        if follow is not None:
+            summary["follow"] = follow.figures()
         if agent.flight_recorder is not None:
             summary["recording"] = {
                 "files": [str(p) for p in agent.flight_recorder.files],

@@ -12,4 +12,7 @@ estimates out, time passed in; no threads, files or ports.
   re-acquisition hints while the target is hidden.
 * ``synthetic``: a seeded scene with exact ground truth (a same-colour passer-by crossing the target).
 * ``otb``: OTB-style sequences and their scores, for ``vlp-agent eval track``.
+* ``person``: the laser person detector and the person's track in the map frame (a constant-velocity
+  Kalman filter with gating).
+* ``follower``: the follower's velocity command and states, and the walkers' checks.
 """

@@ -235,6 +235,8 @@ class Agent:
         self.navigation: NavigationLoop | None = None
         # Local missions, exploring and going to places (``enable_missions``); None: none.
         self.missions: MissionLoop | None = None
+        # Called with every scan in the laser loop after the navigation (person following); before start().
+        self.scan_listeners: list[Callable[[Scan], None]] = []
         self.arbiter: CommandArbiter | None = None
         self.fleet: FleetLoop | None = None  # the bridge's Unix socket ([fleet] socket)
         self.commands: CommandLoop | None = None
@@ -310,7 +312,7 @@ class Agent:
                 saver=self.map_saver,
             )
             scans = self.scans if self.mapper is not None else None
-            on_scan = self.navigation.on_scan if self.navigation is not None else None
+            on_scan = self._on_scan if self.navigation is not None or self.scan_listeners else None
             laser = partial(laser_loop, s, laser=d.laser, scans=scans, on_scan=on_scan)
             self._spawn("laser", self.critical("laser"), timeout, laser)
             self._spawn("slam", self.critical("laser"), max(timeout, 5.0), slam.run)
@@ -676,6 +678,12 @@ class Agent:
             self.navigation.on_map(image)
         if self.missions is not None:
             self.missions.on_map(image)
+
+    def _on_scan(self, scan: Scan) -> None:
+        if self.navigation is not None:
+            self.navigation.on_scan(scan)
+        for listener in self.scan_listeners:
+            listener(scan)
 
     def _navigation_pose(self) -> tuple[float, float, float] | None:
         """The fused pose while a position source is live (a stale hold is not driven on)."""

@@ -66,6 +66,7 @@ class Simulation:
         robot = world.robot
         self._t = clock()
         self.t_start = self._t
+        self.people_start = self._t  # the people's cues (Person.start_s) count from here
         self._x, self._y, self._yaw = robot.start.x_m, robot.start.y_m, robot.start.yaw_rad
         self._wheel_pos = [0.0, 0.0]
         self._wheel_vel = [0.0, 0.0]
@@ -91,6 +92,18 @@ class Simulation:
     def elapsed_s(self) -> float:
         return self.clock() - self.t_start
 
+    def hold_people(self) -> None:
+        """Keep everyone at their path's start until :meth:`cue_people`."""
+        with self._lock:
+            self.people_start = math.inf
+
+    def cue_people(self) -> None:
+        """Count the people's cues (``Person.start_s``) from now: a scenario that starts when the robot is
+        ready (``vlp-agent sim --follow``), not when the simulation was made. Call before any has started."""
+        with self._lock:
+            self._integrate_to(self.clock())
+            self.people_start = self._t
+
     def advance(self) -> float:
         """Integrate the state up to the clock's now; returns now."""
         with self._lock:
@@ -109,7 +122,7 @@ class Simulation:
 
     def _step_people(self, dt: float) -> None:
         radius = self.world.robot.radius_m
-        elapsed = self._t - self.t_start
+        elapsed = self._t - self.people_start
         for person, path, walker in zip(self.world.people, self._paths, self._walkers, strict=True):
             if elapsed < person.start_s:
                 walker.v_mps = 0.0  # waiting for their cue

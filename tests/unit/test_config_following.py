@@ -71,6 +71,14 @@ def test_both_cameras_side_by_side_and_the_simulated_one() -> None:
         (REAL + "[following]\ncycle_s = 0.0\n", "following.cycle_s", "0.05..5"),
         (REAL + '[following]\nantenna_yaws_deg = ["left"]\n', "following.antenna_yaws_deg", "array"),
         (REAL + '[following]\nrfid_table = "nowhere.toml"\n', "following.rfid_table", "cannot read"),
+        (REAL + "[following]\ndistance_m = 0.1\n", "following.distance_m", "0.3..4"),
+        (
+            REAL + "[following]\ndistance_m = 1.0\nmin_gap_m = 1.2\n",
+            "following.min_gap_m",
+            "below distance_m",
+        ),
+        (REAL + "[following]\nmax_speed_mps = 0\n", "following.max_speed_mps", "> 0"),
+        (REAL + "[following]\nlost_after_s = 0.0\n", "following.lost_after_s", "0.1..10"),
     ],
 )
 def test_mistakes_name_their_key(text: str, key: str, words: str) -> None:
@@ -118,3 +126,7 @@ def test_the_following_example_loads() -> None:
     assert config.forward_camera is not None and config.forward_camera.backend == "sim"
     assert config.forward_camera.options["render_process"] is True
     assert config.following.tag_id == config.sim.world.people[0].tag_id
+    assert config.following.distance_m == 1.0 and config.following.min_gap_m == 0.6
+    # The follow worlds' base keeps up with a walking user (0.15 m wheels: 0.99 m/s at 6.6 rad/s).
+    assert config.sim.world.robot.wheel_radius_m * config.sim.world.robot.max_wheel_radps > 0.9
+    assert config.control.max_speed_mps >= 0.95

@@ -1,0 +1,180 @@
+"""The follower: a velocity command that keeps a set distance behind the person (``docs/following.md``,
+"The follower").
+
+Each step takes the robot's pose, the person's track (``person.PersonEstimate``, or None) and the RFID
+layer's word (whether the tag is near at all, and the band it says to look in) and answers a
+:class:`FollowCommand` with one of four states and a reason:
+
+* ``following``: a point ``distance_m`` short of the person on the line robot -> person is the target;
+  the forward speed is a proportional pull toward it plus the person's own speed along the line
+  (feed-forward), never backwards, zero when they are nearer than ``min_gap_m`` (the person is an
+  obstacle), scaled down while the heading is off (turning in place beyond ``turn_first_rad``); the turn
+  keeps the person ahead (in the camera's view);
+* ``waiting``: the person stands (slower than ``standing_mps``) and the robot is at its distance: stop;
+* ``lost``: the track is gone: stop at once; after ``search_after_s`` turn in place toward the RFID
+  bearing (the coarse layer's prediction step carries the turn, which separates front from back) until the
+  tracker re-acquires;
+* ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop.
+
+The command then goes through the navigation's costmap, the walkers' motion (:func:`safe_speed`) and the
+collision monitor (the runtime's job, ``agent/runtime/follow_loop.py``).
+Pure: time passed in.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from agent.following.person import PersonEstimate
+
+__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed", "walker_threat"]
+
+Pose = tuple[float, float, float]
+
+
+class FollowState(enum.StrEnum):
+    FOLLOWING = "following"
+    WAITING = "waiting"
+    LOST = "lost"
+    NO_TAG = "no_tag"
+
+
+@dataclass(frozen=True, slots=True)
+class FollowerConfig:
+    distance_m: float = 1.0  # kept between the robot's centre and the person's
+    min_gap_m: float = 0.6  # nearer than this the robot does not move toward them
+    max_speed_mps: float = 0.95
+    max_turn_radps: float = 1.5
+    gain_distance: float = 1.2  # 1/s: m/s of pull per metre off the set distance
+    gain_heading: float = 2.5  # 1/s: rad/s of turn per radian off the person's bearing
+    turn_first_rad: float = math.radians(60.0)  # the person further off the heading: turn in place
+    standing_mps: float = 0.12  # slower than this the person stands
+    tolerance_m: float = 0.1  # within this of the distance a standing person is waited for
+    search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
+    search_turn_radps: float = 0.6
+    absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag
+
+
+@dataclass(frozen=True, slots=True)
+class FollowCommand:
+    v_mps: float
+    omega_radps: float
+    state: FollowState
+    reason: str
+    distance_m: float | None = None  # to the tracked person, when there is one
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    return max(lo, min(hi, x))
+
+
+class Follower:
+    def __init__(self, config: FollowerConfig = FollowerConfig()) -> None:
+        self.config = config
+        self.lost_since_s: float | None = None
+
+    def step(
+        self,
+        t_s: float,
+        robot: Pose,
+        person: PersonEstimate | None,
+        p_absent: float | None,
+        search_bearing_rad: float | None,
+    ) -> FollowCommand:
+        """``p_absent``: the coarse layer's probability that the person is out of reach (None: no RFID
+        answer yet); ``search_bearing_rad``: where it says to turn to (robot frame), None for no idea."""
+        cfg = self.config
+        if person is None:
+            if self.lost_since_s is None:
+                self.lost_since_s = t_s
+            if p_absent is None or p_absent > cfg.absent_probability:
+                why = "no RFID answer yet" if p_absent is None else f"tag absent (p={p_absent:.2f})"
+                return FollowCommand(0.0, 0.0, FollowState.NO_TAG, why)
+            lost_s = t_s - self.lost_since_s
+            if lost_s < cfg.search_after_s or search_bearing_rad is None:
+                return FollowCommand(
+                    0.0, 0.0, FollowState.LOST, f"no person track for {lost_s:.1f} s: stopped"
+                )
+            turn = math.copysign(cfg.search_turn_radps, search_bearing_rad if search_bearing_rad else 1.0)
+            return FollowCommand(
+                0.0,
+                turn,
+                FollowState.LOST,
+                f"searching: turning toward the RFID bearing {math.degrees(search_bearing_rad):.0f} deg",
+            )
+        self.lost_since_s = None
+        dx, dy = person.xy[0] - robot[0], person.xy[1] - robot[1]
+        dist = math.hypot(dx, dy)
+        bearing = math.remainder(math.atan2(dy, dx) - robot[2], math.tau)
+        omega = _clip(cfg.gain_heading * bearing, -cfg.max_turn_radps, cfg.max_turn_radps)
+        ux, uy = (dx / dist, dy / dist) if dist > 1e-6 else (math.cos(robot[2]), math.sin(robot[2]))
+        along = person.velocity[0] * ux + person.velocity[1] * uy  # the person's speed away from the robot
+        error = dist - cfg.distance_m
+        if person.speed_mps < cfg.standing_mps and error < cfg.tolerance_m:
+            return FollowCommand(
+                0.0,
+                omega if abs(bearing) > 0.2 else 0.0,
+                FollowState.WAITING,
+                "the person stands: waiting at the distance",
+                dist,
+            )
+        if dist < cfg.min_gap_m:
+            return FollowCommand(
+                0.0, omega, FollowState.FOLLOWING, "too near the person: not closing in", dist
+            )
+        v = cfg.gain_distance * error + max(along, 0.0)
+        # Turn first when they are well off to the side (out of the camera's view), slow down on the way.
+        v = 0.0 if abs(bearing) > cfg.turn_first_rad else v * math.cos(bearing) ** 2
+        v = _clip(v, 0.0, cfg.max_speed_mps)
+        return FollowCommand(v, omega, FollowState.FOLLOWING, "keeping the distance", dist)
+
+
+def safe_speed(
+    pose: Pose,
+    v_mps: float,
+    walkers: npt.NDArray[np.float64],
+    clearance_m: float,
+    horizon_s: float = 2.5,
+    dt_s: float = 0.1,
+    fractions: tuple[float, ...] = (1.0, 0.66, 0.33),
+) -> float:
+    """The largest of ``v_mps`` x ``fractions`` at which the robot, driving straight on, keeps more than
+    ``clearance_m`` (centre to centre) from every walker (rows x, y, vx, vy in the map frame, walking on at
+    their velocity) over ``horizon_s``; 0 when none does. A walker who crosses far ahead is let pass or
+    crossed in front of, by when they get there, rather than waited for as their whole sweep would have
+    it."""
+    if v_mps <= 0.0 or len(walkers) == 0:
+        return v_mps
+    tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    wx = walkers[:, 0:1] + walkers[:, 2:3] * tau  # (n, t)
+    wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
+    for fraction in fractions:
+        v = v_mps * fraction
+        rx, ry = pose[0] + c * v * tau, pose[1] + s * v * tau
+        if float(np.min(np.hypot(wx - rx, wy - ry))) > clearance_m:
+            return v
+    return 0.0
+
+
+def walker_threat(
+    pose: Pose,
+    walkers: npt.NDArray[np.float64],
+    clearance_m: float,
+    horizon_s: float = 2.5,
+    dt_s: float = 0.1,
+) -> bool:
+    """Whether a walker (rows x, y, vx, vy), walking on at their velocity, comes within ``clearance_m`` of
+    the robot standing at ``pose`` over ``horizon_s``: standing still will not keep it clear, it must step
+    aside."""
+    if len(walkers) == 0:
+        return False
+    tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
+    wx = walkers[:, 0:1] + walkers[:, 2:3] * tau
+    wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
+    return float(np.min(np.hypot(wx - pose[0], wy - pose[1]))) <= clearance_m

@@ -1,0 +1,315 @@
+"""The follow loop: person following on top of navigation (``docs/following.md``, "The follower").
+
+* :meth:`FollowLoop.on_scan` (the laser loop, every scan): the scan's person-sized clusters off the static
+  map (the navigation costmap's static layer, when there is one) update the person's track
+  (``agent.following.person``), or start one inside the RFID layer's band when there is none;
+* :meth:`FollowLoop.step` (its own thread, every ``period_s``): the follower's command
+  (``agent.following.follower``) from the fused pose and the track, checked against the costmap (the point
+  the robot would reach in ``lookahead_s`` must be free) and put through the collision monitor
+  (``NavigationLoop.guard``), then sent as a velocity command (a local mission: the controller's commands
+  take precedence, ``Agent.command_velocity``).
+
+Acquisition uses the coarse layer's window ahead (``within(0, acquire_half_width)``, the camera's view) as
+``docs/following.md`` advises (the global maximum is often the mirror image behind the robot), and, when
+that holds little, its ``bearing_rad``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
+from agent.following.person import (
+    DetectorConfig,
+    PersonDetections,
+    PersonEstimate,
+    PersonTracker,
+    detect_people,
+)
+from agent.navigation.give_way import aside_target
+from agent.navigation.navigator import Navigator
+from agent.runtime.rfid_loop import CoarseLayer
+from drivers.samples import Scan
+
+__all__ = ["NO_POSE", "FollowLoop", "FollowSnapshot"]
+
+NO_POSE = "no pose: stopped"
+
+log = logging.getLogger(__name__)
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class FollowSnapshot:
+    t_s: float
+    command: FollowCommand
+    person: PersonEstimate | None
+    sent: tuple[float, float]  # what went to the wheels after the safety checks
+    aside: bool = False  # stepping out of a walker's way (the sent command is that, not the follower's)
+
+
+class FollowLoop:
+    def __init__(
+        self,
+        follower: Follower,
+        tracker: PersonTracker,
+        laser_mount: Pose,
+        pose: Callable[[], Pose | None],
+        coarse: Callable[[], CoarseLayer | None],
+        send: Callable[[float, float], None],
+        clock_s: Callable[[], float],
+        *,
+        guard: Callable[[float, float, float], tuple[float, float]] | None = None,
+        navigator: Callable[[], Navigator | None] = lambda: None,
+        detector: DetectorConfig | None = None,
+        acquire_half_width_rad: float = math.radians(35.0),
+        acquire_min_mass: float = 0.2,
+        acquire_sure: float = 0.3,
+        lookahead_s: float = 1.0,
+        decel_mps2: float = 1.0,
+        person_clear_m: float = 0.5,
+        walker_clear_m: float = 0.65,
+        walker_is_person_m: float = 0.8,
+        aside_reach_m: float = 0.8,
+        aside_speed_mps: float = 0.3,
+        period_s: float = 0.05,
+    ) -> None:
+        self.follower = follower
+        self.tracker = tracker
+        self.laser_mount = laser_mount
+        self.pose = pose
+        self.coarse = coarse
+        self.send = send
+        self.clock_s = clock_s
+        self.guard = guard
+        self.navigator = navigator
+        self.detector = detector or DetectorConfig()
+        self.acquire_half_width_rad = acquire_half_width_rad
+        self.acquire_min_mass = acquire_min_mass
+        self.acquire_sure = acquire_sure
+        self.absent = follower.config.absent_probability
+        self.lookahead_s = lookahead_s
+        self.decel_mps2 = decel_mps2
+        self.person_clear_m = person_clear_m
+        self.walker_clear_m = walker_clear_m
+        self.walker_is_person_m = walker_is_person_m
+        self.aside_reach_m = aside_reach_m
+        self.aside_speed_mps = aside_speed_mps
+        self.period_s = period_s
+        self.counts: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+        self.latest: FollowSnapshot | None = None
+        self.blind = False  # drop the scans' detections (``vlp-agent sim --fault person``: the person hidden)
+
+    # -- the RFID layer's word -------------------------------------------------------------------------
+
+    def _coarse(self) -> tuple[float | None, float | None, tuple[float, float, float] | None]:
+        """(p_absent, bearing to search toward, acquisition window (centre, half width,
+        probability the person is in it)) in the robot frame; Nones without an RFID answer."""
+        coarse = self.coarse()
+        if coarse is None:
+            return 0.0, None, (0.0, self.acquire_half_width_rad, 0.0)  # no reader: look ahead
+        latest = coarse.latest
+        if latest is None:
+            return None, None, None
+        est = latest.estimate
+        ahead = coarse.filter.within(0.0, self.acquire_half_width_rad)
+        # Only ahead (the camera's view): the global maximum is often the mirror image behind the robot.
+        ok = ahead.probability >= self.acquire_min_mass
+        window = (0.0, self.acquire_half_width_rad, ahead.probability) if ok else None
+        return est.p_absent, est.bearing_rad, window
+
+    # -- scans --------------------------------------------------------------------------------------
+
+    def on_scan(self, scan: Scan) -> None:
+        pose = self.pose()
+        if pose is None:
+            return
+        mx, my, myaw = self.laser_mount
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        laser = (pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + myaw)
+        angles = scan.angles_rad()
+        ranges = scan.ranges_mm.astype(np.float64) / 1000.0
+        ranges[(ranges < scan.min_range_mm / 1000.0) | (ranges > scan.max_range_mm / 1000.0)] = np.nan
+        static = self._static(laser, angles, ranges)
+        # A new track only off the static map; a track keeps its person even where the map has taken them in
+        # (SLAM maps a person who stands still).
+        fresh = detect_people(angles, ranges, laser, static, self.detector)
+        detections = (
+            detect_people(angles, ranges, laser, None, self.detector) if static is not None else fresh
+        )
+        if self.blind:
+            fresh = detections = PersonDetections(np.zeros((0, 2)), np.zeros(0))
+        t_s = scan.host_time_ns * 1e-9
+        p_absent, _, window = self._coarse()
+        with self._lock:
+            self.counts["scans"] += 1
+            self.counts["detections"] += len(fresh)
+            if self.tracker.tracking:
+                self.tracker.update_detections(t_s, detections)
+            elif window is not None and (
+                p_absent is None or p_absent < self.follower.config.absent_probability
+            ):
+                # Off the static map first; then, where the RFID layer is sure they are ahead, a person-sized
+                # cluster the map has taken in (a user who stood still while SLAM mapped them).
+                got = self.tracker.acquire(t_s, fresh, pose, window[0], window[1])
+                if not got and window[2] >= self.acquire_sure:
+                    got = self.tracker.acquire(t_s, detections, pose, window[0], window[1])
+                    self.counts["acquired_on_map"] += int(got)
+                if got:
+                    log.info("following: person acquired (track %d)", self.tracker.track_id)
+
+    def _static(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
+        nav = self.navigator()
+        if nav is None:
+            return None
+        spec = nav.costmap.spec
+        occupied = nav.costmap.static_occupied
+        theta = angles + laser[2]
+        ok = np.isfinite(ranges)
+        r = np.where(ok, ranges, 0.0)
+        xy = np.stack([laser[0] + r * np.cos(theta), laser[1] + r * np.sin(theta)], axis=1)
+        cells = spec.to_cell(xy)
+        inside = spec.inside(cells) & ok
+        static = np.zeros(len(ranges), dtype=bool)
+        rows, cols = cells[inside, 0], cells[inside, 1]
+        # A return on or next to an occupied cell of the static map is the map's (one cell of slack).
+        hit = np.zeros(int(np.count_nonzero(inside)), dtype=bool)
+        shape = occupied.shape
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                rr = np.clip(rows + dr, 0, shape[0] - 1)
+                cc = np.clip(cols + dc, 0, shape[1] - 1)
+                hit |= occupied[rr, cc]
+        static[inside] = hit
+        return static
+
+    # -- the command --------------------------------------------------------------------------------
+
+    def step(self) -> FollowSnapshot:
+        t_s = self.clock_s()
+        pose = self.pose()
+        p_absent, bearing, _ = self._coarse()
+        with self._lock:
+            self.tracker.predict(t_s)
+            person = self.tracker.estimate()
+        if pose is None:
+            command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
+        else:
+            command = self.follower.step(t_s, pose, person, p_absent, bearing)
+        v, w = command.v_mps, command.omega_radps
+        stepping_aside = False
+        if pose is not None:
+            v = self._safe(pose, v, person)
+            if v <= 0.0:
+                aside = self._aside(pose, person)
+                if aside is not None:
+                    v, w = aside
+                    stepping_aside = True
+        if self.guard is not None:
+            v, w = self.guard(v, w, t_s)
+        self.send(v, w)
+        self.counts[f"state_{command.state.value}"] += 1
+        snap = FollowSnapshot(t_s, command, person, (v, w), stepping_aside)
+        self.latest = snap
+        if self.counts["steps"] % 20 == 0:
+            log.debug(
+                "follow t=%.1f pose=%s person=%s %s v=%.2f w=%.2f sent=%.2f,%.2f: %s",
+                t_s,
+                pose,
+                person.xy if person is not None else None,
+                command.state.value,
+                command.v_mps,
+                command.omega_radps,
+                v,
+                w,
+                command.reason,
+            )
+        self.counts["steps"] += 1
+        return snap
+
+    def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
+        """The navigation's moving tracks (x, y, vx, vy) but the followed person's."""
+        walkers = [
+            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
+            for w in nav.moving.moving()
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
+        ]
+        return np.array(walkers, dtype=np.float64).reshape(-1, 4)
+
+    def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
+        """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
+        (``give_way.aside_target``), or None when no walker threatens or there is nowhere to go."""
+        nav = self.navigator()
+        if nav is None or not walker_threat(pose, self._walkers(nav, person), self.walker_clear_m):
+            return None
+        target = aside_target(nav.costmap, pose, self.aside_reach_m, True)
+        if target is None:
+            return None
+        self.counts["steps_aside"] += 1
+        bearing = math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], math.tau)
+        w = max(-1.5, min(1.5, 2.5 * bearing))
+        # Forward when the target is ahead, backward when behind, turning toward the nearer of the two.
+        if abs(bearing) > math.pi / 2:
+            back = math.remainder(bearing + math.pi, math.tau)
+            w = max(-1.5, min(1.5, 2.5 * back))
+            return (-self.aside_speed_mps * math.cos(back) ** 2 if abs(back) < 0.6 else 0.0), w
+        return (self.aside_speed_mps * math.cos(bearing) ** 2 if abs(bearing) < 0.6 else 0.0), w
+
+    def _safe(self, pose: Pose, v: float, person: PersonEstimate | None) -> float:
+        """``v`` as the costmap and the walkers allow it: the straight line ahead (``lookahead_s`` of
+        driving plus the stopping distance at ``decel_mps2``, short of the followed person by
+        ``person_clear_m``: they are the target, the collision monitor keeps the robot off them) must keep
+        the footprint off the scanned obstacles, and the robot must keep ``walker_clear_m`` from every
+        other walker the navigation tracks over their next seconds (:func:`safe_speed`); those within
+        ``walker_is_person_m`` of the followed person's track are them (the navigation's tracks sit on a
+        body's near surface, and lag). The static layer is left to the scan: SLAM maps a person who stood
+        still, and a wall ahead is in the scan."""
+        nav = self.navigator()
+        if nav is None or v <= 0.0:
+            return v
+        costmap = nav.costmap
+        reach = v * self.lookahead_s + v * v / (2.0 * self.decel_mps2)
+        if person is not None:
+            reach = min(reach, math.dist(pose[:2], person.xy) - self.person_clear_m)
+        spec = costmap.spec
+        res = spec.resolution_m
+        d = np.arange(0.5 * res, reach, 0.5 * res)
+        if len(d):
+            xy = np.stack([pose[0] + d * math.cos(pose[2]), pose[1] + d * math.sin(pose[2])], axis=1)
+            cells = spec.to_cell(xy)
+            r = math.ceil(costmap.config.inscribed_m / res)
+            here = spec.to_cell(np.array([pose[:2]]))[0]
+            for dr in range(-r, r + 1):
+                for dc in range(-r, r + 1):
+                    if dr * dr + dc * dc > r * r:
+                        continue
+                    near = cells + np.array([dr, dc])
+                    ok = spec.inside(near) & np.any(near != here, axis=1)
+                    if np.any(costmap.obstacles[near[ok, 0], near[ok, 1]]):
+                        self.counts["costmap_stops"] += 1
+                        return 0.0
+        safe = safe_speed(pose, v, self._walkers(nav, person), self.walker_clear_m)
+        if safe < v:
+            self.counts["walker_slowdowns"] += 1
+        return safe
+
+    def run(self, stop: threading.Event) -> None:
+        """Step every ``period_s`` until ``stop``; stop the wheels when it ends."""
+        try:
+            while not stop.wait(self.period_s):
+                try:
+                    self.step()
+                except Exception:  # a bad step stops the robot, it does not end following
+                    log.exception("follow step failed")
+                    self.send(0.0, 0.0)
+        finally:
+            self.send(0.0, 0.0)

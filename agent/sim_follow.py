@@ -1,0 +1,250 @@
+"""``vlp-agent sim --follow``: the follow loop wired on the simulated robot, and its score against the
+simulation's truth (``docs/following.md``, "Following in the simulator").
+
+:class:`FollowScore` samples the truth every ``period_s`` of the simulation's clock: the robot's true
+pose, the tagged user's position and speed, every person's, and the follow loop's latest state, and
+reports
+
+* ``within_band``: the share of the time the user walks (true speed > 0.05 m/s) that the true centre
+  distance robot-user is within ``distance_m`` +- ``band_m``; ``within_band_after_reached`` the same from
+  the first time it was in the band (the start's approach left out); ``distance_m_median`` while walking;
+* ``time_lost_s``: time in the states ``lost`` and ``no_tag`` after the first acquisition;
+* ``identity_switches``: how often the person the track is on (the true person nearest the track, within
+  ``match_m``) changes from one person to another;
+* ``collisions_people``: contacts (footprint touching a body) begun; ``min_person_gap_m`` (footprint to
+  body), ``min_person_distance_m`` (centre to centre);
+* ``stop_latency_s_max``: per entry into ``lost`` (or ``no_tag``) after the first acquisition, the time
+  until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s) or it
+  steps out of a walker's way (``lost_then_aside`` counts those);
+  ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import threading
+from typing import Any
+
+from agent.config import AgentConfig
+from agent.following.follower import Follower, FollowerConfig, FollowState
+from agent.following.person import PersonTracker, TrackerConfig
+from agent.navigation.navigator import Navigator
+from agent.runtime.agent import Agent
+from agent.runtime.follow_loop import NO_POSE, FollowLoop
+from drivers.sim.harness import SimulatedRobot
+from firmware_protocol.pose_frame import PoseFlags
+
+__all__ = ["FollowScore", "make_follow_loop"]
+
+log = logging.getLogger(__name__)
+
+STOPPED_MPS = 0.02
+CUE_LATEST_S = 5.0
+SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
+
+
+def make_follow_loop(
+    agent: Agent, config: AgentConfig, laser_mount: tuple[float, float, float]
+) -> FollowLoop:
+    """The follow loop on the agent: its pose, coarse layer, navigation's costmap and collision monitor;
+    commands as a local mission's velocity. Registers its scan listener (before ``agent.start()``)."""
+    f = config.following
+    follower = Follower(
+        FollowerConfig(
+            distance_m=f.distance_m,
+            min_gap_m=f.min_gap_m,
+            max_speed_mps=f.max_speed_mps,
+            search_after_s=f.search_after_s,
+        )
+    )
+    tracker = PersonTracker(TrackerConfig(lost_after_s=f.lost_after_s))
+    sources = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
+
+    def pose() -> tuple[float, float, float] | None:
+        estimate, flags = agent.pose()
+        if not flags & sources:
+            return None
+        return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
+
+    def navigator() -> Navigator | None:
+        return agent.navigation.navigator if agent.navigation is not None else None
+
+    loop = FollowLoop(
+        follower,
+        tracker,
+        laser_mount,
+        pose,
+        lambda: agent.coarse,
+        agent.command_velocity,
+        lambda: agent.clock_ns() * 1e-9,
+        guard=agent.navigation.guard if agent.navigation is not None else None,
+        navigator=navigator,
+    )
+    agent.scan_listeners.append(loop.on_scan)
+    return loop
+
+
+class FollowScore:
+    def __init__(
+        self,
+        robot: SimulatedRobot,
+        loop: FollowLoop,
+        tag_id: str | None,
+        distance_m: float,
+        band_m: float = 0.25,
+    ) -> None:
+        self.sim = robot.simulation
+        self.sim.hold_people()  # until the robot has a pose (sample())
+        self.loop = loop
+        people = self.sim.world.people
+        tag = (tag_id or "").upper()
+        users = [p for p in people if p.tag_id.upper() == tag]
+        self.user = users[0] if users else None
+        self.distance_m = distance_m
+        self.band_m = band_m
+        self.match_m = 0.6
+        self._lock = threading.Lock()
+        self._last_t: float | None = None
+        self._last_pose: tuple[float, float] | None = None
+        self.walking_s = 0.0
+        self.within_s = 0.0
+        self.reached = False
+        self.after_s = 0.0
+        self.after_within_s = 0.0
+        self.distances: list[float] = []
+        self.lost_s = 0.0
+        self.acquired = False
+        self.on_person: str | None = None
+        self.switches = 0
+        self.contacts = 0
+        self._in_contact = False
+        self.min_gap = math.inf
+        self.min_dist = math.inf
+        self.lost_events = 0
+        self._lost_since: float | None = None
+        self._was_lost = False
+        self.latencies: list[float] = []
+        self.lost_speeds: list[float] = []
+        self.aside_ended = 0  # losses whose stop was cut short by a step out of a walker's way
+        self.cued = False
+        self.ready_t: float | None = None
+
+    def sample(self) -> None:
+        sim = self.sim
+        t = sim.now()
+        base = sim.pose()
+        with self._lock:
+            dt = 0.0 if self._last_t is None else t - self._last_t
+            speed = 0.0
+            if self._last_pose is not None and dt > 0:
+                speed = math.hypot(base.x_m - self._last_pose[0], base.y_m - self._last_pose[1]) / dt
+            self._last_t, self._last_pose = t, (base.x_m, base.y_m)
+            positions = {p.name: sim.person_position(p, t) for p in sim.world.people}
+            for p in sim.world.people:
+                px, py = positions[p.name]
+                d = math.hypot(px - base.x_m, py - base.y_m)
+                self.min_dist = min(self.min_dist, d)
+                self.min_gap = min(self.min_gap, d - p.radius_m - sim.world.robot.radius_m)
+            _, person_gap = sim.clearances_m(base.x_m, base.y_m, t)
+            contact = person_gap <= 0.0
+            if contact and not self._in_contact:
+                self.contacts += 1
+            self._in_contact = contact
+            if self.user is not None:
+                ux, uy = positions[self.user.name]
+                d_user = math.hypot(ux - base.x_m, uy - base.y_m)
+                if sim.person_speed_mps(self.user) > 0.05:
+                    self.walking_s += dt
+                    within = abs(d_user - self.distance_m) <= self.band_m
+                    self.within_s += dt if within else 0.0
+                    self.distances.append(d_user)
+                    if len(self.distances) % 5 == 0:
+                        log.debug(
+                            "follow truth t=%.2f user=%.2f,%.2f robot=%.2f,%.2f d=%.2f",
+                            t,
+                            ux,
+                            uy,
+                            base.x_m,
+                            base.y_m,
+                            d_user,
+                        )
+                    self.reached |= within
+                    if self.reached:
+                        self.after_s += dt
+                        self.after_within_s += dt if within else 0.0
+            snap = self.loop.latest
+            if snap is None:
+                return
+            if self.ready_t is None and snap.command.reason != NO_POSE:
+                self.ready_t = t
+            if (
+                not self.cued
+                and self.ready_t is not None
+                and (snap.person is not None or t - self.ready_t >= CUE_LATEST_S)
+            ):
+                # The scenario starts when the robot has locked on (a pose and a track; at the latest
+                # CUE_LATEST_S after the pose): the user waits for it, as a real one would.
+                sim.cue_people()
+                self.cued = True
+            state = snap.command.state
+            if snap.person is not None:
+                self.acquired = True
+                best = min(positions, key=lambda n: math.dist(positions[n], snap.person.xy))  # type: ignore[union-attr]
+                if math.dist(positions[best], snap.person.xy) <= self.match_m:
+                    if self.on_person is not None and best != self.on_person:
+                        self.switches += 1
+                    self.on_person = best
+            lost = state in (FollowState.LOST, FollowState.NO_TAG)
+            if self.acquired and lost:
+                self.lost_s += dt
+            if lost and not self._was_lost and self.acquired:
+                self.lost_events += 1
+                self.lost_speeds.append(speed)
+                self._lost_since = t
+            if self._lost_since is not None and (not lost or speed <= STOPPED_MPS or snap.aside):
+                if speed <= STOPPED_MPS or snap.aside:
+                    self.latencies.append(t - self._lost_since)
+                    self.aside_ended += int(snap.aside and speed > STOPPED_MPS)
+                self._lost_since = None
+            self._was_lost = lost
+
+    def run(self, stop: threading.Event, period_s: float = 0.05) -> None:
+        while not stop.wait(period_s):
+            self.sample()
+
+    def figures(self) -> dict[str, Any]:
+        with self._lock:
+
+            def r(x: float, n: int = 3) -> float | None:
+                return round(x, n) if math.isfinite(x) else None
+
+            return {
+                "user": self.user.name if self.user is not None else None,
+                "distance_set_m": self.distance_m,
+                "band_m": self.band_m,
+                "walking_s": r(self.walking_s, 2),
+                "within_band": r(self.within_s / self.walking_s) if self.walking_s > 0 else None,
+                "within_band_after_reached": r(self.after_within_s / self.after_s)
+                if self.after_s > 0
+                else None,
+                "distance_m_median": r(statistics.median(self.distances)) if self.distances else None,
+                "time_lost_s": r(self.lost_s, 2),
+                "identity_switches": self.switches,
+                "followed": self.on_person,
+                "collisions_people": self.contacts,
+                "min_person_gap_m": r(self.min_gap),
+                "min_person_distance_m": r(self.min_dist),
+                "lost_events": self.lost_events,
+                "stop_latency_s_max": r(max(self.latencies)) if self.latencies else None,
+                "lost_speed_mps_max": r(max(self.lost_speeds)) if self.lost_speeds else None,
+                "lost_then_aside": self.aside_ended,
+                "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
+                "safety": {
+                    k: self.loop.counts.get(k, 0)
+                    for k in ("costmap_stops", "walker_slowdowns", "steps_aside")
+                },
+                "tracker": dict(self.loop.tracker.counts),
+                "last_reason": self.loop.latest.command.reason if self.loop.latest is not None else None,
+            }

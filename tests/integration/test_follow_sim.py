@@ -1,0 +1,49 @@
+"""``vlp-agent sim --follow`` on the straight-walk scenario: the robot locks on to the tagged user (not a
+passer-by), drives after them without touching anyone, and the summary carries the follow figures. Short,
+and no timing asserted (the figures against the acceptance are measured by the runs in docs/following.md)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.strict_json import strict_loads
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_sim_follow_locks_on_to_the_user_and_follows_without_contact(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "agent.cli",
+            "sim",
+            "--config",
+            str(REPO / "examples" / "follow.toml"),
+            "--follow",
+            "--seconds",
+            "14",
+            "--json",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    s = strict_loads(out.stdout)
+    f = s["follow"]
+    assert f["user"] == "user"
+    assert f["tracker"]["acquired"] >= 1 and f["states"].get("state_following", 0) > 0
+    assert f["followed"] == "user" and f["identity_switches"] == 0
+    assert f["collisions_people"] == 0 and s["collisions_people"] == 0
+    assert f["min_person_gap_m"] is not None and f["min_person_gap_m"] > 0.0
+    assert s["distance_m"] > 1.0  # it drove after them
+    for key in ("within_band", "distance_m_median", "time_lost_s", "stop_latency_s_max", "lost_events"):
+        assert key in f

@@ -1,0 +1,108 @@
+"""The follower's command and states (agent.following.follower)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agent.following.follower import Follower, FollowerConfig, FollowState
+from agent.following.person import PersonEstimate
+
+
+def person(x: float, y: float, vx: float = 0.0, vy: float = 0.0, t: float = 0.0) -> PersonEstimate:
+    return PersonEstimate((x, y), (vx, vy), np.eye(4) * 0.01, 1, t, t)
+
+
+def test_it_closes_in_when_far_and_turns_toward_the_person() -> None:
+    f = Follower()
+    cmd = f.step(0.0, (0.0, 0.0, 0.0), person(2.0, 0.5, 0.7, 0.0), 0.0, 0.0)
+    assert cmd.state is FollowState.FOLLOWING
+    assert cmd.v_mps > 0.7  # faster than the person walks: the gap shrinks
+    assert cmd.omega_radps > 0.0  # they are to the left
+
+
+def test_it_keeps_pace_at_the_set_distance_and_stops_when_the_person_stops() -> None:
+    f = Follower(FollowerConfig(distance_m=1.0))
+    walking = f.step(0.0, (0.0, 0.0, 0.0), person(1.0, 0.0, 0.7, 0.0), 0.0, 0.0)
+    assert abs(walking.v_mps - 0.7) < 0.05
+    standing = f.step(0.1, (0.0, 0.0, 0.0), person(1.05, 0.0), 0.0, 0.0)
+    assert standing.state is FollowState.WAITING and standing.v_mps == 0.0
+
+
+def test_it_never_drives_at_a_person_who_is_too_near_nor_backwards() -> None:
+    f = Follower(FollowerConfig(min_gap_m=0.6))
+    cmd = f.step(0.0, (0.0, 0.0, 0.0), person(0.5, 0.0, -0.5, 0.0), 0.0, 0.0)
+    assert cmd.v_mps == 0.0
+    cmd = f.step(0.1, (0.0, 0.0, 0.0), person(0.8, 0.0, 0.0, 0.0), 0.0, 0.0)
+    assert cmd.v_mps >= 0.0
+
+
+def test_a_person_to_the_side_is_turned_to_before_driving() -> None:
+    f = Follower()
+    cmd = f.step(0.0, (0.0, 0.0, 0.0), person(0.0, 2.0), 0.0, 0.0)
+    assert cmd.v_mps == 0.0 and cmd.omega_radps > 1.0
+
+
+def test_lost_stops_at_once_then_searches_toward_the_rfid_bearing() -> None:
+    f = Follower(FollowerConfig(search_after_s=1.0))
+    f.step(0.0, (0.0, 0.0, 0.0), person(2.0, 0.0, 0.7), 0.0, 0.0)
+    lost = f.step(0.05, (0.0, 0.0, 0.0), None, 0.1, math.radians(-120.0))
+    assert lost.state is FollowState.LOST and lost.v_mps == 0.0 and lost.omega_radps == 0.0
+    searching = f.step(1.2, (0.0, 0.0, 0.0), None, 0.1, math.radians(-120.0))
+    assert searching.state is FollowState.LOST and searching.v_mps == 0.0 and searching.omega_radps < 0.0
+    assert "searching" in searching.reason
+    back = f.step(1.3, (0.0, 0.0, 0.0), person(2.0, 0.0, 0.7), 0.1, 0.0)
+    assert back.state is FollowState.FOLLOWING
+
+
+def test_no_tag_when_the_rfid_layer_says_absent_or_has_not_answered() -> None:
+    f = Follower()
+    absent = f.step(0.0, (0.0, 0.0, 0.0), None, 0.95, 0.0)
+    assert absent.state is FollowState.NO_TAG and absent.v_mps == 0.0 and absent.omega_radps == 0.0
+    assert "absent" in absent.reason
+    assert f.step(0.1, (0.0, 0.0, 0.0), None, None, None).state is FollowState.NO_TAG
+
+
+def test_a_followed_walker_is_kept_within_the_band_in_closed_loop() -> None:
+    """The follower driving an ideal unicycle behind a walker turning left: within 1.0 +- 0.25 m."""
+    f = Follower()
+    x, y, yaw = 0.0, 0.0, 0.0
+    dt = 0.05
+    inside = 0
+    n = 0
+    for k in range(600):
+        t = k * dt
+        s = 1.0 + 0.7 * t  # the walker: 1 m ahead, then 0.7 m/s along x, turning left after 6 m
+        px, py, vx, vy = (s, 0.0, 0.7, 0.0) if s < 6.0 else (6.0, s - 6.0, 0.0, 0.7)
+        cmd = f.step(t, (x, y, yaw), person(px, py, vx, vy, t), 0.0, 0.0)
+        x += cmd.v_mps * math.cos(yaw) * dt
+        y += cmd.v_mps * math.sin(yaw) * dt
+        yaw += cmd.omega_radps * dt
+        if t > 2.0:
+            n += 1
+            inside += abs(math.hypot(px - x, py - y) - 1.0) <= 0.25
+    assert inside / n >= 0.95
+
+
+def test_safe_speed_lets_a_near_crosser_pass_and_crosses_in_front_of_a_far_one() -> None:
+    from agent.following.follower import safe_speed
+
+    robot = (0.0, 0.0, 0.0)
+    # A walker 0.8 m ahead and 1 m to the side, crossing the robot's line at 1 m/s: wait for them.
+    near = np.array([[0.8, 1.0, 0.0, -1.0]])
+    assert safe_speed(robot, 0.9, near, 0.65) == 0.0
+    # The same walker 5 m to the side: the robot is past their line long before they get there.
+    far = np.array([[1.0, 5.0, 0.0, -1.0]])
+    assert safe_speed(robot, 0.9, far, 0.65) == 0.9
+    # Nobody about: unchanged.
+    assert safe_speed(robot, 0.5, np.zeros((0, 4)), 0.65) == 0.5
+
+
+def test_a_walker_coming_at_the_standing_robot_is_a_threat_one_passing_wide_is_not() -> None:
+    from agent.following.follower import walker_threat
+
+    robot = (0.0, 0.0, 0.0)
+    assert walker_threat(robot, np.array([[0.1, 2.0, 0.0, -1.0]]), 0.65)  # walks through the robot
+    assert not walker_threat(robot, np.array([[1.5, 2.0, 0.0, -1.0]]), 0.65)  # passes 1.5 m ahead
+    assert not walker_threat(robot, np.zeros((0, 4)), 0.65)
