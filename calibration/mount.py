@@ -231,16 +231,24 @@ _MIN_REST_SAMPLES = 10
 _REST_PATIENCE = 4.0
 
 
-def imu_at_rest(imu: Imu, seconds: float, status: Callable[[str], None]) -> tuple[FloatArray, float]:
+def imu_at_rest(
+    imu: Imu,
+    seconds: float,
+    status: Callable[[str], None],
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> tuple[FloatArray, float]:
     """Mean specific force over ``seconds`` of fresh samples, and how much |f| varied (m/s^2). Reads are paced
     so each new sample is taken once (a part sampling at 100 Hz repeats its registers between samples).
     Fewer than ``_MIN_REST_SAMPLES`` by then (a slow bus, a busy computer): it reads on, up to
-    ``_REST_PATIENCE`` times as long, before giving up."""
+    ``_REST_PATIENCE`` times as long, before giving up. ``clock`` and ``sleep``: the time it reads by (a
+    test's own clock, to pace a fake IMU without the wall clock)."""
     values: list[tuple[float, float, float]] = []
-    start = time.monotonic()
+    start = clock()
     deadline, give_up = start + seconds, start + _REST_PATIENCE * seconds
     last: tuple[float, float, float] | None = None
-    while (now := time.monotonic()) < deadline or (len(values) < _MIN_REST_SAMPLES and now < give_up):
+    while (now := clock()) < deadline or (len(values) < _MIN_REST_SAMPLES and now < give_up):
         try:
             accel = imu.read().accel_mps2
         except DeviceError as exc:
@@ -250,10 +258,10 @@ def imu_at_rest(imu: Imu, seconds: float, status: Callable[[str], None]) -> tupl
             values.append(accel)
             last = accel
         status(f"  IMU at rest: {len(values)} samples")
-        time.sleep(0.004)
+        sleep(0.004)
     if len(values) < _MIN_REST_SAMPLES:
         raise CalibrationError(
-            f"the IMU gave {len(values)} fresh samples in {time.monotonic() - start:.1f} s, fewer than "
+            f"the IMU gave {len(values)} fresh samples in {clock() - start:.1f} s, fewer than "
             f"{_MIN_REST_SAMPLES}; check it (vlp-agent devices)"
         )
     a = np.array(values)

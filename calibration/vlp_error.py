@@ -116,6 +116,7 @@ class Tracks:
     paths: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
     heights: dict[int, float] = field(default_factory=dict)
     fixes: list[tuple[float, float]] = field(default_factory=list)
+    frames: int = 0  # frames processed during the turn (a starved computer drops some)
 
     def add(self, result: VlpResult, led_map: LedMap, lens_height_m: float) -> None:
         for obs in result.leds:
@@ -276,6 +277,7 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
                 tick=lambda: None,
                 status=console.status,
             )
+        tracks.frames = loop.frames
         if pose is not None:
             pose = (pose[0], pose[1], pose[2] + 2.0 * math.pi)
         usable = [k for k in tracks.paths if k in tracks.heights]
@@ -474,6 +476,8 @@ def _result(
         else None,
         "nominal_principal_point_px": [round(view.intrinsics.cx_px, 3), round(view.intrinsics.cy_px, 3)],
         "circles": circles,
+        "turn_frames": tracks.frames,
+        "turn_tracks": len(tracks.paths),
         "known_point_fixes": len(after),
         "known_points_mean_error_cm_before": round(mean_before, 4),
         "known_points_mean_error_cm_after": round(mean_after, 4),

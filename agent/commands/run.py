@@ -134,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         "frames_received": controller.frames if controller is not None else None,
         "map_files": map_files,
     }
+    summary["stop"] = shutdown.stop_times()  # from SIGTERM / SIGINT to here; None: none came
     if args.json:
         print(dumps_json(summary, sort_keys=True))
     else:

@@ -519,6 +519,7 @@ def run(args: argparse.Namespace) -> int:
                 "files": [str(p) for p in agent.flight_recorder.files],
                 **agent.flight_recorder.counters(),
             }
+    summary["stop"] = shutdown.stop_times()  # from SIGTERM / SIGINT to here; None: none came
     if args.json:
         print(dumps_json(summary, sort_keys=True))
     else:

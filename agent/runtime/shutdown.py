@@ -21,6 +21,7 @@ import contextlib
 import os
 import select
 import signal
+import time
 from collections.abc import Callable, Iterable
 from types import FrameType, TracebackType
 from typing import Any
@@ -39,6 +40,8 @@ class ShutdownRequest:
         self._read_fd = -1
         self._write_fd = -1
         self._previous: dict[signal.Signals, _Handler] = {}
+        # When the signal came: monotonic time and this process's CPU time.
+        self._at: tuple[float, float] | None = None
 
     @property
     def requested(self) -> bool:
@@ -54,7 +57,19 @@ class ShutdownRequest:
             select.select([self._read_fd], [], [], timeout_s)
         return self.signum is not None
 
+    def stop_times(self) -> dict[str, float] | None:
+        """The stop so far in the process's own terms, from the first signal: ``wall_s`` (monotonic) and
+        ``cpu_s`` (CPU time of every thread of this process; a SLAM worker process is waited on, not
+        counted). ``cpu_s`` is the stop's own work, which a loaded machine hardly inflates; ``wall_s`` adds
+        the waits and the time the process waited for a CPU. None: no signal came."""
+        if self._at is None:
+            return None
+        wall, cpu = self._at
+        return {"wall_s": round(time.monotonic() - wall, 3), "cpu_s": round(time.process_time() - cpu, 3)}
+
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        if self.signum is None:  # clocks read, no lock taken: safe in a handler
+            self._at = (time.monotonic(), time.process_time())
         self.signum = signum
         with contextlib.suppress(OSError):  # a full pipe already wakes the reader
             os.write(self._write_fd, b"\0")

@@ -15,7 +15,10 @@ straight in the caller's buffer. They talk over a socketpair (AF_UNIX, no networ
 it, the interpreter lock released, as it would in a camera driver.
 
 Same seed, same frames as the in-process renderer (the child's renderer is built from the same
-arguments and draws the same sequence). If the child dies, ``render`` raises
+arguments and draws the same sequence). Each request is numbered and each answer names its request: a frame
+whose wait ran out (``render`` raised) and that comes later is dropped, not handed out as the next frame's
+(it was: the image of an earlier pose under a later frame's time, until the camera reopened). If the child
+dies, ``render`` raises
 :class:`~drivers.errors.DeviceDisconnected` (the camera then reopens, starting a new child).
 """
 
@@ -24,6 +27,7 @@ from __future__ import annotations
 import logging
 import multiprocessing.connection
 import sys
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -57,14 +61,14 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             return
         if request is None:
             return
-        t0_s, sampled = request
+        number, t0_s, sampled = request
 
         def pose_at(t: float, sampled: list[tuple[float, Pose2D]] = sampled) -> Pose2D:
             # The renderer asks for the very row times the parent sampled at.
             return min(sampled, key=lambda item: abs(item[0] - t))[1]
 
         rendered = renderer.render(pose_at, t0_s, out=image)
-        conn.send(rendered.truth)
+        conn.send((number, rendered.truth))
         conn.send_bytes(image.data.cast("B"))
 
 
@@ -99,6 +103,7 @@ class RenderWorker:
             "seed": seed,
             "scene": scene,
         }
+        self._requests = 0  # frames asked for; each answer names its request
         self._process, self._conn = start_child("drivers.sim.render_worker")
         self._conn.send((self._args, self._kwargs))
 
@@ -118,14 +123,26 @@ class RenderWorker:
         elif out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
             raise ValueError(f"out must be C-contiguous uint8 of shape {shape}, got {out.dtype} {out.shape}")
         times = pose_times_s(cam, t0_s)
+        self._requests += 1
+        number = self._requests
         try:
-            self._conn.send((t0_s, [(t, pose_at(t)) for t in times]))
-            if not self._conn.poll(_REPLY_TIMEOUT_S):
-                raise DeviceDisconnected(
-                    f"the render process gave no frame in {_REPLY_TIMEOUT_S:g} s", "sim-camera"
+            self._conn.send((number, t0_s, [(t, pose_at(t)) for t in times]))
+            deadline = time.monotonic() + _REPLY_TIMEOUT_S
+            while True:
+                if not self._conn.poll(max(0.0, deadline - time.monotonic())):
+                    raise DeviceDisconnected(
+                        f"the render process gave no frame in {_REPLY_TIMEOUT_S:g} s", "sim-camera"
+                    )
+                reply: tuple[int, FrameTruth] = self._conn.recv()
+                answered, truth = reply
+                self._conn.recv_bytes_into(out.data.cast("B"))
+                # A frame asked for earlier whose wait ran out (a loaded machine: a child slow to start)
+                # arrives late: dropped, never taken for this one.
+                if answered == number:
+                    break
+                log.warning(
+                    "dropped a late frame from the render process (%d, waiting for %d)", answered, number
                 )
-            truth: FrameTruth = self._conn.recv()
-            self._conn.recv_bytes_into(out.data.cast("B"))
         except (EOFError, OSError) as exc:
             raise DeviceDisconnected(f"the render process is gone: {exc}", "sim-camera") from exc
         return RenderedFrame(out, truth)

@@ -41,8 +41,10 @@ from drivers.errors import (
     DeviceTimeout,
 )
 from drivers.registry import DeviceKind, backend_class
+from drivers.sim import render_worker
 from drivers.sim.render_worker import RenderWorker
 from drivers.sim.simulation import Simulation
+from drivers.sim.world import Pose2D
 from drivers.sim.worldfile import load_world
 
 REPO = Path(__file__).resolve().parents[2]
@@ -524,3 +526,22 @@ def test_sim_render_process_that_dies_is_a_disconnect_and_reopening_starts_anoth
         cam.close()
         cam.open()
         assert cam.grab(timeout_s=2.0).image.max() > 100
+
+
+def test_a_frame_the_render_process_answers_too_late_is_dropped_not_given_for_the_next(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A wait that ran out (a loaded machine: a child slow to start) left its answer in the pipe, and the
+    next frame got it: an image of the earlier pose under the later frame's time, for every frame after."""
+    world = load_world(ENV1)
+    worker = RenderWorker(world.camera, world.leds, world.robot.camera_mount)
+    try:
+        here, there = Pose2D(0.0, 0.0, 0.0), Pose2D(0.3, -0.2, 1.0)
+        monkeypatch.setattr(render_worker, "_REPLY_TIMEOUT_S", 1e-6)  # no child answers that fast
+        with pytest.raises(DeviceDisconnected, match="gave no frame"):
+            worker.render(lambda t: here, 1.0)
+        monkeypatch.setattr(render_worker, "_REPLY_TIMEOUT_S", 30.0)
+        frame = worker.render(lambda t: there, 2.0)
+        assert frame.truth.t0_s == 2.0 and frame.truth.base_pose == there
+    finally:
+        worker.close()

@@ -110,6 +110,9 @@ def test_clustered_known_points_give_no_residual_correction(tmp_path: Path) -> N
     r = strict_loads(out.stdout)
     assert "not spread out" in r["residual_refused"]
     assert r["residual_rms_after_m"] is None and r["rotation_centre_refused"] is None
+    # The file is written only when every check passes: say which did not (a loaded machine once left no
+    # vlp.toml, and the FileNotFoundError told nothing), with the turn's frame count.
+    assert r["ok"], ([c for c in r["checks"] if not c["ok"]], r["turn_frames"], r["turn_tracks"])
     calibration = parse_calibration((tmp_path / "vlp.toml").read_text(), "vlp.toml")
     assert calibration.residual is None and calibration.principal_point_px is not None
 
