@@ -4,7 +4,9 @@ Frames come at the camera's frame rate on the simulation's clock. Frame n starts
 t_open + n / fps plus a random offset of up to ``start_jitter_s`` (the camera runs unsynchronised with the
 LEDs, so the stripe phase differs from frame to frame) and is ready once its last row is read out.
 ``fetch`` waits for the next frame; a consumer that falls behind gets the newest ready frame, and the
-skipped sequence numbers are counted as ``dropped``, as a camera whose driver keeps only the latest buffer.
+skipped sequence numbers are counted as ``dropped``, as a camera whose driver keeps only the latest buffer
+(the timing, stall switch, buffer pool and truth history are :mod:`drivers.camera.sim_base`'s, shared with
+the forward camera).
 
 Times: ``host_time_ns`` is the mid-readout time (the time the ground-truth pose refers to) on the
 simulation's clock, in ns; with the default clock (``time.monotonic``) it is comparable with
@@ -14,19 +16,15 @@ a camera's own free-running timestamp. ``truth(sequence)`` gives each recent fra
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
-import math
-import threading
-import time
-from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
 
-from drivers.camera.base import Camera, CameraSettings
-from drivers.errors import ConfigError, DeviceError, DeviceTimeout
+from drivers.camera.base import CameraSettings
+from drivers.camera.sim_base import SimCameraBase
+from drivers.errors import ConfigError, DeviceError
 from drivers.samples import Frame
 from drivers.sim.render import FrameTruth, RollingShutterRenderer
 from drivers.sim.render_worker import RenderWorker
@@ -37,12 +35,8 @@ __all__ = ["SimCamera"]
 
 log = logging.getLogger(__name__)
 
-# Longest single sleep while waiting for a frame: bounds how late a frame is noticed when the simulation
-# clock is not the wall clock (a test stepping time from another thread).
-_MAX_SLEEP_S = 0.02
 
-
-class SimCamera(Camera):
+class SimCamera(SimCameraBase[FrameTruth]):
     """A camera looking at the simulated world's ceiling.
 
     Args:
@@ -68,32 +62,15 @@ class SimCamera(Camera):
         render_process: bool = False,
         name: str = "sim-camera",
     ) -> None:
-        super().__init__(name, settings)
+        super().__init__(name, settings, simulation, seed=seed, truth_history=truth_history)
         if start_jitter_s < 0:
             raise ValueError(f"start_jitter_s must be >= 0, got {start_jitter_s}")
-        self.simulation = simulation
-        self.seed = seed
         self.start_jitter_s = start_jitter_s
         self.model = self._model(simulation.world.camera, self.requested)
         self._gain_db = 0.0 if self.requested.gain_db is None else self.requested.gain_db
         self.render_process = render_process
         self._renderer: RollingShutterRenderer | RenderWorker | None = None
         self._rng = np.random.default_rng(seed)
-        self._truths: collections.OrderedDict[int, FrameTruth] = collections.OrderedDict()
-        self._truth_history = truth_history
-        self._truth_lock = threading.Lock()
-        self._free: list[npt.NDArray[np.uint8]] = []
-        self._t_open = 0.0
-        self._last_sequence = -1
-        self._stalled = threading.Event()
-
-    def stall(self, stalled: bool = True) -> None:
-        """Fault switch for tests and demonstrations: while stalled no frame comes and ``fetch`` times out,
-        as from a camera whose trigger or USB transfer stopped. Frames due meanwhile count as ``dropped``."""
-        if stalled:
-            self._stalled.set()
-        else:
-            self._stalled.clear()
 
     @staticmethod
     def _model(camera: CameraModel, wanted: CameraSettings) -> CameraModel:
@@ -116,7 +93,7 @@ class SimCamera(Camera):
         return model
 
     # -- lifecycle ---------------------------------------------------------------------------------------
-    def _open(self) -> None:
+    def _start_renderer(self) -> None:
         world = self.simulation.world
         kind = RenderWorker if self.render_process else RollingShutterRenderer
         self._renderer = kind(
@@ -128,18 +105,11 @@ class SimCamera(Camera):
             seed=self.seed,
             scene=world.scene,
         )
-        shape = (self.model.output_height_px, self.model.output_width_px)
-        self._free = [np.empty(shape, dtype=np.uint8) for _ in range(3)]
-        self._t_open = self.simulation.now()
-        self._last_sequence = -1
-        with self._truth_lock:
-            self._truths.clear()
 
-    def _close(self) -> None:
+    def _stop_renderer(self) -> None:
         if isinstance(self._renderer, RenderWorker):
             self._renderer.close()
         self._renderer = None
-        self._free = []
 
     # -- what it is --------------------------------------------------------------------------------------
     def settings(self) -> CameraSettings:
@@ -149,69 +119,27 @@ class SimCamera(Camera):
         )
 
     @property
+    def frame_rate_hz(self) -> float:
+        return self.model.frame_rate_hz
+
+    @property
     def renderer(self) -> RollingShutterRenderer | RenderWorker:
         if self._renderer is None:
             raise DeviceError("camera is not open", self.name)
         return self._renderer
 
-    def truth(self, sequence: int) -> FrameTruth:
-        """Ground truth of a recent frame. Raises KeyError when the frame is older than the kept history."""
-        with self._truth_lock:
-            return self._truths[sequence]
-
-    @property
-    def last_truth(self) -> FrameTruth | None:
-        with self._truth_lock:
-            return next(reversed(self._truths.values()), None)
-
     # -- frames ------------------------------------------------------------------------------------------
-    def _ready_time(self, sequence: int) -> float:
-        """When frame ``sequence`` has surely been read out, whatever its start jitter."""
-        period = 1.0 / self.model.frame_rate_hz
-        return self._t_open + sequence * period + self.start_jitter_s + self.renderer.readout_s
+    def _buffer_shape(self) -> tuple[int, ...]:
+        return (self.model.output_height_px, self.model.output_width_px)
 
-    def _acquire(self, timeout_s: float) -> tuple[Frame, Callable[[], None]]:
-        renderer = self.renderer
-        period = 1.0 / self.model.frame_rate_hz
-        deadline = time.monotonic() + timeout_s
-        wanted = self._last_sequence + 1
-        while True:
-            if self._stalled.is_set():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeout(f"no frame within {timeout_s:g} s (the camera is stalled)", self.name)
-                time.sleep(min(remaining, _MAX_SLEEP_S))
-                continue
-            now = self.simulation.now()
-            # The newest frame that is ready now; at least the one after the last delivered.
-            newest = math.floor((now - self._t_open - self.start_jitter_s - renderer.readout_s) / period)
-            sequence = max(wanted, newest)
-            ready = self._ready_time(sequence)
-            if ready <= now:
-                break
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceTimeout(
-                    f"no frame within {timeout_s:g} s (next one due in {ready - now:.3f} s of "
-                    "simulated time)",
-                    self.name,
-                )
-            time.sleep(min(ready - now, remaining, _MAX_SLEEP_S))
-        if sequence > wanted:
-            self.count("dropped", sequence - wanted)
-        self._last_sequence = sequence
+    def _ready_delay_s(self) -> float:
+        # Whatever its start jitter, a frame is read out this long after its nominal start.
+        return self.start_jitter_s + self.renderer.readout_s
 
+    def _draw(self, sequence: int, buffer: npt.NDArray[np.uint8]) -> tuple[Frame, FrameTruth]:
+        period = 1.0 / self.model.frame_rate_hz
         t0 = self._t_open + sequence * period + float(self._rng.uniform(0.0, self.start_jitter_s))
-        buffer = (
-            self._free.pop()
-            if self._free
-            else np.empty((self.model.output_height_px, self.model.output_width_px), dtype=np.uint8)
-        )
-        rendered = renderer.render(self.simulation.pose_at, t0, out=buffer)
-        with self._truth_lock:
-            self._truths[sequence] = rendered.truth
-            while len(self._truths) > self._truth_history:
-                self._truths.popitem(last=False)
+        rendered = self.renderer.render(self.simulation.pose_at, t0, out=buffer)
         frame = Frame(
             buffer,
             sequence,
@@ -219,11 +147,4 @@ class SimCamera(Camera):
             round((t0 - self._t_open) * 1e9),
             self.model.exposure_s,
         )
-        free = self._free
-
-        def release() -> None:
-            # Back to this open's pool (a buffer lent before a close/open does not join the new pool).
-            if free is self._free:
-                free.append(buffer)
-
-        return frame, release
+        return frame, rendered.truth

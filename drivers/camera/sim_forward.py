@@ -5,25 +5,23 @@ t_open + n / fps and ready at once. ``fetch`` waits for the next frame; a consum
 the newest one and the skipped sequence numbers count as ``dropped``. Frames are BGR8, shape
 (height, width, 3), or Mono8 when the settings ask for it; they live in a small pool of buffers and are
 lent, never copied, as every camera's are. ``truth(sequence)`` gives each recent frame's ground truth (the
-boxes of the people in view). ``stall()`` stops frames (a camera whose USB transfer hung).
+boxes of the people in view). ``stall()`` stops frames (a camera whose USB transfer hung). The timing,
+stall switch, buffer pool and truth history are :mod:`drivers.camera.sim_base`'s, shared with the ceiling
+camera.
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import logging
-import math
-import threading
-import time
-from collections.abc import Callable
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from drivers.camera.base import Camera, CameraSettings
-from drivers.errors import DeviceError, DeviceTimeout
+from drivers.camera.base import CameraSettings
+from drivers.camera.sim_base import SimCameraBase
+from drivers.errors import DeviceError
 from drivers.samples import Frame
 from drivers.sim.forward_render import ForwardRenderer, ForwardTruth, PersonState
 from drivers.sim.forward_render_worker import ForwardRenderWorker
@@ -35,8 +33,6 @@ __all__ = ["SimForwardCamera", "people_states"]
 
 log = logging.getLogger(__name__)
 
-_MAX_SLEEP_S = 0.02
-
 
 def people_states(simulation: Simulation, t: float) -> list[PersonState]:
     """Every person of the simulation at time ``t``, as the renderer takes them."""
@@ -47,7 +43,7 @@ def people_states(simulation: Simulation, t: float) -> list[PersonState]:
     return out
 
 
-class SimForwardCamera(Camera):
+class SimForwardCamera(SimCameraBase[ForwardTruth]):
     """The forward camera of the simulated robot.
 
     Args:
@@ -70,9 +66,13 @@ class SimForwardCamera(Camera):
         render_process: bool = False,
         name: str = "sim-forward-camera",
     ) -> None:
-        super().__init__(name, settings if settings is not None else CameraSettings(pixel_format="BGR8"))
-        self.simulation = simulation
-        self.seed = seed
+        super().__init__(
+            name,
+            settings if settings is not None else CameraSettings(pixel_format="BGR8"),
+            simulation,
+            seed=seed,
+            truth_history=truth_history,
+        )
         model = simulation.world.forward_camera
         wanted = self.requested
         if wanted.width is not None:
@@ -84,40 +84,16 @@ class SimForwardCamera(Camera):
         self.model: ForwardCameraModel = model
         self.render_process = render_process
         self._renderer: ForwardRenderer | ForwardRenderWorker | None = None
-        self._truths: collections.OrderedDict[int, ForwardTruth] = collections.OrderedDict()
-        self._truth_history = truth_history
-        self._truth_lock = threading.Lock()
-        self._free: list[npt.NDArray[np.uint8]] = []
-        self._t_open = 0.0
-        self._last_sequence = -1
-        self._stalled = threading.Event()
-
-    def stall(self, stalled: bool = True) -> None:
-        """While stalled no frame comes and ``fetch`` times out; frames due meanwhile count as dropped."""
-        if stalled:
-            self._stalled.set()
-        else:
-            self._stalled.clear()
 
     # -- lifecycle ---------------------------------------------------------------------------------------
-    def _open(self) -> None:
-        world = self.simulation.world
+    def _start_renderer(self) -> None:
         kind = ForwardRenderWorker if self.render_process else ForwardRenderer
-        self._renderer = kind(self.model, walls_array(world.walls), seed=self.seed)
-        self._free = [self._new_buffer() for _ in range(3)]
-        self._t_open = self.simulation.now()
-        self._last_sequence = -1
-        with self._truth_lock:
-            self._truths.clear()
+        self._renderer = kind(self.model, walls_array(self.simulation.world.walls), seed=self.seed)
 
-    def _close(self) -> None:
+    def _stop_renderer(self) -> None:
         if isinstance(self._renderer, ForwardRenderWorker):
             self._renderer.close()
         self._renderer = None
-        self._free = []
-
-    def _new_buffer(self) -> npt.NDArray[np.uint8]:
-        return np.empty((self.model.height_px, self.model.width_px, 3), dtype=np.uint8)
 
     # -- what it is --------------------------------------------------------------------------------------
     def settings(self) -> CameraSettings:
@@ -126,64 +102,30 @@ class SimForwardCamera(Camera):
             m.width_px, m.height_px, self.requested.pixel_format, None, None, m.frame_rate_hz
         )
 
-    def truth(self, sequence: int) -> ForwardTruth:
-        """Ground truth of a recent frame. Raises KeyError when it is older than the kept history."""
-        with self._truth_lock:
-            return self._truths[sequence]
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.model.frame_rate_hz
 
     @property
-    def last_truth(self) -> ForwardTruth | None:
-        with self._truth_lock:
-            return next(reversed(self._truths.values()), None)
+    def renderer(self) -> ForwardRenderer | ForwardRenderWorker:
+        if self._renderer is None:
+            raise DeviceError("camera is not open", self.name)
+        return self._renderer
 
     # -- frames ------------------------------------------------------------------------------------------
-    def _acquire(self, timeout_s: float) -> tuple[Frame, Callable[[], None]]:
-        renderer = self._renderer
-        if renderer is None:
-            raise DeviceError("camera is not open", self.name)
-        period = 1.0 / self.model.frame_rate_hz
-        deadline = time.monotonic() + timeout_s
-        wanted = self._last_sequence + 1
-        while True:
-            if self._stalled.is_set():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeout(f"no frame within {timeout_s:g} s (the camera is stalled)", self.name)
-                time.sleep(min(remaining, _MAX_SLEEP_S))
-                continue
-            now = self.simulation.now()
-            newest = math.floor((now - self._t_open) / period)
-            sequence = max(wanted, newest)
-            ready = self._t_open + sequence * period
-            if ready <= now:
-                break
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceTimeout(
-                    f"no frame within {timeout_s:g} s (next one in {ready - now:.3f} s of simulated time)",
-                    self.name,
-                )
-            time.sleep(min(ready - now, remaining, _MAX_SLEEP_S))
-        if sequence > wanted:
-            self.count("dropped", sequence - wanted)
-        self._last_sequence = sequence
-        t = self._t_open + sequence * period
-        buffer = self._free.pop() if self._free else self._new_buffer()
-        image, truth = renderer.render(
+    def _buffer_shape(self) -> tuple[int, ...]:
+        return (self.model.height_px, self.model.width_px, 3)
+
+    def _ready_delay_s(self) -> float:
+        return 0.0  # global shutter: ready at its start
+
+    def _draw(self, sequence: int, buffer: npt.NDArray[np.uint8]) -> tuple[Frame, ForwardTruth]:
+        t = self._t_open + sequence * (1.0 / self.model.frame_rate_hz)
+        image, truth = self.renderer.render(
             self.simulation.pose_at(t), people_states(self.simulation, t), t - self.simulation.t_start, buffer
         )
-        with self._truth_lock:
-            self._truths[sequence] = truth
-            while len(self._truths) > self._truth_history:
-                self._truths.popitem(last=False)
         lent: npt.NDArray[np.uint8] = image
         if self.requested.pixel_format == "Mono8":
             lent = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
         frame = Frame(lent, sequence, round(t * 1e9), round((t - self._t_open) * 1e9), None)
-        free = self._free
-
-        def release() -> None:
-            if free is self._free:
-                free.append(buffer)
-
-        return frame, release
+        return frame, truth

@@ -5,65 +5,60 @@ ceiling camera): a real camera delivers its frames without loading the process t
 ``python -m drivers.sim.forward_render_worker FD`` serves a :class:`ForwardRenderer` built from the first
 message; each request is the base pose, the people's states and the time, the answer the frame's ground
 truth and its pixels, received straight into the caller's buffer. A socketpair (AF_UNIX, no network); a
-fresh interpreter, never a fork of the threaded agent. Same seed, same frames as in-process. If the child
+fresh interpreter, never a fork of the threaded agent. Same seed, same frames as in-process. The exchange
+is :mod:`drivers.sim.render_protocol`'s, shared with the ceiling camera's worker: requests are numbered and
+an answer that comes after its wait ran out is dropped, not handed out as the next frame's. If the child
 dies or hangs, ``render`` raises :class:`~drivers.errors.DeviceDisconnected` (the camera reopens).
 """
 
 from __future__ import annotations
 
-import logging
-import multiprocessing.connection
 import sys
 from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
 
-from drivers.child_process import child_connection, start_child, stop_child
-from drivers.errors import DeviceDisconnected
+from drivers.child_process import child_connection
 from drivers.sim.forward_render import ForwardRenderer, ForwardTruth, PersonState
+from drivers.sim.render_protocol import Draw, RenderClient, serve
 from drivers.sim.world import ForwardCameraModel, Pose2D
 
 __all__ = ["ForwardRenderWorker"]
 
-log = logging.getLogger(__name__)
-
-_REPLY_TIMEOUT_S = 5.0
+_MODULE = "drivers.sim.forward_render_worker"
 
 
-def _serve(conn: multiprocessing.connection.Connection) -> None:
-    model, walls, seed = conn.recv()
+def _build(setup: tuple[ForwardCameraModel, npt.NDArray[np.float64], int]) -> Draw:
+    """The child's renderer from the set-up message, and how it draws one requested frame."""
+    model, walls, seed = setup
     renderer = ForwardRenderer(model, walls, seed=seed)
     image = np.empty((model.height_px, model.width_px, 3), dtype=np.uint8)
-    while True:
-        try:
-            request = conn.recv()
-        except (EOFError, OSError):
-            return
-        if request is None:
-            return
+
+    def draw(request: tuple[Pose2D, list[PersonState], float]) -> tuple[ForwardTruth, memoryview]:
         base, people, t_s = request
         _, truth = renderer.render(base, people, t_s, image)
-        conn.send(truth)
-        conn.send_bytes(image.data.cast("B"))
+        return truth, image.data.cast("B")
+
+    return draw
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m drivers.sim.forward_render_worker FD``: serve the connection on file descriptor FD."""
-    conn = child_connection("drivers.sim.forward_render_worker", "ForwardRenderWorker", argv)
+    conn = child_connection(_MODULE, "ForwardRenderWorker", argv)
     if conn is None:
         return 2
-    _serve(conn)
+    serve(conn, _build)
     return 0
 
 
-class ForwardRenderWorker:
+class ForwardRenderWorker(RenderClient[ForwardTruth]):
     """A :class:`ForwardRenderer` (same arguments) drawing in a child process."""
 
     def __init__(self, model: ForwardCameraModel, walls: npt.NDArray[np.float64], seed: int = 0) -> None:
         self.model = model
-        self._process, self._conn = start_child("drivers.sim.forward_render_worker")
-        self._conn.send((model, np.asarray(walls, dtype=np.float64), seed))
+        setup = (model, np.asarray(walls, dtype=np.float64), seed)
+        super().__init__(_MODULE, setup, device="sim-forward-camera", what="forward render")
 
     def render(
         self,
@@ -79,21 +74,7 @@ class ForwardRenderWorker:
             out = np.empty(shape, dtype=np.uint8)
         elif out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
             raise ValueError(f"out must be C-contiguous uint8 of shape {shape}, got {out.dtype} {out.shape}")
-        try:
-            self._conn.send((base, list(people), t_s))
-            if not self._conn.poll(_REPLY_TIMEOUT_S):
-                raise DeviceDisconnected(
-                    f"the render process gave no frame in {_REPLY_TIMEOUT_S:g} s", "sim-forward-camera"
-                )
-            truth: ForwardTruth = self._conn.recv()
-            self._conn.recv_bytes_into(out.data.cast("B"))
-        except (EOFError, OSError) as exc:
-            raise DeviceDisconnected(f"the render process is gone: {exc}", "sim-forward-camera") from exc
-        return out, truth
-
-    def close(self) -> None:
-        """Stop the child (idempotent)."""
-        stop_child(self._process, self._conn, "forward render")
+        return out, self.request((base, list(people), t_s), out)
 
 
 if __name__ == "__main__":

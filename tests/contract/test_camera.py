@@ -41,7 +41,10 @@ from drivers.errors import (
     DeviceTimeout,
 )
 from drivers.registry import DeviceKind, backend_class
-from drivers.sim import render_worker
+from drivers.sim import render_protocol
+from drivers.sim.forward_render import ForwardRenderer
+from drivers.sim.forward_render_worker import ForwardRenderWorker
+from drivers.sim.raycast import walls_array
 from drivers.sim.render_worker import RenderWorker
 from drivers.sim.simulation import Simulation
 from drivers.sim.world import Pose2D
@@ -537,11 +540,30 @@ def test_a_frame_the_render_process_answers_too_late_is_dropped_not_given_for_th
     worker = RenderWorker(world.camera, world.leds, world.robot.camera_mount)
     try:
         here, there = Pose2D(0.0, 0.0, 0.0), Pose2D(0.3, -0.2, 1.0)
-        monkeypatch.setattr(render_worker, "_REPLY_TIMEOUT_S", 1e-6)  # no child answers that fast
+        monkeypatch.setattr(render_protocol, "_REPLY_TIMEOUT_S", 1e-6)  # no child answers that fast
         with pytest.raises(DeviceDisconnected, match="gave no frame"):
             worker.render(lambda t: here, 1.0)
-        monkeypatch.setattr(render_worker, "_REPLY_TIMEOUT_S", 30.0)
+        monkeypatch.setattr(render_protocol, "_REPLY_TIMEOUT_S", 30.0)
         frame = worker.render(lambda t: there, 2.0)
         assert frame.truth.t0_s == 2.0 and frame.truth.base_pose == there
+    finally:
+        worker.close()
+
+
+def test_a_frame_the_forward_render_process_answers_too_late_is_dropped_not_given_for_the_next(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The forward camera's render process speaks the same protocol: a late answer is not the next frame."""
+    world = load_world(FOLLOW)
+    worker = ForwardRenderWorker(world.forward_camera, walls_array(world.walls))
+    try:
+        here, there = Pose2D(0.5, 0.0, 0.0), Pose2D(1.5, 0.2, 0.5)
+        monkeypatch.setattr(render_protocol, "_REPLY_TIMEOUT_S", 1e-6)  # no child answers that fast
+        with pytest.raises(DeviceDisconnected, match="gave no frame"):
+            worker.render(here, [], 1.0)
+        monkeypatch.setattr(render_protocol, "_REPLY_TIMEOUT_S", 30.0)
+        _, truth = worker.render(there, [], 2.0)
+        _, expected = ForwardRenderer(world.forward_camera, walls_array(world.walls)).render(there, [], 2.0)
+        assert truth == expected and truth.t_s == 2.0
     finally:
         worker.close()
