@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.strict_json import strict_loads
+from tests.helpers import run_sim
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -62,18 +62,8 @@ points = [[4.6, 0.2], [5.3, 0.2], [5.3, 0.8], [4.6, 0.8]]
 def test_sim_explore_explores_a_small_world_to_completion(tmp_path: Path) -> None:
     world = tmp_path / "small.toml"
     world.write_text(SMALL_WORLD, encoding="utf-8")
-    args = ["--world", str(world), "--explore", "--seconds", "150", "--json", "--out", str(tmp_path)]
-    out = subprocess.run(
-        [sys.executable, "-m", "agent.cli", "sim", *args],
-        stdin=subprocess.DEVNULL,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=REPO,
-        check=False,
-    )
-    assert out.returncode == 0, out.stderr[-3000:]
-    summary = strict_loads(out.stdout)
+    args = ["--world", str(world), "--explore", "--seconds", "150", "--out", str(tmp_path)]
+    summary = run_sim(*args, timeout_s=600)
     exploration = summary["exploration"]
     assert exploration["complete"], exploration
     assert exploration["stopped_reason"].startswith("complete: no reachable frontier left"), exploration

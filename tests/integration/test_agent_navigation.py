@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.strict_json import strict_loads
+from tests.helpers import run_sim
 from tests.unit.test_c_decoder import STRICT
 
 REPO = Path(__file__).resolve().parents[2]
@@ -30,20 +29,10 @@ GOALS = ["7.5,2.5", "12.5,2.5,90", "12.5,9.5"]
 def test_three_goals_across_rooms_are_reached_without_contact(tmp_path: Path) -> None:
     received = tmp_path / "received.bin"
     # At most 400 s of simulation; the run ends as soon as the last goal has ended (about 170 s).
-    args = ["--seconds", "400", "--json", "--out", str(tmp_path), "--controller-record", str(received)]
+    args = ["--seconds", "400", "--out", str(tmp_path), "--controller-record", str(received)]
     for goal in GOALS:
         args += ["--goal", goal]
-    out = subprocess.run(
-        [sys.executable, "-m", "agent.cli", "sim", *args],
-        stdin=subprocess.DEVNULL,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=REPO,
-        check=False,
-    )
-    assert out.returncode == 0, out.stderr[-3000:]
-    summary = strict_loads(out.stdout)
+    summary = run_sim(*args, timeout_s=900)
     goals = summary["goals"]
     context = f"goals {goals}, commands {summary['commands']}"
     assert goals["sent"] == 3 and goals["reached"] == 3 and goals["all_ended"], context

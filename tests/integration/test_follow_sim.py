@@ -4,40 +4,22 @@ and no timing asserted (the figures against the acceptance are measured by the r
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
-from tests.strict_json import strict_loads
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import EXAMPLES, run_sim
 
 
 def test_sim_follow_locks_on_to_the_user_and_follows_without_contact(tmp_path: Path) -> None:
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "agent.cli",
-            "sim",
-            "--config",
-            str(REPO / "examples" / "follow.toml"),
-            "--follow",
-            "--seconds",
-            "14",
-            "--json",
-            "--out",
-            str(tmp_path / "out"),
-        ],
-        capture_output=True,
-        stdin=subprocess.DEVNULL,
-        text=True,
-        timeout=300,
-        cwd=REPO,
-        check=False,
+    s = run_sim(
+        "--config",
+        str(EXAMPLES / "follow.toml"),
+        "--follow",
+        "--seconds",
+        "14",
+        "--out",
+        str(tmp_path / "out"),
+        timeout_s=300,
     )
-    assert out.returncode == 0, out.stderr[-3000:]
-    s = strict_loads(out.stdout)
     f = s["follow"]
     assert f["user"] == "user"
     assert f["tracker"]["acquired"] >= 1 and f["states"].get("state_following", 0) > 0

@@ -4,50 +4,31 @@ stream carries on; the RFID coarse layer runs on the two-antenna reader's reads.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
-from tests.strict_json import strict_loads
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import example_config, run_sim
 
 
 def test_forward_camera_stall_is_survived_and_the_coarse_layer_runs(tmp_path: Path) -> None:
-    examples = REPO / "examples"
-    config = tmp_path / "follow.toml"
-    config.write_text(
-        (examples / "sim.toml")
-        .read_text()
-        .replace('"worlds/office.toml"', f'"{examples}/worlds/follow_straight.toml"')
-        .replace('backend = "id12la"', 'backend = "mercury"')
-        + '\n[camera.forward]\nrender_process = true\n\n[following]\ntag_id = "E2000017221101441890ABCD"\n'
+    config = example_config(
+        tmp_path / "follow.toml",
+        world="follow_straight.toml",
+        replace=(('backend = "id12la"', 'backend = "mercury"'),),
+        append=(
+            '\n[camera.forward]\nrender_process = true\n\n[following]\ntag_id = "E2000017221101441890ABCD"\n'
+        ),
     )
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "agent.cli",
-            "sim",
-            "--config",
-            str(config),
-            "--seconds",
-            "10",
-            "--fault",
-            "forward_camera@3+3",
-            "--json",
-            "--out",
-            str(tmp_path / "out"),
-        ],
-        capture_output=True,
-        stdin=subprocess.DEVNULL,
-        text=True,
-        timeout=240,
-        cwd=REPO,
-        check=False,
+    s = run_sim(
+        "--config",
+        str(config),
+        "--seconds",
+        "10",
+        "--fault",
+        "forward_camera@3+3",
+        "--out",
+        str(tmp_path / "out"),
+        timeout_s=240,
     )
-    assert out.returncode == 0, out.stderr[-3000:]
-    s = strict_loads(out.stdout)
     forward = s["devices"]["forward_camera"]
     # Stalled for 3 s: reported (a timeout per stall period), then recovered and healthy at the end.
     assert s["counts"]["forward_frame_timeouts"] >= 2 and forward["failures"] >= 1

@@ -12,20 +12,13 @@ import pytest
 from agent.config import OutputFormat, load_config, parse_config
 from drivers.errors import ConfigError
 from drivers.registry import DeviceKind
+from tests.helpers import REAL_ROBOT
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = REPO / "examples"
 OFFICE = EXAMPLES / "worlds" / "office.toml"
 
-# A minimal real robot: servos only (odometry is a pose source), output on a port.
-REAL = """
-[servos]
-backend = "dynamixel"
-port = "/dev/dynamixel"
-
-[output]
-url = "/dev/ttyS0"
-"""
+REAL = REAL_ROBOT  # a minimal real robot: servos only, output on a port
 
 
 def write(tmp_path: Path, text: str, name: str = "robot.toml") -> Path:

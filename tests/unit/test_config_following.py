@@ -13,15 +13,9 @@ from agent.following.coarse import Antenna, RadioModel, default_table
 from agent.shipped import WORLDS
 from drivers.errors import ConfigError
 from drivers.registry import DeviceKind
+from tests.helpers import REAL_ROBOT
 
-REAL = """
-[servos]
-backend = "dynamixel"
-port = "/dev/dynamixel"
-
-[output]
-url = "/dev/ttyS0"
-"""
+REAL = REAL_ROBOT  # a minimal real robot: servos only, output on a port
 SIM = f'[sim]\nworld = "{WORLDS / "office.toml"}"\n'
 
 
