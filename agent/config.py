@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from agent.config_slam import MountConfig, SlamConfig, SlamMode
 from agent.exploration.config import ExploreConfig, ExplorerKind
 from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
@@ -140,12 +141,6 @@ class OutputFormat(enum.StrEnum):
     MAVLINK = "mavlink"
 
 
-class SlamMode(enum.StrEnum):
-    MAPPING = "mapping"  # build a map (RBPF SLAM)
-    CONTINUE = "continue"  # go on building a saved map (RBPF SLAM seeded with it: lifelong mapping)
-    LOCALIZATION = "localization"  # localize on a saved map (MCL)
-
-
 # -- the configuration, as the agent uses it -----------------------------------------------------------
 @dataclass(frozen=True)
 class SimConfig:
@@ -165,18 +160,6 @@ class DeviceConfig:
     backend: str
     options: Mapping[str, Any] = field(default_factory=dict)
     critical: bool = True
-
-
-@dataclass(frozen=True)
-class MountConfig:
-    """Where a sensor sits on the base (x forward, y left, z up; metres) and how it is turned (radians)."""
-
-    x_m: float = 0.0
-    y_m: float = 0.0
-    z_m: float = 0.0
-    yaw_rad: float = 0.0
-    roll_rad: float = 0.0
-    pitch_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -232,26 +215,6 @@ class VlpConfig:
     alert_limit_m: float = 0.10
     guarded_sigma_scale: float = 3.0
     fuse_degraded: bool = False
-
-
-@dataclass(frozen=True)
-class SlamConfig:
-    enabled: bool = True
-    mode: SlamMode = SlamMode.MAPPING
-    map: Path | None = None  # the saved map (map_server YAML) to localize on or to continue
-    particles: int = 30
-    map_mode: str = "per_particle"
-    resolution_m: float = 0.05
-    linear_update_m: float = 0.25
-    angular_update_rad: float = 0.2
-    laser_mount: MountConfig | None = None
-    queue_size: int = 4
-    map_dir: Path | None = None
-    save_interval_s: float = 30.0  # the map saved this often while mapping (0: only at the end / on request)
-    sigma_xy_m: float = 0.03
-    sigma_yaw_rad: float = math.radians(1.0)
-    seed: int = 0
-    process: bool = True  # the filter in a child process (agent.runtime.slam_worker), not the agent's
 
 
 @dataclass(frozen=True)
@@ -416,7 +379,7 @@ class AgentConfig:
     devices: Mapping[DeviceKind, DeviceConfig]
     sim: SimConfig | None = None
     vlp: VlpConfig = VlpConfig()
-    slam: SlamConfig = SlamConfig()
+    slam: SlamConfig = SlamConfig()  # noqa: RUF009 (frozen, agent.config_slam)
     fusion: FusionConfig = FusionConfig()
     output: OutputConfig = OutputConfig()
     control: ControlConfig = ControlConfig()

@@ -85,6 +85,7 @@ def one_run(
         "cpu_latency_held": bool(s["counts"].get("cpu_latency_held", 0)),
         "cpu_share": share.result(),
         "peak_rss_mb": s["peak_rss_mb"],
+        "peak_rss_mb_parts": s["peak_rss_mb_parts"],
         "frames_out": s["frames_out"],
         "fixes_fused": s["fixes_fused"],
         "dropped": s["dropped"],

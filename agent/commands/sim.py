@@ -832,6 +832,7 @@ def _summary(
     assert config.sim is not None
     own_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     slam_mb = status.mapper.get("worker_peak_rss_kb", 0) / 1024.0
+    slam_shared_mb = status.mapper.get("worker_shared_kb", 0) / 1024.0
     scores = scorer.figures()
     latency_p50, latency_p99 = status.latency_ms
     counts = status.counts
@@ -888,10 +889,15 @@ def _summary(
         "faults": injector.applied,
         "counts": counts,
         "files": files,
-        # The agent's processes: its own peak and its SLAM process's (an upper bound of their sum). The
-        # simulated camera's renderer is the simulated hardware's, not the agent's.
-        "peak_rss_mb": round(own_mb + slam_mb, 1),
-        "peak_rss_mb_parts": {"agent": round(own_mb, 1), "slam_process": round(slam_mb, 1)},
+        # The agent's processes: its own peak and its SLAM process's (an upper bound of their sum), the
+        # SLAM process's pages that are shared (the interpreter's and libraries' code, in the agent's RSS
+        # too) counted once. The simulated camera's renderer is the simulated hardware's, not the agent's.
+        "peak_rss_mb": round(own_mb + slam_mb - slam_shared_mb, 1),
+        "peak_rss_mb_parts": {
+            "agent": round(own_mb, 1),
+            "slam_process": round(slam_mb, 1),
+            "slam_process_shared": round(slam_shared_mb, 1),
+        },
     }
 
 
@@ -999,7 +1005,12 @@ def _print_summary(s: dict[str, Any]) -> None:
             f"(after {f['cycles']} read cycles)"
         )
     parts = s.get("peak_rss_mb_parts", {})
-    split = f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f})" if parts else ""
+    split = (
+        f" (agent {parts['agent']:.0f}, SLAM process {parts['slam_process']:.0f} of which "
+        f"{parts['slam_process_shared']:.0f} shared with the agent)"
+        if parts
+        else ""
+    )
     print(f"  memory            peak RSS {s['peak_rss_mb']:.0f} MB{split}")
     for path in s["files"].values():
         print(f"  wrote             {path}")

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from agent.config import MountConfig, SlamConfig, SlamMode
+from agent.config_slam import MountConfig, SlamConfig, SlamMode
 from agent.runtime.types import AbsoluteFix
 from drivers.samples import Scan
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import multiprocessing.connection
 import os
 import resource
@@ -43,7 +44,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from agent.config import MountConfig, SlamConfig, SlamMode
+from agent.config_slam import MountConfig, SlamConfig, SlamMode
 from agent.runtime.mapper import MapperStep, Pose, make_local_mapper
 from agent.runtime.types import AbsoluteFix
 from drivers.child_process import child_connection, start_child, stop_child
@@ -83,6 +84,26 @@ def _peak_rss_kb() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
+# How often the child re-reads its shared pages (reading /proc/self/smaps_rollup walks every mapping).
+_SHARED_EVERY_S = 5.0
+
+
+def _shared_kb() -> int:
+    """This process's resident pages that other processes map too (``Shared_Clean`` + ``Shared_Dirty`` of
+    /proc/self/smaps_rollup; 0 where there is none): the interpreter's and the libraries' code (numpy,
+    OpenCV, SciPy), which the agent's process maps as well. They are in the child's peak RSS and in the
+    agent's: counted once for the whole agent (``vlp-agent sim``'s ``peak_rss_mb``)."""
+    try:
+        text = Path("/proc/self/smaps_rollup").read_text()
+    except OSError:
+        return 0
+    total = 0
+    for line in text.splitlines():
+        if line.startswith(("Shared_Clean:", "Shared_Dirty:")):
+            total += int(line.split()[1])
+    return total
+
+
 def _serve(conn: multiprocessing.connection.Connection) -> None:
     """Build the mapper from the first message, then answer every request until the parent hangs up."""
     config, mount = conn.recv()
@@ -91,6 +112,7 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
     conn.send((mapper is not None, why, mapper.name if mapper is not None else ""))
     if mapper is None:
         return
+    shared_kb, shared_at = 0, -math.inf
     while True:
         try:
             request = conn.recv()
@@ -117,6 +139,9 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             reply = ValueError(f"unknown request {kind!r}")
         counters = dict(mapper.counters())
         counters["worker_peak_rss_kb"] = _peak_rss_kb()
+        if time.monotonic() - shared_at >= _SHARED_EVERY_S:
+            shared_kb, shared_at = _shared_kb(), time.monotonic()
+        counters["worker_shared_kb"] = shared_kb
         conn.send((reply, counters, mapper.pose() is not None))
 
 

@@ -89,6 +89,8 @@ def test_the_filter_in_its_process_gives_what_it_gives_in_the_agents(run) -> Non
         counters = there.counters()
         assert counters["fixes_applied"] == here.counters()["fixes_applied"] > 0
         assert counters["worker_peak_rss_kb"] > 10_000 and counters["worker_restarts"] == 0
+        # The interpreter's and libraries' pages that this process maps too: part of the child's peak.
+        assert 0 < counters["worker_shared_kb"] < counters["worker_peak_rss_kb"]
     finally:
         there.close()
 

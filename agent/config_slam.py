@@ -1,0 +1,52 @@
+"""The types of the ``[slam]`` section and of a sensor's mount, apart from :mod:`agent.config` (which
+re-exports them): the SLAM process (:mod:`agent.runtime.slam_worker`) receives a :class:`SlamConfig` and a
+:class:`MountConfig` and, unpickling them, imports only this module, not the whole config reader with the
+navigation, exploration and world-file modules (and the libraries they load) that it has no use for.
+Standard library only."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["MountConfig", "SlamConfig", "SlamMode"]
+
+
+class SlamMode(enum.StrEnum):
+    MAPPING = "mapping"  # build a map (RBPF SLAM)
+    CONTINUE = "continue"  # go on building a saved map (RBPF SLAM seeded with it: lifelong mapping)
+    LOCALIZATION = "localization"  # localize on a saved map (MCL)
+
+
+@dataclass(frozen=True)
+class MountConfig:
+    """Where a sensor sits on the base (x forward, y left, z up; metres) and how it is turned (radians)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    z_m: float = 0.0
+    yaw_rad: float = 0.0
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    enabled: bool = True
+    mode: SlamMode = SlamMode.MAPPING
+    map: Path | None = None  # the saved map (map_server YAML) to localize on or to continue
+    particles: int = 30
+    map_mode: str = "per_particle"
+    resolution_m: float = 0.05
+    linear_update_m: float = 0.25
+    angular_update_rad: float = 0.2
+    laser_mount: MountConfig | None = None
+    queue_size: int = 4
+    map_dir: Path | None = None
+    save_interval_s: float = 30.0  # the map saved this often while mapping (0: only at the end / on request)
+    sigma_xy_m: float = 0.03
+    sigma_yaw_rad: float = math.radians(1.0)
+    seed: int = 0
+    process: bool = True  # the filter in a child process (agent.runtime.slam_worker), not the agent's
