@@ -9,7 +9,6 @@ are used by the other agent integration tests too.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import select
@@ -20,10 +19,12 @@ import threading
 import tty
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from firmware_protocol.pose_frame import PoseFlags
+from tests import helpers
 
 REPO = Path(__file__).resolve().parents[2]
 C_DIR = REPO / "firmware_protocol" / "c"
@@ -120,29 +121,12 @@ def read_truth(path: Path) -> dict[int, tuple[int, float, float, float]]:
         }
 
 
-def run_sim(tmp: Path, reader: PtyReader, *args: str, timeout: float = 120.0) -> dict[str, object]:
+def run_sim(tmp: Path, reader: PtyReader, *args: str, timeout: float = 120.0) -> dict[str, Any]:
+    """``vlp-agent sim`` with its pose stream on ``reader``'s pty and the truth in ``tmp/truth.csv``."""
     truth = tmp / "truth.csv"
-    proc = subprocess.run(
-        vlp_agent(
-            "sim",
-            "--json",
-            "--out",
-            str(tmp / "out"),
-            "--output",
-            reader.path,
-            "--truth",
-            str(truth),
-            *args,
-        ),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-        check=False,
+    return helpers.run_sim(
+        "--out", str(tmp / "out"), "--output", reader.path, "--truth", str(truth), *args, timeout_s=timeout
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    summary: dict[str, object] = json.loads(proc.stdout)
-    return summary
 
 
 def test_thirty_seconds_on_the_pty_decoded_by_the_c_decoder_within_2_cm(tmp_path: Path) -> None:
