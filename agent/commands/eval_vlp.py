@@ -119,6 +119,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--png", metavar="FILE", help="where to write the figure (default: vlp_eval_<world>.png)")
     p.add_argument("--calibration-out", metavar="FILE", help="keep the calibration file written here")
     p.add_argument(
+        "--t-row-s",
+        type=float,
+        metavar="SECONDS",
+        help="the camera's row time as calibrated (`vlp-agent calibrate row-time`'s t_row_s), in place of "
+        "the world's nominal one (default: the nominal one)",
+    )
+    p.add_argument(
         "--area",
         type=float,
         nargs=4,
@@ -529,6 +536,14 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         raise ConfigError("--speed", f"must be >= 0, got {args.speed}")
     cv2.setNumThreads(1)
     bench = Bench(world, args.seed)
+    t_row_s = getattr(args, "t_row_s", None)
+    if t_row_s is not None:
+        if not 0.0 < t_row_s < 1e-3:
+            raise ConfigError("--t-row-s", f"must be between 0 and 1e-3 s, got {t_row_s}")
+        # The row-time calibration's result, as the robot's config would carry it.
+        bench.view = dataclasses.replace(
+            bench.view, intrinsics=dataclasses.replace(bench.view.intrinsics, t_row_s=t_row_s)
+        )
     area = tuple(args.area) if args.area else default_area(world)
     assert len(area) == 4
     area4 = (float(area[0]), float(area[1]), float(area[2]), float(area[3]))
@@ -598,6 +613,8 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "latency_ms_p99": _pct(cal_tally.latency_ms, 99),
         "latency_ms_stages_median": _stage_medians(cal_tally),
         "image_size_px": [view.intrinsics.width_px, view.intrinsics.height_px],
+        "t_row_s": view.intrinsics.t_row_s,
+        "true_t_row_s": world.camera.t_row_s,
         "calibration": {
             "file": report.file if args.calibration_out else None,
             "turn_frames": report.turn_frames,
