@@ -1081,7 +1081,8 @@ class StripeDecoder:
                 0.0,
                 (),
                 f"stripe-too-short: {sig.id}'s {kind} stripe lasts {stripe:.2f} rows, under "
-                f"{cfg.min_stripe_rows:g}: the resize can drop it, and the sub-row fit cannot tell ({fitted_c})",
+                f"{cfg.min_stripe_rows:g}: the resize can drop it, and the sub-row fit cannot tell "
+                f"({fitted_c})",
             )
         if (
             math.isfinite(f.period_px)

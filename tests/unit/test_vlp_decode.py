@@ -409,7 +409,7 @@ def test_stripes_shorter_than_a_row_are_named_by_the_sub_row_fit_or_refused() ->
         led = Led("A", 0.0, 0.0, 1.5, frequency_hz=sig.frequency_hz, duty=sig.duty, diameter_m=0.086)
         renderer = RollingShutterRenderer(CameraModel(), [led], Mount(0.0, 0.0, 0.2), seed=4)
         for k in range(6):
-            frame = renderer.render(lambda t, y=0.04 * k: Pose2D(0.0, y, 0.3 * k), 1.0 + 0.05 * k)
+            frame = renderer.render(lambda t, y=0.04 * k, yaw=0.3 * k: Pose2D(0.0, y, yaw), 1.0 + 0.05 * k)
             (blob,) = [b for b in find_blobs(frame.image, DetectorConfig(min_diameter_px=8.0, bridge_px=8.0))]
             request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
             ((_, cls),) = decoder.decode_many(frame.image, request, sigs, t_eff)
