@@ -119,6 +119,14 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--png", metavar="FILE", help="where to write the figure (default: vlp_eval_<world>.png)")
     p.add_argument("--calibration-out", metavar="FILE", help="keep the calibration file written here")
     p.add_argument(
+        "--prior-sigma",
+        type=float,
+        nargs=2,
+        metavar=("XY_M", "YAW_DEG"),
+        help="where the map repeats ids, the error (1 sigma) of the odometry-grade pose prior given on each "
+        "run's first frame, stated to the pipeline at twice this (default 0.2 m, 10 deg)",
+    )
+    p.add_argument(
         "--t-row-s",
         type=float,
         metavar="SECONDS",
@@ -282,6 +290,9 @@ class Bench:
         self.repeats_ids = not self.view.led_map.ids_unique
         self.margin_px = 20.0 / 800.0 * world.camera.output_width_px
         self.clock = 1000.0
+        # The odometry-grade prior's error (1 sigma; it is stated at twice this).
+        self.prior_sigma_xy_m = PRIOR_SIGMA_XY_M
+        self.prior_sigma_yaw_rad = PRIOR_SIGMA_YAW_RAD
 
     def tally(self) -> Tally:
         return Tally(map_index=self.map_index)
@@ -300,11 +311,11 @@ class Bench:
         if not self.repeats_ids:
             return None
         return PosePrior(
-            pose.x_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
-            pose.y_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
-            pose.yaw_rad + float(self.rng.normal(0.0, PRIOR_SIGMA_YAW_RAD)),
-            2.0 * PRIOR_SIGMA_XY_M,
-            2.0 * PRIOR_SIGMA_YAW_RAD,
+            pose.x_m + float(self.rng.normal(0.0, self.prior_sigma_xy_m)),
+            pose.y_m + float(self.rng.normal(0.0, self.prior_sigma_xy_m)),
+            pose.yaw_rad + float(self.rng.normal(0.0, self.prior_sigma_yaw_rad)),
+            2.0 * self.prior_sigma_xy_m,
+            2.0 * self.prior_sigma_yaw_rad,
         )
 
     def motion_for(self, vx_mps: float, vy_mps: float, yaw_rate_radps: float) -> Motion:
@@ -544,6 +555,12 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         bench.view = dataclasses.replace(
             bench.view, intrinsics=dataclasses.replace(bench.view.intrinsics, t_row_s=t_row_s)
         )
+    prior_sigma = getattr(args, "prior_sigma", None)
+    if prior_sigma is not None:
+        if not (prior_sigma[0] > 0.0 and 0.0 < prior_sigma[1] <= 90.0):
+            raise ConfigError("--prior-sigma", f"need XY_M > 0 and 0 < YAW_DEG <= 90, got {prior_sigma}")
+        bench.prior_sigma_xy_m = float(prior_sigma[0])
+        bench.prior_sigma_yaw_rad = math.radians(float(prior_sigma[1]))
     area = tuple(args.area) if args.area else default_area(world)
     assert len(area) == 4
     area4 = (float(area[0]), float(area[1]), float(area[2]), float(area[3]))
@@ -631,8 +648,8 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "rotation_centre_refused": report.rotation_centre_refused,
         },
         "prior": (
-            f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
-            f"{math.degrees(PRIOR_SIGMA_YAW_RAD):.0f} deg): the map repeats ids"
+            f"odometry-grade on each run's first frame (sigma {bench.prior_sigma_xy_m} m, "
+            f"{math.degrees(bench.prior_sigma_yaw_rad):.0f} deg, stated twice that): the map repeats ids"
             if bench.repeats_ids
             else None
         ),
