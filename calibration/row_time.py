@@ -6,10 +6,12 @@ a 2-3 % error (a sensor's line length or pixel clock not as the data sheet says)
 as much. The LEDs' drivers blink at known frequencies (the LED map's), so the row time follows from the
 periods measured: with the robot where several LEDs are in view (on the simulated robot it drives under
 the middle of the three LEDs nearest its start and turns between batches of frames), ``--frames`` frames
-are taken, each LED's stripe period fitted below the output row (``agent.vlp.decode.fit_period``), the LED
-recognised by its signature (the one within ``--max-error`` of the frequency read; none when several are,
-as a row-time error could swap them), and t_row = 1 / (f P a) combined robustly over all sightings
-(``agent.vlp.row_time``: median, outliers rejected, mean, with its uncertainty).
+are taken, each LED's stripe period fitted below the output row (``agent.vlp.decode.fit_period``), the LEDs
+recognised together (``agent.vlp.row_time.recognise_signatures``: the one factor within ``--max-error`` that
+puts the frequencies read on the map's signatures; signatures closer than the error, 100 Hz apart, are told
+apart by the LEDs at the ends of their range; refused, with the reason, when the set cannot tell), and
+t_row = 1 / (f P a) combined robustly over all sightings (``agent.vlp.row_time``: median, outliers
+rejected, mean, with its uncertainty).
 
 Run it before ``leds`` (the survey measures frequencies with the row time) with the LED map of the drivers'
 frequencies (``--led-map``, or the config's). It writes ``row_time.toml``: the ``[vlp.rolling_shutter]``
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +31,7 @@ from agent.vlp.decode import DecoderConfig, RowTiming, StripeDecoder
 from agent.vlp.detect import find_blobs
 from agent.vlp.model import CameraIntrinsics, CameraMount, LedMap
 from agent.vlp.pipeline import VlpPipeline
-from agent.vlp.row_time import RowTimeEstimate, estimate_row_time, match_signature
+from agent.vlp.row_time import RowTimeEstimate, estimate_row_time, recognise_signatures
 from calibration import plot
 from calibration.context import StepContext
 from calibration.report import CalibrationError, Check, Output, StepResult, ask_line
@@ -36,7 +39,15 @@ from calibration.rig import Rig
 from calibration.vlp_view import view_for
 from calibration.wheels import go_to
 
-__all__ = ["add_arguments", "interactive", "measure_periods", "run"]
+__all__ = [
+    "Sightings",
+    "add_arguments",
+    "capture_poses",
+    "estimate_from_frames",
+    "interactive",
+    "measure_periods",
+    "run",
+]
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +71,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--max-error",
         type=float,
         default=0.05,
-        help="the largest row-time error to allow for when recognising LEDs, a fraction (default 0.05): an "
-        "LED is used only when its signature is the one within this of the frequency read",
+        help="the largest row-time error to allow for when recognising LEDs, a fraction (default 0.05): the "
+        "one factor within it that puts the frequencies read on the map's signatures recognises the LEDs",
     )
 
 
@@ -71,33 +82,76 @@ def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Names
     return options
 
 
-def measure_periods(
-    frames: list[Any], pipeline: VlpPipeline, max_error: float
-) -> tuple[list[float], list[float], list[str], int]:
-    """(periods in output rows, the LEDs' frequencies, their ids, blobs not recognised) from the frames: every
-    blob not at the border, its period fitted below the row, recognised by :func:`match_signature`."""
+@dataclass(frozen=True)
+class Sightings:
+    """The LEDs measured for the row time: periods (output rows, below the row), the drivers' frequencies
+    and ids of those recognised, how many blobs were not, and why none was when the set was ambiguous."""
+
+    periods: list[float]
+    frequencies: list[float]
+    ids: list[str]
+    unknown: int
+    factor: float = math.nan
+    refused: str | None = None
+
+
+def measure_periods(frames: list[Any], pipeline: VlpPipeline, max_error: float) -> Sightings:
+    """Every blob not at the border in the frames, its period fitted below the row and its duty, recognised
+    all together (``agent.vlp.row_time.recognise_signatures``: the one factor within ``max_error`` that
+    puts the frequencies read on the map's signatures, then each sighting the signature nearest its
+    corrected frequency)."""
     intrinsics = pipeline.intrinsics
     decoder = StripeDecoder(DecoderConfig(period_fit="always"), RowTiming.of(intrinsics))
     t_eff = intrinsics.t_row_eff_s
-    signatures = pipeline.signatures
-    periods: list[float] = []
-    frequencies: list[float] = []
-    ids: list[str] = []
-    unknown = 0
+    measured: list[tuple[float, float]] = []
     for image in frames:
         blobs = [b for b in find_blobs(image, pipeline.detector) if not b.at_border]
         if not blobs:
             continue
         requests = [(b.centre_px, b.radius_px, b.background_dn, False) for b in blobs]
-        for f in decoder.features_many(image, requests, t_eff):
-            sig = match_signature(f.period_px, f.duty, signatures, t_eff, max_error)
-            if sig is None:
-                unknown += 1
-                continue
-            periods.append(f.period_px)
-            frequencies.append(sig.frequency_hz)
-            ids.append(sig.id)
-    return periods, frequencies, ids, unknown
+        measured += [(f.period_px, f.duty) for f in decoder.features_many(image, requests, t_eff)]
+    if not measured:
+        return Sightings([], [], [], 0)
+    match = recognise_signatures(
+        [m[0] for m in measured], [m[1] for m in measured], pipeline.signatures, t_eff, max_error
+    )
+    if isinstance(match, str):
+        return Sightings([], [], [], len(measured), refused=match)
+    periods: list[float] = []
+    frequencies: list[float] = []
+    ids: list[str] = []
+    for (period, _), sig in zip(measured, match.signatures, strict=True):
+        if sig is None:
+            continue
+        periods.append(period)
+        frequencies.append(sig.frequency_hz)
+        ids.append(sig.id)
+    return Sightings(periods, frequencies, ids, len(measured) - len(periods), match.factor)
+
+
+def estimate_from_frames(
+    frames: list[Any], intrinsics: CameraIntrinsics, leds: LedMap, mount: CameraMount, max_error: float = 0.05
+) -> tuple[RowTimeEstimate | None, Sightings]:
+    """The row-time step's measurement on frames already taken (what ``run`` does after the capture; the
+    benchmarks call it on rendered frames): the estimate, or None when no LED was recognised."""
+    sightings = measure_periods(frames, VlpPipeline(intrinsics, leds, mount), max_error)
+    if not sightings.periods:
+        return None, sightings
+    return (
+        estimate_row_time(
+            sightings.periods, sightings.frequencies, sightings.ids, intrinsics.sensor_rows_per_row
+        ),
+        sightings,
+    )
+
+
+def capture_poses(
+    leds: LedMap, start: tuple[float, float, float], mount: CameraMount
+) -> list[tuple[float, float, float]]:
+    """Where the simulated robot takes the frames (base x, y, yaw): under the middle of the three LEDs
+    nearest its start, at its start heading and turned either way (``_TURNS_RAD``)."""
+    x, y = _middle_of_nearest(leds, (start[0], start[1]), mount)
+    return [(x, y, start[2] + turn) for turn in _TURNS_RAD]
 
 
 def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
@@ -148,17 +202,20 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             ask_line(console, "  two or more LEDs in view? press Enter to take the frames ")
             frames = [camera.grab(timeout_s=2.0).image for _ in range(options.frames)]
     console.status("")
-    periods, frequencies, ids, unknown = measure_periods(frames, pipeline, options.max_error)
-    if not periods:
+    sightings = measure_periods(frames, pipeline, options.max_error)
+    if sightings.refused is not None:
+        raise CalibrationError(f"the LEDs in {len(frames)} frames cannot be recognised: {sightings.refused}")
+    if not sightings.periods:
         raise CalibrationError(
-            f"no LED of the map was recognised in {len(frames)} frames ({unknown} blobs not recognised): are "
-            "LEDs in view, with the VLP exposure, and is --led-map the map of these LEDs? An LED is used "
-            f"only when one signature lies within --max-error ({options.max_error:g}) of the frequency read: "
-            "under LEDs whose signatures are closer than that to each other, stand where others are in "
-            "view, or give --led-map with those far apart"
+            f"no LED of the map was recognised in {len(frames)} frames ({sightings.unknown} blobs not "
+            "recognised): are LEDs in view, with the VLP exposure, and is --led-map the map of these LEDs? "
+            f"A row time within --max-error ({options.max_error:g}) of the config's must put the frequencies "
+            "read on the map's signatures"
         )
-    estimate = estimate_row_time(periods, frequencies, ids, intrinsics.sensor_rows_per_row)
-    result = _result(estimate, intrinsics, len(frames), unknown, truth, view.source, output)
+    estimate = estimate_row_time(
+        sightings.periods, sightings.frequencies, sightings.ids, intrinsics.sensor_rows_per_row
+    )
+    result = _result(estimate, intrinsics, len(frames), sightings.unknown, truth, view.source, output)
     # What this camera cannot tell apart in the map (agent.vlp.signatures), as the pipeline says at load.
     warnings = [w.message for w in pipeline.signature_warnings]
     result.report += [f"WARNING (this camera): {text}" for text in warnings]

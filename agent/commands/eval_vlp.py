@@ -119,6 +119,21 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--png", metavar="FILE", help="where to write the figure (default: vlp_eval_<world>.png)")
     p.add_argument("--calibration-out", metavar="FILE", help="keep the calibration file written here")
     p.add_argument(
+        "--prior-sigma",
+        type=float,
+        nargs=2,
+        metavar=("XY_M", "YAW_DEG"),
+        help="where the map repeats ids, the error (1 sigma) of the odometry-grade pose prior given on each "
+        "run's first frame, stated to the pipeline at twice this (default 0.2 m, 10 deg)",
+    )
+    p.add_argument(
+        "--t-row-s",
+        type=float,
+        metavar="SECONDS",
+        help="the camera's row time as calibrated (`vlp-agent calibrate row-time`'s t_row_s), in place of "
+        "the world's nominal one (default: the nominal one)",
+    )
+    p.add_argument(
         "--area",
         type=float,
         nargs=4,
@@ -190,13 +205,17 @@ class Tally:
     # Each world LED's index in the agent's map (None: missing from it), for checking the association.
     map_index: Sequence[int | None] = ()
     latency_ms: list[float] = field(default_factory=list)
+    # The thread's CPU time per frame (what waiting for a core on a shared machine leaves out).
+    cpu_ms: list[float] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(
         default_factory=lambda: {"acquire": [], "track": [], "decode": [], "solve": []}
     )
 
-    def add(self, result: VlpResult, truth: FrameTruth) -> None:
+    def add(self, result: VlpResult, truth: FrameTruth, cpu_ms: float | None = None) -> None:
         t = result.timings
         self.latency_ms.append(t.total_ms)
+        if cpu_ms is not None:
+            self.cpu_ms.append(cpu_ms)
         for name, value in (("acquire", t.acquire_ms), ("track", t.track_ms), ("decode", t.decode_ms)):
             self.stage_ms[name].append(value)
         self.stage_ms["solve"].append(t.solve_ms)
@@ -275,6 +294,9 @@ class Bench:
         self.repeats_ids = not self.view.led_map.ids_unique
         self.margin_px = 20.0 / 800.0 * world.camera.output_width_px
         self.clock = 1000.0
+        # The odometry-grade prior's error (1 sigma; it is stated at twice this).
+        self.prior_sigma_xy_m = PRIOR_SIGMA_XY_M
+        self.prior_sigma_yaw_rad = PRIOR_SIGMA_YAW_RAD
 
     def tally(self) -> Tally:
         return Tally(map_index=self.map_index)
@@ -293,11 +315,11 @@ class Bench:
         if not self.repeats_ids:
             return None
         return PosePrior(
-            pose.x_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
-            pose.y_m + float(self.rng.normal(0.0, PRIOR_SIGMA_XY_M)),
-            pose.yaw_rad + float(self.rng.normal(0.0, PRIOR_SIGMA_YAW_RAD)),
-            2.0 * PRIOR_SIGMA_XY_M,
-            2.0 * PRIOR_SIGMA_YAW_RAD,
+            pose.x_m + float(self.rng.normal(0.0, self.prior_sigma_xy_m)),
+            pose.y_m + float(self.rng.normal(0.0, self.prior_sigma_xy_m)),
+            pose.yaw_rad + float(self.rng.normal(0.0, self.prior_sigma_yaw_rad)),
+            2.0 * self.prior_sigma_xy_m,
+            2.0 * self.prior_sigma_yaw_rad,
         )
 
     def motion_for(self, vx_mps: float, vy_mps: float, yaw_rate_radps: float) -> Motion:
@@ -340,8 +362,9 @@ def static_frames(
         t0 = start + k / bench.fps + float(bench.rng.uniform(0.0, 1e-3))
         rendered = bench.frame(lambda t: pose, t0)
         for i, (pipe, tally) in enumerate(zip(pipelines, tallies, strict=True)):
+            c0 = time.thread_time()
             result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior if k == 0 else None)
-            tally.add(result, rendered.truth)
+            tally.add(result, rendered.truth, 1e3 * (time.thread_time() - c0))
             out[i].append(result)
     return out
 
@@ -505,8 +528,9 @@ def driving(
             # from the first frame of a pass, and at 1.5 m/s a frame's LEDs are imaged up to 7 cm apart.
             prior = bench.prior_for(rendered.truth.base_pose)
             motion = bench.motion_for(speed * c, speed * s, 0.0)
+            c0 = time.thread_time()
             result = pipe.process(rendered.image, rendered.truth.t_mid_s, prior=prior, motion=motion)
-            tally.add(result, rendered.truth)
+            tally.add(result, rendered.truth, 1e3 * (time.thread_time() - c0))
     return tally
 
 
@@ -529,6 +553,20 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         raise ConfigError("--speed", f"must be >= 0, got {args.speed}")
     cv2.setNumThreads(1)
     bench = Bench(world, args.seed)
+    t_row_s = getattr(args, "t_row_s", None)
+    if t_row_s is not None:
+        if not 0.0 < t_row_s < 1e-3:
+            raise ConfigError("--t-row-s", f"must be between 0 and 1e-3 s, got {t_row_s}")
+        # The row-time calibration's result, as the robot's config would carry it.
+        bench.view = dataclasses.replace(
+            bench.view, intrinsics=dataclasses.replace(bench.view.intrinsics, t_row_s=t_row_s)
+        )
+    prior_sigma = getattr(args, "prior_sigma", None)
+    if prior_sigma is not None:
+        if not (prior_sigma[0] > 0.0 and 0.0 < prior_sigma[1] <= 90.0):
+            raise ConfigError("--prior-sigma", f"need XY_M > 0 and 0 < YAW_DEG <= 90, got {prior_sigma}")
+        bench.prior_sigma_xy_m = float(prior_sigma[0])
+        bench.prior_sigma_yaw_rad = math.radians(float(prior_sigma[1]))
     area = tuple(args.area) if args.area else default_area(world)
     assert len(area) == 4
     area4 = (float(area[0]), float(area[1]), float(area[2]), float(area[3]))
@@ -574,6 +612,7 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "unflagged_over_5cm": cal_tally.unflagged_over_5cm,
         "protection_coverage": _ratio(cal_tally.protected, len(cal_tally.errors_m)),
         "frame_ms_max": max(cal_tally.latency_ms, default=math.nan),
+        "frame_cpu_ms_max": max(cal_tally.cpu_ms, default=math.nan),
         "flags": dict(cal_tally.flags),
         "no_fix": dict(cal_tally.no_fix),
         **_summary_errors(cal_tally.errors_m),
@@ -598,6 +637,8 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
         "latency_ms_p99": _pct(cal_tally.latency_ms, 99),
         "latency_ms_stages_median": _stage_medians(cal_tally),
         "image_size_px": [view.intrinsics.width_px, view.intrinsics.height_px],
+        "t_row_s": view.intrinsics.t_row_s,
+        "true_t_row_s": world.camera.t_row_s,
         "calibration": {
             "file": report.file if args.calibration_out else None,
             "turn_frames": report.turn_frames,
@@ -614,8 +655,8 @@ def evaluate(args: argparse.Namespace) -> tuple[dict[str, Any], Tally, Tally, Wo
             "rotation_centre_refused": report.rotation_centre_refused,
         },
         "prior": (
-            f"odometry-grade on each run's first frame (sigma {PRIOR_SIGMA_XY_M} m, "
-            f"{math.degrees(PRIOR_SIGMA_YAW_RAD):.0f} deg): the map repeats ids"
+            f"odometry-grade on each run's first frame (sigma {bench.prior_sigma_xy_m} m, "
+            f"{math.degrees(bench.prior_sigma_yaw_rad):.0f} deg, stated twice that): the map repeats ids"
             if bench.repeats_ids
             else None
         ),

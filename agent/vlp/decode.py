@@ -134,6 +134,7 @@ class DecoderConfig:
     fit_min_confidence: float = 0.9
     min_contrast_dn: float = 10.0
     min_stripe_rows: float = 1.0
+    max_fit_rms: float = 0.2
     min_profile_periods: float = 1.0
     max_period_mismatch: float = 0.1
     max_duty_mismatch: float = 0.2
@@ -1066,13 +1067,22 @@ class StripeDecoder:
         stripe = min(d_best, 1.0 - d_best) * p_best
         sig = signatures[best]
         if stripe < cfg.min_stripe_rows:
+            # The edges cannot see such stripes reliably (the resize keeps some, drops others), but every
+            # row caught part of the light: the sub-row fit against every signature's rendered stripes
+            # (the square wave box-filtered at each row's true time) decides, when it can.
+            fitted_c = self._short_stripes(
+                f, profile, first_row, background_dn, signatures, t_row_eff_s, table
+            )
+            if isinstance(fitted_c, Classification):
+                return f, fitted_c
             kind = "bright" if d_best <= 0.5 else "dark"
             return f, Classification(
                 None,
                 0.0,
                 (),
                 f"stripe-too-short: {sig.id}'s {kind} stripe lasts {stripe:.2f} rows, under "
-                f"{cfg.min_stripe_rows:g}: the resize can drop it",
+                f"{cfg.min_stripe_rows:g}: the resize can drop it, and the sub-row fit cannot tell "
+                f"({fitted_c})",
             )
         if (
             math.isfinite(f.period_px)
@@ -1101,6 +1111,44 @@ class StripeDecoder:
                 f"({p_best:.1f} rows), {cfg.min_profile_periods:g} needed",
             )
         return f, c
+
+    def _short_stripes(
+        self,
+        f: StripeFeatures,
+        profile: FloatArray,
+        first_row: int,
+        background_dn: float,
+        signatures: tuple[Signature, ...],
+        t_row_eff_s: float,
+        table: tuple[FloatArray, FloatArray],
+    ) -> Classification | str:
+        """An LED whose best signature draws a stripe under ``min_stripe_rows``, named by the sub-row fit
+        against every signature (:func:`match_signatures`; log-likelihood -misfit / 2 s^2, s^2 the best
+        fit's residual per row, at least ``fit_noise_floor``^2), or why not: the fit is off (``period_fit
+        = "never"``), the profile is shorter than ``fit_min_periods`` of the signature's period, the best fit
+        leaves a residual over ``max_fit_rms`` per row (the profile is not any signature's), or the
+        posterior of the best is under ``fit_min_confidence``."""
+        cfg = self.config
+        if cfg.period_fit == "never":
+            return "the sub-row fit is off"
+        period, duty = table
+        clock, exposure = self._clock(first_row, profile.size, t_row_eff_s)
+        z = normalised_profile(profile, background_dn)
+        if z is None:
+            return "the profile cannot be normalised"
+        if profile.size < cfg.fit_min_periods * float(period.max()):
+            return f"{profile.size} rows, under {cfg.fit_min_periods:g} periods"
+        costs = match_signatures(z, clock, period, duty, exposure)
+        k = int(costs.argmin())
+        rms = math.sqrt(float(costs[k]) / z.size)
+        if rms > cfg.max_fit_rms:
+            return f"best fit {signatures[k].id} leaves {rms:.2f} per row, over {cfg.max_fit_rms:g}"
+        noise = max(float(costs[k]) / max(z.size - 3, 1), cfg.fit_noise_floor**2)
+        ll = ((-0.5 / noise) * (costs - costs[k])).tolist()
+        confidence = 1.0 / math.fsum(math.exp(v) for v in ll)
+        if confidence < cfg.fit_min_confidence:
+            return f"{signatures[k].id} at posterior {confidence:.2f}"
+        return Classification(signatures[k].id, confidence, tuple(ll))
 
     def _features(
         self, image: ImageU8, leds: list[LedRequest], t_row_eff_s: float

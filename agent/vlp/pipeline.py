@@ -537,8 +537,11 @@ class VlpPipeline:
         reason_if_none: str,
     ) -> VlpFix | NoFix:
         tracks = self.tracker.tracks
+        # Settled ids, and provisional ones (one confident frame): a fix leaning on a provisional id is
+        # flagged unless three LEDs or more check it (below, ``id-unconfirmed``).
+        solve_ids = {k: t.provisional_index(self.config.tracker) for k, t in enumerate(tracks)}
         usable = [
-            k for k, t in enumerate(tracks) if t.centre_ok and t.blob is not None and t.id_index is not None
+            k for k, t in enumerate(tracks) if t.centre_ok and t.blob is not None and solve_ids[k] is not None
         ]
         empty = _NO_TIMINGS
         if not usable:
@@ -560,7 +563,8 @@ class VlpPipeline:
         for row, k in enumerate(usable):
             track = tracks[k]
             blob = track.blob
-            led_id = self._settled_id(track) or ""
+            index = solve_ids[k]
+            led_id = self.signatures[index].id if index is not None else ""
             # The centre's standard deviation falls as 1/sqrt(edge points): a disk crossed by one or two
             # bright stripes (few points, all near its middle rows) is placed less well across them.
             points = max(blob.outline_points if blob is not None else 0, 1)
@@ -628,9 +632,9 @@ class VlpPipeline:
                 "close-signature",
                 solution.protection is None
                 and any(
-                    bool(self._rivals[tracks[k].id_index or 0])
+                    bool(self._rivals[solve_ids[k] or 0])
                     for k, a in zip(usable, solution.assignment, strict=True)
-                    if a >= 0 and tracks[k].id_index is not None
+                    if a >= 0 and solve_ids[k] is not None
                 ),
             ),
             (
@@ -750,7 +754,10 @@ class VlpPipeline:
             # Only full fixes feed the next frames' prior and velocity (a one-LED fix leans on its prior).
             previous = (self._last.time_s, self._last.lens) if self._last is not None else None
             self._last = _LastFix(time_s, lens, (x, y, yaw_base), previous)
-        ids = tuple(o.id for o in observations if o.used and o.id is not None)
+        # The ids the fix used (a provisional one too: the map LED it was matched to).
+        ids = tuple(
+            self.led_map.leds[o.map_index].id for o in observations if o.used and o.map_index is not None
+        )
         return VlpFix(
             time_s,
             x,

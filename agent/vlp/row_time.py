@@ -8,6 +8,14 @@ mean of the rest. Its uncertainty is the larger of the sightings' standard error
 per-LED means over the number of LEDs (sightings of one LED from one place share its blob's errors, so they
 are not independent of each other). An LED whose own median (over all its sightings, rejected ones too)
 stands apart says its frequency in the map is not the one its driver blinks at (``led_deviation``).
+
+Which signature a sighting is (``recognise_signatures``) is decided for all sightings together: a row-time
+error scales every frequency read by the same factor, so the factor is searched (within the largest error
+allowed for) that puts the most sightings on some signature; each sighting is then the signature nearest its
+frequency read divided by that factor. One sighting alone cannot tell 2000 Hz read 3 % high from 2100 Hz
+read 2 % low, but the set can: a factor that moves each LED onto its neighbour's signature leaves the LED at
+the end of the range on none. When two factors far apart explain the sightings about as well (only LEDs of
+evenly spaced signatures in the middle of the range in view), there is no answer, and the reason says so.
 """
 
 from __future__ import annotations
@@ -17,10 +25,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from agent.vlp.model import Signature
 
-__all__ = ["RowTimeEstimate", "estimate_row_time", "match_signature"]
+__all__ = ["RowTimeEstimate", "ScaleMatch", "estimate_row_time", "match_signature", "recognise_signatures"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,6 +75,96 @@ def match_signature(
         and (not math.isfinite(duty) or abs(duty - s.duty) <= max_duty_error)
     ]
     return near[0] if len(near) == 1 else None
+
+
+@dataclass(frozen=True, slots=True)
+class ScaleMatch:
+    """What :func:`recognise_signatures` found: the factor every frequency was read off by (read / true,
+    ~ true row time / stated row time), each sighting's signature (None: none near once the factor is
+    taken out, or its period unknown), and the cost of the best other factor against this one's (the
+    margin; ``inf`` without a rival)."""
+
+    factor: float
+    signatures: tuple[Signature | None, ...]
+    cost: float
+    rival_factor: float
+    rival_cost: float
+
+    @property
+    def recognised(self) -> int:
+        return sum(s is not None for s in self.signatures)
+
+
+def recognise_signatures(
+    periods_rows: Sequence[float],
+    duties: Sequence[float],
+    signatures: Sequence[Signature],
+    t_row_eff_s: float,
+    max_error: float = 0.05,
+    sigma: float = 0.015,
+    max_duty_error: float = 0.15,
+    min_margin: float = 25.0,
+) -> ScaleMatch | str:
+    """Each sighting's signature when the row time may be off by up to ``max_error`` (a fraction): the
+    common factor s (|log s| <= log(1 + max_error)) minimising sum_i min(min_k (log f_i - log s -
+    log f_k)^2 / sigma^2, 9) over the signatures k whose duty is within ``max_duty_error`` of the sighting's
+    (``sigma``: one sighting's relative frequency error; a sighting 3 sigma from every signature costs 9
+    whatever it is), searched on a grid of sigma / 8 and refined. A rival factor (the lowest cost among the
+    factors more than 3 sigma from the best) within ``min_margin`` of the best's cost makes it ambiguous:
+    the reason (a string) is returned. Each sighting is then the signature within 3 sigma of its corrected
+    frequency (the nearest), else None."""
+    if not (0.0 < max_error < 0.5 and sigma > 0.0 and t_row_eff_s > 0.0):
+        raise ValueError("need 0 < max_error < 0.5, sigma > 0 and t_row_eff_s > 0")
+    if len(periods_rows) != len(duties):
+        raise ValueError("need as many duties as periods")
+    if not signatures:
+        return "no signatures to recognise"
+    p = np.asarray(periods_rows, dtype=np.float64)
+    d = np.asarray(duties, dtype=np.float64)
+    ok = np.isfinite(p) & (p > 0.0)
+    if not ok.any():
+        return "no sighting with a measured period"
+    log_f = np.full(p.shape, np.nan)
+    log_f[ok] = -np.log(p[ok] * t_row_eff_s)
+    log_sig = np.log(np.array([s.frequency_hz for s in signatures], dtype=np.float64))
+    sig_duty = np.array([s.duty for s in signatures], dtype=np.float64)
+    # Sightings x signatures: the log-ratio read / signature (inf where the duty rules the signature out).
+    duty_ok = ~np.isfinite(d)[:, None] | (np.abs(d[:, None] - sig_duty[None, :]) <= max_duty_error)
+    ratio = np.where(duty_ok, log_f[:, None] - log_sig[None, :], np.inf)[ok]
+    cap = 9.0
+    band = math.log1p(max_error)
+
+    def cost(u: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        r = np.min(np.abs(ratio[None, :, :] - u[:, None, None]), axis=2) / sigma
+        total: npt.NDArray[np.float64] = np.minimum(r * r, cap).sum(axis=1)
+        return total
+
+    grid = np.arange(-band, band + 1e-12, sigma / 8.0)
+    costs = cost(grid)
+    best = int(np.argmin(costs))
+    fine = grid[best] + np.linspace(-sigma / 8.0, sigma / 8.0, 33)
+    fine_costs = cost(fine)
+    u_best = float(fine[int(np.argmin(fine_costs))])
+    c_best = float(fine_costs.min())
+    far = np.abs(grid - u_best) > 3.0 * sigma
+    rival_u, rival_c = math.nan, math.inf
+    if far.any():
+        k = int(np.argmin(np.where(far, costs, np.inf)))
+        rival_u, rival_c = float(grid[k]), float(costs[k])
+    if rival_c < c_best + min_margin:
+        return (
+            f"the frequencies read fit the map's signatures about as well with the row time "
+            f"{100.0 * math.expm1(u_best):+.1f} % and {100.0 * math.expm1(rival_u):+.1f} % off (cost "
+            f"{c_best:.1f} against {rival_c:.1f}): LEDs of evenly spaced signatures, none at the end of "
+            "their range, are in view; take frames where more LEDs, or others, are in view"
+        )
+    found: list[Signature | None] = [None] * p.size
+    residual = np.abs(ratio - u_best)
+    for row, i in enumerate(np.flatnonzero(ok).tolist()):
+        k = int(np.argmin(residual[row]))
+        if residual[row, k] <= 3.0 * sigma:
+            found[i] = signatures[k]
+    return ScaleMatch(math.exp(u_best), tuple(found), c_best, math.exp(rival_u), rival_c)
 
 
 def estimate_row_time(

@@ -25,8 +25,11 @@ Per track and frame (``reference/vlp.md`` §1.3, the group's "improved CamShift-
    tracks on one LED are merged.
 4. **Voting.** Each fully visible frame adds its per-signature log-likelihoods (each clipped at
    -``vote_clip`` relative to the frame's best, so one bad frame counts for little) to the track's tally; the
-   id settles when its posterior passes ``settle_posterior`` and then changes only if another id passes it
-   in turn. The tally's spread is bounded so a real change is followed within a few frames.
+   id settles by evidence over frames: when its posterior passes ``settle_posterior`` *and* the last
+   ``settle_frames`` (2) decided frames each named it, and then changes only when another id does both in
+   turn. One confident frame makes it only *provisional* (``provisional_index``), which the solver may use
+   where the geometry can check it. The tally's spread is bounded so a real change is followed within a few
+   frames.
 
 Steady frames touch only the pixels of the tracks' windows.
 """
@@ -69,9 +72,11 @@ class TrackerConfig:
     visible LED (vignetting changes its level across the image), every ``adapt_every`` frames and only
     while rho >= ``adapt_rho``, so that a cover never becomes the model. ``min_area_ratio``,
     ``max_outline_rms_px``: a disk whose bridged area is below this share of pi R^2, or whose outline is
-    not a circle, is partly covered whatever the histogram says. An id settles on the tally's posterior
-    (``settle_posterior``, after ``settle_frames`` votes); it is *confirmed* once ``confirm_frames``
-    consecutive decided frames named it (one confident misread is then not enough for a nominal fix)."""
+    not a circle, is partly covered whatever the histogram says. An id settles when the tally's posterior
+    passes ``settle_posterior`` and the last ``settle_frames`` decided frames in a row each named it (one
+    confident read, right or wrong, is not enough: it makes the id provisional only); a settled id is
+    *confirmed* while the last ``confirm_frames`` decided frames named it (a frame naming another id
+    withdraws that until it is named again)."""
 
     accel_sigma_pxps2: float = 3000.0
     initial_speed_sigma_pxps: float = 400.0
@@ -92,7 +97,7 @@ class TrackerConfig:
     vote_clip: float = 12.0
     vote_span: float = 60.0
     settle_posterior: float = 0.999
-    settle_frames: int = 1
+    settle_frames: int = 2
     confirm_frames: int = 2
 
 
@@ -179,6 +184,8 @@ class LedTrack:
         self.id_index: int | None = None
         # Consecutive decided frames, up to now, whose own best signature was the settled id.
         self.confirmations = 0
+        # The id the last decided frames in a row named (their own best), and how many of them.
+        self._streak: tuple[int, int] = (-1, 0)
         self.frame: Classification | None = None
         # The track's age at its last vote (its last decoded frame).
         self.voted_at = -1
@@ -218,7 +225,8 @@ class LedTrack:
     def vote(self, classification: Classification, config: TrackerConfig) -> None:
         """Add one frame's evidence: its log-likelihoods relative to its best, each clipped at
         -``vote_clip``; the tally's spread is then bounded by ``vote_span``. The id settles (or changes) when
-        one posterior reaches ``settle_posterior`` after ``settle_frames`` votes."""
+        one posterior reaches ``settle_posterior`` and the last ``settle_frames`` decided frames in a row
+        each named that id (an undecided frame neither breaks nor extends the run)."""
         self.frame = classification
         self.voted_at = self.age
         # A handful of signatures: plain floats (a numpy call costs more than the arithmetic here).
@@ -235,14 +243,23 @@ class LedTrack:
         best = tally.index(max(tally))
         # Posterior of the best: 1 / sum_k exp(tally_k - tally_best), the best's own tally being 0.
         self._best_posterior = (best, 1.0 / math.fsum(math.exp(t) for t in tally))
+        said = ll.index(top_ll) if classification.id is not None else None
+        if said is not None:
+            run_id, run = self._streak
+            self._streak = (said, run + 1 if said == run_id else 1)
         settled = self.id_index
-        if self.votes >= config.settle_frames and self._best_posterior[1] >= config.settle_posterior:
+        run_id, run = self._streak
+        if (
+            self._best_posterior[1] >= config.settle_posterior
+            and run_id == best
+            and run >= max(config.settle_frames, 1)
+        ):
             self.id_index = best
         if self.id_index != settled:
-            self.confirmations = 0
-        if classification.id is not None and self.id_index is not None:
+            # Settled now by the run that named it: those frames confirm it.
+            self.confirmations = run if self.id_index == run_id else 0
+        elif said is not None and self.id_index is not None:
             # This frame's own verdict (its best signature) for or against the settled id.
-            said = ll.index(top_ll)
             self.confirmations = self.confirmations + 1 if said == self.id_index else 0
 
     @property
@@ -252,6 +269,15 @@ class LedTrack:
         e = np.exp(self.tally - self.tally.max())
         result: FloatArray = e / e.sum()
         return result
+
+    def provisional_index(self, config: TrackerConfig) -> int | None:
+        """The id to solve with: the settled one, else the tally's best once its posterior passes
+        ``settle_posterior`` (one confident frame: not settled, so never confirmed; the pipeline flags a
+        fix that leans on it unless three LEDs or more check it)."""
+        if self.id_index is not None:
+            return self.id_index
+        best, posterior = self._best_posterior
+        return best if best >= 0 and posterior >= config.settle_posterior else None
 
     def confirmed(self, config: TrackerConfig) -> bool:
         """The settled id was named by the last ``confirm_frames`` decided frames in a row."""

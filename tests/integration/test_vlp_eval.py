@@ -157,3 +157,18 @@ def test_a_tilted_camera_is_calibrated_as_a_rotation(capsys: pytest.CaptureFixtu
     assert cal["mount_tilt_deg"] == pytest.approx(cal["true_mount_tilt_deg"], abs=0.1)
     assert cal["principal_point_px"] == pytest.approx(cal["true_principal_point_px"], abs=0.5)
     assert out["mean_error_cm"] < 0.25 and out["unflagged_over_5cm"] == 0
+
+
+def test_a_calibrated_row_time_gives_close_signatures_their_fixes_back() -> None:
+    """sig100_row3 (signatures 100 Hz apart, row time 3 % off): with the nominal row time every LED reads as
+    its neighbour and its fixes are flagged; with the row time the wizard's step finds (--t-row-s, ~32 us)
+    the two-LED fixes are still flagged (close signatures), the others nominal and right."""
+    args = parse(
+        "--world", str(WORLDS / "sig100_row3.toml"), "--points", "3", "--repeats", "4", "--t-row-s", "32e-6"
+    )
+    summary, cal, _, _ = eval_vlp.evaluate(args)
+    assert summary["t_row_s"] == 32e-6 and summary["true_t_row_s"] == pytest.approx(32e-6)
+    assert cal.unflagged_over_5cm == 0
+    assert len(cal.errors_m) >= 4 and max(cal.errors_m) < 0.01
+    with pytest.raises(eval_vlp.ConfigError):
+        eval_vlp.evaluate(parse("--world", str(WORLDS / "sig100_row3.toml"), "--t-row-s", "0"))

@@ -38,7 +38,13 @@ def test_half_covered_led_keeps_track_and_id(cover_angle_rad: float, speed_mps: 
         assert isinstance(result, VlpFix), (k, result)
         truth = frame.truth.base_pose
         error = math.hypot(result.x_m - truth.x_m, result.y_m - truth.y_m)
-        l2 = [o for o in result.leds if o.id == "L2"]
+        # On the first frame the ids are provisional (settled after two frames): L2 is the one matched to it.
+        l2 = [
+            o
+            for o in result.leds
+            if o.id == "L2"
+            or (o.id is None and o.map_index is not None and view.led_map.leds[o.map_index].id == "L2")
+        ]
         assert len(l2) == 1, (k, result.leds)
         history.append((k, error, l2[0], (result.x_m - truth.x_m, result.y_m - truth.y_m)))
     track_ids = {obs.track_id for _, _, obs, _ in history}

@@ -389,3 +389,33 @@ def test_an_led_whose_short_stripes_were_dropped_is_not_read_as_another() -> Non
         misread += unchecked.decode_many(image, request, signatures, t_eff)[0][1].id is not None
     assert named == 0
     assert misread >= 1  # the check is what stops them
+
+
+def test_stripes_shorter_than_a_row_are_named_by_the_sub_row_fit_or_refused() -> None:
+    """The short_stripes world's signatures (bright 0.44-0.81 row): the edges cannot see such stripes
+    reliably, but every row caught part of the light, and the fit against every signature's rendered
+    stripes names them; what it cannot tell is refused with the reason, never named wrong."""
+    intrinsics = _intrinsics()
+    t_eff = intrinsics.t_row_eff_s
+    sigs = (
+        Signature("L1", 3000.0, 0.2),
+        Signature("L2", 4000.0, 0.25),
+        Signature("L3", 5000.0, 0.3),
+        Signature("L4", 5500.0, 0.2),
+    )
+    decoder = StripeDecoder(DecoderConfig(), RowTiming.of(intrinsics))
+    right = wrong = 0
+    for sig in (sigs[0], sigs[3]):
+        led = Led("A", 0.0, 0.0, 1.5, frequency_hz=sig.frequency_hz, duty=sig.duty, diameter_m=0.086)
+        renderer = RollingShutterRenderer(CameraModel(), [led], Mount(0.0, 0.0, 0.2), seed=4)
+        for k in range(6):
+            frame = renderer.render(lambda t, y=0.04 * k, yaw=0.3 * k: Pose2D(0.0, y, yaw), 1.0 + 0.05 * k)
+            (blob,) = [b for b in find_blobs(frame.image, DetectorConfig(min_diameter_px=8.0, bridge_px=8.0))]
+            request = [(blob.centre_px, blob.radius_px, blob.background_dn, False)]
+            ((_, cls),) = decoder.decode_many(frame.image, request, sigs, t_eff)
+            right += cls.id == sig.id
+            wrong += cls.id is not None and cls.id != sig.id
+            if cls.id is None:
+                assert cls.reason is not None
+    assert wrong == 0
+    assert right >= 6

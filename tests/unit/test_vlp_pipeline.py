@@ -178,7 +178,9 @@ def test_settled_ids_are_verified_every_few_frames_and_a_disagreement_every_fram
         assert set(result.ids) == {"L1", "L2", "L3", "L4"}
         # Decoded on this frame: the frame's own classification and stripe features are reported.
         decoded = [o for o in result.leds if o.frame_id is not None]
-        assert all(o.frame_id == o.id and math.isfinite(o.frequency_hz) for o in decoded)
+        # (On the first frame no id is settled yet: one frame's read is provisional.)
+        assert all(o.frame_id == (o.id or o.frame_id) and math.isfinite(o.frequency_hz) for o in decoded)
+        assert all(o.id is not None for o in result.leds) or len(decoded_per_frame) == 0
         assert all(o.frame_id is None and math.isnan(o.frequency_hz) for o in result.leds if o not in decoded)
         decoded_per_frame.append(len(decoded))
     # The first frames decode every LED; once settled and confirmed, all four together every third frame

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agent.vlp.model import Signature
-from agent.vlp.row_time import estimate_row_time, match_signature
+from agent.vlp.row_time import estimate_row_time, match_signature, recognise_signatures
 
 A = 1536 / 600  # sensor rows per output row at 800x600
 ENV1 = (
@@ -71,3 +71,54 @@ def test_recognition_allows_for_the_row_time_error_but_not_for_a_swap() -> None:
 def test_no_sightings_is_an_error() -> None:
     with pytest.raises(ValueError, match="at least one"):
         estimate_row_time([], [], [], A)
+
+
+SIG100 = tuple(Signature(f"L{k + 1}", 2000.0 + 100.0 * k, 0.5) for k in range(4))
+
+
+def _sightings(
+    sigs: tuple[Signature, ...], factor: float, t_eff: float, per_led: int, seed: int
+) -> tuple[list[float], list[float], list[str]]:
+    """Periods read by a camera whose row time is ``factor`` times the stated one (1 % noise)."""
+    rng = np.random.default_rng(seed)
+    periods, duties, ids = [], [], []
+    for s in sigs:
+        for _ in range(per_led):
+            periods.append(1.0 / (s.frequency_hz * factor * t_eff) * (1.0 + rng.normal(0.0, 0.01)))
+            duties.append(0.5 + rng.normal(0.0, 0.03))
+            ids.append(s.id)
+    return periods, duties, ids
+
+
+def test_close_signatures_are_recognised_together_through_a_row_time_error() -> None:
+    """100 Hz apart (5 %) and the row time 3 % off: one by one each read is nearer its neighbour (or
+    between two, refused); together the factor that leaves no LED off the map is found, and the sightings
+    named right."""
+    t_eff = 32e-6 * A
+    periods, duties, ids = _sightings(SIG100, 1.03, t_eff, 10, seed=1)
+    alone = [match_signature(p, d, SIG100, t_eff) for p, d in zip(periods, duties, strict=True)]
+    assert sum(s is not None for s in alone) <= 10  # only the top LED's, which has no neighbour above
+    match = recognise_signatures(periods, duties, SIG100, t_eff)
+    assert not isinstance(match, str)
+    assert match.factor == pytest.approx(1.03, abs=0.005)
+    named = [s.id if s is not None else None for s in match.signatures]
+    assert sum(n == i for n, i in zip(named, ids, strict=True)) >= 36
+    # A read 2.5 sigma off lands on the neighbour: rare, and the row-time estimate rejects it as an outlier.
+    assert sum(n not in (i, None) for n, i in zip(named, ids, strict=True)) <= 2
+    assert match.rival_cost > match.cost + 25.0
+
+
+def test_a_set_that_cannot_tell_the_factor_is_refused_with_the_reason() -> None:
+    """Only the two middle LEDs of evenly spaced signatures in view: shifted one signature up or not, the
+    reads fit alike, so nothing is named."""
+    t_eff = 32e-6 * A
+    periods, duties, _ = _sightings(SIG100[1:3], 1.0, t_eff, 10, seed=2)
+    # Read 2.4 % high: half-way between their own signatures and the next ones up.
+    answer = recognise_signatures([p / 1.024 for p in periods], duties, SIG100, t_eff)
+    assert isinstance(answer, str) and "about as well" in answer
+    # Unique, far apart signatures (Environment 1's): no doubt, whatever LEDs are in view.
+    periods, duties, ids = _sightings(ENV1[1:3], 0.98, t_eff, 5, seed=3)
+    duties = [0.6] * 5 + [0.4] * 5
+    match = recognise_signatures(periods, duties, ENV1, t_eff)
+    assert not isinstance(match, str)
+    assert [s.id if s else None for s in match.signatures] == ids

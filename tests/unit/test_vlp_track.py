@@ -142,28 +142,43 @@ def test_a_settled_id_does_not_flip_on_a_few_bad_frames() -> None:
     assert track.id_index == 1
 
 
-def test_an_id_is_confirmed_by_several_frames_not_one() -> None:
-    """One confident frame settles the id (the track can be followed and shown) but does not confirm it:
-    confirm_frames decided frames in a row must name it; a frame that names another id starts over, an
-    undecided one changes nothing."""
+def test_an_id_settles_by_evidence_over_frames_not_one() -> None:
+    """One confident frame makes the id provisional only (the solver may use it where three LEDs check it);
+    it settles once settle_frames decided frames in a row named it; an undecided frame neither breaks nor
+    extends the run; a settled id is confirmed while the last decided frames named it, and a frame naming
+    another id withdraws that (and does not settle the other)."""
     frame, tracker = next(iter(run(lambda t: Pose2D(0.0, 0.0, 0.0), frames=1)))
     del frame
     track = tracker.tracks[0]
-    config = TrackerConfig(confirm_frames=2)
+    config = TrackerConfig(settle_frames=2, confirm_frames=2)
     says_a = Classification("A", 1.0, (0.0, -40.0, -60.0, -80.0))
+    says_b = Classification("B", 1.0, (-40.0, 0.0, -60.0, -80.0))
     weakly_b = Classification("B", 0.9, (-1.0, 0.0, -60.0, -80.0))
     undecided = Classification(None, 0.0, (0.0, -0.5, -1.0, -1.0))
     track.vote(says_a, config)
-    assert track.id_index == 0 and not track.confirmed(config)
-    track.vote(undecided, config)
+    assert track.id_index is None and track.provisional_index(config) == 0
     assert not track.confirmed(config)
+    track.vote(undecided, config)
+    assert track.id_index is None
     track.vote(says_a, config)
-    assert track.confirmed(config)
+    assert track.id_index == 0 and track.confirmed(config)
     track.vote(weakly_b, config)
     assert track.id_index == 0 and not track.confirmed(config)
     track.vote(says_a, config)
     track.vote(says_a, config)
     assert track.confirmed(config)
+    # A fresh track read wrong once, then right: the wrong read never settles.
+    fresh = tracker.tracks[0]
+    fresh.tally[:] = 0.0
+    fresh.votes, fresh.id_index, fresh.confirmations = 0, None, 0
+    fresh._streak = (-1, 0)
+    fresh.vote(says_b, config)
+    assert fresh.id_index is None and fresh.provisional_index(config) == 1
+    fresh.vote(says_a, config)
+    assert fresh.id_index is None
+    # One frame settles with settle_frames = 1 (the former rule).
+    fresh.vote(says_a, TrackerConfig(settle_frames=1))
+    assert fresh.id_index is None or fresh.id_index == 0
 
 
 def test_a_track_started_from_a_poor_first_look_becomes_fully_visible() -> None:

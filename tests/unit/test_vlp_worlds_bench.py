@@ -22,9 +22,27 @@ def load_bench() -> Any:
 
 def test_every_case_is_a_shipped_world() -> None:
     bench = load_bench()
-    for _, stem, speed in bench.CASES:
+    for _, stem, speed, prior in bench.CASES:
         assert (bench.WORLDS / f"{stem}.toml").is_file(), stem
         assert speed >= 0.0
+        assert prior is None or (prior[0] > 0.0 and prior[1] > 0.0)
+
+
+def test_the_table_has_exactly_the_acceptance_columns() -> None:
+    bench = load_bench()
+    assert bench.TABLE_COLUMNS == (
+        "fix_fraction",
+        "mean_error_cm",
+        "p90_error_cm",
+        "max_error_cm",
+        "unflagged_over_5cm",
+        "protection_coverage",
+        "frame_ms_max",
+    )
+    good = [bench.Seeded(0, frames=10, fixed=10, errors_m=(0.001,) * 10, protected=10, frame_ms_max=3.0)]
+    verdict = bench.row("x", 0.0, good)
+    assert all(c in verdict for c in bench.TABLE_COLUMNS)
+    assert verdict["mean_error_cm"] == 0.1 and verdict["frame_ms_max"] == 3.0
 
 
 def test_the_verdict_follows_the_acceptance() -> None:
