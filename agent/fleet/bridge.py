@@ -25,7 +25,7 @@ from typing import Any
 from agent.fleet import payloads
 from agent.fleet.bridge_config import BridgeConfig
 from agent.fleet.local_protocol import (
-    FrameDecoder,
+    FrameReader,
     GoalStateMessage,
     LocalProtocolError,
     Message,
@@ -33,6 +33,7 @@ from agent.fleet.local_protocol import (
     PoseMessage,
     StatusMessage,
     encode,
+    receive,
 )
 from drivers.errors import DeviceNotFound
 from firmware_protocol.errors import ProtocolError
@@ -205,7 +206,7 @@ class Bridge:
     # -- the loop ------------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         self._open()
-        decoder = FrameDecoder()
+        reader = FrameReader()
         next_status = next_connect = 0.0
         try:
             while not stop.is_set():
@@ -217,7 +218,7 @@ class Bridge:
                 if agent is None and now >= next_connect:
                     next_connect = now + self.config.reconnect_s
                     agent = self._connect()
-                    decoder = FrameDecoder()
+                    reader = FrameReader()
                 deadline = next_status if agent is not None else min(next_status, next_connect)
                 wait = max(0.0, deadline - time.monotonic())
                 if agent is None:
@@ -226,24 +227,13 @@ class Bridge:
                 readable, _, _ = select.select([agent], [], [], min(wait, 0.25))
                 if not readable:
                     continue
-                try:
-                    data = agent.recv(65536)
-                except (TimeoutError, BlockingIOError, InterruptedError):
-                    continue
-                except OSError as exc:
-                    self._disconnect(f"receive failed: {exc}")
-                    continue
-                if not data:
-                    self._disconnect("the agent closed the socket")
-                    continue
-                try:
-                    messages = decoder.feed(data)
-                except LocalProtocolError as exc:
+                result = receive(agent, reader)
+                if result.malformed:
                     self.count("agent_malformed_frames")
-                    self._disconnect(f"malformed frame: {exc}")
-                    continue
-                for message in messages:
+                for message in result.messages:
                     self._from_agent(message)
+                if result.close is not None:
+                    self._disconnect(result.close)
         finally:
             self.close()
 

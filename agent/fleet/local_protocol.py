@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
 
 from firmware_protocol.errors import ProtocolError
 
@@ -29,15 +29,18 @@ __all__ = [
     "MAX_PAYLOAD",
     "VERSION",
     "FrameDecoder",
+    "FrameReader",
     "GoalMessage",
     "GoalStateMessage",
     "LocalProtocolError",
     "Message",
     "PeerPoseMessage",
     "PoseMessage",
+    "ReadResult",
     "StatusMessage",
     "decode_frame",
     "encode",
+    "receive",
     "valid_robot_name",
 ]
 
@@ -258,3 +261,56 @@ class FrameDecoder:
             self._buffer.clear()
             raise
         return out
+
+
+@dataclass(frozen=True, slots=True)
+class ReadResult:
+    """What one read from the stream gave: the whole messages, and why the connection must now be closed
+    (None: keep reading). ``malformed``: it closes for a bad frame (counted by the caller)."""
+
+    messages: list[Message] = field(default_factory=list)
+    close: str | None = None
+    malformed: bool = False
+
+
+class FrameReader:
+    """One connection's reading side, sans I/O: hand it what ``recv`` returned (or the error it raised)
+    and it says what came and whether the connection must close. Both ends (the agent's fleet loop, the
+    bridge) read through it, so both treat the end of the stream, a failed receive and a bad frame alike:
+    the connection closes, the other side reconnects."""
+
+    def __init__(self) -> None:
+        self._decoder = FrameDecoder()
+
+    def received(self, data: bytes) -> ReadResult:
+        """Bytes from the stream; ``b""`` is its end (the peer closed)."""
+        if not data:
+            cut = f" ({self._decoder.pending} bytes of a frame cut)" if self._decoder.pending else ""
+            return ReadResult(close=f"the other side closed the connection{cut}")
+        try:
+            return ReadResult(self._decoder.feed(data))
+        except LocalProtocolError as exc:
+            return ReadResult(close=f"malformed frame: {exc}", malformed=True)
+
+    @staticmethod
+    def failed(exc: OSError) -> ReadResult:
+        """``recv`` raised: a timeout or an interrupted call is nothing; anything else closes."""
+        if isinstance(exc, TimeoutError | BlockingIOError | InterruptedError):
+            return ReadResult()
+        return ReadResult(close=f"receive failed: {exc}")
+
+
+class _Receiver(Protocol):
+    def recv(self, bufsize: int, /) -> bytes: ...
+
+
+READ_SIZE = 65536
+
+
+def receive(sock: _Receiver, reader: FrameReader) -> ReadResult:
+    """One ``recv`` on a readable socket, through ``reader`` (the only I/O here: the caller selects)."""
+    try:
+        data = sock.recv(READ_SIZE)
+    except OSError as exc:
+        return reader.failed(exc)
+    return reader.received(data)

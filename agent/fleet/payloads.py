@@ -29,6 +29,7 @@ __all__ = [
     "FleetPayloadError",
     "RobotStatus",
     "decode_goal",
+    "decode_goal_state",
     "decode_pose",
     "decode_status",
     "encode_goal",
@@ -227,4 +228,16 @@ def decode_goal(payload: bytes, robot: str) -> GoalMessage:
         _float(obj, "x_m"),
         _float(obj, "y_m"),
         _float(obj, "yaw_rad", optional=True),
+    )
+
+
+def decode_goal_state(payload: bytes, robot: str) -> GoalStateMessage:
+    """A goal status published under ``robot``'s ``goal_state`` key."""
+    obj = _load(payload, robot)
+    return GoalStateMessage(
+        _int(obj, "t_us", 0, 2**64 - 1),
+        _int(obj, "goal_id", 0, 0xFFFF),
+        _int(obj, "state", 0, 255),
+        _int(obj, "reason", 0, 255),
+        _float(obj, "remaining_m", optional=True),
     )
