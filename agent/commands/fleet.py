@@ -68,6 +68,11 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     goal.add_argument("y", metavar="Y", type=float, help="metres, map frame")
     goal.add_argument("--theta", type=float, default=None, metavar="DEG", help="final heading (default: any)")
     goal.add_argument("--goal-id", type=int, default=None, help="0..65535 (default: a random one)")
+    goal.add_argument(
+        "--allow-unknown",
+        action="store_true",
+        help="the way may cross space the robot's map does not know yet (a map being built)",
+    )
     goal.add_argument("--wait", action="store_true", help="wait until the goal has ended")
     goal.add_argument(
         "--timeout", type=positive_seconds, default=None, help="seconds (default: 10, with --wait 300)"
@@ -137,7 +142,9 @@ def _goal(args: argparse.Namespace) -> int:
     zenoh, prefix = _zenoh(args)
     yaw = math.nan if args.theta is None else math.radians(args.theta)
     timeout = args.timeout if args.timeout is not None else (300.0 if args.wait else 10.0)
-    goal = GoalMessage(0, goal_id, args.x, args.y, yaw)
+    goal = GoalMessage(
+        0, goal_id, args.x, args.y, yaw, GoalMessage.ALLOW_UNKNOWN if args.allow_unknown else 0
+    )
     trace = GoalSender(zenoh, prefix).send(args.robot, goal, wait_end=args.wait, timeout_s=timeout)
 
     def named(state: Any) -> dict[str, Any]:

@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 MAGIC = b"VF"
-VERSION = 1
+VERSION = 2  # 2: a goal carries its options (allow_unknown)
 HEADER = struct.Struct("<2sBBI")
 MAX_PAYLOAD = 1024  # the largest message (a peer pose with a 32-byte name) is 85 bytes
 MAX_NAME_BYTES = 32
@@ -53,7 +53,7 @@ MAX_NAME_BYTES = 32
 _POSE = struct.Struct("<QdddffI")  # t_us, x_m, y_m, yaw_rad, sigma_xy_m, sigma_yaw_rad, pose flags
 _STATUS = struct.Struct("<QII")  # t_us, pose flags, status bits
 _GOAL_STATE = struct.Struct("<QHBBf")  # t_us, goal_id, state, reason, remaining_m (NaN: unknown)
-_GOAL = struct.Struct("<QHddd")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading)
+_GOAL = struct.Struct("<QHdddB")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading), options
 
 
 class LocalProtocolError(ProtocolError):
@@ -164,20 +164,28 @@ class GoalMessage:
     """A goal for this robot from the fleet (bridge -> agent), in the shared map frame."""
 
     TYPE: ClassVar[int] = 0x11
+    ALLOW_UNKNOWN: ClassVar[int] = 1  # options bit: the way may cross unknown space (a map being built)
     t_us: int
     goal_id: int
     x_m: float
     y_m: float
     yaw_rad: float = math.nan
+    options: int = 0
+
+    @property
+    def allow_unknown(self) -> bool:
+        return bool(self.options & self.ALLOW_UNKNOWN)
 
     def payload(self) -> bytes:
-        return _GOAL.pack(self.t_us, self.goal_id, self.x_m, self.y_m, self.yaw_rad)
+        return _GOAL.pack(self.t_us, self.goal_id, self.x_m, self.y_m, self.yaw_rad, self.options)
 
     @classmethod
     def parse(cls, payload: bytes) -> GoalMessage:
         goal = cls(*_unpack(_GOAL, payload, "goal"))
         if not (math.isfinite(goal.x_m) and math.isfinite(goal.y_m)) or math.isinf(goal.yaw_rad):
             raise LocalProtocolError("goal: a position that is not finite", payload)
+        if goal.options & ~cls.ALLOW_UNKNOWN:
+            raise LocalProtocolError(f"goal: unknown option bits 0x{goal.options:02x}", payload)
         return goal
 
 

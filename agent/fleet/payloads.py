@@ -144,6 +144,7 @@ def encode_goal(robot: str, goal: GoalMessage) -> bytes:
             "x_m": goal.x_m,
             "y_m": goal.y_m,
             "yaw_rad": _opt(goal.yaw_rad),
+            "allow_unknown": goal.allow_unknown,
         }
     )
 
@@ -222,12 +223,16 @@ def decode_status(payload: bytes, robot: str) -> RobotStatus:
 def decode_goal(payload: bytes, robot: str) -> GoalMessage:
     """A goal published under ``robot``'s goal key (it must name ``robot`` itself)."""
     obj = _load(payload, robot)
+    allow = obj.get("allow_unknown", False)
+    if type(allow) is not bool:
+        raise FleetPayloadError(f"'allow_unknown' must be true or false, not {allow!r}")
     return GoalMessage(
         0,
         _int(obj, "goal_id", 0, 0xFFFF),
         _float(obj, "x_m"),
         _float(obj, "y_m"),
         _float(obj, "yaw_rad", optional=True),
+        GoalMessage.ALLOW_UNKNOWN if allow else 0,
     )
 
 

@@ -251,7 +251,11 @@ class FleetLoop:
         self._count("goals_in")
         yaw = None if math.isnan(message.yaw_rad) else message.yaw_rad
         log.info("fleet: goal %d (here %d) to (%.2f, %.2f)", message.goal_id, local, message.x_m, message.y_m)
-        self.goals(GoalCommand(NO_SEQUENCE, local, message.x_m, message.y_m, yaw))
+        self.goals(
+            GoalCommand(
+                NO_SEQUENCE, local, message.x_m, message.y_m, yaw, allow_unknown=message.allow_unknown
+            )
+        )
 
     def _expire_peers(self, now_ns: int) -> None:
         limit = now_ns - int(self.peer_timeout_s * 1e9)

@@ -34,7 +34,7 @@ MESSAGES = [
     StatusMessage(5, 0b11, StatusMessage.READY | StatusMessage.LOCALIZED),
     GoalStateMessage(6, 42, 3, 0, 1.5),
     PeerPoseMessage("robot-2_b", POSE),
-    GoalMessage(7, 0xFFFF, 4.0, 5.0, -1.0),
+    GoalMessage(7, 0xFFFF, 4.0, 5.0, -1.0, GoalMessage.ALLOW_UNKNOWN),
 ]
 
 
@@ -125,7 +125,7 @@ def test_encoding_refuses_what_the_frame_cannot_carry() -> None:
 
 
 def test_a_goal_that_is_not_finite_is_refused() -> None:
-    payload = struct.pack("<QHddd", 0, 1, math.inf, 0.0, 0.0)
+    payload = struct.pack("<QHdddB", 0, 1, math.inf, 0.0, 0.0, 0)
     with pytest.raises(LocalProtocolError, match="finite"):
         decode_frame(HEADER.pack(MAGIC, VERSION, GoalMessage.TYPE, len(payload)) + payload)
 
@@ -170,3 +170,9 @@ def test_the_shared_reader_gives_messages_and_says_when_to_close() -> None:
 
     assert receive(Sock(encode(POSE)), FrameReader()).messages == [POSE]
     assert receive(Sock(BrokenPipeError()), FrameReader()).close is not None
+
+
+def test_a_goal_with_option_bits_this_side_does_not_know_is_refused() -> None:
+    payload = struct.pack("<QHdddB", 0, 1, 1.0, 0.0, 0.0, 0x80)
+    with pytest.raises(LocalProtocolError, match="option"):
+        decode_frame(HEADER.pack(MAGIC, VERSION, GoalMessage.TYPE, len(payload)) + payload)
