@@ -1,6 +1,8 @@
 """``vlp-agent bridge --config FILE``: the fleet bridge process, the agent's Unix socket <-> Zenoh.
 
-Runs until SIGTERM or Ctrl-C, then prints its counters (``--json``: one JSON object). docs/fleet.md.
+Runs until SIGTERM or Ctrl-C, then prints its counters (``--json``: one JSON object). ``--print-unit``
+prints the systemd drop-in that allows the bridge's unit to reach its configured endpoints and exits.
+docs/fleet.md.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from agent.commands.args import dumps_json
+from agent.commands.args import UsageError, dumps_json
 from agent.fleet.bridge_config import load_bridge_config
 from agent.runtime.shutdown import ShutdownRequest
 
@@ -30,12 +32,34 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     )
     p.add_argument("--config", metavar="FILE", required=True, help="bridge config (TOML, docs/fleet.md)")
     p.add_argument("--json", action="store_true", help="print the counters at exit as one JSON object")
+    p.add_argument(
+        "--print-unit",
+        action="store_true",
+        help="print the systemd drop-in for vlp-agent-bridge.service (IPAddressAllow= the config's "
+        "endpoints, which must be IP addresses) and exit; install it as "
+        "/etc/systemd/system/vlp-agent-bridge.service.d/endpoints.conf",
+    )
+    p.add_argument(
+        "--allow",
+        metavar="ADDRESS",
+        action="append",
+        default=[],
+        help="with --print-unit: one more address or prefix to allow (a peer that only connects to this "
+        "bridge's listen endpoint), e.g. 10.0.0.0/24",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from agent.fleet.bridge import Bridge
 
     config = load_bridge_config(args.config)
+    if args.print_unit:
+        from agent.fleet.unit import drop_in
+
+        print(drop_in(config.zenoh, args.config, args.allow), end="")
+        return 0
+    if args.allow:
+        raise UsageError("--allow goes with --print-unit")
     bridge = Bridge(config)
     stop = threading.Event()
     failure: list[BaseException] = []
