@@ -107,9 +107,12 @@ class FleetView:
                 sub.undeclare()
         finally:
             session.close()
-        now = time.monotonic()
+        return self.seen(time.monotonic())
+
+    def seen(self, now_s: float) -> list[RobotSeen]:
+        """The robots heard, by name, each marked gone when silent for ``stale_s`` at ``now_s``."""
         with self._lock:
             for seen in self.robots.values():
-                seen.silent_s = now - seen.last_seen_s
+                seen.silent_s = now_s - seen.last_seen_s
                 seen.gone = seen.silent_s > self.stale_s
             return [self.robots[name] for name in sorted(self.robots)]
