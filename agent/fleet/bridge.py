@@ -36,6 +36,7 @@ from agent.fleet.local_protocol import (
     receive,
 )
 from drivers.errors import DeviceNotFound
+from firmware_protocol.command_frame import GoalReason, GoalState
 from firmware_protocol.errors import ProtocolError
 
 __all__ = ["Bridge"]
@@ -143,26 +144,31 @@ class Bridge:
             self._reject("goal", exc)
             return
         self.count("goals_in")
-        self._to_agent(goal)
+        if not self._to_agent(goal):
+            # No agent to drive it: the sender hears so at once instead of waiting for a status.
+            now_us = time.monotonic_ns() // 1000
+            refused = GoalStateMessage(now_us, goal.goal_id, GoalState.REJECTED, GoalReason.NOT_LOCALIZED)
+            self._publish("goal_state", payloads.encode_goal_state(self.config.robot, refused))
 
     def _reject(self, kind: str, exc: Exception) -> None:
         self.count(f"rejected_{kind}")
         log.info("bridge: rejected a %s message from the network: %s", kind, exc)
 
     # -- the agent's socket --------------------------------------------------------------------------------
-    def _to_agent(self, message: Message) -> None:
+    def _to_agent(self, message: Message) -> bool:
         with self._agent_lock:
             agent = self._agent
             if agent is None:
                 self.count("to_agent_dropped_no_agent")
-                return
+                return False
             try:
                 agent.sendall(encode(message))
             except (OSError, LocalProtocolError) as exc:
                 self.count("to_agent_send_errors")
                 log.info("bridge: sending to the agent failed: %s", exc)
-                return
+                return False
         self.count("to_agent")
+        return True
 
     def _connect(self) -> socket.socket | None:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

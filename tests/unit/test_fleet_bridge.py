@@ -372,6 +372,12 @@ def test_a_bridge_without_its_agent_says_so_and_connects_when_it_comes(tmp_path:
         assert status.state == "agent-down" and not status.agent_connected
         session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))  # nobody to hand it to
         assert bridge.counters()["to_agent_dropped_no_agent"] == 1
+        refused = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+        assert (refused.goal_id, refused.state, refused.reason) == (
+            9,
+            GoalState.REJECTED,
+            GoalReason.NOT_LOCALIZED,
+        )
         loop = FleetLoop(
             sock, 50.0, 0.05, lambda: (_estimate(3.0), PoseFlags.ODOMETRY), lambda: 3, time.monotonic_ns
         )
