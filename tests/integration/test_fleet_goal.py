@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -57,7 +58,8 @@ def test_a_goal_sent_with_fleet_goal_is_reached_and_its_status_comes_back(tmp_pa
         goal = ["fleet", "goal", "r1", str(GOAL[0]), str(GOAL[1]), "--goal-id", "777", "--wait"]
         goal += ["--allow-unknown", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "240", "--json"]
         out: dict = {}
-        for _ in range(20):  # early on the agent may have no pose or map yet: REJECTED, and sent again
+        deadline = time.monotonic() + TIMEOUT_S
+        while True:  # early on the agent (or its bridge's connection) is not there yet: REJECTED, sent again
             sent = subprocess.run(
                 vlp_agent(*goal), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S + 240
             )
@@ -70,6 +72,8 @@ def test_a_goal_sent_with_fleet_goal_is_reached_and_its_status_comes_back(tmp_pa
             assert final is None or (final["state"] == "rejected" and final["reason"] != "busy"), out
             for proc in procs:
                 assert proc.poll() is None, _stop(proc)[1][-2000:]
+            assert time.monotonic() < deadline, f"the goal was never reached: {out}"
+            time.sleep(1.0)  # not a timing assumption: a pause between attempts while the agent starts
         assert out["final"]["state"] == "reached", out
         assert sent.returncode == 0
         names = [s["state"] for s in out["states"]]
