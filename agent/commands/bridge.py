@@ -8,6 +8,7 @@ docs/fleet.md.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import threading
 from collections.abc import Sequence
@@ -15,9 +16,10 @@ from typing import Any
 
 from agent.commands.args import UsageError, dumps_json
 from agent.fleet.bridge_config import load_bridge_config
-from agent.runtime.shutdown import ShutdownRequest
 
 __all__ = ["add_parser", "run"]
+
+_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
@@ -70,14 +72,20 @@ def run(args: argparse.Namespace) -> int:
         except Exception as exc:  # reported by the main thread: a session that cannot open, say
             failure.append(exc)
 
-    with ShutdownRequest() as shutdown:
+    # Its own two signal handlers, not agent.runtime.shutdown: importing agent.runtime loads the whole agent
+    # (1.2 s of imports on the development machine), and a restarted bridge should be back within 2 s.
+    previous = {sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in _SIGNALS}
+    try:
         thread = threading.Thread(target=body, name="bridge", daemon=True)
         thread.start()
         print(f"bridge {config.robot}: agent {config.socket}; Ctrl-C to stop", file=sys.stderr, flush=True)
-        while not shutdown.requested and thread.is_alive():
-            shutdown.wait(0.5)
+        while not stop.is_set() and thread.is_alive():
+            thread.join(0.2)
         stop.set()
         thread.join(5.0)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     counts = bridge.counters()
     if args.json:
         print(
