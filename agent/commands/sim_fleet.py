@@ -2,11 +2,11 @@
 fleet").
 
 Each robot is its own ``vlp-agent sim`` process (its own simulated devices, the world without its route,
-started ``--spacing`` metres apart along the world's start heading, seed ``--seed + i``) with ``[fleet]
-socket`` set, and its own ``vlp-agent bridge`` (peer mode, scouting off, ``tcp/127.0.0.1``: robot i listens
-on one port and connects to every earlier robot's). Robot i gets the i-th ``--goal`` through the fleet
-(``agent.fleet.goal_sender``, as ``vlp-agent fleet goal`` sends it), sent again while its agent is not
-ready for it. An observer peer in this process hears every pose. The run ends when every goal has ended or
+started ``--spacing`` metres apart along the world's start heading and facing its goal, seed ``--seed + i``)
+with ``[fleet] socket`` set, and its own ``vlp-agent bridge`` (peer mode, scouting off, ``tcp/127.0.0.1``:
+robot i listens on one port and connects to every earlier robot's). Robot i gets the i-th ``--goal`` through
+the fleet (``agent.fleet.goal_sender``, as ``vlp-agent fleet goal`` sends it), sent again while its agent is
+not ready for it. An observer peer in this process hears every pose. The run ends when every goal has ended or
 at ``--seconds``; the summary (``--json``: one object) has ``robots`` (each robot's goal outcome and its
 simulator's pose figures), ``collisions`` (times two robots' true footprints touched), the closest two robots
 came, and ``fleet_pose_latency_ms_p95`` (a pose's age at its delivery to the observer: from the pose's own
@@ -176,11 +176,12 @@ def run_fleet(args: argparse.Namespace) -> int:
         for i, name in enumerate(names):
             d = out_dir / name
             d.mkdir(exist_ok=True)
-            s = (
-                start[0] + i * args.spacing * math.cos(start[2]),
-                start[1] + i * args.spacing * math.sin(start[2]),
-                start[2],
-            )
+            sx = start[0] + i * args.spacing * math.cos(start[2])
+            sy = start[1] + i * args.spacing * math.sin(start[2])
+            gx, gy, _ = goals[i]
+            # Facing its goal: the robot maps the way there from the start (a goal outside the map so far
+            # is refused).
+            s = (sx, sy, math.atan2(gy - sy, gx - sx) if (gx, gy) != (sx, sy) else start[2])
             (d / "world.toml").write_text(
                 _world_text(world_file.read_text(encoding="utf-8"), s), encoding="utf-8"
             )
