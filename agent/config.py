@@ -367,6 +367,8 @@ class FleetConfig:
     socket: Path | None = None
     pose_rate_hz: float = 10.0
     status_period_s: float = 1.0
+    peer_timeout_s: float = 2.0  # another robot with no pose for this long is dropped (no longer an obstacle)
+    peer_radius_m: float = 0.0  # the other robots' footprint radius; 0: this robot's [navigation] radius_m
 
 
 # A Unix socket path is at most 107 bytes (sun_path) on Linux.
@@ -1506,6 +1508,12 @@ class _Reader:
             ),
             status_period_s=t.number(
                 "status_period_s", d.status_period_s, (lambda v: 0.05 <= v <= 60, "must be 0.05..60")
+            ),
+            peer_timeout_s=t.number(
+                "peer_timeout_s", d.peer_timeout_s, (lambda v: 0.1 <= v <= 600, "must be 0.1..600")
+            ),
+            peer_radius_m=t.number(
+                "peer_radius_m", d.peer_radius_m, (lambda v: 0 <= v <= 5, "must be 0..5 (0: this robot's)")
             ),
         )
         t.finish()

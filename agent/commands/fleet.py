@@ -1,4 +1,5 @@
-"""``vlp-agent fleet list``: the robots of the fleet, their poses and states, heard on Zenoh for a while.
+"""``vlp-agent fleet list`` / ``fleet goal``: the robots of the fleet, their poses and states, heard on Zenoh
+for a while; a goal sent to one robot, and its statuses.
 
 Endpoints come from ``--connect`` / ``--listen`` or a bridge config (``--config``: its ``[zenoh]`` table).
 docs/fleet.md.
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import secrets
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,10 +19,21 @@ from agent.fleet.bridge_config import ZenohConfig, load_bridge_config
 __all__ = ["add_parser", "run"]
 
 
+def _endpoint_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="a bridge config: use its [zenoh] table and key_prefix")
+    p.add_argument(
+        "--connect", metavar="ENDPOINT", action="append", default=[], help="e.g. tcp/10.0.0.5:7447"
+    )
+    p.add_argument("--listen", metavar="ENDPOINT", action="append", default=[], help="e.g. tcp/0.0.0.0:7448")
+    p.add_argument("--scout", action="store_true", help="find peers by multicast scouting (off by default)")
+    p.add_argument("--prefix", default=None, help="key prefix (default: the config's, else 'fleet')")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "fleet",
-        help="the fleet view: list the robots heard on Zenoh",
+        help="the fleet view: list the robots heard on Zenoh, send one a goal",
         description="Fleet commands on any machine that reaches the fleet's Zenoh network.",
     )
     fleet_sub = p.add_subparsers(dest="fleet_command", metavar="SUBCOMMAND", required=True)
@@ -28,23 +41,46 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "list",
         help="listen a few seconds and list the robots with pose and state",
         description="Subscribe to <prefix>/*/pose and <prefix>/*/status for --seconds and print each robot "
-        "heard: its newest pose, its state (ready, starting, not-localized, agent-down) and how many poses "
-        "came. Give the endpoints with --connect/--listen, or --config with a bridge config.",
+        "heard: its newest pose, its state (ready, starting, not-localized, agent-down; 'gone' when nothing "
+        "came from it for --stale-s) and how many poses came. Give the endpoints with --connect/--listen, "
+        "or --config with a bridge config.",
     )
-    ls.add_argument("--config", metavar="FILE", help="a bridge config: use its [zenoh] table and key_prefix")
-    ls.add_argument(
-        "--connect", metavar="ENDPOINT", action="append", default=[], help="e.g. tcp/10.0.0.5:7447"
-    )
-    ls.add_argument("--listen", metavar="ENDPOINT", action="append", default=[], help="e.g. tcp/0.0.0.0:7448")
-    ls.add_argument("--scout", action="store_true", help="find peers by multicast scouting (off by default)")
-    ls.add_argument("--prefix", default=None, help="key prefix (default: the config's, else 'fleet')")
+    _endpoint_args(ls)
     ls.add_argument("--seconds", type=positive_seconds, default=3.0, help="how long to listen (default: 3)")
-    ls.add_argument("--json", action="store_true", help="print one JSON object")
+    ls.add_argument(
+        "--stale-s",
+        type=positive_seconds,
+        default=2.0,
+        help="a robot heard from earlier but silent for this long is shown as gone (default: 2)",
+    )
+    goal = fleet_sub.add_parser(
+        "goal",
+        help="send a robot a goal and print its statuses",
+        description="Publish a goal (map frame, metres) on <prefix>/ROBOT/goal once ROBOT's bridge "
+        "subscribes there, and print the statuses its agent sends back on <prefix>/ROBOT/goal_state: the "
+        "first one (accepted or rejected, with the reason), or with --wait every one until the goal is "
+        "reached, failed, rejected or cancelled. The robot drives it only if its own controller drives "
+        "nothing (docs/fleet.md, 'The goal flow'). Exit status 0: reached (with --wait) or accepted; 1: "
+        "rejected, failed or cancelled; 3: nothing (or, with --wait, no end) heard within --timeout.",
+    )
+    goal.add_argument("robot", metavar="ROBOT", help="the robot's name (its bridge's [bridge] robot)")
+    goal.add_argument("x", metavar="X", type=float, help="metres, map frame")
+    goal.add_argument("y", metavar="Y", type=float, help="metres, map frame")
+    goal.add_argument("--theta", type=float, default=None, metavar="DEG", help="final heading (default: any)")
+    goal.add_argument("--goal-id", type=int, default=None, help="0..65535 (default: a random one)")
+    goal.add_argument(
+        "--allow-unknown",
+        action="store_true",
+        help="the way may cross space the robot's map does not know yet (a map being built)",
+    )
+    goal.add_argument("--wait", action="store_true", help="wait until the goal has ended")
+    goal.add_argument(
+        "--timeout", type=positive_seconds, default=None, help="seconds (default: 10, with --wait 300)"
+    )
+    _endpoint_args(goal)
 
 
-def run(args: argparse.Namespace) -> int:
-    from agent.fleet.view import FleetView
-
+def _zenoh(args: argparse.Namespace) -> tuple[ZenohConfig, str]:
     prefix = "fleet"
     zenoh = ZenohConfig(
         mode="peer",
@@ -62,7 +98,16 @@ def run(args: argparse.Namespace) -> int:
     prefix = args.prefix or prefix
     if not (zenoh.listen or zenoh.connect or zenoh.multicast_scouting):
         raise UsageError("give --connect or --listen endpoints, --config, or --scout")
-    view = FleetView(zenoh, prefix)
+    return zenoh, prefix
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.fleet_command == "goal":
+        return _goal(args)
+    from agent.fleet.view import FleetView
+
+    zenoh, prefix = _zenoh(args)
+    view = FleetView(zenoh, prefix, stale_s=args.stale_s)
     robots = view.listen(args.seconds)
     if args.json:
         print(
@@ -74,8 +119,77 @@ def run(args: argparse.Namespace) -> int:
     for r in robots:
         p = r.pose
         where = "no pose" if p is None else f"({p.x_m:.3f}, {p.y_m:.3f}) m {math.degrees(p.yaw_rad):.1f} deg"
-        state = r.status.state if r.status is not None else "unknown"
-        print(f"{r.robot:<16} {state:<14} {where}  [{r.poses} poses]")
+        print(f"{r.robot:<16} {r.state:<14} {where}  [{r.poses} poses]")
     if view.rejected:
         print(f"{view.rejected} malformed messages ignored")
     return 0
+
+
+def _goal(args: argparse.Namespace) -> int:
+    from agent.fleet.goal_sender import GoalSender
+    from agent.fleet.local_protocol import GoalMessage, valid_robot_name
+    from firmware_protocol.command_frame import GoalReason, GoalState
+
+    if not valid_robot_name(args.robot):
+        raise UsageError(f"not a robot name: {args.robot!r} (1..32 of A-Z a-z 0-9 _ -)")
+    if not (math.isfinite(args.x) and math.isfinite(args.y)) or (
+        args.theta is not None and not math.isfinite(args.theta)
+    ):
+        raise UsageError("X, Y and --theta must be finite numbers")
+    goal_id = secrets.randbelow(0x10000) if args.goal_id is None else args.goal_id
+    if not 0 <= goal_id <= 0xFFFF:
+        raise UsageError(f"--goal-id must be 0..65535, not {goal_id}")
+    zenoh, prefix = _zenoh(args)
+    yaw = math.nan if args.theta is None else math.radians(args.theta)
+    timeout = args.timeout if args.timeout is not None else (300.0 if args.wait else 10.0)
+    goal = GoalMessage(
+        0, goal_id, args.x, args.y, yaw, GoalMessage.ALLOW_UNKNOWN if args.allow_unknown else 0
+    )
+    trace = GoalSender(zenoh, prefix).send(args.robot, goal, wait_end=args.wait, timeout_s=timeout)
+
+    def named(state: Any) -> dict[str, Any]:
+        return {
+            "state": GoalState(state.state).name.lower(),
+            "reason": GoalReason(state.reason).name.lower()
+            if state.reason in GoalReason._value2member_map_
+            else str(state.reason),
+            "remaining_m": None if math.isnan(state.remaining_m) else state.remaining_m,
+        }
+
+    states = [named(s) for s in trace.states if s.state in GoalState._value2member_map_]
+    last = trace.last
+    if last is None:
+        code = 3
+    elif last.state == GoalState.REACHED or (
+        not args.wait and last.state in (GoalState.ACCEPTED, GoalState.ACTIVE)
+    ):
+        code = 0
+    elif last.state in (GoalState.ACCEPTED, GoalState.ACTIVE):
+        code = 3  # --wait ran out
+    else:
+        code = 1
+    if args.json:
+        print(
+            dumps_json(
+                {
+                    "robot": args.robot,
+                    "goal_id": goal_id,
+                    "sent": trace.sent,
+                    "states": states,
+                    "final": states[-1] if states else None,
+                    "timed_out": code == 3,
+                },
+                sort_keys=True,
+            )
+        )
+        return code
+    if not trace.sent:
+        print(f"no bridge of {args.robot} subscribes to {prefix}/{args.robot}/goal within {timeout:g} s")
+        return 3
+    for s in states:
+        extra = "" if s["reason"] == "none" else f" ({s['reason']})"
+        rest = "" if s["remaining_m"] is None else f", {s['remaining_m']:.2f} m to go"
+        print(f"goal {goal_id} -> {args.robot}: {s['state']}{extra}{rest}")
+    if code == 3:
+        print(f"no {'end' if states else 'status'} heard within {timeout:g} s")
+    return code

@@ -158,6 +158,18 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "when it is applied (for good without); repeatable",
     )
     p.add_argument(
+        "--robots",
+        type=int,
+        default=1,
+        metavar="N",
+        help="a fleet: N robots, each its own agent process and fleet bridge on loopback, started --spacing "
+        "m apart along the world's start heading, robot i driven to the i-th --goal through the fleet; the "
+        "summary has 'robots', 'collisions', 'fleet_pose_latency_ms_p95' (docs/fleet.md)",
+    )
+    p.add_argument(
+        "--spacing", type=float, default=4.0, metavar="M", help="with --robots: metres between starts (4)"
+    )
+    p.add_argument(
         "--goal",
         action="append",
         type=_goal_argument,
@@ -394,6 +406,12 @@ def _config(args: argparse.Namespace) -> AgentConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.robots != 1:
+        if not 2 <= args.robots <= 8:
+            raise UsageError(f"--robots must be 1..8, not {args.robots}")
+        from agent.commands.sim_fleet import run_fleet
+
+        return run_fleet(args)
     faults: list[Fault] = args.fault
     check_faults_within(faults, args.seconds)
     config = _config(args)

@@ -25,7 +25,7 @@ from typing import Any
 from agent.fleet import payloads
 from agent.fleet.bridge_config import BridgeConfig
 from agent.fleet.local_protocol import (
-    FrameDecoder,
+    FrameReader,
     GoalStateMessage,
     LocalProtocolError,
     Message,
@@ -33,8 +33,10 @@ from agent.fleet.local_protocol import (
     PoseMessage,
     StatusMessage,
     encode,
+    receive,
 )
 from drivers.errors import DeviceNotFound
+from firmware_protocol.command_frame import GoalReason, GoalState
 from firmware_protocol.errors import ProtocolError
 
 __all__ = ["Bridge"]
@@ -142,26 +144,31 @@ class Bridge:
             self._reject("goal", exc)
             return
         self.count("goals_in")
-        self._to_agent(goal)
+        if not self._to_agent(goal):
+            # No agent to drive it: the sender hears so at once instead of waiting for a status.
+            now_us = time.monotonic_ns() // 1000
+            refused = GoalStateMessage(now_us, goal.goal_id, GoalState.REJECTED, GoalReason.NOT_LOCALIZED)
+            self._publish("goal_state", payloads.encode_goal_state(self.config.robot, refused))
 
     def _reject(self, kind: str, exc: Exception) -> None:
         self.count(f"rejected_{kind}")
         log.info("bridge: rejected a %s message from the network: %s", kind, exc)
 
     # -- the agent's socket --------------------------------------------------------------------------------
-    def _to_agent(self, message: Message) -> None:
+    def _to_agent(self, message: Message) -> bool:
         with self._agent_lock:
             agent = self._agent
             if agent is None:
                 self.count("to_agent_dropped_no_agent")
-                return
+                return False
             try:
                 agent.sendall(encode(message))
             except (OSError, LocalProtocolError) as exc:
                 self.count("to_agent_send_errors")
                 log.info("bridge: sending to the agent failed: %s", exc)
-                return
+                return False
         self.count("to_agent")
+        return True
 
     def _connect(self) -> socket.socket | None:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -205,7 +212,7 @@ class Bridge:
     # -- the loop ------------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         self._open()
-        decoder = FrameDecoder()
+        reader = FrameReader()
         next_status = next_connect = 0.0
         try:
             while not stop.is_set():
@@ -217,7 +224,7 @@ class Bridge:
                 if agent is None and now >= next_connect:
                     next_connect = now + self.config.reconnect_s
                     agent = self._connect()
-                    decoder = FrameDecoder()
+                    reader = FrameReader()
                 deadline = next_status if agent is not None else min(next_status, next_connect)
                 wait = max(0.0, deadline - time.monotonic())
                 if agent is None:
@@ -226,24 +233,13 @@ class Bridge:
                 readable, _, _ = select.select([agent], [], [], min(wait, 0.25))
                 if not readable:
                     continue
-                try:
-                    data = agent.recv(65536)
-                except (TimeoutError, BlockingIOError, InterruptedError):
-                    continue
-                except OSError as exc:
-                    self._disconnect(f"receive failed: {exc}")
-                    continue
-                if not data:
-                    self._disconnect("the agent closed the socket")
-                    continue
-                try:
-                    messages = decoder.feed(data)
-                except LocalProtocolError as exc:
+                result = receive(agent, reader)
+                if result.malformed:
                     self.count("agent_malformed_frames")
-                    self._disconnect(f"malformed frame: {exc}")
-                    continue
-                for message in messages:
+                for message in result.messages:
                     self._from_agent(message)
+                if result.close is not None:
+                    self._disconnect(result.close)
         finally:
             self.close()
 

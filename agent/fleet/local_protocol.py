@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
 
 from firmware_protocol.errors import ProtocolError
 
@@ -29,20 +29,23 @@ __all__ = [
     "MAX_PAYLOAD",
     "VERSION",
     "FrameDecoder",
+    "FrameReader",
     "GoalMessage",
     "GoalStateMessage",
     "LocalProtocolError",
     "Message",
     "PeerPoseMessage",
     "PoseMessage",
+    "ReadResult",
     "StatusMessage",
     "decode_frame",
     "encode",
+    "receive",
     "valid_robot_name",
 ]
 
 MAGIC = b"VF"
-VERSION = 1
+VERSION = 2  # 2: a goal carries its options (allow_unknown)
 HEADER = struct.Struct("<2sBBI")
 MAX_PAYLOAD = 1024  # the largest message (a peer pose with a 32-byte name) is 85 bytes
 MAX_NAME_BYTES = 32
@@ -50,7 +53,7 @@ MAX_NAME_BYTES = 32
 _POSE = struct.Struct("<QdddffI")  # t_us, x_m, y_m, yaw_rad, sigma_xy_m, sigma_yaw_rad, pose flags
 _STATUS = struct.Struct("<QII")  # t_us, pose flags, status bits
 _GOAL_STATE = struct.Struct("<QHBBf")  # t_us, goal_id, state, reason, remaining_m (NaN: unknown)
-_GOAL = struct.Struct("<QHddd")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading)
+_GOAL = struct.Struct("<QHdddB")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading), options
 
 
 class LocalProtocolError(ProtocolError):
@@ -161,20 +164,28 @@ class GoalMessage:
     """A goal for this robot from the fleet (bridge -> agent), in the shared map frame."""
 
     TYPE: ClassVar[int] = 0x11
+    ALLOW_UNKNOWN: ClassVar[int] = 1  # options bit: the way may cross unknown space (a map being built)
     t_us: int
     goal_id: int
     x_m: float
     y_m: float
     yaw_rad: float = math.nan
+    options: int = 0
+
+    @property
+    def allow_unknown(self) -> bool:
+        return bool(self.options & self.ALLOW_UNKNOWN)
 
     def payload(self) -> bytes:
-        return _GOAL.pack(self.t_us, self.goal_id, self.x_m, self.y_m, self.yaw_rad)
+        return _GOAL.pack(self.t_us, self.goal_id, self.x_m, self.y_m, self.yaw_rad, self.options)
 
     @classmethod
     def parse(cls, payload: bytes) -> GoalMessage:
         goal = cls(*_unpack(_GOAL, payload, "goal"))
         if not (math.isfinite(goal.x_m) and math.isfinite(goal.y_m)) or math.isinf(goal.yaw_rad):
             raise LocalProtocolError("goal: a position that is not finite", payload)
+        if goal.options & ~cls.ALLOW_UNKNOWN:
+            raise LocalProtocolError(f"goal: unknown option bits 0x{goal.options:02x}", payload)
         return goal
 
 
@@ -258,3 +269,56 @@ class FrameDecoder:
             self._buffer.clear()
             raise
         return out
+
+
+@dataclass(frozen=True, slots=True)
+class ReadResult:
+    """What one read from the stream gave: the whole messages, and why the connection must now be closed
+    (None: keep reading). ``malformed``: it closes for a bad frame (counted by the caller)."""
+
+    messages: list[Message] = field(default_factory=list)
+    close: str | None = None
+    malformed: bool = False
+
+
+class FrameReader:
+    """One connection's reading side, sans I/O: hand it what ``recv`` returned (or the error it raised)
+    and it says what came and whether the connection must close. Both ends (the agent's fleet loop, the
+    bridge) read through it, so both treat the end of the stream, a failed receive and a bad frame alike:
+    the connection closes, the other side reconnects."""
+
+    def __init__(self) -> None:
+        self._decoder = FrameDecoder()
+
+    def received(self, data: bytes) -> ReadResult:
+        """Bytes from the stream; ``b""`` is its end (the peer closed)."""
+        if not data:
+            cut = f" ({self._decoder.pending} bytes of a frame cut)" if self._decoder.pending else ""
+            return ReadResult(close=f"the other side closed the connection{cut}")
+        try:
+            return ReadResult(self._decoder.feed(data))
+        except LocalProtocolError as exc:
+            return ReadResult(close=f"malformed frame: {exc}", malformed=True)
+
+    @staticmethod
+    def failed(exc: OSError) -> ReadResult:
+        """``recv`` raised: a timeout or an interrupted call is nothing; anything else closes."""
+        if isinstance(exc, TimeoutError | BlockingIOError | InterruptedError):
+            return ReadResult()
+        return ReadResult(close=f"receive failed: {exc}")
+
+
+class _Receiver(Protocol):
+    def recv(self, bufsize: int, /) -> bytes: ...
+
+
+READ_SIZE = 65536
+
+
+def receive(sock: _Receiver, reader: FrameReader) -> ReadResult:
+    """One ``recv`` on a readable socket, through ``reader`` (the only I/O here: the caller selects)."""
+    try:
+        data = sock.recv(READ_SIZE)
+    except OSError as exc:
+        return reader.failed(exc)
+    return reader.received(data)

@@ -29,6 +29,7 @@ __all__ = [
     "FleetPayloadError",
     "RobotStatus",
     "decode_goal",
+    "decode_goal_state",
     "decode_pose",
     "decode_status",
     "encode_goal",
@@ -143,6 +144,7 @@ def encode_goal(robot: str, goal: GoalMessage) -> bytes:
             "x_m": goal.x_m,
             "y_m": goal.y_m,
             "yaw_rad": _opt(goal.yaw_rad),
+            "allow_unknown": goal.allow_unknown,
         }
     )
 
@@ -221,10 +223,26 @@ def decode_status(payload: bytes, robot: str) -> RobotStatus:
 def decode_goal(payload: bytes, robot: str) -> GoalMessage:
     """A goal published under ``robot``'s goal key (it must name ``robot`` itself)."""
     obj = _load(payload, robot)
+    allow = obj.get("allow_unknown", False)
+    if type(allow) is not bool:
+        raise FleetPayloadError(f"'allow_unknown' must be true or false, not {allow!r}")
     return GoalMessage(
         0,
         _int(obj, "goal_id", 0, 0xFFFF),
         _float(obj, "x_m"),
         _float(obj, "y_m"),
         _float(obj, "yaw_rad", optional=True),
+        GoalMessage.ALLOW_UNKNOWN if allow else 0,
+    )
+
+
+def decode_goal_state(payload: bytes, robot: str) -> GoalStateMessage:
+    """A goal status published under ``robot``'s ``goal_state`` key."""
+    obj = _load(payload, robot)
+    return GoalStateMessage(
+        _int(obj, "t_us", 0, 2**64 - 1),
+        _int(obj, "goal_id", 0, 0xFFFF),
+        _int(obj, "state", 0, 255),
+        _int(obj, "reason", 0, 255),
+        _float(obj, "remaining_m", optional=True),
     )

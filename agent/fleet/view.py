@@ -1,5 +1,6 @@
 """The fleet view: who is out there. Subscribes to ``<prefix>/*/pose`` and ``<prefix>/*/status`` for a while
-and keeps the newest of each per robot; malformed messages are counted, not shown."""
+and keeps the newest of each per robot; malformed messages are counted, not shown. A robot heard earlier in
+the window but silent for ``stale_s`` at its end is ``gone`` (it vanished: its bridge or its network)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,14 @@ class RobotSeen:
     status: payloads.RobotStatus | None = None
     poses: int = 0
     last_seen_s: float = 0.0
+    silent_s: float = 0.0  # at the end of the listening window
+    gone: bool = False  # silent for the view's stale_s
+
+    @property
+    def state(self) -> str:
+        if self.gone:
+            return "gone"
+        return self.status.state if self.status is not None else "unknown"
 
     def as_dict(self) -> dict[str, Any]:
         p, s = self.pose, self.status
@@ -38,7 +47,8 @@ class RobotSeen:
                 "sigma_xy_m": p.sigma_xy_m,
                 "flags": p.flags,
             },
-            "state": s.state if s is not None else "unknown",
+            "state": self.state,
+            "silent_s": round(self.silent_s, 3),
             "status": None
             if s is None
             else {
@@ -55,6 +65,7 @@ class RobotSeen:
 class FleetView:
     zenoh: ZenohConfig
     key_prefix: str = "fleet"
+    stale_s: float = 2.0
     robots: dict[str, RobotSeen] = field(default_factory=dict)
     rejected: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -96,5 +107,12 @@ class FleetView:
                 sub.undeclare()
         finally:
             session.close()
+        return self.seen(time.monotonic())
+
+    def seen(self, now_s: float) -> list[RobotSeen]:
+        """The robots heard, by name, each marked gone when silent for ``stale_s`` at ``now_s``."""
         with self._lock:
+            for seen in self.robots.values():
+                seen.silent_s = now_s - seen.last_seen_s
+                seen.gone = seen.silent_s > self.stale_s
             return [self.robots[name] for name in sorted(self.robots)]

@@ -12,6 +12,8 @@ Layers:
   (clearing, ray tracing each beam up to one cell before its end, or out to ``obstacle_max_range_m``
   for beams with no return): a person who walked away is cleared as soon as the laser sees through the
   place they stood;
+* **fleet**: the other robots' footprints (``agent.navigation.fleet_layer``, from their poses over the
+  fleet), replaced whole each time, lethal like obstacles;
 * **cost** (derived, lazily, when asked): d = the Euclidean distance transform to the nearest static or
   obstacle cell. Forbidden (``inf``) where d < ``radius + safety_margin`` (the footprint would touch) and
   on unknown cells (unless a goal allows them); elsewhere c = exp(-k (d - inscribed)) in (0, 1], zero
@@ -82,6 +84,7 @@ class Costmap:
         self.unknown = unknown.astype(bool, copy=True) & ~self.static_occupied
         self.obstacles = np.zeros(spec.shape, dtype=bool)
         self.predicted = np.zeros(spec.shape, dtype=bool)  # where moving obstacles are about to be
+        self.fleet = np.zeros(spec.shape, dtype=bool)  # the other robots' footprints
         self.version = 0  # bumped whenever what the planner sees changes
         self._cost_version = -1
         self._cost: Float32Array = np.zeros(spec.shape, dtype=np.float32)
@@ -160,6 +163,15 @@ class Costmap:
             self.predicted = cells.astype(bool, copy=True)
             self.version += 1
 
+    def set_fleet(self, cells: BoolArray) -> None:
+        """The other robots' footprints (``agent.navigation.fleet_layer.disc_cells``): forbidden like
+        obstacles, replaced whole each time."""
+        if cells.shape != self.spec.shape:
+            raise ValueError(f"a fleet layer of {cells.shape} does not match the grid {self.spec.shape}")
+        if not np.array_equal(cells, self.fleet):
+            self.fleet = cells.astype(bool, copy=True)
+            self.version += 1
+
     def static_distance_m(self) -> Float32Array:
         """Distance from each cell to the nearest occupied cell of the map alone (no scans), metres."""
         if self._static_version != self._static_key():
@@ -182,7 +194,7 @@ class Costmap:
         if self._cost_version == self.version:
             return
         cfg = self.config
-        lethal = self.static_occupied | self.obstacles | self.predicted
+        lethal = self.static_occupied | self.obstacles | self.predicted | self.fleet
         if lethal.any():
             # The exact Euclidean distance to the nearest zero (the lethal cells); OpenCV's is ~6x faster
             # than scipy.ndimage.distance_transform_edt on the office map, and the same to 1e-5 cells.

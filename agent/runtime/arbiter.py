@@ -2,7 +2,7 @@
 
 Sources, by precedence (``docs/navigation.md``)::
 
-    controller velocity  >  controller goal  >  local mission goal (explore, deliver, follow, sim --goal)
+    controller velocity  >  controller goal  >  fleet goal | local mission goal (explore, deliver, ...)
 
 * A **velocity** command is in force for its own timeout; it preempts any goal (the goal is CANCELLED,
   SUPERSEDED) and is clamped to the base's limits (ACCEPTED with CLAMPED). When it expires the base
@@ -11,6 +11,13 @@ Sources, by precedence (``docs/navigation.md``)::
   unreachable...) and rejected with the reason, or ACCEPTED; it replaces the goal before it (CANCELLED,
   SUPERSEDED). While a controller velocity is in force a goal is REJECTED, BUSY.
 * A **mission goal** drives only while the controller drives nothing; a controller goal cancels it.
+* A **fleet goal** (``vlp-agent fleet goal``, through the bridge: :meth:`CommandArbiter.fleet_goal`)
+  ranks with the missions, under the controller: REJECTED, BUSY while a controller velocity or goal is
+  in force or a local mission drives (the robot's own operator started it); REJECTED, STOPPED while a
+  stop holds; checked as a controller goal; it replaces an earlier fleet goal (CANCELLED, SUPERSEDED) and
+  is itself cancelled (SUPERSEDED) by any controller velocity or goal, and (STOPPED) by a stop. A mission
+  goal is REJECTED, BUSY while a fleet goal is in force. It never drives past the dead-man: the base
+  moves through the same navigator and wheels' dead-man as every goal.
 * **Stop** holds the base at zero and cancels everything until **resume**; commands in between are
   REJECTED, STOPPED.
 
@@ -53,6 +60,7 @@ class DriveSource(enum.Enum):
     VELOCITY = "velocity"  # the controller's velocity
     GOAL = "goal"  # the controller's goal, through the navigator
     MISSION = "mission"  # a local mission's goal, through the navigator
+    FLEET = "fleet"  # a goal from the fleet (the bridge), through the navigator
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,6 +98,7 @@ class CommandArbiter:
         self._velocity: tuple[VelocityCommand, float, float, float] | None = None  # cmd, v, w, until_s
         self._goal: GoalCommand | None = None
         self._mission: GoalCommand | None = None
+        self._fleet: GoalCommand | None = None
         self.counts: dict[str, int] = {}
 
     # -- answers -------------------------------------------------------------------------------------
@@ -150,13 +159,15 @@ class CommandArbiter:
         return out
 
     def _cancel(self, command: CancelCommand) -> list[GoalStatus]:
-        active = self._goal or self._mission
+        active = self._goal or self._fleet or self._mission
         if active is None or command.goal_id not in (NO_GOAL, active.goal_id):
             return [
                 self._status(command.sequence, command.goal_id, GoalState.REJECTED, GoalReason.UNKNOWN_GOAL)
             ]
         if active is self._goal:
             self._goal = None
+        elif active is self._fleet:
+            self._fleet = None
         else:
             self._mission = None
         return [self._status(command.sequence, active.goal_id, GoalState.CANCELLED)]
@@ -191,10 +202,10 @@ class CommandArbiter:
 
     def _drop_goals(self, reason: GoalReason) -> list[GoalStatus]:
         out = []
-        for goal in (self._goal, self._mission):
+        for goal in (self._goal, self._fleet, self._mission):
             if goal is not None:
                 out.append(self._status(NO_SEQUENCE, goal.goal_id, GoalState.CANCELLED, reason))
-        self._goal = self._mission = None
+        self._goal = self._fleet = self._mission = None
         return out
 
     def _expire(self, now_s: float) -> GoalStatus | None:
@@ -210,13 +221,39 @@ class CommandArbiter:
         with self._lock:
             if self._stopped:
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.STOPPED)
-            if self._goal is not None or self._velocity is not None:
+            if self._goal is not None or self._velocity is not None or self._fleet is not None:
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BUSY)
             reason = self._check_goal(goal)
             if reason is not None:
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, reason)
             self._mission = goal
             return self._status(NO_SEQUENCE, goal.goal_id, GoalState.ACCEPTED)
+
+    def fleet_goal(self, goal: GoalCommand, now_s: float) -> list[GoalStatus]:
+        """A goal from the fleet: its answer first, then the earlier fleet goal it replaced (if any).
+        Under the controller and beside the missions (the module's doc): it cannot take the base from a
+        stop, a controller velocity or goal, or a running mission."""
+        with self._lock:
+            self._expire(now_s)
+            if self._stopped:
+                return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.STOPPED)]
+            if self._goal is not None or self._velocity is not None or self._mission is not None:
+                return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BUSY)]
+            fields = (goal.x_m, goal.y_m, goal.tolerance_xy_m, goal.tolerance_yaw_rad)
+            if not all(math.isfinite(x) for x in fields) or (
+                goal.yaw_rad is not None and not math.isfinite(goal.yaw_rad)
+            ):
+                return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BAD_VALUE)]
+            reason = self._check_goal(goal)
+            if reason is not None:
+                return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, reason)]
+            out = [self._status(NO_SEQUENCE, goal.goal_id, GoalState.ACCEPTED)]
+            if self._fleet is not None:
+                out.append(
+                    self._status(NO_SEQUENCE, self._fleet.goal_id, GoalState.CANCELLED, GoalReason.SUPERSEDED)
+                )
+            self._fleet = goal
+            return out
 
     @property
     def stopped(self) -> bool:
@@ -229,6 +266,12 @@ class CommandArbiter:
         """A controller's velocity or goal drives the base (a mission would not)."""
         with self._lock:
             return self._goal is not None or self._velocity is not None
+
+    @property
+    def fleet_in_force(self) -> bool:
+        """A fleet goal drives the base (missions wait for it)."""
+        with self._lock:
+            return self._fleet is not None
 
     def mission_status(
         self, command_sequence: int, mission_id: int, state: GoalState, reason: GoalReason = GoalReason.NONE
@@ -256,6 +299,8 @@ class CommandArbiter:
                 return Directive(DriveSource.VELOCITY, v, w), expired
             if self._goal is not None:
                 return Directive(DriveSource.GOAL, goal=self._goal), expired
+            if self._fleet is not None:
+                return Directive(DriveSource.FLEET, goal=self._fleet), expired
             if self._mission is not None:
                 return Directive(DriveSource.MISSION, goal=self._mission), expired
             return Directive(DriveSource.NONE), expired
@@ -263,7 +308,9 @@ class CommandArbiter:
     def goal_progress(self, goal_id: int, remaining_m: float | None) -> GoalStatus | None:
         """An ACTIVE status for the goal in force (None if ``goal_id`` is no longer it)."""
         with self._lock:
-            if not any(g is not None and g.goal_id == goal_id for g in (self._goal, self._mission)):
+            if not any(
+                g is not None and g.goal_id == goal_id for g in (self._goal, self._fleet, self._mission)
+            ):
                 return None
             return self._status(NO_SEQUENCE, goal_id, GoalState.ACTIVE, remaining_m=remaining_m)
 
@@ -274,6 +321,8 @@ class CommandArbiter:
         with self._lock:
             if self._goal is not None and self._goal.goal_id == goal_id:
                 self._goal = None
+            elif self._fleet is not None and self._fleet.goal_id == goal_id:
+                self._fleet = None
             elif self._mission is not None and self._mission.goal_id == goal_id:
                 self._mission = None
             else:

@@ -77,13 +77,13 @@ class DirectiveDrive:
         elif directive.source is DriveSource.STOPPED:
             self.drive.hold(now_ns)
             self.counts["drive_stopped"] += 1
-        elif directive.source in (DriveSource.GOAL, DriveSource.MISSION):
+        elif directive.source in (DriveSource.GOAL, DriveSource.MISSION, DriveSource.FLEET):
             navigator = self.navigator()
             if navigator is not None:
                 navigator(directive, now_ns * 1e-9)
             else:
                 self.counts["drive_goal_without_navigator"] += 1
-        moving = (DriveSource.VELOCITY, DriveSource.GOAL, DriveSource.MISSION)
+        moving = (DriveSource.VELOCITY, DriveSource.GOAL, DriveSource.MISSION, DriveSource.FLEET)
         if previous in moving and directive.source is not previous:
             # The controller's velocity or the goal ended (dead-man, cancel, a new source, stop): the base
             # stops now, not after DriveCommand's own timeout.

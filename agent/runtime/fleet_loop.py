@@ -4,9 +4,12 @@ The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is
 not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one
 bridge at a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's
 fused pose; every ``status_period_s``: the status flags; with the next pose: each goal status the agent
-sends (the command loop's answers). From it: the other robots' poses (kept in :attr:`FleetLoop.peers`,
-newest per robot) and goals for this robot (counted and refused for now: fleet goals are not yet a
-command source, docs/fleet.md). This process opens no network socket: the bridge is another process.
+sends about a fleet goal (the command loop's answers, with the fleet's goal id). From it: the other robots'
+poses (kept in :attr:`FleetLoop.peers`, newest per robot, dropped when none came for ``peer_timeout_s``;
+the navigation's costmap takes them as obstacles through :meth:`FleetLoop.obstacles`) and goals for this
+robot: one more command source, handed to the command arbiter (``CommandArbiter.fleet_goal``: under the
+controller's stop, velocity and goals, beside the missions) under a local goal id from
+:data:`FLEET_GOAL_IDS`. This process opens no network socket: the bridge is another process.
 
 Sends never block the loop for long: a bridge that stops reading for ``SEND_TIMEOUT_S`` is disconnected
 (counted) and may reconnect. A malformed frame from it closes the connection (counted).
@@ -17,6 +20,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import math
 import os
 import select
 import socket
@@ -27,22 +31,22 @@ from pathlib import Path
 from typing import Any
 
 from agent.fleet.local_protocol import (
-    FrameDecoder,
+    FrameReader,
     GoalMessage,
     GoalStateMessage,
-    LocalProtocolError,
     Message,
     PeerPoseMessage,
     PoseMessage,
     StatusMessage,
     encode,
+    receive,
 )
 from agent.fusion import Estimate
 from agent.runtime.health import Heartbeat
-from firmware_protocol.command_frame import GoalStatus
+from firmware_protocol.command_frame import NO_SEQUENCE, GoalCommand, GoalReason, GoalState, GoalStatus
 from firmware_protocol.pose_frame import PoseFlags
 
-__all__ = ["LISTEN_RETRY_S", "SEND_TIMEOUT_S", "FleetLoop"]
+__all__ = ["FLEET_GOAL_IDS", "LISTEN_RETRY_S", "SEND_TIMEOUT_S", "FleetLoop"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +54,11 @@ SEND_TIMEOUT_S = 0.05
 LISTEN_RETRY_S = 2.0
 _IDLE_WAIT_S = 0.25
 _QUEUED_STATUSES = 64
+# Fleet goals' local ids: below the missions' (agent.runtime.mission_loop.MISSION_GOAL_IDS, 0xC000..), above
+# what a controller usually numbers; the fleet's own id goes back to the fleet with each status.
+FLEET_GOAL_IDS = range(0x8000, 0xC000)
+_ENDED = frozenset({GoalState.REJECTED, GoalState.REACHED, GoalState.FAILED, GoalState.CANCELLED})
+_KEPT_GOALS = 256
 
 
 class FleetLoop:
@@ -64,6 +73,10 @@ class FleetLoop:
         pose: Callable[[], tuple[Estimate, PoseFlags]],
         status_bits: Callable[[], int],
         clock_ns: Callable[[], int],
+        *,
+        goals: Callable[[GoalCommand], object] | None = None,
+        peer_timeout_s: float = 2.0,
+        peer_radius_m: float = 0.105,
     ) -> None:
         self.path = path
         self.period_s = 1.0 / pose_rate_hz
@@ -71,14 +84,21 @@ class FleetLoop:
         self.pose = pose
         self.status_bits = status_bits
         self.clock_ns = clock_ns
+        # Takes a fleet goal (as a GoalCommand with a local id); its answers come back through on_status.
+        # None: this agent drives no goals (no command line): fleet goals are answered REJECTED here.
+        self.goals = goals
+        self.peer_timeout_s = peer_timeout_s
+        self.peer_radius_m = peer_radius_m
         self.counts: collections.Counter[str] = collections.Counter()
         # The other robots' newest poses: name -> (pose, agent clock ns when it came).
         self.peers: dict[str, tuple[PoseMessage, int]] = {}
         self._lock = threading.Lock()
-        self._statuses: collections.deque[GoalStatus] = collections.deque(maxlen=_QUEUED_STATUSES)
+        self._statuses: collections.deque[tuple[int, GoalStatus]] = collections.deque(maxlen=_QUEUED_STATUSES)
+        self._fleet_ids: collections.OrderedDict[int, int] = collections.OrderedDict()  # local -> fleet id
+        self._next_id = FLEET_GOAL_IDS.start
         self._server: socket.socket | None = None
         self._client: socket.socket | None = None
-        self._decoder = FrameDecoder()
+        self._reader = FrameReader()
 
     def _count(self, what: str) -> None:
         with self._lock:
@@ -91,9 +111,15 @@ class FleetLoop:
 
     # -- listeners -------------------------------------------------------------------------------------
     def on_status(self, status: GoalStatus) -> None:
-        """A goal status the agent sent its controller: forwarded to the fleet too."""
+        """A goal status the agent sent its controller: about a fleet goal, forwarded to the fleet too (with
+        the fleet's goal id); the others stay between the agent and its controller."""
         with self._lock:
-            self._statuses.append(status)
+            fleet_id = self._fleet_ids.get(status.goal_id)
+            if fleet_id is None:
+                return
+            self._statuses.append((fleet_id, status))
+            if status.state in _ENDED:
+                del self._fleet_ids[status.goal_id]
 
     # -- the loop --------------------------------------------------------------------------------------
     def run(self, beat: Heartbeat, *, stop: threading.Event) -> None:
@@ -115,6 +141,7 @@ class FleetLoop:
                         next_status_ns = now + int(self.status_period_s * 1e9)
                         self._send(StatusMessage(now // 1000, int(self.pose()[1]), self.status_bits()))
                     self._send_goal_states(now)
+                self._expire_peers(now)
                 # Asleep until the next pose or status is due; with no bridge, until one connects (select
                 # wakes on the listening socket), looking at the stop event four times a second.
                 wait_s = _IDLE_WAIT_S
@@ -144,9 +171,10 @@ class FleetLoop:
         with self._lock:
             pending = list(self._statuses)
             self._statuses.clear()
-        for s in pending:
+        for fleet_id, s in pending:
             remaining = s.remaining_m if s.remaining_m is not None else float("nan")
-            self._send(GoalStateMessage(now_ns // 1000, s.goal_id, int(s.state), int(s.reason), remaining))
+            if self._send(GoalStateMessage(now_ns // 1000, fleet_id, int(s.state), int(s.reason), remaining)):
+                self._count("goal_states_sent")
 
     def _listen(self) -> bool:
         """Listen on the socket path; False (said once, counted) when it cannot be done now."""
@@ -180,31 +208,20 @@ class FleetLoop:
                 if self._client is not None:
                     self._drop("replaced by a new connection")
                 conn.settimeout(SEND_TIMEOUT_S)
-                self._client, self._decoder = conn, FrameDecoder()
+                self._client, self._reader = conn, FrameReader()
                 self._count("bridge_connections")
                 log.info("fleet: bridge connected")
         if client is not None and client in readable and client is self._client:
             self._receive(client)
 
     def _receive(self, client: socket.socket) -> None:
-        try:
-            data = client.recv(65536)
-        except (TimeoutError, BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:
-            self._drop(f"receive failed: {exc}")
-            return
-        if not data:
-            self._drop("bridge closed the connection")
-            return
-        try:
-            messages = self._decoder.feed(data)
-        except LocalProtocolError as exc:
+        result = receive(client, self._reader)
+        if result.malformed:
             self._count("malformed_frames")
-            self._drop(f"malformed frame: {exc}")
-            return
-        for message in messages:
+        for message in result.messages:
             self._take(message)
+        if result.close is not None:
+            self._drop(result.close)
 
     def _take(self, message: Message) -> None:
         if isinstance(message, PeerPoseMessage):
@@ -212,11 +229,52 @@ class FleetLoop:
                 self.peers[message.robot] = (message.pose, self.clock_ns())
             self._count("peer_poses")
         elif isinstance(message, GoalMessage):
-            # Not yet a command source (docs/fleet.md, "Missing"): counted, never driven.
-            self._count("goals_refused")
-            log.info("fleet: goal %d refused (fleet goals are not driven yet)", message.goal_id)
+            self._take_goal(message)
         else:
             self._count("unexpected_messages")
+
+    def _take_goal(self, message: GoalMessage) -> None:
+        if self.goals is None:
+            self._count("goals_refused")
+            log.info("fleet: goal %d refused: this agent drives no goals", message.goal_id)
+            now_us = self.clock_ns() // 1000
+            state, reason = int(GoalState.REJECTED), int(GoalReason.UNKNOWN_TYPE)
+            self._send(GoalStateMessage(now_us, message.goal_id, state, reason))
+            return
+        with self._lock:
+            local = self._next_id
+            self._next_id = local + 1 if local + 1 < FLEET_GOAL_IDS.stop else FLEET_GOAL_IDS.start
+            self._fleet_ids.pop(local, None)
+            self._fleet_ids[local] = message.goal_id
+            while len(self._fleet_ids) > _KEPT_GOALS:  # goals that never ended (cannot happen): forgotten
+                self._fleet_ids.popitem(last=False)
+        self._count("goals_in")
+        yaw = None if math.isnan(message.yaw_rad) else message.yaw_rad
+        log.info("fleet: goal %d (here %d) to (%.2f, %.2f)", message.goal_id, local, message.x_m, message.y_m)
+        self.goals(
+            GoalCommand(
+                NO_SEQUENCE, local, message.x_m, message.y_m, yaw, allow_unknown=message.allow_unknown
+            )
+        )
+
+    def _expire_peers(self, now_ns: int) -> None:
+        limit = now_ns - int(self.peer_timeout_s * 1e9)
+        with self._lock:
+            gone = [name for name, (_, seen_ns) in self.peers.items() if seen_ns < limit]
+            for name in gone:
+                del self.peers[name]
+                self.counts["peers_dropped"] += 1
+        for name in gone:
+            log.info("fleet: %s dropped: no pose for %g s", name, self.peer_timeout_s)
+
+    def obstacles(self) -> list[tuple[float, float, float]]:
+        """The other robots as discs (x, y, radius) in the map frame: those heard within
+        ``peer_timeout_s``, with ``peer_radius_m`` (for the navigation's costmap)."""
+        limit = self.clock_ns() - int(self.peer_timeout_s * 1e9)
+        with self._lock:
+            return [
+                (p.x_m, p.y_m, self.peer_radius_m) for p, seen_ns in self.peers.values() if seen_ns >= limit
+            ]
 
     def _send(self, message: Message) -> bool:
         client = self._client
@@ -267,7 +325,28 @@ class FleetLoop:
                 StatusMessage.LOCALIZED if localized else 0
             )
 
-        loop = cls(fc.socket, fc.pose_rate_hz, fc.status_period_s, agent.pose, bits, agent.clock_ns)
-        if agent.commands is not None:
-            agent.commands.listeners.append(loop.on_status)
+        arbiter, commands = agent.arbiter, agent.commands
+        goals: Callable[[GoalCommand], object] | None = None
+        if arbiter is not None and commands is not None:
+
+            def goals(goal: GoalCommand) -> None:
+                for status in arbiter.fleet_goal(goal, commands.clock_s()):
+                    commands.answer(status, None)
+
+        radius = fc.peer_radius_m if fc.peer_radius_m > 0 else agent.config.navigation.radius_m
+        loop = cls(
+            fc.socket,
+            fc.pose_rate_hz,
+            fc.status_period_s,
+            agent.pose,
+            bits,
+            agent.clock_ns,
+            goals=goals,
+            peer_timeout_s=fc.peer_timeout_s,
+            peer_radius_m=radius,
+        )
+        if commands is not None:
+            commands.listeners.append(loop.on_status)
+        if agent.navigation is not None:
+            agent.navigation.others = loop.obstacles
         return loop

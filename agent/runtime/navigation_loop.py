@@ -31,6 +31,7 @@ import numpy as np
 from agent.navigation.config import NavConfig
 from agent.navigation.controller import STOP, Command, nearest_on_path, remaining_length
 from agent.navigation.costmap import Costmap, GridSpec
+from agent.navigation.fleet_layer import disc_cells
 from agent.navigation.navigator import Goal, Navigator, NavStatus
 from agent.navigation.planner import PlanStatus
 from agent.runtime.arbiter import CommandArbiter, Directive
@@ -96,6 +97,9 @@ class NavigationLoop:
         self._last_step_s = -math.inf
         self._last_progress_s = -math.inf
         self._driving_until_s = -math.inf  # a goal or a velocity drove the base up to then
+        # The other robots as discs (x, y, radius) in the map frame (``FleetLoop.obstacles``); None: no
+        # fleet. Put on the costmap's fleet layer before each step.
+        self.others: Callable[[], list[tuple[float, float, float]]] | None = None
 
     # -- the map and the scans ----------------------------------------------------------------------
 
@@ -192,6 +196,8 @@ class NavigationLoop:
             if pose is None:
                 self.drive.set(0.0, 0.0, now_ns)
                 return
+            if self.others is not None:
+                nav.costmap.set_fleet(disc_cells(nav.costmap.spec, self.others()))
             out = nav.step(t_s, pose)
             self.drive.set(out.command.v_mps, out.command.omega_radps, now_ns)
             self._driving_until_s = t_s + 2 * self.step_period_s

@@ -87,7 +87,7 @@ def test_pose_arrives_under_the_robots_key_and_a_malformed_goal_is_counted(tmp_p
     session = zenoh.open(conf)
     procs: list[subprocess.Popen[str]] = []
     try:
-        session.declare_subscriber("fleet/**", heard)
+        session.declare_subscriber("**", heard)  # everything on the network, for the privacy check below
         for args in (
             ("sim", "--config", str(config), "--seconds", "600"),
             ("bridge", "--config", str(bridge_config), "--json"),
@@ -154,6 +154,41 @@ def test_pose_arrives_under_the_robots_key_and_a_malformed_goal_is_counted(tmp_p
     finally:
         outputs = [_stop(p) for p in reversed(procs)]
         session.close()
+    # Privacy: every key heard on "**" during the run is one of the robot's fleet keys, and every payload
+    # decodes strictly as its documented JSON (poses, status flags and counters, goal states): nothing else,
+    # nothing image-sized, left the robot.
+    kinds = {
+        "pose": payloads.decode_pose,
+        "status": payloads.decode_status,
+        "goal_state": payloads.decode_goal_state,
+    }
+    assert heard.samples
+    for key, data in heard.samples:
+        if key == "fleet/r1/goal":
+            continue  # this test's own malformed goal
+        kind = key.removeprefix("fleet/r1/")
+        assert kind in kinds, f"unexpected key {key}"
+        assert len(data) <= payloads.MAX_PAYLOAD
+        kinds[kind](data, "r1")
+        assert set(json.loads(data)) <= {
+            "v",
+            "robot",
+            "t_us",
+            "x_m",
+            "y_m",
+            "yaw_rad",
+            "sigma_xy_m",
+            "sigma_yaw_rad",
+            "flags",
+            "pose_flags",
+            "bits",
+            "agent",
+            "counters",
+            "goal_id",
+            "state",
+            "reason",
+            "remaining_m",
+        }
     bridge_out = json.loads(outputs[0][0])
     assert bridge_out["error"] is None and bridge_out["counters"]["rejected_goal"] >= 1
     assert bridge_out["counters"].get("agent_malformed_frames", 0) == 0

@@ -4,6 +4,7 @@ Everything waits on events with generous timeouts: no wall-clock assertion."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -16,12 +17,13 @@ import pytest
 from agent.fleet import payloads
 from agent.fleet.bridge import Bridge
 from agent.fleet.bridge_config import parse_bridge_config
-from agent.fleet.local_protocol import PoseMessage
+from agent.fleet.local_protocol import GoalMessage, PoseMessage
 from agent.fusion import Estimate
-from agent.runtime.fleet_loop import FleetLoop
+from agent.runtime.arbiter import CommandArbiter, DriveSource
+from agent.runtime.fleet_loop import FLEET_GOAL_IDS, FleetLoop
 from agent.runtime.health import Heartbeat
 from drivers.errors import ConfigError
-from firmware_protocol.command_frame import GoalReason, GoalState, GoalStatus
+from firmware_protocol.command_frame import GoalReason, GoalState, GoalStatus, StopCommand
 from firmware_protocol.pose_frame import PoseFlags
 
 TIMEOUT_S = 30.0
@@ -135,9 +137,50 @@ def test_pose_status_and_goal_state_go_out_under_the_robots_keys(pair: Any) -> N
     _wait(lambda: bridge.counters().get("published_status", 0) >= 2 and bridge._status is not None)
     status = payloads.decode_status(session.wait_for("fleet/r1/status"), "r1")
     assert status.robot == "r1"
-    loop.on_status(GoalStatus(1, 2, 77, GoalState.REJECTED, GoalReason.OUTSIDE_MAP))
-    state = session.wait_for("fleet/r1/goal_state")
-    assert b'"goal_id":77' in state and b'"reason":6' in state
+    loop.on_status(GoalStatus(1, 2, 77, GoalState.REJECTED, GoalReason.OUTSIDE_MAP))  # not a fleet goal's
+    assert loop.counters().get("fleet_goal_states_sent", 0) == 0
+
+
+def test_a_fleet_goal_goes_to_the_arbiter_and_its_statuses_come_back_with_the_fleets_id(pair: Any) -> None:
+    loop, bridge, session = pair
+    arbiter = CommandArbiter(0.2, 1.0)
+    loop.goals = lambda goal: [loop.on_status(s) for s in arbiter.fleet_goal(goal, time.monotonic())]
+    _wait(lambda: loop._client is not None and bridge._agent is not None)
+    session.deliver("fleet/r1/goal", payloads.encode_goal("r1", GoalMessage(0, 4242, 1.5, -0.5, math.nan)))
+    _wait(lambda: any(k == "fleet/r1/goal_state" for k, _ in session.published))
+    accepted = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+    assert (accepted.goal_id, accepted.state) == (4242, GoalState.ACCEPTED)
+    directive = arbiter.directive(time.monotonic())[0]
+    assert directive.source is DriveSource.FLEET and directive.goal is not None
+    assert directive.goal.goal_id in FLEET_GOAL_IDS and (directive.goal.x_m, directive.goal.yaw_rad) == (
+        1.5,
+        None,
+    )
+    # The navigator reaches it: the end goes out with the fleet's id too.
+    done = arbiter.goal_finished(directive.goal.goal_id, GoalState.REACHED)
+    assert done is not None
+    loop.on_status(done)
+    _wait(lambda: loop.counters().get("fleet_goal_states_sent", 0) >= 2)
+    reached = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+    assert (reached.goal_id, reached.state, reached.remaining_m) == (4242, GoalState.REACHED, 0.0)
+    # A stop from the controller: the next fleet goal is refused and says why.
+    arbiter.command(StopCommand(1), time.monotonic())
+    session.deliver("fleet/r1/goal", payloads.encode_goal("r1", GoalMessage(0, 4243, 1.0, 1.0)))
+    _wait(lambda: loop.counters().get("fleet_goal_states_sent", 0) >= 3)
+    refused = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+    assert (refused.goal_id, refused.state, refused.reason) == (4243, GoalState.REJECTED, GoalReason.STOPPED)
+    assert arbiter.directive(time.monotonic())[0].source is DriveSource.STOPPED
+
+
+def test_a_robot_that_vanishes_is_dropped_after_the_timeout(pair: Any) -> None:
+    loop, bridge, session = pair
+    loop.peer_timeout_s = 0.3
+    _wait(lambda: loop._client is not None and bridge._agent is not None)
+    session.deliver("fleet/r2/pose", payloads.encode_pose("r2", PoseMessage(5, 3.0, 4.0, 0.1, 0.0, 0.0, 1)))
+    _wait(lambda: "r2" in loop.peer_poses())
+    assert loop.obstacles() in ([(3.0, 4.0, loop.peer_radius_m)], [])  # [] only if this thread was late
+    _wait(lambda: "r2" not in loop.peer_poses())  # nothing more from r2: dropped
+    assert loop.counters()["fleet_peers_dropped"] == 1 and loop.obstacles() == []
 
 
 def test_other_robots_poses_reach_the_agent_and_our_own_does_not(pair: Any) -> None:
@@ -329,6 +372,12 @@ def test_a_bridge_without_its_agent_says_so_and_connects_when_it_comes(tmp_path:
         assert status.state == "agent-down" and not status.agent_connected
         session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))  # nobody to hand it to
         assert bridge.counters()["to_agent_dropped_no_agent"] == 1
+        refused = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+        assert (refused.goal_id, refused.state, refused.reason) == (
+            9,
+            GoalState.REJECTED,
+            GoalReason.NOT_LOCALIZED,
+        )
         loop = FleetLoop(
             sock, 50.0, 0.05, lambda: (_estimate(3.0), PoseFlags.ODOMETRY), lambda: 3, time.monotonic_ns
         )

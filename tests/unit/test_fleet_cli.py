@@ -53,3 +53,52 @@ def test_bridge_on_an_endpoint_in_use_says_which(tmp_path: Path, capsys: Any) ->
     captured = capsys.readouterr()
     assert "cannot open the Zenoh session" in captured.err and f"127.0.0.1:{port}" in captured.err
     assert json.loads(captured.out)["error"] is not None
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["fleet", "goal", "r 1", "1", "2", "--connect", "tcp/127.0.0.1:1"], "not a robot name"),
+        (["fleet", "goal", "r1", "nan", "2", "--connect", "tcp/127.0.0.1:1"], "finite"),
+        (["fleet", "goal", "r1", "1", "2", "--goal-id", "70000", "--connect", "tcp/127.0.0.1:1"], "0..65535"),
+        (["fleet", "goal", "r1", "1", "2"], "--connect"),
+    ],
+)
+def test_fleet_goal_usage_errors(argv: list[str], says: str, capsys: Any) -> None:
+    assert cli.main(argv) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_fleet_goal_with_no_bridge_of_that_robot_says_it_was_not_sent(capsys: Any) -> None:
+    pytest.importorskip("zenoh")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    argv = ["fleet", "goal", "r9", "1", "2", "--listen", f"tcp/127.0.0.1:{port}", "--timeout", "0.5"]
+    assert cli.main([*argv, "--json"]) == 3
+    out = json.loads(capsys.readouterr().out)
+    assert out["sent"] is False and out["final"] is None and out["timed_out"] is True
+
+
+def test_fleet_list_shows_a_robot_silent_for_stale_s_as_gone() -> None:
+    import time
+
+    from agent.fleet import payloads
+    from agent.fleet.bridge_config import ZenohConfig
+    from agent.fleet.local_protocol import PoseMessage
+    from agent.fleet.view import FleetView
+
+    class Sample:
+        def __init__(self, key: str, data: bytes) -> None:
+            self.key_expr = key
+            self.payload = type("Z", (), {"to_bytes": lambda _self: data})()
+
+    view = FleetView(ZenohConfig("peer", (), ("tcp/127.0.0.1:1",)), stale_s=2.0)
+    pose = PoseMessage(1, 1.0, 2.0, 0.0, 0.01, 0.01, 1)
+    view._on("pose", Sample("fleet/r2/pose", payloads.encode_pose("r2", pose)))
+    view._on("pose", Sample("fleet/r3/pose", b"not json"))
+    now = time.monotonic()
+    (r2,) = view.seen(now)
+    assert r2.state == "unknown" and r2.poses == 1 and view.rejected == 1
+    (r2,) = view.seen(now + 2.5)
+    assert r2.state == "gone" and r2.as_dict()["state"] == "gone" and r2.as_dict()["silent_s"] >= 2.5

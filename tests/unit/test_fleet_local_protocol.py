@@ -34,7 +34,7 @@ MESSAGES = [
     StatusMessage(5, 0b11, StatusMessage.READY | StatusMessage.LOCALIZED),
     GoalStateMessage(6, 42, 3, 0, 1.5),
     PeerPoseMessage("robot-2_b", POSE),
-    GoalMessage(7, 0xFFFF, 4.0, 5.0, -1.0),
+    GoalMessage(7, 0xFFFF, 4.0, 5.0, -1.0, GoalMessage.ALLOW_UNKNOWN),
 ]
 
 
@@ -125,7 +125,7 @@ def test_encoding_refuses_what_the_frame_cannot_carry() -> None:
 
 
 def test_a_goal_that_is_not_finite_is_refused() -> None:
-    payload = struct.pack("<QHddd", 0, 1, math.inf, 0.0, 0.0)
+    payload = struct.pack("<QHdddB", 0, 1, math.inf, 0.0, 0.0, 0)
     with pytest.raises(LocalProtocolError, match="finite"):
         decode_frame(HEADER.pack(MAGIC, VERSION, GoalMessage.TYPE, len(payload)) + payload)
 
@@ -139,3 +139,40 @@ def test_garbage_parses_or_raises_protocol_error(data: bytes) -> None:
     with contextlib.suppress(ProtocolError):
         decoder.feed(data)
     assert decoder.pending <= HEADER.size + MAX_PAYLOAD
+
+
+def test_the_shared_reader_gives_messages_and_says_when_to_close() -> None:
+    from agent.fleet.local_protocol import FrameReader, receive
+
+    reader = FrameReader()
+    stream = b"".join(encode(m) for m in MESSAGES)
+    first = reader.received(stream[:60])
+    assert first.close is None and first.messages == [POSE]
+    rest = reader.received(stream[60:])
+    assert rest.close is None and rest.messages == MESSAGES[1:]
+    cut = reader.received(encode(POSE)[:10])
+    assert cut.messages == [] and cut.close is None
+    end = reader.received(b"")
+    assert end.close is not None and "cut" in end.close and not end.malformed
+    bad = FrameReader().received(encode(POSE) + b"XX" + bytes(20))
+    assert bad.malformed and bad.close is not None and bad.messages == []
+    assert FrameReader.failed(TimeoutError()).close is None
+    assert FrameReader.failed(ConnectionResetError("reset")).close is not None
+
+    class Sock:
+        def __init__(self, data: bytes | OSError) -> None:
+            self.data = data
+
+        def recv(self, bufsize: int) -> bytes:
+            if isinstance(self.data, OSError):
+                raise self.data
+            return self.data
+
+    assert receive(Sock(encode(POSE)), FrameReader()).messages == [POSE]
+    assert receive(Sock(BrokenPipeError()), FrameReader()).close is not None
+
+
+def test_a_goal_with_option_bits_this_side_does_not_know_is_refused() -> None:
+    payload = struct.pack("<QHdddB", 0, 1, 1.0, 0.0, 0.0, 0x80)
+    with pytest.raises(LocalProtocolError, match="option"):
+        decode_frame(HEADER.pack(MAGIC, VERSION, GoalMessage.TYPE, len(payload)) + payload)

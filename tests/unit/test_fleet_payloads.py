@@ -81,3 +81,11 @@ def test_garbage_decodes_or_raises_protocol_error(data: bytes) -> None:
     for decode in (payloads.decode_pose, payloads.decode_goal, payloads.decode_status):
         with contextlib.suppress(ProtocolError):
             decode(data, "r1")
+
+
+def test_a_goals_leave_into_unknown_space_goes_through_and_must_be_a_bool() -> None:
+    goal = GoalMessage(0, 7, 1.0, 2.0, options=GoalMessage.ALLOW_UNKNOWN)
+    assert payloads.decode_goal(payloads.encode_goal("r1", goal), "r1").allow_unknown
+    bad = b'{"v":1,"robot":"r1","goal_id":1,"x_m":0,"y_m":0,"yaw_rad":null,"allow_unknown":1}'
+    with pytest.raises(payloads.FleetPayloadError, match="allow_unknown"):
+        payloads.decode_goal(bad, "r1")

@@ -172,3 +172,70 @@ def test_status_sequence_numbers_increase_and_answers_are_counted() -> None:
     seqs += [s.sequence for s in a.command(StopCommand(2), 0.0)]
     assert seqs == [1, 2]
     assert a.counts == {"accepted_clamped": 1, "accepted": 1}
+
+
+# -- fleet goals (issue 24): under the controller's stop, velocity (and its dead-man) and goals -------------
+
+
+def fleet(goal_id: int, x: float = 1.0) -> GoalCommand:
+    return GoalCommand(NO_SEQUENCE, goal_id, x, 2.0)
+
+
+def test_a_fleet_goal_drives_only_while_the_controller_drives_nothing() -> None:
+    a = arbiter({0x8003: GoalReason.OUTSIDE_MAP})
+    assert states(a.fleet_goal(fleet(0x8000), 1.0)) == [(0x8000, GoalState.ACCEPTED, GoalReason.NONE)]
+    assert a.directive(1.0)[0].source is DriveSource.FLEET and a.fleet_in_force
+    # A newer fleet goal replaces it; a checked one is rejected with the navigator's reason.
+    assert states(a.fleet_goal(fleet(0x8001), 1.0)) == [
+        (0x8001, GoalState.ACCEPTED, GoalReason.NONE),
+        (0x8000, GoalState.CANCELLED, GoalReason.SUPERSEDED),
+    ]
+    assert states(a.fleet_goal(fleet(0x8003), 1.0)) == [(0x8003, GoalState.REJECTED, GoalReason.OUTSIDE_MAP)]
+    # A mission waits for it; a controller goal supersedes it.
+    assert a.mission_goal(GoalCommand(NO_SEQUENCE, 0xC000, 0.0, 0.0)).reason is GoalReason.BUSY
+    assert states(a.command(GoalCommand(5, 7, 3.0, 3.0), 2.0)) == [
+        (7, GoalState.ACCEPTED, GoalReason.NONE),
+        (0x8001, GoalState.CANCELLED, GoalReason.SUPERSEDED),
+    ]
+    assert states(a.fleet_goal(fleet(0x8004), 2.0)) == [(0x8004, GoalState.REJECTED, GoalReason.BUSY)]
+    assert a.directive(2.0)[0].goal == GoalCommand(5, 7, 3.0, 3.0)
+
+
+def test_a_fleet_goal_never_overrides_the_stop_or_the_dead_man() -> None:
+    a = arbiter()
+    a.fleet_goal(fleet(0x8000), 1.0)
+    # A controller velocity takes over; while it is in force (and up to its dead-man), fleet goals are busy.
+    assert states(a.command(VelocityCommand(1, 0.1, 0.0, 0.5), 1.0))[1:] == [
+        (0x8000, GoalState.CANCELLED, GoalReason.SUPERSEDED)
+    ]
+    assert a.fleet_goal(fleet(0x8001), 1.2)[0].reason is GoalReason.BUSY
+    directive, expired = a.directive(1.6)  # the dead-man: the base stops, and the fleet goal stays refused
+    assert (
+        directive.source is DriveSource.NONE and expired is not None and expired.reason is GoalReason.DEAD_MAN
+    )
+    # After the dead-man a fleet goal may drive again (as a mission may)...
+    assert a.fleet_goal(fleet(0x8002), 1.7)[0].state is GoalState.ACCEPTED
+    # ...but a stop cancels it and holds until resume.
+    assert states(a.command(StopCommand(2), 1.8))[1:] == [(0x8002, GoalState.CANCELLED, GoalReason.STOPPED)]
+    assert a.fleet_goal(fleet(0x8003), 1.9)[0].reason is GoalReason.STOPPED
+    assert a.directive(1.9)[0].source is DriveSource.STOPPED
+    a.command(ResumeCommand(3), 2.0)
+    assert a.fleet_goal(fleet(0x8004), 2.1)[0].state is GoalState.ACCEPTED
+    # The controller's cancel reaches it; the navigator ends it like any goal.
+    assert states(a.command(CancelCommand(4), 2.2)) == [(0x8004, GoalState.CANCELLED, GoalReason.NONE)]
+    a.fleet_goal(fleet(0x8005), 2.3)
+    assert a.goal_progress(0x8005, 1.5) is not None
+    done = a.goal_finished(0x8005, GoalState.REACHED)
+    assert (
+        done is not None
+        and done.state is GoalState.REACHED
+        and a.directive(2.4)[0].source is DriveSource.NONE
+    )
+
+
+def test_a_fleet_goal_waits_for_a_running_mission_and_bad_values_are_refused() -> None:
+    a = arbiter()
+    assert a.mission_goal(GoalCommand(NO_SEQUENCE, 0xC000, 0.0, 0.0)).state is GoalState.ACCEPTED
+    assert a.fleet_goal(fleet(0x8000), 1.0)[0].reason is GoalReason.BUSY
+    b = arbiter()
+    assert b.fleet_goal(fleet(0x8000, math.nan), 1.0)[0].reason is GoalReason.BAD_VALUE

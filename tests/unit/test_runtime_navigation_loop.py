@@ -121,3 +121,29 @@ def test_failure_texts_map_to_reasons() -> None:
     assert failure_reason("unreachable: no free way") is GoalReason.UNREACHABLE
     assert failure_reason("goal_blocked: in a wall") is GoalReason.IN_OBSTACLE
     assert failure_reason("still blocked after 4 recoveries") is GoalReason.BLOCKED
+
+
+def test_a_fleet_goal_is_driven_and_the_other_robots_go_on_the_costmap_each_step() -> None:
+    loop, drive, answers, clock = make()
+    loop.on_map(room_image())
+    others = [(1.0, 0.0, 0.105)]
+    loop.others = lambda: list(others)  # FleetLoop.obstacles, as FleetLoop.for_agent wires it
+    arbiter = loop.arbiter
+    assert (
+        arbiter.fleet_goal(GoalCommand(0xFFFF, 0x8000, 2.0, -1.0), clock.ns * 1e-9)[0].state
+        is GoalState.ACCEPTED
+    )
+    directive, _ = arbiter.directive(clock.ns * 1e-9)
+    assert directive.source is DriveSource.FLEET
+    loop(directive, clock.ns * 1e-9)
+    clock.ns += 60_000_000
+    loop(directive, clock.ns * 1e-9)
+    nav = loop.navigator
+    assert nav is not None
+    assert not np.isfinite(nav.costmap.cost_at(np.array([[1.0, 0.0]]))[0])  # the other robot's disc
+    assert drive.current(clock.ns).v_mps >= 0.0
+    others.clear()  # gone (stale): its disc leaves the costmap at the next step
+    clock.ns += 60_000_000
+    loop(directive, clock.ns * 1e-9)
+    assert not nav.costmap.fleet.any() and np.isfinite(nav.costmap.cost_at(np.array([[1.0, 0.0]]))[0])
+    assert all(s.goal_id == 0x8000 for s in answers)
