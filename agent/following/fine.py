@@ -55,8 +55,9 @@ class FineLayerConfig:
     # While tracking, the pre-locator runs every this many frames (0: never) and a detection overlapping
     # the box (IoU >= correct_iou) pulls its centre and size halfway: the scale test lags behind a user
     # the robot closes in on.
-    correct_every: int = 15
+    correct_every: int = 5
     correct_iou: float = 0.3
+    correct_gain: float = 0.7
     lost_after_frames: int = 30
 
 
@@ -129,7 +130,7 @@ class FineLayer:
             found = [d.head_shoulder for d in self._locator.locate(frame, band)]
             best = max(found, key=lambda b: _iou(b, result.box), default=None)
             if best is not None and _iou(best, result.box) >= cfg.correct_iou:
-                tracker.correct(best)
+                tracker.correct(best, cfg.correct_gain)
         if result.state is TrackState.TRACKING:
             state = FineState.TRACKING
         elif result.frames_lost >= cfg.lost_after_frames:

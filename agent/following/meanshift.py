@@ -355,7 +355,9 @@ class MeanShiftTracker:
             # A hint (the pre-locator's box) is tried at its own size, within the tracker's scale limits:
             # the target may have come nearer or gone farther while it was hidden (or while the scale
             # test lagged behind it).
-            sizes.append(np.clip(np.array([hw, hh]), cfg.min_scale * self._size0, cfg.max_scale * self._size0))
+            sizes.append(
+                np.clip(np.array([hw, hh]), cfg.min_scale * self._size0, cfg.max_scale * self._size0)
+            )
         if hints:
             window = self._window_union(
                 frame, window, [s for s in starts[-len(hints) :]], np.max(sizes, axis=0)
@@ -366,7 +368,10 @@ class MeanShiftTracker:
             return math.exp(-0.5 * float(np.sum((c - predicted) ** 2)) / sigma**2)
 
         scored = sorted(
-            ((self._evaluate(window, s, z).rho * prior(s), i) for i, (s, z) in enumerate(zip(starts, sizes, strict=True))),
+            (
+                (self._evaluate(window, s, z).rho * prior(s), i)
+                for i, (s, z) in enumerate(zip(starts, sizes, strict=True))
+            ),
             reverse=True,
         )
         best: tuple[float, FloatArray, _Evaluation, int, FloatArray] | None = None
@@ -518,7 +523,9 @@ class MeanShiftTracker:
         sat = hsv[..., 1] * levels >> 8
         light = (hsv[..., 2] >= 100).astype(np.int32)
         grey = (hsv[..., 1] < 64) | (hsv[..., 2] < 50)
-        out: npt.NDArray[np.int32] = np.where(grey, levels * levels + light, h * levels + sat).astype(np.int32)
+        out: npt.NDArray[np.int32] = np.where(grey, levels * levels + light, h * levels + sat).astype(
+            np.int32
+        )
         return out
 
     def _window_union(

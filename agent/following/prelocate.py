@@ -203,7 +203,10 @@ def _omega_outline(width: int) -> tuple[list[npt.NDArray[np.float32]], int]:
         b = round(((tangent + math.pi / 2.0) % math.pi) / (math.pi / 4.0)) % 4
         templates[b][y, x] = 1.0
     total = float(sum(float(t.sum()) for t in templates))
-    return [cv2.GaussianBlur(t, (3, 3), 0) / total if t.any() else t for t in templates], height
+    out = [
+        np.asarray(cv2.GaussianBlur(t, (3, 3), 0), dtype=np.float32) / np.float32(total) for t in templates
+    ]
+    return out, height
 
 
 def _omega(crop: ImageU8, c0: int, config: PreLocatorConfig) -> list[Detection]:
@@ -213,7 +216,9 @@ def _omega(crop: ImageU8, c0: int, config: PreLocatorConfig) -> list[Detection]:
     import cv2
 
     shrink = min(1.0, config.omega_width_px / crop.shape[1])
-    small = crop if shrink >= 1.0 else cv2.resize(crop, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
+    small = (
+        crop if shrink >= 1.0 else cv2.resize(crop, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
+    )
     gray = cv2.cvtColor(np.asarray(small), cv2.COLOR_BGR2GRAY)
     gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
@@ -251,7 +256,7 @@ def _omega(crop: ImageU8, c0: int, config: PreLocatorConfig) -> list[Detection]:
         if len(kept) >= 8:
             break
     out = []
-    for rel_score, x, y, bw, bh in kept:
-        box = np.array([x / shrink + c0, y / shrink, bw / shrink, bh / shrink])
+    for rel_score, bx, by, bw, bh in kept:
+        box = np.array([bx / shrink + c0, by / shrink, bw / shrink, bh / shrink])
         out.append(Detection(box, box.copy(), 1.0 - rel_score / config.omega_max_score))
     return out
