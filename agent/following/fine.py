@@ -55,9 +55,10 @@ class FineLayerConfig:
     # While tracking, the pre-locator runs every this many frames (0: never) and a detection overlapping
     # the box (IoU >= correct_iou) pulls its centre and size halfway: the scale test lags behind a user
     # the robot closes in on.
-    correct_every: int = 5
+    correct_every: int = 3
     correct_iou: float = 0.3
-    correct_gain: float = 0.7
+    correct_gain: float = 1.0
+    correct_size: float = 0.25  # a detection's width within this share of the box's
     lost_after_frames: int = 30
 
 
@@ -128,7 +129,11 @@ class FineLayer:
         ):
             prelocated = True
             found = [d.head_shoulder for d in self._locator.locate(frame, band)]
-            best = max(found, key=lambda b: _iou(b, result.box), default=None)
+            # The same person: overlapping, and of about the same size (a passer-by crossing nearer the
+            # camera is larger).
+            width = float(result.box[2])
+            alike = [b for b in found if abs(float(b[2]) - width) <= cfg.correct_size * width]
+            best = max(alike, key=lambda b: _iou(b, result.box), default=None)
             if best is not None and _iou(best, result.box) >= cfg.correct_iou:
                 tracker.correct(best, cfg.correct_gain)
         if result.state is TrackState.TRACKING:

@@ -18,6 +18,7 @@ outside the user's sector out of the candidates. ``benchmarks/tracker_speed.py``
 from __future__ import annotations
 
 import enum
+import functools
 import logging
 import math
 import time
@@ -56,7 +57,7 @@ class PreLocatorConfig:
     # Smallest head-and-shoulders the cascade looks for, in pixels of the (shrunk) band: its own window is
     # 22 x 18, and the small scales are most of its cost; a user a metre or three ahead is far larger.
     cascade_min_width_px: int = 44
-    # omega: the band is searched at most this wide (pixels) for outlines from omega_min_width_px (of the
+    # omega: the frame is searched shrunk to at most this wide (pixels) for outlines from omega_min_width_px (of the
     # shrunk band) to 0.8 of its height, scales omega_scale_step apart; a match's mean distance from its
     # outline to the nearest edge of the same orientation, over the outline's width, must stay under
     # omega_max_score.
@@ -116,7 +117,7 @@ class HeadShoulderLocator:
             return []
         crop: ImageU8 = frame[:, c0:c1]
         if self.config.kind is LocatorKind.OMEGA:
-            detections = _omega(crop, c0, self.config)
+            detections = _omega(crop, c0, width, self.config)
             self.last_ms = (time.perf_counter() - t0) * 1e3
             return detections
         shrink = min(1.0, self.config.max_width_px / crop.shape[1])
@@ -179,6 +180,7 @@ def _cascade_path(name: str) -> str:
 _OMEGA_ASPECT = 0.86  # height / width
 
 
+@functools.lru_cache(maxsize=64)
 def _omega_outline(width: int) -> tuple[list[npt.NDArray[np.float32]], int]:
     """Binary templates of the outline at ``width`` pixels, one per edge orientation (0, 45, 90, 135
     degrees of the gradient), each normalised by the outline's point count; and its height."""
@@ -209,13 +211,14 @@ def _omega_outline(width: int) -> tuple[list[npt.NDArray[np.float32]], int]:
     return out, height
 
 
-def _omega(crop: ImageU8, c0: int, config: PreLocatorConfig) -> list[Detection]:
+def _omega(crop: ImageU8, c0: int, frame_width: int, config: PreLocatorConfig) -> list[Detection]:
     """Head-and-shoulder outlines in a band by oriented chamfer matching: the band's edges split by
     gradient orientation into four maps, each map's distance transform correlated with the outline's
     points of that orientation, so stripes (edges of one orientation everywhere) do not match a head."""
     import cv2
 
-    shrink = min(1.0, config.omega_width_px / crop.shape[1])
+    # Shrunk as the whole frame would be: a narrow band costs less, not more.
+    shrink = min(1.0, config.omega_width_px / frame_width)
     small = (
         crop if shrink >= 1.0 else cv2.resize(crop, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
     )
