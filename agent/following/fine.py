@@ -142,7 +142,9 @@ class FineLayer:
             state = FineState.LOST
         else:
             state = FineState.OCCLUDED
-        return FineResult(state, result.box, result.rho, prelocated)
+        return FineResult(
+            state, tracker.box if state is FineState.TRACKING else result.box, result.rho, prelocated
+        )
 
     def reset(self) -> None:
         """Forget the target (another user, or the coarse layer says the tracked one is not the tag's)."""
