@@ -122,6 +122,9 @@ class TrackerConfig:
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
+    # The velocity a hidden target coasts on: the same average, slower (0: the one above). One frame's
+    # prediction wants the latest motion; many frames' want the steady one, not the last few steps' noise.
+    coast_velocity_gain: float = 0.1
     climb_from_last: bool = True  # also climb from the last position, not only from the prediction
     occlusion_ratio: float = 0.6
     reacquire_ratio: float = 0.75
@@ -233,6 +236,7 @@ class MeanShiftTracker:
         self._size = np.ones(2)
         self._size0 = np.ones(2)
         self._velocity = np.zeros(2)
+        self._coast_velocity = np.zeros(2)
         self._q_colour_raw = np.zeros(self._bins)
         self._q_texture_raw = np.zeros(self._labels)
         self._q_colour = np.zeros(self._bins)
@@ -261,6 +265,7 @@ class MeanShiftTracker:
         self._size0 = self._size.copy()
         self._centre = np.array([x + w / 2.0, y + h / 2.0])
         self._velocity = np.zeros(2)
+        self._coast_velocity = np.zeros(2)
         window = self._window(frame, self._centre, self._size * 2.0 + 8.0)
         ev = self._evaluate(window, self._centre, self._size, model=False)
         self._q_colour_raw = ev.p_colour
@@ -292,6 +297,11 @@ class MeanShiftTracker:
         frame = _check_frame(frame)
         cfg = self.config
         predicted = self._centre + self._velocity
+        if self.state is TrackState.OCCLUDED:
+            # A hidden person coasts sideways only: people walk on the floor, so their image moves
+            # mostly across; its vertical motion (the camera's shake, a step's bob) does not go on.
+            coast = self._coast_velocity if cfg.coast_velocity_gain > 0.0 else self._velocity
+            predicted = self._centre + np.array([coast[0], 0.0])
         if self.state is TrackState.TRACKING:
             window = self._window(frame, predicted, self._size * 2.0 + 2.0 * np.abs(self._velocity) + 8.0)
             centre, ev, iterations = self._climb(window, predicted, self._size)
@@ -316,6 +326,8 @@ class MeanShiftTracker:
         self._scale(window, centre, ev)
         step = centre - self._centre
         self._velocity = cfg.velocity_gain * step + (1.0 - cfg.velocity_gain) * self._velocity
+        g = cfg.coast_velocity_gain
+        self._coast_velocity = g * step + (1.0 - g) * self._coast_velocity
         self._centre = centre
         if ev.rho >= cfg.update_ratio * self._rho_ref:
             # q <- (1 - a) q + a p(y): slow, and only on a confident match; p(y) at the new size.
