@@ -57,10 +57,10 @@ class PreLocatorConfig:
     # Smallest head-and-shoulders the cascade looks for, in pixels of the (shrunk) band: its own window is
     # 22 x 18, and the small scales are most of its cost; a user a metre or three ahead is far larger.
     cascade_min_width_px: int = 44
-    # omega: the frame is searched shrunk to at most this wide (pixels) for outlines from omega_min_width_px (of the
-    # shrunk band) to 0.8 of its height, scales omega_scale_step apart; a match's mean distance from its
-    # outline to the nearest edge of the same orientation, over the outline's width, must stay under
-    # omega_max_score.
+    # omega: the frame is searched shrunk to at most omega_width_px wide, for outlines from
+    # omega_min_width_px (shrunk pixels) to 0.8 of its height, omega_scale_step apart; a match's mean
+    # distance from its outline to the nearest edge of the same orientation, over the outline's width,
+    # must stay under omega_max_score.
     omega_width_px: int = 160
     omega_min_width_px: int = 16
     omega_scale_step: float = 1.15
