@@ -115,3 +115,16 @@ def test_eval_follow_runs_a_short_stretch(capsys: pytest.CaptureFixture[str]) ->
         assert key in out
     assert out["frames"] == 15 and out["first_tracking_s"] is not None
     assert out["precision_20px"] > 0.5  # the user is 1.3-1.8 m ahead, alone in the band
+
+
+def test_a_hint_brings_the_target_back_at_its_new_size() -> None:
+    # Hidden while the robot closed in: the pre-locator's box, 1.6 times larger, is taken at its size.
+    small = _head_and_shoulders(100, 40, 80)
+    tracker = MeanShiftTracker(TrackerConfig(silhouette=Silhouette.OMEGA, colour_space=ColourSpace.HSV))
+    tracker.start(small, (100.0, 40.0, 80.0, 69.0))
+    blank = np.full_like(small, (170, 180, 190))
+    assert tracker.update(blank).state.value == "occluded"
+    big = _head_and_shoulders(60, 20, 128)
+    result = tracker.update(big, [np.array([60.0, 20.0, 128.0, 110.0])])
+    assert result.state.value == "tracking"
+    assert abs(result.box[2] - 128.0) < 10.0 and abs(result.box[0] + result.box[2] / 2 - 124.0) < 10.0
