@@ -332,13 +332,13 @@ SWITCH_FRAMES = 3  # frames on another person that make an identity switch
 
 
 def _switches(identities: list[str | None], user: str) -> int:
-    """Runs of at least SWITCH_FRAMES tracking frames on someone other than the user (frames on nobody and
-    not tracking skipped): a box that slides onto an occluder for a frame or two before the occlusion is
-    flagged is not counted here but in ``on_other_frames``."""
-    seen = [i for i in identities if i is not None]
-    count, run = 0, 0
-    for i, who in enumerate(seen):
-        run = run + 1 if who != user and (i == 0 or seen[i - 1] == who) else (1 if who != user else 0)
+    """Runs of at least SWITCH_FRAMES consecutive frames tracking someone other than the user (a frame not
+    tracking, or on nobody, ends a run): a box that slides onto an occluder for a frame or two before the
+    occlusion is flagged is not counted here but in ``on_other_frames``."""
+    count, run, last = 0, 0, None
+    for who in identities:
+        run = (run + 1 if who == last else 1) if who is not None and who != user else 0
+        last = who
         if run == SWITCH_FRAMES:
             count += 1
     return count

@@ -7,7 +7,10 @@ best head-shoulder box (``SEARCHING`` until one is found). While the tracker rep
 the pre-locator runs in the band every ``prelocate_every`` frames and its boxes go to the tracker as
 re-acquisition hints; the tracker keeps its model, so a passer-by found by the detector is accepted only
 if it matches the user's colours and texture. After ``lost_after_frames`` occluded frames the state is
-``LOST`` (the follower stops); the search goes on.
+``LOST`` (the follower stops); the search goes on. While tracking, the pre-locator runs every
+``correct_every`` frames: a detection of the target's size overlapping the box pulls the tracker onto it
+(its scale lags behind a user the robot closes in on), and the running offset between the detections and
+the mean shift's mode is added to the reported box.
 """
 
 from __future__ import annotations

@@ -83,6 +83,8 @@ def test_switches_count_runs_on_someone_else() -> None:
     assert _switches(["user", "user", None, "user"], "user") == 0
     assert _switches(["user", "p1", "user"], "user") == 0  # one frame on the occluder: not a switch
     assert _switches(["user", "p1", "p1", "p1", "p1", "user", "p2", "p2", "p2"], "user") == 2
+    # Frames on the occluder either side of an occlusion (not tracking: None) are not a run.
+    assert _switches(["user", "p1", "p1", None, None, "p1", "user"], "user") == 0
 
 
 def _frame(t: float, state: str, visible: float, centre_x: float) -> _Frame:
