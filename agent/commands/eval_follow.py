@@ -105,6 +105,14 @@ def add_parser(subparsers: Any) -> None:
         help="set one of the tracker's parameters (as eval track's --param; the fine layer's defaults are "
         "the omega silhouette and colour_space=hsv)",
     )
+    p.add_argument(
+        "--correct-every",
+        type=int,
+        default=3,
+        metavar="N",
+        help="frames between the pre-locator's corrections while tracking (FineLayerConfig.correct_every, "
+        "default 3; 0: never, the mean shift alone between occlusions)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -149,6 +157,7 @@ def run_sequence(
     user_name: str,
     seconds: float | None,
     params: list[str] | None = None,
+    correct_every: int = 3,
 ) -> dict[str, Any]:
     import cv2
 
@@ -217,7 +226,10 @@ def run_sequence(
     defaults = [] if "colour_space" in given else ["colour_space=hsv"]
     fine = FineLayer(
         locator,
-        FineLayerConfig(tracker=tracker_config(tracker, Silhouette.OMEGA, defaults + list(params or []))),
+        FineLayerConfig(
+            tracker=tracker_config(tracker, Silhouette.OMEGA, defaults + list(params or [])),
+            correct_every=correct_every,
+        ),
     )
     follower = Follower()
     frame_every = max(1, round(1.0 / (model.frame_rate_hz * STEP_S)))
@@ -397,6 +409,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not Path(args.world).is_file():
         raise ConfigError("--world", f"{args.world}: no such file")
+    if args.correct_every < 0:
+        raise ConfigError("--correct-every", "must be 0 or more")
     if args.seconds is not None and args.seconds <= 0:
         raise ConfigError("--seconds", "must be positive")
     seeds = args.seed or [0]
@@ -404,7 +418,14 @@ def run(args: argparse.Namespace) -> int:
     for seed in seeds:
         runs.append(
             run_sequence(
-                args.world, seed, Features(args.tracker), args.locator, args.user, args.seconds, args.param
+                args.world,
+                seed,
+                Features(args.tracker),
+                args.locator,
+                args.user,
+                args.seconds,
+                args.param,
+                args.correct_every,
             )
         )
         if not args.json and len(seeds) > 1:
