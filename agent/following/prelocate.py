@@ -65,6 +65,9 @@ class PreLocatorConfig:
     omega_min_width_px: int = 16
     omega_scale_step: float = 1.15
     omega_max_score: float = 0.05
+    # A head is a plain blob: a match whose head (the inner 60 % of the outline's head ellipse) holds more
+    # than this share of edge pixels is a pattern (a checked shirt), not a head.
+    omega_max_head_edges: float = 0.08
 
 
 @dataclass(frozen=True)
@@ -214,7 +217,8 @@ def _omega_outline(width: int) -> tuple[list[npt.NDArray[np.float32]], int]:
 def _omega(crop: ImageU8, c0: int, frame_width: int, config: PreLocatorConfig) -> list[Detection]:
     """Head-and-shoulder outlines in a band by oriented chamfer matching: the band's edges split by
     gradient orientation into four maps, each map's distance transform correlated with the outline's
-    points of that orientation, so stripes (edges of one orientation everywhere) do not match a head."""
+    points of that orientation, so stripes (edges of one orientation everywhere) do not match a head; and a
+    match whose head is full of edges (checks, which have both orientations) is dropped."""
     import cv2
 
     # Shrunk as the whole frame would be: a narrow band costs less, not more.
@@ -235,6 +239,7 @@ def _omega(crop: ImageU8, c0: int, frame_width: int, config: PreLocatorConfig) -
         mask = np.where(edges & (bins == b), 0, 255).astype(np.uint8)
         dts.append(np.minimum(cv2.distanceTransform(mask, cv2.DIST_L2, 3), cap))
     h, w = gray.shape
+    edge_sum = cv2.integral(edges.astype(np.uint8))  # (h + 1, w + 1)
     found: list[tuple[float, int, int, int, int]] = []
     width = config.omega_min_width_px
     while width <= w and width * _OMEGA_ASPECT <= 0.8 * h:
@@ -247,6 +252,23 @@ def _omega(crop: ImageU8, c0: int, frame_width: int, config: PreLocatorConfig) -
         # Local minima under the threshold.
         local = rel <= cv2.erode(rel, np.ones((3, 3), np.uint8))
         ys, xs = np.nonzero(local & (rel < config.omega_max_score))
+        # The head's inner rectangle: centre (0.5, 0.29) of the box, 0.6 of its radii (0.177, 0.28).
+        hx0, hx1 = (
+            round(width * (0.5 - 0.106)),
+            max(round(width * (0.5 + 0.106)), round(width * (0.5 - 0.106)) + 1),
+        )
+        hy0, hy1 = (
+            round(height * (0.29 - 0.168)),
+            max(round(height * (0.29 + 0.168)), round(height * (0.29 - 0.168)) + 1),
+        )
+        inside = (
+            edge_sum[ys + hy1, xs + hx1]
+            - edge_sum[ys + hy0, xs + hx1]
+            - edge_sum[ys + hy1, xs + hx0]
+            + edge_sum[ys + hy0, xs + hx0]
+        ) / float((hx1 - hx0) * (hy1 - hy0))
+        plain = inside <= config.omega_max_head_edges
+        ys, xs = ys[plain], xs[plain]
         for y, x in zip(ys, xs, strict=True):
             found.append((float(rel[y, x]), int(x), int(y), width, height))
         width = max(width + 1, round(width * config.omega_scale_step))
