@@ -65,6 +65,10 @@ def test_omega_prelocator_finds_a_drawn_head_and_shoulders() -> None:
     x, y, w, _ = found[0].head_shoulder
     assert abs(x + w / 2 - 155) < 15 and abs(y - 40) < 15 and 80 < w < 140
     assert not locator.locate(np.full((240, 320, 3), 128, np.uint8))  # a blank frame holds nobody
+    # A checked shirt filling the frame: edges of every orientation everywhere, but no plain head.
+    yy, xx = np.mgrid[0:240, 0:320]
+    checks = np.where(((yy // 12) + (xx // 12)) % 2 == 0, 40, 200).astype(np.uint8)
+    assert not locator.locate(np.dstack([checks] * 3))
 
 
 def test_hsv_colour_holds_through_a_change_of_light() -> None:
