@@ -108,7 +108,11 @@ def prelocator_case(repeats: int) -> dict[str, object]:
             ("whole_frame_at_160px", None, 160),
             ("band_third_full_res", (213, 427), 640),
         ):
-            locator = HeadShoulderLocator(PreLocatorConfig(kind=kind, max_width_px=width))
+            locator = HeadShoulderLocator(
+                PreLocatorConfig(kind=kind, max_width_px=width, omega_width_px=min(width, 160) // 2 * 2)
+                if kind is not LocatorKind.OMEGA
+                else PreLocatorConfig(kind=kind, omega_width_px=width // 2)
+            )
             locator.locate(frame, band)  # warm-up
             times = []
             found = 0
@@ -116,6 +120,76 @@ def prelocator_case(repeats: int) -> dict[str, object]:
                 found = len(locator.locate(frame, band))
                 times.append(locator.last_ms)
             out[f"{kind.value}_{name}"] = {**_ms(times), "detections": found}
+    return out
+
+
+def rendered_frames(frames: int) -> list[np.ndarray]:
+    """Forward-camera frames of ``examples/worlds/track_straight.toml`` from 1 m behind the walking user (no
+    passer-by in view): what the fine layer sees while following."""
+    from drivers.sim.forward_render import ForwardRenderer, PersonState
+    from drivers.sim.raycast import walls_array
+    from drivers.sim.simulation import Simulation
+    from drivers.sim.world import Pose2D
+    from drivers.sim.worldfile import load_world
+
+    world = load_world(Path(__file__).resolve().parents[1] / "examples/worlds/track_straight.toml")
+    clock = [0.0]
+    sim = Simulation(world, clock=lambda: clock[0], seed=0)
+    renderer = ForwardRenderer(world.forward_camera, walls_array(world.walls), seed=0)
+    user = world.people[0]
+    out = []
+    for k in range(frames):
+        clock[0] = 2.5 + k / 15.0  # the user walking, the passers-by not yet in view
+        x, y, _, _ = sim.person_pose(user)
+        people = [PersonState(user, *sim.person_pose(user))]
+        image, _ = renderer.render(Pose2D(x - 1.0, y, 0.0), people, clock[0])
+        out.append(image.copy())
+    return out
+
+
+def fine_layer_case(frames: int) -> dict[str, object]:
+    """The fine layer as ``eval follow`` runs it (HSV colour, Omega silhouette, the omega pre-locator
+    correcting the box every 3 frames) on rendered frames: per frame, the tracker alone and the whole layer
+    (pre-locator frames included), with this thread's CPU time beside the wall time."""
+    from agent.following.fine import FineLayer, FineLayerConfig
+    from agent.following.meanshift import ColourSpace
+
+    images = rendered_frames(frames)
+    plain = []
+    for image in images:
+        t0 = time.perf_counter()
+        np.sum(image, dtype=np.uint64)
+        plain.append((time.perf_counter() - t0) * 1e3)
+    plain_ms = statistics.median(plain)
+    out: dict[str, object] = {
+        "frames": "track_straight rendered, 1 m behind the user",
+        "plain_pass_ms_median": round(plain_ms, 3),
+    }
+    for features in Features:
+        config = FineLayerConfig(
+            tracker=TrackerConfig(
+                features=features, silhouette=Silhouette.OMEGA, colour_space=ColourSpace.HSV
+            )
+        )
+        layer = FineLayer(HeadShoulderLocator(PreLocatorConfig(kind=LocatorKind.OMEGA)), config)
+        layer.update(images[0])
+        wall, cpu, tracker_only = [], [], []
+        for image in images[1:]:
+            t0, c0 = time.perf_counter(), time.thread_time()
+            result = layer.update(image)
+            wall.append((time.perf_counter() - t0) * 1e3)
+            cpu.append((time.thread_time() - c0) * 1e3)
+            if not result.prelocated and result.state.value == "tracking":
+                tracker_only.append(wall[-1])
+        stats = _ms(wall)
+        out[features.value] = {
+            **stats,
+            "mean_ms": round(statistics.fmean(wall), 3),
+            "cpu_median_ms": round(statistics.median(cpu), 3),
+            "cpu_mean_ms": round(statistics.fmean(cpu), 3),
+            "tracker_only_median_ms": round(statistics.median(tracker_only), 3) if tracker_only else None,
+            "median_over_plain_pass": round(stats["median_ms"] / plain_ms, 1),
+        }
     return out
 
 
@@ -130,6 +204,7 @@ def main() -> None:
         "budget_ms": {"tracker_median": 5.0, "prelocator": 30.0},
         "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames),
         "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames),
+        "fine_layer_rendered": fine_layer_case(args.frames),
         "prelocator": prelocator_case(args.repeats),
     }
     print(json.dumps(result, indent=2))

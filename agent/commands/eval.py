@@ -17,6 +17,7 @@ from typing import Any
 EVALUATIONS: dict[str, str] = {
     "deliver": "agent.commands.eval_deliver",
     "explore": "agent.commands.eval_explore",
+    "follow": "agent.commands.eval_follow",
     "nav": "agent.commands.eval_nav",
     "slam": "agent.commands.eval_slam",
     "track": "agent.commands.eval_track",

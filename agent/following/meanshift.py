@@ -53,6 +53,7 @@ import numpy.typing as npt
 from agent.following.lbp import RIU2_LABELS, RIU2_LUT, U2_LABELS, U2_LUT, lbp_codes
 
 __all__ = [
+    "ColourSpace",
     "Features",
     "MeanShiftTracker",
     "Silhouette",
@@ -87,6 +88,14 @@ class LbpMapping(enum.StrEnum):
     U2 = "u2"  # uniform: 59 labels, edge orientation kept
 
 
+class ColourSpace(enum.StrEnum):
+    BGR = "bgr"  # levels^3 bins of B, G, R
+    # Hue x saturation (levels^2 bins), plus two bins, dark and light, for the pixels whose hue means
+    # nothing (saturation under a quarter, or value under 50): a change of the light's gain moves B, G
+    # and R across bin edges together but leaves hue and saturation where they were.
+    HSV = "hsv"
+
+
 class TrackState(enum.StrEnum):
     TRACKING = "tracking"
     OCCLUDED = "occluded"  # rho too low: coasting on the motion model, searching each frame
@@ -97,6 +106,7 @@ class TrackerConfig:
     features: Features = Features.FULL
     silhouette: Silhouette = Silhouette.ELLIPSE
     colour_levels: int = 8  # per B, G, R channel: levels^3 colour bins
+    colour_space: ColourSpace = ColourSpace.BGR
     lbp_threshold: int = 3  # grey levels (lbp.py: keeps flat cloth flat)
     lbp_mapping: LbpMapping = LbpMapping.RIU2
     background_weighting: bool = True
@@ -112,6 +122,9 @@ class TrackerConfig:
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
+    # The velocity a hidden target coasts on: the same average, slower (0: the one above). One frame's
+    # prediction wants the latest motion; many frames' want the steady one, not the last few steps' noise.
+    coast_velocity_gain: float = 0.1
     climb_from_last: bool = True  # also climb from the last position, not only from the prediction
     occlusion_ratio: float = 0.6
     reacquire_ratio: float = 0.75
@@ -223,6 +236,7 @@ class MeanShiftTracker:
         self._size = np.ones(2)
         self._size0 = np.ones(2)
         self._velocity = np.zeros(2)
+        self._coast_velocity = np.zeros(2)
         self._q_colour_raw = np.zeros(self._bins)
         self._q_texture_raw = np.zeros(self._labels)
         self._q_colour = np.zeros(self._bins)
@@ -251,6 +265,7 @@ class MeanShiftTracker:
         self._size0 = self._size.copy()
         self._centre = np.array([x + w / 2.0, y + h / 2.0])
         self._velocity = np.zeros(2)
+        self._coast_velocity = np.zeros(2)
         window = self._window(frame, self._centre, self._size * 2.0 + 8.0)
         ev = self._evaluate(window, self._centre, self._size, model=False)
         self._q_colour_raw = ev.p_colour
@@ -263,6 +278,17 @@ class MeanShiftTracker:
         self.frames_lost = 0
         self._started = True
 
+    def correct(self, box: FloatArray | tuple[float, float, float, float], gain: float = 0.5) -> None:
+        """Pull the box toward ``box`` (a pre-locator's detection of the target) by ``gain``, centre and
+        size (within the scale limits): the scale test follows a target that comes nearer or goes
+        farther only slowly."""
+        cfg = self.config
+        x, y, w, h = (float(b) for b in box)
+        centre = np.array([x + w / 2.0, y + h / 2.0])
+        self._centre = self._centre + gain * (centre - self._centre)
+        size = self._size + gain * (np.array([w, h]) - self._size)
+        self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
+
     def update(self, frame: ImageU8, hints: tuple[FloatArray, ...] | list[FloatArray] = ()) -> TrackResult:
         """Track into ``frame``. ``hints``: candidate boxes (x, y, w, h) from elsewhere (the pre-locator,
         the coarse layer's bearing band) tried as re-acquisition starts while the target is occluded."""
@@ -271,6 +297,11 @@ class MeanShiftTracker:
         frame = _check_frame(frame)
         cfg = self.config
         predicted = self._centre + self._velocity
+        if self.state is TrackState.OCCLUDED:
+            # A hidden person coasts sideways only: people walk on the floor, so their image moves
+            # mostly across; its vertical motion (the camera's shake, a step's bob) does not go on.
+            coast = self._coast_velocity if cfg.coast_velocity_gain > 0.0 else self._velocity
+            predicted = self._centre + np.array([coast[0], 0.0])
         if self.state is TrackState.TRACKING:
             window = self._window(frame, predicted, self._size * 2.0 + 2.0 * np.abs(self._velocity) + 8.0)
             centre, ev, iterations = self._climb(window, predicted, self._size)
@@ -295,6 +326,8 @@ class MeanShiftTracker:
         self._scale(window, centre, ev)
         step = centre - self._centre
         self._velocity = cfg.velocity_gain * step + (1.0 - cfg.velocity_gain) * self._velocity
+        g = cfg.coast_velocity_gain
+        self._coast_velocity = g * step + (1.0 - g) * self._coast_velocity
         self._centre = centre
         if ev.rho >= cfg.update_ratio * self._rho_ref:
             # q <- (1 - a) q + a p(y): slow, and only on a confident match; p(y) at the new size.
@@ -327,31 +360,45 @@ class MeanShiftTracker:
             for gx in range(-nx, nx + 1):
                 if gx or gy:
                     starts.append(predicted + np.array([gx * radius[0] / nx, gy * radius[1] / ny]))
+        sizes = [size] * len(starts)
         for hint in hints:
             hx, hy, hw, hh = (float(b) for b in hint)
             starts.append(np.array([hx + hw / 2.0, hy + hh / 2.0]))
+            # A hint (the pre-locator's box) is tried at its own size, within the tracker's scale limits:
+            # the target may have come nearer or gone farther while it was hidden (or while the scale
+            # test lagged behind it).
+            sizes.append(
+                np.clip(np.array([hw, hh]), cfg.min_scale * self._size0, cfg.max_scale * self._size0)
+            )
         if hints:
-            window = self._window_union(frame, window, [s for s in starts[-len(hints) :]], size)
+            window = self._window_union(
+                frame, window, [s for s in starts[-len(hints) :]], np.max(sizes, axis=0)
+            )
         sigma = cfg.motion_prior * float(np.max(size)) * (1.0 + 0.1 * self.frames_lost)
 
         def prior(c: FloatArray) -> float:
             return math.exp(-0.5 * float(np.sum((c - predicted) ** 2)) / sigma**2)
 
         scored = sorted(
-            ((self._evaluate(window, s, size).rho * prior(s), i) for i, s in enumerate(starts)), reverse=True
+            (
+                (self._evaluate(window, s, z).rho * prior(s), i)
+                for i, (s, z) in enumerate(zip(starts, sizes, strict=True))
+            ),
+            reverse=True,
         )
-        best: tuple[float, FloatArray, _Evaluation, int] | None = None
+        best: tuple[float, FloatArray, _Evaluation, int, FloatArray] | None = None
         for _, i in scored[:3]:
-            centre, ev, iterations = self._climb(window, starts[i], size)
+            centre, ev, iterations = self._climb(window, starts[i], sizes[i])
             score = ev.rho * prior(centre)
             if best is None or score > best[0]:
-                best = (score, centre, ev, iterations)
+                best = (score, centre, ev, iterations, sizes[i])
         assert best is not None
-        _, centre, ev, iterations = best
+        _, centre, ev, iterations, found_size = best
         if ev.rho >= cfg.reacquire_ratio * self._rho_ref:
             log.debug("re-acquired after %d frames, rho %.3f", self.frames_lost, ev.rho)
             self.state = TrackState.TRACKING
             self._centre = centre
+            self._size = found_size.copy()
             self.frames_lost = 0
             return self._result(ev, iterations)
         # Coast, but not out of the frame: a person who walked out is searched for at its edge.
@@ -470,12 +517,28 @@ class MeanShiftTracker:
         else:
             q = (patch.astype(np.int32) * self._levels) >> 8
         colour = (q[..., 0] * self._levels + q[..., 1]) * self._levels + q[..., 2]
+        if self.config.colour_space == ColourSpace.HSV:
+            colour = self._hsv_bins(patch)
         texture = None
         if self._texture:
             # The window reaches well past the target, so its edge cells (compared with the edge
             # replicated) are background.
             texture = self._lut[lbp_codes(_grey(patch), self.config.lbp_threshold)]
         return _Window(x0, y0, colour, texture, factor)
+
+    def _hsv_bins(self, patch: ImageU8) -> npt.NDArray[np.int32]:
+        import cv2
+
+        levels = self._levels
+        hsv = np.asarray(cv2.cvtColor(patch, cv2.COLOR_BGR2HSV), dtype=np.int32)  # H 0..179
+        h = hsv[..., 0] * levels // 180
+        sat = hsv[..., 1] * levels >> 8
+        light = (hsv[..., 2] >= 100).astype(np.int32)
+        grey = (hsv[..., 1] < 64) | (hsv[..., 2] < 50)
+        out: npt.NDArray[np.int32] = np.where(grey, levels * levels + light, h * levels + sat).astype(
+            np.int32
+        )
+        return out
 
     def _window_union(
         self, frame: ImageU8, window: _Window, centres: list[FloatArray], size: FloatArray

@@ -18,7 +18,9 @@ outside the user's sector out of the candidates. ``benchmarks/tracker_speed.py``
 from __future__ import annotations
 
 import enum
+import functools
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -42,6 +44,7 @@ HOG_HEAD_SHOULDER = (0.25, 0.08, 0.5, 0.3)
 class LocatorKind(enum.StrEnum):
     HOG = "hog"
     UPPER_BODY = "upperbody"
+    OMEGA = "omega"  # our own: oriented chamfer matching of a head-and-shoulders outline (no model)
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,17 @@ class PreLocatorConfig:
     # Smallest head-and-shoulders the cascade looks for, in pixels of the (shrunk) band: its own window is
     # 22 x 18, and the small scales are most of its cost; a user a metre or three ahead is far larger.
     cascade_min_width_px: int = 44
+    # omega: the frame is searched shrunk to at most omega_width_px wide, for outlines from
+    # omega_min_width_px (shrunk pixels) to 0.8 of its height, omega_scale_step apart; a match's mean
+    # distance from its outline to the nearest edge of the same orientation, over the outline's width,
+    # must stay under omega_max_score.
+    omega_width_px: int = 160
+    omega_min_width_px: int = 16
+    omega_scale_step: float = 1.15
+    omega_max_score: float = 0.05
+    # A head is a plain blob: a match whose head (the inner 60 % of the outline's head ellipse) holds more
+    # than this share of edge pixels is a pattern (a checked shirt), not a head.
+    omega_max_head_edges: float = 0.08
 
 
 @dataclass(frozen=True)
@@ -74,7 +88,9 @@ class HeadShoulderLocator:
 
         self.config = config or PreLocatorConfig()
         self.last_ms = 0.0
-        if self.config.kind is LocatorKind.HOG:
+        if self.config.kind is LocatorKind.OMEGA:
+            pass
+        elif self.config.kind is LocatorKind.HOG:
             if not hasattr(cv2, "HOGDescriptor"):
                 raise BackendUnavailable(
                     "this OpenCV has no HOGDescriptor (OpenCV 5 dropped it): install opencv-python-headless<5"
@@ -103,6 +119,10 @@ class HeadShoulderLocator:
             self.last_ms = (time.perf_counter() - t0) * 1e3
             return []
         crop: ImageU8 = frame[:, c0:c1]
+        if self.config.kind is LocatorKind.OMEGA:
+            detections = _omega(crop, c0, width, self.config)
+            self.last_ms = (time.perf_counter() - t0) * 1e3
+            return detections
         shrink = min(1.0, self.config.max_width_px / crop.shape[1])
         if shrink < 1.0:
             crop = np.asarray(cv2.resize(crop, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA))
@@ -155,3 +175,113 @@ def _cascade_path(name: str) -> str:
             "this OpenCV ships no Haar cascades (cv2.data): install opencv-python-headless<5"
         )
     return str(folder) + name
+
+
+# The head-and-shoulders outline in its box (u right, v down, both 0..1; the box is 0.48 m wide and the top
+# quarter of a person's height tall, as the renderer's and the tracker's head_box): the head's ellipse
+# without its bottom, the neck's sides, the shoulders sloping out, the arms' outer edges.
+_OMEGA_ASPECT = 0.86  # height / width
+
+
+@functools.lru_cache(maxsize=64)
+def _omega_outline(width: int) -> tuple[list[npt.NDArray[np.float32]], int]:
+    """Binary templates of the outline at ``width`` pixels, one per edge orientation (0, 45, 90, 135
+    degrees of the gradient), each normalised by the outline's point count; and its height."""
+    import cv2
+
+    height = max(4, round(width * _OMEGA_ASPECT))
+    pts: list[tuple[float, float, float]] = []  # u, v, tangent angle
+    for th in np.linspace(-math.pi - 0.35, 0.35, 60):
+        pts.append((0.5 + 0.177 * math.cos(th), 0.29 + 0.28 * math.sin(th), th + math.pi / 2.0))
+    for side in (-1.0, 1.0):
+        for v in np.linspace(0.57, 0.645, 5):
+            pts.append((0.5 + side * 0.104, float(v), math.pi / 2.0))
+        for k in np.linspace(0.0, 1.0, 20):
+            pts.append((0.5 + side * (0.25 + 0.25 * k), 0.645 + 0.215 * k, math.atan2(0.215, side * 0.25)))
+        for v in np.linspace(0.86, 1.0, 6):
+            pts.append((0.5 + side * 0.49, float(v), math.pi / 2.0))
+    templates = [np.zeros((height, width), np.float32) for _ in range(4)]
+    for u, v, tangent in pts:
+        x = min(width - 1, max(0, round(u * (width - 1))))
+        y = min(height - 1, max(0, round(v * (height - 1))))
+        # The gradient is normal to the outline; its orientation bin (mod 180 degrees).
+        b = round(((tangent + math.pi / 2.0) % math.pi) / (math.pi / 4.0)) % 4
+        templates[b][y, x] = 1.0
+    total = float(sum(float(t.sum()) for t in templates))
+    out = [
+        np.asarray(cv2.GaussianBlur(t, (3, 3), 0), dtype=np.float32) / np.float32(total) for t in templates
+    ]
+    return out, height
+
+
+def _omega(crop: ImageU8, c0: int, frame_width: int, config: PreLocatorConfig) -> list[Detection]:
+    """Head-and-shoulder outlines in a band by oriented chamfer matching: the band's edges split by
+    gradient orientation into four maps, each map's distance transform correlated with the outline's
+    points of that orientation, so stripes (edges of one orientation everywhere) do not match a head; and a
+    match whose head is full of edges (checks, which have both orientations) is dropped."""
+    import cv2
+
+    # Shrunk as the whole frame would be: a narrow band costs less, not more.
+    shrink = min(1.0, config.omega_width_px / frame_width)
+    small = (
+        crop if shrink >= 1.0 else cv2.resize(crop, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
+    )
+    gray = cv2.cvtColor(np.asarray(small), cv2.COLOR_BGR2GRAY)
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    edges = cv2.Canny(gray, 40, 100) > 0
+    angle = (np.arctan2(gy, gx) % math.pi) / (math.pi / 4.0)
+    bins = np.round(angle).astype(np.int32) % 4
+    cap = 8.0
+    dts = []
+    for b in range(4):
+        # An edge counts for its own orientation and half for the neighbouring ones.
+        mask = np.where(edges & (bins == b), 0, 255).astype(np.uint8)
+        dts.append(np.minimum(cv2.distanceTransform(mask, cv2.DIST_L2, 3), cap))
+    h, w = gray.shape
+    edge_sum = cv2.integral(edges.astype(np.uint8))  # (h + 1, w + 1)
+    found: list[tuple[float, int, int, int, int]] = []
+    width = config.omega_min_width_px
+    while width <= w and width * _OMEGA_ASPECT <= 0.8 * h:
+        templates, height = _omega_outline(width)
+        score = np.zeros((h - height + 1, w - width + 1), np.float32)
+        for b in range(4):
+            if templates[b].any():
+                score += cv2.matchTemplate(dts[b], templates[b], cv2.TM_CCORR)
+        rel = score / width
+        # Local minima under the threshold.
+        local = rel <= cv2.erode(rel, np.ones((3, 3), np.uint8))
+        ys, xs = np.nonzero(local & (rel < config.omega_max_score))
+        # The head's inner rectangle: centre (0.5, 0.29) of the box, 0.6 of its radii (0.177, 0.28).
+        hx0, hx1 = (
+            round(width * (0.5 - 0.106)),
+            max(round(width * (0.5 + 0.106)), round(width * (0.5 - 0.106)) + 1),
+        )
+        hy0, hy1 = (
+            round(height * (0.29 - 0.168)),
+            max(round(height * (0.29 + 0.168)), round(height * (0.29 - 0.168)) + 1),
+        )
+        inside = (
+            edge_sum[ys + hy1, xs + hx1]
+            - edge_sum[ys + hy0, xs + hx1]
+            - edge_sum[ys + hy1, xs + hx0]
+            + edge_sum[ys + hy0, xs + hx0]
+        ) / float((hx1 - hx0) * (hy1 - hy0))
+        plain = inside <= config.omega_max_head_edges
+        ys, xs = ys[plain], xs[plain]
+        for y, x in zip(ys, xs, strict=True):
+            found.append((float(rel[y, x]), int(x), int(y), width, height))
+        width = max(width + 1, round(width * config.omega_scale_step))
+    found.sort()
+    kept: list[tuple[float, int, int, int, int]] = []
+    for f in found:  # non-maximum suppression: a box's centre must not lie in a better one
+        cx, cy = f[1] + f[3] / 2.0, f[2] + f[4] / 2.0
+        if all(not (k[1] <= cx < k[1] + k[3] and k[2] <= cy < k[2] + k[4]) for k in kept):
+            kept.append(f)
+        if len(kept) >= 8:
+            break
+    out = []
+    for rel_score, bx, by, bw, bh in kept:
+        box = np.array([bx / shrink + c0, by / shrink, bw / shrink, bh / shrink])
+        out.append(Detection(box, box.copy(), 1.0 - rel_score / config.omega_max_score))
+    return out

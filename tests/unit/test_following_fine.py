@@ -31,7 +31,10 @@ def test_starts_in_the_band_and_reacquires_with_the_prelocator() -> None:
     frames = list(crossing_sequence(CrossingScene(frames=40, passer=False, seed=2)))
     locator = ScriptedLocator()
     layer = FineLayer(
-        locator, FineLayerConfig(tracker=TrackerConfig(silhouette=Silhouette.ELLIPSE), lost_after_frames=4)
+        locator,
+        FineLayerConfig(
+            tracker=TrackerConfig(silhouette=Silhouette.ELLIPSE), lost_after_frames=4, correct_every=0
+        ),
     )
     # Nobody found yet: searching, in the band asked for.
     assert layer.update(frames[0][0], band=(40, 200)).state is FineState.SEARCHING
@@ -52,7 +55,7 @@ def test_starts_in_the_band_and_reacquires_with_the_prelocator() -> None:
         states.append(layer.update(np.roll(image, 150, axis=1), band=(0, 320)))
     assert states[0].state is FineState.OCCLUDED
     assert any(s.state is FineState.LOST for s in states)
-    assert sum(s.prelocated for s in states) == 2
+    assert sum(s.prelocated for s in states) == 3  # every prelocate_every (3) occluded frames
     image, truth = frames[30]
     moved = truth + np.array([150.0, 0.0, 0.0, 0.0])
     locator.answer = [Detection(moved, moved, 1.0)]
@@ -63,6 +66,26 @@ def test_starts_in_the_band_and_reacquires_with_the_prelocator() -> None:
         back[-1].box is not None
         and np.hypot(*(back[-1].box[:2] - (frames[35][1][:2] + np.array([150.0, 0.0])))) < 8.0
     )
+
+
+def test_the_prelocator_corrects_the_box_while_tracking_but_not_onto_someone_larger() -> None:
+    frames = list(crossing_sequence(CrossingScene(frames=12, passer=False, seed=2)))
+    locator = ScriptedLocator()
+    layer = FineLayer(locator, FineLayerConfig(tracker=TrackerConfig(silhouette=Silhouette.ELLIPSE)))
+    box = frames[0][1]
+    locator.answer = [Detection(box, box, 1.0)]
+    layer.update(frames[0][0])
+    # A detection of twice the size (a passer-by nearer the camera) overlapping the box: ignored.
+    big = np.array([box[0] - box[2] / 2, box[1] - box[3] / 2, 2 * box[2], 2 * box[3]])
+    locator.answer = [Detection(big, big, 1.0)]
+    results = [layer.update(image) for image, _ in frames[1:4]]
+    assert results[-1].prelocated and results[-1].box is not None and results[-1].box[2] < 1.3 * box[2]
+    # One of the target's size a few pixels off: the box is pulled onto it.
+    shifted = frames[6][1] + np.array([4.0, 3.0, 0.0, 0.0])
+    locator.answer = [Detection(shifted, shifted, 1.0)]
+    results = [layer.update(image) for image, _ in frames[4:7]]
+    assert results[-1].prelocated and results[-1].box is not None
+    assert np.hypot(*(results[-1].box[:2] - shifted[:2])) < 1.0
 
 
 def test_hog_finds_the_runners_of_real_jogging(shared_data: Path) -> None:
