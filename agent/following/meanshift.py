@@ -113,13 +113,6 @@ class TrackerConfig:
     background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
     min_feature_weight: float = 0.5  # floor of a and b
-    # Floor of a and b in the confidence that decides occlusion, re-acquisition and the model update:
-    # rho_c^a' * rho_t^b', a' and b' the same discrimination without min_feature_weight's floor. The
-    # floor keeps texture in the mean-shift climb (it holds a target against a look-alike passer-by);
-    # the decision "is the target still there" listens to a cue only as far as it separates this target
-    # from its surroundings. 0.5 (= min_feature_weight): the decision uses rho itself.
-    decision_floor: float = 0.0
-    discriminative_climb: bool = True  # also climb the confidence's gradient; keep the higher rho
     max_iterations: int = 12
     epsilon_px: float = 0.5  # converged when a step is shorter
     max_pixels: int = 2500  # kernel samples per evaluation; bigger boxes are sampled on a grid
@@ -206,7 +199,6 @@ class _Evaluation:
     rho: float
     rho_colour: float
     rho_texture: float
-    confidence: float  # rho_c^a' * rho_t^b', the similarity that decides occlusion (decision_floor)
     p_colour: FloatArray
     p_texture: FloatArray | None
     weights: FloatArray  # eq. 12 per valid sample
@@ -251,7 +243,6 @@ class MeanShiftTracker:
         self._q_texture = np.zeros(self._labels)
         self._rho_ref = 1.0
         self._exponents = (1.0, 1.0)  # a, b in rho = rho_c^a * rho_t^b
-        self._decision_exponents = (1.0, 1.0)  # a', b' in the confidence
         self._colour_factor = np.ones(self._bins)  # the background weighting of the colour bins
         self._updates = 0
         self.state = TrackState.TRACKING
@@ -282,7 +273,7 @@ class MeanShiftTracker:
         self._background(window)
         self._rho_ref = 1.0
         ev = self._evaluate(window, self._centre, self._size)
-        self._rho_ref = max(ev.confidence, 1e-3)
+        self._rho_ref = max(ev.rho, 1e-3)
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = True
@@ -320,24 +311,10 @@ class MeanShiftTracker:
                 centre2, ev2, iterations2 = self._climb(window, self._centre, self._size)
                 if ev2.rho > ev.rho:
                     centre, ev, iterations = centre2, ev2, iterations + iterations2
-            if cfg.discriminative_climb and self._texture and self._decision_exponents != self._exponents:
-                # A second ascent, on the gradient of the confidence (each cue by how well it separates
-                # this target from its surroundings), scored by rho like the first: mean shift finds a
-                # local mode, and where the floored texture term pulls the first climb into a worse one
-                # (an uninformative texture), this one finds the better; where texture matters (a
-                # look-alike in colour), the first climb's mode has the higher rho and stays.
-                centre3, ev3, iterations3 = self._climb(
-                    window, predicted, self._size, exponents=self._decision_exponents
-                )
-                ev3 = self._evaluate(window, centre3, self._size)
-                if ev3.rho > ev.rho:
-                    centre, ev, iterations = centre3, ev3, iterations + iterations3
-            if ev.confidence >= cfg.occlusion_ratio * self._rho_ref:
+            if ev.rho >= cfg.occlusion_ratio * self._rho_ref:
                 self._accept(frame, window, centre, ev)
                 return self._result(ev, iterations)
-            log.debug(
-                "confidence %.3f under %.3f: occluded", ev.confidence, cfg.occlusion_ratio * self._rho_ref
-            )
+            log.debug("rho %.3f under %.3f: occluded", ev.rho, cfg.occlusion_ratio * self._rho_ref)
             self.state = TrackState.OCCLUDED
             self.frames_lost = 0
         return self._search(frame, predicted, hints)
@@ -352,7 +329,7 @@ class MeanShiftTracker:
         g = cfg.coast_velocity_gain
         self._coast_velocity = g * step + (1.0 - g) * self._coast_velocity
         self._centre = centre
-        if ev.confidence >= cfg.update_ratio * self._rho_ref:
+        if ev.rho >= cfg.update_ratio * self._rho_ref:
             # q <- (1 - a) q + a p(y): slow, and only on a confident match; p(y) at the new size.
             a = cfg.update_rate
             cur = self._evaluate(window, centre, self._size, model=False)
@@ -364,7 +341,7 @@ class MeanShiftTracker:
                 self._background(window)
             else:
                 self._reweight()
-        self._rho_ref += cfg.rho_ref_rate * (ev.confidence - self._rho_ref)
+        self._rho_ref += cfg.rho_ref_rate * (ev.rho - self._rho_ref)
 
     def _search(
         self, frame: ImageU8, predicted: FloatArray, hints: tuple[FloatArray, ...] | list[FloatArray]
@@ -417,8 +394,8 @@ class MeanShiftTracker:
                 best = (score, centre, ev, iterations, sizes[i])
         assert best is not None
         _, centre, ev, iterations, found_size = best
-        if ev.confidence >= cfg.reacquire_ratio * self._rho_ref:
-            log.debug("re-acquired after %d frames, confidence %.3f", self.frames_lost, ev.confidence)
+        if ev.rho >= cfg.reacquire_ratio * self._rho_ref:
+            log.debug("re-acquired after %d frames, rho %.3f", self.frames_lost, ev.rho)
             self.state = TrackState.TRACKING
             self._centre = centre
             self._size = found_size.copy()
@@ -431,28 +408,23 @@ class MeanShiftTracker:
         return self._result(coast, iterations)
 
     def _climb(
-        self,
-        window: _Window,
-        start: FloatArray,
-        size: FloatArray,
-        exponents: tuple[float, float] | None = None,
+        self, window: _Window, start: FloatArray, size: FloatArray
     ) -> tuple[FloatArray, _Evaluation, int]:
-        """Mean shift from ``start`` (eq. 13), halving a step that lowers rho (Comaniciu's step 5).
-        ``exponents``: climb ``rho_c^a * rho_t^b`` with these a, b instead of the tracker's."""
+        """Mean shift from ``start`` (eq. 13), halving a step that lowers rho (Comaniciu's step 5)."""
         cfg = self.config
         y0 = start.copy()
-        ev0 = self._evaluate(window, y0, size, exponents=exponents)
+        ev0 = self._evaluate(window, y0, size)
         iterations = 0
         for iterations in range(1, cfg.max_iterations + 1):  # noqa: B007
             total = float(np.sum(ev0.weights))
             if total <= 0.0:
                 break
             y1 = np.array([np.dot(ev0.weights, ev0.x), np.dot(ev0.weights, ev0.y)]) / total
-            ev1 = self._evaluate(window, y1, size, exponents=exponents)
+            ev1 = self._evaluate(window, y1, size)
             halvings = 0
             while ev1.rho < ev0.rho and halvings < 3 and np.hypot(*(y1 - y0)) > cfg.epsilon_px:
                 y1 = (y0 + y1) / 2.0
-                ev1 = self._evaluate(window, y1, size, exponents=exponents)
+                ev1 = self._evaluate(window, y1, size)
                 halvings += 1
             if ev1.rho < ev0.rho:
                 break
@@ -604,12 +576,7 @@ class MeanShiftTracker:
         return kernel
 
     def _evaluate(
-        self,
-        window: _Window,
-        centre: FloatArray,
-        size: FloatArray,
-        model: bool = True,
-        exponents: tuple[float, float] | None = None,
+        self, window: _Window, centre: FloatArray, size: FloatArray, model: bool = True
     ) -> _Evaluation:
         """Candidate histograms at ``centre`` (eqs. 7, 9), rho against the model (eq. 10) and the weights
         of eq. 12. ``model=False``: the histograms only (building or updating the model)."""
@@ -623,7 +590,7 @@ class MeanShiftTracker:
         total = float(np.sum(k))
         if len(k) < 8 or total <= 0.0:
             empty = np.zeros(self._bins)
-            return _Evaluation(0.0, 0.0, 0.0, 0.0, empty, None, np.zeros(0), np.zeros(0), np.zeros(0))
+            return _Evaluation(0.0, 0.0, 0.0, empty, None, np.zeros(0), np.zeros(0), np.zeros(0))
         colour_bins = window.colour[rows, cols]
         p_colour = np.bincount(colour_bins, weights=k, minlength=self._bins) / total
         p_texture = None
@@ -632,26 +599,24 @@ class MeanShiftTracker:
             texture_labels = window.texture[rows, cols]
             p_texture = np.bincount(texture_labels, weights=k, minlength=self._labels) / total
         if not model:
-            return _Evaluation(0.0, 0.0, 1.0, 0.0, p_colour, p_texture, np.zeros(0), x, y)
+            return _Evaluation(0.0, 0.0, 1.0, p_colour, p_texture, np.zeros(0), x, y)
         rho_c = float(np.sum(np.sqrt(p_colour * self._q_colour)))
         ratio_c = np.sqrt(
             np.divide(self._q_colour, p_colour, out=np.zeros_like(p_colour), where=p_colour > 0)
         )
         w_colour = ratio_c[colour_bins]
         if p_texture is None or texture_labels is None:
-            return _Evaluation(rho_c, rho_c, 1.0, rho_c, p_colour, None, w_colour, x, y)
+            return _Evaluation(rho_c, rho_c, 1.0, p_colour, None, w_colour, x, y)
         rho_t = float(np.sum(np.sqrt(p_texture * self._q_texture)))
         ratio_t = np.sqrt(
             np.divide(self._q_texture, p_texture, out=np.zeros_like(p_texture), where=p_texture > 0)
         )
         # eq. 12, the gradient of rho_c * rho_t, generalised to rho_c^a * rho_t^b (the feature weights,
         # 1 and 1 in the paper): a w_c / rho_c + b w_t / rho_t, up to a positive factor.
-        a, b = exponents or self._exponents
+        a, b = self._exponents
         weights = a * w_colour / max(rho_c, 1e-9) + b * ratio_t[texture_labels] / max(rho_t, 1e-9)
         rho = rho_c**a * rho_t**b
-        da, db = self._decision_exponents
-        confidence = rho_c**da * rho_t**db
-        return _Evaluation(rho, rho_c, rho_t, confidence, p_colour, p_texture, weights, x, y)
+        return _Evaluation(rho, rho_c, rho_t, p_colour, p_texture, weights, x, y)
 
     def _background(self, window: _Window) -> None:
         """The corrected background-weighted model (Ning et al. 2012) from the ring between the box and
@@ -672,7 +637,6 @@ class MeanShiftTracker:
                 top = max(d_c, d_t)
                 a, b = (d_c / top, d_t / top) if top > 1e-6 else (1.0, 1.0)
                 self._exponents = (max(a, cfg.min_feature_weight), max(b, cfg.min_feature_weight))
-                self._decision_exponents = (max(a, cfg.decision_floor), max(b, cfg.decision_floor))
             if cfg.background_weighting:
                 # Colour only: with ten texture labels, "plain" is common in any background, and
                 # weighting it down leaves a model of the target's rarest texture, which a busy
