@@ -115,7 +115,7 @@ def detect_people(
 
 @dataclass(frozen=True, slots=True)
 class TrackerConfig:
-    accel_sd_mps2: float = 1.0  # white acceleration noise of the constant-velocity model
+    accel_sd_mps2: float = 2.0  # white acceleration noise of the constant-velocity model
     position_sd_m: float = 0.08  # a laser detection's centre, per axis
     initial_speed_sd_mps: float = 1.0
     lost_after_s: float = 1.0  # no accepted measurement for this long: the track is dropped
