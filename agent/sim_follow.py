@@ -183,6 +183,17 @@ class FollowScore:
             contact = person_gap <= 0.0
             if contact and not self._in_contact:
                 self.contacts += 1
+                snap = self.loop.latest
+                log.warning(
+                    "follow: contact at t=%.2f, robot %.2f,%.2f yaw %.2f at %.2f m/s, people %s; last %s",
+                    t,
+                    base.x_m,
+                    base.y_m,
+                    base.yaw_rad,
+                    speed,
+                    {n: (round(x, 2), round(y, 2)) for n, (x, y) in positions.items()},
+                    None if snap is None else (snap.command, snap.sent, snap.aside),
+                )
             self._in_contact = contact
             if self.user is not None:
                 ux, uy = positions[self.user.name]
@@ -236,7 +247,7 @@ class FollowScore:
                     if self.on_person is not None and best != self.on_person:
                         self.switches += 1
                     self.on_person = best
-            lost = state in (FollowState.LOST, FollowState.NO_TAG)
+            lost = state in (FollowState.LOST, FollowState.NO_TAG, FollowState.NO_CAMERA)
             if self.acquired and lost:
                 self.lost_s += dt
             if lost and not self._was_lost and self.acquired:

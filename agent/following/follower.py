@@ -19,7 +19,9 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
   (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` and the
   state is ``lost`` from then on, so the robot has stopped within half a second of the person vanishing
   (issue 23's acceptance) while a passer-by crossing the line of sight does not stop it;
-* ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop.
+* ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop;
+* ``no_camera`` (set by the follow loop, not here): the forward camera has given no frame for a while
+  (unplugged, stalled): stop until it is back.
 
 The command then goes through the navigation's costmap, the walkers' motion (:func:`safe_speed`) and the
 collision monitor (the runtime's job, ``agent/runtime/follow_loop.py``).
@@ -47,6 +49,7 @@ class FollowState(enum.StrEnum):
     WAITING = "waiting"
     LOST = "lost"
     NO_TAG = "no_tag"
+    NO_CAMERA = "no_camera"  # the forward camera the person's estimate relies on gives no frames: stopped
 
 
 @dataclass(frozen=True, slots=True)

@@ -49,9 +49,10 @@ from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Frame, Scan
 
-__all__ = ["NO_POSE", "CameraView", "FollowLoop", "FollowSnapshot", "ProjectedLocator"]
+__all__ = ["NO_CAMERA", "NO_POSE", "CameraView", "FollowLoop", "FollowSnapshot", "ProjectedLocator"]
 
 NO_POSE = "no pose: stopped"
+NO_CAMERA = "no frame from the forward camera: stopped"
 
 log = logging.getLogger(__name__)
 
@@ -171,17 +172,19 @@ class FollowLoop:
         lookahead_s: float = 1.0,
         decel_mps2: float = 1.0,
         person_clear_m: float = 0.5,
-        walker_clear_m: float = 0.6,
+        walker_clear_m: float = 0.55,
         walker_is_person_m: float = 0.8,
         aside_reach_m: float = 0.8,
         aside_speed_mps: float = 0.3,
-        close_up_m: float = 0.78,
+        close_up_m: float = 0.77,
         walker_horizon_s: float = 4.0,
+        walker_smoothing: float = 0.7,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
         bearing_sd_rad: float = 0.03,
         fine_reset_after: int = 5,
+        camera_stale_s: float = 1.0,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -207,11 +210,15 @@ class FollowLoop:
         self.aside_speed_mps = aside_speed_mps
         self.close_up_m = close_up_m
         self.walker_horizon_s = walker_horizon_s
+        self.walker_smoothing = walker_smoothing
+        self._walker_memory: dict[int, tuple[float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
         self.locator = locator
         self.bearing_sd_rad = bearing_sd_rad
         self.fine_reset_after = fine_reset_after
+        self.camera_stale_s = camera_stale_s
+        self.last_frame_s: float | None = None  # the loop's clock when the last forward frame came
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -320,6 +327,7 @@ class FollowLoop:
         """One forward camera frame through the fine layer; its bearing to the track. None when there is
         no fine layer, no pose or no track to look for (a new track restarts the fine layer's target)."""
         fine, locator = self.fine, self.locator
+        self.last_frame_s = self.clock_s()
         pose = self.pose()
         if fine is None or locator is None or pose is None:
             return None
@@ -421,8 +429,14 @@ class FollowLoop:
         with self._lock:
             self.tracker.predict(t_s)
             person = self.tracker.estimate()
+        stale = self.fine is not None and (
+            self.last_frame_s is None or t_s - self.last_frame_s > self.camera_stale_s
+        )
         if pose is None:
             command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
+        elif stale:
+            # The estimate uses the camera: without it, stop (flagged) until it is back.
+            command = FollowCommand(0.0, 0.0, FollowState.NO_CAMERA, NO_CAMERA)
         else:
             command = self.follower.step(t_s, pose, person, p_absent, bearing, self.occluded)
         v, w = command.v_mps, command.omega_radps
@@ -460,12 +474,25 @@ class FollowLoop:
         return snap
 
     def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
-        """The navigation's moving tracks (x, y, vx, vy) but the followed person's."""
-        walkers = [
-            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
-            for w in nav.moving.moving()
-            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
-        ]
+        """The navigation's moving tracks (x, y, vx, vy) but the followed person's, their velocities
+        smoothed further (``walker_smoothing``, per track, once per scan): the navigation's are a quick
+        half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
+        cross in front of a walker hangs on when they get there."""
+        memory: dict[int, tuple[float, float, float]] = {}
+        walkers = []
+        for w in nav.moving.moving():
+            vx, vy = w.vx_mps, w.vy_mps
+            old = self._walker_memory.get(id(w))
+            if old is not None:
+                if old[2] == w.t_s:
+                    vx, vy = old[0], old[1]
+                else:
+                    a = self.walker_smoothing
+                    vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
+            memory[id(w)] = (vx, vy, w.t_s)
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m:
+                walkers.append((w.x_m, w.y_m, vx, vy))
+        self._walker_memory = memory
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
