@@ -64,8 +64,8 @@ class FollowerConfig:
     standing_mps: float = 0.12  # slower than this the person stands
     tolerance_m: float = 0.05  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
-    grace_s: float = 0.2  # a track not measured for longer (two laser scans) is occluded or vanished
-    stop_after_s: float = 0.45  # vanished (nothing in front): zero speed this long after the last sight
+    grace_s: float = 0.15  # a track not measured for longer (two laser scans) is occluded or vanished
+    stop_after_s: float = 0.4  # vanished (nothing in front): zero speed this long after the last sight
     occluded_speed_factor: float = 0.7  # occluded: coast on the prediction at this share of the speed
     search_turn_radps: float = 0.6
     absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag
@@ -97,12 +97,16 @@ class Follower:
         p_absent: float | None,
         search_bearing_rad: float | None,
         occluded: bool = False,
+        looked_s: float | None = None,
     ) -> FollowCommand:
         """``p_absent``: the coarse layer's probability that the person is out of reach (None: no RFID
         answer yet); ``search_bearing_rad``: where it says to turn to (robot frame), None for no idea;
-        ``occluded``: something nearer stands on the line of sight to the track (see the module's text)."""
+        ``occluded``: something nearer stands on the line of sight to the track (see the module's text);
+        ``looked_s``: the time of the last look for the person (the last scan), so that a late scan is not
+        taken for a person gone (None: ``t_s``)."""
         cfg = self.config
-        unseen_s = t_s - person.last_seen_s if person is not None else 0.0
+        looked = t_s if looked_s is None else min(t_s, looked_s)
+        unseen_s = max(0.0, looked - person.last_seen_s) if person is not None else 0.0
         if person is not None and unseen_s > cfg.grace_s and not occluded:
             ramp = (cfg.stop_after_s - unseen_s) / max(cfg.stop_after_s - cfg.grace_s, 1e-6)
             if ramp <= 0.0:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.following.fine import FineLayer, FineResult, FineState
+from agent.following.fine import FineLayer, FineResult, FineState, Locator
 from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
 from agent.following.person import (
     DetectorConfig,
@@ -44,6 +44,7 @@ from agent.following.person import (
     PersonTracker,
     detect_people,
 )
+from agent.following.prelocate import Detection
 from agent.navigation.give_way import aside_target
 from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
@@ -120,17 +121,15 @@ class ProjectedLocator:
     already said where a person-sized body stands inside the RFID band. ``target`` (range, bearing in the
     camera's frame) is set by the follow loop before each frame."""
 
-    def __init__(self, view: CameraView, detector: object | None = None) -> None:
+    def __init__(self, view: CameraView, detector: Locator | None = None) -> None:
         self.view = view
         self.detector = detector
         self.target: tuple[float, float] | None = None
         self.counts: collections.Counter[str] = collections.Counter()
 
-    def locate(self, frame: np.ndarray, band: tuple[int, int] | None = None) -> list:  # type: ignore[type-arg]
-        from agent.following.prelocate import Detection
-
+    def locate(self, frame: np.ndarray, band: tuple[int, int] | None = None) -> list[Detection]:
         if self.detector is not None:
-            found = self.detector.locate(frame, band)  # type: ignore[attr-defined]
+            found = self.detector.locate(frame, band)
             if found:
                 self.counts["detector"] += 1
                 return list(found)
@@ -219,6 +218,7 @@ class FollowLoop:
         self.fine_reset_after = fine_reset_after
         self.camera_stale_s = camera_stale_s
         self.last_frame_s: float | None = None  # the loop's clock when the last forward frame came
+        self.last_scan_s: float | None = None  # the last scan's time: the person was last looked for then
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -287,6 +287,7 @@ class FollowLoop:
         t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
+            self.last_scan_s = t_s
             self.counts["scans"] += 1
             self.counts["detections"] += len(fresh)
             if self.tracker.tracking:
@@ -435,10 +436,15 @@ class FollowLoop:
         if pose is None:
             command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
         elif stale:
+            self.counts["fine_camera_stale"] += int(
+                self.last_frame_s is not None
+            )  # frames came, then stopped
             # The estimate uses the camera: without it, stop (flagged) until it is back.
             command = FollowCommand(0.0, 0.0, FollowState.NO_CAMERA, NO_CAMERA)
         else:
-            command = self.follower.step(t_s, pose, person, p_absent, bearing, self.occluded)
+            command = self.follower.step(
+                t_s, pose, person, p_absent, bearing, self.occluded, looked_s=self.last_scan_s
+            )
         v, w = command.v_mps, command.omega_radps
         stepping_aside = False
         if pose is not None:
@@ -455,6 +461,9 @@ class FollowLoop:
             self.vanish_stops_s.append(t_s - self.vanished_at_s)
             self.vanished_at_s = None
         self.counts[f"state_{command.state.value}"] += 1
+        last = self.latest
+        if last is None or last.command.state is not command.state:
+            log.info("following: %s at t=%.2f: %s", command.state.value, t_s, command.reason)
         snap = FollowSnapshot(t_s, command, person, (v, w), stepping_aside)
         self.latest = snap
         if self.counts["steps"] % 20 == 0:

@@ -113,7 +113,7 @@ def test_a_vanished_person_is_stopped_for_within_half_a_second_an_occluded_one_i
     loop2 = _loop(now2, sent2)
     seq = _walk_then(loop2, now2, 2.0)
     # A passer-by (a second body) stands between the robot and the person: the laser loses the person.
-    angles = -math.radians(120.0) + INC * np.arange(N)
+    angles = np.asarray(-math.radians(120.0) + INC * np.arange(N), dtype=np.float64)
     for k in range(20, 26):
         now2[0] = k * 0.1
         person_x = 3.5 + 0.7 * now2[0]
