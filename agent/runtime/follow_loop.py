@@ -27,6 +27,7 @@ that holds little, its ``bearing_rad``.
 from __future__ import annotations
 
 import collections
+import itertools
 import logging
 import math
 import threading
@@ -219,6 +220,7 @@ class FollowLoop:
         self.camera_stale_s = camera_stale_s
         self.last_frame_s: float | None = None  # the loop's clock when the last forward frame came
         self.last_scan_s: float | None = None  # the last scan's time: the person was last looked for then
+        self._poses: collections.deque[tuple[float, Pose]] = collections.deque(maxlen=40)  # 2 s of steps
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
@@ -334,7 +336,9 @@ class FollowLoop:
             return None
         t_s = frame.host_time_ns * 1e-9
         view = locator.view
-        cam = view.origin(pose)
+        # The robot where it was when the frame was taken: a frame a tenth of a second old, taken while
+        # turning at 1.5 rad/s, would otherwise put the person 0.15 rad off.
+        cam = view.origin(self._pose_at(t_s, pose))
         with self._lock:
             est = self.tracker.estimate()
             track_id = self.tracker.track_id
@@ -379,6 +383,24 @@ class FollowLoop:
             self._fine_rejected = 0
             self.counts["fine_resets"] += 1
         return result
+
+    def _pose_at(self, t_s: float, now: Pose) -> Pose:
+        """The fused pose at ``t_s`` from the poses the steps saw (linear between the two round it; the
+        nearest end outside them)."""
+        with self._lock:
+            poses = list(self._poses)
+        if not poses:
+            return now
+        if t_s <= poses[0][0]:
+            return poses[0][1]
+        if t_s >= poses[-1][0]:
+            return poses[-1][1]
+        for (t0, p0), (t1, p1) in itertools.pairwise(poses):
+            if t0 <= t_s <= t1:
+                a = (t_s - t0) / max(t1 - t0, 1e-9)
+                yaw = p0[2] + a * math.remainder(p1[2] - p0[2], math.tau)
+                return (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), yaw)
+        return now
 
     def run_camera(self, frames: Callable[[float], Frame | None], stop: threading.Event) -> None:
         """Take the forward camera's newest frames (``frames(timeout_s)``) through :meth:`on_frame` until
@@ -428,6 +450,8 @@ class FollowLoop:
         pose = self.pose()
         p_absent, bearing, _ = self._coarse()
         with self._lock:
+            if pose is not None:
+                self._poses.append((t_s, pose))
             self.tracker.predict(t_s)
             person = self.tracker.estimate()
         stale = self.fine is not None and (
