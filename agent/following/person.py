@@ -158,11 +158,14 @@ class PersonTracker:
     def tracking(self) -> bool:
         return self.x is not None
 
-    def predict(self, t_s: float) -> None:
-        """Move the track to ``t_s``; drop it when no measurement was accepted for ``lost_after_s``."""
+    def predict(self, t_s: float, looked_s: float | None = None) -> None:
+        """Move the track to ``t_s``; drop it when no measurement was accepted for ``lost_after_s`` up to
+        ``looked_s``, the last time the sensors looked for the person (None: ``t_s``): a scan that is late
+        does not drop the track, a scan that does not show the person does."""
         if self.x is None or self.p is None:
             return
-        if t_s - self.last_seen_s > self.config.lost_after_s:
+        looked = t_s if looked_s is None else min(t_s, looked_s)
+        if looked - self.last_seen_s > self.config.lost_after_s:
             self.drop()
             return
         dt = t_s - self.t_s
@@ -216,9 +219,12 @@ class PersonTracker:
         self.counts["acquired"] += 1
         return True
 
-    def update_detections(self, t_s: float, detections: PersonDetections) -> bool:
-        """The gated nearest candidate (Mahalanobis) as a position measurement; False when none passes."""
-        self.predict(t_s)
+    def update_detections(
+        self, t_s: float, detections: PersonDetections, looked_s: float | None = None
+    ) -> bool:
+        """The gated nearest candidate (Mahalanobis) as a position measurement; False when none passes.
+        ``looked_s``: the previous look (scan) before this one, for :meth:`predict`'s drop."""
+        self.predict(t_s, looked_s)
         if self.x is None or self.p is None or len(detections) == 0:
             return False
         h = np.zeros((2, 4))

@@ -51,10 +51,19 @@ from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
 from drivers.samples import Frame, Scan
 
-__all__ = ["NO_CAMERA", "NO_POSE", "CameraView", "FollowLoop", "FollowSnapshot", "ProjectedLocator"]
+__all__ = [
+    "NO_CAMERA",
+    "NO_POSE",
+    "NO_SCAN",
+    "CameraView",
+    "FollowLoop",
+    "FollowSnapshot",
+    "ProjectedLocator",
+]
 
 NO_POSE = "no pose: stopped"
 NO_CAMERA = "no frame from the forward camera: stopped"
+NO_SCAN = "no laser scan: stopped"
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +194,7 @@ class FollowLoop:
         bearing_sd_rad: float = 0.03,
         fine_reset_after: int = 5,
         camera_stale_s: float = 1.0,
+        scan_stale_s: float = 0.5,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -218,6 +228,7 @@ class FollowLoop:
         self.bearing_sd_rad = bearing_sd_rad
         self.fine_reset_after = fine_reset_after
         self.camera_stale_s = camera_stale_s
+        self.scan_stale_s = scan_stale_s
         self.last_frame_s: float | None = None  # the loop's clock when the last forward frame came
         self.last_scan_s: float | None = None  # the last scan's time: the person was last looked for then
         self._poses: collections.deque[tuple[float, Pose]] = collections.deque(maxlen=40)  # 2 s of steps
@@ -289,11 +300,11 @@ class FollowLoop:
         t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
-            self.last_scan_s = t_s
+            previous, self.last_scan_s = self.last_scan_s, t_s
             self.counts["scans"] += 1
             self.counts["detections"] += len(fresh)
             if self.tracker.tracking:
-                seen = self.tracker.update_detections(t_s, detections)
+                seen = self.tracker.update_detections(t_s, detections, previous)
                 self.occluded = not seen and self._occluded(laser, angles, ranges)
                 self.counts["occluded_scans"] += int(self.occluded)
             elif window is not None and (
@@ -452,13 +463,17 @@ class FollowLoop:
         with self._lock:
             if pose is not None:
                 self._poses.append((t_s, pose))
-            self.tracker.predict(t_s)
+            self.tracker.predict(t_s, self.last_scan_s)
             person = self.tracker.estimate()
         stale = self.fine is not None and (
             self.last_frame_s is None or t_s - self.last_frame_s > self.camera_stale_s
         )
+        blind = self.last_scan_s is not None and t_s - self.last_scan_s > self.scan_stale_s
         if pose is None:
             command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
+        elif blind:
+            # No scan for a while (the laser stalled, or the machine is starved): nothing to follow on.
+            command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_SCAN)
         elif stale:
             self.counts["fine_camera_stale"] += int(
                 self.last_frame_s is not None

@@ -206,3 +206,25 @@ def test_no_tag_read_someone_elses_tag_and_two_tags_are_clear_states() -> None:
     # The tag is near but nobody is seen: lost, standing, turning to search.
     assert loop.latest is not None and loop.latest.command.state is FollowState.LOST
     assert sent[-1][0] == 0.0 and "searching" in loop.latest.command.reason
+
+
+def test_a_late_or_stalled_laser_neither_drops_the_track_nor_drives_blind() -> None:
+    """Scans stop coming (the laser stalled, or the machine is starved): the loop stops the robot with a
+    clear reason after scan_stale_s, but the track is not dropped by the clock alone; a scan showing the
+    person again resumes following on the same track."""
+    from agent.runtime.follow_loop import NO_SCAN
+
+    now = [0.0]
+    sent: list[tuple[float, float]] = []
+    loop = _loop(now, sent)
+    seq = _walk_then(loop, now, 2.0)
+    track = loop.tracker.track_id
+    for k in range(1, 31):  # 1.5 s without a scan
+        now[0] = 1.9 + k * 0.05
+        snap = loop.step()
+    assert snap.command.state is FollowState.LOST and snap.command.reason == NO_SCAN and sent[-1][0] == 0.0
+    assert loop.tracker.tracking and loop.tracker.track_id == track
+    now[0] = 3.5
+    loop.on_scan(make_scan(now[0], (3.5 + 0.7 * now[0], 3.0), seq))  # they walked on
+    snap = loop.step()
+    assert loop.tracker.track_id == track and snap.command.state is not FollowState.LOST
