@@ -64,8 +64,8 @@ class FollowerConfig:
     standing_mps: float = 0.12  # slower than this the person stands
     tolerance_m: float = 0.05  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
-    grace_s: float = 0.15  # a track not measured for longer (two laser scans) is occluded or vanished
-    stop_after_s: float = 0.4  # vanished (nothing in front): zero speed this long after the last sight
+    grace_s: float = 0.12  # a track not measured for longer (a scan missed) is occluded or vanished
+    stop_after_s: float = 0.3  # vanished (nothing in front): zero speed this long after the last sight
     occluded_speed_factor: float = 0.7  # occluded: coast on the prediction at this share of the speed
     search_turn_radps: float = 0.6
     absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag

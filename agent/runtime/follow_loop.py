@@ -191,7 +191,8 @@ class FollowLoop:
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
-        bearing_sd_rad: float = 0.03,
+        bearing_sd_rad: float = 0.05,
+        bearing_only_after_s: float = 0.3,
         fine_reset_after: int = 5,
         camera_stale_s: float = 1.0,
         scan_stale_s: float = 0.5,
@@ -226,6 +227,8 @@ class FollowLoop:
         self.fine = fine
         self.locator = locator
         self.bearing_sd_rad = bearing_sd_rad
+        self.bearing_only_after_s = bearing_only_after_s
+        self._fine_started_s = -math.inf
         self.fine_reset_after = fine_reset_after
         self.camera_stale_s = camera_stale_s
         self.scan_stale_s = scan_stale_s
@@ -360,6 +363,7 @@ class FollowLoop:
             fine.reset()
             self._fine_track = track_id
             self._fine_rejected = 0
+            self._fine_started_s = t_s
         dx, dy = est.xy[0] - cam[0], est.xy[1] - cam[1]
         rng = math.hypot(dx, dy)
         bearing = math.remainder(math.atan2(dy, dx) - cam[2], math.tau)
@@ -382,6 +386,11 @@ class FollowLoop:
             return result
         column = float(result.box[0] + result.box[2] / 2.0)
         measured = cam[2] + view.bearing(column)
+        if est.t_s - est.last_seen_s > self.bearing_only_after_s or est.t_s - self._fine_started_s < 1.0:
+            # The camera refines a track the laser holds; it does not keep one alive on its own (a box
+            # drifting onto the wall would), nor steer one it has followed for less than a second.
+            self.counts["fine_unused"] += 1
+            return result
         with self._lock:
             if self.tracker.track_id != track_id:
                 return result

@@ -116,7 +116,7 @@ def test_a_vanished_person_is_slowed_for_then_stopped_within_half_a_second() -> 
     f = Follower(cfg)
     seen = person(1.5, 0.0, 0.7, 0.0, t=0.0)
     full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
-    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.1, 0.25, 0.35, 0.4, 0.6)]
+    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.1, 0.16, 0.24, 0.3, 0.6)]
     assert speeds[0].v_mps == full.v_mps  # one scan missed: nothing changes
     assert 0.0 < speeds[2].v_mps < speeds[1].v_mps < full.v_mps  # slowing down
     for cmd in speeds[3:]:
