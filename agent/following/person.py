@@ -10,8 +10,9 @@ time by a constant-velocity Kalman filter (``docs/following.md``, "The person's 
   inside a bearing window (the RFID prior, ``coarse.within``); :meth:`PersonTracker.update_detections`
   keeps the identity by gating (the candidate with the smallest Mahalanobis distance inside the chi-square
   gate, none outside it); :meth:`PersonTracker.update_bearing` takes a bearing from the robot (the forward
-  camera's tracker, later) as a second measurement, an extended Kalman update gated likewise. With no
-  accepted measurement for ``lost_after_s`` the track is dropped (lost).
+  camera's tracker, ``agent.runtime.follow_loop``) as a second measurement, an extended Kalman update
+  gated likewise. With no accepted measurement for ``lost_after_s`` up to the last look (scan) the track
+  is dropped (lost).
 
 Pure: numpy in, estimates out, time passed in.
 """
