@@ -16,7 +16,11 @@ reports
 * ``stop_latency_s_max``: per entry into ``lost`` (or ``no_tag``) after the first acquisition, the time
   until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s) or it
   steps out of a walker's way (``lost_then_aside`` counts those);
-  ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one.
+  ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one;
+* with ``--fault person`` (the user hidden from the follow loop: they vanish), per hiding the time from
+  its start to the first zero forward speed the loop sent (``vanish_stop_command_s``) and to the robot's
+  true speed below 0.02 m/s (``vanish_stop_s``; the acceptance: 0.5 s), the speed it had
+  (``vanish_speed_mps``).
 """
 
 from __future__ import annotations
@@ -28,15 +32,18 @@ import threading
 from typing import Any
 
 from agent.config import AgentConfig
+from agent.following.fine import FineLayer
 from agent.following.follower import Follower, FollowerConfig, FollowState
 from agent.following.person import PersonTracker, TrackerConfig
+from agent.following.prelocate import HeadShoulderLocator
 from agent.navigation.navigator import Navigator
 from agent.runtime.agent import Agent
-from agent.runtime.follow_loop import NO_POSE, FollowLoop
+from agent.runtime.follow_loop import NO_POSE, CameraView, FollowLoop, ProjectedLocator
 from drivers.sim.harness import SimulatedRobot
+from drivers.sim.world import ForwardCameraModel
 from firmware_protocol.pose_frame import PoseFlags
 
-__all__ = ["FollowScore", "make_follow_loop"]
+__all__ = ["FollowScore", "camera_view", "make_follow_loop"]
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +52,26 @@ CUE_LATEST_S = 5.0
 SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
 
 
+def camera_view(model: ForwardCameraModel) -> CameraView:
+    """The follow loop's view of the simulated forward camera."""
+    cx, cy = model.principal_point_px
+    m = model.mount
+    return CameraView(
+        model.width_px, model.height_px, model.hfov_rad, cx, cy, (m.x_m, m.y_m, m.z_m, m.yaw_rad)
+    )
+
+
 def make_follow_loop(
-    agent: Agent, config: AgentConfig, laser_mount: tuple[float, float, float]
+    agent: Agent,
+    config: AgentConfig,
+    laser_mount: tuple[float, float, float],
+    forward_camera: ForwardCameraModel | None = None,
 ) -> FollowLoop:
     """The follow loop on the agent: its pose, coarse layer, navigation's costmap and collision monitor;
-    commands as a local mission's velocity. Registers its scan listener (before ``agent.start()``)."""
+    commands as a local mission's velocity. Registers its scan listener (before ``agent.start()``). With
+    ``forward_camera`` (the simulated camera's model) the fine layer runs on its frames
+    (``FollowLoop.run_camera``, the caller's thread): OpenCV's HOG people detector in the track's band,
+    the track's projection when it finds nobody, mean shift from there."""
     f = config.following
     follower = Follower(
         FollowerConfig(
@@ -71,6 +93,10 @@ def make_follow_loop(
     def navigator() -> Navigator | None:
         return agent.navigation.navigator if agent.navigation is not None else None
 
+    fine = locator = None
+    if forward_camera is not None:
+        locator = ProjectedLocator(camera_view(forward_camera), HeadShoulderLocator())
+        fine = FineLayer(locator)
     loop = FollowLoop(
         follower,
         tracker,
@@ -81,6 +107,8 @@ def make_follow_loop(
         lambda: agent.clock_ns() * 1e-9,
         guard=agent.navigation.guard if agent.navigation is not None else None,
         navigator=navigator,
+        fine=fine,
+        locator=locator,
     )
     agent.scan_listeners.append(loop.on_scan)
     return loop
@@ -130,6 +158,10 @@ class FollowScore:
         self.aside_ended = 0  # losses whose stop was cut short by a step out of a walker's way
         self.cued = False
         self.ready_t: float | None = None
+        self._vanishings_seen = 0
+        self._vanish_t: float | None = None
+        self.vanish_stops: list[float] = []
+        self.vanish_speeds: list[float] = []
 
     def sample(self) -> None:
         sim = self.sim
@@ -151,6 +183,17 @@ class FollowScore:
             contact = person_gap <= 0.0
             if contact and not self._in_contact:
                 self.contacts += 1
+                snap = self.loop.latest
+                log.warning(
+                    "follow: contact at t=%.2f, robot %.2f,%.2f yaw %.2f at %.2f m/s, people %s; last %s",
+                    t,
+                    base.x_m,
+                    base.y_m,
+                    base.yaw_rad,
+                    speed,
+                    {n: (round(x, 2), round(y, 2)) for n, (x, y) in positions.items()},
+                    None if snap is None else (snap.command, snap.sent, snap.aside),
+                )
             self._in_contact = contact
             if self.user is not None:
                 ux, uy = positions[self.user.name]
@@ -174,6 +217,14 @@ class FollowScore:
                     if self.reached:
                         self.after_s += dt
                         self.after_within_s += dt if within else 0.0
+            vanishings = self.loop.vanishings_s
+            if len(vanishings) > self._vanishings_seen:
+                self._vanishings_seen = len(vanishings)
+                self._vanish_t = vanishings[-1]
+                self.vanish_speeds.append(speed)
+            if self._vanish_t is not None and speed <= STOPPED_MPS:
+                self.vanish_stops.append(max(0.0, t - self._vanish_t))
+                self._vanish_t = None
             snap = self.loop.latest
             if snap is None:
                 return
@@ -196,7 +247,7 @@ class FollowScore:
                     if self.on_person is not None and best != self.on_person:
                         self.switches += 1
                     self.on_person = best
-            lost = state in (FollowState.LOST, FollowState.NO_TAG)
+            lost = state in (FollowState.LOST, FollowState.NO_TAG, FollowState.NO_CAMERA)
             if self.acquired and lost:
                 self.lost_s += dt
             if lost and not self._was_lost and self.acquired:
@@ -240,6 +291,12 @@ class FollowScore:
                 "stop_latency_s_max": r(max(self.latencies)) if self.latencies else None,
                 "lost_speed_mps_max": r(max(self.lost_speeds)) if self.lost_speeds else None,
                 "lost_then_aside": self.aside_ended,
+                "vanish_stop_command_s": [round(x, 3) for x in self.loop.vanish_stops_s],
+                "vanish_stop_s": [round(x, 3) for x in self.vanish_stops],
+                "vanish_speed_mps": [round(x, 3) for x in self.vanish_speeds],
+                "occluded_scans": self.loop.counts.get("occluded_scans", 0),
+                "fine": {k: n for k, n in self.loop.counts.items() if k.startswith("fine_")}
+                | (dict(self.loop.locator.counts) if self.loop.locator is not None else {}),
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
                 "safety": {
                     k: self.loop.counts.get(k, 0)

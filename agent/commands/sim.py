@@ -209,6 +209,14 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "identity switches, collisions, stop latency: docs/following.md)",
     )
     p.add_argument(
+        "--follow-fine",
+        choices=("on", "off"),
+        default="on",
+        help="with --follow and a forward camera ([camera.forward]): run the fine layer (pre-location in "
+        "the laser track's band, mean shift) on its frames and feed its bearing to the person's track (on, "
+        "the default), or follow on the laser and RFID only (off), to measure what the camera adds",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -486,13 +494,25 @@ def run(args: argparse.Namespace) -> int:
             from agent.sim_follow import FollowScore, make_follow_loop
 
             m = laser_mount_for(config, world)
-            loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad))
+            fine = args.follow_fine == "on" and config.forward_camera is not None
+            loop = make_follow_loop(
+                agent, config, (m.x_m, m.y_m, m.yaw_rad), world.forward_camera if fine else None
+            )
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
             injector.follow_loop = loop
         agent.start()
         if follow is not None:
             for target, name in ((follow.loop.run, "sim-follow"), (follow.run, "sim-follow-score")):
                 thread = threading.Thread(target=target, args=(stop,), name=name, daemon=True)
+                thread.start()
+                stack.callback(thread.join, 1.0)
+            if follow.loop.fine is not None:
+                thread = threading.Thread(
+                    target=follow.loop.run_camera,
+                    args=(agent.forward_frames.take, stop),
+                    name="sim-follow-fine",
+                    daemon=True,
+                )
                 thread.start()
                 stack.callback(thread.join, 1.0)
         # The world's route, driven from the agent's own pose, unless goals, missions or following drive it.

@@ -13,8 +13,15 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
 * ``waiting``: the person stands (slower than ``standing_mps``) and the robot is at its distance: stop;
 * ``lost``: the track is gone: stop at once; after ``search_after_s`` turn in place toward the RFID
   bearing (the coarse layer's prediction step carries the turn, which separates front from back) until the
-  tracker re-acquires;
-* ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop.
+  tracker re-acquires. A track not measured for a while is one of two things: **occluded** (the caller
+  says something nearer stands on the line of sight: a passer-by, a corner) and the robot coasts on the
+  track's prediction at ``occluded_speed_factor`` of its speed until the tracker drops it; or **vanished**
+  (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` and the
+  state is ``lost`` from then on, so the robot has stopped within half a second of the person vanishing
+  (issue 23's acceptance) while a passer-by crossing the line of sight does not stop it;
+* ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop;
+* ``no_camera`` (set by the follow loop, not here): the forward camera has given no frame for a while
+  (unplugged, stalled): stop until it is back.
 
 The command then goes through the navigation's costmap, the walkers' motion (:func:`safe_speed`) and the
 collision monitor (the runtime's job, ``agent/runtime/follow_loop.py``).
@@ -42,6 +49,7 @@ class FollowState(enum.StrEnum):
     WAITING = "waiting"
     LOST = "lost"
     NO_TAG = "no_tag"
+    NO_CAMERA = "no_camera"  # the forward camera the person's estimate relies on gives no frames: stopped
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,8 +62,11 @@ class FollowerConfig:
     gain_heading: float = 2.5  # 1/s: rad/s of turn per radian off the person's bearing
     turn_first_rad: float = math.radians(60.0)  # the person further off the heading: turn in place
     standing_mps: float = 0.12  # slower than this the person stands
-    tolerance_m: float = 0.1  # within this of the distance a standing person is waited for
+    tolerance_m: float = 0.05  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
+    grace_s: float = 0.12  # a track not measured for longer (a scan missed) is occluded or vanished
+    stop_after_s: float = 0.3  # vanished (nothing in front): zero speed this long after the last sight
+    occluded_speed_factor: float = 0.7  # occluded: coast on the prediction at this share of the speed
     search_turn_radps: float = 0.6
     absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag
 
@@ -85,10 +96,37 @@ class Follower:
         person: PersonEstimate | None,
         p_absent: float | None,
         search_bearing_rad: float | None,
+        occluded: bool = False,
+        looked_s: float | None = None,
     ) -> FollowCommand:
         """``p_absent``: the coarse layer's probability that the person is out of reach (None: no RFID
-        answer yet); ``search_bearing_rad``: where it says to turn to (robot frame), None for no idea."""
+        answer yet); ``search_bearing_rad``: where it says to turn to (robot frame), None for no idea;
+        ``occluded``: something nearer stands on the line of sight to the track (see the module's text);
+        ``looked_s``: the time of the last look for the person (the last scan), so that a late scan is not
+        taken for a person gone (None: ``t_s``)."""
         cfg = self.config
+        looked = t_s if looked_s is None else min(t_s, looked_s)
+        unseen_s = max(0.0, looked - person.last_seen_s) if person is not None else 0.0
+        if person is not None and unseen_s > cfg.grace_s and not occluded:
+            ramp = (cfg.stop_after_s - unseen_s) / max(cfg.stop_after_s - cfg.grace_s, 1e-6)
+            if ramp <= 0.0:
+                # Vanished: stopped, and the wait and search of a lost track follow (once it is dropped).
+                if self.lost_since_s is None:
+                    self.lost_since_s = t_s
+                return FollowCommand(
+                    0.0,
+                    0.0,
+                    FollowState.LOST,
+                    f"the person vanished {unseen_s:.2f} s ago with nothing in front: stopped",
+                )
+            cmd = self._follow(robot, person)
+            return FollowCommand(
+                cmd.v_mps * ramp,
+                cmd.omega_radps,
+                cmd.state,
+                f"not seen for {unseen_s:.2f} s, nothing in front: slowing down",
+                cmd.distance_m,
+            )
         if person is None:
             if self.lost_since_s is None:
                 self.lost_since_s = t_s
@@ -108,6 +146,19 @@ class Follower:
                 f"searching: turning toward the RFID bearing {math.degrees(search_bearing_rad):.0f} deg",
             )
         self.lost_since_s = None
+        cmd = self._follow(robot, person)
+        if occluded and unseen_s > cfg.grace_s:
+            return FollowCommand(
+                cmd.v_mps * cfg.occluded_speed_factor,
+                cmd.omega_radps,
+                cmd.state,
+                f"occluded for {unseen_s:.2f} s: coasting on the prediction",
+                cmd.distance_m,
+            )
+        return cmd
+
+    def _follow(self, robot: Pose, person: PersonEstimate) -> FollowCommand:
+        cfg = self.config
         dx, dy = person.xy[0] - robot[0], person.xy[1] - robot[1]
         dist = math.hypot(dx, dy)
         bearing = math.remainder(math.atan2(dy, dx) - robot[2], math.tau)
@@ -142,24 +193,43 @@ def safe_speed(
     horizon_s: float = 2.5,
     dt_s: float = 0.1,
     fractions: tuple[float, ...] = (1.0, 0.66, 0.33),
+    *,
+    faster: tuple[float, ...] = (),
+    lead: tuple[float, float, float] | None = None,
 ) -> float:
-    """The largest of ``v_mps`` x ``fractions`` at which the robot, driving straight on, keeps more than
-    ``clearance_m`` (centre to centre) from every walker (rows x, y, vx, vy in the map frame, walking on at
-    their velocity) over ``horizon_s``; 0 when none does. A walker who crosses far ahead is let pass or
-    crossed in front of, by when they get there, rather than waited for as their whole sweep would have
-    it."""
+    """The first speed of ``v_mps``, then each of ``faster`` (absolute speeds, tried in order), then
+    ``v_mps`` x each of ``fractions`` at which the robot keeps more than ``clearance_m`` (centre to centre)
+    from every walker (rows x, y, vx, vy in the map frame, walking on at their velocity) over ``horizon_s``;
+    0 when none does. The robot drives straight on at the speed; with ``lead`` = (the followed person's
+    distance ahead along the heading, their speed along it, the nearest the robot comes to them) it drives
+    at the speed only until it is that near, then at the person's pace behind them. A walker who crosses
+    far ahead is let pass or crossed in front of, by when they get there, rather than waited for as their
+    whole sweep would have it; one who would cut between the robot and its person is crossed in front of by
+    closing up on the person (``faster``) when that keeps clear. When no speed keeps clear, a faster one
+    that keeps clearly further (5 cm) than standing is taken: the robot drives on out of the walker's path
+    rather than stopping in it; otherwise 0 (the caller then steps aside)."""
     if v_mps <= 0.0 or len(walkers) == 0:
         return v_mps
     tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
     c, s = math.cos(pose[2]), math.sin(pose[2])
     wx = walkers[:, 0:1] + walkers[:, 2:3] * tau  # (n, t)
     wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
-    for fraction in fractions:
-        v = v_mps * fraction
-        rx, ry = pose[0] + c * v * tau, pose[1] + s * v * tau
-        if float(np.min(np.hypot(wx - rx, wy - ry))) > clearance_m:
+    limit = None
+    if lead is not None:
+        ahead, pace, nearest = lead
+        limit = max(ahead - nearest, 0.0) + max(pace, 0.0) * tau
+    candidates = [v_mps, *(f for f in faster if f > v_mps), *(v_mps * f for f in fractions if f < 1.0)]
+    best, best_gap = 0.0, -math.inf
+    for v in [*candidates, 0.0]:
+        d = v * tau if limit is None else np.minimum(v * tau, limit)
+        rx, ry = pose[0] + c * d, pose[1] + s * d
+        gap = float(np.min(np.hypot(wx - rx, wy - ry)))
+        if gap > clearance_m:
             return v
-    return 0.0
+        if gap > best_gap + 0.05:  # a faster escape must be clearly better than standing or going slower
+            best, best_gap = v, gap
+    # None keeps clear: standing in a walker's way is not safest when going on takes the robot out of it.
+    return best if best_gap > 0.0 and best in faster else 0.0
 
 
 def walker_threat(

@@ -10,8 +10,9 @@ time by a constant-velocity Kalman filter (``docs/following.md``, "The person's 
   inside a bearing window (the RFID prior, ``coarse.within``); :meth:`PersonTracker.update_detections`
   keeps the identity by gating (the candidate with the smallest Mahalanobis distance inside the chi-square
   gate, none outside it); :meth:`PersonTracker.update_bearing` takes a bearing from the robot (the forward
-  camera's tracker, later) as a second measurement, an extended Kalman update gated likewise. With no
-  accepted measurement for ``lost_after_s`` the track is dropped (lost).
+  camera's tracker, ``agent.runtime.follow_loop``) as a second measurement, an extended Kalman update
+  gated likewise. With no accepted measurement for ``lost_after_s`` up to the last look (scan) the track
+  is dropped (lost).
 
 Pure: numpy in, estimates out, time passed in.
 """
@@ -115,7 +116,7 @@ def detect_people(
 
 @dataclass(frozen=True, slots=True)
 class TrackerConfig:
-    accel_sd_mps2: float = 1.0  # white acceleration noise of the constant-velocity model
+    accel_sd_mps2: float = 2.0  # white acceleration noise of the constant-velocity model
     position_sd_m: float = 0.08  # a laser detection's centre, per axis
     initial_speed_sd_mps: float = 1.0
     lost_after_s: float = 1.0  # no accepted measurement for this long: the track is dropped
@@ -158,11 +159,14 @@ class PersonTracker:
     def tracking(self) -> bool:
         return self.x is not None
 
-    def predict(self, t_s: float) -> None:
-        """Move the track to ``t_s``; drop it when no measurement was accepted for ``lost_after_s``."""
+    def predict(self, t_s: float, looked_s: float | None = None) -> None:
+        """Move the track to ``t_s``; drop it when no measurement was accepted for ``lost_after_s`` up to
+        ``looked_s``, the last time the sensors looked for the person (None: ``t_s``): a scan that is late
+        does not drop the track, a scan that does not show the person does."""
         if self.x is None or self.p is None:
             return
-        if t_s - self.last_seen_s > self.config.lost_after_s:
+        looked = t_s if looked_s is None else min(t_s, looked_s)
+        if looked - self.last_seen_s > self.config.lost_after_s:
             self.drop()
             return
         dt = t_s - self.t_s
@@ -216,9 +220,12 @@ class PersonTracker:
         self.counts["acquired"] += 1
         return True
 
-    def update_detections(self, t_s: float, detections: PersonDetections) -> bool:
-        """The gated nearest candidate (Mahalanobis) as a position measurement; False when none passes."""
-        self.predict(t_s)
+    def update_detections(
+        self, t_s: float, detections: PersonDetections, looked_s: float | None = None
+    ) -> bool:
+        """The gated nearest candidate (Mahalanobis) as a position measurement; False when none passes.
+        ``looked_s``: the previous look (scan) before this one, for :meth:`predict`'s drop."""
+        self.predict(t_s, looked_s)
         if self.x is None or self.p is None or len(detections) == 0:
             return False
         h = np.zeros((2, 4))

@@ -9,6 +9,16 @@
   (``NavigationLoop.guard``), then sent as a velocity command (a local mission: the controller's commands
   take precedence, ``Agent.command_velocity``).
 
+* :meth:`FollowLoop.on_frame` (a thread on the forward camera's newest frames, with ``fine``): the fine
+  layer (``agent.following.fine``: pre-location in a band of columns round the laser track, itself taken
+  inside the RFID band, then multi-feature mean shift) answers a head-and-shoulders box whose column is a
+  bearing from the camera, fed to the track as a second measurement (``PersonTracker.update_bearing``): the
+  person's estimate uses laser, RFID and camera.
+
+A track not measured for a scan or two is *occluded* when the scan has returns nearer than the track on
+its line of sight (a passer-by, a corner), *vanished* otherwise; the follower coasts through the first
+and stops within ``stop_after_s`` on the second (``docs/following.md``, "Losing the person").
+
 Acquisition uses the coarse layer's window ahead (``within(0, acquire_half_width)``, the camera's view) as
 ``docs/following.md`` advises (the global maximum is often the mirror image behind the robot), and, when
 that holds little, its ``bearing_rad``.
@@ -17,6 +27,7 @@ that holds little, its ``bearing_rad``.
 from __future__ import annotations
 
 import collections
+import itertools
 import logging
 import math
 import threading
@@ -25,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.following.fine import FineLayer, FineResult, FineState, Locator
 from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
 from agent.following.person import (
     DetectorConfig,
@@ -33,18 +45,111 @@ from agent.following.person import (
     PersonTracker,
     detect_people,
 )
+from agent.following.prelocate import Detection
 from agent.navigation.give_way import aside_target
 from agent.navigation.navigator import Navigator
 from agent.runtime.rfid_loop import CoarseLayer
-from drivers.samples import Scan
+from drivers.samples import Frame, Scan
 
-__all__ = ["NO_POSE", "FollowLoop", "FollowSnapshot"]
+__all__ = [
+    "NO_CAMERA",
+    "NO_POSE",
+    "NO_SCAN",
+    "CameraView",
+    "FollowLoop",
+    "FollowSnapshot",
+    "ProjectedLocator",
+]
 
 NO_POSE = "no pose: stopped"
+NO_CAMERA = "no frame from the forward camera: stopped"
+NO_SCAN = "no laser scan: stopped"
 
 log = logging.getLogger(__name__)
 
 Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class CameraView:
+    """The forward camera's geometry, enough to turn image columns into bearings and a person's place into
+    a box: a level pinhole camera ``width_px`` x ``height_px`` with horizontal field of view ``hfov_rad``,
+    principal point ``cx_px``, ``cy_px``, at ``mount`` (x forward, y left, z up, yaw) on the base."""
+
+    width_px: int
+    height_px: int
+    hfov_rad: float
+    cx_px: float
+    cy_px: float
+    mount: tuple[float, float, float, float]  # x, y, z (m), yaw (rad)
+
+    @property
+    def f_px(self) -> float:
+        return (self.width_px / 2.0) / math.tan(self.hfov_rad / 2.0)
+
+    def origin(self, pose: Pose) -> tuple[float, float, float]:
+        """The camera's (x, y, yaw) in the map frame with the base at ``pose``."""
+        mx, my, _, myaw = self.mount
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        return pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + myaw
+
+    def column(self, bearing_rad: float) -> float:
+        """The image column of a bearing in the camera's frame (left positive)."""
+        return self.cx_px - self.f_px * math.tan(bearing_rad)
+
+    def bearing(self, column: float) -> float:
+        return math.atan2(self.cx_px - column, self.f_px)
+
+    def head_shoulder_box(
+        self,
+        range_m: float,
+        bearing_rad: float,
+        top_m: float = 1.75,
+        bottom_m: float = 1.15,
+        width_m: float = 0.45,
+    ) -> np.ndarray | None:
+        """The head and shoulders of a person standing ``range_m`` away at ``bearing_rad`` (camera frame),
+        x, y, w, h in pixels, clipped to the image; None when not in view."""
+        if range_m <= 0.2 or abs(bearing_rad) >= self.hfov_rad / 2.0:
+            return None
+        depth = range_m * math.cos(bearing_rad)
+        u = self.column(bearing_rad)
+        w = self.f_px * width_m / depth
+        z = self.mount[2]
+        v0 = max(0.0, self.cy_px - self.f_px * (top_m - z) / depth)
+        v1 = min(self.height_px - 1.0, self.cy_px - self.f_px * (bottom_m - z) / depth)
+        x0, x1 = max(0.0, u - w / 2.0), min(self.width_px - 1.0, u + w / 2.0)
+        if x1 - x0 < 8.0 or v1 - v0 < 8.0:
+            return None
+        return np.array([x0, v0, x1 - x0, v1 - v0], dtype=np.float64)
+
+
+class ProjectedLocator:
+    """The fine layer's pre-locator (``fine.Locator``) on the robot: the image detector
+    (``prelocate.HeadShoulderLocator``, when given) inside the band, and, when it finds nobody there, the
+    laser track's person projected into the image (:meth:`CameraView.head_shoulder_box`): the laser has
+    already said where a person-sized body stands inside the RFID band. ``target`` (range, bearing in the
+    camera's frame) is set by the follow loop before each frame."""
+
+    def __init__(self, view: CameraView, detector: Locator | None = None) -> None:
+        self.view = view
+        self.detector = detector
+        self.target: tuple[float, float] | None = None
+        self.counts: collections.Counter[str] = collections.Counter()
+
+    def locate(self, frame: np.ndarray, band: tuple[int, int] | None = None) -> list[Detection]:
+        if self.detector is not None:
+            found = self.detector.locate(frame, band)
+            if found:
+                self.counts["detector"] += 1
+                return list(found)
+        if self.target is None:
+            return []
+        box = self.view.head_shoulder_box(*self.target)
+        if box is None:
+            return []
+        self.counts["projected"] += 1
+        return [Detection(box, box, 0.0)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,10 +181,21 @@ class FollowLoop:
         lookahead_s: float = 1.0,
         decel_mps2: float = 1.0,
         person_clear_m: float = 0.5,
-        walker_clear_m: float = 0.65,
+        walker_clear_m: float = 0.55,
         walker_is_person_m: float = 0.8,
         aside_reach_m: float = 0.8,
         aside_speed_mps: float = 0.3,
+        close_up_m: float = 0.77,
+        walker_horizon_s: float = 4.0,
+        walker_smoothing: float = 0.7,
+        occluder_margin_m: float = 0.3,
+        fine: FineLayer | None = None,
+        locator: ProjectedLocator | None = None,
+        bearing_sd_rad: float = 0.05,
+        bearing_only_after_s: float = 0.3,
+        fine_reset_after: int = 5,
+        camera_stale_s: float = 1.0,
+        scan_stale_s: float = 0.5,
         period_s: float = 0.05,
     ) -> None:
         self.follower = follower
@@ -103,11 +219,47 @@ class FollowLoop:
         self.walker_is_person_m = walker_is_person_m
         self.aside_reach_m = aside_reach_m
         self.aside_speed_mps = aside_speed_mps
+        self.close_up_m = close_up_m
+        self.walker_horizon_s = walker_horizon_s
+        self.walker_smoothing = walker_smoothing
+        self._walker_memory: dict[int, tuple[float, float, float]] = {}
+        self.occluder_margin_m = occluder_margin_m
+        self.fine = fine
+        self.locator = locator
+        self.bearing_sd_rad = bearing_sd_rad
+        self.bearing_only_after_s = bearing_only_after_s
+        self._fine_started_s = -math.inf
+        self.fine_reset_after = fine_reset_after
+        self.camera_stale_s = camera_stale_s
+        self.scan_stale_s = scan_stale_s
+        self.last_frame_s: float | None = None  # the loop's clock when the last forward frame came
+        self.last_scan_s: float | None = None  # the last scan's time: the person was last looked for then
+        self._poses: collections.deque[tuple[float, Pose]] = collections.deque(maxlen=40)  # 2 s of steps
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
         self.latest: FollowSnapshot | None = None
-        self.blind = False  # drop the scans' detections (``vlp-agent sim --fault person``: the person hidden)
+        self.occluded = False  # the last scan: something nearer than the unmeasured track in its way
+        self.fine_state: FineState | None = None
+        self._fine_track = 0  # the track id the fine layer's target was started on
+        self._fine_rejected = 0
+        self._blind = False
+        self.vanished_at_s: float | None = None  # when the person was last hidden (``blind``)
+        self.vanish_stops_s: list[float] = []  # per hiding: from it to the first zero speed sent
+        self.vanishings_s: list[float] = []  # when each hiding began
+
+    @property
+    def blind(self) -> bool:
+        """Drop the scans' detections and the camera's bearings (``vlp-agent sim --fault person``: the
+        person hidden); the time it turns on is kept to measure the stop."""
+        return self._blind
+
+    @blind.setter
+    def blind(self, on: bool) -> None:
+        if on and not self._blind:
+            self.vanished_at_s = self.clock_s()
+            self.vanishings_s.append(self.vanished_at_s)
+        self._blind = on
 
     # -- the RFID layer's word -------------------------------------------------------------------------
 
@@ -151,10 +303,13 @@ class FollowLoop:
         t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
+            previous, self.last_scan_s = self.last_scan_s, t_s
             self.counts["scans"] += 1
             self.counts["detections"] += len(fresh)
             if self.tracker.tracking:
-                self.tracker.update_detections(t_s, detections)
+                seen = self.tracker.update_detections(t_s, detections, previous)
+                self.occluded = not seen and self._occluded(laser, angles, ranges)
+                self.counts["occluded_scans"] += int(self.occluded)
             elif window is not None and (
                 p_absent is None or p_absent < self.follower.config.absent_probability
             ):
@@ -166,6 +321,122 @@ class FollowLoop:
                     self.counts["acquired_on_map"] += int(got)
                 if got:
                     log.info("following: person acquired (track %d)", self.tracker.track_id)
+
+    def _occluded(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> bool:
+        """Whether the scan has returns nearer than the track (by ``occluder_margin_m``) within its body's
+        width round its line of sight: something stands between (a passer-by, a corner)."""
+        est = self.tracker.estimate()
+        if est is None:
+            return False
+        dx, dy = est.xy[0] - laser[0], est.xy[1] - laser[1]
+        rng = math.hypot(dx, dy)
+        if rng < 0.3:
+            return False
+        off = np.abs(np.remainder(angles + laser[2] - math.atan2(dy, dx) + np.pi, 2 * np.pi) - np.pi)
+        beams = off <= math.atan2(0.3, rng)
+        near = ranges[beams]
+        near = near[np.isfinite(near)]
+        return bool(np.any(near < rng - self.occluder_margin_m))
+
+    # -- the forward camera -------------------------------------------------------------------------
+
+    def on_frame(self, frame: Frame) -> FineResult | None:
+        """One forward camera frame through the fine layer; its bearing to the track. None when there is
+        no fine layer, no pose or no track to look for (a new track restarts the fine layer's target)."""
+        fine, locator = self.fine, self.locator
+        self.last_frame_s = self.clock_s()
+        pose = self.pose()
+        if fine is None or locator is None or pose is None:
+            return None
+        t_s = frame.host_time_ns * 1e-9
+        view = locator.view
+        # The robot where it was when the frame was taken: a frame a tenth of a second old, taken while
+        # turning at 1.5 rad/s, would otherwise put the person 0.15 rad off.
+        cam = view.origin(self._pose_at(t_s, pose))
+        with self._lock:
+            est = self.tracker.estimate()
+            track_id = self.tracker.track_id
+        if est is None or self._blind:
+            self.fine_state = None
+            return None
+        if track_id != self._fine_track:
+            fine.reset()
+            self._fine_track = track_id
+            self._fine_rejected = 0
+            self._fine_started_s = t_s
+        dx, dy = est.xy[0] - cam[0], est.xy[1] - cam[1]
+        rng = math.hypot(dx, dy)
+        bearing = math.remainder(math.atan2(dy, dx) - cam[2], math.tau)
+        if abs(bearing) >= view.hfov_rad / 2.0 or rng < 0.3:
+            self.counts["fine_out_of_view"] += 1
+            return None
+        # The band: the track's body (0.6 m) round its column, inside the RFID band it was taken in.
+        u = view.column(bearing)
+        half = max(40.0, view.f_px * 0.6 / max(rng, 0.5))
+        band = (int(max(0.0, u - half)), int(min(view.width_px, u + half)))
+        locator.target = (rng, bearing)
+        result = fine.update(frame.image, band)
+        self.fine_state = result.state
+        self.counts[f"fine_{result.state.value}"] += 1
+        if result.state is FineState.LOST:
+            # Hidden too long for the tracker: start again on the track (the laser still has the person).
+            fine.reset()
+            self.counts["fine_resets"] += 1
+        if result.state is not FineState.TRACKING or result.box is None:
+            return result
+        column = float(result.box[0] + result.box[2] / 2.0)
+        measured = cam[2] + view.bearing(column)
+        if est.t_s - est.last_seen_s > self.bearing_only_after_s or est.t_s - self._fine_started_s < 1.0:
+            # The camera refines a track the laser holds; it does not keep one alive on its own (a box
+            # drifting onto the wall would), nor steer one it has followed for less than a second.
+            self.counts["fine_unused"] += 1
+            return result
+        with self._lock:
+            if self.tracker.track_id != track_id:
+                return result
+            ok = self.tracker.update_bearing(t_s, cam[:2], measured, self.bearing_sd_rad)
+        self.counts["fine_bearings" if ok else "fine_rejected"] += 1
+        self._fine_rejected = 0 if ok else self._fine_rejected + 1
+        if self._fine_rejected >= self.fine_reset_after:
+            # The box has left the track (onto a passer-by or the wall): start again on the track.
+            fine.reset()
+            self._fine_rejected = 0
+            self.counts["fine_resets"] += 1
+        return result
+
+    def _pose_at(self, t_s: float, now: Pose) -> Pose:
+        """The fused pose at ``t_s`` from the poses the steps saw (linear between the two round it; the
+        nearest end outside them)."""
+        with self._lock:
+            poses = list(self._poses)
+        if not poses:
+            return now
+        if t_s <= poses[0][0]:
+            return poses[0][1]
+        if t_s >= poses[-1][0]:
+            return poses[-1][1]
+        for (t0, p0), (t1, p1) in itertools.pairwise(poses):
+            if t0 <= t_s <= t1:
+                a = (t_s - t0) / max(t1 - t0, 1e-9)
+                yaw = p0[2] + a * math.remainder(p1[2] - p0[2], math.tau)
+                return (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]), yaw)
+        return now
+
+    def run_camera(self, frames: Callable[[float], Frame | None], stop: threading.Event) -> None:
+        """Take the forward camera's newest frames (``frames(timeout_s)``) through :meth:`on_frame` until
+        ``stop``; a frame the fine layer fails on is counted and skipped."""
+        while not stop.is_set():
+            try:
+                frame = frames(0.2)
+            except Exception:  # the mailbox closed: the agent is stopping
+                return
+            if frame is None:
+                continue
+            try:
+                self.on_frame(frame)
+            except Exception:
+                log.exception("fine layer failed on a frame")
+                self.counts["fine_errors"] += 1
 
     def _static(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
         nav = self.navigator()
@@ -199,12 +470,29 @@ class FollowLoop:
         pose = self.pose()
         p_absent, bearing, _ = self._coarse()
         with self._lock:
-            self.tracker.predict(t_s)
+            if pose is not None:
+                self._poses.append((t_s, pose))
+            self.tracker.predict(t_s, self.last_scan_s)
             person = self.tracker.estimate()
+        stale = self.fine is not None and (
+            self.last_frame_s is None or t_s - self.last_frame_s > self.camera_stale_s
+        )
+        blind = self.last_scan_s is not None and t_s - self.last_scan_s > self.scan_stale_s
         if pose is None:
             command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
+        elif blind:
+            # No scan for a while (the laser stalled, or the machine is starved): nothing to follow on.
+            command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_SCAN)
+        elif stale:
+            self.counts["fine_camera_stale"] += int(
+                self.last_frame_s is not None
+            )  # frames came, then stopped
+            # The estimate uses the camera: without it, stop (flagged) until it is back.
+            command = FollowCommand(0.0, 0.0, FollowState.NO_CAMERA, NO_CAMERA)
         else:
-            command = self.follower.step(t_s, pose, person, p_absent, bearing)
+            command = self.follower.step(
+                t_s, pose, person, p_absent, bearing, self.occluded, looked_s=self.last_scan_s
+            )
         v, w = command.v_mps, command.omega_radps
         stepping_aside = False
         if pose is not None:
@@ -217,7 +505,13 @@ class FollowLoop:
         if self.guard is not None:
             v, w = self.guard(v, w, t_s)
         self.send(v, w)
+        if self._blind and self.vanished_at_s is not None and v <= 0.0:
+            self.vanish_stops_s.append(t_s - self.vanished_at_s)
+            self.vanished_at_s = None
         self.counts[f"state_{command.state.value}"] += 1
+        last = self.latest
+        if last is None or last.command.state is not command.state:
+            log.info("following: %s at t=%.2f: %s", command.state.value, t_s, command.reason)
         snap = FollowSnapshot(t_s, command, person, (v, w), stepping_aside)
         self.latest = snap
         if self.counts["steps"] % 20 == 0:
@@ -237,12 +531,25 @@ class FollowLoop:
         return snap
 
     def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
-        """The navigation's moving tracks (x, y, vx, vy) but the followed person's."""
-        walkers = [
-            (w.x_m, w.y_m, w.vx_mps, w.vy_mps)
-            for w in nav.moving.moving()
-            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m
-        ]
+        """The navigation's moving tracks (x, y, vx, vy) but the followed person's, their velocities
+        smoothed further (``walker_smoothing``, per track, once per scan): the navigation's are a quick
+        half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
+        cross in front of a walker hangs on when they get there."""
+        memory: dict[int, tuple[float, float, float]] = {}
+        walkers = []
+        for w in nav.moving.moving():
+            vx, vy = w.vx_mps, w.vy_mps
+            old = self._walker_memory.get(id(w))
+            if old is not None:
+                if old[2] == w.t_s:
+                    vx, vy = old[0], old[1]
+                else:
+                    a = self.walker_smoothing
+                    vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
+            memory[id(w)] = (vx, vy, w.t_s)
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m:
+                walkers.append((w.x_m, w.y_m, vx, vy))
+        self._walker_memory = memory
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
@@ -297,7 +604,24 @@ class FollowLoop:
                     if np.any(costmap.obstacles[near[ok, 0], near[ok, 1]]):
                         self.counts["costmap_stops"] += 1
                         return 0.0
-        safe = safe_speed(pose, v, self._walkers(nav, person), self.walker_clear_m)
+        lead = None
+        faster: tuple[float, ...] = ()
+        if person is not None:
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            ahead = (person.xy[0] - pose[0]) * c + (person.xy[1] - pose[1]) * s
+            pace = person.velocity[0] * c + person.velocity[1] * s
+            lead = (ahead, pace, self.close_up_m)
+            top = self.follower.config.max_speed_mps
+            faster = tuple(float(x) for x in np.linspace(v, top, 4)[1:])
+        safe = safe_speed(
+            pose,
+            v,
+            self._walkers(nav, person),
+            self.walker_clear_m,
+            self.walker_horizon_s,
+            faster=faster,
+            lead=lead,
+        )
         if safe < v:
             self.counts["walker_slowdowns"] += 1
         return safe

@@ -1,6 +1,8 @@
 """``vlp-agent sim --follow`` on the straight-walk scenario: the robot locks on to the tagged user (not a
-passer-by), drives after them without touching anyone, and the summary carries the follow figures. Short,
-and no timing asserted (the figures against the acceptance are measured by the runs in docs/following.md)."""
+passer-by), drives after them without touching anyone, the forward camera's fine layer feeds the track,
+a forward camera stall stops following with the state ``no_camera`` while the pose stream carries on, and
+the summary carries the follow figures. Short, and no timing asserted (the figures against the acceptance
+are measured by the runs in docs/following.md)."""
 
 from __future__ import annotations
 
@@ -16,6 +18,8 @@ def test_sim_follow_locks_on_to_the_user_and_follows_without_contact(tmp_path: P
         "--follow",
         "--seconds",
         "14",
+        "--fault",
+        "forward_camera@9+2.5",
         "--out",
         str(tmp_path / "out"),
         timeout_s=300,
@@ -29,3 +33,10 @@ def test_sim_follow_locks_on_to_the_user_and_follows_without_contact(tmp_path: P
     assert s["distance_m"] > 1.0  # it drove after them
     for key in ("within_band", "distance_m_median", "time_lost_s", "stop_latency_s_max", "lost_events"):
         assert key in f
+    for key in ("vanish_stop_s", "vanish_stop_command_s", "occluded_scans"):
+        assert key in f
+    # The camera's bearings reached the track; its stall stopped following (flagged), the pose went on.
+    assert f["fine"].get("fine_bearings", 0) > 0
+    assert f["fine"].get("fine_camera_stale", 0) > 0 and f["states"].get("state_no_camera", 0) > 0
+    assert s["counts"]["forward_frame_timeouts"] >= 1
+    assert s["frames_out"] > 100

@@ -26,7 +26,7 @@ def test_it_keeps_pace_at_the_set_distance_and_stops_when_the_person_stops() -> 
     f = Follower(FollowerConfig(distance_m=1.0))
     walking = f.step(0.0, (0.0, 0.0, 0.0), person(1.0, 0.0, 0.7, 0.0), 0.0, 0.0)
     assert abs(walking.v_mps - 0.7) < 0.05
-    standing = f.step(0.1, (0.0, 0.0, 0.0), person(1.05, 0.0), 0.0, 0.0)
+    standing = f.step(0.1, (0.0, 0.0, 0.0), person(1.03, 0.0, t=0.1), 0.0, 0.0)
     assert standing.state is FollowState.WAITING and standing.v_mps == 0.0
 
 
@@ -52,7 +52,7 @@ def test_lost_stops_at_once_then_searches_toward_the_rfid_bearing() -> None:
     searching = f.step(1.2, (0.0, 0.0, 0.0), None, 0.1, math.radians(-120.0))
     assert searching.state is FollowState.LOST and searching.v_mps == 0.0 and searching.omega_radps < 0.0
     assert "searching" in searching.reason
-    back = f.step(1.3, (0.0, 0.0, 0.0), person(2.0, 0.0, 0.7), 0.1, 0.0)
+    back = f.step(1.3, (0.0, 0.0, 0.0), person(2.0, 0.0, 0.7, t=1.3), 0.1, 0.0)
     assert back.state is FollowState.FOLLOWING
 
 
@@ -106,3 +106,33 @@ def test_a_walker_coming_at_the_standing_robot_is_a_threat_one_passing_wide_is_n
     assert walker_threat(robot, np.array([[0.1, 2.0, 0.0, -1.0]]), 0.65)  # walks through the robot
     assert not walker_threat(robot, np.array([[1.5, 2.0, 0.0, -1.0]]), 0.65)  # passes 1.5 m ahead
     assert not walker_threat(robot, np.zeros((0, 4)), 0.65)
+
+
+def test_a_vanished_person_is_slowed_for_then_stopped_within_half_a_second() -> None:
+    """Not measured and nothing in front: the speed ramps down after grace_s and is zero by
+    stop_after_s (<= 0.5 s, issue 23), in the state lost; measured again, following resumes."""
+    cfg = FollowerConfig()
+    assert cfg.stop_after_s <= 0.5
+    f = Follower(cfg)
+    seen = person(1.5, 0.0, 0.7, 0.0, t=0.0)
+    full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
+    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.1, 0.16, 0.24, 0.3, 0.6)]
+    assert speeds[0].v_mps == full.v_mps  # one scan missed: nothing changes
+    assert 0.0 < speeds[2].v_mps < speeds[1].v_mps < full.v_mps  # slowing down
+    for cmd in speeds[3:]:
+        assert cmd.v_mps == 0.0 and cmd.state is FollowState.LOST and "vanished" in cmd.reason
+    # A scan that comes late is not a person gone: the time since the last look counts, not the clock.
+    late = Follower(cfg)
+    assert late.step(0.6, (0.0, 0.0, 0.0), seen, 0.0, 0.0, looked_s=0.1).v_mps == full.v_mps
+    back = f.step(0.7, (0.0, 0.0, 0.0), person(1.5, 0.0, 0.7, 0.0, t=0.7), 0.0, 0.0)
+    assert back.state is FollowState.FOLLOWING and back.v_mps > 0.0
+
+
+def test_an_occluded_person_is_coasted_on_not_stopped_for() -> None:
+    """Something nearer on the line of sight (a passer-by): the robot keeps going on the prediction,
+    slower, as long as the tracker keeps the track."""
+    f = Follower()
+    seen = person(1.5, 0.0, 0.7, 0.0, t=0.0)
+    full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
+    cmd = f.step(0.8, (0.0, 0.0, 0.0), seen, 0.0, 0.0, occluded=True)
+    assert cmd.state is FollowState.FOLLOWING and 0.0 < cmd.v_mps < full.v_mps and "occluded" in cmd.reason
