@@ -4,9 +4,11 @@ Every message is one frame (docs/fleet.md, "Local protocol")::
 
     magic "VF" (2) | version (u8) | type (u8) | payload length (u32, little-endian) | payload
 
-A frame's payload is at most :data:`MAX_PAYLOAD` bytes and has the exact size its type fixes (a peer pose:
-the fixed part plus the robot name's length). Agent -> bridge: :class:`PoseMessage`, :class:`StatusMessage`,
-:class:`GoalStateMessage`; bridge -> agent: :class:`PeerPoseMessage`, :class:`GoalMessage`.
+A frame's payload is at most :data:`MAX_PAYLOAD` bytes (a map or topology snapshot: at most
+:data:`MAX_SNAPSHOT_PAYLOAD`) and has the exact size its type fixes (a peer pose: the fixed part plus the
+robot name's length; a map: its header, path and cells, which must inflate to the grid's size). Agent ->
+bridge: :class:`PoseMessage`, :class:`StatusMessage`, :class:`GoalStateMessage`, :class:`MapMessage`,
+:class:`TopologyMessage`; bridge -> agent: :class:`PeerPoseMessage`, :class:`GoalMessage`.
 
 The stream is reliable and local, so there is no resync: the first malformed frame raises
 :class:`LocalProtocolError` (a :class:`~firmware_protocol.errors.ProtocolError`) and the reader closes the

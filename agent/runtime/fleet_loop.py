@@ -1,15 +1,17 @@
 """The fleet loop: the agent's end of the local protocol (``agent.fleet.local_protocol``) on a Unix socket.
 
 The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is replaced; a folder that is
-not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one
-bridge at a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's
-fused pose; every ``status_period_s``: the status flags; with the next pose: each goal status the agent
-sends about a fleet goal (the command loop's answers, with the fleet's goal id). From it: the other robots'
-poses (kept in :attr:`FleetLoop.peers`, newest per robot, dropped when none came for ``peer_timeout_s``;
-the navigation's costmap takes them as obstacles through :meth:`FleetLoop.obstacles`) and goals for this
-robot: one more command source, handed to the command arbiter (``CommandArbiter.fleet_goal``: under the
-controller's stop, velocity and goals, beside the missions) under a local goal id from
-:data:`FLEET_GOAL_IDS`. This process opens no network socket: the bridge is another process.
+not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one bridge at
+a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's fused pose;
+every ``status_period_s``: the status flags; with the next pose: each goal status the agent sends about a
+fleet goal (the command loop's answers, with the fleet's goal id); the SLAM map (handed over by the SLAM loop
+through :meth:`FleetLoop.on_map`) with the robot's recent path, and the exploration's topological graph, when
+they changed (at most every ``MAP_PERIOD_S``) and every ``MAP_REFRESH_S``. From it: the other robots' poses
+(kept in :attr:`FleetLoop.peers`, newest per robot, dropped when none came for ``peer_timeout_s``; the
+navigation's costmap takes them as obstacles through :meth:`FleetLoop.obstacles`) and goals for this robot:
+one more command source, handed to the command arbiter (``CommandArbiter.fleet_goal``: under the controller's
+stop, velocity and goals, beside the missions) under a local goal id from :data:`FLEET_GOAL_IDS`. This process
+opens no network socket: the bridge is another process.
 
 Sends never block the loop for long: a bridge that stops reading for ``SEND_TIMEOUT_S`` is disconnected
 (counted) and may reconnect. A malformed frame from it closes the connection (counted).
