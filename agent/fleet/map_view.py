@@ -47,10 +47,10 @@ class FleetMaps:
     def on_sample(self, kind: str, sample: Any) -> None:
         try:
             robot = payloads.robot_of(self.key_prefix, str(sample.key_expr))
-            zbytes = sample.payload
-            if len(zbytes) > _LIMITS[kind]:
-                raise payloads.FleetPayloadError(f"{kind}: {len(zbytes)} bytes, over its cap")
-            self.take(kind, robot, bytes(zbytes.to_bytes()))
+            data = bytes(sample.payload.to_bytes())
+            if len(data) > _LIMITS[kind]:  # the decoders check it too; before decoding anything
+                raise payloads.FleetPayloadError(f"{kind}: {len(data)} bytes, over its cap")
+            self.take(kind, robot, data)
         except ProtocolError:
             with self._lock:
                 self.rejected += 1
