@@ -10,6 +10,9 @@ readonly SCRIPT_DIR REPO_DIR
 
 # Where things go. PREFIX is fixed because the unit's ExecStart= names it.
 readonly SERVICE=vlp-agent.service
+# The fleet bridge (docs/fleet.md): installed beside the agent, never enabled by this script (a robot joins a
+# fleet when someone writes /etc/vlp-agent/bridge.toml and enables it).
+readonly BRIDGE_SERVICE=vlp-agent-bridge.service
 readonly USER_NAME=vlp-agent
 readonly PREFIX=/opt/vlp-agent
 readonly VENV="$PREFIX/venv"
@@ -37,6 +40,8 @@ Installs vlp-agent as a systemd service (run as root):
   - a virtual environment in $VENV with the package from this checkout ($REPO_DIR)
     or from --wheel FILE,
   - the unit $SERVICE in /etc/systemd/system (or --unit-dir), the udev rules $RULES,
+  - the fleet bridge's unit $BRIDGE_SERVICE beside it, disabled: to join a fleet, write
+    $CONFIG_DIR/bridge.toml, then 'systemctl enable --now $BRIDGE_SERVICE' (docs/fleet.md),
   - a config $CONFIG if there is none (examples/turtlebot3.toml when the checkout has it),
   - then reloads systemd and udev, enables the service and restarts it if it was running.
 Running it again upgrades in place; an existing config is never overwritten.
@@ -255,7 +260,9 @@ EOF
 
 do_install() {
     local unit_src="$SCRIPT_DIR/$SERVICE" rules_src="$SCRIPT_DIR/99-vlp-agent.rules"
-    [[ -f "$unit_src" && -f "$rules_src" ]] || die "$unit_src or $rules_src is missing"
+    local bridge_src="$SCRIPT_DIR/$BRIDGE_SERVICE"
+    [[ -f "$unit_src" && -f "$rules_src" && -f "$bridge_src" ]] ||
+        die "$unit_src, $bridge_src or $rules_src is missing"
     PYTHON="${PYTHON:-python3}"
 
     make_dirs "$PREFIX"
@@ -269,6 +276,7 @@ do_install() {
         install_file "$REPO_DIR/docs/operations.md" "$DOC" 0644
     fi
     install_file "$unit_src" "$unit_dir/$SERVICE" 0644
+    install_file "$bridge_src" "$unit_dir/$BRIDGE_SERVICE" 0644 # not enabled: see --help
     install_file "$rules_src" "$RULES" 0644
     install_config
 
@@ -314,14 +322,24 @@ do_uninstall() {
     else
         note "no $MANIFEST: removing the default install locations"
         lines=("file /etc/systemd/system/$SERVICE" "file /lib/systemd/system/$SERVICE" "file $RULES"
+            "file /etc/systemd/system/$BRIDGE_SERVICE" "file /lib/systemd/system/$BRIDGE_SERVICE"
             "file $DOC" "dir $PREFIX")
     fi
 
-    local unit_present=0
+    local unit_present=0 bridge_present=0
     for line in "${lines[@]}"; do
         read -r kind path sha <<<"$line"
         [[ "$kind" != file || "$path" != */"$SERVICE" || ! -e "$DESTDIR$path" ]] || unit_present=1
+        [[ "$kind" != file || "$path" != */"$BRIDGE_SERVICE" || ! -e "$DESTDIR$path" ]] || bridge_present=1
     done
+    # The bridge first (it serves the agent's socket); enabled or not, it is stopped and disabled.
+    if ((bridge_present == 0)); then
+        :
+    elif systemd_running || [[ -n "$DESTDIR" ]]; then
+        host_try systemctl disable --now "$BRIDGE_SERVICE"
+    elif command -v systemctl >/dev/null; then
+        host_try systemctl disable "$BRIDGE_SERVICE"
+    fi
     if ((unit_present == 0)); then
         : # nothing to stop or disable (already uninstalled, or never installed)
     elif systemd_running || [[ -n "$DESTDIR" ]]; then
@@ -379,9 +397,12 @@ do_uninstall() {
         fi
     done < <(((${#dirs[@]})) && printf '%s\n' "${dirs[@]}" | awk -F/ '{ print NF "\t" $0 }' | sort -rn |
         cut -f2-)
-    if [[ -d "$DESTDIR/etc/systemd/system/$SERVICE.d" ]]; then
-        note "kept /etc/systemd/system/$SERVICE.d: local drop-ins are not the install's to remove"
-    fi
+    local unit
+    for unit in "$SERVICE" "$BRIDGE_SERVICE"; do
+        if [[ -d "$DESTDIR/etc/systemd/system/$unit.d" ]]; then
+            note "kept /etc/systemd/system/$unit.d: local drop-ins are not the install's to remove"
+        fi
+    done
 
     if ((purge)); then
         remove_path "$STATE_DIR"

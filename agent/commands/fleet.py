@@ -1,5 +1,6 @@
-"""``vlp-agent fleet list`` / ``fleet goal``: the robots of the fleet, their poses and states, heard on Zenoh
-for a while; a goal sent to one robot, and its statuses.
+"""``vlp-agent fleet list`` / ``fleet goal`` / ``fleet map``: the robots of the fleet, their poses and states,
+heard on Zenoh for a while; a goal sent to one robot, and its statuses; every robot's map merged into one
+picture.
 
 Endpoints come from ``--connect`` / ``--listen`` or a bridge config (``--config``: its ``[zenoh]`` table).
 docs/fleet.md.
@@ -33,7 +34,7 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "fleet",
-        help="the fleet view: list the robots heard on Zenoh, send one a goal",
+        help="the fleet view: list the robots heard on Zenoh, send one a goal, merge their maps",
         description="Fleet commands on any machine that reaches the fleet's Zenoh network.",
     )
     fleet_sub = p.add_subparsers(dest="fleet_command", metavar="SUBCOMMAND", required=True)
@@ -78,6 +79,23 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--timeout", type=positive_seconds, default=None, help="seconds (default: 10, with --wait 300)"
     )
     _endpoint_args(goal)
+    mp = fleet_sub.add_parser(
+        "map",
+        help="listen for every robot's map and write one merged map picture (PNG)",
+        description="Subscribe to <prefix>/*/map, <prefix>/*/pose and <prefix>/*/topology for --seconds "
+        "(robots send their map every 5 s even when it does not change), merge every robot's newest map in "
+        "the shared map frame (a cell is occupied where any robot saw a wall, free where any saw free space "
+        "and none a wall, unknown where nobody saw), and write a PNG with each robot's name at its pose and "
+        "its recent path. --json prints, per pair of robots, the fraction of cells both saw that they "
+        "classify alike and the shift between their walls there (docs/fleet.md, 'Maps'). Exit status 0: "
+        "a map written; 3: no map heard.",
+    )
+    mp.add_argument("--out", metavar="PNG", required=True, help="where to write the merged map picture")
+    mp.add_argument("--seconds", type=positive_seconds, default=6.0, help="how long to listen (default: 6)")
+    mp.add_argument(
+        "--topology-out", metavar="JSON", default=None, help="also write every robot's topological graph"
+    )
+    _endpoint_args(mp)
 
 
 def _zenoh(args: argparse.Namespace) -> tuple[ZenohConfig, str]:
@@ -104,6 +122,8 @@ def _zenoh(args: argparse.Namespace) -> tuple[ZenohConfig, str]:
 def run(args: argparse.Namespace) -> int:
     if args.fleet_command == "goal":
         return _goal(args)
+    if args.fleet_command == "map":
+        return _map(args)
     from agent.fleet.view import FleetView
 
     zenoh, prefix = _zenoh(args)
@@ -193,3 +213,51 @@ def _goal(args: argparse.Namespace) -> int:
     if code == 3:
         print(f"no {'end' if states else 'status'} heard within {timeout:g} s")
     return code
+
+
+def _map(args: argparse.Namespace) -> int:
+    import threading
+
+    import zenoh as zenoh_lib
+
+    from agent.fleet.map_view import FleetMaps, picture, report
+
+    zenoh, prefix = _zenoh(args)
+    collector = FleetMaps(prefix)
+    session: Any = zenoh_lib.open(zenoh.zenoh_config())
+    try:
+        collector.subscribe(session)
+        threading.Event().wait(args.seconds)
+    finally:
+        session.close()
+    maps, poses, topologies = collector.snapshot()
+    out = report(maps, poses)
+    out["rejected"] = collector.rejected
+    out["out"] = None
+    if maps:
+        import cv2
+
+        if not cv2.imwrite(args.out, picture(maps, poses)):
+            raise UsageError(f"--out {args.out}: cannot write a PNG there")
+        out["out"] = args.out
+    if args.topology_out and topologies:
+        import json
+        from pathlib import Path
+
+        Path(args.topology_out).write_text(json.dumps(topologies, indent=1), encoding="utf-8")
+    if args.json:
+        print(dumps_json(out, sort_keys=True))
+    elif not maps:
+        print(f"no map heard under {prefix}/*/map in {args.seconds:g} s")
+    else:
+        print(f"merged map of {', '.join(sorted(maps))} -> {args.out}")
+        for pair in out["pairs"]:
+            a, b = pair["robots"]
+            agree = pair["agreement"]
+            shift = pair["shift_norm_m"]
+            print(
+                f"{a} / {b}: {pair['overlap_m2']} m2 seen by both, "
+                f"{'-' if agree is None else f'{100 * agree:.1f} %'} alike, "
+                f"walls shifted {'-' if shift is None else f'{100 * shift:.1f} cm'}"
+            )
+    return 0 if maps else 3

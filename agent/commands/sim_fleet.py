@@ -36,10 +36,12 @@ import numpy as np
 from agent.commands.args import UsageError, dumps_json
 from agent.config import load_config
 from agent.fleet import payloads
+from agent.fleet.audit import Audit
 from agent.fleet.bridge_config import ZenohConfig
 from agent.fleet.fleet_score import contacts, separation
 from agent.fleet.goal_sender import GoalSender
 from agent.fleet.local_protocol import GoalMessage
+from agent.fleet.map_view import FleetMaps, picture, report
 from firmware_protocol.command_frame import GoalReason, GoalState
 from firmware_protocol.errors import ProtocolError
 
@@ -132,6 +134,21 @@ def _stop(proc: subprocess.Popen[str]) -> str:
     return out
 
 
+def _maps_summary(fleet_maps: FleetMaps, png: Path) -> dict[str, Any]:
+    """The robots' newest maps merged (docs/fleet.md, 'Maps'), the picture written to ``png``."""
+    maps, poses, topologies = fleet_maps.snapshot()
+    summary = report(maps, poses)
+    summary["topologies"] = sorted(topologies)
+    summary["rejected"] = fleet_maps.rejected
+    summary["png"] = None
+    if maps:
+        import cv2
+
+        if cv2.imwrite(str(png), picture(maps, poses)):
+            summary["png"] = str(png)
+    return summary
+
+
 def run_fleet(args: argparse.Namespace) -> int:
     n: int = args.robots
     goals: list[tuple[float, float, float | None]] = args.goal
@@ -167,6 +184,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     names = [f"r{i + 1}" for i in range(n)]
     results: list[dict[str, Any]] = [{} for _ in range(n)]
     observer = _Observer()
+    fleet_maps = FleetMaps("fleet")
+    audit = Audit("fleet")
     stop = threading.Event()
     t0 = time.monotonic()
     import zenoh
@@ -211,6 +230,8 @@ def run_fleet(args: argparse.Namespace) -> int:
         zc = ZenohConfig("peer", (), tuple(f"tcp/127.0.0.1:{p}" for p in ports), False)
         session = zenoh.open(zc.zenoh_config())
         session.declare_subscriber("fleet/*/pose", observer)
+        fleet_maps.subscribe(session)
+        session.declare_subscriber("**", audit)
         sender = GoalSender(zc)
         deadline = t0 + args.seconds
         threads = []
@@ -276,6 +297,8 @@ def run_fleet(args: argparse.Namespace) -> int:
         "fleet_pose_latency_ms_p50": round(float(np.percentile(ages, 50)), 3) if ages.size else None,
         "poses_heard": int(ages.size),
         "robots_heard": sorted(observer.robots),
+        "maps": _maps_summary(fleet_maps, out_dir / "merged.png"),
+        "privacy": audit.summary(),
         "seconds": round(elapsed, 3),
     }
     if args.json:

@@ -3,8 +3,9 @@
 It runs in its own process (``vlp-agent bridge``), so the agent opens no network socket. Out, under
 ``<prefix>/<robot>/...``: ``pose`` for each pose the agent sends, ``status`` every ``status_period_s`` (the
 agent's flags and the bridge's counters; ``"agent": false`` while no agent is connected), ``goal_state``
-for each goal status. In: ``<prefix>/*/pose`` of the other robots, handed to the agent as peer poses, and
-``<prefix>/<robot>/goal``, handed to the agent as goals. A malformed or oversized message from the network
+for each goal status, ``map`` and ``topology`` for each snapshot the agent sends (laser-derived). In:
+``<prefix>/*/pose`` of the other robots, handed to the agent as peer poses, and ``<prefix>/<robot>/goal``,
+handed to the agent as goals. A malformed or oversized message from the network
 is counted (``rejected_<kind>``) and dropped: it never reaches the agent and never stops the bridge. The
 agent going away is no fault: the bridge reconnects every ``reconnect_s`` and keeps its Zenoh session.
 """
@@ -28,10 +29,12 @@ from agent.fleet.local_protocol import (
     FrameReader,
     GoalStateMessage,
     LocalProtocolError,
+    MapMessage,
     Message,
     PeerPoseMessage,
     PoseMessage,
     StatusMessage,
+    TopologyMessage,
     encode,
     receive,
 )
@@ -84,7 +87,7 @@ class Bridge:
         except Exception as exc:  # zenoh's ZError: an endpoint that cannot be resolved, bound or parsed
             where = f"listen {list(z.listen)}, connect {list(z.connect)}"
             raise DeviceNotFound(f"cannot open the Zenoh session ({where}): {exc}", "zenoh") from exc
-        for kind in ("pose", "status", "goal_state"):
+        for kind in ("pose", "status", "goal_state", "map", "topology"):
             self._publishers[kind] = session.declare_publisher(self._key(kind))
         prefix = self.config.key_prefix
         self._subscribers = [
@@ -203,6 +206,19 @@ class Bridge:
             self._status = message
         elif isinstance(message, GoalStateMessage):
             self._publish("goal_state", payloads.encode_goal_state(robot, message))
+        elif isinstance(message, MapMessage):
+            self._publish("map", payloads.encode_map(robot, message))
+        elif isinstance(message, TopologyMessage):
+            try:
+                data = payloads.encode_topology(robot, message)
+            except payloads.FleetPayloadError as exc:
+                self.count("agent_bad_topology")
+                log.info("bridge: the agent's topology is not valid GeoJSON: %s", exc)
+                return
+            if len(data) > payloads.MAX_TOPOLOGY_PAYLOAD:
+                self.count("oversized_topology")
+                return
+            self._publish("topology", data)
         else:
             self.count("agent_unexpected_messages")
 

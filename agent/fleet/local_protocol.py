@@ -4,9 +4,11 @@ Every message is one frame (docs/fleet.md, "Local protocol")::
 
     magic "VF" (2) | version (u8) | type (u8) | payload length (u32, little-endian) | payload
 
-A frame's payload is at most :data:`MAX_PAYLOAD` bytes and has the exact size its type fixes (a peer pose:
-the fixed part plus the robot name's length). Agent -> bridge: :class:`PoseMessage`, :class:`StatusMessage`,
-:class:`GoalStateMessage`; bridge -> agent: :class:`PeerPoseMessage`, :class:`GoalMessage`.
+A frame's payload is at most :data:`MAX_PAYLOAD` bytes (a map or topology snapshot: at most
+:data:`MAX_SNAPSHOT_PAYLOAD`) and has the exact size its type fixes (a peer pose: the fixed part plus the
+robot name's length; a map: its header, path and cells, which must inflate to the grid's size). Agent ->
+bridge: :class:`PoseMessage`, :class:`StatusMessage`, :class:`GoalStateMessage`, :class:`MapMessage`,
+:class:`TopologyMessage`; bridge -> agent: :class:`PeerPoseMessage`, :class:`GoalMessage`.
 
 The stream is reliable and local, so there is no resync: the first malformed frame raises
 :class:`LocalProtocolError` (a :class:`~firmware_protocol.errors.ProtocolError`) and the reader closes the
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import math
 import struct
+import zlib
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 
@@ -25,35 +28,51 @@ from firmware_protocol.errors import ProtocolError
 __all__ = [
     "HEADER",
     "MAGIC",
+    "MAX_MAP_CELLS",
     "MAX_NAME_BYTES",
+    "MAX_PATH_POINTS",
     "MAX_PAYLOAD",
+    "MAX_SNAPSHOT_PAYLOAD",
     "VERSION",
     "FrameDecoder",
     "FrameReader",
     "GoalMessage",
     "GoalStateMessage",
     "LocalProtocolError",
+    "MapMessage",
     "Message",
     "PeerPoseMessage",
     "PoseMessage",
     "ReadResult",
     "StatusMessage",
+    "TopologyMessage",
+    "check_cells",
     "decode_frame",
     "encode",
+    "inflate_cells",
+    "max_payload",
     "receive",
     "valid_robot_name",
 ]
 
 MAGIC = b"VF"
-VERSION = 2  # 2: a goal carries its options (allow_unknown)
+VERSION = 3  # 2: a goal carries its options (allow_unknown); 3: map and topology snapshots
 HEADER = struct.Struct("<2sBBI")
-MAX_PAYLOAD = 1024  # the largest message (a peer pose with a 32-byte name) is 85 bytes
+MAX_PAYLOAD = 1024  # the largest small message (a peer pose with a 32-byte name) is 85 bytes
+MAX_SNAPSHOT_PAYLOAD = 1 << 20  # a map or topology snapshot (types 0x04, 0x05): at most 1 MiB
+MAX_MAP_CELLS = 4_000_000  # a snapshot's grid: at most 4 M cells (2000 x 2000, 100 x 100 m at 5 cm)
+MAX_PATH_POINTS = 2000
 MAX_NAME_BYTES = 32
 
 _POSE = struct.Struct("<QdddffI")  # t_us, x_m, y_m, yaw_rad, sigma_xy_m, sigma_yaw_rad, pose flags
 _STATUS = struct.Struct("<QII")  # t_us, pose flags, status bits
 _GOAL_STATE = struct.Struct("<QHBBf")  # t_us, goal_id, state, reason, remaining_m (NaN: unknown)
 _GOAL = struct.Struct("<QHdddB")  # t_us, goal_id, x_m, y_m, yaw_rad (NaN: any heading), options
+# t_us, resolution_m, origin_x_m, origin_y_m, width, height, path points; then the path (f32 x, y each),
+# then the zlib-compressed cells
+_MAP = struct.Struct("<QdddIIH")
+_PATH_POINT = struct.Struct("<ff")
+_TOPOLOGY = struct.Struct("<Q")  # t_us; then the GeoJSON, UTF-8
 
 
 class LocalProtocolError(ProtocolError):
@@ -189,10 +208,130 @@ class GoalMessage:
         return goal
 
 
-Message = PoseMessage | StatusMessage | GoalStateMessage | PeerPoseMessage | GoalMessage
-_TYPES: dict[int, type[PoseMessage | StatusMessage | GoalStateMessage | PeerPoseMessage | GoalMessage]] = {
-    cls.TYPE: cls for cls in (PoseMessage, StatusMessage, GoalStateMessage, PeerPoseMessage, GoalMessage)
+def inflate_cells(data: bytes, n: int) -> bytes:
+    """zlib ``data`` that must inflate to exactly ``n`` bytes (a bomb is stopped at ``n + 1``); raises
+    LocalProtocolError otherwise."""
+    inflater = zlib.decompressobj()
+    try:
+        cells = inflater.decompress(data, n + 1)
+    except zlib.error as exc:
+        raise LocalProtocolError(f"map: cells are not zlib data: {exc}") from exc
+    if len(cells) != n or not inflater.eof or inflater.unused_data:
+        raise LocalProtocolError(f"map: cells do not inflate to exactly {n} bytes")
+    return cells
+
+
+def check_cells(cells: bytes) -> None:
+    """Every cell -1 (unknown) .. 100 (occupied), as int8."""
+    values = set(cells)
+    if any(v > 100 and v != 0xFF for v in values):
+        raise LocalProtocolError("map: a cell outside -1..100")
+
+
+@dataclass(frozen=True, slots=True)
+class MapMessage:
+    """This robot's occupancy map (agent -> bridge), laser-derived (SLAM): ``width`` x ``height`` int8 cells
+    row-major from the lower-left corner (ROS ``nav_msgs/OccupancyGrid``: -1 unknown, 0 free, 100 occupied),
+    zlib-compressed, cell size ``resolution_m``, the lower-left corner at (``origin_x_m``, ``origin_y_m``)
+    in the shared map frame; ``path``: the robot's recent path, (x, y) pairs (f32) in the same frame."""
+
+    TYPE: ClassVar[int] = 0x04
+    t_us: int
+    resolution_m: float
+    origin_x_m: float
+    origin_y_m: float
+    width: int
+    height: int
+    cells_zlib: bytes
+    path: tuple[tuple[float, float], ...] = ()
+
+    def payload(self) -> bytes:
+        head = _MAP.pack(
+            self.t_us,
+            self.resolution_m,
+            self.origin_x_m,
+            self.origin_y_m,
+            self.width,
+            self.height,
+            len(self.path),
+        )
+        return head + b"".join(_PATH_POINT.pack(x, y) for x, y in self.path) + self.cells_zlib
+
+    def cells(self) -> bytes:
+        """The cells, inflated (int8 as bytes), checked."""
+        cells = inflate_cells(self.cells_zlib, self.width * self.height)
+        check_cells(cells)
+        return cells
+
+    @classmethod
+    def parse(cls, payload: bytes) -> MapMessage:
+        if len(payload) < _MAP.size:
+            raise LocalProtocolError(f"map: payload of {len(payload)} bytes, at least {_MAP.size}", payload)
+        t_us, res, ox, oy, width, height, n_path = _MAP.unpack_from(payload)
+        if not (math.isfinite(res) and res > 0 and math.isfinite(ox) and math.isfinite(oy)):
+            raise LocalProtocolError("map: a resolution or origin that is not finite and positive")
+        if not (0 < width * height <= MAX_MAP_CELLS) or n_path > MAX_PATH_POINTS:
+            raise LocalProtocolError(f"map: {width} x {height} cells, {n_path} path points: too many")
+        end = _MAP.size + n_path * _PATH_POINT.size
+        if len(payload) <= end:
+            raise LocalProtocolError("map: truncated path or no cells", payload[:64])
+        path = tuple(
+            _PATH_POINT.unpack_from(payload, _MAP.size + i * _PATH_POINT.size) for i in range(n_path)
+        )
+        if not all(math.isfinite(v) for p in path for v in p):
+            raise LocalProtocolError("map: a path point that is not finite")
+        message = cls(t_us, res, ox, oy, width, height, payload[end:], path)
+        message.cells()  # inflates and checks; the bridge forwards only what a receiver can read
+        return message
+
+
+@dataclass(frozen=True, slots=True)
+class TopologyMessage:
+    """This robot's topological map (agent -> bridge): ``agent.exploration.topology.to_geojson``'s GeoJSON
+    as compact UTF-8 JSON (checked by the bridge's encoder, ``agent.fleet.payloads``)."""
+
+    TYPE: ClassVar[int] = 0x05
+    t_us: int
+    geojson: bytes
+
+    def payload(self) -> bytes:
+        return _TOPOLOGY.pack(self.t_us) + self.geojson
+
+    @classmethod
+    def parse(cls, payload: bytes) -> TopologyMessage:
+        if len(payload) <= _TOPOLOGY.size:
+            raise LocalProtocolError("topology: no GeoJSON", payload)
+        (t_us,) = _TOPOLOGY.unpack_from(payload)
+        return cls(t_us, payload[_TOPOLOGY.size :])
+
+
+Message = (
+    PoseMessage
+    | StatusMessage
+    | GoalStateMessage
+    | PeerPoseMessage
+    | GoalMessage
+    | MapMessage
+    | TopologyMessage
+)
+_TYPES: dict[int, Any] = {
+    cls.TYPE: cls
+    for cls in (
+        PoseMessage,
+        StatusMessage,
+        GoalStateMessage,
+        PeerPoseMessage,
+        GoalMessage,
+        MapMessage,
+        TopologyMessage,
+    )
 }
+_SNAPSHOTS = frozenset({MapMessage.TYPE, TopologyMessage.TYPE})
+
+
+def max_payload(kind: int) -> int:
+    """The largest payload a frame of type ``kind`` may carry."""
+    return MAX_SNAPSHOT_PAYLOAD if kind in _SNAPSHOTS else MAX_PAYLOAD
 
 
 def _unpack(layout: struct.Struct, payload: bytes, what: str) -> tuple[Any, ...]:
@@ -210,6 +349,8 @@ def encode(message: Message) -> bytes:
         payload = message.payload()
     except struct.error as exc:
         raise LocalProtocolError(f"cannot encode {type(message).__name__}: {exc}") from exc
+    if len(payload) > max_payload(message.TYPE):
+        raise LocalProtocolError(f"{type(message).__name__}: {len(payload)} bytes, over its cap")
     return HEADER.pack(MAGIC, VERSION, message.TYPE, len(payload)) + payload
 
 
@@ -221,8 +362,8 @@ def _check_header(header: bytes) -> tuple[int, int]:
         raise LocalProtocolError(f"protocol version {version}, this side speaks {VERSION}", header)
     if kind not in _TYPES:
         raise LocalProtocolError(f"unknown message type 0x{kind:02x}", header)
-    if length > MAX_PAYLOAD:
-        raise LocalProtocolError(f"payload of {length} bytes, at most {MAX_PAYLOAD}", header)
+    if length > max_payload(kind):
+        raise LocalProtocolError(f"payload of {length} bytes, at most {max_payload(kind)}", header)
     return kind, length
 
 
@@ -235,11 +376,12 @@ def decode_frame(frame: bytes) -> Message:
     if len(frame) != HEADER.size + length:
         what = "truncated" if len(frame) < HEADER.size + length else "trailing bytes after"
         raise LocalProtocolError(f"{what} a {length}-byte payload ({len(frame)} bytes given)", frame[:64])
-    return _TYPES[kind].parse(frame[HEADER.size :])
+    message: Message = _TYPES[kind].parse(frame[HEADER.size :])
+    return message
 
 
 class FrameDecoder:
-    """Bytes from the stream in, whole messages out. Buffers at most one frame (header + MAX_PAYLOAD);
+    """Bytes from the stream in, whole messages out. Buffers at most one frame (header + its type's cap);
     the first bad frame raises LocalProtocolError and the decoder stays failed (close the connection)."""
 
     def __init__(self) -> None:

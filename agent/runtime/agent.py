@@ -308,7 +308,7 @@ class Agent:
                 slam_fixes=self.slam_fixes,
                 hot_path=hot,
                 odometry_track=self.odometry_track if d.servos is not None else None,
-                on_map=self._on_map if self.navigation is not None else None,
+                on_map=self._on_map if self.navigation is not None or self.config.fleet.socket else None,
                 saver=self.map_saver,
             )
             scans = self.scans if self.mapper is not None else None
@@ -673,9 +673,11 @@ class Agent:
 
     def _on_map(self, image: Any) -> None:
         """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the missions'
-        map."""
+        map, the fleet's map snapshots."""
         if self.navigation is not None:
             self.navigation.on_map(image)
+        if self.fleet is not None:
+            self.fleet.on_map(image)
         if self.missions is not None:
             self.missions.on_map(image)
 

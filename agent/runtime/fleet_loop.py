@@ -1,15 +1,17 @@
 """The fleet loop: the agent's end of the local protocol (``agent.fleet.local_protocol``) on a Unix socket.
 
 The agent listens on ``[fleet] socket`` (AF_UNIX, stream; a stale socket file is replaced; a folder that is
-not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one
-bridge at a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's
-fused pose; every ``status_period_s``: the status flags; with the next pose: each goal status the agent
-sends about a fleet goal (the command loop's answers, with the fleet's goal id). From it: the other robots'
-poses (kept in :attr:`FleetLoop.peers`, newest per robot, dropped when none came for ``peer_timeout_s``;
-the navigation's costmap takes them as obstacles through :meth:`FleetLoop.obstacles`) and goals for this
-robot: one more command source, handed to the command arbiter (``CommandArbiter.fleet_goal``: under the
-controller's stop, velocity and goals, beside the missions) under a local goal id from
-:data:`FLEET_GOAL_IDS`. This process opens no network socket: the bridge is another process.
+not there is not made: it is retried every ``LISTEN_RETRY_S``, said once in the log) and serves one bridge at
+a time (a new connection replaces the old one). To it, every ``1 / pose_rate_hz``: this robot's fused pose;
+every ``status_period_s``: the status flags; with the next pose: each goal status the agent sends about a
+fleet goal (the command loop's answers, with the fleet's goal id); the SLAM map (handed over by the SLAM loop
+through :meth:`FleetLoop.on_map`) with the robot's recent path, and the exploration's topological graph, when
+they changed (at most every ``MAP_PERIOD_S``) and every ``MAP_REFRESH_S``. From it: the other robots' poses
+(kept in :attr:`FleetLoop.peers`, newest per robot, dropped when none came for ``peer_timeout_s``; the
+navigation's costmap takes them as obstacles through :meth:`FleetLoop.obstacles`) and goals for this robot:
+one more command source, handed to the command arbiter (``CommandArbiter.fleet_goal``: under the controller's
+stop, velocity and goals, beside the missions) under a local goal id from :data:`FLEET_GOAL_IDS`. This process
+opens no network socket: the bridge is another process.
 
 Sends never block the loop for long: a bridge that stops reading for ``SEND_TIMEOUT_S`` is disconnected
 (counted) and may reconnect. A malformed frame from it closes the connection (counted).
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import json
 import logging
 import math
 import os
@@ -26,18 +29,24 @@ import select
 import socket
 import stat
 import threading
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from agent.fleet.local_protocol import (
+    MAX_PATH_POINTS,
+    MAX_SNAPSHOT_PAYLOAD,
     FrameReader,
     GoalMessage,
     GoalStateMessage,
+    LocalProtocolError,
+    MapMessage,
     Message,
     PeerPoseMessage,
     PoseMessage,
     StatusMessage,
+    TopologyMessage,
     encode,
     receive,
 )
@@ -46,12 +55,17 @@ from agent.runtime.health import Heartbeat
 from firmware_protocol.command_frame import NO_SEQUENCE, GoalCommand, GoalReason, GoalState, GoalStatus
 from firmware_protocol.pose_frame import PoseFlags
 
-__all__ = ["FLEET_GOAL_IDS", "LISTEN_RETRY_S", "SEND_TIMEOUT_S", "FleetLoop"]
+__all__ = ["FLEET_GOAL_IDS", "LISTEN_RETRY_S", "MAP_PERIOD_S", "MAP_REFRESH_S", "SEND_TIMEOUT_S", "FleetLoop"]
 
 log = logging.getLogger(__name__)
 
 SEND_TIMEOUT_S = 0.05
 LISTEN_RETRY_S = 2.0
+# Map and topology snapshots: at most every MAP_PERIOD_S while they change, and every MAP_REFRESH_S even
+# when they do not (so a listener that just came, `vlp-agent fleet map`, hears every robot's map).
+MAP_PERIOD_S = 2.0
+MAP_REFRESH_S = 5.0
+PATH_STEP_M = 0.1  # the recent path sent with a map: a point every 10 cm, the last MAX_PATH_POINTS
 _IDLE_WAIT_S = 0.25
 _QUEUED_STATUSES = 64
 # Fleet goals' local ids: below the missions' (agent.runtime.mission_loop.MISSION_GOAL_IDS, 0xC000..), above
@@ -77,6 +91,7 @@ class FleetLoop:
         goals: Callable[[GoalCommand], object] | None = None,
         peer_timeout_s: float = 2.0,
         peer_radius_m: float = 0.105,
+        topology: Callable[[], dict[str, Any] | None] | None = None,
     ) -> None:
         self.path = path
         self.period_s = 1.0 / pose_rate_hz
@@ -99,6 +114,13 @@ class FleetLoop:
         self._server: socket.socket | None = None
         self._client: socket.socket | None = None
         self._reader = FrameReader()
+        # Map snapshots: the newest map the SLAM loop handed over (on_map), the robot's recent path.
+        self.topology = topology
+        self._map: Any = None
+        self._map_version = 0
+        self._map_sent: tuple[int, int] = (-1, 0)  # (map version, ns when sent)
+        self._topology_sent: tuple[bytes, int] = (b"", 0)
+        self._path: collections.deque[tuple[float, float]] = collections.deque(maxlen=MAX_PATH_POINTS)
 
     def _count(self, what: str) -> None:
         with self._lock:
@@ -121,6 +143,13 @@ class FleetLoop:
             if status.state in _ENDED:
                 del self._fleet_ids[status.goal_id]
 
+    def on_map(self, image: Any) -> None:
+        """The SLAM loop's newest map (an ``agent.slam.render.OccupancyImage``); sent to the bridge within
+        ``MAP_PERIOD_S``. Cheap: the conversion is done on this loop's thread when a map is due."""
+        with self._lock:
+            self._map = image
+            self._map_version += 1
+
     # -- the loop --------------------------------------------------------------------------------------
     def run(self, beat: Heartbeat, *, stop: threading.Event) -> None:
         while not self._listen():
@@ -141,6 +170,7 @@ class FleetLoop:
                         next_status_ns = now + int(self.status_period_s * 1e9)
                         self._send(StatusMessage(now // 1000, int(self.pose()[1]), self.status_bits()))
                     self._send_goal_states(now)
+                    self._send_snapshots(now)
                 self._expire_peers(now)
                 # Asleep until the next pose or status is due; with no bridge, until one connects (select
                 # wakes on the listening socket), looking at the stop event four times a second.
@@ -166,6 +196,77 @@ class FleetLoop:
         )
         if self._send(message):
             self._count("poses_sent")
+        if flags & (PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY) and math.isfinite(estimate.x_m):
+            p = (float(estimate.x_m), float(estimate.y_m))
+            if not self._path or math.dist(self._path[-1], p) >= PATH_STEP_M:
+                self._path.append(p)
+
+    def _send_snapshots(self, now_ns: int) -> None:
+        """The map when it changed (at most every MAP_PERIOD_S) or every MAP_REFRESH_S; the topology
+        alike (when there is one)."""
+        with self._lock:
+            image, version = self._map, self._map_version
+        sent_version, sent_ns = self._map_sent
+        age_s = (now_ns - sent_ns) * 1e-9
+        if image is not None and (
+            (version != sent_version and age_s >= MAP_PERIOD_S) or age_s >= MAP_REFRESH_S
+        ):
+            self._map_sent = (version, now_ns)
+            message = self._map_message(image, now_ns)
+            if message is not None and self._send(message):
+                self._count("maps_sent")
+        if self.topology is None:
+            return
+        blob, topo_ns = self._topology_sent
+        topo_age_s = (now_ns - topo_ns) * 1e-9
+        if topo_age_s < MAP_PERIOD_S:
+            return
+        try:
+            geojson = self.topology()
+        except (RuntimeError, ValueError, KeyError) as exc:  # the explorer's graph changing under us
+            log.debug("fleet: topology not taken now: %s", exc)
+            return
+        if geojson is None:
+            return
+        data = json.dumps(geojson, allow_nan=False, separators=(",", ":")).encode()
+        if data == blob and topo_age_s < MAP_REFRESH_S:
+            return
+        self._topology_sent = (data, now_ns)
+        if len(data) + 8 > MAX_SNAPSHOT_PAYLOAD:
+            self._count("snapshots_too_large")
+            return
+        if self._send(TopologyMessage(now_ns // 1000, data)):
+            self._count("topologies_sent")
+
+    def _map_message(self, image: Any, now_ns: int) -> MapMessage | None:
+        from agent.fleet.maps import grid_from_image
+
+        grid = grid_from_image(
+            image.pixels,
+            image.resolution_m,
+            (image.origin[0], image.origin[1]),
+            image.occupied_thresh,
+            image.free_thresh,
+        )
+        h, w = grid.cells.shape
+        cells = zlib.compress(grid.cells.tobytes(), 6)
+        message = MapMessage(
+            now_ns // 1000,
+            grid.resolution_m,
+            grid.origin_x_m,
+            grid.origin_y_m,
+            w,
+            h,
+            cells,
+            tuple(self._path),
+        )
+        try:
+            encode(message)
+        except LocalProtocolError as exc:  # a map over the cap (or cells over MAX_MAP_CELLS)
+            self._count("snapshots_too_large")
+            log.warning("fleet: map not sent: %s", exc)
+            return None
+        return message
 
     def _send_goal_states(self, now_ns: int) -> None:
         with self._lock:
@@ -334,6 +435,13 @@ class FleetLoop:
                     commands.answer(status, None)
 
         radius = fc.peer_radius_m if fc.peer_radius_m > 0 else agent.config.navigation.radius_m
+
+        def topology() -> dict[str, Any] | None:
+            # The exploration's topological graph, when the robot explores with one (sp2atm).
+            explorer = getattr(agent.missions, "explorer", None)
+            source = getattr(explorer, "topology", None)
+            return source() if callable(source) else None
+
         loop = cls(
             fc.socket,
             fc.pose_rate_hz,
@@ -344,6 +452,7 @@ class FleetLoop:
             goals=goals,
             peer_timeout_s=fc.peer_timeout_s,
             peer_radius_m=radius,
+            topology=topology,
         )
         if commands is not None:
             commands.listeners.append(loop.on_status)

@@ -19,11 +19,25 @@ from typing import Any
 
 import pytest
 
-from agent.fleet import payloads
+from agent.fleet import audit, payloads
 from tests.integration.test_agent_accuracy import REPO, vlp_agent
 
 zenoh = pytest.importorskip("zenoh")
 
+_MAP_FIELDS = (
+    "v",
+    "robot",
+    "t_us",
+    "frame",
+    "resolution_m",
+    "origin_x_m",
+    "origin_y_m",
+    "width",
+    "height",
+    "encoding",
+    "cells",
+    "path",
+)
 OFFICE = REPO / "examples" / "worlds" / "office.toml"
 TIMEOUT_S = 180.0
 
@@ -149,27 +163,59 @@ def test_pose_arrives_under_the_robots_key_and_a_malformed_goal_is_counted(tmp_p
             if robots:
                 break
         assert [r["robot"] for r in robots] == ["r1"] and robots[0]["pose"] is not None
+        # The robot's map (laser-built) comes too, and `fleet map` draws it.
+        heard.wait(lambda k, d: k == "fleet/r1/map", TIMEOUT_S, "the robot's map")
+        png = tmp_path / "merged.png"
+        merged: dict[str, Any] = {}
+        for _ in range(3):
+            drawn = subprocess.run(
+                vlp_agent(
+                    "fleet",
+                    "map",
+                    "--listen",
+                    f"tcp/127.0.0.1:{view_port}",
+                    "--seconds",
+                    "7",
+                    "--json",
+                    "--out",
+                    str(png),
+                ),
+                cwd=REPO,
+                capture_output=True,
+                text=True,
+                timeout=TIMEOUT_S,
+            )
+            merged = json.loads(drawn.stdout)
+            if drawn.returncode == 0:
+                break
+        assert merged["out"] == str(png) and png.stat().st_size > 1000, drawn.stderr[-2000:]
+        (robot,) = merged["robots"]
+        assert robot["robot"] == "r1" and robot["map"]["occupied_cells"] > 0 and merged["pairs"] == []
         for proc in procs:
             assert proc.poll() is None, _stop(proc)[1][-2000:]
     finally:
         outputs = [_stop(p) for p in reversed(procs)]
         session.close()
     # Privacy: every key heard on "**" during the run is one of the robot's fleet keys, and every payload
-    # decodes strictly as its documented JSON (poses, status flags and counters, goal states): nothing else,
-    # nothing image-sized, left the robot.
-    kinds = {
-        "pose": payloads.decode_pose,
-        "status": payloads.decode_status,
-        "goal_state": payloads.decode_goal_state,
-    }
+    # decodes strictly as its documented JSON (poses, status flags and counters, goal states, laser-built
+    # maps with the robot's path, topology): nothing else, no image, left the robot.
     assert heard.samples
     for key, data in heard.samples:
         if key == "fleet/r1/goal":
             continue  # this test's own malformed goal
         kind = key.removeprefix("fleet/r1/")
-        assert kind in kinds, f"unexpected key {key}"
+        assert kind in ("pose", "status", "goal_state", "map", "topology"), f"unexpected key {key}"
+        assert audit.check("fleet", key, data) is None, audit.check("fleet", key, data)
+        if kind in ("map", "topology"):
+            obj = json.loads(data)
+            assert set(obj) <= set(
+                _MAP_FIELDS if kind == "map" else ("v", "robot", "t_us", "frame", "topology")
+            )
+            if kind == "map":  # the cells are the documented occupancy grid, nothing else
+                cells = payloads.decode_map(data, "r1").grid.cells
+                assert set(cells.ravel().tolist()) <= {-1, 0, 100}
+            continue
         assert len(data) <= payloads.MAX_PAYLOAD
-        kinds[kind](data, "r1")
         assert set(json.loads(data)) <= {
             "v",
             "robot",

@@ -27,6 +27,7 @@ HOST_COMMANDS = ("useradd", "userdel", "groupadd", "groupdel", "systemctl", "ude
 
 EXPECTED_FILES = {
     "etc/systemd/system/vlp-agent.service": REPO / "systemd" / "vlp-agent.service",
+    "etc/systemd/system/vlp-agent-bridge.service": REPO / "systemd" / "vlp-agent-bridge.service",
     "etc/udev/rules.d/99-vlp-agent.rules": REPO / "systemd" / "99-vlp-agent.rules",
     "opt/vlp-agent/share/doc/operations.md": REPO / "docs" / "operations.md",
 }
@@ -106,6 +107,9 @@ def test_install_produces_the_expected_tree(root: Path, stubs: Path) -> None:
     ):
         assert command in out, command
     assert host_calls(stubs) == ""
+    # The fleet bridge's unit is installed but never enabled or started by the install.
+    assert "installed /etc/systemd/system/vlp-agent-bridge.service" in out
+    assert "enable vlp-agent-bridge" not in out and "restart vlp-agent-bridge" not in out
 
 
 def test_install_is_idempotent_and_keeps_an_edited_config(root: Path, stubs: Path) -> None:
@@ -128,6 +132,7 @@ def test_uninstall_removes_everything_the_install_made(root: Path, stubs: Path) 
     out = run_install(root, stubs, "--uninstall").stdout
     assert tree(root) == set()
     assert "would run: systemctl disable --now vlp-agent.service" in out
+    assert "would run: systemctl disable --now vlp-agent-bridge.service" in out
     assert host_calls(stubs) == ""
     # Twice is fine.
     run_install(root, stubs, "--uninstall")
@@ -174,6 +179,7 @@ def test_install_into_a_root_that_already_has_etc_leaves_it(root: Path, stubs: P
 def test_unit_dir_option(root: Path, stubs: Path) -> None:
     run_install(root, stubs, "--no-venv", "--unit-dir", "/lib/systemd/system")
     assert (root / "lib/systemd/system/vlp-agent.service").exists()
+    assert (root / "lib/systemd/system/vlp-agent-bridge.service").exists()
     assert not (root / "etc/systemd/system/vlp-agent.service").exists()
     run_install(root, stubs, "--uninstall")
     assert tree(root) == set()
