@@ -91,8 +91,8 @@ class LoopClosureConfig:
     # * it must say something: its innovation (the match against where the graph already puts j seen
     #   from i) beyond this squared Mahalanobis distance under the loop factor's own covariance; below it
     #   the graph already agrees within the match's noise, and a correction would only add that noise
-    #   (the office: 38 such links, one of them 6.6 cm off the truth, doubled the ATE). 11.34 is chi²(3)'s
-    #   99 % quantile.
+    #   (the office: 38 such links, one of them 6.6 cm off the truth, doubled the ATE). Such a link joins
+    #   the graph for the next optimisation but triggers none. 11.34 is chi²(3)'s 99 % quantile.
     agree_chi2: float = 11.34
     # * the graph must take it: after a tentative optimisation with it, its own squared residual at most
     #   this (Huber's threshold squared: a link the kernel down-weights is one the other factors
@@ -103,6 +103,23 @@ class LoopClosureConfig:
     #   squared distance, truncated at ``truncate_m``).
     verify_nodes: int = 5
     verify_ratio: float = 1.0
+    # * the map must come apart there: the newest ``verify_nodes`` scans against the old map at the current
+    #   poses, RMS truncated distance, at least ``fit_m``. Below it the scans already lie on the old walls
+    #   and a link that says otherwise slid (the office, seed 7: one link 19 cm along a corridor, among 37
+    #   that agreed with the graph, the scans at 2.7 cm RMS; accepted, the ATE went from 3.7 to 7.5 cm).
+    fit_m: float = 0.05
+    # * optionally (``require_confirmation``) confirmed, RRR's clustering with PCM's pairwise test: acted
+    #   on only together with another such link found within ``confirm_nodes`` updates before it that
+    #   agrees with it: z_b against z_a carried by the graph's short chains i_b -> i_a and j_a -> j_b,
+    #   squared Mahalanobis distance under twice the loop factor's covariance plus ``chain_sigma`` per
+    #   chain edge, at most ``pairwise_chi2``. Off: on Intel (seed 0) it lost true links that no second
+    #   one followed soon enough, and the drift they would have taken out grew until two wrong links
+    #   from one old window (15 deg off) confirmed each other (ate_aligned_m 1.53 m). Pending links that
+    #   agree with an accepted one still join the graph with it.
+    require_confirmation: bool = False
+    confirm_nodes: int = 30
+    pairwise_chi2: float = 7.81
+    chain_sigma: tuple[float, float, float] = (0.01, 0.01, 0.003)
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
 
 
@@ -296,6 +313,8 @@ def loop_residual_chi2(poses: FloatArray, loop: LoopConstraint, config: LoopClos
 class Verdict(enum.Enum):
     ACCEPTED = "accepted"
     AGREES = "agrees"  # the graph already agrees within the match's noise: nothing to correct
+    FITS = "fits"  # the newest scans lie on the old map already: the link slid, not the map
+    UNCONFIRMED = "unconfirmed"  # disagrees with the graph, no other link yet says the same: pending
     INCONSISTENT = "inconsistent"  # the graph will not take it (its residual, or other loops', too large)
     WORSE = "worse"  # the newest scans fit the old map worse at the corrected poses
 
@@ -308,6 +327,26 @@ class Judgement:
     score_before: float = math.nan
     score_after: float = math.nan
     result: GraphResult | None = None  # the tentative optimisation (ACCEPTED: the one to apply)
+    partners: tuple[LoopConstraint, ...] = ()  # the pending links that confirmed it (join the graph too)
+
+
+def pairwise_chi2(
+    poses: FloatArray, a: LoopConstraint, b: LoopConstraint, config: LoopClosureConfig
+) -> float:
+    """How far two loop links disagree, given the graph's chains between their ends: b's z against a's
+    carried to b's nodes, squared Mahalanobis (PCM's pairwise consistency)."""
+    predicted = compose(compose(between(poses[b.i], poses[a.i]), a.z), between(poses[a.j], poses[b.j]))
+    error = between(predicted, b.z)
+    error[2] = wrap_angle(error[2])
+    edges = abs(a.i - b.i) + abs(a.j - b.j)
+    variance = 2.0 * np.square(np.asarray(config.loop_sigma)) + edges * np.square(
+        np.asarray(config.chain_sigma)
+    )
+    covariance = np.diag(variance)
+    for c in (a, b):
+        if c.covariance is not None:
+            covariance = covariance + c.covariance
+    return float(error @ np.linalg.solve(covariance, error))
 
 
 def scan_map_score(
@@ -315,6 +354,8 @@ def scan_map_score(
 ) -> float:
     """Mean truncated squared distance of the endpoints of nodes ``new`` to the map of nodes ``old``, each
     at its pose in ``poses`` (lower is better)."""
+    if not any(hits[k].shape[0] for k in old):
+        return math.inf
     cap = config.truncate_m + config.resolution_m
     field_ = old_map_field(poses, hits, old, config.resolution_m, cap)
     total, count = 0.0, 0
@@ -336,17 +377,40 @@ def judge_loop(
     config: LoopClosureConfig,
     absolute: AbsoluteFactors | None = None,
     odometry_motions: FloatArray | None = None,
+    pending: list[LoopConstraint] | None = None,
 ) -> Judgement:
     """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
-    accepted ``loops``: it must disagree with the graph by more than its own noise (``agree_chi2``), the
-    graph optimised with it must fit it and every earlier loop (``accept_chi2``), and the newest
-    ``verify_nodes`` scans must fit the old map (the nodes around i) at least as well at the optimised
-    poses as at the current ones. ``hits``: each node's endpoints in its robot frame."""
+    accepted ``loops``, in this order: it must disagree with the graph by more than its own noise
+    (``agree_chi2``; else AGREES: it joins the graph but is not acted on); the newest ``verify_nodes``
+    scans must fit the old map (the nodes around i) badly at the current poses (``fit_m``; else FITS:
+    the map holds together there, whatever the match says); with ``require_confirmation`` one of the
+    ``pending`` links (earlier candidates left UNCONFIRMED, within ``confirm_nodes``) must agree with it;
+    the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
+    fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
+    poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
+    its robot frame."""
     innovation = loop_residual_chi2(poses, candidate, config)
     if innovation < config.agree_chi2:
         return Judgement(Verdict.AGREES, innovation)
+    j = candidate.j
+    old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
+    new = range(max(j - config.verify_nodes + 1, old.stop), j + 1)
+    score_before = scan_map_score(poses, hits, old, new, config)
+    if score_before < config.fit_m**2:
+        log.debug("loop %d -> %d: the scans fit the old map already (%.4f)", candidate.i, j, score_before)
+        return Judgement(Verdict.FITS, innovation, score_before=score_before)
+    partners = [
+        p
+        for p in (pending or [])
+        if candidate.j - p.j <= config.confirm_nodes
+        and pairwise_chi2(poses, p, candidate, config) <= config.pairwise_chi2
+    ]
+    if config.require_confirmation and not partners:
+        return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
     before = optimize_graph(poses, motions, loops, config, absolute, odometry_motions) if loops else None
-    result = optimize_graph(poses, motions, [*loops, candidate], config, absolute, odometry_motions)
+    result = optimize_graph(
+        poses, motions, [*loops, *partners, candidate], config, absolute, odometry_motions
+    )
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_before = (
         sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
@@ -363,16 +427,14 @@ def judge_loop(
             bad_before,
             bad_after,
         )
-        return Judgement(Verdict.INCONSISTENT, innovation, residual)
-    j = candidate.j
-    old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
-    new = range(max(j - config.verify_nodes + 1, old.stop), j + 1)
-    score_before = scan_map_score(poses, hits, old, new, config)
+        return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
     score_after = scan_map_score(result.poses, hits, old, new, config)
-    if not score_after <= config.verify_ratio * score_before:
+    if score_after > config.verify_ratio * score_before:
         log.debug("loop %d -> %d: scans fit worse (%.4f -> %.4f)", candidate.i, j, score_before, score_after)
         return Judgement(Verdict.WORSE, innovation, residual, score_before, score_after)
-    return Judgement(Verdict.ACCEPTED, innovation, residual, score_before, score_after, result)
+    return Judgement(
+        Verdict.ACCEPTED, innovation, residual, score_before, score_after, result, tuple(partners)
+    )
 
 
 def match_covariance(information: FloatArray, yaw_i_rad: float, sigma_m: float) -> FloatArray:

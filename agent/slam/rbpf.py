@@ -243,6 +243,7 @@ class RbpfSlam:
         self._node_motions: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
+        self._pending: list[LoopConstraint] = []  # links that disagreed with the graph, unconfirmed
         self._anchored = 0  # nodes up to here hold graph-optimised poses in the history
         # VLP fixes fused at a node stay in the graph as absolute factors: (node, mean, sigma).
         self._node_fix: PoseMeasurement | None = None
@@ -621,7 +622,7 @@ class RbpfSlam:
         assert lc is not None
         motions, odometry_motions, absolute = self._graph_inputs(path)
         judgement = judge_loop(
-            path, self._node_hits, motions, self._loops, found, lc, absolute, odometry_motions
+            path, self._node_hits, motions, self._loops, found, lc, absolute, odometry_motions, self._pending
         )
         self.stats.loop_verdicts[judgement.verdict.value] += 1
         log.debug(
@@ -635,10 +636,19 @@ class RbpfSlam:
             judgement.score_after,
         )
         if judgement.verdict is Verdict.AGREES:
+            # A true link, kept for the next optimisation, but nothing to correct now.
+            self._loops.append(found)
+            self.stats.loop_closures += 1
             self._last_agreement = found.j  # the drift since is measured from here
+            return
+        if judgement.verdict is Verdict.UNCONFIRMED:
+            self._pending = [p for p in self._pending if found.j - p.j <= lc.confirm_nodes] + [found]
             return
         if judgement.verdict is not Verdict.ACCEPTED or judgement.result is None:
             return
+        for partner in judgement.partners:
+            self._pending.remove(partner)
+            self._loops.append(partner)
         self._loops.append(found)
         self._last_agreement = found.j
         self.stats.loop_closures += 1

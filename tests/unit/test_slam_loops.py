@@ -208,11 +208,17 @@ def test_a_revisit_that_corrects_the_drift_is_accepted() -> None:
     truth, path, hits = _drifted_revisit()
     motions = np.zeros_like(path)
     motions[1:] = between(path[:-1], path[1:])
-    config = LoopClosureConfig(min_separation=40)
+    config = LoopClosureConfig(min_separation=40, require_confirmation=True)
+    first = find_loop(path, hits, hits[62], 62, config, travelled_m=60.0, yaw_doubt_rad=0.2)
+    assert first is not None
+    # Alone it disagrees with the graph and waits for a second link that says the same.
+    alone = judge_loop(path, hits, motions, [], first, config)
+    assert alone.verdict is Verdict.UNCONFIRMED and alone.result is None
     found = find_loop(path, hits, hits[64], 64, config, travelled_m=60.0, yaw_doubt_rad=0.2)
     assert found is not None
-    judgement = judge_loop(path, hits, motions, [], found, config)
+    judgement = judge_loop(path, hits, motions, [], found, config, pending=[first])
     assert judgement.verdict is Verdict.ACCEPTED, judgement
+    assert judgement.partners == (first,)
     assert judgement.innovation_chi2 > config.agree_chi2
     assert judgement.score_after < judgement.score_before
     assert judgement.result is not None
@@ -240,7 +246,36 @@ def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected() -> None:
     hits = [np.zeros((0, 2)) for _ in range(n)]
     config = LoopClosureConfig(min_separation=10)
     loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
-    wrong = LoopConstraint(5, 30, compose(between(truth[5], truth[30]), np.array([1.5, -1.0, 0.3])), 0.9)
-    judgement = judge_loop(truth, hits, motions, loops, wrong, config)
+    wrong = LoopConstraint(5, 30, compose(between(truth[5], truth[30]), np.array([4.0, -3.0, 1.2])), 0.9)
+    # A second wrong link that says the same (a repeated structure seen twice): they confirm each other,
+    # and the graph still will not take them.
+    again = compose(compose(between(truth[6], truth[5]), wrong.z), between(truth[30], truth[31]))
+    partner = LoopConstraint(6, 31, again, 0.9)
+    judgement = judge_loop(truth, hits, motions, loops, wrong, config, pending=[partner])
     assert judgement.verdict is Verdict.INCONSISTENT
     assert judgement.residual_chi2 > config.accept_chi2
+
+
+def test_a_lone_link_that_slid_is_not_confirmed_by_one_that_did_not() -> None:
+    truth, path, hits = _drifted_revisit()
+    config = LoopClosureConfig(min_separation=40, require_confirmation=True)
+    good = LoopConstraint(5, 62, between(truth[5], truth[62]), 0.9)
+    slid = LoopConstraint(6, 64, compose(between(truth[6], truth[64]), np.array([0.25, 0.0, 0.0])), 0.9)
+    motions = np.zeros_like(path)
+    motions[1:] = between(path[:-1], path[1:])
+    assert judge_loop(path, hits, motions, [], slid, config, pending=[good]).verdict is Verdict.UNCONFIRMED
+    right = LoopConstraint(6, 64, between(truth[6], truth[64]), 0.9)
+    assert judge_loop(path, hits, motions, [], right, config, pending=[good]).verdict is Verdict.ACCEPTED
+
+
+def test_a_link_that_slid_where_the_scans_fit_the_old_map_changes_nothing() -> None:
+    # The graph is right (the truth); a link 20 cm off along the first stretch disagrees with it, but the
+    # newest scans lie on the old walls at the graph's poses: the link slid, not the map.
+    truth, _, hits = _drifted_revisit()
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    config = LoopClosureConfig(min_separation=40)
+    slid = LoopConstraint(6, 64, compose(between(truth[6], truth[64]), np.array([0.2, 0.0, 0.0])), 0.9)
+    judgement = judge_loop(truth, hits, motions, [], slid, config)
+    assert judgement.innovation_chi2 > config.agree_chi2
+    assert judgement.verdict is Verdict.FITS and judgement.result is None
