@@ -88,11 +88,12 @@ class LoopClosureConfig:
     apply_min_shift_m: float = 0.05
     apply_min_shift_rad: float = 0.01
     # Judging a candidate before it joins the graph (:func:`judge_loop`):
-    # * it must say something: its innovation (the match against where the graph already puts j seen
-    #   from i) beyond this squared Mahalanobis distance under the loop factor's own covariance; below it
-    #   the graph already agrees within the match's noise, and a correction would only add that noise
-    #   (the office: 38 such links, one of them 6.6 cm off the truth, doubled the ATE). Such a link joins
-    #   the graph for the next optimisation but triggers none. 11.34 is chi²(3)'s 99 % quantile.
+    # * where the scans fit the old map (``fit_m`` below), the link's innovation (the match against where
+    #   the graph already puts j seen from i) as a squared Mahalanobis distance under the loop factor's
+    #   own covariance: below ``agree_chi2`` the graph agrees within the match's noise and a correction
+    #   would only add that noise (the office: 38 such links, one of them 6.6 cm off the truth, doubled
+    #   the ATE): the link joins the graph for later optimisations but triggers none. 11.34 is chi²(3)'s
+    #   99 % quantile.
     agree_chi2: float = 11.34
     # * the graph must take it: after a tentative optimisation with it, its own squared residual at most
     #   this (Huber's threshold squared: a link the kernel down-weights is one the other factors
@@ -349,23 +350,33 @@ def pairwise_chi2(
     return float(error @ np.linalg.solve(covariance, error))
 
 
+def point_distances(field_: DistanceField, points_xy: FloatArray, pose: FloatArray) -> FloatArray:
+    """Distance (cell lookup, as :func:`lattice_search`) from each of ``points_xy`` (robot frame) at
+    ``pose`` to the field's nearest obstacle."""
+    _u, h, w = field_.distance_m.shape
+    res = field_.resolution_m
+    wx, wy, _, _ = world_points(pose[None, :], points_xy)
+    col = np.clip(np.floor((wx[0] - field_.origin_m[0]) / res).astype(np.int64) + 1, 0, w - 1)
+    row = np.clip(np.floor((wy[0] - field_.origin_m[1]) / res).astype(np.int64) + 1, 0, h - 1)
+    distances: FloatArray = field_.distance_m[0][row, col].astype(np.float64)
+    return distances
+
+
 def scan_map_score(
     poses: FloatArray, hits: list[FloatArray], old: range, new: range, config: LoopClosureConfig
 ) -> float:
-    """Mean truncated squared distance of the endpoints of nodes ``new`` to the map of nodes ``old``, each
-    at its pose in ``poses`` (lower is better)."""
+    """How well the endpoints of nodes ``new`` lie on the map of nodes ``old``, each at its pose in
+    ``poses``: the median of their squared distances truncated at ``truncate_m`` (lower is better; the
+    median, because the new scans also see what the old nodes never did)."""
     if not any(hits[k].shape[0] for k in old):
         return math.inf
     cap = config.truncate_m + config.resolution_m
     field_ = old_map_field(poses, hits, old, config.resolution_m, cap)
-    total, count = 0.0, 0
-    for k in new:
-        if hits[k].shape[0] == 0:
-            continue
-        cost = lattice_search(field_, hits[k], poses[k], 0.0, 0.0, 1.0, config.truncate_m).costs[0, 0]
-        total += float(cost) * hits[k].shape[0]
-        count += hits[k].shape[0]
-    return total / count if count else math.inf
+    distances = [point_distances(field_, hits[k], poses[k]) for k in new if hits[k].shape[0]]
+    if not distances:
+        return math.inf
+    d = np.minimum(np.concatenate(distances), config.truncate_m)
+    return float(np.median(d * d))
 
 
 def judge_loop(
@@ -380,23 +391,23 @@ def judge_loop(
     pending: list[LoopConstraint] | None = None,
 ) -> Judgement:
     """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
-    accepted ``loops``, in this order: it must disagree with the graph by more than its own noise
-    (``agree_chi2``; else AGREES: it joins the graph but is not acted on); the newest ``verify_nodes``
-    scans must fit the old map (the nodes around i) badly at the current poses (``fit_m``; else FITS:
-    the map holds together there, whatever the match says); with ``require_confirmation`` one of the
+    accepted ``loops``, in this order: the newest ``verify_nodes`` scans must fit the old map (the nodes
+    around i) badly at the current poses (``fit_m``); where they fit, the map holds together there and
+    the link is AGREES (joins the graph, not acted on) when it agrees with the graph within its own
+    noise (``agree_chi2``), FITS (dropped: it slid) when not; with ``require_confirmation`` one of the
     ``pending`` links (earlier candidates left UNCONFIRMED, within ``confirm_nodes``) must agree with it;
     the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
     fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
     poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
     its robot frame."""
     innovation = loop_residual_chi2(poses, candidate, config)
-    if innovation < config.agree_chi2:
-        return Judgement(Verdict.AGREES, innovation)
     j = candidate.j
     old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
     new = range(max(j - config.verify_nodes + 1, old.stop), j + 1)
     score_before = scan_map_score(poses, hits, old, new, config)
     if score_before < config.fit_m**2:
+        if innovation < config.agree_chi2:
+            return Judgement(Verdict.AGREES, innovation, score_before=score_before)
         log.debug("loop %d -> %d: the scans fit the old map already (%.4f)", candidate.i, j, score_before)
         return Judgement(Verdict.FITS, innovation, score_before=score_before)
     partners = [
