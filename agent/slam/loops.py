@@ -7,8 +7,11 @@ i (at least ``min_separation`` updates back, within ``search_radius_m`` of where
 exhaustive correlative search over ±``search_xy_m`` and ±``search_yaw_rad`` on a coarse lattice (each
 rotation's points computed once, translations as whole-cell shifts), refined by Gauss-Newton
 (``agent.slam.matcher.match``). A match that puts at least ``min_inlier_fraction`` of the endpoints on the
-old walls becomes a relative factor i -> j; the graph (``agent.slam.posegraph``) is then optimised with
-every loop factor so far (Huber kernel: a wrong one pulls with bounded force). What the filter does with
+old walls is a candidate, judged by :func:`judge_loop` (do the newest scans show the map coming apart
+there, does it say more than its own noise, does the graph take it, do the scans fit better after): a
+link the graph already agrees with joins it without an optimisation; one that passes every test joins it
+and the graph (``agent.slam.posegraph``) is optimised with every loop factor so far (Huber kernel: a
+wrong one pulls with bounded force); the others are dropped. What the filter does with
 the result (rebuild its map at the optimised poses) is ``RbpfSlam``'s business; this module is pure.
 """
 
