@@ -118,6 +118,7 @@ def run_seed(
         "match_failures": stats.match_failures,
         "loop_closures": stats.loop_closures,
         "loop_rebuilds": stats.loop_rebuilds,
+        "loop_verdicts": dict(sorted(stats.loop_verdicts.items())),
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),
     }

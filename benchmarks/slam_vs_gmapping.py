@@ -257,6 +257,7 @@ def slam_extras(slam: Any) -> dict[str, Any]:
     return {
         "loop_closures": stats.loop_closures,
         "loop_rebuilds": stats.loop_rebuilds,
+        "loop_verdicts": dict(sorted(stats.loop_verdicts.items())),
         "loop_s": round(stats.loop_ms / 1e3, 2),
     }
 

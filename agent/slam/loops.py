@@ -7,13 +7,17 @@ i (at least ``min_separation`` updates back, within ``search_radius_m`` of where
 exhaustive correlative search over ±``search_xy_m`` and ±``search_yaw_rad`` on a coarse lattice (each
 rotation's points computed once, translations as whole-cell shifts), refined by Gauss-Newton
 (``agent.slam.matcher.match``). A match that puts at least ``min_inlier_fraction`` of the endpoints on the
-old walls becomes a relative factor i -> j; the graph (``agent.slam.posegraph``) is then optimised with
-every loop factor so far (Huber kernel: a wrong one pulls with bounded force). What the filter does with
+old walls is a candidate, judged by :func:`judge_loop` (do the newest scans show the map coming apart
+there, does it say more than its own noise, does the graph take it, do the scans fit better after): a
+link the graph already agrees with joins it without an optimisation; one that passes every test joins it
+and the graph (``agent.slam.posegraph``) is optimised with every loop factor so far (Huber kernel: a
+wrong one pulls with bounded force); the others are dropped. What the filter does with
 the result (rebuild its map at the optimised poses) is ``RbpfSlam``'s business; this module is pure.
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 from dataclasses import dataclass, field
@@ -23,7 +27,14 @@ import numpy.typing as npt
 
 from agent.slam.matcher import DistanceField, MatcherConfig, match, world_points
 from agent.slam.pose import between, compose, transform_points, wrap_angle
-from agent.slam.posegraph import AbsoluteFactors, GraphResult, RelativeFactors, optimize, sqrt_information
+from agent.slam.posegraph import (
+    AbsoluteFactors,
+    GraphResult,
+    RelativeFactors,
+    optimize,
+    relative_residuals,
+    sqrt_information,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -79,6 +90,40 @@ class LoopClosureConfig:
     # costs a whole map's integration); the loop factor stays for the next one.
     apply_min_shift_m: float = 0.05
     apply_min_shift_rad: float = 0.01
+    # Judging a candidate before it joins the graph (:func:`judge_loop`):
+    # * where the scans fit the old map (``fit_m`` below), the link's innovation (the match against where
+    #   the graph already puts j seen from i) as a squared Mahalanobis distance under the loop factor's
+    #   own covariance: below ``agree_chi2`` the graph agrees within the match's noise and a correction
+    #   would only add that noise (the office: 38 such links, one of them 6.6 cm off the truth, doubled
+    #   the ATE): the link joins the graph for later optimisations but triggers none. 11.34 is chi²(3)'s
+    #   99 % quantile.
+    agree_chi2: float = 11.34
+    # * the graph must take it: after a tentative optimisation with it, its own squared residual at most
+    #   this (Huber's threshold squared: a link the kernel down-weights is one the other factors
+    #   contradict), and no earlier loop factor pushed past it that was not already;
+    accept_chi2: float = 9.0
+    # * the scans must agree: the newest ``verify_nodes`` nodes' endpoints against the old map at the
+    #   optimised poses score at most ``verify_ratio`` of their score at the current ones (mean truncated
+    #   squared distance, truncated at ``truncate_m``).
+    verify_nodes: int = 5
+    verify_ratio: float = 1.0
+    # * the map must come apart there: the newest ``verify_nodes`` scans against the old map at the current
+    #   poses, RMS truncated distance, at least ``fit_m``. Below it the scans already lie on the old walls
+    #   and a link that says otherwise slid (the office, seed 7: one link 19 cm along a corridor, among 37
+    #   that agreed with the graph, the scans at 2.7 cm RMS; accepted, the ATE went from 3.7 to 7.5 cm).
+    fit_m: float = 0.05
+    # * optionally (``require_confirmation``) confirmed, RRR's clustering with PCM's pairwise test: acted
+    #   on only together with another such link found within ``confirm_nodes`` updates before it that
+    #   agrees with it: z_b against z_a carried by the graph's short chains i_b -> i_a and j_a -> j_b,
+    #   squared Mahalanobis distance under twice the loop factor's covariance plus ``chain_sigma`` per
+    #   chain edge, at most ``pairwise_chi2``. Off: on Intel (seed 0) it lost true links that no second
+    #   one followed soon enough, and the drift they would have taken out grew until two wrong links
+    #   from one old window (15 deg off) confirmed each other (ate_aligned_m 1.53 m). Pending links that
+    #   agree with an accepted one still join the graph with it.
+    require_confirmation: bool = False
+    confirm_nodes: int = 30
+    pairwise_chi2: float = 7.81
+    chain_sigma: tuple[float, float, float] = (0.01, 0.01, 0.003)
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
 
 
@@ -197,9 +242,7 @@ def find_loop(
     if distance[i] > xy_m + config.search_radius_m:
         log.debug("node %d: no old node within %.1f m", j, xy_m + config.search_radius_m)
         return None
-    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[: old_end + 1, :2], axis=0).T))])
-    near = np.flatnonzero(np.abs(along - along[i]) <= config.window_path_m)
-    nodes = range(int(near[0]), int(near[-1]) + 1)
+    nodes = window_nodes(poses, i, old_end, config.window_path_m)
     centre = poses[j]
     coarse_field = old_map_field(
         poses, hits, nodes, config.coarse_resolution_m, config.coarse_truncate_m + config.coarse_resolution_m
@@ -244,6 +287,170 @@ def find_loop(
     return LoopConstraint(i, j, between(poses[i], refined.poses[0]), fraction, covariance)
 
 
+def window_nodes(poses: FloatArray, i: int, old_end: int, path_m: float) -> range:
+    """The nodes up to ``old_end`` within ``path_m`` of path length of node i (the old map's window)."""
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[: old_end + 1, :2], axis=0).T))])
+    near = np.flatnonzero(np.abs(along - along[i]) <= path_m)
+    return range(int(near[0]), int(near[-1]) + 1)
+
+
+def loop_sqrt_information(loop: LoopConstraint, config: LoopClosureConfig) -> FloatArray:
+    """S (3, 3) with SᵀS the loop factor's information: diag(loop_sigma²) plus the match's covariance."""
+    covariance = np.diag(np.square(np.asarray(config.loop_sigma)))
+    if loop.covariance is not None:
+        covariance = covariance + loop.covariance
+    return sqrt_information(covariance)
+
+
+def loop_residual_chi2(poses: FloatArray, loop: LoopConstraint, config: LoopClosureConfig) -> float:
+    """The loop factor's squared Mahalanobis residual at ``poses``."""
+    factor = RelativeFactors(
+        np.array([loop.i]),
+        np.array([loop.j]),
+        loop.z[None, :],
+        np.asarray(config.loop_sigma)[None, :],
+        loop_sqrt_information(loop, config)[None, :, :],
+    )
+    return float(np.sum(relative_residuals(poses, factor) ** 2))
+
+
+class Verdict(enum.Enum):
+    ACCEPTED = "accepted"
+    AGREES = "agrees"  # the graph already agrees within the match's noise: nothing to correct
+    FITS = "fits"  # the newest scans lie on the old map already: the link slid, not the map
+    UNCONFIRMED = "unconfirmed"  # disagrees with the graph, no other link yet says the same: pending
+    INCONSISTENT = "inconsistent"  # the graph will not take it (its residual, or other loops', too large)
+    WORSE = "worse"  # the newest scans fit the old map worse at the corrected poses
+
+
+@dataclass(frozen=True)
+class Judgement:
+    verdict: Verdict
+    innovation_chi2: float
+    residual_chi2: float = math.nan
+    score_before: float = math.nan
+    score_after: float = math.nan
+    result: GraphResult | None = None  # the tentative optimisation (ACCEPTED: the one to apply)
+    partners: tuple[LoopConstraint, ...] = ()  # the pending links that confirmed it (join the graph too)
+
+
+def pairwise_chi2(
+    poses: FloatArray, a: LoopConstraint, b: LoopConstraint, config: LoopClosureConfig
+) -> float:
+    """How far two loop links disagree, given the graph's chains between their ends: b's z against a's
+    carried to b's nodes, squared Mahalanobis (PCM's pairwise consistency)."""
+    predicted = compose(compose(between(poses[b.i], poses[a.i]), a.z), between(poses[a.j], poses[b.j]))
+    error = between(predicted, b.z)
+    error[2] = wrap_angle(error[2])
+    edges = abs(a.i - b.i) + abs(a.j - b.j)
+    variance = 2.0 * np.square(np.asarray(config.loop_sigma)) + edges * np.square(
+        np.asarray(config.chain_sigma)
+    )
+    covariance = np.diag(variance)
+    for c in (a, b):
+        if c.covariance is not None:
+            covariance = covariance + c.covariance
+    return float(error @ np.linalg.solve(covariance, error))
+
+
+def point_distances(field_: DistanceField, points_xy: FloatArray, pose: FloatArray) -> FloatArray:
+    """Distance (cell lookup, as :func:`lattice_search`) from each of ``points_xy`` (robot frame) at
+    ``pose`` to the field's nearest obstacle."""
+    _u, h, w = field_.distance_m.shape
+    res = field_.resolution_m
+    wx, wy, _, _ = world_points(pose[None, :], points_xy)
+    col = np.clip(np.floor((wx[0] - field_.origin_m[0]) / res).astype(np.int64) + 1, 0, w - 1)
+    row = np.clip(np.floor((wy[0] - field_.origin_m[1]) / res).astype(np.int64) + 1, 0, h - 1)
+    distances: FloatArray = field_.distance_m[0][row, col].astype(np.float64)
+    return distances
+
+
+def scan_map_score(
+    poses: FloatArray, hits: list[FloatArray], old: range, new: range, config: LoopClosureConfig
+) -> float:
+    """How well the endpoints of nodes ``new`` lie on the map of nodes ``old``, each at its pose in
+    ``poses``: the median of their squared distances truncated at ``truncate_m`` (lower is better; the
+    median, because the new scans also see what the old nodes never did)."""
+    if not any(hits[k].shape[0] for k in old):
+        return math.inf
+    cap = config.truncate_m + config.resolution_m
+    field_ = old_map_field(poses, hits, old, config.resolution_m, cap)
+    distances = [point_distances(field_, hits[k], poses[k]) for k in new if hits[k].shape[0]]
+    if not distances:
+        return math.inf
+    d = np.minimum(np.concatenate(distances), config.truncate_m)
+    return float(np.median(d * d))
+
+
+def judge_loop(
+    poses: FloatArray,
+    hits: list[FloatArray],
+    motions: FloatArray,
+    loops: list[LoopConstraint],
+    candidate: LoopConstraint,
+    config: LoopClosureConfig,
+    absolute: AbsoluteFactors | None = None,
+    odometry_motions: FloatArray | None = None,
+    pending: list[LoopConstraint] | None = None,
+) -> Judgement:
+    """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
+    accepted ``loops``, in this order: the newest ``verify_nodes`` scans must fit the old map (the nodes
+    around i) badly at the current poses (``fit_m``); where they fit, the map holds together there and
+    the link is AGREES (joins the graph, not acted on) when it agrees with the graph within its own
+    noise (``agree_chi2``), FITS (dropped: it slid) when not; with ``require_confirmation`` one of the
+    ``pending`` links (earlier candidates left UNCONFIRMED, within ``confirm_nodes``) must agree with it;
+    the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
+    fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
+    poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
+    its robot frame."""
+    innovation = loop_residual_chi2(poses, candidate, config)
+    j = candidate.j
+    old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
+    new = range(max(j - config.verify_nodes + 1, old.stop), j + 1)
+    score_before = scan_map_score(poses, hits, old, new, config)
+    if score_before < config.fit_m**2:
+        if innovation < config.agree_chi2:
+            return Judgement(Verdict.AGREES, innovation, score_before=score_before)
+        log.debug("loop %d -> %d: the scans fit the old map already (%.4f)", candidate.i, j, score_before)
+        return Judgement(Verdict.FITS, innovation, score_before=score_before)
+    partners = [
+        p
+        for p in (pending or [])
+        if candidate.j - p.j <= config.confirm_nodes
+        and pairwise_chi2(poses, p, candidate, config) <= config.pairwise_chi2
+    ]
+    if config.require_confirmation and not partners:
+        return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
+    before = optimize_graph(poses, motions, loops, config, absolute, odometry_motions) if loops else None
+    result = optimize_graph(
+        poses, motions, [*loops, *partners, candidate], config, absolute, odometry_motions
+    )
+    residual = loop_residual_chi2(result.poses, candidate, config)
+    bad_before = (
+        sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
+        if before is not None
+        else 0
+    )
+    bad_after = sum(loop_residual_chi2(result.poses, c, config) > config.accept_chi2 for c in loops)
+    if residual > config.accept_chi2 or bad_after > bad_before:
+        log.debug(
+            "loop %d -> %d: inconsistent (chi2 %.1f, %d -> %d loops off)",
+            candidate.i,
+            candidate.j,
+            residual,
+            bad_before,
+            bad_after,
+        )
+        return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
+    score_after = scan_map_score(result.poses, hits, old, new, config)
+    if score_after > config.verify_ratio * score_before:
+        log.debug("loop %d -> %d: scans fit worse (%.4f -> %.4f)", candidate.i, j, score_before, score_after)
+        return Judgement(Verdict.WORSE, innovation, residual, score_before, score_after)
+    return Judgement(
+        Verdict.ACCEPTED, innovation, residual, score_before, score_after, result, tuple(partners)
+    )
+
+
 def match_covariance(information: FloatArray, yaw_i_rad: float, sigma_m: float) -> FloatArray:
     """The covariance of a matched pose, s² (Σ J Jᵀ)⁻¹ (``information`` in world x, y, yaw), turned into
     the frame of a node at heading ``yaw_i_rad`` (a relative factor's z = between(x_i, x_j))."""
@@ -282,11 +489,8 @@ def optimize_graph(
     )
     whitening = None
     if any(c.covariance is not None for c in loops):
-        floor = np.diag(np.square(np.asarray(config.loop_sigma)))
-        covariances = np.array([floor + (c.covariance if c.covariance is not None else 0.0) for c in loops])
-        factors = RelativeFactors(i, j, z, sigma)
-        whitening = factors.whitening()
-        whitening[n - 1 :] = sqrt_information(covariances)
+        whitening = RelativeFactors(i, j, z, sigma).whitening()
+        whitening[n - 1 :] = np.array([loop_sqrt_information(c, config) for c in loops])
     return optimize(poses, RelativeFactors(i, j, z, sigma, whitening), absolute, huber=config.huber)
 
 

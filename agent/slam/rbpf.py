@@ -52,11 +52,11 @@ from agent.slam.grid import (
     prepare_scan,
     surface_normals,
 )
-from agent.slam.loops import LoopClosureConfig, LoopConstraint, find_loop, optimize_graph, yaw_doubt
+from agent.slam.loops import LoopClosureConfig, LoopConstraint, Verdict, find_loop, judge_loop, yaw_doubt
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
-from agent.slam.posegraph import AbsoluteFactors
+from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import ProposalConfig, improved_proposal
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
@@ -152,6 +152,8 @@ class FilterStats:
     loop_closures: int = 0
     loop_rebuilds: int = 0
     loop_ms: float = 0.0  # time spent on loop search, optimisation and map rebuilds
+    # Candidates found, by ``loops.Verdict`` value (accepted, agrees, inconsistent, worse).
+    loop_verdicts: collections.Counter[str] = field(default_factory=collections.Counter)
     n_eff: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=10_000))
 
 
@@ -240,6 +242,8 @@ class RbpfSlam:
         self._node_hits: list[FloatArray] = []
         self._node_motions: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
+        self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
+        self._pending: list[LoopConstraint] = []  # links that disagreed with the graph, unconfirmed
         self._anchored = 0  # nodes up to here hold graph-optimised poses in the history
         # VLP fixes fused at a node stay in the graph as absolute factors: (node, mean, sigma).
         self._node_fix: PoseMeasurement | None = None
@@ -601,7 +605,7 @@ class RbpfSlam:
         t0 = time.perf_counter()
         self.stats.loop_checks += 1
         _, path, _ = self.trajectory()
-        since = self._loops[-1].j if self._loops else 0
+        since = self._last_agreement
         travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
         odometry = np.array(list(self.history_odom)[since:])
         doubt = yaw_doubt(
@@ -609,21 +613,55 @@ class RbpfSlam:
         )
         found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt)
         if found is not None:
-            self._loops.append(found)
-            self.stats.loop_closures += 1
-            self.give_way()
-            self._close(path)
+            self._judge(path, found)
         self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
 
-    def _close(self, path: FloatArray) -> None:
-        """Optimise the graph; put the history, the particles and the maps on the optimised poses."""
+    def _judge(self, path: FloatArray, found: LoopConstraint) -> None:
+        """Judge a candidate (``loops.judge_loop``); an accepted one joins the graph and is applied."""
         lc = self.config.loop_closure
         assert lc is not None
+        motions, odometry_motions, absolute = self._graph_inputs(path)
+        judgement = judge_loop(
+            path, self._node_hits, motions, self._loops, found, lc, absolute, odometry_motions, self._pending
+        )
+        self.stats.loop_verdicts[judgement.verdict.value] += 1
+        log.debug(
+            "loop %d -> %d: %s (innovation chi2 %.1f, residual %.1f, scans %.4f -> %.4f)",
+            found.i,
+            found.j,
+            judgement.verdict.value,
+            judgement.innovation_chi2,
+            judgement.residual_chi2,
+            judgement.score_before,
+            judgement.score_after,
+        )
+        if judgement.verdict is Verdict.AGREES:
+            # A true link, kept for the next optimisation, but nothing to correct now.
+            self._loops.append(found)
+            self.stats.loop_closures += 1
+            self._last_agreement = found.j  # the drift since is measured from here
+            return
+        if judgement.verdict is Verdict.UNCONFIRMED:
+            self._pending = [p for p in self._pending if found.j - p.j <= lc.confirm_nodes] + [found]
+            return
+        if judgement.verdict is not Verdict.ACCEPTED or judgement.result is None:
+            return
+        for partner in judgement.partners:
+            self._pending.remove(partner)
+            self._loops.append(partner)
+        self._loops.append(found)
+        self._last_agreement = found.j
+        self.stats.loop_closures += 1
+        self._node_motions = list(motions)
+        self.give_way()
+        self._apply(path, judgement.result)
+
+    def _graph_inputs(self, path: FloatArray) -> tuple[FloatArray, FloatArray, AbsoluteFactors | None]:
+        """The chain's motions (since the last optimisation: the leading lineage's ancestry, the front
+        end's best account), the odometry's motions beside them, and the VLP fixes' absolute factors."""
         motions = np.array(self._node_motions)
-        # Since the last optimisation the leading lineage's ancestry is the front end's best account.
         recent = np.arange(self._anchored + 1, path.shape[0])
         motions[recent] = between(path[recent - 1], path[recent])
-        self._node_motions = list(motions)
         odometry = np.array(self.history_odom)
         odometry_motions = np.zeros_like(odometry)
         odometry_motions[1:] = between(odometry[:-1], odometry[1:])
@@ -634,7 +672,12 @@ class RbpfSlam:
                 np.array([f[1] for f in self._fix_factors]),
                 np.array([f[2] for f in self._fix_factors]),
             )
-        result = optimize_graph(path, motions, self._loops, lc, absolute, odometry_motions)
+        return motions, odometry_motions, absolute
+
+    def _apply(self, path: FloatArray, result: GraphResult) -> None:
+        """Put the history, the particles and the maps on the optimised poses."""
+        lc = self.config.loop_closure
+        assert lc is not None
         optimised = result.poses
         shift = np.abs(optimised - path)
         if (

@@ -7,7 +7,16 @@ import math
 
 import numpy as np
 
-from agent.slam.loops import LoopClosureConfig, chain_poses, find_loop, match_covariance, optimize_graph
+from agent.slam.loops import (
+    LoopClosureConfig,
+    LoopConstraint,
+    Verdict,
+    chain_poses,
+    find_loop,
+    judge_loop,
+    match_covariance,
+    optimize_graph,
+)
 from agent.slam.pose import between, compose, inverse, transform_points
 from agent.slam.posegraph import AbsoluteFactors, RelativeFactors, optimize, sqrt_information
 
@@ -143,7 +152,6 @@ def test_the_graph_spreads_a_closure_over_the_edges_the_matcher_bent() -> None:
     path = chain_poses(np.zeros(3), front_end)
     truth = chain_poses(np.zeros(3), true_motions)
     n = path.shape[0]
-    from agent.slam.loops import LoopConstraint
 
     loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
     result = optimize_graph(path, front_end, loops, LoopClosureConfig(), odometry_motions=odometry)
@@ -177,3 +185,97 @@ def test_a_loop_factor_with_full_covariance_pulls_only_where_the_match_is_sure()
     # The covariance turns with the node's heading (x_i's frame).
     turned = match_covariance(np.diag([1.0, 400.0, 4000.0]), math.pi / 2, 0.1)
     assert turned[1, 1] > 100 * turned[0, 0]
+
+
+def _drifted_revisit() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Truth and a front end's path through the L-shaped room: nodes 0-19 along it, 20-59 far away
+    (they see nothing of it), 60-64 back along the first stretch; the front end drifts from node 20 on,
+    linearly, to 0.4 m, 0.3 m and 6 deg off at the revisit."""
+    rng = np.random.default_rng(3)
+    walls = _room_points(rng)
+    truth = np.zeros((65, 3))
+    truth[:20] = np.stack([1.0 + 0.5 * np.arange(20), np.full(20, 1.2), np.zeros(20)], axis=1)
+    truth[20:60] = np.stack([np.full(40, 40.0), np.arange(40.0), np.zeros(40)], axis=1)
+    truth[60:] = np.stack([2.0 + 0.5 * np.arange(5), np.full(5, 1.4), np.zeros(5)], axis=1)
+    path = truth.copy()
+    for k in range(20, 65):
+        path[k] = compose(truth[k], (k - 19) / 45 * np.array([0.4, -0.3, math.radians(6.0)]))
+    hits = [_scan_from(p, walls) for p in truth]
+    return truth, path, hits
+
+
+def test_a_revisit_that_corrects_the_drift_is_accepted() -> None:
+    truth, path, hits = _drifted_revisit()
+    motions = np.zeros_like(path)
+    motions[1:] = between(path[:-1], path[1:])
+    config = LoopClosureConfig(min_separation=40, require_confirmation=True)
+    first = find_loop(path, hits, hits[62], 62, config, travelled_m=60.0, yaw_doubt_rad=0.2)
+    assert first is not None
+    # Alone it disagrees with the graph and waits for a second link that says the same.
+    alone = judge_loop(path, hits, motions, [], first, config)
+    assert alone.verdict is Verdict.UNCONFIRMED and alone.result is None
+    found = find_loop(path, hits, hits[64], 64, config, travelled_m=60.0, yaw_doubt_rad=0.2)
+    assert found is not None
+    judgement = judge_loop(path, hits, motions, [], found, config, pending=[first])
+    assert judgement.verdict is Verdict.ACCEPTED, judgement
+    assert judgement.partners == (first,)
+    assert judgement.innovation_chi2 > config.agree_chi2
+    assert judgement.score_after < judgement.score_before
+    assert judgement.result is not None
+    before = np.hypot(*(path[64, :2] - truth[64, :2]))
+    after = np.hypot(*(judgement.result.poses[64, :2] - truth[64, :2]))
+    assert before > 0.4 and after < 0.05
+
+
+def test_a_revisit_the_graph_already_agrees_with_changes_nothing() -> None:
+    truth, _, hits = _drifted_revisit()
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    config = LoopClosureConfig(min_separation=40)
+    found = find_loop(truth, hits, hits[64], 64, config, travelled_m=60.0)
+    assert found is not None
+    judgement = judge_loop(truth, hits, motions, [], found, config)
+    assert judgement.verdict is Verdict.AGREES and judgement.result is None
+
+
+def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected() -> None:
+    truth = chain_poses(np.zeros(3), _square())
+    n = truth.shape[0]
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    hits = [np.zeros((0, 2)) for _ in range(n)]
+    config = LoopClosureConfig(min_separation=10)
+    loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
+    wrong = LoopConstraint(5, 30, compose(between(truth[5], truth[30]), np.array([4.0, -3.0, 1.2])), 0.9)
+    # A second wrong link that says the same (a repeated structure seen twice): they confirm each other,
+    # and the graph still will not take them.
+    again = compose(compose(between(truth[6], truth[5]), wrong.z), between(truth[30], truth[31]))
+    partner = LoopConstraint(6, 31, again, 0.9)
+    judgement = judge_loop(truth, hits, motions, loops, wrong, config, pending=[partner])
+    assert judgement.verdict is Verdict.INCONSISTENT
+    assert judgement.residual_chi2 > config.accept_chi2
+
+
+def test_a_lone_link_that_slid_is_not_confirmed_by_one_that_did_not() -> None:
+    truth, path, hits = _drifted_revisit()
+    config = LoopClosureConfig(min_separation=40, require_confirmation=True)
+    good = LoopConstraint(5, 62, between(truth[5], truth[62]), 0.9)
+    slid = LoopConstraint(6, 64, compose(between(truth[6], truth[64]), np.array([0.25, 0.0, 0.0])), 0.9)
+    motions = np.zeros_like(path)
+    motions[1:] = between(path[:-1], path[1:])
+    assert judge_loop(path, hits, motions, [], slid, config, pending=[good]).verdict is Verdict.UNCONFIRMED
+    right = LoopConstraint(6, 64, between(truth[6], truth[64]), 0.9)
+    assert judge_loop(path, hits, motions, [], right, config, pending=[good]).verdict is Verdict.ACCEPTED
+
+
+def test_a_link_that_slid_where_the_scans_fit_the_old_map_changes_nothing() -> None:
+    # The graph is right (the truth); a link 20 cm off along the first stretch disagrees with it, but the
+    # newest scans lie on the old walls at the graph's poses: the link slid, not the map.
+    truth, _, hits = _drifted_revisit()
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    config = LoopClosureConfig(min_separation=40)
+    slid = LoopConstraint(6, 64, compose(between(truth[6], truth[64]), np.array([0.2, 0.0, 0.0])), 0.9)
+    judgement = judge_loop(truth, hits, motions, [], slid, config)
+    assert judgement.innovation_chi2 > config.agree_chi2
+    assert judgement.verdict is Verdict.FITS and judgement.result is None
