@@ -63,7 +63,7 @@ def test_named_places_are_read_and_a_broken_one_is_refused_naming_the_key() -> N
     places = parse_config(text).exploration.places
     assert places[1] == NamedPoint("lab", -1.0, 0.5, None)
     assert places[0].name == "kitchen" and places[0].yaw_rad == pytest.approx(1.5707963)
-    with pytest.raises(ConfigError, match="places.*y_m"):
+    with pytest.raises(ConfigError, match=r"places.*y_m"):
         parse_config(BASE + '[[exploration.places]]\nname = "a"\nx_m = 1\n')
     with pytest.raises(ConfigError, match="names two places"):
         parse_config(BASE + '[[exploration.places]]\nname = "a"\nx_m = 1\ny_m = 1\n' * 2)
