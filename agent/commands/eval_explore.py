@@ -90,8 +90,10 @@ def add_parser(subparsers: Any) -> None:
             complete (or failed, or the time budget is spent), on a simulated clock, faster than real
             time: the laser builds the map, the explorer picks targets, the navigation stack drives
             there. Reports the share of the reachable free area explored, whether it completed and why
-            it stopped, the localization error, the path length, the decisions and their time, and
-            collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
+            it stopped, the map ATE (the poses the map was built at: --map slam for a map the robot
+            built) and the map's own error against the true walls, the localization error, the path
+            length, the decisions and their time, retries and branches pruned for a passage seen
+            shut, and collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
             rooms, places, edges) as one PNG, and sp2atm's topological map as GeoJSON beside it
             (docs/exploration.md). Progress on stderr."""
         ),
