@@ -482,5 +482,7 @@ class MissionLoop:
             "reason": self.explorer.reason,
             "complete": self.explorer.state is ExploreState.COMPLETE,
             "decision_ms_median": round(float(np.median(ms)), 2) if ms else None,
+            "retries": getattr(self.explorer, "retries", 0),
+            "blocked_branches": len(getattr(self.explorer, "blocked_branches", ())),
             **dict(self.counts),
         }
