@@ -456,6 +456,14 @@ def run_exploration(
             )
     sim.set_body_velocity(0.0, 0.0)
     wall_s = time.perf_counter() - wall_start
+    if progress:
+        seen = float(np.count_nonzero(target_area & ~grid.unknown)) / max(int(target_area.sum()), 1)
+        print(
+            f"  t={clock.t_s:6.0f} s  explored {seen:6.1%}  path {run.path_m:6.1f} m  decisions "
+            f"{len(run.decision_ms)}  end: {stopped_reason}",
+            file=sys.stderr,
+            flush=True,
+        )
     grid = _grid(spec, scan_map, slam_map)
     # Judged on the building as it is at the end: a door that closed during the run cuts off what lies
     # behind it (the robot, wherever it is, could not get there now).

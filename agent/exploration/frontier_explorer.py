@@ -121,6 +121,7 @@ class FrontierExplorer:
         self.blocked_branches: list[dict[str, object]] = []  # branches pruned for a passage shut
         self.closed_m: FloatArray = np.zeros((0, 2))  # cells (centres, metres) of passages seen shut
         self._pose: Pose | None = None
+        self._target_frontier: Frontier | None = None  # the frontier the current target is to see
         self.shut_path_m: FloatArray | None = None  # path costs with the last closure found over the map
         # Where the evidence comes from when a failure is reported without it (the explorer's own progress
         # timeout, or a driver that passes none): the driver sets it, e.g. to the navigator's obstacle layer.
@@ -218,9 +219,20 @@ class FrontierExplorer:
         cell = seen.spec.to_cell(np.array([target.x_m, target.y_m]))[0]
         if not seen.spec.inside(cell[None, :])[0]:
             return None
-        roomy = costmap.distance_m() >= self.nav.inscribed_m
-        if np.isfinite(path_m[cell[0], cell[1]]) and roomy[cell[0], cell[1]]:
+        distance = costmap.distance_m()
+        if np.isfinite(path_m[cell[0], cell[1]]) and distance[cell[0], cell[1]] >= self.nav.inscribed_m:
             return None  # shut there, but the target is still reachable another way
+        frontier = self._target_frontier
+        if frontier is not None:
+            # A target that only stood too close to a wall the map had missed is no branch shut: the
+            # frontier it served still has targets the robot reaches with room.
+            reach = max(round(self.config.target_reach_m / seen.spec.resolution_m), 0)
+            near = np.zeros(seen.spec.shape, dtype=bool)
+            near[frontier.cells[:, 0], frontier.cells[:, 1]] = True
+            near = dilate(near, reach)
+            roomy = distance >= self.nav.inscribed_m + self.config.target_clearance_m
+            if np.any(near & np.isfinite(path_m) & roomy):
+                return None
         self.shut_path_m = path_m
         return closure
 
@@ -405,6 +417,7 @@ class FrontierExplorer:
         here = None if self.target is None else (self.target.x_m, self.target.y_m)
         if switch and (best.target.x_m, best.target.y_m) != here:
             self._aim(best.target, pose, t_s)
+            self._target_frontier = best.frontier
         self._set(ExploreState.EXPLORING, f"{len(survey.candidates)} reachable frontiers")
 
     def _current_cost(self, survey: Survey) -> float | None:
