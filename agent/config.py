@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from agent.config_slam import MountConfig, SlamConfig, SlamMode
-from agent.exploration.config import ExploreConfig, ExplorerKind
+from agent.exploration.config import ExploreConfig, ExplorerKind, NamedPoint
 from agent.navigation.config import NavConfig
 from drivers.errors import BackendUnavailable, ConfigError
 from drivers.registry import (
@@ -1403,6 +1403,8 @@ class _Reader:
                 values[f.name] = ExplorerKind(
                     t.choice(f.name, default.value, [k.value for k in ExplorerKind])
                 )
+            elif f.name == "places":
+                values[f.name] = self._places(t)
             elif isinstance(default, bool):
                 values[f.name] = t.boolean(f.name, default)
             elif f.name == "ast_beams":
@@ -1414,6 +1416,26 @@ class _Reader:
                 values[f.name] = t.number(f.name, default, _NON_NEGATIVE if zero_ok else _POSITIVE)
         t.finish()
         return ExploreConfig(**values)
+
+    def _places(self, t: _Table) -> tuple[NamedPoint, ...]:
+        """``[[exploration.places]]``: ``name`` (unique), ``x_m``, ``y_m``, optional ``yaw_deg`` /
+        ``yaw_rad``."""
+        out: list[NamedPoint] = []
+        for p in t.tables("places") or []:
+            name = p.required_string("name", "the place's name")
+            if any(q.name == name for q in out):
+                raise p.error("name", f"{name!r} names two places")
+            if len(name.encode()) > 16:
+                raise p.error("name", "at most 16 bytes (the go-to-place frame's name field)")
+            x = p.number("x_m", math.nan)
+            y = p.number("y_m", math.nan)
+            if math.isnan(x) or math.isnan(y):
+                raise p.error("x_m" if math.isnan(x) else "y_m", "missing (the place's position, metres)")
+            has_yaw = p.has("yaw_deg") or p.has("yaw_rad")
+            yaw = p.angle("yaw", 0.0)
+            out.append(NamedPoint(name, x, y, yaw if has_yaw else None))
+            p.finish()
+        return tuple(out)
 
     def _record(self) -> RecordConfig:
         t = self.top.table("record") or _Table({}, "record", self.file)

@@ -1,6 +1,7 @@
 """SP2ATM against the frontier baseline on one world and several seeds (issue 22's acceptance): each seed
 is run by both explorers with ``vlp-agent eval explore``'s simulation (``run_eval``: map from the true
-pose, localization by odometry and VLP fixes, faster than real time), one after the other.
+pose, localization by odometry and VLP fixes, or with ``--map slam`` the RBPF's map and pose; faster than
+real time), one after the other.
 
 Prints one JSON object per run as it ends (the ``eval explore --json`` keys, with ``seed`` and
 ``explorer``), then one summary object: per explorer and per seed group (``tuned``: the seeds the
@@ -14,7 +15,7 @@ measured in the same process on the same machine; the budget is 50 ms median on 
 OpenCV and BLAS are held to one thread.
 
     python benchmarks/explore_compare.py [--world examples/worlds/office.toml] [--seeds 0-11]
-        [--explorers sp2atm,frontier] [--budget-s 1200] [--png-dir DIR]
+        [--explorers sp2atm,frontier] [--budget-s 1200] [--map truth-pose|slam] [--png-dir DIR]
 """
 
 from __future__ import annotations
@@ -74,6 +75,11 @@ def group(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "complete": sum(1 for r in runs if r["complete"]),
         "premature_complete": sum(1 for r in runs if r["complete"] and r["explored_fraction"] < EXPLORED_MIN),
         "collisions_walls": sum(int(r["collisions_walls"]) for r in runs),
+        "collisions": sum(int(r["collisions"]) for r in runs),
+        "retries": sum(int(r.get("retries", 0)) for r in runs),
+        "blocked_branches": sum(len(r.get("blocked_branches", [])) for r in runs),
+        "ate_m_max": max(col("ate_m"), default=None),
+        "map_error_m_max": max(col("map_error_m"), default=None),
     }
 
 
@@ -85,6 +91,7 @@ def main() -> int:
     parser.add_argument("--seeds", default="0-11", help="e.g. 0-11 or 4,5,6 (default 0-11)")
     parser.add_argument("--explorers", default="sp2atm,frontier")
     parser.add_argument("--budget-s", type=float, default=1200.0)
+    parser.add_argument("--map", choices=[m.value for m in MapSource], default=MapSource.TRUTH_POSE.value)
     parser.add_argument("--png-dir", default=None, help="write each run's picture here")
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -93,14 +100,19 @@ def main() -> int:
     runs: dict[ExplorerKind, list[dict[str, Any]]] = {k: [] for k in kinds}
     for seed in seeds(args.seeds):
         for kind in kinds:
-            summary, picture, _ = run_eval(world, kind, seed, MapSource.TRUTH_POSE, args.budget_s)
+            summary, picture, _ = run_eval(world, kind, seed, MapSource(args.map), args.budget_s)
             if args.png_dir:
                 folder = Path(args.png_dir)
                 folder.mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(folder / f"{world.name}-{kind.value}-{seed}.png"), picture)
             runs[kind].append(summary)
             print(json.dumps(summary, sort_keys=True), flush=True)
-    out: dict[str, Any] = {"world": world.name, "budget_s": args.budget_s, "tuned_seeds": sorted(TUNED)}
+    out: dict[str, Any] = {
+        "world": world.name,
+        "map": args.map,
+        "budget_s": args.budget_s,
+        "tuned_seeds": sorted(TUNED),
+    }
     for name, keep in (
         ("all", lambda s: True),
         ("tuned", lambda s: s in TUNED),

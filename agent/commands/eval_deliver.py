@@ -9,6 +9,13 @@ control step at 20 Hz), on the map a finished exploration gives: the world's wal
 anything else only through the scans). A trip counts when both its ends were reached (the navigator said
 so and the true position is within ``--tolerance-m`` of the place, and within 5 deg of its heading if it
 has one) and the robot touched nothing on the way.
+
+With ``--explore EXPLORER`` the map is the one an exploration built instead: ``eval explore``'s run
+(``run_exploration``) from an empty map at the world's start, its map (``--explore-map``: ``slam``, the
+RBPF's, by default) saved as ``<map-dir>/<world>.yaml`` with its topological map beside it
+(``<world>.topology.geojson``: sp2atm's HTM, or for the frontier explorer the rooms found on the final
+map, with the world's ``[[places]]`` as named places naming their rooms); the file is read back and the
+legs go to the places it names. The trips then start again from the world's start, on that map.
 """
 
 from __future__ import annotations
@@ -17,9 +24,14 @@ import argparse
 import json
 import sys
 import textwrap
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from agent.commands.eval_nav import GoalResult, run_eval
+from agent.exploration import ExploreConfig, ExplorerKind, GridMap
+from agent.navigation.costmap import BoolArray
 from drivers.sim.world import Place, World
 
 DEFAULT_TRIPS = 10
@@ -55,6 +67,27 @@ def add_parser(subparsers: Any) -> None:
         help=f"an end is met within this of the place (default: {DEFAULT_TOLERANCE_M:g})",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed: sensor noise, people (default: 0)")
+    p.add_argument(
+        "--explore",
+        choices=[k.value for k in ExplorerKind],
+        default=None,
+        metavar="EXPLORER",
+        help="explore the world first from an empty map with this explorer (sp2atm or frontier), save the "
+        "map and its topology under --map-dir, and drive the trips on that map to the places the saved "
+        "topology names (default: the world's walls as the map)",
+    )
+    p.add_argument(
+        "--explore-map",
+        choices=["slam", "truth-pose"],
+        default="slam",
+        help="with --explore: the map the exploration builds (default: slam, the RBPF's map and pose)",
+    )
+    p.add_argument(
+        "--map-dir",
+        metavar="DIR",
+        default="deliver-map",
+        help="with --explore: where the map and its topology are saved (default: deliver-map)",
+    )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
 
 
@@ -76,8 +109,10 @@ def run_delivery(
     seed: int,
     tolerance_m: float = DEFAULT_TOLERANCE_M,
     progress: bool = False,
+    static_map: tuple[BoolArray, BoolArray] | None = None,
 ) -> dict[str, Any]:
-    """The evaluation (see the module docstring) as a JSON-ready dict."""
+    """The evaluation (see the module docstring) as a JSON-ready dict; ``static_map``: the navigator's
+    map (occupied, unknown on the walls' grid) instead of the walls."""
     legs = [a] + [p for _ in range(trips) for p in (b, a)]
     results: list[GoalResult] = []
 
@@ -98,6 +133,7 @@ def run_delivery(
         seed,
         on_goal=ended,
         goal_list=[(p.x_m, p.y_m, p.yaw_rad) for p in legs],
+        static_map=static_map,
     )
     ends: list[dict[str, Any]] = []
     for leg, r in zip(legs, results, strict=False):
@@ -140,9 +176,50 @@ def run_delivery(
         "legs": trip_ends,
         "sim_s": nav["sim_s"],
         "wall_s": nav["wall_s"],
-        "map_source": nav["map_source"],
+        "map_source": nav["map_source"] if static_map is None else "the map an exploration built",
         "localization": nav["localization"],
     }
+
+
+def explore_and_save(
+    world: World, explorer: ExplorerKind, seed: int, map_source: str, map_dir: Path, progress: bool = False
+) -> tuple[GridMap, dict[str, Any], Path, dict[str, tuple[float, float]]]:
+    """Explore ``world`` from an empty map (``eval explore``'s run), save the map and its topological map
+    (named places from the world's ``[[places]]``) under ``map_dir``, read the topology back: the map,
+    the exploration's summary, the map's YAML and the places the saved topology names."""
+    from agent.commands.eval_explore import MapSource, run_exploration
+    from agent.exploration.htm import Htm
+    from agent.exploration.regions import find_regions
+    from agent.exploration.topology import add_named_places, from_geojson, named_places, to_geojson
+    from agent.slam import mapio
+    from agent.slam.render import FREE_VALUE, OCCUPIED_VALUE, UNKNOWN_VALUE, OccupancyImage
+
+    config = ExploreConfig(explorer=explorer)
+    e = run_exploration(world, explorer, seed, MapSource(map_source), progress=progress, config=config)
+    grid = e.grid
+    pixels = np.full(grid.spec.shape, UNKNOWN_VALUE, np.uint8)
+    pixels[grid.free] = FREE_VALUE
+    pixels[grid.occupied] = OCCUPIED_VALUE
+    image = OccupancyImage(
+        np.ascontiguousarray(pixels[::-1]), grid.spec.resolution_m, (*grid.spec.origin_m, 0.0)
+    )
+    yaml_path = map_dir / f"{world.name}.yaml"
+    mapio.save_map(
+        image, yaml_path, comment=f"vlp-agent eval deliver --explore {explorer.value}, seed {seed}"
+    )
+    if e.topology is not None:
+        htm = from_geojson(e.topology)
+    else:  # the frontier explorer keeps no graph: the rooms of the final map
+        htm = Htm(config.merge_m)
+        _, regions = find_regions(grid, config.door_width_m, config.min_region_m2)
+        htm.set_regions([(r.polygon, r.area_m2) for r in regions])
+    add_named_places(htm, [(p.name, p.x_m, p.y_m) for p in world.places])
+    where = mapio.save_topology(
+        to_geojson(htm, map_name=f"{world.name} (eval deliver --explore {explorer.value}, seed {seed})"),
+        mapio.topology_path(yaml_path),
+    )
+    places = named_places(from_geojson(mapio.load_topology(where)))
+    return grid, e.summary, yaml_path, places
 
 
 def run(args: argparse.Namespace) -> int:
@@ -164,7 +241,42 @@ def run(args: argparse.Namespace) -> int:
         "(each leg's end on stderr)",
         file=sys.stderr,
     )
-    s = run_delivery(world, a, b, args.trips, args.seed, args.tolerance_m, progress=True)
+    static_map: tuple[BoolArray, BoolArray] | None = None
+    explored: dict[str, Any] | None = None
+    if args.explore is not None:
+        print(f"  exploring first ({args.explore}, map from {args.explore_map})", file=sys.stderr)
+        grid, explored, yaml_path, places = explore_and_save(
+            world, ExplorerKind(args.explore), args.seed, args.explore_map, Path(args.map_dir), progress=True
+        )
+        for p in (a, b):
+            if p.name not in places:
+                raise ConfigError("--explore", f"the saved topology names no place {p.name!r}")
+        # The legs go where the saved topology says (the heading is the world's: the file keeps none).
+        a = Place(a.name, *places[a.name], a.yaw_rad)
+        b = Place(b.name, *places[b.name], b.yaw_rad)
+        static_map = (grid.occupied, grid.unknown)
+        explored = {
+            k: explored[k]
+            for k in (
+                "explorer",
+                "map_source",
+                "explored_fraction",
+                "complete",
+                "stopped_reason",
+                "ate_m",
+                "map_error_m",
+                "path_length_m",
+                "time_s",
+                "collisions",
+            )
+        }
+        explored["map"] = str(yaml_path)
+        explored["topology"] = str(yaml_path.with_name(yaml_path.stem + ".topology.geojson"))
+    s = run_delivery(
+        world, a, b, args.trips, args.seed, args.tolerance_m, progress=True, static_map=static_map
+    )
+    if explored is not None:
+        s["exploration"] = explored
     if args.json:
         print(json.dumps(s, sort_keys=True))
         return 0

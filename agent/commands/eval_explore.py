@@ -12,10 +12,13 @@ The map (``--map``):
 
 * ``truth-pose`` (default): the scans integrated into a log-odds grid at the laser's *true* pose; the
   navigator and the explorer are localized by odometry corrected by the VLP fixes (``eval nav``'s), never
-  the truth. ``ate_m`` is that localization's error. A map without SLAM's errors: the figures are about
-  exploring;
+  the truth. A map without SLAM's errors (``ate_m`` 0 by construction; ``localization_rmse_m`` is the
+  pose the robot drove with): the figures are about exploring;
 * ``slam``: ``agent.slam``'s RBPF builds the map from the scans, odometry and VLP fixes, and its pose is
-  the robot's; ``ate_m`` is the SLAM pose's error.
+  the robot's; ``ate_m`` is the error of the SLAM poses the map was built at.
+
+Judged on the truth either way, the map itself: ``map_error_m``, the RMS distance from each occupied cell
+of the final map to the nearest true wall (walls and closed doors rasterized at the map's resolution).
 
 Judged on the truth: ``explored_fraction`` is the share of the true map's reachable free area (the free
 cells 4-connected to the start inside the walls, the walls rasterized at the map's resolution) that the
@@ -68,6 +71,7 @@ L_HIT, L_MISS, L_CLAMP = 1.0, -0.7, 3.5
 MAP_EVERY_S = 0.5  # the map handed to the explorer and the navigator's static layer is refreshed this often
 DEFAULT_BUDGET_S = 3600.0
 PROGRESS_EVERY_S = 60.0
+EVIDENCE_S = 1.0  # the hits the explorer is shown as evidence of a passage shut are at most this old
 
 
 class MapSource(enum.StrEnum):
@@ -86,8 +90,10 @@ def add_parser(subparsers: Any) -> None:
             complete (or failed, or the time budget is spent), on a simulated clock, faster than real
             time: the laser builds the map, the explorer picks targets, the navigation stack drives
             there. Reports the share of the reachable free area explored, whether it completed and why
-            it stopped, the localization error, the path length, the decisions and their time, and
-            collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
+            it stopped, the map ATE (the poses the map was built at: --map slam for a map the robot
+            built) and the map's own error against the true walls, the localization error, the path
+            length, the decisions and their time, retries and branches pruned for a passage seen
+            shut, and collisions; writes the map with the path and the frontiers (and sp2atm's topology map:
             rooms, places, edges) as one PNG, and sp2atm's topological map as GeoJSON beside it
             (docs/exploration.md). Progress on stderr."""
         ),
@@ -137,6 +143,10 @@ class ScanMap:
         self.spec = spec
         self.log_odds: Float32Array = np.zeros(spec.shape, dtype=np.float32)
         self.seen: BoolArray = np.zeros(spec.shape, dtype=bool)
+        # Whether each cell's latest observation was a hit (the evidence a passage was shut: a door that
+        # closed is hit from then on, while the log-odds still remember it open).
+        self.last_hit: BoolArray = np.zeros(spec.shape, dtype=bool)
+        self.hit_t: FloatArray = np.full(spec.shape, -np.inf)  # when (``t_s`` of ``integrate``)
 
     def integrate(
         self,
@@ -145,6 +155,7 @@ class ScanMap:
         ranges_m: FloatArray,
         min_range_m: float,
         max_range_m: float,
+        t_s: float = 0.0,
     ) -> None:
         res = self.spec.resolution_m
         ranges = np.asarray(ranges_m, dtype=np.float64)
@@ -165,6 +176,16 @@ class ScanMap:
         seen = self.seen.reshape(-1)
         seen[passed] = True
         seen[ended] = True
+        last = self.last_hit.reshape(-1)
+        last[passed] = False
+        last[ended] = True
+        self.hit_t.reshape(-1)[ended] = t_s
+
+    def recent_hits(self, t_s: float, within_s: float) -> FloatArray:
+        """The centres (metres) of the cells whose latest observation was a hit no older than
+        ``within_s``: what the laser sees occupied now (a person's trail of older hits left out)."""
+        cells = np.argwhere(self.last_hit & (self.hit_t >= t_s - within_s))
+        return self.spec.to_world(cells)
         np.clip(self.log_odds, -L_CLAMP, L_CLAMP, out=self.log_odds)
 
     def _flat(self, x: FloatArray, y: FloatArray) -> npt.NDArray[np.intp]:
@@ -233,7 +254,8 @@ def reachable_free(spec: GridSpec, occupied: BoolArray, start: tuple[float, floa
 class _Run:
     truth: list[tuple[float, float]] = field(default_factory=list)
     estimate: list[tuple[float, float]] = field(default_factory=list)
-    errors_m2: list[float] = field(default_factory=list)
+    errors_m2: list[float] = field(default_factory=list)  # the pose the robot drove with, at every scan
+    map_errors_m2: list[float] = field(default_factory=list)  # the pose the map was built at, each scan
     targets: list[tuple[float, float]] = field(default_factory=list)
     decision_ms: list[float] = field(default_factory=list)
     decision_cpu_ms: list[float] = field(default_factory=list)
@@ -244,6 +266,17 @@ class _Run:
     path_m: float = 0.0
     last_decision: Decision | None = None
     htm: Htm | None = None  # the sp2atm explorer's topology map at the end
+
+
+@dataclass
+class Exploration:
+    """What one run leaves: the summary (JSON-ready), the picture, the topological map (GeoJSON dict;
+    None for an explorer that makes none) and the final map."""
+
+    summary: dict[str, Any]
+    picture: npt.NDArray[np.uint8]
+    topology: dict[str, Any] | None
+    grid: GridMap
 
 
 def run_eval(
@@ -257,6 +290,20 @@ def run_eval(
 ) -> tuple[dict[str, Any], npt.NDArray[np.uint8], dict[str, Any] | None]:
     """Explore ``world`` (see the module docstring); the summary as a JSON-ready dict, the picture, and the
     topological map (GeoJSON dict) for an explorer that makes one (sp2atm), else None."""
+    e = run_exploration(world, explorer_kind, seed, map_source, budget_s, progress, config)
+    return e.summary, e.picture, e.topology
+
+
+def run_exploration(
+    world: World,
+    explorer_kind: ExplorerKind,
+    seed: int,
+    map_source: MapSource = MapSource.TRUTH_POSE,
+    budget_s: float = DEFAULT_BUDGET_S,
+    progress: bool = False,
+    config: ExploreConfig | None = None,
+) -> Exploration:
+    """:func:`run_eval`, with the final map."""
     from agent.slam.fix import PoseFix
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
@@ -286,6 +333,10 @@ def run_eval(
         (mount.x_m, mount.y_m, mount.yaw_rad),
     )
     explorer = make_explorer(config, nav)
+    # The evidence a failed target's way was shut (a door closed): the cells whose latest observation,
+    # from the estimated pose, was a hit.
+    hits = ScanMap(spec)
+    explorer.evidence = lambda: hits.recent_hits(clock.t_s, EVIDENCE_S)
     min_m, max_m = world.laser.min_range_mm / 1000.0, world.laser.max_range_mm / 1000.0
     scan_every = max(round(60.0 / world.laser.scan_rpm / TICK_S), 1)
     fix_every = max(round(1.0 / fixes.rate_hz / TICK_S), 1)
@@ -341,9 +392,21 @@ def run_eval(
                 slam_map.slam.process(t, ranges, odometry.pose)
                 estimate = slam_map.slam.pose(odometry.pose)
                 pose = (float(estimate[0]), float(estimate[1]), float(estimate[2]))
+            est_laser = Simulation.mount_pose(
+                type(truth)(pose[0], pose[1], pose[2]), mount.x_m, mount.y_m, mount.yaw_rad
+            )
+            hits.integrate(
+                (est_laser.x_m, est_laser.y_m, est_laser.yaw_rad),
+                geometry.angles_rad,
+                ranges,
+                min_m,
+                max_m,
+                t,
+            )
             run.truth.append(last)
             run.estimate.append((pose[0], pose[1]))
             run.errors_m2.append((pose[0] - truth.x_m) ** 2 + (pose[1] - truth.y_m) ** 2)
+            run.map_errors_m2.append(0.0 if scan_map is not None else run.errors_m2[-1])
             command = navigator.on_scan(t, pose, geometry.angles_rad, ranges, min_m, max_m)
             sim.set_body_velocity(command.v_mps, command.omega_radps)
             scanned = True
@@ -393,6 +456,14 @@ def run_eval(
             )
     sim.set_body_velocity(0.0, 0.0)
     wall_s = time.perf_counter() - wall_start
+    if progress:
+        seen = float(np.count_nonzero(target_area & ~grid.unknown)) / max(int(target_area.sum()), 1)
+        print(
+            f"  t={clock.t_s:6.0f} s  explored {seen:6.1%}  path {run.path_m:6.1f} m  decisions "
+            f"{len(run.decision_ms)}  end: {stopped_reason}",
+            file=sys.stderr,
+            flush=True,
+        )
     grid = _grid(spec, scan_map, slam_map)
     # Judged on the building as it is at the end: a door that closed during the run cuts off what lies
     # behind it (the robot, wherever it is, could not get there now).
@@ -413,7 +484,9 @@ def run_eval(
         "complete": explorer.state is ExploreState.COMPLETE,
         "state": explorer.state.value,
         "stopped_reason": stopped_reason,
-        "ate_m": round(math.sqrt(float(np.mean(run.errors_m2))), 4) if run.errors_m2 else None,
+        "ate_m": _rms(run.map_errors_m2),
+        "localization_rmse_m": _rms(run.errors_m2),
+        **map_error(grid, sim),
         "path_length_m": round(run.path_m, 2),
         "time_s": round(clock.t_s, 1),
         "decisions": len(run.decision_ms),
@@ -423,6 +496,8 @@ def run_eval(
             round(float(np.median(run.decision_cpu_ms)), 2) if run.decision_cpu_ms else None
         ),
         "targets": len(run.targets),
+        "retries": getattr(explorer, "retries", 0),
+        "blocked_branches": list(getattr(explorer, "blocked_branches", [])),
         "navigation_failures": len(run.failures),
         "collisions": run.collisions_walls + run.collisions_people,
         "collisions_walls": run.collisions_walls,
@@ -446,7 +521,7 @@ def run_eval(
         summary["backtracks"] = explorer.backtracks
         topology = explorer.topology(map_name=f"{world.name} (eval explore, seed {seed})")
     picture = explore_picture(grid, run, world.name, summary)
-    return summary, picture, topology
+    return Exploration(summary, picture, topology, grid)
 
 
 def explored_share(grid: GridMap, world: World, sim: Any) -> tuple[float, float]:
@@ -465,6 +540,33 @@ def explored_share(grid: GridMap, world: World, sim: Any) -> tuple[float, float]
     seen[inside] = ~grid.unknown[theirs[inside, 0], theirs[inside, 1]]
     total = max(len(cells), 1)
     return float(np.count_nonzero(seen)) / total, float(len(cells)) * spec.resolution_m**2
+
+
+def _rms(squares: list[float]) -> float | None:
+    return round(math.sqrt(float(np.mean(squares))), 4) if squares else None
+
+
+def map_error(grid: GridMap, sim: Any) -> dict[str, float | None]:
+    """The map against the truth: for each occupied cell of ``grid``, how far the nearest true wall
+    (the world's segments: walls, outlines, the doors closed now) lies beyond the cell (the distance from
+    its centre less half its diagonal, at least 0: a cell the wall passes through is exact), RMS and 95th
+    percentile. People's marks left in the map count as errors."""
+    segments = np.asarray(sim.segments(), dtype=np.float64).reshape(-1, 4)
+    points = grid.spec.to_world(np.argwhere(grid.occupied))
+    if not len(points) or not len(segments):
+        return {"map_error_m": None, "map_error_p95_m": None}
+    a, d = segments[:, :2], segments[:, 2:] - segments[:, :2]
+    length2 = np.maximum(np.sum(d * d, axis=1), 1e-12)
+    nearest = np.empty(len(points))
+    for i in range(0, len(points), 2048):
+        p = points[i : i + 2048, None, :]
+        t = np.clip(np.sum((p - a) * d, axis=2) / length2, 0.0, 1.0)
+        nearest[i : i + 2048] = np.min(np.hypot(*np.moveaxis(a + t[..., None] * d - p, 2, 0)), axis=1)
+    beyond = np.maximum(nearest - grid.spec.resolution_m / math.sqrt(2.0), 0.0)
+    return {
+        "map_error_m": round(float(np.sqrt(np.mean(beyond**2))), 4),
+        "map_error_p95_m": round(float(np.percentile(beyond, 95)), 4),
+    }
 
 
 def _true_area(spec: GridSpec, walls: BoolArray, sim: Any, xy: tuple[float, float]) -> BoolArray:
@@ -592,7 +694,8 @@ def explore_picture(
         f"{summary['state']}",
         f"path {summary['path_length_m']} m, {summary['time_s']} s",
         f"{summary['decisions']} decisions, median {summary['decision_cpu_ms_median']} ms CPU",
-        f"collisions {summary['collisions']}, ATE {summary['ate_m']} m",
+        f"collisions {summary['collisions']}, map ATE {summary['ate_m']} m, "
+        f"map error {summary['map_error_m']} m",
     ]
     width = MARGIN_LEFT + map_w + GAP + panel_w + 16
     height = max(MARGIN_TOP + map_h + MARGIN_BOTTOM, MARGIN_TOP + legend_h + 120 + 22 * len(lines))
@@ -649,7 +752,9 @@ def run(args: argparse.Namespace) -> int:
         f"  decisions          {s['decisions']}, median {s['decision_ms_median']} ms "
         f"({s['decision_cpu_ms_median']} ms CPU)"
     )
-    print(f"  localization ATE   {s['ate_m']} m")
+    print(f"  map ATE            {s['ate_m']} m (the poses the map was built at)")
+    print(f"  map error          {s['map_error_m']} m RMS, {s['map_error_p95_m']} m p95 (occupied to walls)")
+    print(f"  localization       {s['localization_rmse_m']} m RMS (the pose driven with)")
     print(
         f"  collisions         {s['collisions']} (walls {s['collisions_walls']}, "
         f"people {s['collisions_people']})"

@@ -189,10 +189,13 @@ def run_eval(
     config: NavConfig | None = None,
     on_goal: Callable[[GoalResult], None] | None = None,
     goal_list: Sequence[tuple[float, float, float | None]] | None = None,
+    static_map: tuple[BoolArray, BoolArray] | None = None,
 ) -> dict[str, Any]:
     """Drive ``goals`` random goals (see the module docstring); the summary as a JSON-ready dict.
     ``on_goal`` is told each goal's result as it ends. ``goal_list``: drive these (x, y, yaw or None for
-    any heading) in order instead (``eval deliver``); ``goals`` is then their number."""
+    any heading) in order instead (``eval deliver``); ``goals`` is then their number. ``static_map``: the
+    navigator's map (occupied, unknown) on the walls' grid instead of the walls rasterized (``eval deliver
+    --explore``: the map an exploration built)."""
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
     from drivers.sim.raycast import distance_to_segments, walls_array
@@ -208,7 +211,10 @@ def run_eval(
     rng, clock, sim, geometry = sensors.rng, sensors.clock, sensors.sim, sensors.geometry
     scanner, odometry, fixes = sensors.scanner, sensors.odometry, sensors.fixes
     spec, occupied = rasterize_walls(world, config.resolution_m)
-    costmap = Costmap(spec, occupied, np.zeros(spec.shape, dtype=bool), config)
+    if static_map is None:
+        costmap = Costmap(spec, occupied, np.zeros(spec.shape, dtype=bool), config)
+    else:
+        costmap = Costmap(spec, static_map[0], static_map[1], config)
     mount = robot.laser_mount
     navigator = Navigator(config, costmap, (mount.x_m, mount.y_m, mount.yaw_rad))
     shortest = ShortestPaths(spec, occupied, robot.radius_m)

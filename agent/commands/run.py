@@ -29,6 +29,7 @@ from typing import Any
 from agent.commands.args import dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
+from agent.runtime.map_saver import save_topology_beside
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
@@ -116,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
             map_files: list[str] = []
             if agent.mapper is not None and directory is not None and mapping:
                 map_files = [str(p) for p in save_map(agent.mapper, directory)]
+                if map_files and agent.missions is not None:
+                    map_files += save_topology_beside(directory / "map.yaml", agent.missions.topology)
             if controller is not None:
                 controller.stop()
             if notifier is not None:

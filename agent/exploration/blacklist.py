@@ -7,8 +7,10 @@ with N goals left", reference/eco.md §1.3). Why a count: a target that fails ag
 forever (frontier_exploration #2, #11): each failure at the same place doubles the time it stays
 blacklisted, and after ``max_failures`` it stays for good.
 
-A second kind of entry is permanent from the start: a spot the robot reached, facing the frontier, that
-stayed unknown (a gap under furniture, a corner the laser cannot see): there is nothing more to see there.
+Two kinds of entry are permanent from the start: a spot the robot reached, facing the frontier, that
+stayed unknown (a gap under furniture, a corner the laser cannot see): there is nothing more to see there;
+and a target whose way was shut with evidence (a door the laser now sees closed across a passage the map
+had open, ``frontier_explorer.closure``): retrying it would only fail again.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from agent.navigation.costmap import BoolArray, FloatArray
 class EntryKind(enum.StrEnum):
     UNREACHED = "unreached"  # the robot could not get there (may pass: expires)
     UNOBSERVABLE = "unobservable"  # the robot got there and still saw nothing (permanent)
+    BLOCKED = "blocked"  # its way is shut: a door seen closed across the passage (permanent)
 
 
 @dataclass
@@ -55,7 +58,7 @@ class Blacklist:
             if math.hypot(e.x_m - xy[0], e.y_m - xy[1]) <= self.radius_m:
                 e.failures += 1
                 e.reason = reason
-                if kind is EntryKind.UNOBSERVABLE:
+                if kind is not EntryKind.UNREACHED:
                     e.kind = kind
                 e.until_s = self._until(t_s, e.failures, e.kind)
                 return e
@@ -64,7 +67,7 @@ class Blacklist:
         return entry
 
     def _until(self, t_s: float, failures: int, kind: EntryKind) -> float:
-        if kind is EntryKind.UNOBSERVABLE or failures >= self.max_failures:
+        if kind is not EntryKind.UNREACHED or failures >= self.max_failures:
             return math.inf
         return t_s + self.expiry_s * 2.0 ** (failures - 1)
 
@@ -85,6 +88,14 @@ class Blacklist:
                 continue
             out |= np.hypot(pts[:, 0] - e.x_m, pts[:, 1] - e.y_m) <= self.radius_m
         return out
+
+    def failed_near(self, xy: tuple[float, float]) -> bool:
+        """Whether a target failed within the radius of ``xy`` before (an entry of the UNREACHED kind,
+        expired or not): choosing ``xy`` now is a retry."""
+        return any(
+            e.kind is EntryKind.UNREACHED and math.hypot(e.x_m - xy[0], e.y_m - xy[1]) <= self.radius_m
+            for e in self.entries
+        )
 
     def permanent(self, kind: EntryKind | None = None) -> list[Entry]:
         return [e for e in self.entries if math.isinf(e.until_s) and (kind is None or e.kind is kind)]

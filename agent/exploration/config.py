@@ -19,6 +19,17 @@ class ExplorerKind(enum.StrEnum):
 
 
 @dataclass(frozen=True)
+class NamedPoint:
+    """A place the user names (``[[exploration.places]]``): a room's name for the topological map and a
+    goal for go-to-place missions."""
+
+    name: str
+    x_m: float
+    y_m: float
+    yaw_rad: float | None = None  # the heading to stop at (None: any)
+
+
+@dataclass(frozen=True)
 class ExploreConfig:
     explorer: ExplorerKind = ExplorerKind.FRONTIER
     # frontiers
@@ -52,3 +63,5 @@ class ExploreConfig:
     locality_m: float = 3.0  # a candidate outside the current place and room wins only if this much cheaper
     door_width_m: float = 1.2  # passages narrower than this separate regions (rooms)
     min_region_m2: float = 1.0  # a region's core (the part wider than a door) at least this large
+    # the user's named places ([[exploration.places]]): saved in the topological map, missions' goals
+    places: tuple[NamedPoint, ...] = ()

@@ -26,7 +26,12 @@ The target's heading faces the unknown cells near it, so that on arrival the las
 frontier hid. A target the robot reached (heading included) that still borders unknown space is
 blacklisted for good as unobservable (that spot's cells are no target again; the rest of the frontier
 still is); a target the navigator failed, or with no ``progress_m`` of
-approach for ``progress_timeout_s``, is blacklisted with an expiry (``agent.exploration.blacklist``).
+approach for ``progress_timeout_s``, is blacklisted with an expiry (``agent.exploration.blacklist``),
+unless the driver hands over the sensors' evidence with the failure (``report_failed``'s ``obstacles_m``)
+and it shows the way shut wall to wall since the map saw it open (``agent.exploration.closure``: a door
+that closed) and the target unreachable behind it: then the branch is pruned at this first failure, the
+closure kept over the map from then on (everything behind it unreachable, not waiting), a permanent
+BLOCKED entry at the target, and it is never retried (``blocked_branches``, ``retries``).
 
 The end: no reachable frontier outside the blacklist. If reachable frontiers remain only under expiring
 entries, the explorer waits (EXPLORING, no target); only under entries given up for good: FAILED with the
@@ -39,17 +44,19 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import csgraph
 
 from agent.exploration.blacklist import Blacklist, EntryKind
+from agent.exploration.closure import wall_to_wall
 from agent.exploration.config import ExploreConfig
 from agent.exploration.frontiers import Frontier, GridMap, detect_frontiers, dilate, disk
 from agent.exploration.lifecycle import STOPPED, TRANSITIONS, Command, Decision, ExploreState, Target
 from agent.navigation.config import NavConfig
-from agent.navigation.costmap import BoolArray, Costmap, FloatArray
+from agent.navigation.costmap import BoolArray, Costmap, FloatArray, GridSpec
 from agent.navigation.planner import build_graph
 
 log = logging.getLogger(__name__)
@@ -110,6 +117,15 @@ class FrontierExplorer:
         self._wanted = True  # a decision is due now, not at the next replan period
         self.decisions = 0
         self.field: Field | None = None  # the last search's map, path costs and roomy cells
+        self.retries = 0  # targets chosen again where one had failed before
+        self.blocked_branches: list[dict[str, object]] = []  # branches pruned for a passage shut
+        self.closed_m: FloatArray = np.zeros((0, 2))  # cells (centres, metres) of passages seen shut
+        self._pose: Pose | None = None
+        self._target_frontier: Frontier | None = None  # the frontier the current target is to see
+        self.shut_path_m: FloatArray | None = None  # path costs with the last closure found over the map
+        # Where the evidence comes from when a failure is reported without it (the explorer's own progress
+        # timeout, or a driver that passes none): the driver sets it, e.g. to the navigator's obstacle layer.
+        self.evidence: Callable[[], FloatArray | None] | None = None
 
     @property
     def state(self) -> ExploreState:
@@ -155,12 +171,22 @@ class FrontierExplorer:
         self.target = None
         self._wanted = True
 
-    def report_failed(self, reason: str, t_s: float) -> None:
+    def report_failed(self, reason: str, t_s: float, obstacles_m: FloatArray | None = None) -> None:
+        """The navigator gave up on the target. ``obstacles_m``: (N, 2) points, metres, the robot's
+        sensors see occupied now (the navigator's obstacle layer), the evidence a passage was shut."""
         if self.target is None:
             return
         if self._state is ExploreState.RETURNING:
             self._set(ExploreState.FAILED, f"could not return home: {reason}")
             self.target = None
+            return
+        if obstacles_m is None and self.evidence is not None:
+            obstacles_m = self.evidence()
+        shut = self._shut(obstacles_m) if obstacles_m is not None else None
+        if shut is not None:
+            self._prune(shut, reason, t_s)
+            self.target = None
+            self._wanted = True
             return
         entry = self.blacklist.add((self.target.x_m, self.target.y_m), t_s, reason)
         self._wanted = True
@@ -172,6 +198,85 @@ class FrontierExplorer:
             entry.failures,
         )
         self.target = None
+
+    def _shut(self, obstacles_m: FloatArray) -> BoolArray | None:
+        """The cells of a passage the evidence shows shut wall to wall that cut the way to the current
+        target (None: no such evidence; an ordinary failure)."""
+        field, pose, target = self.field, self._pose, self.target
+        if field is None or pose is None or target is None:
+            return None
+        seen = field.seen
+        closure = wall_to_wall(
+            seen, obstacles_m, [(target.x_m, target.y_m), (pose[0], pose[1])], self.nav.radius_m
+        )
+        if not closure.any():
+            return None
+        occupied = seen.occupied | closure | self._closed_cells(seen.spec)
+        costmap = Costmap(seen.spec, occupied, seen.unknown, self.nav)
+        path_m = self._path_costs(costmap, pose)
+        if path_m is None:
+            return None  # the robot itself cannot be placed: no conclusion
+        cell = seen.spec.to_cell(np.array([target.x_m, target.y_m]))[0]
+        if not seen.spec.inside(cell[None, :])[0]:
+            return None
+        distance = costmap.distance_m()
+        if np.isfinite(path_m[cell[0], cell[1]]) and distance[cell[0], cell[1]] >= self.nav.inscribed_m:
+            return None  # shut there, but the target is still reachable another way
+        frontier = self._target_frontier
+        if frontier is not None:
+            # A target that only stood too close to a wall the map had missed is no branch shut: the
+            # frontier it served still has targets the robot reaches with room.
+            reach = max(round(self.config.target_reach_m / seen.spec.resolution_m), 0)
+            near = np.zeros(seen.spec.shape, dtype=bool)
+            near[frontier.cells[:, 0], frontier.cells[:, 1]] = True
+            near = dilate(near, reach)
+            roomy = distance >= self.nav.inscribed_m + self.config.target_clearance_m
+            if np.any(near & np.isfinite(path_m) & roomy):
+                return None
+        self.shut_path_m = path_m
+        return closure
+
+    def _prune(self, closure: BoolArray, reason: str, t_s: float) -> None:
+        """Keep the closure over the map from now on, blacklist the target for good as BLOCKED."""
+        assert self.target is not None and self.field is not None
+        spec = self.field.seen.spec
+        points = spec.to_world(np.argwhere(closure))
+        self.closed_m = np.concatenate([self.closed_m, points])
+        why = f"blocked: a passage seen shut wall to wall ({len(points)} cells) after {reason}"
+        entry = self.blacklist.add((self.target.x_m, self.target.y_m), t_s, why, EntryKind.BLOCKED)
+        centre = points.mean(axis=0)
+        self.blocked_branches.append(
+            {
+                "t_s": round(t_s, 1),
+                "target": [round(self.target.x_m, 2), round(self.target.y_m, 2)],
+                "closure_centre": [round(float(centre[0]), 2), round(float(centre[1]), 2)],
+                "closure_cells": len(points),
+                "failure": reason,
+                "failures_before": entry.failures - 1,
+            }
+        )
+        log.info(
+            "exploration: target (%.2f, %.2f) pruned at its first failure with evidence (%s): a passage "
+            "seen shut at (%.2f, %.2f), %d cells; blacklisted for good",
+            self.target.x_m,
+            self.target.y_m,
+            reason,
+            centre[0],
+            centre[1],
+            len(points),
+        )
+        self._on_pruned()
+
+    def _on_pruned(self) -> None:
+        """Called after a branch was pruned (``blocked_branches[-1]``), before the target is dropped."""
+
+    def _closed_cells(self, spec: GridSpec) -> BoolArray:
+        out = np.zeros(spec.shape, dtype=bool)
+        if len(self.closed_m):
+            cells = spec.to_cell(self.closed_m)
+            cells = cells[spec.inside(cells)]
+            out[cells[:, 0], cells[:, 1]] = True
+        return out
 
     def _arrive_home(self) -> None:
         self.target = None
@@ -195,6 +300,7 @@ class FrontierExplorer:
                 else:
                     self._watch_progress(pose, t_s)
             return self._decision()
+        self._pose = pose
         self._watch_progress(pose, t_s)
         # Decide at once when a target has ended (or none was ever given); otherwise every replan period,
         # also while waiting with no target (a blacklist entry to expire, a robot to be placed).
@@ -211,6 +317,15 @@ class FrontierExplorer:
         if self._judge_arrival(survey, t_s):
             survey = self.survey(grid, pose, t_s)
         self._choose(survey, pose, t_s)
+        if self.target is not None and self.evidence is not None and self._state is ExploreState.EXPLORING:
+            # Seen shut on the way (a door that closed since the map saw it open): pruned now, not after
+            # a failure and a retry.
+            hits = self.evidence()
+            shut = self._shut(hits) if hits is not None else None
+            if shut is not None:
+                self._prune(shut, "seen shut on the way", t_s)
+                self.target = None
+                self._wanted = True
         ms = (time.perf_counter() - started) * 1000.0
         cpu_ms = (time.thread_time() - started_cpu) * 1000.0
         return self._decision(True, ms, cpu_ms, survey.frontiers)
@@ -239,6 +354,11 @@ class FrontierExplorer:
             self.report_failed(f"no progress for {self.config.progress_timeout_s:g} s", t_s)
 
     def _aim(self, target: Target, pose: Pose, t_s: float) -> None:
+        if self._state is not ExploreState.RETURNING and self.blacklist.failed_near((target.x_m, target.y_m)):
+            self.retries += 1
+            log.info(
+                "exploration: retrying at (%.2f, %.2f), a target failed there before", target.x_m, target.y_m
+            )
         self.target = target
         self._best_distance = math.hypot(target.x_m - pose[0], target.y_m - pose[1])
         self._t_progress = t_s
@@ -297,6 +417,7 @@ class FrontierExplorer:
         here = None if self.target is None else (self.target.x_m, self.target.y_m)
         if switch and (best.target.x_m, best.target.y_m) != here:
             self._aim(best.target, pose, t_s)
+            self._target_frontier = best.frontier
         self._set(ExploreState.EXPLORING, f"{len(survey.candidates)} reachable frontiers")
 
     def _current_cost(self, survey: Survey) -> float | None:
@@ -318,7 +439,7 @@ class FrontierExplorer:
         cfg, nav = self.config, self.nav
         spec = grid.spec
         body = disk(spec, (pose[0], pose[1]), nav.radius_m)
-        occupied = grid.occupied & ~body
+        occupied = (grid.occupied | self._closed_cells(spec)) & ~body
         unknown = grid.unknown & ~body
         seen = GridMap(spec, occupied, unknown)
         frontiers = tuple(detect_frontiers(seen, cfg.min_frontier_size_m, cfg.min_unknown_m2))
@@ -353,7 +474,10 @@ class FrontierExplorer:
             # Spots the robot stood at, facing this frontier, and saw nothing more from: their cells are
             # no targets, the rest of the frontier still is (a long frontier is not done because one
             # end of it could not be seen past). Every target looked at already: nothing left here.
-            fresh = ~self.blacklist.blocked(points, t_s, kind=EntryKind.UNOBSERVABLE)
+            fresh = ~(
+                self.blacklist.blocked(points, t_s, kind=EntryKind.UNOBSERVABLE)
+                | self.blacklist.blocked(points, t_s, kind=EntryKind.BLOCKED)
+            )
             if not fresh.any():
                 continue
             points, costs = points[fresh], costs[fresh]

@@ -22,10 +22,12 @@ drives to the target it gets back (none: stand still), and reports what became o
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
 from agent.exploration.frontiers import Frontier, GridMap
+from agent.navigation.costmap import FloatArray
 
 
 class ExploreState(enum.StrEnum):
@@ -95,6 +97,10 @@ class Decision:
 class Explorer(Protocol):
     """The interface every explorer (frontier, SP2ATM) offers its driver."""
 
+    # Optional: where the evidence of a shut passage comes from when a failure is reported without it
+    # (``report_failed``); the driver sets it (e.g. the navigator's obstacle layer as points, metres).
+    evidence: Callable[[], FloatArray | None] | None
+
     @property
     def state(self) -> ExploreState: ...
 
@@ -113,6 +119,8 @@ class Explorer(Protocol):
         """The navigator reached the current target (position and heading)."""
         ...
 
-    def report_failed(self, reason: str, t_s: float) -> None:
-        """The navigator gave up on the current target."""
+    def report_failed(self, reason: str, t_s: float, obstacles_m: FloatArray | None = None) -> None:
+        """The navigator gave up on the current target; ``obstacles_m``: the (N, 2) points (metres) the
+        sensors see occupied now, if the driver has them (evidence of a passage shut: the branch is
+        pruned at once instead of retried)."""
         ...

@@ -142,6 +142,28 @@ class Sp2atmExplorer(FrontierExplorer):
         self._enter(node)
         self._target_node = None
 
+    def _on_pruned(self) -> None:
+        """A branch shut with evidence is cut from the HTM at once: the target's POSSIBLE node and every
+        POSSIBLE node the robot cannot reach with the closure over the map
+        (``blocked_branches[-1]["htm_nodes_pruned"]``)."""
+        node = self._target_node
+        pruned: list[int] = []
+        path_m, field = self.shut_path_m, self.field
+        for n in self.htm.possible():
+            if n == node:
+                pruned.append(n)
+                continue
+            if path_m is None or field is None:
+                continue
+            x = self.htm.nodes[n]
+            cell = field.seen.spec.to_cell(np.array([x.x_m, x.y_m]))[0]
+            if field.seen.spec.inside(cell[None, :])[0] and not np.isfinite(path_m[cell[0], cell[1]]):
+                pruned.append(n)
+        for n in pruned:
+            self.htm.remove(n)
+        self.blocked_branches[-1]["htm_nodes_pruned"] = len(pruned)
+        self._target_node = None
+
     def _choose(self, survey: Survey, pose: Pose, t_s: float) -> None:
         super()._choose(survey, pose, t_s)
         if self.state is ExploreState.COMPLETE and self._slivers_now:

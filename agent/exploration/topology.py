@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable
 from typing import Any
 
 from agent.exploration.htm import Htm, Node, NodeKind, polygon_centre
@@ -55,6 +56,8 @@ def to_geojson(htm: Htm, frame: str = "map", date: str = "", map_name: str = "")
             meta["region"] = n.region
         if n.anchor is not None:
             meta["anchor"] = {"pose": n.anchor, "dx": _r(n.offset_m[0]), "dy": _r(n.offset_m[1])}
+        if n.name:
+            meta["name"] = n.name
         features.append(
             {
                 "type": "Feature",
@@ -154,6 +157,10 @@ def from_geojson(data: Any) -> Htm:
             node = Node(fid, node_kind, x, y, _int(meta.get("sightings", 1), f"{where}.sightings"))
             if "region" in meta:
                 node.region = _int(meta["region"], f"{where}.metadata.region")
+            if "name" in meta:
+                if not isinstance(meta["name"], str):
+                    raise ValueError(f"{where}.properties.metadata.name: must be a string")
+                node.name = meta["name"]
             if "anchor" in meta:
                 a = meta["anchor"]
                 if not isinstance(a, dict):
@@ -214,6 +221,51 @@ def from_geojson(data: Any) -> Htm:
         ):
             raise ValueError(f"node {n.id}: region {n.region} is not a region")
     return htm
+
+
+def add_named_places(htm: Htm, places: Iterable[tuple[str, float, float]]) -> None:
+    """The user's places (``name, x, y``: a world file's or the config's ``[[places]]``) as named PLACE
+    nodes (one per name: a place of that name is moved there), each naming the region (room) it lies in
+    when that region has no name yet."""
+    for name, x, y in places:
+        if not name:
+            raise ValueError("a place needs a name")
+        old = next((n for n in htm.nodes.values() if n.kind is NodeKind.PLACE and n.name == name), None)
+        if old is None:
+            old = htm.nodes[htm.add_place((x, y))]
+            old.name = name
+        old.x_m, old.y_m, old.anchor = x, y, None
+        for r in htm.regions():
+            if _inside(r.polygon, (x, y)):
+                old.region = r.id
+                if not r.name:
+                    r.name = name
+                break
+
+
+def named_places(htm: Htm) -> dict[str, tuple[float, float]]:
+    """Where each name leads: named PLACE nodes, and named regions (their centre) no place is named
+    after; what a go-to-place mission can go to."""
+    out: dict[str, tuple[float, float]] = {}
+    for n in sorted(htm.regions(), key=lambda n: n.id):
+        if n.name:
+            out[n.name] = (n.x_m, n.y_m)
+    for n in htm.nodes.values():
+        if n.kind is NodeKind.PLACE and n.name:
+            out[n.name] = (n.x_m, n.y_m)
+    return out
+
+
+def _inside(polygon: tuple[tuple[float, float], ...], xy: tuple[float, float]) -> bool:
+    """Even-odd rule: whether ``xy`` lies inside ``polygon``."""
+    x, y = xy
+    inside = False
+    n = len(polygon)
+    for i in range(n):
+        (x1, y1), (x2, y2) = polygon[i], polygon[(i + 1) % n]
+        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
+            inside = not inside
+    return inside
 
 
 def _r(v: float) -> float:

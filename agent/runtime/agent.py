@@ -654,9 +654,18 @@ class Agent:
         if self.navigation is None or self.arbiter is None or self.commands is None:
             log.warning("missions off: they need the navigation")
             return False
+        if self.missions is not None:  # on already (create_agent): the caller's places join them
+            for name, place in (places or {}).items():
+                self.missions.places[name] = place
+            return True
         from agent.exploration import make_explorer
 
         explorer = make_explorer(self.config.exploration, self.config.navigation)
+        # A target whose way the scans show shut (a door closed) is pruned at once, not retried.
+        explorer.evidence = self.navigation.obstacle_points
+        named = dict(places or {})
+        for p in self.config.exploration.places:  # [[exploration.places]]
+            named.setdefault(p.name, NamedPlace(p.name, p.x_m, p.y_m, p.yaw_rad))
         commands = self.commands
         self.missions = MissionLoop(
             explorer,
@@ -665,11 +674,32 @@ class Agent:
             lambda status: commands.answer(status, None),
             self._navigation_pose,
             self.clock_ns,
-            places=places,
+            places=named,
         )
         commands.listeners.append(self.missions.on_status)
         commands.missions = self.missions.take
+        self._load_topology()
+        if self.map_saver is not None:  # the topological map written beside every map saved
+            self.map_saver.topology = self.missions.topology
         return True
+
+    def _load_topology(self) -> None:
+        """The topological map beside the map the robot starts on (``slam.map``), if there is one: its
+        named places and rooms become places missions can go to."""
+        from agent.slam import mapio
+        from drivers.errors import ConfigError
+
+        if self.missions is None or self.config.slam.map is None:
+            return
+        path = mapio.topology_path(self.config.slam.map)
+        if not path.exists():
+            return
+        try:
+            taken = self.missions.load_topology(mapio.load_topology(path))
+        except (ConfigError, ValueError) as exc:
+            log.error("topological map %s not loaded: %s", path, exc)
+            return
+        log.info("topological map %s: places %s", path, ", ".join(taken) or "none new")
 
     def _on_map(self, image: Any) -> None:
         """The SLAM loop's map every ``map_period_s``: the navigation's static layer and the missions'

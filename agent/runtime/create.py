@@ -109,8 +109,9 @@ def create_agent(
             if isinstance(mapper, ProcessMapper):
                 # A SLAM process that dies is replaced by one that continues the last saved map.
                 mapper.resume_map = agent.map_saver.last_saved
-        if config.navigation.enabled:
-            agent.enable_navigation(laser_mount_for(config, world))
+        # Missions (explore, go to a named place) ride on the navigation.
+        if config.navigation.enabled and agent.enable_navigation(laser_mount_for(config, world)):
+            agent.enable_missions()
     return agent
 
 

@@ -18,6 +18,12 @@ due ``lead`` *before* the last content time plus the interval, ``lead`` being 1.
 last 32 saves' lags (from the instant a save was due to its commit: the SLAM thread's turn, the fetch,
 the queue and the write with its fsyncs; at least 10 ms, at most half the interval). A save whose lag
 exceeded the lead of its time is counted (``map_saves_late``): there the bound was not kept.
+
+**The topological map.** With :attr:`MapSaver.topology` set (the mission loop's ``topology``: the
+explorer's HTM or the map's rooms, with the named places), each map written is followed by its topological
+map beside it, ``<name>.topology.geojson`` (``agent.slam.mapio.save_topology``: atomic, format in
+docs/exploration.md), on this thread; a failure there is logged and counted (``topology_save_failures``),
+the occupancy map stays written.
 """
 
 from __future__ import annotations
@@ -28,14 +34,14 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from drivers.errors import ConfigError
 
 if TYPE_CHECKING:  # the SLAM package is imported only where it is used (the agent runs without it)
     from agent.slam.render import OccupancyImage
 
-__all__ = ["CONTENT_STAMP_KEY", "MapSaver", "content_stamp_ns", "save_lead_s"]
+__all__ = ["CONTENT_STAMP_KEY", "MapSaver", "content_stamp_ns", "save_lead_s", "save_topology_beside"]
 
 # The image header comment line that carries a saved map's content time.
 CONTENT_STAMP_KEY = "content_monotonic_ns"
@@ -64,6 +70,21 @@ def content_stamp_ns(pgm: bytes) -> int | None:
 
 
 log = logging.getLogger(__name__)
+
+
+def save_topology_beside(yaml_path: Path, topology: Callable[[], dict[str, Any] | None]) -> list[str]:
+    """Write ``topology()`` beside the map ``yaml_path`` (``<stem>.topology.geojson``); the file written,
+    or nothing (no topology, or a failure: logged)."""
+    from agent.slam import mapio
+
+    try:
+        data = topology()
+        if data is None:
+            return []
+        return [str(mapio.save_topology(data, mapio.topology_path(yaml_path)))]
+    except (ConfigError, ValueError) as exc:
+        log.error("topological map save failed: %s", exc)
+        return []
 
 
 class MapSaver:
@@ -97,6 +118,10 @@ class MapSaver:
         self.max_save_cpu_ms = 0.0  # CPU time of one write: what it can take from the other threads
         self.max_fetch_ms = 0.0  # what taking the map out cost the SLAM thread (given to submit)
         self.late = 0  # saves whose lag exceeded the lead: the bound was not kept there
+        # The topological map written beside each map (None: none); called on this saver's thread.
+        self.topology: Callable[[], dict[str, Any] | None] | None = None
+        self.topology_saves = 0
+        self.topology_failures = 0
         self.max_lag_ms = 0.0
         # The interval counts from the last map's content time (or the start, or a skip).
         self._base_s = clock_s()
@@ -200,6 +225,8 @@ class MapSaver:
             "map_save_lag_max_us": round(self.max_lag_ms * 1e3),
             "map_save_lead_us": round(self.lead_s * 1e6),
             "map_saves_late": self.late,
+            "topology_saves": self.topology_saves,
+            "topology_save_failures": self.topology_failures,
         }
 
     def _run(self) -> None:
@@ -224,6 +251,7 @@ class MapSaver:
                 self.saves += 1
                 self.committed_content_s = content_s
                 self._lagged(self.clock_s() - scheduled_s)
+                self._save_topology()
             except ConfigError as exc:
                 # A full or read-only disk must not stop the robot: said, counted, tried again next time.
                 self.failures += 1
@@ -236,6 +264,20 @@ class MapSaver:
                 with self._wake:
                     self._busy = False
                     self._wake.notify_all()
+
+    def _save_topology(self) -> None:
+        from agent.slam import mapio
+
+        if self.topology is None:
+            return
+        try:
+            data = self.topology()
+            if data is not None:
+                mapio.save_topology(data, mapio.topology_path(self.yaml_path))
+                self.topology_saves += 1
+        except (ConfigError, ValueError) as exc:
+            self.topology_failures += 1
+            log.error("topological map save failed: %s", exc)
 
     def _lagged(self, lag_s: float) -> None:
         if self.interval_s <= 0.0:

@@ -31,6 +31,13 @@ The loop's own thread, every ``period_s``:
 
 No pose (localization lost): no update, nothing new is sent (the navigation loop drives zero without a
 pose). The loop decides and keeps state; the arbiter, the navigation loop and the wheels' dead-man drive.
+
+**The topological map** (:meth:`topology`, for the map saver, which writes it beside the occupancy map;
+format: docs/exploration.md): the sp2atm explorer's HTM (a copy taken on this loop's thread every
+``TOPOLOGY_EVERY_S`` while exploring), or for an explorer without one the rooms of the last map; with the
+named places (the caller's and the config's ``[[exploration.places]]``) as named PLACE nodes naming their
+rooms. :meth:`load_topology` takes a saved one back at start: its named places (and rooms) become places
+missions can go to, so a robot restarted on its saved map still knows them.
 """
 
 from __future__ import annotations
@@ -73,6 +80,7 @@ Pose = tuple[float, float, float]
 MISSION_GOAL_IDS = range(0xC000, 0xFFFF)
 LOOK_AROUND_TURNS = 3  # goals in place, a third of a turn each, after start
 ESCAPE_M = 0.3  # a robot inside an obstacle's footprint needs a free cell this close (the planner's escape)
+TOPOLOGY_EVERY_S = 5.0  # the explorer's HTM is copied for the map saver this often while exploring
 
 _ACTIONS = {
     ExploreAction.START: Command.START,
@@ -138,6 +146,8 @@ class MissionLoop:
         self._next_id = MISSION_GOAL_IDS.start
         self._explore_id: int | None = None  # the explore mission running, if any
         self._route: _Route | None = None  # the go-to-place mission running, if any
+        self._htm_copy: dict[str, Any] | None = None  # the explorer's HTM as GeoJSON, taken on this thread
+        self._t_htm = -math.inf
 
     # -- inputs (other threads) ---------------------------------------------------------------------
 
@@ -280,6 +290,8 @@ class MissionLoop:
         if decision.decided:
             self.counts["decisions"] += 1
             self.decision_ms.append(decision.decision_ms)
+            if t_s - self._t_htm >= TOPOLOGY_EVERY_S or self.explorer.state is not ExploreState.EXPLORING:
+                self._copy_htm(t_s)
         if decision.new_target:
             if decision.target is None:
                 self._cancel_goal()
@@ -402,6 +414,54 @@ class MissionLoop:
             if status is not None:
                 self.answer(status)
 
+    # -- the topological map ------------------------------------------------------------------------
+
+    def _copy_htm(self, t_s: float) -> None:
+        make = getattr(self.explorer, "topology", None)
+        if make is None:
+            return
+        data = make()
+        with self._lock:
+            self._htm_copy, self._t_htm = data, t_s
+
+    def topology(self) -> dict[str, Any] | None:
+        """The topological map to save beside the occupancy map (any thread; see the module docstring);
+        None when there is neither a graph nor a map nor a named place yet."""
+        from agent.exploration.htm import Htm
+        from agent.exploration.regions import find_regions
+        from agent.exploration.topology import add_named_places, from_geojson, to_geojson
+
+        with self._lock:
+            data, grid, places = self._htm_copy, self.last_grid, dict(self.places)
+        if data is not None:
+            htm = from_geojson(data)
+        else:
+            htm = Htm()
+            if grid is not None:
+                cfg = getattr(self.explorer, "config", None)
+                door, area = (cfg.door_width_m, cfg.min_region_m2) if cfg is not None else (1.2, 1.0)
+                _, regions = find_regions(grid, door, area)
+                htm.set_regions([(r.polygon, r.area_m2) for r in regions])
+        if not htm.nodes and not places:
+            return None
+        add_named_places(htm, [(p.name, p.x_m, p.y_m) for p in places.values()])
+        return to_geojson(htm, map_name="vlp-agent")
+
+    def load_topology(self, data: dict[str, Any]) -> list[str]:
+        """Take the named places (and named rooms, at their centres) of a saved topological map as
+        places missions can go to; a place the caller named already keeps the caller's position. The
+        names taken."""
+        from agent.exploration.topology import from_geojson, named_places
+
+        found = named_places(from_geojson(data))
+        taken: list[str] = []
+        with self._lock:
+            for name, (x, y) in found.items():
+                if name not in self.places:
+                    self.places[name] = NamedPlace(name, x, y)
+                    taken.append(name)
+        return taken
+
     def run(self, beat: Heartbeat, stop: threading.Event) -> None:
         while not stop.is_set():
             beat.beat()
@@ -422,5 +482,7 @@ class MissionLoop:
             "reason": self.explorer.reason,
             "complete": self.explorer.state is ExploreState.COMPLETE,
             "decision_ms_median": round(float(np.median(ms)), 2) if ms else None,
+            "retries": getattr(self.explorer, "retries", 0),
+            "blocked_branches": len(getattr(self.explorer, "blocked_branches", ())),
             **dict(self.counts),
         }

@@ -30,7 +30,7 @@ import numpy as np
 
 from agent.navigation.config import NavConfig
 from agent.navigation.controller import STOP, Command, nearest_on_path, remaining_length
-from agent.navigation.costmap import Costmap, GridSpec
+from agent.navigation.costmap import Costmap, FloatArray, GridSpec
 from agent.navigation.fleet_layer import disc_cells
 from agent.navigation.navigator import Goal, Navigator, NavStatus
 from agent.navigation.planner import PlanStatus
@@ -116,6 +116,16 @@ class NavigationLoop:
             self.counts["costmaps"] += 1
             if self._goal is not None:
                 self._start(self._goal, self.clock_ns() * 1e-9)
+
+    def obstacle_points(self) -> FloatArray | None:
+        """The cells the scans mark occupied now (the costmap's obstacle layer), their centres in metres;
+        None before the first map. The explorer's evidence that a passage was shut (a door closed)."""
+        with self._lock:
+            nav = self.navigator
+            if nav is None:
+                return None
+            cells = np.argwhere(nav.costmap.obstacles)
+            return nav.costmap.spec.to_world(cells)
 
     def on_scan(self, scan: Scan) -> None:
         pose = self.pose()

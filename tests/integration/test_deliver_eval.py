@@ -42,3 +42,25 @@ def test_eval_deliver_names_the_places_it_knows(tmp_path: Path, capsys: pytest.C
     assert main(["eval", "deliver", "--world", str(world), "--from", "desk", "--to", "kitchen"]) != 0
     err = capsys.readouterr().err
     assert "--to" in err and "'kitchen'" in err and "desk, shelf" in err
+
+
+def test_eval_deliver_explores_first_and_drives_on_the_map_it_saved(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agent.exploration.topology import from_geojson, named_places
+    from agent.slam.mapio import load_map, load_topology
+
+    world = tmp_path / "two-rooms.toml"
+    world.write_text(WORLD + PLACES, encoding="utf-8")
+    args = ["eval", "deliver", "--world", str(world), "--from", "desk", "--to", "shelf", "--trips", "1"]
+    args += ["--explore", "frontier", "--explore-map", "truth-pose", "--map-dir", str(tmp_path / "m")]
+    assert main([*args, "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    explored = s["exploration"]
+    assert explored["complete"] is True and explored["explored_fraction"] >= 0.95
+    assert s["map_source"] == "the map an exploration built"
+    assert (s["trips_made"], s["ends_met"]) == (1, 2), s["legs"]
+    assert s["end_error_m_max"] <= 0.10 and s["collisions"] == 0
+    assert load_map(Path(explored["map"])).pixels.size > 0
+    places = named_places(from_geojson(load_topology(Path(explored["topology"]))))
+    assert places["desk"] == (1.0, 1.0) and places["shelf"] == (4.5, 2.2)

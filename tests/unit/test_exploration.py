@@ -257,3 +257,24 @@ def test_return_home_after_complete() -> None:
     assert decision.target is not None and (decision.target.x_m, decision.target.y_m) == (1.0, 2.0)
     explorer.report_reached(5.0)
     assert explorer.state is ExploreState.COMPLETE
+
+
+@pytest.mark.parametrize("kind", ["frontier", "sp2atm"])
+def test_a_start_inside_an_obstacle_or_a_map_with_no_free_space_never_says_complete(kind: str) -> None:
+    from agent.exploration import ExplorerKind
+
+    config = ExploreConfig(explorer=ExplorerKind(kind))
+    pose = (1.0, 2.0, 0.0)
+    walled = GridMap(SPEC, np.ones(SPEC.shape, bool), np.zeros(SPEC.shape, bool))
+    blank = GridMap(SPEC, np.zeros(SPEC.shape, bool), np.ones(SPEC.shape, bool))
+    for grid in (walled, blank):
+        explorer = make_explorer(config, NAV)
+        assert explorer.command(Command.START, pose, 0.0)
+        for t in (0.0, 5.0, 10.0):
+            decision = explorer.update(grid, pose, t)
+            assert decision.state is ExploreState.EXPLORING, decision.reason
+        if grid is walled:  # nowhere to go: stands still and says why
+            assert decision.target is None and "own cell is blocked" in decision.reason
+        else:  # nothing seen yet: it looks where it stands, no premature "complete"
+            assert decision.target is not None
+            assert math.hypot(decision.target.x_m - 1.0, decision.target.y_m - 2.0) < 0.5

@@ -51,3 +51,21 @@ def test_mistakes_name_the_key(text: str, key: str) -> None:
     with pytest.raises(ConfigError) as caught:
         parse_config(BASE + "[exploration]\n" + text + "\n", "robot.toml")
     assert caught.value.key == key
+
+
+def test_named_places_are_read_and_a_broken_one_is_refused_naming_the_key() -> None:
+    from agent.exploration.config import NamedPoint
+
+    text = (
+        BASE + '[exploration]\n[[exploration.places]]\nname = "kitchen"\nx_m = 2.0\ny_m = 3.5\nyaw_deg = 90\n'
+        '[[exploration.places]]\nname = "lab"\nx_m = -1\ny_m = 0.5\n'
+    )
+    places = parse_config(text).exploration.places
+    assert places[1] == NamedPoint("lab", -1.0, 0.5, None)
+    assert places[0].name == "kitchen" and places[0].yaw_rad == pytest.approx(1.5707963)
+    with pytest.raises(ConfigError, match=r"places.*y_m"):
+        parse_config(BASE + '[[exploration.places]]\nname = "a"\nx_m = 1\n')
+    with pytest.raises(ConfigError, match="names two places"):
+        parse_config(BASE + '[[exploration.places]]\nname = "a"\nx_m = 1\ny_m = 1\n' * 2)
+    with pytest.raises(ConfigError, match="16 bytes"):
+        parse_config(BASE + '[[exploration.places]]\nname = "a-very-long-room-name"\nx_m = 1\ny_m = 1\n')

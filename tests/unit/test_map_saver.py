@@ -190,3 +190,24 @@ def test_a_requested_save_counts_its_lag_from_the_fetch_and_no_interval_means_no
     finally:
         saver.close()
     assert content_stamp_ns(b"P5\n# vlp-agent slam\n40 40\n255\n") is None
+
+
+def test_the_topological_map_is_written_beside_each_map_and_read_back_with_its_places(tmp_path: Path) -> None:
+    from agent.exploration.htm import Htm
+    from agent.exploration.topology import add_named_places, from_geojson, named_places, to_geojson
+    from agent.slam.mapio import load_topology, topology_path
+
+    htm = Htm()
+    htm.set_regions([(((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)), 1.0)])
+    add_named_places(htm, [("desk", 0.5, 0.5)])
+    saver = MapSaver(tmp_path, 0.0)
+    saver.topology = lambda: to_geojson(htm)
+    try:
+        saver.submit(image(-3.0))
+        assert saver.flush()
+    finally:
+        saver.close()
+    assert saver.topology_saves == 1 and saver.counters()["topology_save_failures"] == 0
+    back = from_geojson(load_topology(topology_path(tmp_path / "map.yaml")))
+    assert named_places(back) == {"desk": (0.5, 0.5)}
+    assert back.regions()[0].name == "desk"  # the room the place lies in is named after it

@@ -243,3 +243,64 @@ def test_return_home_drives_to_the_start_and_ends_the_unfinished_mission() -> No
     rig.step()
     assert rig.explorer.state is ExploreState.IDLE
     assert rig.loop.ended[40].state is GoalState.CANCELLED  # home, exploration not finished
+
+
+def test_a_bad_mission_while_exploring_loses_nothing_and_a_lost_pose_only_pauses_a_route() -> None:
+    rig = Rig()
+    rig.loop.on_map(room_image())
+    rig.loop.take(ExploreCommand(1, 50))
+    for _ in range(LOOK_AROUND_TURNS + 2):
+        rig.step()
+        goal = rig.mission()
+        if goal is not None and rig.loop._looking:  # type: ignore[attr-defined]
+            rig.finish(GoalState.REACHED)
+    before = rig.mission()
+    assert before is not None and rig.explorer.state is ExploreState.EXPLORING
+    assert refused_keeping(rig, PlaceCommand(2, 51, "kitchen")) is GoalReason.UNKNOWN_PLACE
+    assert refused_keeping(rig, PlaceCommand(3, 52, "desk")) is GoalReason.BUSY
+    assert rig.mission() == before and rig.explorer.state is ExploreState.EXPLORING  # exploring goes on
+    rig.loop.take(ExploreCommand(4, 50, ExploreAction.CANCEL))
+    rig.step()
+    # A route whose pose is lost half-way: nothing new is sent, the mission stays open, and it carries on.
+    rig.loop.take(PlaceCommand(5, 60, "desk", come_back=True))
+    rig.step()
+    rig.finish(GoalState.REACHED)
+    rig.pose = None
+    for _ in range(3):
+        rig.step()
+    assert 60 not in rig.loop.ended and rig.loop.counts["passes_without_pose"] == 3
+    rig.pose = (2.0, 3.0, 0.0)
+    rig.step()
+    back = rig.mission()
+    assert back is not None and (back.x_m, back.y_m) == (1.0, 2.0)  # type: ignore[attr-defined]
+    rig.finish(GoalState.REACHED)
+    rig.step()
+    assert rig.loop.ended[60].state is GoalState.REACHED
+
+
+def refused_keeping(rig: Rig, command: PlaceCommand) -> GoalReason:
+    status = rig.loop.take(command)
+    assert status.state is GoalState.REJECTED
+    return status.reason
+
+
+def test_the_topology_names_the_places_and_a_saved_one_gives_a_new_loop_its_places() -> None:
+    rig = Rig()
+    rig.loop.on_map(room_image())
+    data = rig.loop.topology()
+    assert data is not None
+    names = {f["properties"].get("metadata", {}).get("name") for f in data["features"]}
+    assert {"desk", "bin"} <= names
+    fresh = MissionLoop(
+        FrontierExplorer(ExploreConfig(), NavConfig()),
+        NavConfig(),
+        CommandArbiter(0.2, 1.0),
+        lambda status: None,
+        lambda: (1.0, 2.0, 0.0),
+        lambda: 0,
+    )
+    assert fresh.take(PlaceCommand(1, 1, "desk")).reason is GoalReason.UNKNOWN_PLACE
+    assert set(fresh.load_topology(data)) >= {"desk", "bin"}
+    fresh.on_map(room_image())
+    assert fresh.take(PlaceCommand(2, 2, "desk")).state is GoalState.ACCEPTED
+    assert (fresh.places["desk"].x_m, fresh.places["desk"].y_m) == (2.0, 3.0)
