@@ -17,7 +17,8 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
   says something nearer stands on the line of sight: a passer-by, a corner) and the robot coasts on the
   track's prediction at ``occluded_speed_factor`` of its speed until the tracker drops it; or **vanished**
   (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` (half
-  speed on the first missed scan, zero on the second) and the state is ``lost`` from then on, so the robot has stopped within half a second of the person vanishing
+  speed on the first missed scan, zero on the second) and the state is ``lost`` from then on (an occluder
+  found later does not resume the coasting: only a measurement does), so the robot has stopped within half a second of the person vanishing
   (issue 23's acceptance) while a passer-by crossing the line of sight does not stop it;
 * ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop;
 * ``no_camera`` (set by the follow loop, not here): the forward camera has given no frame for a while
@@ -92,6 +93,9 @@ class Follower:
     def __init__(self, config: FollowerConfig = FollowerConfig()) -> None:
         self.config = config
         self.lost_since_s: float | None = None
+        # Stopped for a vanished track: only a measurement resumes following, not an occluder found later
+        # (the person gone from the scans' detections may still be the nearer return on the line of sight).
+        self.vanished = False
 
     def step(
         self,
@@ -111,10 +115,13 @@ class Follower:
         cfg = self.config
         looked = t_s if looked_s is None else min(t_s, looked_s)
         unseen_s = max(0.0, looked - person.last_seen_s) if person is not None else 0.0
-        if person is not None and unseen_s > cfg.grace_s and not occluded:
+        if person is None or unseen_s <= cfg.grace_s:
+            self.vanished = False
+        if person is not None and unseen_s > cfg.grace_s and (self.vanished or not occluded):
             ramp = (cfg.stop_after_s - unseen_s) / max(cfg.stop_after_s - cfg.grace_s, 1e-6)
-            if ramp <= 0.0:
+            if ramp <= 0.0 or self.vanished:
                 # Vanished: stopped, and the wait and search of a lost track follow (once it is dropped).
+                self.vanished = True
                 if self.lost_since_s is None:
                     self.lost_since_s = t_s
                 return FollowCommand(
