@@ -16,8 +16,8 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
   tracker re-acquires. A track not measured for a while is one of two things: **occluded** (the caller
   says something nearer stands on the line of sight: a passer-by, a corner) and the robot coasts on the
   track's prediction at ``occluded_speed_factor`` of its speed until the tracker drops it; or **vanished**
-  (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` (half
-  speed on the first missed scan, zero on the second) and the state is ``lost`` from then on (an occluder
+  (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` (zero on
+  the first missed scan) and the state is ``lost`` from then on (an occluder
   found later does not resume the coasting: only a measurement does), so the robot has stopped within half a second of the person vanishing
   (issue 23's acceptance) while a passer-by crossing the line of sight does not stop it;
 * ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop;
@@ -66,11 +66,11 @@ class FollowerConfig:
     tolerance_m: float = 0.05  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
     # A track not measured for longer (a scan missed: 10 Hz scans) is occluded or vanished. Vanished
-    # (nothing in front), the speed ramps from grace_s to zero at stop_after_s: half speed on the first
-    # missed scan, zero on the second. Both sit between multiples of the scan period, so a scan's jitter
-    # does not move the stop by a whole scan (0.3 s was met at 0.29 s: stopped a scan later).
+    # (nothing in front), the speed ramps from grace_s to zero at stop_after_s: zero on the first missed
+    # scan (the ramp acts only on a camera bearing's time between scans). Both sit short of the scan
+    # period, so a scan's jitter does not move the stop by a whole scan (0.3 s was met at 0.29 s).
     grace_s: float = 0.05
-    stop_after_s: float = 0.15
+    stop_after_s: float = 0.09
     occluded_speed_factor: float = 0.7  # occluded: coast on the prediction at this share of the speed
     search_turn_radps: float = 0.6
     absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag

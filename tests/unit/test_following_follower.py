@@ -116,11 +116,10 @@ def test_a_vanished_person_is_slowed_for_then_stopped_within_half_a_second() -> 
     f = Follower(cfg)
     seen = person(1.5, 0.0, 0.7, 0.0, t=0.0)
     full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
-    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.04, 0.1, 0.12, 0.2, 0.6)]
+    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.04, 0.06, 0.08, 0.098, 0.2, 0.6)]
     assert speeds[0].v_mps == full.v_mps  # within grace_s (a bearing between scans): nothing changes
-    assert 0.0 < speeds[2].v_mps < speeds[1].v_mps < full.v_mps  # one scan missed: slowing down
-    assert abs(speeds[1].v_mps - 0.5 * full.v_mps) < 1e-9  # half speed on the first missed scan
-    for cmd in speeds[3:]:
+    assert 0.0 < speeds[2].v_mps < speeds[1].v_mps < full.v_mps  # slowing down
+    for cmd in speeds[3:]:  # the first missed scan (a little early: jitter) and on: stopped
         assert cmd.v_mps == 0.0 and cmd.state is FollowState.LOST and "vanished" in cmd.reason
     # Stopped as vanished, an occluder found afterwards (the person's own return, nearer than the coasting
     # track) does not start the robot again.
