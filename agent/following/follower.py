@@ -16,9 +16,11 @@ layer's word (whether the tag is near at all, and the band it says to look in) a
   tracker re-acquires. A track not measured for a while is one of two things: **occluded** (the caller
   says something nearer stands on the line of sight: a passer-by, a corner) and the robot coasts on the
   track's prediction at ``occluded_speed_factor`` of its speed until the tracker drops it; or **vanished**
-  (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` and the
-  state is ``lost`` from then on, so the robot has stopped within half a second of the person vanishing
-  (issue 23's acceptance) while a passer-by crossing the line of sight does not stop it;
+  (nothing in front explains it): past ``grace_s`` the speed ramps down to zero at ``stop_after_s`` (zero on
+  the first missed scan) and the state is ``lost`` from then on (an occluder found later does not resume
+  the coasting: only a measurement does), so the robot stands about half a second after the person
+  vanishes (issue 23's acceptance; the base's braking is most of it) while a passer-by crossing the line
+  of sight does not stop it;
 * ``no_tag``: the RFID layer says the person is absent (or gives nothing): stop;
 * ``no_camera`` (set by the follow loop, not here): the forward camera has given no frame for a while
   (unplugged, stalled): stop until it is back.
@@ -64,8 +66,12 @@ class FollowerConfig:
     standing_mps: float = 0.12  # slower than this the person stands
     tolerance_m: float = 0.05  # within this of the distance a standing person is waited for
     search_after_s: float = 1.0  # lost this long: turn toward the RFID bearing
-    grace_s: float = 0.12  # a track not measured for longer (a scan missed) is occluded or vanished
-    stop_after_s: float = 0.3  # vanished (nothing in front): zero speed this long after the last sight
+    # A track not measured for longer (a scan missed: 10 Hz scans) is occluded or vanished. Vanished
+    # (nothing in front), the speed ramps from grace_s to zero at stop_after_s: zero on the first missed
+    # scan (the ramp acts only when a camera bearing came between the scans). Both sit well short of the
+    # scan period, whose jitter (a few hundredths) must not put the stop a whole scan later.
+    grace_s: float = 0.03
+    stop_after_s: float = 0.05
     occluded_speed_factor: float = 0.7  # occluded: coast on the prediction at this share of the speed
     search_turn_radps: float = 0.6
     absent_probability: float = 0.8  # the coarse layer's p_absent above this: no tag
@@ -88,6 +94,9 @@ class Follower:
     def __init__(self, config: FollowerConfig = FollowerConfig()) -> None:
         self.config = config
         self.lost_since_s: float | None = None
+        # Stopped for a vanished track: only a measurement resumes following, not an occluder found later
+        # (the person gone from the scans' detections may still be the nearer return on the line of sight).
+        self.vanished = False
 
     def step(
         self,
@@ -107,10 +116,13 @@ class Follower:
         cfg = self.config
         looked = t_s if looked_s is None else min(t_s, looked_s)
         unseen_s = max(0.0, looked - person.last_seen_s) if person is not None else 0.0
-        if person is not None and unseen_s > cfg.grace_s and not occluded:
+        if person is None or unseen_s <= cfg.grace_s:
+            self.vanished = False
+        if person is not None and unseen_s > cfg.grace_s and (self.vanished or not occluded):
             ramp = (cfg.stop_after_s - unseen_s) / max(cfg.stop_after_s - cfg.grace_s, 1e-6)
-            if ramp <= 0.0:
+            if ramp <= 0.0 or self.vanished:
                 # Vanished: stopped, and the wait and search of a lost track follow (once it is dropped).
+                self.vanished = True
                 if self.lost_since_s is None:
                     self.lost_since_s = t_s
                 return FollowCommand(

@@ -15,9 +15,10 @@
   bearing from the camera, fed to the track as a second measurement (``PersonTracker.update_bearing``): the
   person's estimate uses laser, RFID and camera.
 
-A track not measured for a scan or two is *occluded* when the scan has returns nearer than the track on
+A track not measured by the last scan is *occluded* when the scan has returns nearer than the track on
 its line of sight (a passer-by, a corner), *vanished* otherwise; the follower coasts through the first
-and stops within ``stop_after_s`` on the second (``docs/following.md``, "Losing the person").
+and stops on the second at the first scan that misses them (``stop_after_s``; ``docs/following.md``,
+"Losing the person").
 
 Acquisition uses the coarse layer's window ahead (``within(0, acquire_half_width)``, the camera's view) as
 ``docs/following.md`` advises (the global maximum is often the mirror image behind the robot), and, when

@@ -116,14 +116,18 @@ def test_a_vanished_person_is_slowed_for_then_stopped_within_half_a_second() -> 
     f = Follower(cfg)
     seen = person(1.5, 0.0, 0.7, 0.0, t=0.0)
     full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
-    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.1, 0.16, 0.24, 0.3, 0.6)]
-    assert speeds[0].v_mps == full.v_mps  # one scan missed: nothing changes
+    speeds = [f.step(t, (0.0, 0.0, 0.0), seen, 0.0, 0.0) for t in (0.02, 0.035, 0.045, 0.07, 0.2, 0.6)]
+    assert speeds[0].v_mps == full.v_mps  # within grace_s (a bearing between scans): nothing changes
     assert 0.0 < speeds[2].v_mps < speeds[1].v_mps < full.v_mps  # slowing down
-    for cmd in speeds[3:]:
+    for cmd in speeds[3:]:  # the first missed scan (early by a scan's jitter) and on: stopped
         assert cmd.v_mps == 0.0 and cmd.state is FollowState.LOST and "vanished" in cmd.reason
+    # Stopped as vanished, an occluder found afterwards (the person's own return, nearer than the coasting
+    # track) does not start the robot again.
+    again = f.step(0.65, (0.0, 0.0, 0.0), seen, 0.0, 0.0, occluded=True)
+    assert again.v_mps == 0.0 and again.state is FollowState.LOST
     # A scan that comes late is not a person gone: the time since the last look counts, not the clock.
     late = Follower(cfg)
-    assert late.step(0.6, (0.0, 0.0, 0.0), seen, 0.0, 0.0, looked_s=0.1).v_mps == full.v_mps
+    assert late.step(0.6, (0.0, 0.0, 0.0), seen, 0.0, 0.0, looked_s=0.02).v_mps == full.v_mps
     back = f.step(0.7, (0.0, 0.0, 0.0), person(1.5, 0.0, 0.7, 0.0, t=0.7), 0.0, 0.0)
     assert back.state is FollowState.FOLLOWING and back.v_mps > 0.0
 
