@@ -42,6 +42,7 @@ from agent.fleet.fleet_score import contacts, separation
 from agent.fleet.goal_sender import GoalSender
 from agent.fleet.local_protocol import GoalMessage
 from agent.fleet.map_view import FleetMaps, picture, report
+from agent.shipped import DEFAULT_SIM_CONFIG
 from firmware_protocol.command_frame import GoalReason, GoalState
 from firmware_protocol.errors import ProtocolError
 
@@ -159,9 +160,7 @@ def run_fleet(args: argparse.Namespace) -> int:
             "--robots drives each robot to its --goal: not with --explore, --deliver or --follow"
         )
     config_path = Path(args.config).resolve() if args.config else None
-    from agent.commands.sim import DEFAULT_CONFIG
-
-    base = load_config(config_path or DEFAULT_CONFIG)
+    base = load_config(config_path or DEFAULT_SIM_CONFIG)
     if base.sim is None:
         raise UsageError("vlp-agent sim needs a config with a [sim] table (see examples/sim.toml)")
     if base.fleet.socket is not None:
