@@ -11,8 +11,10 @@ reports
 * ``time_lost_s``: time in the states ``lost`` and ``no_tag`` after the first acquisition;
 * ``identity_switches``: how often the person the track is on (the true person nearest the track, within
   ``match_m``) changes from one person to another;
-* ``collisions_people``: contacts (footprint touching a body) begun; ``min_person_gap_m`` (footprint to
-  body), ``min_person_distance_m`` (centre to centre);
+* ``collisions_people``: contacts (footprint touching a body) begun; ``contacts_robot_moving``: those begun
+  while the robot moved (faster than 0.05 m/s between two samples: the robot drove into someone; the
+  simulated walkers do not yield, so the rest are people walking into a robot at rest);
+  ``min_person_gap_m`` (footprint to body), ``min_person_distance_m`` (centre to centre);
 * ``stop_latency_s_max``: per entry into ``lost`` (or ``no_tag``) after the first acquisition, the time
   until the robot's true speed is below 0.02 m/s (0 when it already was; the acceptance: 0.5 s) or it
   steps out of a walker's way (``lost_then_aside`` counts those);
@@ -48,6 +50,7 @@ __all__ = ["FollowScore", "camera_view", "make_follow_loop"]
 log = logging.getLogger(__name__)
 
 STOPPED_MPS = 0.02
+MOVING_MPS = 0.05  # a contact begun faster than this is the robot driving into someone
 CUE_LATEST_S = 5.0
 SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
 
@@ -147,6 +150,7 @@ class FollowScore:
         self.on_person: str | None = None
         self.switches = 0
         self.contacts = 0
+        self.contacts_moving = 0
         self._in_contact = False
         self.min_gap = math.inf
         self.min_dist = math.inf
@@ -183,6 +187,7 @@ class FollowScore:
             contact = person_gap <= 0.0
             if contact and not self._in_contact:
                 self.contacts += 1
+                self.contacts_moving += int(speed > MOVING_MPS)
                 snap = self.loop.latest
                 log.warning(
                     "follow: contact at t=%.2f, robot %.2f,%.2f yaw %.2f at %.2f m/s, people %s; last %s",
@@ -285,6 +290,7 @@ class FollowScore:
                 "identity_switches": self.switches,
                 "followed": self.on_person,
                 "collisions_people": self.contacts,
+                "contacts_robot_moving": self.contacts_moving,
                 "min_person_gap_m": r(self.min_gap),
                 "min_person_distance_m": r(self.min_dist),
                 "lost_events": self.lost_events,
