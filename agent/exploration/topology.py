@@ -23,7 +23,7 @@ import math
 from collections.abc import Iterable
 from typing import Any
 
-from agent.exploration.htm import Htm, Node, NodeKind, polygon_centre
+from agent.exploration.htm import Htm, Node, NodeKind, point_in_polygon, polygon_centre
 
 FORMAT = "vlp-agent-topology"
 VERSION = 1
@@ -236,7 +236,7 @@ def add_named_places(htm: Htm, places: Iterable[tuple[str, float, float]]) -> No
             old.name = name
         old.x_m, old.y_m, old.anchor = x, y, None
         for r in htm.regions():
-            if _inside(r.polygon, (x, y)):
+            if point_in_polygon((x, y), r.polygon):
                 old.region = r.id
                 if not r.name:
                     r.name = name
@@ -254,18 +254,6 @@ def named_places(htm: Htm) -> dict[str, tuple[float, float]]:
         if n.kind is NodeKind.PLACE and n.name:
             out[n.name] = (n.x_m, n.y_m)
     return out
-
-
-def _inside(polygon: tuple[tuple[float, float], ...], xy: tuple[float, float]) -> bool:
-    """Even-odd rule: whether ``xy`` lies inside ``polygon``."""
-    x, y = xy
-    inside = False
-    n = len(polygon)
-    for i in range(n):
-        (x1, y1), (x2, y2) = polygon[i], polygon[(i + 1) % n]
-        if (y1 > y) != (y2 > y) and x < x1 + (y - y1) * (x2 - x1) / (y2 - y1):
-            inside = not inside
-    return inside
 
 
 def _r(v: float) -> float:
