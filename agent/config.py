@@ -46,7 +46,7 @@ from drivers.registry import (
 )
 from drivers.sim.world import World
 from drivers.sim.worldfile import MAX_LEDS
-from drivers.toml_table import TomlTable, type_name
+from drivers.toml_table import TomlTable, read_toml, type_name
 
 __all__ = [
     "AgentConfig",
@@ -403,16 +403,7 @@ class AgentConfig:
 def load_config(path: str | os.PathLike[str]) -> AgentConfig:
     """Read and check a config file. Raises ConfigError (with the file and the key) on any mistake."""
     file = os.fspath(path)
-    try:
-        with open(file, "rb") as fp:
-            data = tomllib.load(fp)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError("", f"not valid TOML: {exc}", file) from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError("", f"not UTF-8 text: {exc.reason} at byte {exc.start}", file) from exc
-    except OSError as exc:
-        raise ConfigError("", f"cannot read the config file: {exc.strerror or exc}", file) from exc
-    return parse_config(data, file)
+    return parse_config(read_toml(file), file)
 
 
 def parse_config(data: Mapping[str, Any] | str, file: str = "<config>") -> AgentConfig:

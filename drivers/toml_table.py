@@ -12,12 +12,30 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
+import tomllib
 from collections.abc import Mapping
 from typing import Any
 
 from drivers.errors import ConfigError
 
-__all__ = ["TomlTable", "as_float", "as_int", "type_name"]
+__all__ = ["TomlTable", "as_float", "as_int", "read_toml", "type_name"]
+
+
+def read_toml(path: str | os.PathLike[str], what: str = "the config file") -> dict[str, Any]:
+    """The parsed TOML document at ``path``; a :class:`ConfigError` naming the file (no key) when it cannot
+    be read, is not UTF-8 or is not valid TOML. ``what`` names the file in the message ("the bridge
+    config")."""
+    file = os.fspath(path)
+    try:
+        with open(file, "rb") as fp:
+            return tomllib.load(fp)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("", f"not valid TOML: {exc}", file) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError("", f"not UTF-8 text: {exc.reason} at byte {exc.start}", file) from exc
+    except OSError as exc:
+        raise ConfigError("", f"cannot read {what}: {exc.strerror or exc}", file) from exc
 
 
 def type_name(value: object) -> str:

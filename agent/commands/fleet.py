@@ -1,6 +1,6 @@
-"""``vlp-agent fleet list`` / ``fleet goal`` / ``fleet map``: the robots of the fleet, their poses and states,
-heard on Zenoh for a while; a goal sent to one robot, and its statuses; every robot's map merged into one
-picture.
+"""``vlp-agent fleet list`` / ``fleet goal`` / ``fleet map`` / ``fleet router``: the robots of the fleet,
+their poses and states, heard on Zenoh for a while; a goal sent to one robot, and its statuses; every
+robot's map merged into one picture; a Zenoh router for the bridges to meet at.
 
 Endpoints come from ``--connect`` / ``--listen`` or a bridge config (``--config``: its ``[zenoh]`` table).
 docs/fleet.md.
@@ -96,6 +96,65 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--topology-out", metavar="JSON", default=None, help="also write every robot's topological graph"
     )
     _endpoint_args(mp)
+    rt = fleet_sub.add_parser(
+        "router",
+        help='run a Zenoh router where the bridges (mode = "client") meet',
+        description="A Zenoh router in this process (eclipse-zenoh's, the same router as zenohd, no other "
+        'install): the bridges of a fleet connect to it in client mode ([zenoh] mode = "client", '
+        "connect = [its endpoint]) and reconnect on their own when it restarts. Scouting off. Runs until "
+        "SIGTERM or Ctrl-C (or --seconds). Exit status 1: an endpoint could not be opened. "
+        "docs/fleet.md, 'A router'.",
+    )
+    rt.add_argument(
+        "--listen",
+        metavar="ENDPOINT",
+        action="append",
+        required=True,
+        help="where clients and peers reach it, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    rt.add_argument(
+        "--connect", metavar="ENDPOINT", action="append", default=[], help="another router (repeatable)"
+    )
+    rt.add_argument(
+        "--seconds", type=positive_seconds, default=None, help="stop after this long (default: at a signal)"
+    )
+    rt.add_argument("--json", action="store_true", help="print one JSON object when it stops")
+
+
+def _router(args: argparse.Namespace) -> int:
+    import signal
+    import sys
+    import threading
+    import time
+
+    from agent.fleet.router import open_router
+    from drivers.errors import DeviceNotFound
+
+    stop = threading.Event()
+    t0 = time.monotonic()
+    error: str | None = None
+    session: Any = None
+    previous = {
+        sig: signal.signal(sig, lambda signum, frame: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)
+    }
+    try:
+        session = open_router(args.listen, args.connect)
+        print(f"Zenoh router: listen {', '.join(args.listen)}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        stop.wait(args.seconds)
+    except DeviceNotFound as exc:
+        error = str(exc)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if session is not None:
+            session.close()
+    if args.json:
+        out = {"listen": args.listen, "connect": args.connect, "seconds": round(time.monotonic() - t0, 3)}
+        print(dumps_json({**out, "error": error}, sort_keys=True))
+    if error is not None:
+        print(f"vlp-agent fleet router: {error}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _zenoh(args: argparse.Namespace) -> tuple[ZenohConfig, str]:
@@ -124,6 +183,8 @@ def run(args: argparse.Namespace) -> int:
         return _goal(args)
     if args.fleet_command == "map":
         return _map(args)
+    if args.fleet_command == "router":
+        return _router(args)
     from agent.fleet.view import FleetView
 
     zenoh, prefix = _zenoh(args)

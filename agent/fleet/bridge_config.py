@@ -6,31 +6,33 @@ from __future__ import annotations
 import json
 import math
 import os
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from agent.fleet.local_protocol import valid_robot_name
-from drivers.errors import ConfigError
-from drivers.toml_table import TomlTable, type_name
+from drivers.toml_table import TomlTable, read_toml, type_name
 
 __all__ = ["BridgeConfig", "ZenohConfig", "load_bridge_config", "parse_bridge_config"]
 
 _MODES = ("peer", "client")
 _MAX_ENDPOINTS = 64
+_RETRY_INIT_MS = 100
 
 
 @dataclass(frozen=True)
 class ZenohConfig:
-    """``[zenoh]``: the session's mode, the endpoints it listens on and connects to (``tcp/HOST:PORT``,
-    ...), and whether it scouts for peers by multicast (off unless configured)."""
+    """``[zenoh]``: the session's mode (a bridge: peer or client; ``vlp-agent fleet router``: router), the
+    endpoints it listens on and connects to (``tcp/HOST:PORT``, ...), whether it scouts for peers by
+    multicast (off unless configured), and the longest wait between two tries to reach a ``connect``
+    endpoint that went away (a router or peer restarting)."""
 
     mode: str = "peer"
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
+    retry_max_s: float = 1.0
 
     def zenoh_config(self) -> Any:
         """A ``zenoh.Config`` (imports zenoh: only in the bridge and the fleet view)."""
@@ -41,6 +43,15 @@ class ZenohConfig:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        # A lost connect endpoint is tried again after 0.1 s, then at doubling intervals up to retry_max_s
+        # (Zenoh's own default: 1 s doubling to 4 s; a router back after a restart was then heard 2 s
+        # after it listened again, here 0.5 s).
+        retry = {
+            "period_init_ms": min(_RETRY_INIT_MS, round(self.retry_max_s * 1000)),
+            "period_max_ms": round(self.retry_max_s * 1000),
+            "period_increase_factor": 2,
+        }
+        conf.insert_json5("connect/retry", json.dumps(retry))
         return conf
 
 
@@ -57,14 +68,7 @@ class BridgeConfig:
 
 def load_bridge_config(path: str | os.PathLike[str]) -> BridgeConfig:
     file = os.fspath(path)
-    try:
-        with open(file, "rb") as fp:
-            data = tomllib.load(fp)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError("", f"not valid TOML: {exc}", file) from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError("", f"cannot read the bridge config: {exc}", file) from exc
-    return parse_bridge_config(data, file)
+    return parse_bridge_config(read_toml(file, "the bridge config"), file)
 
 
 def _string(t: TomlTable, name: str, default: str | None) -> str | None:
@@ -122,6 +126,7 @@ def parse_bridge_config(data: Mapping[str, Any], file: str = "<bridge config>") 
         listen=_endpoints(z, "listen"),
         connect=_endpoints(z, "connect"),
         multicast_scouting=z.boolean("multicast_scouting", False),
+        retry_max_s=_number(z, "retry_max_s", 1.0, 0.1, 60.0),
     )
     if not zenoh.listen and not zenoh.connect and not zenoh.multicast_scouting:
         raise z.error("connect", "give listen or connect endpoints (or multicast_scouting = true)")
