@@ -9,6 +9,7 @@ on wall-clock time: every wait has a generous timeout.
 
 from __future__ import annotations
 
+import re
 import signal
 import socket
 import subprocess
@@ -108,6 +109,39 @@ def stop(proc: subprocess.Popen[str]) -> tuple[str, str]:
     return out or "", err or ""
 
 
+class SimRobot:
+    """One simulated robot: ``vlp-agent sim`` (``examples/sim.toml`` on ``world``, ``[fleet] socket`` set, 10
+    poses/s to the bridge) and its ``vlp-agent bridge`` (robot ``r1``, a status every 0.5 s) with the given
+    Zenoh endpoints, files in ``folder``. ``stop()`` ends both (the bridge first) and returns their (stdout,
+    stderr); twice is fine."""
+
+    def __init__(
+        self, folder: Path, world: Path, *, listen: Sequence[str] = (), connect: Sequence[str] = ()
+    ) -> None:
+        self.sock = folder / "fleet.sock"
+        config = folder / "robot.toml"
+        text = (REPO / "examples" / "sim.toml").read_text(encoding="utf-8")
+        text, n = re.subn(r"(?m)^world\s*=.*$", f'world = "{world}"', text, count=1)
+        assert n == 1, "examples/sim.toml has no world line"
+        config.write_text(text + f'\n[fleet]\nsocket = "{self.sock}"\npose_rate_hz = 10\n', encoding="utf-8")
+        bridge_config = write_bridge_config(
+            folder / "bridge.toml", "r1", self.sock, listen=listen, connect=connect, status_period_s=0.5
+        )
+        self.sim = start("sim", "--config", str(config), "--seconds", "600")
+        self.bridge = start_bridge(bridge_config)
+        self._outputs: dict[str, tuple[str, str]] | None = None
+
+    def assert_running(self) -> None:
+        for proc in (self.sim, self.bridge):
+            assert proc.poll() is None, stop(proc)[1][-2000:]
+
+    def stop(self) -> dict[str, tuple[str, str]]:
+        """``{"bridge": (stdout, stderr), "sim": (stdout, stderr)}``."""
+        if self._outputs is None:
+            self._outputs = {"bridge": stop(self.bridge), "sim": stop(self.sim)}
+        return self._outputs
+
+
 class AgentEnd:
     """The agent's end of the local protocol (``FleetLoop``, as in the agent: it listens on ``sock``) on a
     thread, sending a fixed pose at ``pose_rate_hz``; ``close()`` stops it (twice is fine)."""
@@ -137,9 +171,8 @@ class AgentEnd:
             **kwargs,
         )
         self._stop = threading.Event()
-        self.thread = threading.Thread(
-            target=self.loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": self._stop}
-        )
+        self.beat = Heartbeat("fleet", False, 10.0)
+        self.thread = threading.Thread(target=self.loop.run, args=(self.beat,), kwargs={"stop": self._stop})
         self.thread.start()
 
     def alive(self) -> bool:
@@ -163,6 +196,72 @@ class AgentEnd:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class BridgeThread:
+    """``Bridge.run`` on a thread with ``FakeSession`` (or ``session``) for its Zenoh session, robot ``r1``
+    unless told; ``close()`` stops it (twice is fine)."""
+
+    def __init__(
+        self,
+        sock: Path,
+        session: FakeSession | None = None,
+        *,
+        robot: str = "r1",
+        status_period_s: float = 0.1,
+        reconnect_s: float = 0.05,
+    ) -> None:
+        from agent.fleet.bridge import Bridge
+        from agent.fleet.bridge_config import parse_bridge_config
+
+        self.session = FakeSession() if session is None else session
+        config = parse_bridge_config(
+            {
+                "bridge": {
+                    "robot": robot,
+                    "socket": str(sock),
+                    "status_period_s": status_period_s,
+                    "reconnect_s": reconnect_s,
+                },
+                "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
+            }
+        )
+        self.bridge = Bridge(config, open_session=lambda conf: self.session)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self.bridge.run, args=(self._stop,))
+        self.thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(TIMEOUT_S)
+
+
+class FleetThreads:
+    """Agents' ends and bridges on threads (a unit test's fleet, no network); ``close()`` stops them all,
+    the last started first. The agents' defaults are the unit tests': 50 poses/s, a status every 0.1 s,
+    VLP and odometry flags."""
+
+    def __init__(self) -> None:
+        self.started: list[AgentEnd | BridgeThread] = []
+
+    def agent(self, sock: Path, **kwargs: Any) -> AgentEnd:
+        options: dict[str, Any] = {
+            "pose_rate_hz": 50.0,
+            "status_period_s": 0.1,
+            "flags": PoseFlags.VLP | PoseFlags.ODOMETRY,
+        }
+        end = AgentEnd(sock, **(options | kwargs))
+        self.started.append(end)
+        return end
+
+    def bridge(self, sock: Path, session: FakeSession | None = None, **kwargs: Any) -> BridgeThread:
+        bridge = BridgeThread(sock, session, **kwargs)
+        self.started.append(bridge)
+        return bridge
+
+    def close(self) -> None:
+        for thing in reversed(self.started):
+            thing.close()
 
 
 class Heard:

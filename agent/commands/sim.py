@@ -170,6 +170,14 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "--spacing", type=float, default=4.0, metavar="M", help="with --robots: metres between starts (4)"
     )
     p.add_argument(
+        "--fleet-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="with --robots: every robot's bridge also connects to ENDPOINT, where a fleet view or an audit "
+        "listens (e.g. 'vlp-agent fleet list --listen tcp/127.0.0.1:7500'); repeatable",
+    )
+    p.add_argument(
         "--goal",
         action="append",
         type=_goal_argument,
@@ -414,6 +422,8 @@ def _config(args: argparse.Namespace) -> AgentConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.fleet_connect and args.robots == 1:
+        raise UsageError("--fleet-connect goes with --robots N")
     if args.robots != 1:
         if not 2 <= args.robots <= 8:
             raise UsageError(f"--robots must be 1..8, not {args.robots}")

@@ -4,13 +4,14 @@ fleet").
 Each robot is its own ``vlp-agent sim`` process (its own simulated devices, the world without its route,
 started ``--spacing`` metres apart along the world's start heading and facing its goal, seed ``--seed + i``)
 with ``[fleet] socket`` set, and its own ``vlp-agent bridge`` (peer mode, scouting off, ``tcp/127.0.0.1``:
-robot i listens on one port and connects to every earlier robot's). Robot i gets the i-th ``--goal`` through
-the fleet (``agent.fleet.goal_sender``, as ``vlp-agent fleet goal`` sends it), sent again while its agent is
-not ready for it. An observer peer in this process hears every pose. The run ends when every goal has ended or
-at ``--seconds``; the summary (``--json``: one object) has ``robots`` (each robot's goal outcome and its
-simulator's pose figures), ``collisions`` (times two robots' true footprints touched), the closest two robots
-came, and ``fleet_pose_latency_ms_p95`` (a pose's age at its delivery to the observer: from the pose's own
-time on the agent, so it includes how old the fused estimate was when the agent sent it).
+robot i listens on one port and connects to every earlier robot's, and to each ``--fleet-connect``).
+Robot i gets the i-th ``--goal`` through the fleet (``agent.fleet.goal_sender``, as ``vlp-agent fleet
+goal`` sends it), sent again while its agent is not ready for it. An observer peer in this process hears
+every pose. The run ends when every goal has ended or at ``--seconds``; the summary (``--json``: one
+object) has ``robots`` (each robot's goal outcome and its simulator's pose figures), ``collisions`` (times
+two robots' true footprints touched), the closest two robots came, and ``fleet_pose_latency_ms_p95`` (a
+pose's age at its delivery to the observer: from the pose's own time on the agent, so it includes how old
+the fused estimate was when the agent sent it).
 
 The robots simulate the same world in separate processes: a robot does not see another with its laser,
 only through the fleet (the costmap's fleet layer, ``agent.navigation.fleet_layer``).
@@ -179,6 +180,10 @@ def run_fleet(args: argparse.Namespace) -> int:
     config_text = Path(base.file).read_text(encoding="utf-8")
     seed = args.seed if args.seed is not None else base.sim.seed
     ports = [_free_port() for _ in range(n)]
+    extra: list[str] = list(args.fleet_connect)  # an outside listener: a fleet view, a test's audit
+    bad = [e for e in extra if "/" not in e or '"' in e]
+    if bad:
+        raise UsageError(f"--fleet-connect {bad[0]!r}: an endpoint like tcp/127.0.0.1:7500")
     procs: list[subprocess.Popen[str]] = []
     names = [f"r{i + 1}" for i in range(n)]
     results: list[dict[str, Any]] = [{} for _ in range(n)]
@@ -207,7 +212,7 @@ def run_fleet(args: argparse.Namespace) -> int:
             (d / "robot.toml").write_text(
                 config + f'\n[fleet]\nsocket = "{d / "fleet.sock"}"\n', encoding="utf-8"
             )
-            endpoints = ", ".join(f'"tcp/127.0.0.1:{p}"' for p in ports[:i])
+            endpoints = ", ".join(json.dumps(e) for e in [*(f"tcp/127.0.0.1:{p}" for p in ports[:i]), *extra])
             (d / "bridge.toml").write_text(
                 f'[bridge]\nrobot = "{name}"\nsocket = "{d / "fleet.sock"}"\n[zenoh]\nmode = "peer"\n'
                 f'listen = ["tcp/127.0.0.1:{ports[i]}"]\nconnect = [{endpoints}]\n',
@@ -248,6 +253,9 @@ def run_fleet(args: argparse.Namespace) -> int:
             t.join(max(deadline - time.monotonic(), 0.0) + 5.0)
     finally:
         stop.set()
+        for proc in procs:  # all at once: each simulator takes a while to write its files and summary
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
         outputs = [_stop(p) for p in procs]
         if session is not None:
             session.close()

@@ -2,13 +2,15 @@
 payload must decode strictly by that key's documented schema (``agent.fleet.payloads``). What the schemas
 allow is poses, status flags and counters, goals and goal states, laser-built occupancy maps with the
 robot's path, and topological graphs: no image, nothing computed from camera pixels except the pose the
-LED observations give. So a payload that passes is free of images by construction; this module is what a
-test (or ``vlp-agent sim --robots N``) runs over everything heard on ``**``.
+LED observations give, and no field beyond its schema's (``FIELDS``). So a payload that passes is free of
+images by construction; this module is what a test (or ``vlp-agent sim --robots N``) runs over everything
+heard on ``**``.
 """
 
 from __future__ import annotations
 
 import collections
+import json
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,7 +19,7 @@ from typing import Any
 from agent.fleet import payloads
 from firmware_protocol.errors import ProtocolError
 
-__all__ = ["DECODERS", "Audit", "check"]
+__all__ = ["DECODERS", "FIELDS", "Audit", "check"]
 
 DECODERS: dict[str, Callable[[bytes, str], object]] = {
     "pose": payloads.decode_pose,
@@ -29,8 +31,48 @@ DECODERS: dict[str, Callable[[bytes, str], object]] = {
 }
 
 
+# The fields each payload may carry (docs/fleet.md, "On the network"). The decoders read the fields they
+# know and ignore others; the audit does not: an extra field could carry anything (a JPEG in base64).
+_BASE = ("v", "robot")
+FIELDS: dict[str, frozenset[str]] = {
+    "pose": frozenset((*_BASE, "t_us", "x_m", "y_m", "yaw_rad", "sigma_xy_m", "sigma_yaw_rad", "flags")),
+    "status": frozenset((*_BASE, "t_us", "pose_flags", "bits", "agent", "counters")),
+    "goal_state": frozenset((*_BASE, "t_us", "goal_id", "state", "reason", "remaining_m")),
+    "goal": frozenset((*_BASE, "goal_id", "x_m", "y_m", "yaw_rad", "allow_unknown")),
+    "map": frozenset(
+        (
+            *_BASE,
+            *("t_us", "frame", "resolution_m", "origin_x_m", "origin_y_m", "width", "height"),
+            *("encoding", "cells", "path"),
+        )
+    ),
+    "topology": frozenset((*_BASE, "t_us", "frame", "topology")),
+}
+_MAX_COUNTER_NAME = 64
+
+
+def _extra(kind: str, payload: bytes) -> str | None:
+    """What the decoded payload carries beyond its schema's fields, or None."""
+    obj = json.loads(payload)  # it decoded as its schema: a JSON object
+    extra = set(obj) - FIELDS[kind]
+    if extra:
+        return f"fields beyond the {kind} schema: {sorted(extra)[:5]}"
+    if kind == "status":
+        counters = obj["counters"]
+        if not isinstance(counters, dict) or not all(
+            isinstance(k, str)
+            and len(k) <= _MAX_COUNTER_NAME
+            and k.replace("_", "").isalnum()
+            and type(v) is int
+            for k, v in counters.items()
+        ):
+            return "counters must map short names to integers"
+    return None
+
+
 def check(prefix: str, key_expr: str, payload: bytes) -> str | None:
-    """None when ``payload`` under ``key_expr`` is a documented fleet message; else what is wrong."""
+    """None when ``payload`` under ``key_expr`` is a documented fleet message (its schema's fields and no
+    other); else what is wrong."""
     kind = key_expr.rsplit("/", 1)[-1]
     decoder = DECODERS.get(kind)
     if decoder is None:
@@ -40,7 +82,8 @@ def check(prefix: str, key_expr: str, payload: bytes) -> str | None:
         decoder(payload, robot)
     except ProtocolError as exc:
         return f"{key_expr[:120]}: {exc}"
-    return None
+    extra = _extra(kind, payload)
+    return None if extra is None else f"{key_expr[:120]}: {extra}"
 
 
 @dataclass

@@ -5,10 +5,12 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 
 import pytest
 
+from tests.fleet_helpers import SimRobot
 from tests.integration.sim_pty import SimOnPty
 from tests.integration.test_agent_accuracy import REPO, PtyReader, vlp_agent
 from tests.integration.test_agent_shutdown import wait_for_frames
@@ -42,3 +44,21 @@ def sim_on_pty() -> Iterator[Callable[..., SimOnPty]]:
             os.killpg(sim.proc.pid, signal.SIGKILL)
             sim.proc.wait()
         sim.reader.close()
+
+
+@pytest.fixture
+def fleet_robot(tmp_path: Path) -> Iterator[Callable[..., SimRobot]]:
+    """Starts one simulated robot with its fleet bridge (``tests.fleet_helpers.SimRobot``: ``start(world,
+    listen=..., connect=...)``); whatever still runs at the end of the test is stopped."""
+    started: list[SimRobot] = []
+
+    def start(world: Path, *, listen: Sequence[str] = (), connect: Sequence[str] = ()) -> SimRobot:
+        folder = tmp_path / f"robot{len(started) + 1}"
+        folder.mkdir()
+        robot = SimRobot(folder, world, listen=listen, connect=connect)
+        started.append(robot)
+        return robot
+
+    yield start
+    for robot in started:
+        robot.stop()

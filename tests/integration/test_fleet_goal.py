@@ -1,8 +1,9 @@
 """A goal from the fleet, end to end: one simulated agent (``vlp-agent sim`` with ``[fleet] socket``, the
-office without its route so nothing else drives the robot), its bridge (``vlp-agent bridge``) and
-``vlp-agent fleet goal r1 X Y --wait`` as another Zenoh peer on loopback (multicast scouting off, explicit
-``tcp/127.0.0.1`` endpoints). The goal is accepted, driven and reached, and its statuses come back to the
-sender with the sender's goal id. Generous timeouts, no wall-clock assertion."""
+office without its route so nothing else drives the robot) and its bridge (``vlp-agent bridge``): the
+``fleet_robot`` fixture; ``vlp-agent fleet goal r1 X Y --wait`` as another Zenoh peer on loopback
+(multicast scouting off, explicit ``tcp/127.0.0.1`` endpoints). The goal is accepted, driven and reached,
+and its statuses come back to the sender with the sender's goal id. Generous timeouts, no wall-clock
+assertion."""
 
 from __future__ import annotations
 
@@ -10,12 +11,12 @@ import json
 import re
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from tests.integration.test_agent_accuracy import REPO, vlp_agent
-from tests.integration.test_fleet_bridge import TIMEOUT_S, _free_port, _stop
+from tests.fleet_helpers import REPO, TIMEOUT_S, SimRobot, free_port, loopback, vlp_agent
 
 pytest.importorskip("zenoh")
 
@@ -23,65 +24,39 @@ OFFICE = REPO / "examples" / "worlds" / "office.toml"
 GOAL = (3.2, 6.0)  # 1.2 m east of the start along the corridor, in the laser's view from the start
 
 
-def test_a_goal_sent_with_fleet_goal_is_reached_and_its_status_comes_back(tmp_path: Path) -> None:
+def test_a_goal_sent_with_fleet_goal_is_reached_and_its_status_comes_back(
+    tmp_path: Path, fleet_robot: Callable[..., SimRobot]
+) -> None:
     world = tmp_path / "office.toml"
     # The route section out: the simulator's autopilot then sends no velocity (it would outrank the goal).
     text = OFFICE.read_text()
     world.write_text(re.sub(r"(?ms)^\[route\]\n.*?(?=^# ---|^\[)", "", text))
     assert "[route]" not in world.read_text()
-    sock = tmp_path / "fleet.sock"
-    config = tmp_path / "robot.toml"
-    sim = (REPO / "examples" / "sim.toml").read_text().replace('"worlds/office.toml"', f'"{world}"')
-    config.write_text(sim + f'\n[fleet]\nsocket = "{sock}"\npose_rate_hz = 10\n')
-    port = _free_port()
-    bridge_config = tmp_path / "bridge.toml"
-    bridge_config.write_text(
-        f'[bridge]\nrobot = "r1"\nsocket = "{sock}"\nstatus_period_s = 0.5\n[zenoh]\nmode = "peer"\n'
-        f'listen = ["tcp/127.0.0.1:{port}"]\n'
-    )
-    procs: list[subprocess.Popen[str]] = []
-    try:
-        for args in (
-            ("sim", "--config", str(config), "--seconds", "600"),
-            ("bridge", "--config", str(bridge_config), "--json"),
-        ):
-            procs.append(
-                subprocess.Popen(
-                    vlp_agent(*args),
-                    cwd=REPO,
-                    stdout=subprocess.PIPE,
-                    stderr=subprocess.PIPE,
-                    text=True,
-                    start_new_session=True,
-                )
-            )
-        goal = ["fleet", "goal", "r1", str(GOAL[0]), str(GOAL[1]), "--goal-id", "777", "--wait"]
-        goal += ["--allow-unknown", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "240", "--json"]
-        out: dict = {}
-        deadline = time.monotonic() + TIMEOUT_S
-        while True:  # early on the agent (or its bridge's connection) is not there yet: REJECTED, sent again
-            sent = subprocess.run(
-                vlp_agent(*goal), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S + 240
-            )
-            assert sent.returncode in (0, 1, 3), sent.stderr[-2000:]
-            out = json.loads(sent.stdout)
-            assert out["goal_id"] == 777
-            final = out["final"]
-            if final is not None and final["state"] == "reached":
-                break
-            assert final is None or (final["state"] == "rejected" and final["reason"] != "busy"), out
-            for proc in procs:
-                assert proc.poll() is None, _stop(proc)[1][-2000:]
-            assert time.monotonic() < deadline, f"the goal was never reached: {out}"
-            time.sleep(1.0)  # not a timing assumption: a pause between attempts while the agent starts
-        assert out["final"]["state"] == "reached", out
-        assert sent.returncode == 0
-        names = [s["state"] for s in out["states"]]
-        assert names[0] == "accepted" and names[-1] == "reached", names
-        for proc in procs:
-            assert proc.poll() is None, _stop(proc)[1][-2000:]
-    finally:
-        outputs = [_stop(p) for p in reversed(procs)]
-    bridge_out = json.loads(outputs[0][0])
+    port = free_port()
+    robot = fleet_robot(world, listen=[loopback(port)])
+    goal = ["fleet", "goal", "r1", str(GOAL[0]), str(GOAL[1]), "--goal-id", "777", "--wait"]
+    goal += ["--allow-unknown", "--connect", loopback(port), "--timeout", "240", "--json"]
+    out: dict = {}
+    deadline = time.monotonic() + TIMEOUT_S
+    while True:  # early on the agent (or its bridge's connection) is not there yet: REJECTED, sent again
+        sent = subprocess.run(
+            vlp_agent(*goal), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S + 240
+        )
+        assert sent.returncode in (0, 1, 3), sent.stderr[-2000:]
+        out = json.loads(sent.stdout)
+        assert out["goal_id"] == 777
+        final = out["final"]
+        if final is not None and final["state"] == "reached":
+            break
+        assert final is None or (final["state"] == "rejected" and final["reason"] != "busy"), out
+        robot.assert_running()
+        assert time.monotonic() < deadline, f"the goal was never reached: {out}"
+        time.sleep(1.0)  # not a timing assumption: a pause between attempts while the agent starts
+    assert out["final"]["state"] == "reached", out
+    assert sent.returncode == 0
+    names = [s["state"] for s in out["states"]]
+    assert names[0] == "accepted" and names[-1] == "reached", names
+    robot.assert_running()
+    bridge_out = json.loads(robot.stop()["bridge"][0])
     assert bridge_out["error"] is None and bridge_out["counters"]["goals_in"] >= 1
     assert bridge_out["counters"]["published_goal_state"] >= 2

@@ -5,121 +5,34 @@ Everything waits on events with generous timeouts: no wall-clock assertion."""
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from agent.fleet import payloads
 from agent.fleet.bridge import Bridge
 from agent.fleet.bridge_config import parse_bridge_config
 from agent.fleet.local_protocol import GoalMessage, PoseMessage
-from agent.fusion import Estimate
 from agent.runtime.arbiter import CommandArbiter, DriveSource
 from agent.runtime.fleet_loop import FLEET_GOAL_IDS, FleetLoop
-from agent.runtime.health import Heartbeat
 from drivers.errors import ConfigError
 from firmware_protocol.command_frame import GoalReason, GoalState, GoalStatus, StopCommand
 from firmware_protocol.pose_frame import PoseFlags
+from tests.fleet_helpers import FakeSession, FleetThreads
 
 TIMEOUT_S = 30.0
 
 
-class _Bytes:
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def __len__(self) -> int:
-        return len(self.data)
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
-class _Sample:
-    def __init__(self, key: str, data: bytes) -> None:
-        self.key_expr, self.payload = key, _Bytes(data)
-
-
-class FakeSession:
-    """Publishers record what they put; ``deliver`` calls the subscribers whose key expression matches
-    (``*`` = one chunk), as Zenoh would from its own thread."""
-
-    def __init__(self) -> None:
-        self.published: list[tuple[str, bytes]] = []
-        self.subscribers: list[tuple[str, Callable[[Any], None]]] = []
-        self.changed = threading.Condition()
-
-    def declare_publisher(self, key: str) -> Any:
-        session = self
-
-        class Publisher:
-            def put(self, data: bytes) -> None:
-                with session.changed:
-                    session.published.append((key, bytes(data)))
-                    session.changed.notify_all()
-
-        return Publisher()
-
-    def declare_subscriber(self, key: str, callback: Callable[[Any], None]) -> Any:
-        self.subscribers.append((key, callback))
-        return object()
-
-    def deliver(self, key: str, data: bytes) -> None:
-        for pattern, callback in self.subscribers:
-            p, k = pattern.split("/"), key.split("/")
-            if len(p) == len(k) and all(a in ("*", b) for a, b in zip(p, k, strict=True)):
-                callback(_Sample(key, data))
-
-    def wait_for(self, key: str, timeout_s: float = TIMEOUT_S, count: int = 1) -> bytes:
-        """The newest payload on `key` once at least `count` have been published there."""
-        with self.changed:
-            ok = self.changed.wait_for(lambda: sum(k == key for k, _ in self.published) >= count, timeout_s)
-            assert ok, f"fewer than {count} published on {key}"
-            return [d for k, d in self.published if k == key][-1]
-
-    def close(self) -> None:
-        pass
-
-
-def _estimate(x_m: float) -> Estimate:
-    return Estimate(time.monotonic_ns(), x_m, 2.0, 0.5, 0.0, 0.0, np.eye(5) * 1e-4, 0)
-
-
 @pytest.fixture
-def pair(tmp_path: Path) -> Iterator[tuple[FleetLoop, Bridge, FakeSession]]:
+def pair(tmp_path: Path, fleet_threads: FleetThreads) -> Iterator[tuple[FleetLoop, Bridge, FakeSession]]:
     sock = tmp_path / "fleet.sock"
-    loop = FleetLoop(
-        sock,
-        pose_rate_hz=50.0,
-        status_period_s=0.1,
-        pose=lambda: (_estimate(1.0), PoseFlags.VLP | PoseFlags.ODOMETRY),
-        status_bits=lambda: 3,
-        clock_ns=time.monotonic_ns,
-    )
-    session = FakeSession()
-    config = parse_bridge_config(
-        {
-            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.1, "reconnect_s": 0.05},
-            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
-        }
-    )
-    bridge = Bridge(config, open_session=lambda conf: session)
-    stop = threading.Event()
-    threads = [
-        threading.Thread(target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": stop}),
-        threading.Thread(target=bridge.run, args=(stop,)),
-    ]
-    for t in threads:
-        t.start()
-    yield loop, bridge, session
-    stop.set()
-    for t in threads:
-        t.join(TIMEOUT_S)
+    loop = fleet_threads.agent(sock).loop
+    bridge = fleet_threads.bridge(sock)
+    yield loop, bridge.bridge, bridge.session
+    fleet_threads.close()
     assert not sock.exists()  # the agent removes its socket on the way out
 
 
@@ -274,124 +187,60 @@ def test_fleet_config_is_off_by_default_and_checked() -> None:
     assert info.value.key == "fleet.pose_rate_hz"
 
 
-def test_a_socket_path_that_cannot_be_listened_on_is_retried_not_fatal(tmp_path: Path) -> None:
+def test_a_socket_path_that_cannot_be_listened_on_is_retried_not_fatal(
+    tmp_path: Path, fleet_threads: FleetThreads
+) -> None:
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("")
-    loop = FleetLoop(
-        blocker / "fleet.sock",
-        pose_rate_hz=10.0,
-        status_period_s=1.0,
-        pose=lambda: (_estimate(0.0), PoseFlags(0)),
-        status_bits=lambda: 0,
-        clock_ns=time.monotonic_ns,
+    agent = fleet_threads.agent(
+        blocker / "fleet.sock", pose_rate_hz=10.0, status_period_s=1.0, flags=PoseFlags(0), bits=0
     )
-    stop = threading.Event()
-    thread = threading.Thread(target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": stop})
-    thread.start()
-    _wait(lambda: loop.counters().get("fleet_listen_failures", 0) >= 1)
-    stop.set()
-    thread.join(TIMEOUT_S)
-    assert not thread.is_alive()
+    _wait(lambda: agent.loop.counters().get("fleet_listen_failures", 0) >= 1)
+    agent.close()
+    assert not agent.alive()
 
 
-def test_the_agent_carries_on_through_a_bridge_restart(tmp_path: Path) -> None:
+def test_the_agent_carries_on_through_a_bridge_restart(tmp_path: Path, fleet_threads: FleetThreads) -> None:
     sock = tmp_path / "fleet.sock"
-    loop = FleetLoop(
-        sock,
-        pose_rate_hz=50.0,
-        status_period_s=0.1,
-        pose=lambda: (_estimate(1.0), PoseFlags.ODOMETRY),
-        status_bits=lambda: 3,
-        clock_ns=time.monotonic_ns,
-    )
-    config = parse_bridge_config(
-        {
-            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.1, "reconnect_s": 0.05},
-            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
-        }
-    )
-    agent_stop = threading.Event()
-    agent = threading.Thread(
-        target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": agent_stop}
-    )
-    agent.start()
-    try:
-        for round_ in (1, 2):
-            session = FakeSession()
-            bridge = Bridge(config, open_session=lambda conf, s=session: s)
-            stop = threading.Event()
-            thread = threading.Thread(target=bridge.run, args=(stop,))
-            thread.start()
-            payloads.decode_pose(session.wait_for("fleet/r1/pose"), "r1")
-            stop.set()  # the bridge goes away (its socket closes); the agent notices and waits for the next
-            thread.join(TIMEOUT_S)
-            _wait(lambda r=round_: loop.counters().get("fleet_bridge_disconnects", 0) >= r)
-        assert agent.is_alive() and loop.counters()["fleet_bridge_connections"] == 2
-    finally:
-        agent_stop.set()
-        agent.join(TIMEOUT_S)
+    agent = fleet_threads.agent(sock, flags=PoseFlags.ODOMETRY)
+    for round_ in (1, 2):
+        bridge = fleet_threads.bridge(sock)
+        payloads.decode_pose(bridge.session.wait_for("fleet/r1/pose"), "r1")
+        bridge.close()  # the bridge goes away (its socket closes); the agent notices and waits for the next
+        _wait(lambda r=round_: agent.loop.counters().get("fleet_bridge_disconnects", 0) >= r)
+    assert agent.alive() and agent.loop.counters()["fleet_bridge_connections"] == 2
 
 
-def test_with_no_bridge_the_loop_sleeps_instead_of_spinning(tmp_path: Path) -> None:
-    loop = FleetLoop(
-        tmp_path / "fleet.sock",
-        pose_rate_hz=100.0,
-        status_period_s=0.05,
-        pose=lambda: (_estimate(0.0), PoseFlags(0)),
-        status_bits=lambda: 0,
-        clock_ns=time.monotonic_ns,
+def test_with_no_bridge_the_loop_sleeps_instead_of_spinning(
+    tmp_path: Path, fleet_threads: FleetThreads
+) -> None:
+    agent = fleet_threads.agent(
+        tmp_path / "fleet.sock", pose_rate_hz=100.0, status_period_s=0.05, flags=PoseFlags(0), bits=0
     )
-    beat, stop = Heartbeat("fleet", False, 10.0), threading.Event()
-    thread = threading.Thread(target=loop.run, args=(beat,), kwargs={"stop": stop})
-    thread.start()
     _wait(lambda: (tmp_path / "fleet.sock").exists())
-    before = beat.beats
+    before = agent.beat.beats
     time.sleep(1.0)
     # A quarter-second idle wait: about 4 passes in that second (a loaded machine makes fewer, never more);
     # a loop that spins makes thousands.
-    assert beat.beats - before <= 12
-    stop.set()
-    thread.join(TIMEOUT_S)
+    assert agent.beat.beats - before <= 12
 
 
-def test_a_bridge_without_its_agent_says_so_and_connects_when_it_comes(tmp_path: Path) -> None:
+def test_a_bridge_without_its_agent_says_so_and_connects_when_it_comes(
+    tmp_path: Path, fleet_threads: FleetThreads
+) -> None:
     sock = tmp_path / "fleet.sock"
-    config = parse_bridge_config(
-        {
-            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.05, "reconnect_s": 0.05},
-            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
-        }
+    running = fleet_threads.bridge(sock, status_period_s=0.05)
+    bridge, session = running.bridge, running.session
+    status = payloads.decode_status(session.wait_for("fleet/r1/status"), "r1")
+    assert status.state == "agent-down" and not status.agent_connected
+    session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))  # nobody to hand it to
+    assert bridge.counters()["to_agent_dropped_no_agent"] == 1
+    refused = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
+    assert (refused.goal_id, refused.state, refused.reason) == (
+        9,
+        GoalState.REJECTED,
+        GoalReason.NOT_LOCALIZED,
     )
-    session = FakeSession()
-    bridge = Bridge(config, open_session=lambda conf: session)
-    stop = threading.Event()
-    thread = threading.Thread(target=bridge.run, args=(stop,))
-    thread.start()
-    try:
-        status = payloads.decode_status(session.wait_for("fleet/r1/status"), "r1")
-        assert status.state == "agent-down" and not status.agent_connected
-        session.deliver("fleet/r1/goal", payloads.encode_goal("r1", _goal()))  # nobody to hand it to
-        assert bridge.counters()["to_agent_dropped_no_agent"] == 1
-        refused = payloads.decode_goal_state(session.wait_for("fleet/r1/goal_state"), "r1")
-        assert (refused.goal_id, refused.state, refused.reason) == (
-            9,
-            GoalState.REJECTED,
-            GoalReason.NOT_LOCALIZED,
-        )
-        loop = FleetLoop(
-            sock, 50.0, 0.05, lambda: (_estimate(3.0), PoseFlags.ODOMETRY), lambda: 3, time.monotonic_ns
-        )
-        agent_stop = threading.Event()
-        agent = threading.Thread(
-            target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": agent_stop}
-        )
-        agent.start()
-        try:
-            pose = payloads.decode_pose(session.wait_for("fleet/r1/pose"), "r1")
-            assert pose.x_m == 3.0
-        finally:
-            agent_stop.set()
-            agent.join(TIMEOUT_S)
-    finally:
-        stop.set()
-        thread.join(TIMEOUT_S)
+    fleet_threads.agent(sock, x_m=3.0, status_period_s=0.05, flags=PoseFlags.ODOMETRY)
+    pose = payloads.decode_pose(session.wait_for("fleet/r1/pose"), "r1")
+    assert pose.x_m == 3.0

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import base64
 import json
-import threading
-import time
 import zlib
 from pathlib import Path
 
@@ -16,8 +14,6 @@ import numpy as np
 import pytest
 
 from agent.fleet import audit, payloads
-from agent.fleet.bridge import Bridge
-from agent.fleet.bridge_config import parse_bridge_config
 from agent.fleet.local_protocol import (
     HEADER,
     MAGIC,
@@ -33,11 +29,8 @@ from agent.fleet.local_protocol import (
 )
 from agent.fleet.map_view import FleetMaps, picture, report
 from agent.fleet.maps import FREE, OCCUPIED, UNKNOWN, Grid, agreement, grid_from_image, merge
-from agent.runtime.fleet_loop import FleetLoop
-from agent.runtime.health import Heartbeat
 from agent.slam.render import OccupancyImage
-from firmware_protocol.pose_frame import PoseFlags
-from tests.unit.test_fleet_bridge import FakeSession, _estimate
+from tests.fleet_helpers import FleetThreads
 
 RES = 0.05
 
@@ -181,47 +174,20 @@ def test_report_and_picture() -> None:
     assert (np.abs(img.astype(int) - np.array((200, 80, 0))).sum(axis=2) == 0).any()
 
 
-def test_fleet_loop_hands_its_map_to_the_bridge(tmp_path: Path) -> None:
+def test_fleet_loop_hands_its_map_to_the_bridge(tmp_path: Path, fleet_threads: FleetThreads) -> None:
     sock = tmp_path / "fleet.sock"
     pixels = np.full((60, 80), 205, np.uint8)
     pixels[10:50, 10:70] = 254
     pixels[10, 10:70] = 0
     image = OccupancyImage(pixels, RES, (1.0, 2.0, 0.0))
     geo = {"type": "FeatureCollection", "features": []}
-    loop = FleetLoop(
-        sock,
-        pose_rate_hz=50.0,
-        status_period_s=0.1,
-        pose=lambda: (_estimate(1.0), PoseFlags.VLP | PoseFlags.ODOMETRY),
-        status_bits=lambda: 3,
-        clock_ns=time.monotonic_ns,
-        topology=lambda: geo,
-    )
-    loop.on_map(image)
-    session = FakeSession()
-    config = parse_bridge_config(
-        {
-            "bridge": {"robot": "r1", "socket": str(sock), "status_period_s": 0.1, "reconnect_s": 0.05},
-            "zenoh": {"listen": ["tcp/127.0.0.1:0"]},
-        }
-    )
-    bridge = Bridge(config, open_session=lambda conf: session)
-    stop = threading.Event()
-    threads = [
-        threading.Thread(target=loop.run, args=(Heartbeat("fleet", False, 10.0),), kwargs={"stop": stop}),
-        threading.Thread(target=bridge.run, args=(stop,)),
-    ]
-    for t in threads:
-        t.start()
-    try:
-        got = payloads.decode_map(session.wait_for("fleet/r1/map"), "r1")
-        assert np.array_equal(got.grid.cells, grid_from_image(pixels, RES, (1.0, 2.0)).cells)
-        assert got.grid.origin_x_m == 1.0 and got.grid.origin_y_m == 2.0
-        assert payloads.decode_topology(session.wait_for("fleet/r1/topology"), "r1") == geo
-    finally:
-        stop.set()
-        for t in threads:
-            t.join(10)
+    fleet_threads.agent(sock, topology=lambda: geo).loop.on_map(image)
+    session = fleet_threads.bridge(sock).session
+    got = payloads.decode_map(session.wait_for("fleet/r1/map"), "r1")
+    assert np.array_equal(got.grid.cells, grid_from_image(pixels, RES, (1.0, 2.0)).cells)
+    assert got.grid.origin_x_m == 1.0 and got.grid.origin_y_m == 2.0
+    assert payloads.decode_topology(session.wait_for("fleet/r1/topology"), "r1") == geo
+    fleet_threads.close()
     # Everything the bridge published passes the privacy audit; a collector takes the map.
     collector = FleetMaps()
     for key, data in session.published:
@@ -236,3 +202,15 @@ def test_audit_refuses_undocumented_keys_and_images() -> None:
     assert audit.check("fleet", "fleet/r1/camera", b"\xff\xd8\xff") is not None
     assert audit.check("fleet", "fleet/r1/map", b"\x89PNG\r\n") is not None
     assert audit.check("fleet", "other/r1/pose", b"{}") is not None
+
+
+def test_audit_refuses_fields_beyond_the_schema() -> None:
+    pose = payloads.encode_pose("r1", PoseMessage(5, 1.0, 2.0, 0.0, 0.01, 0.02, 1))
+    assert audit.check("fleet", "fleet/r1/pose", pose) is None
+    smuggled = json.loads(pose) | {"jpeg": base64.b64encode(b"\xff\xd8\xff\xe0").decode()}
+    problem = audit.check("fleet", "fleet/r1/pose", json.dumps(smuggled).encode())
+    assert problem is not None and "jpeg" in problem  # decode_pose alone would take it
+    status = json.loads(payloads.encode_status("r1", None, {"published_pose": 3}))
+    assert audit.check("fleet", "fleet/r1/status", json.dumps(status).encode()) is None
+    status["counters"] = {"published_pose": 3, "x" * 200: 1}
+    assert audit.check("fleet", "fleet/r1/status", json.dumps(status).encode()) is not None

@@ -1,0 +1,52 @@
+"""Privacy over a whole fleet run (issue 24): a Zenoh peer in this test subscribes to ``**`` before
+``vlp-agent sim --robots 2`` starts and until it ended (every robot's bridge connects to it,
+``--fleet-connect``), and every message heard is audited (``agent.fleet.audit.check``): a documented fleet
+key of one of the two robots, a payload that decodes strictly by its schema and carries no field beyond it.
+What the schemas allow is poses, status flags and counters, goals and goal states, laser-built maps and the
+topology: no image, nothing from camera pixels beyond the pose the LED observations give.
+
+A short run: the two robots each drive 0.3 m towards the other; it ends when both goals ended (or at
+``--seconds``); the test does not need them reached, only the run's traffic. Generous timeouts, no
+wall-clock assertion."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from agent.fleet import audit, payloads
+from tests.fleet_helpers import REPO, TIMEOUT_S, Heard, free_port, loopback, open_session, vlp_agent
+
+pytest.importorskip("zenoh")
+
+
+def test_everything_a_two_robot_fleet_publishes_in_a_run_passes_the_privacy_audit(tmp_path: Path) -> None:
+    port = free_port()
+    heard = Heard()
+    session = open_session("peer", listen=[loopback(port)])
+    try:
+        session.declare_subscriber("**", heard)
+        argv = ["sim", "--robots", "2", "--spacing", "5", "--goal", "2.3,6.0", "--goal", "6.7,6.0"]
+        argv += ["--seconds", "40", "--json", "--out", str(tmp_path), "--fleet-connect", loopback(port)]
+        done = subprocess.run(vlp_agent(*argv), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
+    finally:
+        session.close()
+    assert done.stdout, done.stderr[-2000:]
+    summary = json.loads(done.stdout)
+    with heard.cond:
+        samples = list(heard.samples)
+    kinds: dict[str, set[str]] = {"r1": set(), "r2": set()}
+    for key, data in samples:
+        problem = audit.check("fleet", key, data)
+        assert problem is None, problem
+        robot = payloads.robot_of("fleet", key)
+        assert robot in kinds, key
+        kinds[robot].add(key.rsplit("/", 1)[-1])
+    # The run's traffic was heard, from both robots: poses and statuses from start to end, their maps.
+    for robot, seen in kinds.items():
+        assert {"pose", "status", "map"} <= seen, (robot, seen, summary["robots"])
+    # The command's own audit (its observer on "**") agrees.
+    assert summary["privacy"]["failed"] == 0 and summary["privacy"]["messages"] > 0, summary["privacy"]
