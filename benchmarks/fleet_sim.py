@@ -54,6 +54,7 @@ def main() -> int:
                 "privacy_failed": privacy.get("failed"),
                 "reached": [r["goal"].get("state") == "reached" for r in summary["robots"]],
                 "goals": [f"{r['goal'].get('state')} ({r['goal'].get('reason')})" for r in summary["robots"]],
+                "goal_attempts": [r["goal"].get("history") for r in summary["robots"]],
                 "collisions": summary["collisions"],
                 "min_separation_m": summary["min_separation_m"],
                 "fleet_pose_latency_ms_p95": summary["fleet_pose_latency_ms_p95"],

@@ -34,7 +34,7 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
 def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "fleet",
-        help="the fleet view: list the robots heard on Zenoh, send one a goal, merge their maps",
+        help="the fleet view: list the robots heard on Zenoh, send one a goal, merge their maps; a router",
         description="Fleet commands on any machine that reaches the fleet's Zenoh network.",
     )
     fleet_sub = p.add_subparsers(dest="fleet_command", metavar="SUBCOMMAND", required=True)

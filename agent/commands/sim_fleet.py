@@ -50,6 +50,10 @@ from firmware_protocol.errors import ProtocolError
 __all__ = ["run_fleet"]
 
 _STOP_WAIT_S = 60.0
+# Reasons a goal is refused that pass on their own in a starting fleet: the agent not localized yet, busy, or
+# its map not reaching the goal yet (it is built as the robot's laser sees more: the robot starts facing its
+# goal, but a loaded machine can answer before the first scans reached that far).
+_RETRY = (GoalReason.NOT_LOCALIZED, GoalReason.BUSY, GoalReason.OUTSIDE_MAP)
 
 
 def _free_port() -> int:
@@ -97,14 +101,16 @@ def _drive(
     out: dict[str, Any],
     stop: threading.Event,
 ) -> None:
-    """Send ``goal`` until it is taken (rejected as not localized or busy: again, a second later), then wait
-    for its end."""
-    out.update(state="not sent", reason=None, attempts=0)
+    """Send ``goal`` until it is taken (rejected for a reason that passes, ``_RETRY``: again, a second
+    later), then wait for its end. ``out["history"]`` keeps each attempt's last state and reason."""
+    out.update(state="not sent", reason=None, attempts=0, history=[])
     while not stop.is_set() and time.monotonic() < deadline:
         out["attempts"] += 1
         trace = sender.send(robot, goal, wait_end=True, timeout_s=max(deadline - time.monotonic(), 0.1))
         last = trace.last
-        if last is not None:
+        if last is None:
+            out["history"].append("sent, no answer" if trace.sent else "not sent: no bridge subscribed")
+        else:
             out["state"] = (
                 GoalState(last.state).name.lower()
                 if last.state in GoalState._value2member_map_
@@ -116,11 +122,8 @@ def _drive(
                 else last.reason
             )
             out["statuses"] = len(trace.states)
-            retry = last.state == GoalState.REJECTED and last.reason in (
-                GoalReason.NOT_LOCALIZED,
-                GoalReason.BUSY,
-            )
-            if not retry:
+            out["history"].append(f"{out['state']} ({out['reason']})")
+            if not (last.state == GoalState.REJECTED and last.reason in _RETRY):
                 return
         stop.wait(1.0)
 

@@ -102,3 +102,38 @@ def test_fleet_list_shows_a_robot_silent_for_stale_s_as_gone() -> None:
     assert r2.state == "unknown" and r2.poses == 1 and view.rejected == 1
     (r2,) = view.seen(now + 2.5)
     assert r2.state == "gone" and r2.as_dict()["state"] == "gone" and r2.as_dict()["silent_s"] >= 2.5
+
+
+def test_fleet_router_runs_for_its_seconds_and_names_an_endpoint_it_cannot_open(capsys: Any) -> None:
+    pytest.importorskip("zenoh")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert (
+        cli.main(["fleet", "router", "--listen", f"tcp/127.0.0.1:{port}", "--seconds", "0.2", "--json"]) == 0
+    )
+    out = json.loads(capsys.readouterr().out)
+    assert out["listen"] == [f"tcp/127.0.0.1:{port}"] and out["error"] is None
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = taken.getsockname()[1]
+        code = cli.main(["fleet", "router", "--listen", f"tcp/127.0.0.1:{busy}", "--seconds", "5", "--json"])
+    assert code == 1
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["error"] and f"127.0.0.1:{busy}" in captured.err
+
+
+def test_the_connect_retry_is_configured() -> None:
+    pytest.importorskip("zenoh")
+    from agent.fleet.bridge_config import parse_bridge_config
+
+    config = parse_bridge_config(
+        {
+            "bridge": {"robot": "r1", "socket": "/x"},
+            "zenoh": {"connect": ["tcp/127.0.0.1:1"], "retry_max_s": 2},
+        }
+    )
+    assert config.zenoh.retry_max_s == 2.0
+    retry = json.loads(config.zenoh.zenoh_config().get_json("connect/retry"))
+    assert (retry["period_init_ms"], retry["period_max_ms"]) == (100, 2000)
