@@ -50,10 +50,18 @@ from firmware_protocol.errors import ProtocolError
 __all__ = ["run_fleet"]
 
 _STOP_WAIT_S = 60.0
-# Reasons a goal is refused that pass on their own in a starting fleet: the agent not localized yet, busy, or
-# its map not reaching the goal yet (it is built as the robot's laser sees more: the robot starts facing its
-# goal, but a loaded machine can answer before the first scans reached that far).
-_RETRY = (GoalReason.NOT_LOCALIZED, GoalReason.BUSY, GoalReason.OUTSIDE_MAP)
+# Reasons a goal is refused that pass on their own in a fleet among people: the agent not localized yet,
+# busy; its map not reaching the goal yet (built as the robot's laser sees more: the robot starts facing its
+# goal, but a loaded machine can answer before the first scans reached that far); a person or another robot
+# on the goal or across the way (IN_OBSTACLE, UNREACHABLE: the office's walker crosses both goals of the
+# head-on run, and a goal checked while she passes was refused for good before).
+_RETRY = (
+    GoalReason.NOT_LOCALIZED,
+    GoalReason.BUSY,
+    GoalReason.OUTSIDE_MAP,
+    GoalReason.IN_OBSTACLE,
+    GoalReason.UNREACHABLE,
+)
 
 
 def _free_port() -> int:
