@@ -1,8 +1,9 @@
-"""The bridge with ``[ros2] enabled`` over a real Zenoh session on loopback: a plain Zenoh subscriber on
-the key expressions rmw_zenoh would subscribe to (written out here literally, from rmw_zenoh's own
-convention, not built by the code under test) hears the pose, the map and the status, each with the
-attachment rmw_zenoh requires; ``rosbags`` decodes the payloads and zenoh's deserializer the attachments;
-a liveliness query sees the graph tokens. Waits are on events with generous timeouts, no timing assertion."""
+"""The bridge with ``[ros2] enabled`` over a real Zenoh session on loopback: Zenoh subscribers declared
+as rmw_zenoh declares its own, on the key expressions rmw_zenoh would subscribe to (written out here
+literally from rmw_zenoh's convention, not built by the code under test), hear the pose, the map and the
+status, each with the attachment rmw_zenoh requires; ``rosbags`` decodes the payloads and zenoh's
+deserializer the attachments; a liveliness query sees the graph tokens. Waits are on events with generous
+timeouts, no timing assertion."""
 
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ class Heard:
 
 
 def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_path: Path) -> None:
+    from zenoh import ext
     from zenoh.ext import Int64, z_deserialize
 
     store = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
@@ -80,7 +82,21 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
     conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
     ros = zenoh.open(conf)
     heard = Heard()
-    subscribers = [ros.declare_subscriber(key, heard.callback(kind)) for kind, key in KEYS.items()]
+    # As rmw_zenoh_cpp subscribes (rmw_subscription_data.cpp): an AdvancedSubscriber, for a TRANSIENT_LOCAL
+    # RELIABLE subscription (rviz's and nav2's map) with late-publisher history and heartbeat recovery;
+    # the status through a plain subscriber.
+    subscribers = [
+        ext.declare_advanced_subscriber(ros, KEYS["pose"], heard.callback("pose")),
+        ext.declare_advanced_subscriber(
+            ros,
+            KEYS["map"],
+            heard.callback("map"),
+            history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+            recovery=ext.RecoveryConfig(heartbeat=True),
+            subscriber_detection=True,
+        ),
+        ros.declare_subscriber(KEYS["status"], heard.callback("status")),
+    ]
 
     config = parse_bridge_config(
         tomllib.loads(
