@@ -50,6 +50,7 @@ __all__ = [
     "encode_pose",
     "encode_string",
     "node_token",
+    "publisher_token",
     "topic_key",
     "valid_namespace",
 ]
@@ -68,9 +69,12 @@ TYPE_HASHES = {
 ENCAPSULATION_CDR_LE = b"\x00\x01\x00\x00"
 GID_SIZE = 16
 ADMIN_SPACE = "@ros2_lv"
-#: rmw_zenoh writes only the QoS fields that differ from the default profile (reliable, volatile, keep
-#: last 10, no deadline, lifespan or liveliness lease): the default profile is all empty fields.
+#: rmw_zenoh writes only the QoS fields that differ from its default profile (reliable, volatile, keep
+#: last 42, no deadline, lifespan or liveliness lease; ``rmw_zenoh_cpp/src/detail/qos.cpp``), in the
+#: order reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns.
 DEFAULT_QOS = "::,:,:,:,,"
+#: Durability TRANSIENT_LOCAL (rmw's enum value 1), keep last 1: a latched map, as map servers publish.
+LATCHED_QOS = ":1:,1:,:,:,,"
 
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -109,11 +113,12 @@ def publisher_token(
     node: str,
     topic: str,
     ros_type: str,
+    qos: str = DEFAULT_QOS,
 ) -> str:
-    """The liveliness key of a publisher (``MP``) of ``topic`` with the default QoS profile."""
+    """The liveliness key of a publisher (``MP``) of ``topic`` with the QoS field ``qos``."""
     return (
         f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{entity_id}/MP/%/{_mangle(namespace)}/{node}/"
-        f"{_mangle(topic)}/{dds_type_name(ros_type)}/{TYPE_HASHES[ros_type]}/{DEFAULT_QOS}"
+        f"{_mangle(topic)}/{dds_type_name(ros_type)}/{TYPE_HASHES[ros_type]}/{qos}"
     )
 
 
@@ -134,6 +139,7 @@ class Ros2Topic:
     key: str
     token: str
     gid: bytes
+    latched: bool = False
     sequence_number: int = 0
 
     @classmethod
@@ -147,11 +153,14 @@ class Ros2Topic:
         node: str,
         name: str,
         ros_type: str,
+        latched: bool = False,
     ) -> Ros2Topic:
+        """``latched``: TRANSIENT_LOCAL, keep last 1 (:data:`LATCHED_QOS`); else the default profile."""
         topic = f"{namespace.rstrip('/')}/{name}"
-        token = publisher_token(domain_id, zid, node_id, entity_id, namespace, node, topic, ros_type)
+        qos = LATCHED_QOS if latched else DEFAULT_QOS
+        token = publisher_token(domain_id, zid, node_id, entity_id, namespace, node, topic, ros_type, qos)
         gid = hashlib.sha256(token.encode()).digest()[:GID_SIZE]
-        return cls(topic, ros_type, topic_key(domain_id, topic, ros_type), token, gid)
+        return cls(topic, ros_type, topic_key(domain_id, topic, ros_type), token, gid, latched)
 
     def next_attachment(self, source_timestamp_ns: int) -> bytes:
         """The attachment of the next sample (sequence numbers from 1, as rmw_zenoh's)."""

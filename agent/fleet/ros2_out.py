@@ -2,9 +2,9 @@
 robot's pose, map and status also published the way rmw_zenoh publishes ROS 2 topics (``agent.fleet.ros2``
 encodes; docs/fleet.md, "ROS 2 over rmw_zenoh"), so a ROS 2 node on the same Zenoh network subscribes to
 ``<namespace>/pose`` (``geometry_msgs/msg/PoseWithCovarianceStamped``), ``<namespace>/map``
-(``nav_msgs/msg/OccupancyGrid``) and ``<namespace>/status`` (``std_msgs/msg/String``, the fleet status
-JSON). Publish only: nothing from ROS 2 reaches the agent through this side.
-"""
+(``nav_msgs/msg/OccupancyGrid``, latched: TRANSIENT_LOCAL, keep last 1) and ``<namespace>/status``
+(``std_msgs/msg/String``, the fleet status JSON). Publish only: nothing from ROS 2 reaches the agent
+through this side."""
 
 from __future__ import annotations
 
@@ -71,6 +71,21 @@ def parse_ros2_table(data: Mapping[str, Any], robot: str, file: str) -> Ros2Conf
     return Ros2Config(enabled, domain_id, namespace, node, graph_tokens)
 
 
+def _latched_publisher(session: Any, key: str) -> Any:
+    """As rmw_zenoh (``rmw_publisher_data.cpp``) declares a TRANSIENT_LOCAL, RELIABLE publisher of depth 1:
+    a Zenoh AdvancedPublisher that late subscribers detect, with a 1-sample cache they query and sporadic
+    heartbeats (500 ms) for missed-sample recovery."""
+    from zenoh import ext
+
+    return ext.declare_advanced_publisher(
+        session,
+        key,
+        cache=ext.CacheConfig(max_samples=1),
+        sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
+        publisher_detection=True,
+    )
+
+
 class Ros2Out:
     """Declares the three publishers (and the graph tokens) on ``session``; ``pose``, ``map`` and
     ``status`` encode and put with rmw_zenoh's attachment. ``count(name)`` counts ``ros2_published_<kind>``
@@ -83,11 +98,22 @@ class Ros2Out:
         node_id = 0
         self.topics = {
             kind: ros2.Ros2Topic.make(
-                config.domain_id, zid, node_id, i + 1, config.namespace, config.node, kind, ros_type
+                config.domain_id,
+                zid,
+                node_id,
+                i + 1,
+                config.namespace,
+                config.node,
+                kind,
+                ros_type,
+                kind == MAP,
             )
             for i, (kind, ros_type) in enumerate(_TYPES.items())
         }
-        self._publishers = {kind: session.declare_publisher(t.key) for kind, t in self.topics.items()}
+        self._publishers = {
+            kind: _latched_publisher(session, t.key) if t.latched else session.declare_publisher(t.key)
+            for kind, t in self.topics.items()
+        }
         self.tokens: list[str] = []
         self._tokens: list[Any] = []
         if config.graph_tokens:
@@ -142,7 +168,7 @@ class Ros2Out:
         self._put(STATUS, ros2.encode_string(text), now)
 
     def close(self) -> None:
-        for token in self._tokens:
+        for entity in (*self._tokens, *self._publishers.values()):
             with contextlib.suppress(Exception):
-                token.undeclare()
-        self._tokens = []
+                entity.undeclare()
+        self._tokens, self._publishers = [], {}

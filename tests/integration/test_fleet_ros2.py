@@ -92,7 +92,7 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
             KEYS["map"],
             heard.callback("map"),
             history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-            recovery=ext.RecoveryConfig(heartbeat=True),
+            recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
             subscriber_detection=True,
         ),
         ros.declare_subscriber(KEYS["status"], heard.callback("status")),
@@ -125,6 +125,22 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
                 agent.sendall(encode(pose) + encode(grid))
                 with heard.cond:
                     heard.cond.wait(0.2)
+            # A TRANSIENT_LOCAL subscriber that joins after the last map still gets it (rviz, nav2 joining
+            # late), from the publisher's cache.
+            late = Heard()
+            late_sub = ext.declare_advanced_subscriber(
+                ros,
+                KEYS["map"],
+                late.callback("map"),
+                history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True,
+            )
+            subscribers.append(late_sub)
+            with late.cond:
+                assert late.cond.wait_for(lambda: late.samples["map"], TIMEOUT_S), (
+                    "no map for a late subscriber"
+                )
             tokens = sorted(str(r.ok.key_expr) for r in ros.liveliness().get(f"@ros2_lv/{DOMAIN}/**") if r.ok)
     finally:
         stop.set()
@@ -160,6 +176,8 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
     assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp_ns
 
     data, _ = heard.samples["map"][-1]
+    late_data, late_att = late.samples["map"][0]
+    assert (late_data, late_att) in heard.samples["map"]  # one of the maps published, attachment and all
     grid_msg = store.deserialize_cdr(data, "nav_msgs/msg/OccupancyGrid")
     assert (grid_msg.info.width, grid_msg.info.height) == (6, 4)
     assert grid_msg.info.resolution == pytest.approx(0.05)
@@ -174,8 +192,9 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
     assert f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%r1/vlp_bridge" in tokens
     for kind, key in KEYS.items():
         dds_type, type_hash = key.rsplit("/", 2)[1:]
+        qos = ":1:,1:,:,:,," if kind == "map" else "::,:,:,:,,"  # TRANSIENT_LOCAL keep last 1; the default
         assert any(
             t.startswith(f"@ros2_lv/{DOMAIN}/{zid}/0/")
-            and f"/MP/%/%r1/vlp_bridge/%r1%{kind}/{dds_type}/{type_hash}/" in t
+            and f"/MP/%/%r1/vlp_bridge/%r1%{kind}/{dds_type}/{type_hash}/{qos}" in t
             for t in tokens
         ), (kind, tokens)

@@ -51,6 +51,13 @@ def test_data_keys_follow_rmw_zenoh() -> None:
         ros2.node_token(7, "abc123", 0, "/r_1", "vlp_bridge") == "@ros2_lv/7/abc123/0/0/NN/%/%r_1/vlp_bridge"
     )
     assert len(topic.gid) == ros2.GID_SIZE
+    latched = ros2.Ros2Topic.make(7, "abc123", 0, 2, "/r_1", "vlp_bridge", "map", ros2.OCCUPANCY_GRID, True)
+    assert latched.token.endswith(
+        "/%r_1%map/nav_msgs::msg::dds_::OccupancyGrid_/"
+        + ros2.TYPE_HASHES[ros2.OCCUPANCY_GRID]
+        + "/:1:,1:,:,:,,"
+    )
+    assert latched.gid != topic.gid
 
 
 def test_attachment_reads_back_with_zenohs_deserializer() -> None:
