@@ -287,6 +287,12 @@ class MeanShiftTracker:
     def box(self) -> FloatArray:
         return np.concatenate([self._centre - self._size / 2.0, self._size])
 
+    @property
+    def feature_weights(self) -> tuple[float, float]:
+        """The exponents (a, b) of ``rho = rho_c^a * rho_t^b`` now ((1, 1) for the colour-only tracker:
+        it has no texture term)."""
+        return self._exponents
+
     def start(self, frame: ImageU8, box: FloatArray | tuple[float, float, float, float]) -> None:
         """Build the target model from ``box`` (x, y, w, h) on ``frame``."""
         frame = _check_frame(frame)
@@ -705,24 +711,32 @@ class MeanShiftTracker:
 
         ``rho_ref`` is rescaled to the new exponents (the target's match under them), so a change of
         weights is not taken for an occlusion."""
-        if not self._distractor_weighting or ev.rho_colour <= 0.0:
+        texture = window.texture
+        if not self._distractor_weighting or texture is None or ev.rho_colour <= 0.0:
             return
         cfg = self.config
         kernel = self._kernel(self._size)
         least = max(8, len(kernel.k) // 4)
-        best: tuple[float, FloatArray] | None = None
+        # Colour at each neighbour (bin counts only); the texture of the most alike one.
+        best: tuple[float, IntArray, IntArray, FloatArray] | None = None
         for ox, oy in _NEIGHBOURS:
             at = centre + cfg.distractor_offset * self._size * np.array([ox, oy])
-            near = self._evaluate(window, at, self._size, model=False)
-            if len(near.x) < least or near.p_texture is None:
+            rows, cols, valid = window.cells(round(at[0]) + kernel.dx, round(at[1]) + kernel.dy)
+            if int(np.count_nonzero(valid)) < least:
                 continue
-            rho_c = float(np.sum(np.sqrt(near.p_colour * self._q_colour)))
+            rows, cols, k = rows[valid], cols[valid], kernel.k[valid]
+            p_colour = np.bincount(window.colour[rows, cols], weights=k, minlength=self._bins).astype(
+                np.float64
+            )
+            rho_c = _bhattacharyya(p_colour, self._q_colour)
             if best is None or rho_c > best[0]:
-                best = (rho_c, near.p_texture)
+                best = (rho_c, rows, cols, k)
         a0, b0 = self._exponents
         if best is not None and best[0] >= cfg.distractor_ratio * ev.rho_colour:
+            _, rows, cols, k = best
+            p_texture = np.bincount(texture[rows, cols], weights=k, minlength=self._labels).astype(np.float64)
             d_c = 1.0 - best[0]
-            d_t = 1.0 - float(np.sum(np.sqrt(best[1] * self._q_texture)))
+            d_t = 1.0 - _bhattacharyya(p_texture, self._q_texture)
             top = max(d_c, d_t)
             if top <= 1e-6:
                 return  # neither feature tells them apart: keep the weights
