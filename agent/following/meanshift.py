@@ -146,9 +146,6 @@ class TrackerConfig:
     # prediction wants the latest motion; many frames' want the steady one, not the last few steps' noise.
     coast_velocity_gain: float = 0.1
     climb_from_last: bool = True  # also climb from the last position, not only from the prediction
-    # The climb's motion prior while tracking: sigma, in box sizes, of a Gaussian on the centre around the
-    # constant-velocity prediction; the climb maximises log rho + log prior (0: rho alone).
-    climb_prior: float = 0.0
     occlusion_ratio: float = 0.6
     reacquire_ratio: float = 0.75
     update_ratio: float = 0.9
@@ -233,7 +230,6 @@ class _Evaluation:
     weights: FloatArray  # eq. 12 per valid sample
     x: FloatArray  # frame coordinates of the valid samples
     y: FloatArray
-    k_total: float = 0.0  # sum of the kernel over the valid samples
 
 
 def _silhouette(kind: Silhouette, u: FloatArray, v: FloatArray) -> npt.NDArray[np.bool_]:
@@ -349,13 +345,12 @@ class MeanShiftTracker:
             predicted = self._centre + np.array([coast[0], 0.0])
         if self.state is TrackState.TRACKING:
             window = self._window(frame, predicted, self._size * 2.0 + 2.0 * np.abs(self._velocity) + 8.0)
-            prior = predicted if cfg.climb_prior > 0.0 else None
-            centre, ev, iterations = self._climb(window, predicted, self._size, prior)
+            centre, ev, iterations = self._climb(window, predicted, self._size)
             if cfg.climb_from_last and float(np.hypot(*self._velocity)) > cfg.epsilon_px:
                 # The motion model can be wrong (a camera shaken by hand, a turn): climb from where the
                 # target was too and keep the better match.
-                centre2, ev2, iterations2 = self._climb(window, self._centre, self._size, prior)
-                if self._posterior(ev2, centre2, prior) > self._posterior(ev, centre, prior):
+                centre2, ev2, iterations2 = self._climb(window, self._centre, self._size)
+                if ev2.rho > ev.rho:
                     centre, ev, iterations = centre2, ev2, iterations + iterations2
             if ev.rho >= cfg.occlusion_ratio * self._rho_ref:
                 self._accept(frame, window, centre, ev)
@@ -454,49 +449,29 @@ class MeanShiftTracker:
         coast = self._evaluate(window, self._centre, size)
         return self._result(coast, iterations)
 
-    def _posterior(self, ev: _Evaluation, centre: FloatArray, prior: FloatArray | None) -> float:
-        """``log rho`` plus the climb's log motion prior round ``prior`` (none: ``log rho``)."""
-        score = math.log(max(ev.rho, 1e-12))
-        if prior is not None:
-            d = (centre - prior) / (self.config.climb_prior * self._size)
-            score -= 0.5 * float(np.dot(d, d))
-        return score
-
     def _climb(
-        self, window: _Window, start: FloatArray, size: FloatArray, prior: FloatArray | None = None
+        self, window: _Window, start: FloatArray, size: FloatArray
     ) -> tuple[FloatArray, _Evaluation, int]:
-        """Mean shift from ``start`` (eq. 13), halving a step that lowers rho (Comaniciu's step 5).
-
-        With ``prior`` (a centre) the climb maximises ``log rho - |(y - prior) / (sigma size)|^2 / 2``,
-        sigma ``climb_prior``: the fixed point of eq. 13 with a Gaussian prior on the centre is
-        ``y = (lam m(y) + prior) / (lam + 1)``, ``m`` the weighted mean, ``lam = 4 sigma^2 sum(w) /
-        sum(k)`` (the Epanechnikov kernel's gradient of ``log rho`` is ``sum(w) (m - y) / (sum(k) h^2)``,
-        h the half size)."""
+        """Mean shift from ``start`` (eq. 13), halving a step that lowers rho (Comaniciu's step 5)."""
         cfg = self.config
         y0 = start.copy()
         ev0 = self._evaluate(window, y0, size)
-        s0 = self._posterior(ev0, y0, prior)
         iterations = 0
         for iterations in range(1, cfg.max_iterations + 1):  # noqa: B007
             total = float(np.sum(ev0.weights))
             if total <= 0.0:
                 break
             y1 = np.array([np.dot(ev0.weights, ev0.x), np.dot(ev0.weights, ev0.y)]) / total
-            if prior is not None and ev0.k_total > 0.0:
-                lam = 4.0 * cfg.climb_prior**2 * total / ev0.k_total
-                y1 = (lam * y1 + prior) / (lam + 1.0)
             ev1 = self._evaluate(window, y1, size)
-            s1 = self._posterior(ev1, y1, prior)
             halvings = 0
-            while s1 < s0 and halvings < 3 and np.hypot(*(y1 - y0)) > cfg.epsilon_px:
+            while ev1.rho < ev0.rho and halvings < 3 and np.hypot(*(y1 - y0)) > cfg.epsilon_px:
                 y1 = (y0 + y1) / 2.0
                 ev1 = self._evaluate(window, y1, size)
-                s1 = self._posterior(ev1, y1, prior)
                 halvings += 1
-            if s1 < s0:
+            if ev1.rho < ev0.rho:
                 break
             moved = float(np.hypot(*(y1 - y0)))
-            y0, ev0, s0 = y1, ev1, s1
+            y0, ev0 = y1, ev1
             if moved < cfg.epsilon_px:
                 break
         return y0, ev0, iterations
@@ -673,7 +648,7 @@ class MeanShiftTracker:
         )
         w_colour = ratio_c[colour_bins]
         if p_texture is None or texture_labels is None:
-            return _Evaluation(rho_c, rho_c, 1.0, p_colour, None, w_colour, x, y, total)
+            return _Evaluation(rho_c, rho_c, 1.0, p_colour, None, w_colour, x, y)
         rho_t = float(np.sum(np.sqrt(p_texture * self._q_texture)))
         ratio_t = np.sqrt(
             np.divide(self._q_texture, p_texture, out=np.zeros_like(p_texture), where=p_texture > 0)
@@ -683,7 +658,7 @@ class MeanShiftTracker:
         a, b = self._exponents
         weights = a * w_colour / max(rho_c, 1e-9) + b * ratio_t[texture_labels] / max(rho_t, 1e-9)
         rho = rho_c**a * rho_t**b
-        return _Evaluation(rho, rho_c, rho_t, p_colour, p_texture, weights, x, y, total)
+        return _Evaluation(rho, rho_c, rho_t, p_colour, p_texture, weights, x, y)
 
     def _background(self, window: _Window) -> None:
         """The corrected background-weighted model (Ning et al. 2012) from the ring between the box and
