@@ -38,6 +38,7 @@ from agent.fleet.local_protocol import (
     encode,
     receive,
 )
+from agent.fleet.ros2_out import Ros2Out
 from drivers.errors import DeviceNotFound
 from firmware_protocol.command_frame import GoalReason, GoalState
 from firmware_protocol.errors import ProtocolError
@@ -63,6 +64,7 @@ class Bridge:
         self._status: StatusMessage | None = None
         self._session: Any = None
         self._publishers: dict[str, Any] = {}
+        self._ros2: Ros2Out | None = None  # [ros2] enabled: the same pose, map, status as ROS 2 topics
         self.connected = threading.Event()  # the Zenoh session is up and declared
 
     def count(self, what: str, n: int = 1) -> None:
@@ -94,6 +96,8 @@ class Bridge:
             session.declare_subscriber(f"{prefix}/*/pose", self._on_peer_pose),
             session.declare_subscriber(self._key("goal"), self._on_goal),
         ]
+        if self.config.ros2.enabled:
+            self._ros2 = Ros2Out(self.config.ros2, session, self.count)
         self.connected.set()
         log.info(
             "bridge %s: Zenoh %s, listen %s, connect %s, multicast scouting %s",
@@ -202,12 +206,16 @@ class Bridge:
         robot = self.config.robot
         if isinstance(message, PoseMessage):
             self._publish("pose", payloads.encode_pose(robot, message))
+            if self._ros2 is not None:
+                self._ros2.pose(message)
         elif isinstance(message, StatusMessage):
             self._status = message
         elif isinstance(message, GoalStateMessage):
             self._publish("goal_state", payloads.encode_goal_state(robot, message))
         elif isinstance(message, MapMessage):
             self._publish("map", payloads.encode_map(robot, message))
+            if self._ros2 is not None:
+                self._ros2.map(message)
         elif isinstance(message, TopologyMessage):
             try:
                 data = payloads.encode_topology(robot, message)
@@ -223,7 +231,10 @@ class Bridge:
             self.count("agent_unexpected_messages")
 
     def _publish_status(self) -> None:
-        self._publish("status", payloads.encode_status(self.config.robot, self._status, self.counters()))
+        data = payloads.encode_status(self.config.robot, self._status, self.counters())
+        self._publish("status", data)
+        if self._ros2 is not None:
+            self._ros2.status(data.decode())
 
     # -- the loop ------------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -261,6 +272,9 @@ class Bridge:
 
     def close(self) -> None:
         self._disconnect("bridge stopping")
+        ros2_out, self._ros2 = self._ros2, None
+        if ros2_out is not None:
+            ros2_out.close()
         session, self._session = self._session, None
         if session is not None:
             with contextlib.suppress(Exception):

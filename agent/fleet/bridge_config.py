@@ -7,11 +7,12 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from agent.fleet.local_protocol import valid_robot_name
+from agent.fleet.ros2_out import Ros2Config, parse_ros2_table
 from drivers.toml_table import TomlTable, read_toml, type_name
 
 __all__ = ["BridgeConfig", "ZenohConfig", "load_bridge_config", "parse_bridge_config"]
@@ -64,6 +65,7 @@ class BridgeConfig:
     status_period_s: float = 1.0
     reconnect_s: float = 0.5
     file: str = "<bridge config>"
+    ros2: Ros2Config = field(default_factory=Ros2Config)  # [ros2]: off unless enabled (ros2_out)
 
 
 def load_bridge_config(path: str | os.PathLike[str]) -> BridgeConfig:
@@ -102,7 +104,7 @@ def _endpoints(t: TomlTable, name: str) -> tuple[str, ...]:
 
 def parse_bridge_config(data: Mapping[str, Any], file: str = "<bridge config>") -> BridgeConfig:
     top = TomlTable(data, "", file)
-    top.expect("bridge", "zenoh")
+    top.expect("bridge", "zenoh", "ros2")
     b = TomlTable(top.take("bridge") if top.has("bridge") else {}, "bridge", file)
     z = TomlTable(top.take("zenoh") if top.has("zenoh") else {}, "zenoh", file)
     robot = _string(b, "robot", None)
@@ -138,6 +140,7 @@ def parse_bridge_config(data: Mapping[str, Any], file: str = "<bridge config>") 
         status_period_s=_number(b, "status_period_s", 1.0, 0.05, 60.0),
         reconnect_s=_number(b, "reconnect_s", 0.5, 0.05, 60.0),
         file=file,
+        ros2=parse_ros2_table(top.take("ros2") if top.has("ros2") else {}, robot, file),
     )
     b.finish()
     z.finish()

@@ -57,6 +57,7 @@ __all__ = [
     "Features",
     "MeanShiftTracker",
     "Silhouette",
+    "TextureWeighting",
     "TrackResult",
     "TrackState",
     "TrackerConfig",
@@ -96,6 +97,18 @@ class ColourSpace(enum.StrEnum):
     HSV = "hsv"
 
 
+class TextureWeighting(enum.StrEnum):
+    """What the texture's exponent ``b`` in ``rho = rho_c^a * rho_t^b`` is measured against
+    (``adaptive_weights``)."""
+
+    # The ring around the target at each model update: each feature's distance from the surroundings.
+    RING = "ring"
+    # The distractors: the neighbouring regions whose colour alone the tracker would take for the
+    # target. With one, each feature counts by how well it tells the target from it (at least
+    # min_feature_weight); with none, the weights relax to the ring's, texture unfloored.
+    DISTRACTOR = "distractor"
+
+
 class TrackState(enum.StrEnum):
     TRACKING = "tracking"
     OCCLUDED = "occluded"  # rho too low: coasting on the motion model, searching each frame
@@ -112,7 +125,14 @@ class TrackerConfig:
     background_weighting: bool = True
     background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
-    min_feature_weight: float = 0.5  # floor of a and b
+    min_feature_weight: float = 0.5  # floor of a and b (of a only with texture_weighting=distractor)
+    texture_weighting: TextureWeighting = TextureWeighting.RING
+    # distractor weighting: a neighbour (the box moved by distractor_offset box sizes, 8 directions) is a
+    # distractor when its rho_colour is at least distractor_ratio times the target's; with none, a and b
+    # relax toward the ring's by distractor_forget per confident tracking frame.
+    distractor_offset: float = 1.0
+    distractor_ratio: float = 0.75
+    distractor_forget: float = 0.05
     max_iterations: int = 12
     epsilon_px: float = 0.5  # converged when a step is shorter
     max_pixels: int = 2500  # kernel samples per evaluation; bigger boxes are sampled on a grid
@@ -139,6 +159,12 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if not 2 <= self.colour_levels <= 32:
             raise ValueError("colour_levels must be 2..32")
+        if not (
+            self.distractor_offset > 0.0
+            and self.distractor_ratio > 0.0
+            and 0.0 <= self.distractor_forget <= 1.0
+        ):
+            raise ValueError("need distractor_offset > 0, distractor_ratio > 0, 0 <= distractor_forget <= 1")
         if self.background_every < 1:
             raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
@@ -228,6 +254,11 @@ class MeanShiftTracker:
         self._levels = self.config.colour_levels
         self._bins = self._levels**3
         self._texture = self.config.features == Features.FULL
+        self._distractor_weighting = (
+            self._texture
+            and self.config.adaptive_weights
+            and self.config.texture_weighting == TextureWeighting.DISTRACTOR
+        )
         riu2 = self.config.lbp_mapping == LbpMapping.RIU2
         self._lut = RIU2_LUT if riu2 else U2_LUT
         self._labels = RIU2_LABELS if riu2 else U2_LABELS
@@ -243,6 +274,7 @@ class MeanShiftTracker:
         self._q_texture = np.zeros(self._labels)
         self._rho_ref = 1.0
         self._exponents = (1.0, 1.0)  # a, b in rho = rho_c^a * rho_t^b
+        self._ring_exponents = (1.0, 0.0)  # distractor weighting: the exponents with no distractor near
         self._colour_factor = np.ones(self._bins)  # the background weighting of the colour bins
         self._updates = 0
         self.state = TrackState.TRACKING
@@ -254,6 +286,12 @@ class MeanShiftTracker:
     @property
     def box(self) -> FloatArray:
         return np.concatenate([self._centre - self._size / 2.0, self._size])
+
+    @property
+    def feature_weights(self) -> tuple[float, float]:
+        """The exponents (a, b) of ``rho = rho_c^a * rho_t^b`` now ((1, 1) for the colour-only tracker:
+        it has no texture term)."""
+        return self._exponents
 
     def start(self, frame: ImageU8, box: FloatArray | tuple[float, float, float, float]) -> None:
         """Build the target model from ``box`` (x, y, w, h) on ``frame``."""
@@ -271,9 +309,12 @@ class MeanShiftTracker:
         self._q_colour_raw = ev.p_colour
         self._q_texture_raw = ev.p_texture if ev.p_texture is not None else np.zeros(self._labels)
         self._background(window)
+        if self._distractor_weighting:
+            self._exponents = self._ring_exponents
         self._rho_ref = 1.0
         ev = self._evaluate(window, self._centre, self._size)
         self._rho_ref = max(ev.rho, 1e-3)
+        self._weigh_distractors(window, self._centre, ev)
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = True
@@ -342,6 +383,7 @@ class MeanShiftTracker:
             else:
                 self._reweight()
         self._rho_ref += cfg.rho_ref_rate * (ev.rho - self._rho_ref)
+        self._weigh_distractors(window, centre, ev)
 
     def _search(
         self, frame: ImageU8, predicted: FloatArray, hints: tuple[FloatArray, ...] | list[FloatArray]
@@ -636,13 +678,83 @@ class MeanShiftTracker:
                 d_t = 1.0 - _bhattacharyya(bg_texture, _normalised(self._q_texture_raw))
                 top = max(d_c, d_t)
                 a, b = (d_c / top, d_t / top) if top > 1e-6 else (1.0, 1.0)
-                self._exponents = (max(a, cfg.min_feature_weight), max(b, cfg.min_feature_weight))
+                if self._distractor_weighting:
+                    # Unfloored: what the weights relax to while no distractor is near.
+                    self._ring_exponents = (max(a, cfg.min_feature_weight), b)
+                else:
+                    self._exponents = (max(a, cfg.min_feature_weight), max(b, cfg.min_feature_weight))
             if cfg.background_weighting:
                 # Colour only: with ten texture labels, "plain" is common in any background, and
                 # weighting it down leaves a model of the target's rarest texture, which a busy
                 # passer-by matches better than the target (measured on the crossing scene).
                 self._colour_factor = _background_factor(bg_colour)
         self._reweight()
+
+    def _weigh_distractors(self, window: _Window, centre: FloatArray, ev: _Evaluation) -> None:
+        """The feature exponents from the distractors (``TextureWeighting.DISTRACTOR``), after a tracking
+        frame converged at ``centre`` with ``ev``.
+
+        The neighbours are the box moved by ``distractor_offset`` box sizes in the 8 directions, as far as
+        ``window`` reaches (at least a quarter of a neighbour's kernel: the tracking window reaches about
+        one box size past the box). The one with the highest ``rho_c`` is a distractor when that is at
+        least ``distractor_ratio`` times the target's own ``rho_c``: colour alone would take it for the
+        target (a look-alike passer-by, the partner walking beside the user). Each feature then counts by
+        its distance from the distractor, ``1 - BC(q, p_distractor)``, over the larger of the two, both
+        floored at ``min_feature_weight``: while a look-alike is near, texture has at least that say.
+        With no distractor the exponents relax, by ``distractor_forget`` a confident frame, toward the
+        ring's (``_background``: each feature's distance from the surroundings, texture unfloored),
+        which on OTB's people leave texture a small say (b 0.0-0.3) and on the rendered ones more. Frames
+        whose match is not confident (``rho`` under ``update_ratio`` times ``rho_ref``: a passer-by over
+        the target, whom the neighbours no longer see) change nothing. Possegger, Mauthner, Bischof, "In
+        defense of color-based model-free tracking" (CVPR 2015) and Zhu et al.'s DaSiamRPN (ECCV 2018)
+        likewise weigh against distractors, not only the background.
+
+        ``rho_ref`` is rescaled to the new exponents (the target's match under them), so a change of
+        weights is not taken for an occlusion."""
+        texture = window.texture
+        if not self._distractor_weighting or texture is None or ev.rho_colour <= 0.0:
+            return
+        cfg = self.config
+        kernel = self._kernel(self._size)
+        least = max(8, len(kernel.k) // 4)
+        # Colour at each neighbour (bin counts only); the texture of the most alike one.
+        best: tuple[float, IntArray, IntArray, FloatArray] | None = None
+        for ox, oy in _NEIGHBOURS:
+            at = centre + cfg.distractor_offset * self._size * np.array([ox, oy])
+            rows, cols, valid = window.cells(round(at[0]) + kernel.dx, round(at[1]) + kernel.dy)
+            if int(np.count_nonzero(valid)) < least:
+                continue
+            rows, cols, k = rows[valid], cols[valid], kernel.k[valid]
+            p_colour = np.bincount(window.colour[rows, cols], weights=k, minlength=self._bins).astype(
+                np.float64
+            )
+            rho_c = _bhattacharyya(p_colour, self._q_colour)
+            if best is None or rho_c > best[0]:
+                best = (rho_c, rows, cols, k)
+        a0, b0 = self._exponents
+        if best is not None and best[0] >= cfg.distractor_ratio * ev.rho_colour:
+            _, rows, cols, k = best
+            p_texture = np.bincount(texture[rows, cols], weights=k, minlength=self._labels).astype(np.float64)
+            d_c = 1.0 - best[0]
+            d_t = 1.0 - _bhattacharyya(p_texture, self._q_texture)
+            top = max(d_c, d_t)
+            if top <= 1e-6:
+                return  # neither feature tells them apart: keep the weights
+            a = max(d_c / top, cfg.min_feature_weight)
+            b = max(d_t / top, cfg.min_feature_weight, self._ring_exponents[1])
+        elif ev.rho < cfg.update_ratio * self._rho_ref:
+            return  # not a confident match (a passer-by over the target?): nothing learnt
+        else:
+            r = cfg.distractor_forget
+            a_r, b_r = self._ring_exponents
+            a, b = a0 + r * (a_r - a0), b0 + r * (b_r - b0)
+            if abs(a - a_r) + abs(b - b_r) < 1e-3:
+                a, b = a_r, b_r
+        if (a, b) == (a0, b0):
+            return
+        self._exponents = (a, b)
+        rho_c, rho_t = max(ev.rho_colour, 1e-9), max(ev.rho_texture, 1e-9)
+        self._rho_ref = max(self._rho_ref * rho_c ** (a - a0) * rho_t ** (b - b0), 1e-3)
 
     def _reweight(self) -> None:
         """The models the candidates are compared with: the raw histograms, colour scaled by the last
@@ -670,6 +782,18 @@ class MeanShiftTracker:
         if window.texture is not None:
             texture = np.bincount(window.texture[rows, cols], minlength=self._labels).astype(np.float64)
         return colour, texture
+
+
+_NEIGHBOURS = (
+    (-1.0, 0.0),
+    (1.0, 0.0),
+    (0.0, -1.0),
+    (0.0, 1.0),
+    (-1.0, -1.0),
+    (1.0, -1.0),
+    (-1.0, 1.0),
+    (1.0, 1.0),
+)
 
 
 def _background_factor(background: FloatArray) -> FloatArray:

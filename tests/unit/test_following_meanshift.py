@@ -8,7 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from agent.following.meanshift import Features, MeanShiftTracker, TrackerConfig, TrackState
+from agent.following.meanshift import (
+    Features,
+    MeanShiftTracker,
+    TextureWeighting,
+    TrackerConfig,
+    TrackState,
+)
 from agent.following.otb import centre_errors, precision_at
 from agent.following.synthetic import CrossingScene, crossing_sequence
 
@@ -39,6 +45,33 @@ def test_texture_holds_the_target_where_colour_follows_the_passer_by(seed: int) 
     assert full_errors[-1] < 10.0
     assert precision_at(colour_errors, 20.0) < 0.8
     assert np.max(colour_errors) > 50.0
+
+
+def test_distractor_weighting_gives_texture_its_say_only_near_a_look_alike() -> None:
+    """TextureWeighting.DISTRACTOR: while the passer-by is far, texture's exponent is the ring's (under
+    the floor: texture barely separates the target from the mottled background); once the look-alike is
+    beside the target it is at least the floor, and the target is held through the crossing."""
+    frames = list(crossing_sequence(CrossingScene(seed=0)))
+    truth = np.array([box for _, box in frames])
+    config = TrackerConfig(texture_weighting=TextureWeighting.DISTRACTOR)
+    tracker = MeanShiftTracker(config)
+    tracker.start(*frames[0])
+    weights = [tracker.feature_weights]
+    boxes = [frames[0][1]]
+    for image, _ in frames[1:]:
+        boxes.append(tracker.update(image).box)
+        weights.append(tracker.feature_weights)
+    texture = np.array([b for _, b in weights])
+    assert texture[0] < config.min_feature_weight
+    assert np.max(texture) >= config.min_feature_weight
+    assert int(np.argmax(texture >= config.min_feature_weight)) > 0
+    errors = centre_errors(np.array(boxes), truth)
+    assert precision_at(errors, 20.0) >= 0.95
+    assert errors[-1] < 10.0
+    # The ring weighting (the default) floors texture at min_feature_weight throughout.
+    ring = MeanShiftTracker(TrackerConfig())
+    ring.start(*frames[0])
+    assert ring.feature_weights[1] >= config.min_feature_weight
 
 
 def _occlusion_scene(frames: int = 70) -> list[tuple[np.ndarray, np.ndarray]]:
