@@ -130,7 +130,9 @@ def test_two_robots_through_a_router_down_and_back_bad_messages_and_a_vanished_r
         router.send_signal(signal.SIGKILL)
         router.wait(TIMEOUT_S)
         _wait(lambda: not _sees(r1, "r2") and not _sees(r2, "r1"), "the robots to drop each other")
-        assert r1.loop.counters()["fleet_peers_dropped"] == 1 == r2.loop.counters()["fleet_peers_dropped"]
+        assert (
+            r1.loop.counters()["fleet_peers_dropped"] >= 1 and r2.loop.counters()["fleet_peers_dropped"] >= 1
+        )
         # Back on the same port: the bridges reconnect on their own (Zenoh's connect retry, docs/fleet.md).
         router = start_router(port)
         _wait(lambda: _sees(r1, "r2") and _sees(r2, "r1"), "the robots to see each other again")
@@ -144,38 +146,51 @@ def test_two_robots_through_a_router_down_and_back_bad_messages_and_a_vanished_r
         session.declare_subscriber("fleet/*/status", heard)
         ghost = session.declare_publisher("fleet/r9/pose")
         goal = session.declare_publisher("fleet/r1/goal")
-        _wait(lambda: ghost.matching_status.matching and goal.matching_status.matching, "the bridges' subs")
         bad_poses = [
             b"\x89PNG\r\n\x1a\n" + bytes(64),
             b'{"v":1,"robot":"r9","t_us":-1}',
             payloads.encode_pose("r2", PoseMessage(5, 3.0, 4.0, 0.1, 0.0, 0.0, 1)),  # names another robot
             b"x" * 1_000_000,
         ]
-        for data in bad_poses:
-            ghost.put(data)
-        goal.put(b"{" + b" " * (payloads.MAX_PAYLOAD + 10) + b"}")
-        goal.put(b'{"v":1,"robot":"r2","goal_id":1,"x_m":0,"y_m":0}')  # r1 takes goals under its own name
+        bad_goals = [
+            b"{" + b" " * (payloads.MAX_PAYLOAD + 10) + b"}",
+            b'{"v":1,"robot":"r2","goal_id":1,"x_m":0,"y_m":0}',  # r1 takes goals under its own name
+        ]
 
         def counted(robot: str, kind: str, n: int) -> bool:
-            for key, data in reversed(heard.samples):
-                if key == f"fleet/{robot}/status":
-                    return payloads.decode_status(data, robot).counters.get(f"rejected_{kind}", 0) >= n
+            with heard.cond:
+                for key, data in reversed(heard.samples):
+                    if key == f"fleet/{robot}/status":
+                        return payloads.decode_status(data, robot).counters.get(f"rejected_{kind}", 0) >= n
             return False
 
-        _wait(
-            lambda: counted("r1", "pose", 4) and counted("r2", "pose", 4) and counted("r1", "goal", 2),
-            "both bridges counting the bad messages",
-        )
+        def all_counted() -> bool:
+            return counted("r1", "pose", 4) and counted("r2", "pose", 4) and counted("r1", "goal", 2)
+
+        # Sent again until both bridges' statuses count them: a put goes only to the subscriptions the
+        # router knows of by then (both bridges declared theirs again when it came back, maybe not yet).
+        deadline = time.monotonic() + TIMEOUT_S
+        while not all_counted():
+            assert time.monotonic() < deadline, "timed out waiting for both bridges to count the bad messages"
+            for data in bad_poses:
+                ghost.put(data)
+            for data in bad_goals:
+                goal.put(data)
+            wait_until = time.monotonic() + 3.0
+            while not all_counted() and time.monotonic() < wait_until:
+                time.sleep(0.05)
         assert "r9" not in r1.loop.peer_poses() and "r9" not in r2.loop.peer_poses()
         for end in (r1, r2):
             c = end.loop.counters()
             assert c.get("fleet_goals_in", 0) == 0 and c.get("fleet_malformed_frames", 0) == 0, c
 
         # r2 vanishes (its bridge killed, no goodbye): r1 drops it after the timeout; r2's agent runs on.
+        _wait(lambda: _sees(r1, "r2"), "r1 to see r2")  # (a pause over 1 s under load drops it early too)
+        dropped = r1.loop.counters()["fleet_peers_dropped"]
         bridges["r2"].send_signal(signal.SIGKILL)
         bridges["r2"].wait(TIMEOUT_S)
         _wait(lambda: not _sees(r1, "r2"), "r1 to drop the vanished r2")
-        assert r1.loop.counters()["fleet_peers_dropped"] == 2 and r2.alive() and r1.alive()
+        assert r1.loop.counters()["fleet_peers_dropped"] > dropped and r2.alive() and r1.alive()
         assert bridges["r1"].poll() is None, stop(bridges["r1"])[1][-2000:]
     finally:
         if session is not None:
