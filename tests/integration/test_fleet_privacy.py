@@ -5,7 +5,7 @@ key of one of the two robots, a payload that decodes strictly by its schema and 
 What the schemas allow is poses, status flags and counters, goals and goal states, laser-built maps and the
 topology: no image, nothing from camera pixels beyond the pose the LED observations give.
 
-A short run: the two robots each drive 0.3 m towards the other; it ends when both goals ended (or at
+A short run: the two robots each drive 0.3 m towards the other; it ends when both goals ended (or at 20 s,
 ``--seconds``); the test does not need them reached, only the run's traffic. Generous timeouts, no
 wall-clock assertion."""
 
@@ -50,7 +50,7 @@ def test_everything_a_two_robot_fleet_publishes_in_a_run_passes_the_privacy_audi
             "--goal",
             "6.7,6.0",
         ]
-        argv += ["--seconds", "40", "--json", "--out", str(tmp_path), "--fleet-connect", loopback(port)]
+        argv += ["--seconds", "20", "--json", "--out", str(tmp_path), "--fleet-connect", loopback(port)]
         done = subprocess.run(vlp_agent(*argv), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     finally:
         session.close()
