@@ -93,6 +93,12 @@ def make_follow_loop(
             return None
         return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
 
+    def pose_at(t_s: float) -> tuple[float, float, float] | None:
+        if not agent.flags() & sources:
+            return None
+        e = agent.fusion.estimate_at(round(t_s * 1e9))
+        return (e.x_m, e.y_m, e.yaw_rad)
+
     def navigator() -> Navigator | None:
         return agent.navigation.navigator if agent.navigation is not None else None
 
@@ -109,6 +115,7 @@ def make_follow_loop(
         agent.command_velocity,
         lambda: agent.clock_ns() * 1e-9,
         guard=agent.navigation.guard if agent.navigation is not None else None,
+        pose_at=pose_at,
         navigator=navigator,
         fine=fine,
         locator=locator,
@@ -147,6 +154,8 @@ class FollowScore:
         self.distances: list[float] = []
         self.lost_s = 0.0
         self.acquired = False
+        self.acquired_t: float | None = None
+        self.walking_untracked_s = 0.0  # the user walking before the first track
         self.on_person: str | None = None
         self.switches = 0
         self.contacts = 0
@@ -205,6 +214,7 @@ class FollowScore:
                 d_user = math.hypot(ux - base.x_m, uy - base.y_m)
                 if sim.person_speed_mps(self.user) > 0.05:
                     self.walking_s += dt
+                    self.walking_untracked_s += 0.0 if self.acquired else dt
                     within = abs(d_user - self.distance_m) <= self.band_m
                     self.within_s += dt if within else 0.0
                     self.distances.append(d_user)
@@ -235,17 +245,20 @@ class FollowScore:
                 return
             if self.ready_t is None and snap.command.reason != NO_POSE:
                 self.ready_t = t
-            if (
-                not self.cued
-                and self.ready_t is not None
-                and (snap.person is not None or t - self.ready_t >= CUE_LATEST_S)
-            ):
-                # The scenario starts when the robot has locked on (a pose and a track; at the latest
-                # CUE_LATEST_S after the pose): the user waits for it, as a real one would.
+            locked = snap.person is not None and snap.command.state in (
+                FollowState.FOLLOWING,
+                FollowState.WAITING,
+            )
+            if not self.cued and self.ready_t is not None and (locked or t - self.ready_t >= CUE_LATEST_S):
+                # The scenario starts when the robot has locked on (a pose, a track, and the camera the
+                # follower needs giving frames: it follows; at the latest CUE_LATEST_S after the pose): the
+                # user waits for it, as a real one would. The user's walk after that counts, tracked or not.
                 sim.cue_people()
                 self.cued = True
             state = snap.command.state
             if snap.person is not None:
+                if not self.acquired:
+                    self.acquired_t = t
                 self.acquired = True
                 best = min(positions, key=lambda n: math.dist(positions[n], snap.person.xy))  # type: ignore[union-attr]
                 if math.dist(positions[best], snap.person.xy) <= self.match_m:
@@ -287,6 +300,10 @@ class FollowScore:
                 else None,
                 "distance_m_median": r(statistics.median(self.distances)) if self.distances else None,
                 "time_lost_s": r(self.lost_s, 2),
+                "acquired_after_s": r(self.acquired_t - self.ready_t, 2)
+                if self.acquired_t is not None and self.ready_t is not None
+                else None,
+                "walking_untracked_s": r(self.walking_untracked_s, 2),
                 "identity_switches": self.switches,
                 "followed": self.on_person,
                 "collisions_people": self.contacts,
@@ -306,7 +323,13 @@ class FollowScore:
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
                 "safety": {
                     k: self.loop.counts.get(k, 0)
-                    for k in ("costmap_stops", "walker_slowdowns", "steps_aside")
+                    for k in (
+                        "costmap_stops",
+                        "walker_slowdowns",
+                        "steps_aside",
+                        "acquired_on_map",
+                        "acquire_waits_on_map",
+                    )
                 },
                 "tracker": dict(self.loop.tracker.counts),
                 "last_reason": self.loop.latest.command.reason if self.loop.latest is not None else None,

@@ -249,8 +249,9 @@ class PersonTracker:
         self, t_s: float, robot_xy: tuple[float, float], bearing_rad: float, sd_rad: float
     ) -> bool:
         """A bearing (map frame) from ``robot_xy`` to the person, e.g. the forward camera tracker's, as an
-        extended Kalman update; gated at 3 sigma. False when rejected or not tracking."""
-        self.predict(t_s)
+        extended Kalman update; gated at 3 sigma. False when rejected or not tracking. A bearing never
+        drops the track (only the scans, which look for the person, do: :meth:`predict`'s ``looked_s``)."""
+        self.predict(t_s, self.last_seen_s)
         if self.x is None or self.p is None:
             return False
         dx, dy = self.x[0] - robot_xy[0], self.x[1] - robot_xy[1]

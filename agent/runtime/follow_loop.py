@@ -174,11 +174,13 @@ class FollowLoop:
         clock_s: Callable[[], float],
         *,
         guard: Callable[[float, float, float], tuple[float, float]] | None = None,
+        pose_at: Callable[[float], Pose | None] | None = None,
         navigator: Callable[[], Navigator | None] = lambda: None,
         detector: DetectorConfig | None = None,
         acquire_half_width_rad: float = math.radians(35.0),
         acquire_min_mass: float = 0.2,
         acquire_sure: float = 0.3,
+        acquire_sure_s: float = 1.0,
         lookahead_s: float = 1.0,
         decel_mps2: float = 1.0,
         person_clear_m: float = 0.5,
@@ -207,11 +209,14 @@ class FollowLoop:
         self.send = send
         self.clock_s = clock_s
         self.guard = guard
+        self.pose_at = pose_at
         self.navigator = navigator
         self.detector = detector or DetectorConfig()
         self.acquire_half_width_rad = acquire_half_width_rad
         self.acquire_min_mass = acquire_min_mass
         self.acquire_sure = acquire_sure
+        self.acquire_sure_s = acquire_sure_s
+        self._window_since_s: float | None = None  # since when the RFID window has held acquire_min_mass
         self.absent = follower.config.absent_probability
         self.lookahead_s = lookahead_s
         self.decel_mps2 = decel_mps2
@@ -283,9 +288,14 @@ class FollowLoop:
     # -- scans --------------------------------------------------------------------------------------
 
     def on_scan(self, scan: Scan) -> None:
-        pose = self.pose()
-        if pose is None:
+        now = self.pose()
+        if now is None:
             return
+        t_s = scan.host_time_ns * 1e-9
+        # The robot where it was when the scan was taken: a scan handled a few tenths of a second late on a
+        # busy machine, placed with the pose of *now* while the robot turns, puts the person far enough off
+        # for the track's gate to refuse them, scan after scan, until the track is dropped.
+        pose = self._pose_at(t_s, now)
         mx, my, myaw = self.laser_mount
         c, s = math.cos(pose[2]), math.sin(pose[2])
         laser = (pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + myaw)
@@ -301,27 +311,70 @@ class FollowLoop:
         )
         if self.blind:
             fresh = detections = PersonDetections(np.zeros((0, 2)), np.zeros(0))
-        t_s = scan.host_time_ns * 1e-9
         p_absent, _, window = self._coarse()
         with self._lock:
+            if self.last_scan_s is not None and t_s <= self.last_scan_s:
+                self.counts["scans_out_of_order"] += 1
+                return
             previous, self.last_scan_s = self.last_scan_s, t_s
             self.counts["scans"] += 1
             self.counts["detections"] += len(fresh)
             if self.tracker.tracking:
+                before = self.tracker.estimate()
                 seen = self.tracker.update_detections(t_s, detections, previous)
+                if not self.tracker.tracking and before is not None:
+                    self._log_drop(before, t_s, detections)
+                elif not seen and before is not None and log.isEnabledFor(logging.DEBUG):
+                    near = np.hypot(*(detections.centres - np.array(before.xy)).T) if len(detections) else []
+                    log.debug(
+                        "following: scan t=%.2f (%.2f s late) missed the track at %.2f,%.2f: candidates at "
+                        "%s m; robot then %s, now %s",
+                        t_s,
+                        self.clock_s() - t_s,
+                        before.xy[0],
+                        before.xy[1],
+                        [round(float(x), 2) for x in near],
+                        tuple(round(v, 2) for v in pose),
+                        tuple(round(v, 2) for v in now),
+                    )
                 self.occluded = not seen and self._occluded(laser, angles, ranges)
                 self.counts["occluded_scans"] += int(self.occluded)
             elif window is not None and (
                 p_absent is None or p_absent < self.follower.config.absent_probability
             ):
-                # Off the static map first; then, where the RFID layer is sure they are ahead, a person-sized
-                # cluster the map has taken in (a user who stood still while SLAM mapped them).
+                if self._window_since_s is None:
+                    self._window_since_s = t_s
+                # Off the static map first; then a person-sized cluster the map has taken in (a user who
+                # stood still while SLAM mapped them) where the RFID layer is sure they are ahead, or has
+                # held them ahead for acquire_sure_s and that cluster is the only one there: a standing
+                # user with their back to the antennas gives the window 0.26-0.31 of the mass, so a
+                # threshold of 0.3 alone left the start to the fading (seconds of waiting, at random).
                 got = self.tracker.acquire(t_s, fresh, pose, window[0], window[1])
-                if not got and window[2] >= self.acquire_sure:
-                    got = self.tracker.acquire(t_s, detections, pose, window[0], window[1])
-                    self.counts["acquired_on_map"] += int(got)
+                if not got:
+                    held = t_s - self._window_since_s >= self.acquire_sure_s
+                    ahead = self._in_window(detections, pose, window)
+                    if window[2] >= self.acquire_sure or (held and ahead == 1):
+                        got = self.tracker.acquire(t_s, detections, pose, window[0], window[1])
+                        self.counts["acquired_on_map"] += int(got)
+                    elif ahead:
+                        self.counts["acquire_waits_on_map"] += 1
                 if got:
+                    self._window_since_s = None
                     log.info("following: person acquired (track %d)", self.tracker.track_id)
+            else:
+                self._window_since_s = None
+
+    def _in_window(
+        self, detections: PersonDetections, robot: Pose, window: tuple[float, float, float]
+    ) -> int:
+        """How many candidates stand inside the acquisition window (bearing and range, robot frame)."""
+        if len(detections) == 0:
+            return 0
+        d = detections.centres - np.array(robot[:2])
+        bearing = np.arctan2(d[:, 1], d[:, 0]) - robot[2] - window[0]
+        off = np.abs(np.remainder(bearing + np.pi, 2 * np.pi) - np.pi)
+        near = np.hypot(d[:, 0], d[:, 1]) <= self.tracker.config.max_acquire_range_m
+        return int(np.count_nonzero((off <= window[1]) & near))
 
     def _occluded(self, laser: Pose, angles: np.ndarray, ranges: np.ndarray) -> bool:
         """Whether the scan has returns nearer than the track (by ``occluder_margin_m``) within its body's
@@ -405,9 +458,31 @@ class FollowLoop:
             self.counts["fine_resets"] += 1
         return result
 
+    def _log_drop(self, est: PersonEstimate, t_s: float, detections: PersonDetections) -> None:
+        near = (
+            float(np.min(np.hypot(*(detections.centres - np.array(est.xy)).T))) if len(detections) else None
+        )
+        log.info(
+            "following: track %d dropped at t=%.2f: last measured %.2f s before, at %.2f,%.2f moving "
+            "%.2f,%.2f; nearest candidate %s m from it",
+            est.track_id,
+            t_s,
+            t_s - est.last_seen_s,
+            est.xy[0],
+            est.xy[1],
+            est.velocity[0],
+            est.velocity[1],
+            "none" if near is None else f"{near:.2f}",
+        )
+
     def _pose_at(self, t_s: float, now: Pose) -> Pose:
-        """The fused pose at ``t_s`` from the poses the steps saw (linear between the two round it; the
-        nearest end outside them)."""
+        """The fused pose at ``t_s``: the fusion's own (``pose_at``, its buffered measurements up to then)
+        when given, else from the poses the steps saw (linear between the two round it; the nearest end
+        outside them)."""
+        if self.pose_at is not None:
+            at = self.pose_at(t_s)
+            if at is not None:
+                return at
         with self._lock:
             poses = list(self._poses)
         if not poses:
@@ -473,12 +548,19 @@ class FollowLoop:
         with self._lock:
             if pose is not None:
                 self._poses.append((t_s, pose))
+            before = self.tracker.estimate()
             self.tracker.predict(t_s, self.last_scan_s)
             person = self.tracker.estimate()
+            if person is None and before is not None:
+                self._log_drop(before, t_s, PersonDetections(np.zeros((0, 2)), np.zeros(0)))
+            # The last look and what it showed, with the track they belong to: read apart, a scan handled
+            # between them made the track look a scan old ("vanished"), and a loaded machine stopped the
+            # robot over and over.
+            looked_s, occluded = self.last_scan_s, self.occluded
         stale = self.fine is not None and (
             self.last_frame_s is None or t_s - self.last_frame_s > self.camera_stale_s
         )
-        blind = self.last_scan_s is not None and t_s - self.last_scan_s > self.scan_stale_s
+        blind = looked_s is not None and t_s - looked_s > self.scan_stale_s
         if pose is None:
             command = FollowCommand(0.0, 0.0, FollowState.LOST, NO_POSE)
         elif blind:
@@ -492,7 +574,7 @@ class FollowLoop:
             command = FollowCommand(0.0, 0.0, FollowState.NO_CAMERA, NO_CAMERA)
         else:
             command = self.follower.step(
-                t_s, pose, person, p_absent, bearing, self.occluded, looked_s=self.last_scan_s
+                t_s, pose, person, p_absent, bearing, occluded, looked_s=looked_s
             )
         v, w = command.v_mps, command.omega_radps
         stepping_aside = False
