@@ -33,17 +33,10 @@ import statistics
 import threading
 from typing import Any
 
-from agent.config import AgentConfig
-from agent.following.fine import FineLayer
-from agent.following.follower import Follower, FollowerConfig, FollowState
-from agent.following.person import PersonTracker, TrackerConfig
-from agent.following.prelocate import HeadShoulderLocator
-from agent.navigation.navigator import Navigator
-from agent.runtime.agent import Agent
-from agent.runtime.follow_loop import NO_POSE, CameraView, FollowLoop, ProjectedLocator
+from agent.following.follower import FollowState
+from agent.runtime.follow_loop import NO_POSE, FollowLoop
+from agent.runtime.follow_setup import camera_view, make_follow_loop
 from drivers.sim.harness import SimulatedRobot
-from drivers.sim.world import ForwardCameraModel
-from firmware_protocol.pose_frame import PoseFlags
 
 __all__ = ["FollowScore", "camera_view", "make_follow_loop"]
 
@@ -53,75 +46,6 @@ STOPPED_MPS = 0.02
 MOVING_MPS = 0.05  # a contact begun faster than this is the robot driving into someone
 CUE_LATEST_S = 5.0
 SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
-
-
-def camera_view(model: ForwardCameraModel) -> CameraView:
-    """The follow loop's view of the simulated forward camera."""
-    cx, cy = model.principal_point_px
-    m = model.mount
-    return CameraView(
-        model.width_px, model.height_px, model.hfov_rad, cx, cy, (m.x_m, m.y_m, m.z_m, m.yaw_rad)
-    )
-
-
-def make_follow_loop(
-    agent: Agent,
-    config: AgentConfig,
-    laser_mount: tuple[float, float, float],
-    forward_camera: ForwardCameraModel | None = None,
-) -> FollowLoop:
-    """The follow loop on the agent: its pose, coarse layer, navigation's costmap and collision monitor;
-    commands as a local mission's velocity. Registers its scan listener (before ``agent.start()``). With
-    ``forward_camera`` (the simulated camera's model) the fine layer runs on its frames
-    (``FollowLoop.run_camera``, the caller's thread): OpenCV's HOG people detector in the track's band,
-    the track's projection when it finds nobody, mean shift from there."""
-    f = config.following
-    follower = Follower(
-        FollowerConfig(
-            distance_m=f.distance_m,
-            min_gap_m=f.min_gap_m,
-            max_speed_mps=f.max_speed_mps,
-            search_after_s=f.search_after_s,
-        )
-    )
-    tracker = PersonTracker(TrackerConfig(lost_after_s=f.lost_after_s))
-    sources = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
-
-    def pose() -> tuple[float, float, float] | None:
-        estimate, flags = agent.pose()
-        if not flags & sources:
-            return None
-        return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
-
-    def pose_at(t_s: float) -> tuple[float, float, float] | None:
-        if not agent.flags() & sources:
-            return None
-        e = agent.fusion.estimate_at(round(t_s * 1e9))
-        return (e.x_m, e.y_m, e.yaw_rad)
-
-    def navigator() -> Navigator | None:
-        return agent.navigation.navigator if agent.navigation is not None else None
-
-    fine = locator = None
-    if forward_camera is not None:
-        locator = ProjectedLocator(camera_view(forward_camera), HeadShoulderLocator())
-        fine = FineLayer(locator)
-    loop = FollowLoop(
-        follower,
-        tracker,
-        laser_mount,
-        pose,
-        lambda: agent.coarse,
-        agent.command_velocity,
-        lambda: agent.clock_ns() * 1e-9,
-        guard=agent.navigation.guard if agent.navigation is not None else None,
-        pose_at=pose_at,
-        navigator=navigator,
-        fine=fine,
-        locator=locator,
-    )
-    agent.scan_listeners.append(loop.on_scan)
-    return loop
 
 
 class FollowScore:

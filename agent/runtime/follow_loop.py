@@ -73,9 +73,12 @@ Pose = tuple[float, float, float]
 
 @dataclass(frozen=True, slots=True)
 class CameraView:
-    """The forward camera's geometry, enough to turn image columns into bearings and a person's place into
-    a box: a level pinhole camera ``width_px`` x ``height_px`` with horizontal field of view ``hfov_rad``,
-    principal point ``cx_px``, ``cy_px``, at ``mount`` (x forward, y left, z up, yaw) on the base."""
+    """The forward camera's geometry, enough to turn image points into bearings and a person's place into
+    a box: a pinhole camera ``width_px`` x ``height_px`` with horizontal field of view ``hfov_rad`` (the
+    focal length ``f_px`` along rows; ``fy_px`` down columns, None: the same), principal point ``cx_px``,
+    ``cy_px``, at ``mount`` (x forward, y left, z up, yaw) on the base, its optical axis tilted up by
+    ``pitch_rad`` (0: level; no roll). Tilted, a column is no longer one bearing: :meth:`bearing` takes the
+    row too."""
 
     width_px: int
     height_px: int
@@ -83,10 +86,31 @@ class CameraView:
     cx_px: float
     cy_px: float
     mount: tuple[float, float, float, float]  # x, y, z (m), yaw (rad)
+    fy_px: float | None = None
+    pitch_rad: float = 0.0
 
     @property
     def f_px(self) -> float:
         return (self.width_px / 2.0) / math.tan(self.hfov_rad / 2.0)
+
+    @property
+    def fv_px(self) -> float:
+        return self.f_px if self.fy_px is None else self.fy_px
+
+    def scaled(self, width_px: int, height_px: int) -> CameraView:
+        """The same camera delivering frames of another size (the intrinsics scale with it)."""
+        sx, sy = width_px / self.width_px, height_px / self.height_px
+        hfov = 2.0 * math.atan((width_px / 2.0) / (self.f_px * sx))
+        return CameraView(
+            width_px,
+            height_px,
+            hfov,
+            (self.cx_px + 0.5) * sx - 0.5,
+            (self.cy_px + 0.5) * sy - 0.5,
+            self.mount,
+            self.fv_px * sy,
+            self.pitch_rad,
+        )
 
     def origin(self, pose: Pose) -> tuple[float, float, float]:
         """The camera's (x, y, yaw) in the map frame with the base at ``pose``."""
@@ -94,12 +118,32 @@ class CameraView:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         return pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + myaw
 
-    def column(self, bearing_rad: float) -> float:
-        """The image column of a bearing in the camera's frame (left positive)."""
-        return self.cx_px - self.f_px * math.tan(bearing_rad)
+    def project(self, forward_m: float, left_m: float, height_m: float) -> tuple[float, float] | None:
+        """The pixel (column, row) of a point ``forward_m`` ahead of and ``left_m`` left of the camera
+        (its yawed, level frame), ``height_m`` above the floor; None behind it."""
+        z = height_m - self.mount[2]
+        c, s = math.cos(self.pitch_rad), math.sin(self.pitch_rad)
+        depth = c * forward_m + s * z
+        if depth <= 0.05:
+            return None
+        up = -s * forward_m + c * z
+        return self.cx_px - self.f_px * left_m / depth, self.cy_px - self.fv_px * up / depth
 
-    def bearing(self, column: float) -> float:
-        return math.atan2(self.cx_px - column, self.f_px)
+    def column(self, bearing_rad: float, range_m: float = 2.0, height_m: float = 1.45) -> float:
+        """The image column of a bearing in the camera's frame (left positive); tilted, of the point at
+        ``range_m`` and ``height_m`` (a person's shoulders by default)."""
+        if self.pitch_rad == 0.0:
+            return self.cx_px - self.f_px * math.tan(bearing_rad)
+        uv = self.project(range_m * math.cos(bearing_rad), range_m * math.sin(bearing_rad), height_m)
+        return self.cx_px - self.f_px * math.tan(bearing_rad) if uv is None else uv[0]
+
+    def bearing(self, column: float, row: float | None = None) -> float:
+        """The bearing (camera frame, left positive) of the image point (``column``, ``row``); ``row``
+        None: the principal point's (the same for every row of a level camera)."""
+        left = (self.cx_px - column) / self.f_px
+        up = 0.0 if row is None else (self.cy_px - row) / self.fv_px
+        forward = math.cos(self.pitch_rad) - math.sin(self.pitch_rad) * up
+        return math.atan2(left, forward)
 
     def head_shoulder_box(
         self,
@@ -113,13 +157,19 @@ class CameraView:
         x, y, w, h in pixels, clipped to the image; None when not in view."""
         if range_m <= 0.2 or abs(bearing_rad) >= self.hfov_rad / 2.0:
             return None
-        depth = range_m * math.cos(bearing_rad)
-        u = self.column(bearing_rad)
-        w = self.f_px * width_m / depth
-        z = self.mount[2]
-        v0 = max(0.0, self.cy_px - self.f_px * (top_m - z) / depth)
-        v1 = min(self.height_px - 1.0, self.cy_px - self.f_px * (bottom_m - z) / depth)
-        x0, x1 = max(0.0, u - w / 2.0), min(self.width_px - 1.0, u + w / 2.0)
+        cb, sb = math.cos(bearing_rad), math.sin(bearing_rad)
+        corners = []
+        for side in (-0.5, 0.5):
+            fwd = range_m * cb - side * width_m * sb
+            left = range_m * sb + side * width_m * cb
+            for h in (top_m, bottom_m):
+                uv = self.project(fwd, left, h)
+                if uv is None:
+                    return None
+                corners.append(uv)
+        us, vs = [c[0] for c in corners], [c[1] for c in corners]
+        x0, x1 = max(0.0, min(us)), min(self.width_px - 1.0, max(us))
+        v0, v1 = max(0.0, min(vs)), min(self.height_px - 1.0, max(vs))
         if x1 - x0 < 8.0 or v1 - v0 < 8.0:
             return None
         return np.array([x0, v0, x1 - x0, v1 - v0], dtype=np.float64)
@@ -404,6 +454,17 @@ class FollowLoop:
             return None
         t_s = frame.host_time_ns * 1e-9
         view = locator.view
+        height, width = frame.image.shape[:2]
+        if (width, height) != (view.width_px, view.height_px):
+            # The device gives another size than the intrinsics are for: the same lens, scaled.
+            log.info(
+                "forward camera: frames of %dx%d, its intrinsics are for %dx%d: scaled",
+                width,
+                height,
+                view.width_px,
+                view.height_px,
+            )
+            view = locator.view = view.scaled(width, height)
         # The robot where it was when the frame was taken: a frame a tenth of a second old, taken while
         # turning at 1.5 rad/s, would otherwise put the person 0.15 rad off.
         cam = view.origin(self._pose_at(t_s, pose))
@@ -425,7 +486,7 @@ class FollowLoop:
             self.counts["fine_out_of_view"] += 1
             return None
         # The band: the track's body (0.6 m) round its column, inside the RFID band it was taken in.
-        u = view.column(bearing)
+        u = view.column(bearing, rng)
         half = max(40.0, view.f_px * 0.6 / max(rng, 0.5))
         band = (int(max(0.0, u - half)), int(min(view.width_px, u + half)))
         locator.target = (rng, bearing)
@@ -439,7 +500,8 @@ class FollowLoop:
         if result.state is not FineState.TRACKING or result.box is None:
             return result
         column = float(result.box[0] + result.box[2] / 2.0)
-        measured = cam[2] + view.bearing(column)
+        row = float(result.box[1] + result.box[3] / 2.0)
+        measured = cam[2] + view.bearing(column, row)
         if est.t_s - est.last_seen_s > self.bearing_only_after_s or est.t_s - self._fine_started_s < 1.0:
             # The camera refines a track the laser holds; it does not keep one alive on its own (a box
             # drifting onto the wall would), nor steer one it has followed for less than a second.
@@ -573,9 +635,7 @@ class FollowLoop:
             # The estimate uses the camera: without it, stop (flagged) until it is back.
             command = FollowCommand(0.0, 0.0, FollowState.NO_CAMERA, NO_CAMERA)
         else:
-            command = self.follower.step(
-                t_s, pose, person, p_absent, bearing, occluded, looked_s=looked_s
-            )
+            command = self.follower.step(t_s, pose, person, p_absent, bearing, occluded, looked_s=looked_s)
         v, w = command.v_mps, command.omega_radps
         stepping_aside = False
         if pose is not None:
