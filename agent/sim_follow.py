@@ -22,7 +22,7 @@ reports
 * with ``--fault person`` (the user hidden from the follow loop: they vanish), per hiding the time from
   its start to the first zero forward speed the loop sent (``vanish_stop_command_s``) and to the robot's
   true speed below 0.02 m/s (``vanish_stop_s``; the acceptance: 0.5 s), the speed it had
-  (``vanish_speed_mps``).
+  (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside`` counts those).
 """
 
 from __future__ import annotations
@@ -99,6 +99,7 @@ class FollowScore:
         self._vanish_t: float | None = None
         self.vanish_stops: list[float] = []
         self.vanish_speeds: list[float] = []
+        self.vanish_aside = 0  # hidings whose stop was cut short by a step out of a walker's way
 
     def sample(self) -> None:
         sim = self.sim
@@ -161,10 +162,13 @@ class FollowScore:
                 self._vanishings_seen = len(vanishings)
                 self._vanish_t = vanishings[-1]
                 self.vanish_speeds.append(speed)
-            if self._vanish_t is not None and speed <= STOPPED_MPS:
-                self.vanish_stops.append(max(0.0, t - self._vanish_t))
-                self._vanish_t = None
             snap = self.loop.latest
+            aside = snap is not None and snap.aside
+            if self._vanish_t is not None and (speed <= STOPPED_MPS or aside):
+                # Stopped, or stepping out of a walker's way (the walkers do not yield; counted apart).
+                self.vanish_stops.append(max(0.0, t - self._vanish_t))
+                self.vanish_aside += int(aside and speed > STOPPED_MPS)
+                self._vanish_t = None
             if snap is None:
                 return
             if self.ready_t is None and snap.command.reason != NO_POSE:
@@ -241,6 +245,7 @@ class FollowScore:
                 "vanish_stop_command_s": [round(x, 3) for x in self.loop.vanish_stops_s],
                 "vanish_stop_s": [round(x, 3) for x in self.vanish_stops],
                 "vanish_speed_mps": [round(x, 3) for x in self.vanish_speeds],
+                "vanish_then_aside": self.vanish_aside,
                 "occluded_scans": self.loop.counts.get("occluded_scans", 0),
                 "fine": {k: n for k, n in self.loop.counts.items() if k.startswith("fine_")}
                 | (dict(self.loop.locator.counts) if self.loop.locator is not None else {}),

@@ -294,6 +294,7 @@ class FollowLoop:
         self.period_s = period_s
         self.counts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
+        self._wake = threading.Event()  # a scan missed the person: step at once (run)
         self.latest: FollowSnapshot | None = None
         self.occluded = False  # the last scan: something nearer than the unmeasured track in its way
         self.fine_state: FineState | None = None
@@ -389,6 +390,10 @@ class FollowLoop:
                     )
                 self.occluded = not seen and self._occluded(laser, angles, ranges)
                 self.counts["occluded_scans"] += int(self.occluded)
+                if not seen and not self.occluded:
+                    # Nothing in front explains the miss: the follower stops on it; step now rather than
+                    # at the next period (up to period_s later: a tenth of the half second allowed).
+                    self._wake.set()
             elif window is not None and (
                 p_absent is None or p_absent < self.follower.config.absent_probability
             ):
@@ -770,9 +775,14 @@ class FollowLoop:
         return safe
 
     def run(self, stop: threading.Event) -> None:
-        """Step every ``period_s`` until ``stop``; stop the wheels when it ends."""
+        """Step every ``period_s`` (and at once when a scan misses the person) until ``stop``; stop the
+        wheels when it ends."""
         try:
-            while not stop.wait(self.period_s):
+            while not stop.is_set():
+                self._wake.wait(self.period_s)
+                self._wake.clear()
+                if stop.is_set():
+                    break
                 try:
                     self.step()
                 except Exception:  # a bad step stops the robot, it does not end following
