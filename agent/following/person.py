@@ -271,6 +271,21 @@ class PersonTracker:
         self.counts["updates"] += 1
         return True
 
+    def reframe(self, old_robot: Pose, new_robot: Pose) -> None:
+        """The map frame was corrected under the robot (the fusion relocalized: the robot's pose jumped
+        from ``old_robot`` to ``new_robot`` while it did not move): carry the track with it, keeping where
+        the person is relative to the robot (position, velocity and covariance turned by the jump)."""
+        if self.x is None or self.p is None:
+            return
+        turn = math.remainder(new_robot[2] - old_robot[2], math.tau)
+        c, s = math.cos(turn), math.sin(turn)
+        r = np.array([[c, -s], [s, c]])
+        j = np.zeros((4, 4))
+        j[:2, :2] = j[2:, 2:] = r
+        rel = self.x[:2] - np.array(old_robot[:2])
+        self.x = np.concatenate([r @ rel + np.array(new_robot[:2]), r @ self.x[2:]])
+        self.p = j @ self.p @ j.T
+
     def estimate(self) -> PersonEstimate | None:
         if self.x is None or self.p is None:
             return None

@@ -225,6 +225,7 @@ class FollowLoop:
         *,
         guard: Callable[[float, float, float], tuple[float, float]] | None = None,
         pose_at: Callable[[float], Pose | None] | None = None,
+        pose_epoch: Callable[[], int] | None = None,
         navigator: Callable[[], Navigator | None] = lambda: None,
         detector: DetectorConfig | None = None,
         acquire_half_width_rad: float = math.radians(35.0),
@@ -260,6 +261,8 @@ class FollowLoop:
         self.clock_s = clock_s
         self.guard = guard
         self.pose_at = pose_at
+        self.pose_epoch = pose_epoch  # the fusion's reset counter: a change is a jump of the map frame
+        self._epoch: tuple[int, Pose] | None = None  # the last step's counter and pose
         self.navigator = navigator
         self.detector = detector or DetectorConfig()
         self.acquire_half_width_rad = acquire_half_width_rad
@@ -525,6 +528,25 @@ class FollowLoop:
             self.counts["fine_resets"] += 1
         return result
 
+    def _reframe(self, epoch: int | None, pose: Pose) -> None:
+        """A relocalization (the fusion's reset counter moved) jumps the robot's pose and the map frame
+        under it: carry the track along (where the person is relative to the robot holds over a step), and
+        forget the poses before it. Without this the scans after the jump put the person off the gate and
+        the track was dropped and taken again mid-walk. Called with the lock held."""
+        if epoch is None:
+            return
+        last, self._epoch = self._epoch, (epoch, pose)
+        if last is None or last[0] == epoch:
+            return
+        self.tracker.reframe(last[1], pose)
+        self._poses.clear()
+        self.counts["reframes"] += 1
+        log.info(
+            "following: the fused pose jumped %.2f m, %.1f deg (relocalized): the track moved with it",
+            math.dist(last[1][:2], pose[:2]),
+            math.degrees(math.remainder(pose[2] - last[1][2], math.tau)),
+        )
+
     def _log_drop(self, est: PersonEstimate, t_s: float, detections: PersonDetections) -> None:
         near = (
             float(np.min(np.hypot(*(detections.centres - np.array(est.xy)).T))) if len(detections) else None
@@ -612,8 +634,10 @@ class FollowLoop:
         t_s = self.clock_s()
         pose = self.pose()
         p_absent, bearing, _ = self._coarse()
+        epoch = self.pose_epoch() if self.pose_epoch is not None else None
         with self._lock:
             if pose is not None:
+                self._reframe(epoch, pose)
                 self._poses.append((t_s, pose))
             before = self.tracker.estimate()
             self.tracker.predict(t_s, self.last_scan_s)

@@ -116,6 +116,7 @@ def make_follow_loop(
         lambda: agent.clock_ns() * 1e-9,
         guard=agent.navigation.guard if agent.navigation is not None else None,
         pose_at=pose_at,
+        pose_epoch=lambda: int(agent.fusion.reset_counter),
         navigator=navigator,
         fine=fine,
         locator=locator,

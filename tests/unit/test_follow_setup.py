@@ -60,7 +60,7 @@ def test_the_mount_and_lens_keys_reach_the_follow_loop(tmp_path: Path) -> None:
     agent = types.SimpleNamespace(
         pose=lambda: (estimate, 0xFF),
         flags=lambda: 0xFF,
-        fusion=types.SimpleNamespace(estimate_at=lambda t_ns: estimate),
+        fusion=types.SimpleNamespace(estimate_at=lambda t_ns: estimate, reset_counter=0),
         coarse=None,
         command_velocity=lambda v, w: sent.append((v, w)),
         clock_ns=lambda: int(now[0] * 1e9),
