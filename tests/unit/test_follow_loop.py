@@ -267,3 +267,27 @@ def test_a_user_on_the_static_map_is_taken_once_the_rfid_window_has_held_them_ah
     alone = run([(2.2, 3.0)])
     assert not any(alone[:9]) and alone[-1]  # after a second of the window held, not before
     assert not any(run([(2.2, 3.0), (2.8, 3.8)]))  # two in the window: which one is the user?
+
+
+def test_a_scan_that_misses_the_person_wakes_the_step() -> None:
+    """The stop is decided on the first missed scan; the loop steps at once rather than at its next period,
+    and a scan that sees them does not wake it."""
+    now = [0.0]
+    loop = FollowLoop(
+        Follower(),
+        PersonTracker(),
+        (0.0, 0.0, 0.0),
+        lambda: (1.0, 3.0, 0.0),
+        lambda: None,
+        lambda v, w: None,
+        lambda: now[0],
+    )
+    for k in range(5):
+        now[0] = k * 0.1
+        loop.on_scan(make_scan(now[0], (3.0 + 0.7 * now[0], 3.0), k))
+        loop.step()
+    assert loop.tracker.tracking and not loop._wake.is_set()
+    now[0] = 0.5
+    loop.on_scan(make_scan(now[0], None, 5))
+    assert loop._wake.is_set()
+    assert loop.step().command.state is FollowState.LOST
