@@ -241,7 +241,7 @@ class PersonTracker:
         gain = self.p @ h.T @ s_inv
         self.x = self.x + gain @ innov[k]
         self.p = (np.eye(4) - gain @ h) @ self.p
-        self.last_seen_s = t_s
+        self.last_seen_s = max(self.last_seen_s, t_s)
         self.counts["updates"] += 1
         return True
 
@@ -267,7 +267,7 @@ class PersonTracker:
         gain = (self.p @ h.T / s)[:, 0]
         self.x = self.x + gain * innov
         self.p = (np.eye(4) - np.outer(gain, h[0])) @ self.p
-        self.last_seen_s = t_s
+        self.last_seen_s = max(self.last_seen_s, t_s)  # an old measurement does not age the track
         self.counts["updates"] += 1
         return True
 

@@ -418,7 +418,12 @@ class FollowLoop:
                         self.counts["acquire_waits_on_map"] += 1
                 if got:
                     self._window_since_s = None
-                    log.info("following: person acquired (track %d)", self.tracker.track_id)
+                    log.info(
+                        "following: person acquired (track %d) on the scan of t=%.2f, %.2f s old",
+                        self.tracker.track_id,
+                        t_s,
+                        self.clock_s() - t_s,
+                    )
             else:
                 self._window_since_s = None
 
@@ -486,7 +491,7 @@ class FollowLoop:
             fine.reset()
             self._fine_track = track_id
             self._fine_rejected = 0
-            self._fine_started_s = t_s
+            self._fine_started_s = self.clock_s()
         dx, dy = est.xy[0] - cam[0], est.xy[1] - cam[1]
         rng = math.hypot(dx, dy)
         bearing = math.remainder(math.atan2(dy, dx) - cam[2], math.tau)
@@ -510,7 +515,15 @@ class FollowLoop:
         column = float(result.box[0] + result.box[2] / 2.0)
         row = float(result.box[1] + result.box[3] / 2.0)
         measured = cam[2] + view.bearing(column, row)
-        if est.t_s - est.last_seen_s > self.bearing_only_after_s or est.t_s - self._fine_started_s < 1.0:
+        if est.t_s - t_s > self.bearing_only_after_s:
+            # A frame older than the track by more than that (a camera's first frames, delivered late, or
+            # a stalled USB transfer) says where the person was, not where they are: not used.
+            self.counts["fine_old_frames"] += 1
+            return result
+        if (
+            est.t_s - est.last_seen_s > self.bearing_only_after_s
+            or self.clock_s() - self._fine_started_s < 1.0
+        ):
             # The camera refines a track the laser holds; it does not keep one alive on its own (a box
             # drifting onto the wall would), nor steer one it has followed for less than a second.
             self.counts["fine_unused"] += 1
@@ -553,7 +566,7 @@ class FollowLoop:
         )
         log.info(
             "following: track %d dropped at t=%.2f: last measured %.2f s before, at %.2f,%.2f moving "
-            "%.2f,%.2f; nearest candidate %s m from it",
+            "%.2f,%.2f; nearest candidate %s m from it; last scan t=%s",
             est.track_id,
             t_s,
             t_s - est.last_seen_s,
@@ -562,6 +575,7 @@ class FollowLoop:
             est.velocity[0],
             est.velocity[1],
             "none" if near is None else f"{near:.2f}",
+            "none" if self.last_scan_s is None else f"{self.last_scan_s:.2f}",
         )
 
     def _pose_at(self, t_s: float, now: Pose) -> Pose:

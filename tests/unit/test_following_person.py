@@ -146,3 +146,17 @@ def test_a_relocalization_carries_the_track_with_the_robot() -> None:
     assert est is not None
     assert est.xy == pytest.approx((1.5, 2.5))  # still 2 m straight ahead of the robot
     assert est.velocity == pytest.approx((0.0, 0.7), abs=1e-12)
+
+
+def test_an_old_bearing_does_not_age_the_track() -> None:
+    """A frame delivered late (its time before the last scan's) must not move the track's last measurement
+    back: that dropped a fresh track at the start of a run."""
+    tracker = PersonTracker()
+    assert tracker.acquire(
+        1.0, PersonDetections(np.array([[3.0, 1.0]]), np.array([0.3])), (1.0, 1.0, 0.0), 0.0, 1.0
+    )
+    assert tracker.update_bearing(0.2, (1.0, 1.0), 0.0, 0.05)
+    est = tracker.estimate()
+    assert est is not None and est.last_seen_s == 1.0
+    tracker.predict(2.0, 1.9)
+    assert tracker.tracking
