@@ -291,3 +291,32 @@ def test_a_scan_that_misses_the_person_wakes_the_step() -> None:
     loop.on_scan(make_scan(now[0], None, 5))
     assert loop._wake.is_set()
     assert loop.step().command.state is FollowState.LOST
+
+
+def test_a_late_scan_slows_the_robot_before_the_no_scan_stop() -> None:
+    """Scans due every 0.1 s: once the last is more than scan_late_s old the speed ramps down, to zero at
+    scan_stale_s (the 'no laser scan' stop)."""
+    now = [0.0]
+    sent: list[tuple[float, float]] = []
+    loop = FollowLoop(
+        Follower(),
+        PersonTracker(),
+        (0.0, 0.0, 0.0),
+        lambda: (1.0, 3.0, 0.0),
+        lambda: None,
+        lambda v, w: sent.append((v, w)),
+        lambda: now[0],
+    )
+    for k in range(10):
+        now[0] = k * 0.1
+        loop.on_scan(make_scan(now[0], (3.5 + 0.7 * now[0], 3.0), k))
+        loop.step()
+    full = sent[-1][0]
+    assert full > 0.5
+    speeds = []
+    for late in (0.2, 0.3, 0.4, 0.45):
+        now[0] = 0.9 + late
+        loop.step()
+        speeds.append(sent[-1][0])
+    assert speeds[0] > speeds[1] > speeds[2] > speeds[3] > 0.0
+    assert loop.counts["late_scan_slowdowns"] == 3
