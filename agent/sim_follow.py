@@ -258,6 +258,9 @@ class FollowScore:
                         "steps_aside",
                         "acquired_on_map",
                         "acquire_waits_on_map",
+                        "late_scan_slowdowns",
+                        "reframes",
+                        "scans_out_of_order",
                     )
                 },
                 "tracker": dict(self.loop.tracker.counts),
