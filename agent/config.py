@@ -54,6 +54,7 @@ __all__ = [
     "DeviceConfig",
     "FleetConfig",
     "FollowingConfig",
+    "ForwardViewConfig",
     "FusionConfig",
     "HealthConfig",
     "IntrinsicsConfig",
@@ -319,6 +320,29 @@ class SchedulingConfig:
 
 
 @dataclass(frozen=True)
+class ForwardViewConfig:
+    """``[camera.forward]``'s geometry (``docs/config.md``): where the forward camera sits on the base and
+    its lens, for person following's fine layer (image column -> bearing). ``mount``: x, y, z (m), yaw and
+    pitch (optical axis tilted up; rad); the lens: ``hfov_rad`` or ``fx_px`` (with ``fy_px``, None: the
+    same), principal point ``cx_px``/``cy_px`` (None: the image centre), at ``width_px`` x ``height_px``
+    (the ``width``/``height`` settings; None: the frames' own size; frames of another size scale them).
+    ``lens_given``: whether the config gave ``hfov`` or ``fx_px`` (following on a real camera needs it)."""
+
+    mount: MountConfig = field(default_factory=lambda: MountConfig(0.1, 0.0, 1.3))
+    hfov_rad: float | None = None
+    fx_px: float | None = None
+    fy_px: float | None = None
+    cx_px: float | None = None
+    cy_px: float | None = None
+    width_px: int | None = None
+    height_px: int | None = None
+
+    @property
+    def lens_given(self) -> bool:
+        return self.hfov_rad is not None or self.fx_px is not None
+
+
+@dataclass(frozen=True)
 class FollowingConfig:
     """``[following]``: whom the robot follows and how its RFID layer reads the reader.
 
@@ -394,6 +418,7 @@ class AgentConfig:
     forward_camera: DeviceConfig | None = None
     following: FollowingConfig = field(default_factory=FollowingConfig)
     fleet: FleetConfig = field(default_factory=FleetConfig)
+    forward_view: ForwardViewConfig | None = None  # [camera.forward]'s mount and lens (None: no such camera)
 
     def replace(self, **changes: Any) -> AgentConfig:
         return dataclasses.replace(self, **changes)
@@ -810,7 +835,7 @@ class _Reader:
         top = self.top
         top.known.update(_SECTIONS)
         sim = self._sim()
-        forward = self._forward_camera(sim)
+        forward, forward_view = self._forward_camera(sim)
         devices: dict[DeviceKind, DeviceConfig] = {}
         for kind in DeviceKind:
             device = self._device(kind, sim)
@@ -852,6 +877,7 @@ class _Reader:
             forward,
             following,
             fleet,
+            forward_view,
         )
 
     # [sim] ---------------------------------------------------------------------------------------
@@ -921,12 +947,13 @@ class _Reader:
             options["settings"] = self._camera_settings(settings, t)
         return DeviceConfig(kind, backend, options, critical)
 
-    def _forward_camera(self, sim: SimConfig | None) -> DeviceConfig | None:
+    def _forward_camera(self, sim: SimConfig | None) -> tuple[DeviceConfig | None, ForwardViewConfig | None]:
         """``[camera.forward]``, taken out of ``[camera]`` before that is read as the ceiling camera (which
-        it leaves out when it held nothing else). Not critical by default: the robot localizes without it."""
+        it leaves out when it held nothing else), and its mount and lens. Not critical by default: the robot
+        localizes without it."""
         camera = self.top.data.get("camera")
         if not isinstance(camera, dict) or "forward" not in camera:
-            return None
+            return None, None
         camera = dict(camera)  # the caller's table stays as it was
         value = camera.pop("forward")
         top = self.top.data
@@ -939,7 +966,7 @@ class _Reader:
             raise ConfigError("camera.forward", f"must be a table, not {type_name(value)}", self.file)
         t = _Table(value, "camera.forward", self.file)
         if not t.boolean("enabled", True):
-            return None
+            return None, None
         if t.has("backend"):
             backend = t.choice("backend", "", FORWARD_CAMERA_BACKENDS)
         elif sim is not None:
@@ -957,6 +984,7 @@ class _Reader:
             raise t.error("backend", str(exc)) from exc
         t.known.update(known)
         t.known.update(CAMERA_SETTINGS)
+        view = self._forward_view(t, sim)
         options: dict[str, Any] = {}
         settings: dict[str, Any] = {"pixel_format": "BGR8"}
         for name in list(t.data):
@@ -970,8 +998,66 @@ class _Reader:
         for name, option in known.items():
             if option.required and name not in options:
                 raise t.error(name, f"missing ({option.describe()}; required by the {backend!r} backend)")
+        if backend == "fake":
+            image = Path(os.path.expandvars(os.path.expanduser(options["image"])))
+            image = image if image.is_absolute() else self.base / image
+            if not image.is_file():
+                raise t.error("image", f"no such image file: {image}")
+            options["image"] = str(image)
         options["settings"] = self._camera_settings(settings, t)
-        return DeviceConfig(DeviceKind.CAMERA, backend, options, critical)
+        width, height = settings.get("width"), settings.get("height")
+        if isinstance(width, int) and isinstance(height, int):
+            for key, v, side in (("cx_px", view.cx_px, width), ("cy_px", view.cy_px, height)):
+                if v is not None and not 0.0 <= v <= side:
+                    raise t.error(key, f"must be inside the {width}x{height} image, got {v:g}")
+            view = dataclasses.replace(view, width_px=width, height_px=height)
+        elif view.cx_px is not None or view.cy_px is not None:
+            raise t.error("cx_px", "a principal point needs the image size it is for: give width and height")
+        return DeviceConfig(DeviceKind.CAMERA, backend, options, critical), view
+
+    _FORWARD_LENS = ("hfov_deg", "hfov_rad", "fx_px", "fy_px", "cx_px", "cy_px")
+
+    def _forward_view(self, t: _Table, sim: SimConfig | None) -> ForwardViewConfig:
+        """``[camera.forward.mount]`` and the lens keys; under ``[sim]`` the world's ``[forward_camera]``
+        sets them (the renderer draws with those), so the config may not."""
+        given = [k for k in ("mount", *self._FORWARD_LENS) if t.has(k)]
+        if sim is not None:
+            if given:
+                raise t.error(
+                    given[0], "comes from the world file under [sim] ([forward_camera] in docs/world.md)"
+                )
+            return ForwardViewConfig()
+        d = ForwardViewConfig()
+        mount = d.mount
+        m = t.table("mount")
+        if m is not None:
+            mount = MountConfig(
+                m.number("x_m", d.mount.x_m),
+                m.number("y_m", d.mount.y_m),
+                m.number("z_m", d.mount.z_m, (lambda v: 0.0 < v <= 3.0, "must be 0..3 m above the floor")),
+                m.angle("yaw", 0.0, math.pi),
+                0.0,
+                m.angle("pitch", 0.0, math.radians(45.0)),
+            )
+            m.finish()
+        t.known.update(self._FORWARD_LENS)
+        hfov = None
+        if t.has("hfov_deg") or t.has("hfov_rad"):
+            hfov = t.angle("hfov", 0.0)
+            if not math.radians(10.0) <= hfov <= math.radians(170.0):
+                raise t.error(
+                    "hfov_deg" if t.has("hfov_deg") else "hfov_rad",
+                    f"must be 10..170 degrees (the horizontal field of view), got {math.degrees(hfov):g}",
+                )
+        fx = t.number("fx_px", 0.0, _POSITIVE) if t.has("fx_px") else None
+        fy = t.number("fy_px", 0.0, _POSITIVE) if t.has("fy_px") else None
+        if hfov is not None and fx is not None:
+            raise t.error("fx_px", "give the field of view (hfov_deg) or the focal length (fx_px), not both")
+        if fy is not None and fx is None:
+            raise t.error("fy_px", "needs fx_px")
+        cx = t.number("cx_px", 0.0) if t.has("cx_px") else None
+        cy = t.number("cy_px", 0.0) if t.has("cy_px") else None
+        return ForwardViewConfig(mount, hfov, fx, fy, cx, cy)
 
     def _following(self) -> FollowingConfig:
         t = self.top.table("following") or _Table({}, "following", self.file)

@@ -22,7 +22,7 @@ reports
 * with ``--fault person`` (the user hidden from the follow loop: they vanish), per hiding the time from
   its start to the first zero forward speed the loop sent (``vanish_stop_command_s``) and to the robot's
   true speed below 0.02 m/s (``vanish_stop_s``; the acceptance: 0.5 s), the speed it had
-  (``vanish_speed_mps``).
+  (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside`` counts those).
 """
 
 from __future__ import annotations
@@ -33,17 +33,10 @@ import statistics
 import threading
 from typing import Any
 
-from agent.config import AgentConfig
-from agent.following.fine import FineLayer
-from agent.following.follower import Follower, FollowerConfig, FollowState
-from agent.following.person import PersonTracker, TrackerConfig
-from agent.following.prelocate import HeadShoulderLocator
-from agent.navigation.navigator import Navigator
-from agent.runtime.agent import Agent
-from agent.runtime.follow_loop import NO_POSE, CameraView, FollowLoop, ProjectedLocator
+from agent.following.follower import FollowState
+from agent.runtime.follow_loop import NO_POSE, FollowLoop
+from agent.runtime.follow_setup import camera_view, make_follow_loop
 from drivers.sim.harness import SimulatedRobot
-from drivers.sim.world import ForwardCameraModel
-from firmware_protocol.pose_frame import PoseFlags
 
 __all__ = ["FollowScore", "camera_view", "make_follow_loop"]
 
@@ -53,68 +46,6 @@ STOPPED_MPS = 0.02
 MOVING_MPS = 0.05  # a contact begun faster than this is the robot driving into someone
 CUE_LATEST_S = 5.0
 SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
-
-
-def camera_view(model: ForwardCameraModel) -> CameraView:
-    """The follow loop's view of the simulated forward camera."""
-    cx, cy = model.principal_point_px
-    m = model.mount
-    return CameraView(
-        model.width_px, model.height_px, model.hfov_rad, cx, cy, (m.x_m, m.y_m, m.z_m, m.yaw_rad)
-    )
-
-
-def make_follow_loop(
-    agent: Agent,
-    config: AgentConfig,
-    laser_mount: tuple[float, float, float],
-    forward_camera: ForwardCameraModel | None = None,
-) -> FollowLoop:
-    """The follow loop on the agent: its pose, coarse layer, navigation's costmap and collision monitor;
-    commands as a local mission's velocity. Registers its scan listener (before ``agent.start()``). With
-    ``forward_camera`` (the simulated camera's model) the fine layer runs on its frames
-    (``FollowLoop.run_camera``, the caller's thread): OpenCV's HOG people detector in the track's band,
-    the track's projection when it finds nobody, mean shift from there."""
-    f = config.following
-    follower = Follower(
-        FollowerConfig(
-            distance_m=f.distance_m,
-            min_gap_m=f.min_gap_m,
-            max_speed_mps=f.max_speed_mps,
-            search_after_s=f.search_after_s,
-        )
-    )
-    tracker = PersonTracker(TrackerConfig(lost_after_s=f.lost_after_s))
-    sources = PoseFlags.VLP | PoseFlags.SLAM | PoseFlags.ODOMETRY
-
-    def pose() -> tuple[float, float, float] | None:
-        estimate, flags = agent.pose()
-        if not flags & sources:
-            return None
-        return (estimate.x_m, estimate.y_m, estimate.yaw_rad)
-
-    def navigator() -> Navigator | None:
-        return agent.navigation.navigator if agent.navigation is not None else None
-
-    fine = locator = None
-    if forward_camera is not None:
-        locator = ProjectedLocator(camera_view(forward_camera), HeadShoulderLocator())
-        fine = FineLayer(locator)
-    loop = FollowLoop(
-        follower,
-        tracker,
-        laser_mount,
-        pose,
-        lambda: agent.coarse,
-        agent.command_velocity,
-        lambda: agent.clock_ns() * 1e-9,
-        guard=agent.navigation.guard if agent.navigation is not None else None,
-        navigator=navigator,
-        fine=fine,
-        locator=locator,
-    )
-    agent.scan_listeners.append(loop.on_scan)
-    return loop
 
 
 class FollowScore:
@@ -147,6 +78,8 @@ class FollowScore:
         self.distances: list[float] = []
         self.lost_s = 0.0
         self.acquired = False
+        self.acquired_t: float | None = None
+        self.walking_untracked_s = 0.0  # the user walking before the first track
         self.on_person: str | None = None
         self.switches = 0
         self.contacts = 0
@@ -166,6 +99,7 @@ class FollowScore:
         self._vanish_t: float | None = None
         self.vanish_stops: list[float] = []
         self.vanish_speeds: list[float] = []
+        self.vanish_aside = 0  # hidings whose stop was cut short by a step out of a walker's way
 
     def sample(self) -> None:
         sim = self.sim
@@ -205,6 +139,7 @@ class FollowScore:
                 d_user = math.hypot(ux - base.x_m, uy - base.y_m)
                 if sim.person_speed_mps(self.user) > 0.05:
                     self.walking_s += dt
+                    self.walking_untracked_s += 0.0 if self.acquired else dt
                     within = abs(d_user - self.distance_m) <= self.band_m
                     self.within_s += dt if within else 0.0
                     self.distances.append(d_user)
@@ -227,25 +162,31 @@ class FollowScore:
                 self._vanishings_seen = len(vanishings)
                 self._vanish_t = vanishings[-1]
                 self.vanish_speeds.append(speed)
-            if self._vanish_t is not None and speed <= STOPPED_MPS:
-                self.vanish_stops.append(max(0.0, t - self._vanish_t))
-                self._vanish_t = None
             snap = self.loop.latest
+            aside = snap is not None and snap.aside
+            if self._vanish_t is not None and (speed <= STOPPED_MPS or aside):
+                # Stopped, or stepping out of a walker's way (the walkers do not yield; counted apart).
+                self.vanish_stops.append(max(0.0, t - self._vanish_t))
+                self.vanish_aside += int(aside and speed > STOPPED_MPS)
+                self._vanish_t = None
             if snap is None:
                 return
             if self.ready_t is None and snap.command.reason != NO_POSE:
                 self.ready_t = t
-            if (
-                not self.cued
-                and self.ready_t is not None
-                and (snap.person is not None or t - self.ready_t >= CUE_LATEST_S)
-            ):
-                # The scenario starts when the robot has locked on (a pose and a track; at the latest
-                # CUE_LATEST_S after the pose): the user waits for it, as a real one would.
+            locked = snap.person is not None and snap.command.state in (
+                FollowState.FOLLOWING,
+                FollowState.WAITING,
+            )
+            if not self.cued and self.ready_t is not None and (locked or t - self.ready_t >= CUE_LATEST_S):
+                # The scenario starts when the robot has locked on (a pose, a track, and the camera the
+                # follower needs giving frames: it follows; at the latest CUE_LATEST_S after the pose): the
+                # user waits for it, as a real one would. The user's walk after that counts, tracked or not.
                 sim.cue_people()
                 self.cued = True
             state = snap.command.state
             if snap.person is not None:
+                if not self.acquired:
+                    self.acquired_t = t
                 self.acquired = True
                 best = min(positions, key=lambda n: math.dist(positions[n], snap.person.xy))  # type: ignore[union-attr]
                 if math.dist(positions[best], snap.person.xy) <= self.match_m:
@@ -287,6 +228,10 @@ class FollowScore:
                 else None,
                 "distance_m_median": r(statistics.median(self.distances)) if self.distances else None,
                 "time_lost_s": r(self.lost_s, 2),
+                "acquired_after_s": r(self.acquired_t - self.ready_t, 2)
+                if self.acquired_t is not None and self.ready_t is not None
+                else None,
+                "walking_untracked_s": r(self.walking_untracked_s, 2),
                 "identity_switches": self.switches,
                 "followed": self.on_person,
                 "collisions_people": self.contacts,
@@ -300,13 +245,23 @@ class FollowScore:
                 "vanish_stop_command_s": [round(x, 3) for x in self.loop.vanish_stops_s],
                 "vanish_stop_s": [round(x, 3) for x in self.vanish_stops],
                 "vanish_speed_mps": [round(x, 3) for x in self.vanish_speeds],
+                "vanish_then_aside": self.vanish_aside,
                 "occluded_scans": self.loop.counts.get("occluded_scans", 0),
                 "fine": {k: n for k, n in self.loop.counts.items() if k.startswith("fine_")}
                 | (dict(self.loop.locator.counts) if self.loop.locator is not None else {}),
                 "states": {k: n for k, n in self.loop.counts.items() if k.startswith("state_")},
                 "safety": {
                     k: self.loop.counts.get(k, 0)
-                    for k in ("costmap_stops", "walker_slowdowns", "steps_aside")
+                    for k in (
+                        "costmap_stops",
+                        "walker_slowdowns",
+                        "steps_aside",
+                        "acquired_on_map",
+                        "acquire_waits_on_map",
+                        "late_scan_slowdowns",
+                        "reframes",
+                        "scans_out_of_order",
+                    )
                 },
                 "tracker": dict(self.loop.tracker.counts),
                 "last_reason": self.loop.latest.command.reason if self.loop.latest is not None else None,

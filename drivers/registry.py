@@ -49,6 +49,7 @@ FORWARD_CAMERA_BACKENDS: dict[str, str] = {
     "genicam": "drivers.camera.genicam:GenicamCamera",
     "v4l2": "drivers.camera.v4l2:V4l2Camera",
     "sim": "drivers.camera.sim_forward:SimForwardCamera",
+    "fake": "drivers.camera.fake_forward:FakeForwardCamera",
 }
 
 INSTALL_HINTS = {

@@ -12,6 +12,9 @@ A config with ``[sim]`` runs the same process on the simulated robot (nothing co
 `vlp-agent sim` is the one that drives the route); there ``output.url = "pty"`` means what it means for
 `vlp-agent sim`: a pseudo-terminal that a simulated controller (a child process) makes and reads as a
 controller would.
+With ``--follow`` the robot follows its tagged user from the start (``agent.runtime.follow_setup``: the same
+follow loop as ``vlp-agent sim --follow``; the forward camera's mount and lens from ``[camera.forward]``);
+the final status adds ``follow``.
 """
 
 from __future__ import annotations
@@ -21,18 +24,22 @@ import contextlib
 import logging
 import os
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from agent.commands.args import dumps_json, positive_seconds
+from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.map_saver import save_topology_beside
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
+
+if TYPE_CHECKING:
+    from agent.runtime.follow_loop import FollowLoop
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +60,21 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         help="stop after this long, > 0 (default: run until stopped)",
     )
     p.add_argument("--json", action="store_true", help="print the final status as one JSON object on stdout")
+    p.add_argument(
+        "--follow",
+        action="store_true",
+        help="follow the tagged person ([following] tag_id) from the start: the laser person tracker seeded "
+        "by the RFID layer, refined by the forward camera's fine layer ([camera.forward] with its mount and "
+        "lens keys), the follower keeping [following] distance_m behind them through the navigation's "
+        "collision checks; the controller's commands take precedence (docs/following.md)",
+    )
+    p.add_argument(
+        "--follow-fine",
+        choices=("on", "off"),
+        default="on",
+        help="with --follow and [camera.forward]: run the fine layer on the forward camera (on, the "
+        "default) or follow on the laser and RFID only (off)",
+    )
 
 
 def map_directory(config: AgentConfig) -> Path | None:
@@ -72,6 +94,45 @@ def _notifier() -> Any:
     except ImportError:  # not installed with this checkout: run without systemd notifications
         return None
     return Notifier.from_environ(unset_environment=True)
+
+
+def _follow_loop(args: argparse.Namespace, config: AgentConfig, agent: Any) -> FollowLoop:
+    """The follow loop for ``--follow``: the same loop as ``vlp-agent sim --follow``, on this robot's devices;
+    the forward camera's view from ``[camera.forward]``'s mount and lens (under ``[sim]``, the world's)."""
+    from agent.runtime.agent import laser_mount_for
+    from agent.runtime.follow_setup import camera_view, forward_view, make_follow_loop
+    from drivers.registry import DeviceKind
+
+    if DeviceKind.LASER not in config.devices:
+        raise UsageError("--follow needs the laser ([laser]): it finds and tracks the person")
+    world = config.sim.world if config.sim is not None else None
+    view = None
+    if config.forward_camera is not None and args.follow_fine == "on":
+        if world is not None:
+            view = camera_view(world.forward_camera)
+        else:
+            assert config.forward_view is not None
+            view = forward_view(config.forward_view, config.file)
+    m = laser_mount_for(config, world)
+    loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad), view)
+    log.info(
+        "following: on (%s)",
+        "laser, RFID and the forward camera" if view is not None else "laser and RFID, no camera",
+    )
+    return loop
+
+
+def follow_summary(loop: FollowLoop) -> dict[str, Any]:
+    """The follow loop's last state and counts, for the final status."""
+    latest = loop.latest
+    return {
+        "state": None if latest is None else latest.command.state.value,
+        "reason": None if latest is None else latest.command.reason,
+        "person": None if latest is None or latest.person is None else list(latest.person.xy),
+        "counts": dict(loop.counts),
+        "tracker": dict(loop.tracker.counts),
+        "fine": dict(loop.locator.counts) if loop.locator is not None else None,
+    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -103,7 +164,14 @@ def run(args: argparse.Namespace) -> int:
         recorder = agent.flight_recorder
         requests.attach(agent.request_map_save, recorder.request_snapshot if recorder is not None else None)
         give_way_to_agent(agent, robot)
+        follow = _follow_loop(args, config, agent) if getattr(args, "follow", False) else None
         agent.start()
+        if follow is not None:
+            from agent.runtime.follow_setup import start_following
+
+            follow_stop = threading.Event()
+            start_following(agent, follow, follow_stop, stack)
+            stack.callback(follow_stop.set)  # first at the end: the threads then end and are joined
         agent.settle_heap()
         try:
             deadline = None if args.seconds is None else time.monotonic() + args.seconds
@@ -134,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         },
         "unavailable": status.unavailable,
         "following": status.following,
+        "follow": None if follow is None else follow_summary(follow),
         "frames_received": controller.frames if controller is not None else None,
         "map_files": map_files,
     }

@@ -501,30 +501,24 @@ def run(args: argparse.Namespace) -> int:
             if goals or missions:
                 raise UsageError("--follow, --goal and --explore/--deliver each drive the robot: give one")
             from agent.runtime.agent import laser_mount_for
-            from agent.sim_follow import FollowScore, make_follow_loop
+            from agent.runtime.follow_setup import camera_view, make_follow_loop
+            from agent.sim_follow import FollowScore
 
             m = laser_mount_for(config, world)
             fine = args.follow_fine == "on" and config.forward_camera is not None
             loop = make_follow_loop(
-                agent, config, (m.x_m, m.y_m, m.yaw_rad), world.forward_camera if fine else None
+                agent, config, (m.x_m, m.y_m, m.yaw_rad), camera_view(world.forward_camera) if fine else None
             )
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
             injector.follow_loop = loop
         agent.start()
         if follow is not None:
-            for target, name in ((follow.loop.run, "sim-follow"), (follow.run, "sim-follow-score")):
-                thread = threading.Thread(target=target, args=(stop,), name=name, daemon=True)
-                thread.start()
-                stack.callback(thread.join, 1.0)
-            if follow.loop.fine is not None:
-                thread = threading.Thread(
-                    target=follow.loop.run_camera,
-                    args=(agent.forward_frames.take, stop),
-                    name="sim-follow-fine",
-                    daemon=True,
-                )
-                thread.start()
-                stack.callback(thread.join, 1.0)
+            from agent.runtime.follow_setup import start_following
+
+            start_following(agent, follow.loop, stop, stack)
+            thread = threading.Thread(target=follow.run, args=(stop,), name="sim-follow-score", daemon=True)
+            thread.start()
+            stack.callback(thread.join, 1.0)
         # The world's route, driven from the agent's own pose, unless goals, missions or following drive it.
         route = () if goals or script is not None or follow is not None else world.route
         autopilot = threading.Thread(

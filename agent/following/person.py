@@ -241,7 +241,7 @@ class PersonTracker:
         gain = self.p @ h.T @ s_inv
         self.x = self.x + gain @ innov[k]
         self.p = (np.eye(4) - gain @ h) @ self.p
-        self.last_seen_s = t_s
+        self.last_seen_s = max(self.last_seen_s, t_s)
         self.counts["updates"] += 1
         return True
 
@@ -249,8 +249,9 @@ class PersonTracker:
         self, t_s: float, robot_xy: tuple[float, float], bearing_rad: float, sd_rad: float
     ) -> bool:
         """A bearing (map frame) from ``robot_xy`` to the person, e.g. the forward camera tracker's, as an
-        extended Kalman update; gated at 3 sigma. False when rejected or not tracking."""
-        self.predict(t_s)
+        extended Kalman update; gated at 3 sigma. False when rejected or not tracking. A bearing never
+        drops the track (only the scans, which look for the person, do: :meth:`predict`'s ``looked_s``)."""
+        self.predict(t_s, self.last_seen_s)
         if self.x is None or self.p is None:
             return False
         dx, dy = self.x[0] - robot_xy[0], self.x[1] - robot_xy[1]
@@ -266,9 +267,24 @@ class PersonTracker:
         gain = (self.p @ h.T / s)[:, 0]
         self.x = self.x + gain * innov
         self.p = (np.eye(4) - np.outer(gain, h[0])) @ self.p
-        self.last_seen_s = t_s
+        self.last_seen_s = max(self.last_seen_s, t_s)  # an old measurement does not age the track
         self.counts["updates"] += 1
         return True
+
+    def reframe(self, old_robot: Pose, new_robot: Pose) -> None:
+        """The map frame was corrected under the robot (the fusion relocalized: the robot's pose jumped
+        from ``old_robot`` to ``new_robot`` while it did not move): carry the track with it, keeping where
+        the person is relative to the robot (position, velocity and covariance turned by the jump)."""
+        if self.x is None or self.p is None:
+            return
+        turn = math.remainder(new_robot[2] - old_robot[2], math.tau)
+        c, s = math.cos(turn), math.sin(turn)
+        r = np.array([[c, -s], [s, c]])
+        j = np.zeros((4, 4))
+        j[:2, :2] = j[2:, 2:] = r
+        rel = self.x[:2] - np.array(old_robot[:2])
+        self.x = np.concatenate([r @ rel + np.array(new_robot[:2]), r @ self.x[2:]])
+        self.p = j @ self.p @ j.T
 
     def estimate(self) -> PersonEstimate | None:
         if self.x is None or self.p is None:

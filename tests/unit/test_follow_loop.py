@@ -228,3 +228,95 @@ def test_a_late_or_stalled_laser_neither_drops_the_track_nor_drives_blind() -> N
     loop.on_scan(make_scan(now[0], (3.5 + 0.7 * now[0], 3.0), seq))  # they walked on
     snap = loop.step()
     assert loop.tracker.track_id == track and snap.command.state is not FollowState.LOST
+
+
+def test_a_user_on_the_static_map_is_taken_once_the_rfid_window_has_held_them_ahead() -> None:
+    """SLAM maps a user who stood before the robot: an on-map candidate is taken when the RFID window holds
+    0.3, or has held 0.2 for acquire_sure_s and it is the only person-sized candidate there; two in the
+    window, none is taken on the map."""
+    import types
+
+    def run(people: list[tuple[float, float]]) -> list[bool]:
+        now = [0.0]
+        estimate = types.SimpleNamespace(p_absent=0.1, bearing_rad=math.pi)  # the mirror image behind
+        coarse = types.SimpleNamespace(
+            latest=types.SimpleNamespace(estimate=estimate),
+            filter=types.SimpleNamespace(within=lambda c, w: types.SimpleNamespace(probability=0.26)),
+        )
+        loop = FollowLoop(
+            Follower(),
+            PersonTracker(),
+            (0.0, 0.0, 0.0),
+            lambda: (1.0, 3.0, 0.0),
+            lambda: coarse,  # type: ignore[arg-type,return-value]
+            lambda v, w: None,
+            lambda: now[0],
+        )
+        loop._static = lambda laser, angles, ranges: np.ones(len(ranges), dtype=bool)  # type: ignore[method-assign]
+        tracking = []
+        angles = -math.radians(120.0) + INC * np.arange(N)
+        circles = np.array([[x, y, 0.2] for x, y in people])
+        for k in range(15):
+            now[0] = k * 0.1
+            r = cast_rays((1.0, 3.0), angles, WALLS, circles, 5.6)
+            mm = np.where(np.isfinite(r), r * 1000.0, 0).astype(np.int32)
+            loop.on_scan(Scan(mm, -math.radians(120.0), INC, 20, 5600, k, int(now[0] * 1e9)))
+            tracking.append(loop.tracker.tracking)
+        return tracking
+
+    alone = run([(2.2, 3.0)])
+    assert not any(alone[:9]) and alone[-1]  # after a second of the window held, not before
+    assert not any(run([(2.2, 3.0), (2.8, 3.8)]))  # two in the window: which one is the user?
+
+
+def test_a_scan_that_misses_the_person_wakes_the_step() -> None:
+    """The stop is decided on the first missed scan; the loop steps at once rather than at its next period,
+    and a scan that sees them does not wake it."""
+    now = [0.0]
+    loop = FollowLoop(
+        Follower(),
+        PersonTracker(),
+        (0.0, 0.0, 0.0),
+        lambda: (1.0, 3.0, 0.0),
+        lambda: None,
+        lambda v, w: None,
+        lambda: now[0],
+    )
+    for k in range(5):
+        now[0] = k * 0.1
+        loop.on_scan(make_scan(now[0], (3.0 + 0.7 * now[0], 3.0), k))
+        loop.step()
+    assert loop.tracker.tracking and not loop._wake.is_set()
+    now[0] = 0.5
+    loop.on_scan(make_scan(now[0], None, 5))
+    assert loop._wake.is_set()
+    assert loop.step().command.state is FollowState.LOST
+
+
+def test_a_late_scan_slows_the_robot_before_the_no_scan_stop() -> None:
+    """Scans due every 0.1 s: once the last is more than scan_late_s old the speed ramps down, to zero at
+    scan_stale_s (the 'no laser scan' stop)."""
+    now = [0.0]
+    sent: list[tuple[float, float]] = []
+    loop = FollowLoop(
+        Follower(),
+        PersonTracker(),
+        (0.0, 0.0, 0.0),
+        lambda: (1.0, 3.0, 0.0),
+        lambda: None,
+        lambda v, w: sent.append((v, w)),
+        lambda: now[0],
+    )
+    for k in range(10):
+        now[0] = k * 0.1
+        loop.on_scan(make_scan(now[0], (3.5 + 0.7 * now[0], 3.0), k))
+        loop.step()
+    full = sent[-1][0]
+    assert full > 0.5
+    speeds = []
+    for late in (0.2, 0.3, 0.4, 0.45):
+        now[0] = 0.9 + late
+        loop.step()
+        speeds.append(sent[-1][0])
+    assert speeds[0] > speeds[1] > speeds[2] > speeds[3] > 0.0
+    assert loop.counts["late_scan_slowdowns"] == 3

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.following.person import (
     DetectorConfig,
@@ -129,3 +130,33 @@ def test_a_bearing_measurement_pulls_the_track_sideways_only() -> None:
     assert abs(math.hypot(*after.xy) - 3.0) < 0.05  # range is not what a bearing tells
     # A bearing far outside the gate is rejected.
     assert not tracker.update_bearing(0.1, (0.0, 0.0), math.radians(60.0), math.radians(1.0))
+
+
+def test_a_relocalization_carries_the_track_with_the_robot() -> None:
+    """The fused pose jumps (the map frame corrected under the robot): the person keeps their place and
+    heading relative to the robot."""
+    tracker = PersonTracker()
+    assert tracker.acquire(
+        0.0, PersonDetections(np.array([[3.0, 1.0]]), np.array([0.3])), (1.0, 1.0, 0.0), 0.0, 1.0
+    )
+    assert tracker.x is not None
+    tracker.x[2:] = (0.7, 0.0)  # walking away along +x
+    tracker.reframe((1.0, 1.0, 0.0), (1.5, 0.5, math.pi / 2))
+    est = tracker.estimate()
+    assert est is not None
+    assert est.xy == pytest.approx((1.5, 2.5))  # still 2 m straight ahead of the robot
+    assert est.velocity == pytest.approx((0.0, 0.7), abs=1e-12)
+
+
+def test_an_old_bearing_does_not_age_the_track() -> None:
+    """A frame delivered late (its time before the last scan's) must not move the track's last measurement
+    back: that dropped a fresh track at the start of a run."""
+    tracker = PersonTracker()
+    assert tracker.acquire(
+        1.0, PersonDetections(np.array([[3.0, 1.0]]), np.array([0.3])), (1.0, 1.0, 0.0), 0.0, 1.0
+    )
+    assert tracker.update_bearing(0.2, (1.0, 1.0), 0.0, 0.05)
+    est = tracker.estimate()
+    assert est is not None and est.last_seen_s == 1.0
+    tracker.predict(2.0, 1.9)
+    assert tracker.tracking
