@@ -432,24 +432,29 @@ class RbpfSlam:
         if cfg.map_mode is MapMode.SHARED:
             rows = rows[:1]
             window_index = np.zeros(cfg.particles, dtype=np.int64)
-        windows = self.maps.gather(rows, rect)
         # Crop the tile-aligned windows to the box the points can reach: the transform costs per cell.
         origin = rect.origin_m(cfg.grid)
         res = cfg.grid.resolution_m
-        h, w = windows.shape[1:]
+        h, w = rect.shape[0] * cfg.grid.tile_cells, rect.shape[1] * cfg.grid.tile_cells
         c0 = min(max(int((lo[0] - origin[0]) / res), 0), w - 1)
         r0 = min(max(int((lo[1] - origin[1]) / res), 0), h - 1)
         c1 = min(max(int(np.ceil((hi[0] - origin[0]) / res)), c0 + 1), w)
         r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
-        cropped = windows[:, r0:r1, c0:c1]
-        obstacles = cropped > cfg.log_odds.counts(cfg.log_odds.occupied)
+        occupied = cfg.log_odds.counts(cfg.log_odds.occupied)
+
+        def window(k: int) -> tuple[BoolArray, BoolArray]:
+            # One map at a time: the whole stack of windows (and its masks) is never held.
+            cropped = self.maps.gather(rows[k : k + 1], rect)[0, r0:r1, c0:c1]
+            return cropped > occupied, cropped != 0
+
         field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
-        field = DistanceField.from_obstacles(
-            obstacles,
+        field = DistanceField.from_windows(
+            rows.shape[0],
+            (r1 - r0, c1 - c0),
+            window,
             (origin[0] + c0 * res, origin[1] + r0 * res),
             res,
             field_cap + res,
-            known=cropped != 0,
         )
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
 
