@@ -197,6 +197,10 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
     return kept
 
 
+# Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
+_INTEGRATE_CELLS = 2_000_000
+
+
 def _no_wait() -> None:
     return None
 
@@ -569,17 +573,23 @@ class RbpfSlam:
         lo = world.min(axis=0) - cfg.grid.resolution_m
         hi = world.max(axis=0) + cfg.grid.resolution_m
         rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
-        windows = self.maps.gather(rows, rect)
-        touched = integrate_scans(
-            windows,
-            rect.origin_m(cfg.grid),
-            cfg.grid.resolution_m,
-            self.poses[targets],
-            scan,
-            cfg.log_odds,
-            cfg.grid.tile_cells,
-        )
-        self.maps.scatter(rows, rect, windows, touched)
+        # A few maps at a time: each window, its codes and its update are about one byte per cell, and a
+        # 15 m scan's window is 640 x 640 cells (for 30 maps at once, 36 MB passing through the heap).
+        t = cfg.grid.tile_cells
+        chunk = max(1, _INTEGRATE_CELLS // (rect.shape[0] * rect.shape[1] * t * t))
+        for k in range(0, rows.shape[0], chunk):
+            part = slice(k, k + chunk)
+            windows = self.maps.gather(rows[part], rect)
+            touched = integrate_scans(
+                windows,
+                rect.origin_m(cfg.grid),
+                cfg.grid.resolution_m,
+                self.poses[targets[part]],
+                scan,
+                cfg.log_odds,
+                t,
+            )
+            self.maps.scatter(rows[part], rect, windows, touched)
         if cfg.map_mode is MapMode.PER_PARTICLE:
             copies = np.flatnonzero(rows[groups] != np.arange(cfg.particles))
             self.maps.share(rows[groups[copies]], copies)
