@@ -229,6 +229,9 @@ class RbpfMapper:
             out["resamples"] = int(self.slam.stats.resamples)
             out["fixes_applied"] = int(self.slam.stats.fixes_applied)
             out["map_bytes"] = int(self.slam.memory_bytes())
+            out["loop_closures"] = int(self.slam.stats.loop_closures)
+            out["loop_rebuilds"] = int(self.slam.stats.loop_rebuilds)
+            out["loop_ms"] = round(self.slam.stats.loop_ms)
         return out
 
     def close(self) -> None:

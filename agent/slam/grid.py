@@ -41,7 +41,11 @@ BoolArray = npt.NDArray[np.bool_]
 log = logging.getLogger(__name__)
 
 UNKNOWN_TILE = 0
-# The tile pool grows by a quarter of its size (at least this many tiles) when it runs out of free slots.
+# Tile slots the pool reserves up front (64 MB of address space at 32 x 32 cells; Intel's 30 maps peak
+# near 26 000 tiles): a pool grown as it filled was reallocated, and where the allocator had put it on
+# its heap the realloc copied it, briefly holding the old pool and the new one (Intel: +25 MB of peak
+# at 21 MB of tiles). Beyond the reserve it grows by a quarter of its size (at least this many tiles).
+_RESERVED_TILES = 65_536
 _GROWTH_DIVISOR = 4
 _MIN_GROWTH_TILES = 64
 _SHIFT = 4  # cv2.fillPoly fixed-point fraction bits: vertices to 1/16 of a cell
@@ -142,15 +146,18 @@ class TileRect:
 class TiledMaps:
     """A set of log-odds maps (one per table row) sharing a copy-on-write tile pool."""
 
-    def __init__(self, geometry: GridGeometry, maps: int, initial_tiles: int = 256) -> None:
+    def __init__(self, geometry: GridGeometry, maps: int, initial_tiles: int = _RESERVED_TILES) -> None:
         if maps < 1:
             raise ValueError("need at least one map")
         self.geometry = geometry
         t = geometry.tile_cells
+        # Zero-filled by the kernel on first touch: slots that were never used take address space, not
+        # memory (``np.zeros`` of this size is a fresh anonymous mapping).
         self.pool: Int8Array = np.zeros((max(initial_tiles, 2), t, t), dtype=np.int8)
         self.refcount: IntArray = np.zeros(self.pool.shape[0], dtype=np.int64)
         self.refcount[UNKNOWN_TILE] = 1 << 40  # pinned: never written, never freed
-        self._free: list[int] = list(range(self.pool.shape[0] - 1, 0, -1))
+        self._next = 1  # slots from here on were never used
+        self._free: list[int] = []  # slots used before and freed since (taken first)
         n = geometry.tiles_per_side
         self.tables: npt.NDArray[np.int32] = np.zeros((maps, n, n), dtype=np.int32)
 
@@ -161,30 +168,31 @@ class TiledMaps:
 
     def tiles_in_use(self) -> int:
         """Distinct stored tiles (the unknown tile excluded)."""
-        return int(self.pool.shape[0]) - 1 - len(self._free)
+        return self._next - 1 - len(self._free)
 
     def memory_bytes(self) -> int:
-        """Bytes held: the whole pool (used and free slots), tables and reference counts."""
-        return int(self.pool.nbytes + self.tables.nbytes + self.refcount.nbytes)
+        """Bytes held: the pool slots used so far (in use or free), tables and reference counts."""
+        return int(self._next * self.pool[0].nbytes + self.tables.nbytes + self.refcount.nbytes)
 
     def used_bytes(self) -> int:
         """Bytes of the tiles actually referenced, plus tables: what the maps need."""
         return int(self.tiles_in_use() * self.pool[0].nbytes + self.tables.nbytes)
 
     def _allocate(self, count: int) -> IntArray:
-        while len(self._free) < count:
+        reused = min(count, len(self._free))
+        taken = [self._free.pop() for _ in range(reused)]
+        fresh = count - reused
+        if self._next + fresh > self.pool.shape[0]:
             old = self.pool.shape[0]
-            grown = max(old // _GROWTH_DIVISOR, _MIN_GROWTH_TILES, count - len(self._free))
-            # Grown in place (realloc; for a large pool the kernel remaps its pages), not by concatenating
-            # into a new array: that briefly held the old pool and one twice its size, 3x the memory (on
-            # Intel, +75 MB at the last doubling). Safe because the pool is never handed out as a view:
-            # ``gather`` copies out of it and ``scatter`` writes into it. By a quarter, not doubled: resize
-            # zero-fills the new slots, so every free slot is resident memory, and a doubling left up to
-            # half the pool free (remapping, not copying, makes the more frequent growth cheap).
+            grown = max(old // _GROWTH_DIVISOR, _MIN_GROWTH_TILES, self._next + fresh - old)
+            # Grown in place (realloc; for a pool this large the kernel remaps its pages), not by
+            # concatenating into a new array: that briefly held the old pool and one twice its size.
+            # Safe because the pool is never handed out as a view: ``gather`` copies out of it and
+            # ``scatter`` writes into it.
             self.pool.resize((old + grown, *self.pool.shape[1:]), refcheck=False)
             self.refcount.resize(old + grown, refcheck=False)
-            self._free.extend(range(old + grown - 1, old - 1, -1))
-        ids = np.array([self._free.pop() for _ in range(count)], dtype=np.int64)
+        ids = np.array(taken + list(range(self._next, self._next + fresh)), dtype=np.int64)
+        self._next += fresh
         return ids
 
     def _recount(self) -> None:
@@ -195,9 +203,11 @@ class TiledMaps:
         self.refcount = counts
 
     def clear(self) -> None:
-        """Every map back to unknown; every tile freed (the pool keeps its size for reuse)."""
+        """Every map back to unknown; every tile freed (slots are reused from the first one again)."""
         self.tables[...] = UNKNOWN_TILE
-        self._recount()
+        self.refcount[1:] = 0
+        self._free = []
+        self._next = 1
 
     def select(self, rows: npt.ArrayLike) -> None:
         """Keep the maps ``rows`` (with repeats: resampling); tiles no longer referenced are freed."""

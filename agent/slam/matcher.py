@@ -13,6 +13,7 @@ per particle, each naming its window), so 30 particles cost a few large numpy op
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -71,9 +72,9 @@ class DistanceField:
         """Distance transform of the obstacle cells (U, H, W), for each window in the stack
         (``cv2.distanceTransform``, 5x5 chamfer: exact along the axes, within 2 % otherwise).
 
-        Window by window, each transform written straight into the field: one call for the whole stack
-        needed the stack again as one image, its float output, and a copy into the bordered layout (on
-        Intel's 15 m scans, 30 windows of 640 x 640 cells: 50 MB each).
+        Window by window (:meth:`from_windows`), each transform written straight into the field: one call
+        for the whole stack needed the stack again as one image, its float output, and a copy into the
+        bordered layout (on Intel's 15 m scans, 30 windows of 640 x 640 cells: 50 MB each).
 
         ``known`` (U, H, W), if given, marks the cells the map has observed. Cells farther than one cell
         from any of them hold ``UNKNOWN`` (negative): an endpoint there says nothing about the map, and
@@ -85,22 +86,52 @@ class DistanceField:
         u, h, w = obstacles.shape
         if known is not None and known.shape != obstacles.shape:
             raise ValueError(f"known {known.shape} must match obstacles {obstacles.shape}")
-        padded = np.empty((u, h + 2, w + 2), dtype=np.float32)
-        canvas = np.ones((u, h + 2, w + 2), dtype=np.uint8)  # the border is free: it gets the cap below
-        np.logical_not(obstacles, out=canvas[:, 1:-1, 1:-1], casting="unsafe")  # DT: distance to the 0s
-        for k in range(u):
-            cv2.distanceTransform(canvas[k], cv2.DIST_L2, 5, dst=padded[k])
-        if known is not None:
-            # Dilated as one image: the windows' zero borders (two rows between windows) keep them apart.
-            canvas[...] = 0
-            canvas[:, 1:-1, 1:-1] = known
-            near_known = cv2.dilate(canvas.reshape(u * (h + 2), w + 2), np.ones((3, 3), np.uint8))
-            np.copyto(padded, np.float32(UNKNOWN / resolution_m), where=near_known.reshape(padded.shape) == 0)
-        np.multiply(padded, np.float32(resolution_m), out=padded)
-        np.minimum(padded, np.float32(cap_m), out=padded)
-        padded[:, 0, :] = padded[:, -1, :] = cap_m
-        padded[:, :, 0] = padded[:, :, -1] = cap_m
-        return cls(padded, origin_m, resolution_m, cap_m, _medial_codes(padded))
+
+        def window(k: int) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_] | None]:
+            return obstacles[k], None if known is None else known[k]
+
+        return cls.from_windows(u, (h, w), window, origin_m, resolution_m, cap_m)
+
+    @classmethod
+    def from_windows(
+        cls,
+        count: int,
+        shape: tuple[int, int],
+        window: Callable[[int], tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_] | None]],
+        origin_m: tuple[float, float],
+        resolution_m: float,
+        cap_m: float,
+    ) -> DistanceField:
+        """:meth:`from_obstacles` for ``count`` windows of ``shape`` (H, W) handed over one at a time:
+        ``window(k)`` returns window k's obstacles and known cells (or None). Only the field itself is
+        held for the whole stack; each window's inputs and scratch images live while it is transformed
+        (on Intel's 15 m scans a stack of 30 windows of 640 x 640 cells is 12 MB per byte per cell, and
+        the whole-stack inputs and scratch were six of those)."""
+        h, w = shape
+        padded = np.empty((count, h + 2, w + 2), dtype=np.float32)
+        medial = np.empty((count, h + 2, w + 2), dtype=np.int8)
+        canvas = np.empty((h + 2, w + 2), dtype=np.uint8)
+        kernel = np.ones((3, 3), np.uint8)
+        unknown = np.float32(UNKNOWN / resolution_m)
+        for k in range(count):
+            obstacles, known = window(k)
+            if obstacles.shape != shape or (known is not None and known.shape != shape):
+                raise ValueError(f"window {k}: obstacles and known must be {shape}")
+            out = padded[k]
+            canvas[...] = 1  # the border is free: it gets the cap below
+            np.logical_not(obstacles, out=canvas[1:-1, 1:-1], casting="unsafe")  # DT: distance to the 0s
+            cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out)
+            if known is not None:
+                canvas[...] = 0
+                canvas[1:-1, 1:-1] = known
+                near_known = cv2.dilate(canvas, kernel)
+                np.copyto(out, unknown, where=near_known == 0)
+            np.multiply(out, np.float32(resolution_m), out=out)
+            np.minimum(out, np.float32(cap_m), out=out)
+            out[0, :] = out[-1, :] = cap_m
+            out[:, 0] = out[:, -1] = cap_m
+            medial[k] = _medial_codes(out[None])[0]
+        return cls(padded, origin_m, resolution_m, cap_m, medial)
 
     def sample(
         self, window_index: IntArray, x_m: FloatArray, y_m: FloatArray

@@ -12,9 +12,15 @@ An absolute factor (k, z, s) (a VLP fix) says that x_k is z: r = diag(1/s) (x_k 
 Each factor's squared Mahalanobis norm e² = |r|² is weighted by Huber's kernel (weight 1 up to ``huber``,
 huber / e beyond): a wrong loop closure pulls with a bounded force instead of bending the whole graph.
 
-The normal equations JᵀWJ dx = -JᵀWr are sparse (3 x 3 blocks along the factors) and solved with
-``scipy.sparse.linalg.spsolve`` (SuperLU); without absolute factors the first node is held fixed (the
-gauge). Pure numpy / scipy: no I/O.
+The normal equations H dx = -g, H = JᵀWJ, are sparse (3 x 3 blocks along the factors). Factors between
+consecutive nodes (the chain) and absolute factors make a block-tridiagonal T; every other factor (a loop
+closure) adds a rank-3 term, H = T + U Uᵀ with U (3N x 3L) the loops' whitened Jacobians. The solve is
+block-tridiagonal elimination for T⁻¹ [g, U] and the Woodbury identity for the rest:
+H⁻¹ g = T⁻¹ g - T⁻¹ U (I + Uᵀ T⁻¹ U)⁻¹ Uᵀ T⁻¹ g, a dense 3L x 3L system (L loops: tens). Plain numpy:
+scipy's sparse solver (SuperLU) gave the same steps to rounding, but importing scipy.sparse.linalg puts
+about 30 MB into the resident memory of the SLAM process (Intel's whole-log peak was 181 MB with it).
+Without absolute factors the first node is held fixed (the gauge); a tiny ridge (1e-9) keeps T positive
+definite where a node has no chain factor. Pure numpy: no I/O.
 """
 
 from __future__ import annotations
@@ -23,8 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from agent.slam.pose import wrap_angle
 
@@ -157,44 +161,125 @@ def optimize(
             ji *= scale
             jj *= scale
         rw = r * np.sqrt(weights_rel)[:, None]
-        rows = np.arange(3 * m).reshape(m, 3)
-        data = [ji.reshape(-1), jj.reshape(-1)]
-        row_idx = [np.repeat(rows, 3, axis=1).reshape(-1)] * 2
-        col_i = (3 * relative.i[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-        col_j = (3 * relative.j[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-        col_idx = [col_i.reshape(-1), col_j.reshape(-1)]
-        residual_parts = [rw.reshape(-1)]
+        ab_k = ab_j = ab_r = None
         if has_absolute:
             assert absolute is not None
             ra = absolute_residuals(poses, absolute)
             wa = np.sqrt(_huber_weights(ra, huber))
-            p = absolute.k.size
-            base = 3 * m
-            jab = np.zeros((p, 3, 3))
-            jab[:, [0, 1, 2], [0, 1, 2]] = wa[:, None] / absolute.sigma
-            prow = base + np.arange(3 * p).reshape(p, 3)
-            data.append(jab.reshape(-1))
-            row_idx.append(np.repeat(prow, 3, axis=1).reshape(-1))
-            col_idx.append(
-                (3 * absolute.k[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).reshape(-1)
-            )
-            residual_parts.append((ra * wa[:, None]).reshape(-1))
-        residual = np.concatenate(residual_parts)
-        jac = sp.csr_matrix(
-            (np.concatenate(data), (np.concatenate(row_idx), np.concatenate(col_idx))),
-            shape=(residual.size, 3 * n),
+            ab_k = absolute.k
+            ab_j = np.zeros((ab_k.size, 3, 3))
+            ab_j[:, [0, 1, 2], [0, 1, 2]] = wa[:, None] / absolute.sigma
+            ab_r = ra * wa[:, None]
+        step = _normal_step(
+            n, relative.i, relative.j, ji, jj, rw, ab_k, ab_j, ab_r, fix_first=not has_absolute
         )
-        free = np.arange(3 * n) if has_absolute else np.arange(3, 3 * n)  # gauge: node 0 fixed
-        jf = jac[:, free]
-        h = (jf.T @ jf).tocsc() + sp.identity(free.size, format="csc") * 1e-9
-        g = jf.T @ residual
-        step = np.asarray(spla.spsolve(h, -g), dtype=np.float64)
-        full = np.zeros(3 * n)
-        full[free] = step
-        poses += full.reshape(n, 3)
+        poses += step
         poses[:, 2] = wrap_angle(poses[:, 2])
         if float(np.max(np.abs(step))) < tolerance:
             break
     r = relative_residuals(poses, relative)
     downweighted = int(np.count_nonzero(np.sqrt(np.sum(r * r, axis=1)) > huber))
     return GraphResult(poses, iterations, chi2_initial, _chi2(poses, relative, absolute), downweighted)
+
+
+def _normal_step(
+    n: int,
+    fi: IntArray,
+    fj: IntArray,
+    ji: FloatArray,
+    jj: FloatArray,
+    rw: FloatArray,
+    ab_k: IntArray | None,
+    ab_j: FloatArray | None,
+    ab_r: FloatArray | None,
+    fix_first: bool,
+) -> FloatArray:
+    """The Gauss-Newton step (n, 3): H dx = -g for relative factors with whitened Jacobians ``ji``,
+    ``jj`` (M, 3, 3) and residuals ``rw`` (M, 3) and absolute factors (``ab_j`` (P, 3, 3), ``ab_r``) on
+    nodes ``ab_k``; node 0 held at 0 if ``fix_first``. See the module docstring."""
+    diag = np.zeros((n, 3, 3))
+    upper = np.zeros((max(n - 1, 0), 3, 3))  # H[k, k+1]
+    g = np.zeros((n, 3))
+    np.add.at(g, fi, np.einsum("mai,ma->mi", ji, rw))
+    np.add.at(g, fj, np.einsum("mai,ma->mi", jj, rw))
+    forward = fj == fi + 1
+    backward = fi == fj + 1
+    chain = forward | backward
+    np.add.at(diag, fi[chain], np.einsum("mai,maj->mij", ji[chain], ji[chain]))
+    np.add.at(diag, fj[chain], np.einsum("mai,maj->mij", jj[chain], jj[chain]))
+    if ab_k is not None and ab_j is not None and ab_r is not None:
+        np.add.at(diag, ab_k, np.einsum("mai,maj->mij", ab_j, ab_j))
+        np.add.at(g, ab_k, np.einsum("mai,ma->mi", ab_j, ab_r))
+    np.add.at(upper, fi[forward], np.einsum("mai,maj->mij", ji[forward], jj[forward]))
+    np.add.at(upper, fj[backward], np.einsum("mai,maj->mij", jj[backward], ji[backward]))
+    loops = np.flatnonzero(~chain)
+    li, lj = fi[loops], fj[loops]
+    # U: one 3-column block per loop factor, its rows Jᵢᵀ at node i and Jⱼᵀ at node j (none at a fixed node).
+    a_loop, b_loop = ji[loops], jj[loops]
+    if fix_first:
+        a_loop = np.where((li == 0)[:, None, None], 0.0, a_loop)
+        b_loop = np.where((lj == 0)[:, None, None], 0.0, b_loop)
+    u = np.zeros((n, 3, 3 * loops.size))
+    cols = 3 * np.arange(loops.size)
+    for c in range(3):
+        u[li, :, cols + c] = a_loop[:, c, :]
+        u[lj, :, cols + c] += b_loop[:, c, :]
+    diag += 1e-9 * np.eye(3)
+    if fix_first:
+        diag[0] = np.eye(3)
+        g[0] = 0.0
+        if n > 1:
+            upper[0] = 0.0
+    solved = _block_tridiagonal_solve(diag, upper, np.concatenate([g[:, :, None], u], axis=2))
+    x = solved[:, :, 0].reshape(-1)
+    if loops.size:
+        # Woodbury; Uᵀ Y from U's two blocks per loop, not the dense (3N x 3L) U.
+        y = solved[:, :, 1:]
+        uty = (a_loop @ y[li] + b_loop @ y[lj]).reshape(3 * loops.size, -1)
+        utx = (a_loop @ solved[li, :, :1] + b_loop @ solved[lj, :, :1]).reshape(-1)
+        capacitance = np.eye(uty.shape[0]) + uty
+        x = x - y.reshape(3 * n, -1) @ np.linalg.solve(capacitance, utx)
+    out: FloatArray = -x.reshape(n, 3)
+    return out
+
+
+def _block_tridiagonal_solve(diag: FloatArray, upper: FloatArray, rhs: FloatArray) -> FloatArray:
+    """X (n, 3, R) with T X = rhs for the symmetric positive definite block-tridiagonal T of diagonal
+    blocks ``diag`` (n, 3, 3) and blocks ``upper[k]`` = T[k, k+1]. Cyclic (odd-even) reduction: the odd
+    nodes are eliminated all at once, leaving a block-tridiagonal system half the size on the even ones
+    (Schur complements of an SPD matrix: stable without pivoting), log2(n) batched levels instead of a
+    Python loop over the nodes."""
+    n = diag.shape[0]
+    if n <= 2:  # dense
+        dense = np.zeros((3 * n, 3 * n))
+        for k in range(n):
+            dense[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = diag[k]
+        if n == 2:
+            dense[0:3, 3:6] = upper[0]
+            dense[3:6, 0:3] = upper[0].T
+        small = np.asarray(np.linalg.solve(dense, rhs.reshape(3 * n, -1)), dtype=np.float64)
+        return small.reshape(rhs.shape)
+    if n % 2 == 0:  # pad to an odd count with a decoupled node (x = 0 there)
+        diag = np.concatenate([diag, np.eye(3)[None]])
+        upper = np.concatenate([upper, np.zeros((1, 3, 3))])
+        rhs = np.concatenate([rhs, np.zeros((1, *rhs.shape[1:]))])
+    odd_inverse = np.linalg.inv(diag[1::2])  # (m, 3, 3), m = (n_odd - 1) / 2 odd nodes
+    left, right = upper[0::2], upper[1::2]  # T[o-1, o] and T[o, o+1] for each odd o
+    left_t = left.transpose(0, 2, 1)
+    right_t = right.transpose(0, 2, 1)
+    a = left @ odd_inverse  # T[o-1, o] D_o⁻¹
+    b = right_t @ odd_inverse  # T[o+1, o] D_o⁻¹
+    even_diag = diag[0::2].copy()
+    even_rhs = rhs[0::2].copy()
+    even_diag[:-1] -= a @ left_t
+    even_diag[1:] -= b @ right
+    odd_rhs = rhs[1::2]
+    even_rhs[:-1] -= a @ odd_rhs
+    even_rhs[1:] -= b @ odd_rhs
+    even_x = _block_tridiagonal_solve(even_diag, -(a @ right), even_rhs)
+    odd_x = odd_inverse @ (odd_rhs - left_t @ even_x[:-1] - right @ even_x[1:])
+    x = np.empty_like(rhs)
+    x[0::2] = even_x
+    x[1::2] = odd_x
+    out: FloatArray = x[:n]
+    return out

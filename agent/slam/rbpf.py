@@ -197,6 +197,10 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
     return kept
 
 
+# Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
+_INTEGRATE_CELLS = 2_000_000
+
+
 def _no_wait() -> None:
     return None
 
@@ -432,24 +436,29 @@ class RbpfSlam:
         if cfg.map_mode is MapMode.SHARED:
             rows = rows[:1]
             window_index = np.zeros(cfg.particles, dtype=np.int64)
-        windows = self.maps.gather(rows, rect)
         # Crop the tile-aligned windows to the box the points can reach: the transform costs per cell.
         origin = rect.origin_m(cfg.grid)
         res = cfg.grid.resolution_m
-        h, w = windows.shape[1:]
+        h, w = rect.shape[0] * cfg.grid.tile_cells, rect.shape[1] * cfg.grid.tile_cells
         c0 = min(max(int((lo[0] - origin[0]) / res), 0), w - 1)
         r0 = min(max(int((lo[1] - origin[1]) / res), 0), h - 1)
         c1 = min(max(int(np.ceil((hi[0] - origin[0]) / res)), c0 + 1), w)
         r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
-        cropped = windows[:, r0:r1, c0:c1]
-        obstacles = cropped > cfg.log_odds.counts(cfg.log_odds.occupied)
+        occupied = cfg.log_odds.counts(cfg.log_odds.occupied)
+
+        def window(k: int) -> tuple[BoolArray, BoolArray]:
+            # One map at a time: the whole stack of windows (and its masks) is never held.
+            cropped = self.maps.gather(rows[k : k + 1], rect)[0, r0:r1, c0:c1]
+            return cropped > occupied, cropped != 0
+
         field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
-        field = DistanceField.from_obstacles(
-            obstacles,
+        field = DistanceField.from_windows(
+            rows.shape[0],
+            (r1 - r0, c1 - c0),
+            window,
             (origin[0] + c0 * res, origin[1] + r0 * res),
             res,
             field_cap + res,
-            known=cropped != 0,
         )
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
 
@@ -564,17 +573,23 @@ class RbpfSlam:
         lo = world.min(axis=0) - cfg.grid.resolution_m
         hi = world.max(axis=0) + cfg.grid.resolution_m
         rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
-        windows = self.maps.gather(rows, rect)
-        touched = integrate_scans(
-            windows,
-            rect.origin_m(cfg.grid),
-            cfg.grid.resolution_m,
-            self.poses[targets],
-            scan,
-            cfg.log_odds,
-            cfg.grid.tile_cells,
-        )
-        self.maps.scatter(rows, rect, windows, touched)
+        # A few maps at a time: each window, its codes and its update are about one byte per cell, and a
+        # 15 m scan's window is 640 x 640 cells (for 30 maps at once, 36 MB passing through the heap).
+        t = cfg.grid.tile_cells
+        chunk = max(1, _INTEGRATE_CELLS // (rect.shape[0] * rect.shape[1] * t * t))
+        for k in range(0, rows.shape[0], chunk):
+            part = slice(k, k + chunk)
+            windows = self.maps.gather(rows[part], rect)
+            touched = integrate_scans(
+                windows,
+                rect.origin_m(cfg.grid),
+                cfg.grid.resolution_m,
+                self.poses[targets[part]],
+                scan,
+                cfg.log_odds,
+                t,
+            )
+            self.maps.scatter(rows[part], rect, windows, touched)
         if cfg.map_mode is MapMode.PER_PARTICLE:
             copies = np.flatnonzero(rows[groups] != np.arange(cfg.particles))
             self.maps.share(rows[groups[copies]], copies)
