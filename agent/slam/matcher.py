@@ -201,8 +201,14 @@ class MatcherConfig:
 
     stages: tuple[tuple[float, int], ...] = ((0.5, 4), (0.25, 4), (0.12, 4))
     damping: float = 1e-6
-    min_inliers: int = 20
-    min_inlier_fraction: float = 0.1
+    # A match is trusted when at least ``min_inliers`` endpoints lie within the last stage's bound, and
+    # they are at least ``min_inlier_fraction`` of all endpoints and ``min_known_inlier_fraction`` of the
+    # endpoints that fall among mapped cells (the others say nothing about the map: at a corner or a
+    # doorway half a scan may see past the map's edge, and the share of all endpoints then condemns a
+    # match that fits every mapped wall).
+    min_inliers: int = 10
+    min_inlier_fraction: float = 0.0
+    min_known_inlier_fraction: float = 0.0
     max_step_m: float = 0.2
     max_step_rad: float = 0.1
     converged_m: float = 5e-4
@@ -213,13 +219,15 @@ class MatcherConfig:
 class MatchResult:
     """Per pose of the batch: the matched pose, the Gauss-Newton information matrix sum_i J_i J_iᵀ of the
     last stage (3x3, in (x_m, y_m, yaw_rad)), the fraction of endpoints within the last stage's
-    residual bound, their RMS residual, and whether the match is trusted."""
+    residual bound, their RMS residual, and whether the match is trusted; ``known_inlier_fraction``: the
+    inliers' share of the endpoints that fall among mapped cells."""
 
     poses: FloatArray
     information: FloatArray
     inlier_fraction: FloatArray
     rms_m: FloatArray
     ok: npt.NDArray[np.bool_]
+    known_inlier_fraction: FloatArray
 
 
 def world_points(
@@ -362,8 +370,13 @@ def match(
     count = inliers.sum(axis=1)
     fraction = count / max(n, 1)
     rms = np.sqrt(np.where(inliers, res.r * res.r, 0.0).sum(axis=1) / np.maximum(count, 1))
-    ok = (count >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
-    return MatchResult(poses, info, fraction, rms, ok)
+    known_fraction = count / np.maximum(res.known.sum(axis=1), 1)
+    ok = (
+        (count >= config.min_inliers)
+        & (fraction >= config.min_inlier_fraction)
+        & (known_fraction >= config.min_known_inlier_fraction)
+    )
+    return MatchResult(poses, info, fraction, rms, ok, known_fraction)
 
 
 @dataclass(frozen=True)
