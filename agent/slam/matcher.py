@@ -379,6 +379,40 @@ def match(
     return MatchResult(poses, info, fraction, rms, ok, known_fraction)
 
 
+def truncated_energy(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    poses: FloatArray,
+    bound_m: float,
+    prior_information: FloatArray | None = None,
+    centre: FloatArray | None = None,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+) -> FloatArray:
+    """The objective :func:`match` minimises, with every endpoint's residual truncated at ``bound_m``
+    (an endpoint farther than that from every wall counts ``bound_m``²), for poses (P, 3): sum_i
+    min(r_i, bound)² + (x - x0)ᵀ Λ (x - x0). Endpoints among unmapped cells count as the mean of the
+    others (as :func:`scan_log_likelihood`). Comparable between two matches of the same scan in the same
+    window: the lower one explains the scan better at the price the prior puts on its move."""
+    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
+    e2 = np.where(res.d < bound_m, res.r * res.r, bound_m * bound_m)
+    n = points_xy.shape[0]
+    n_known = res.known.sum(axis=1)
+    total = np.where(
+        n_known > 0,
+        np.where(res.known, e2, 0.0).sum(axis=1) * n / np.maximum(n_known, 1),
+        n * bound_m * bound_m,
+    )
+    if prior_information is not None and centre is not None:
+        offset = poses - centre
+        offset[:, 2] = wrap_angle(offset[:, 2])
+        prior = np.broadcast_to(prior_information, (poses.shape[0], 3, 3))
+        total = total + np.einsum("pi,pij,pj->p", offset, prior, offset)
+    energy: FloatArray = total
+    return energy
+
+
 @dataclass(frozen=True)
 class SearchConfig:
     """Correlative search window: translations up to ``xy_range_m`` in steps of ``xy_step_m`` (whole
