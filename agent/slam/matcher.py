@@ -203,11 +203,10 @@ class MatcherConfig:
     damping: float = 1e-6
     # A match is trusted when at least ``min_inliers`` endpoints lie within the last stage's bound, and
     # they are at least ``min_inlier_fraction`` of all endpoints and ``min_known_inlier_fraction`` of the
-    # endpoints that fall among mapped cells (the others say nothing about the map: at a corner or a
-    # doorway half a scan may see past the map's edge, and the share of all endpoints then condemns a
-    # match that fits every mapped wall).
-    min_inliers: int = 10
-    min_inlier_fraction: float = 0.0
+    # endpoints that fall among mapped cells. ``eval slam`` trusts radish logs' matches on 10 endpoints
+    # whatever their share (``agent.commands.eval_slam.log_proposal``; docs/slam.md, "Scan matching").
+    min_inliers: int = 20
+    min_inlier_fraction: float = 0.1
     min_known_inlier_fraction: float = 0.0
     max_step_m: float = 0.2
     max_step_rad: float = 0.1

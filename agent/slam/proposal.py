@@ -79,8 +79,9 @@ class ProposalConfig:
     # problems").
     eta_integral: Literal["grid", "laplace"] = "grid"
     # Where the correlative search runs: match every particle from the search's start and from the
-    # prior's too, and keep the one of lower truncated energy (see ``improved_proposal``).
-    keep_better_start: bool = True
+    # prior's too, and keep the one of lower truncated energy (see ``improved_proposal``). On for radish
+    # logs in ``eval slam``, where the search runs at nearly every update (docs/slam.md, "Scan matching").
+    keep_better_start: bool = False
 
 
 @dataclass(frozen=True)

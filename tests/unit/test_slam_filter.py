@@ -18,7 +18,6 @@ from agent.slam.fix import PoseFix, fix_log_likelihood, fuse_fixes, pending_fixe
 from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
 from agent.slam.logs import LogFormat, LogRecord, SlamLog
 from agent.slam.mapio import load_map, save_map
-from agent.slam.matcher import MatcherConfig
 from agent.slam.mcl import MclConfig, MclLocalizer
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
@@ -288,10 +287,7 @@ def test_fixes_carried_forward_fuse_into_one_measurement() -> None:
 def test_without_structure_to_match_fixes_still_weigh(loop: tuple[np.ndarray, ...]) -> None:
     times, truth, odometry, ranges = loop
     start = tuple(float(v) for v in truth[0])
-    # The matcher wants 20 endpoints here (its default is 10, the gate's minimum of returns).
-    proposal = ProposalConfig(matcher=MatcherConfig(min_inliers=20))
-    config = RbpfConfig(particles=12, initial_pose=start, resample_threshold=1e-6, seed=4, proposal=proposal)
-    slam = RbpfSlam(LASER, config)
+    slam = RbpfSlam(LASER, RbpfConfig(particles=12, initial_pose=start, resample_threshold=1e-6, seed=4))
     for i in range(60):
         slam.process(float(times[i]), ranges[i], odometry[i])
     fix = PoseFix(float(truth[59, 0]) + 0.04, float(truth[59, 1]), None, np.diag([1e-6, 1e-6]))

@@ -131,9 +131,10 @@ def test_match_fails_on_an_empty_map() -> None:
 
 
 def test_match_is_trusted_on_a_few_fitting_endpoints_among_many_unexplained() -> None:
-    """A scan that sees mostly past the map (a corner, a doorway) is still a match when enough of its
-    endpoints fit the mapped walls: the share of the whole scan does not condemn it (on Intel that share
-    sent hundreds of good matches to the motion model); too few fitting endpoints do."""
+    """With eval slam's settings for radish logs, a scan that sees mostly past the map (a corner, a
+    doorway) is still a match when enough of its endpoints fit the mapped walls: the share of the whole
+    scan does not condemn it (on Intel that share sent hundreds of good matches to the motion model); too
+    few fitting endpoints do."""
     field = room_field()
     truth = np.array([0.0, 0.0, 0.0])
     on_walls = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
@@ -141,11 +142,14 @@ def test_match_is_trusted_on_a_few_fitting_endpoints_among_many_unexplained() ->
     beyond = rng.uniform(30.0, 40.0, size=(150, 2))  # far outside the map
     start = (truth + np.array([0.03, -0.02, 0.01]))[None, :]
     few = np.vstack([on_walls[::8][:12], beyond])
-    result = match(field, np.zeros(1, dtype=np.int64), few, start, MatcherConfig())
+    sparse = MatcherConfig(min_inliers=10, min_inlier_fraction=0.0)  # eval slam's for radish logs
+    result = match(field, np.zeros(1, dtype=np.int64), few, start, sparse)
     assert result.inlier_fraction[0] < 0.1
     assert result.ok[0]
     too_few = np.vstack([on_walls[::8][:6], beyond])
-    assert not match(field, np.zeros(1, dtype=np.int64), too_few, start, MatcherConfig()).ok[0]
+    assert not match(field, np.zeros(1, dtype=np.int64), too_few, start, sparse).ok[0]
+    # The filter's default also wants them to be a tenth of the scan.
+    assert not match(field, np.zeros(1, dtype=np.int64), few, start, MatcherConfig()).ok[0]
 
 
 def test_truncated_energy_ranks_the_true_pose_first_and_counts_the_prior() -> None:
