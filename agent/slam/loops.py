@@ -57,6 +57,11 @@ class LoopClosureConfig:
     yaw_per_m: float = 0.005
     max_search_yaw_rad: float = 0.6
     search_radius_m: float = 3.0
+    # Old windows searched per check: the nearest old node's, then those of the next nearest nodes at
+    # least ``2 * window_path_m`` of path from every window taken (a revisit after metres of drift is
+    # often nearer a different pass through the building than to the place the graph puts it), up to
+    # this many; the best unambiguous match among them wins.
+    max_windows: int = 3
     # Coarse lattice on a coarse field, then a fine one around the best coarse pose, then Gauss-Newton.
     coarse_resolution_m: float = 0.2
     coarse_yaw_step_rad: float = 0.04
@@ -238,32 +243,19 @@ def find_loop(
         config.search_yaw_rad + config.yaw_per_m * travelled_m + yaw_doubt_rad, config.max_search_yaw_rad
     )
     distance = np.hypot(*(poses[: old_end + 1, :2] - poses[j, :2]).T)
-    i = int(np.argmin(distance))
-    if distance[i] > xy_m + config.search_radius_m:
-        log.debug("node %d: no old node within %.1f m", j, xy_m + config.search_radius_m)
+    reach = xy_m + config.search_radius_m
+    if float(distance.min()) > reach:
+        log.debug("node %d: no old node within %.1f m", j, reach)
         return None
-    nodes = window_nodes(poses, i, old_end, config.window_path_m)
-    centre = poses[j]
-    coarse_field = old_map_field(
-        poses, hits, nodes, config.coarse_resolution_m, config.coarse_truncate_m + config.coarse_resolution_m
-    )
-    coarse = lattice_search(
-        coarse_field,
-        match_points,
-        centre,
-        xy_m,
-        yaw_rad,
-        config.coarse_yaw_step_rad,
-        config.coarse_truncate_m,
-    )
-    r, t = coarse.best()
-    elsewhere = coarse.best_elsewhere(r, t, config.distinct_xy_m, config.distinct_yaw_rad)
-    if not coarse.costs[r, t] < config.max_ambiguity * elsewhere:
-        log.debug(
-            "node %d vs %d: ambiguous (%.4f against %.4f elsewhere)", j, i, coarse.costs[r, t], elsewhere
-        )
+    best: tuple[float, int, range, FloatArray] | None = None
+    for i in candidate_nodes(poses, distance, old_end, reach, config.window_path_m, config.max_windows):
+        nodes = window_nodes(poses, i, old_end, config.window_path_m)
+        found = coarse_match(poses, hits, match_points, j, i, nodes, config, xy_m, yaw_rad)
+        if found is not None and (best is None or found[0] < best[0]):
+            best = (found[0], i, nodes, found[1])
+    if best is None:
         return None
-    start = coarse.pose(centre, r, t)
+    _cost, i, nodes, start = best
     cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
     old = old_map_field(poses, hits, nodes, config.resolution_m, cap)
     fine = lattice_search(
@@ -285,6 +277,59 @@ def find_loop(
     if config.match_sigma_m is not None:
         covariance = match_covariance(refined.information[0], float(poses[i, 2]), config.match_sigma_m)
     return LoopConstraint(i, j, between(poses[i], refined.poses[0]), fraction, covariance)
+
+
+def candidate_nodes(
+    poses: FloatArray, distance: FloatArray, old_end: int, reach_m: float, window_path_m: float, limit: int
+) -> list[int]:
+    """Old nodes (up to ``old_end``) within ``reach_m`` of the new one (``distance``: each old node's),
+    nearest first, each at least ``2 * window_path_m`` of path from those taken before, at most
+    ``limit``: the centres of the old windows to search."""
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[: old_end + 1, :2], axis=0).T))])
+    taken: list[int] = []
+    for i in np.argsort(distance, kind="stable"):
+        if distance[i] > reach_m or len(taken) >= limit:
+            break
+        if all(abs(along[i] - along[k]) >= 2.0 * window_path_m for k in taken):
+            taken.append(int(i))
+    return taken
+
+
+def coarse_match(
+    poses: FloatArray,
+    hits: list[FloatArray],
+    match_points: FloatArray,
+    j: int,
+    i: int,
+    nodes: range,
+    config: LoopClosureConfig,
+    xy_m: float,
+    yaw_rad: float,
+) -> tuple[float, FloatArray] | None:
+    """The coarse lattice search of node j's endpoints against the old window ``nodes`` (around node i):
+    its best cost and pose, or None when a pose at least ``distinct_*`` away scores nearly as well
+    (``max_ambiguity``)."""
+    centre = poses[j]
+    coarse_field = old_map_field(
+        poses, hits, nodes, config.coarse_resolution_m, config.coarse_truncate_m + config.coarse_resolution_m
+    )
+    coarse = lattice_search(
+        coarse_field,
+        match_points,
+        centre,
+        xy_m,
+        yaw_rad,
+        config.coarse_yaw_step_rad,
+        config.coarse_truncate_m,
+    )
+    r, t = coarse.best()
+    elsewhere = coarse.best_elsewhere(r, t, config.distinct_xy_m, config.distinct_yaw_rad)
+    if not coarse.costs[r, t] < config.max_ambiguity * elsewhere:
+        log.debug(
+            "node %d vs %d: ambiguous (%.4f against %.4f elsewhere)", j, i, coarse.costs[r, t], elsewhere
+        )
+        return None
+    return float(coarse.costs[r, t]), coarse.pose(centre, r, t)
 
 
 def window_nodes(poses: FloatArray, i: int, old_end: int, path_m: float) -> range:

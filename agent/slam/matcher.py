@@ -232,8 +232,13 @@ class MatcherConfig:
 
     stages: tuple[tuple[float, int], ...] = ((0.5, 4), (0.25, 4), (0.12, 4))
     damping: float = 1e-6
+    # A match is trusted when at least ``min_inliers`` endpoints lie within the last stage's bound, and
+    # they are at least ``min_inlier_fraction`` of all endpoints and ``min_known_inlier_fraction`` of the
+    # endpoints that fall among mapped cells. ``eval slam`` trusts radish logs' matches on 10 endpoints
+    # whatever their share (``agent.commands.eval_slam.log_proposal``; docs/slam.md, "Scan matching").
     min_inliers: int = 20
     min_inlier_fraction: float = 0.1
+    min_known_inlier_fraction: float = 0.0
     max_step_m: float = 0.2
     max_step_rad: float = 0.1
     converged_m: float = 5e-4
@@ -244,13 +249,15 @@ class MatcherConfig:
 class MatchResult:
     """Per pose of the batch: the matched pose, the Gauss-Newton information matrix sum_i J_i J_iᵀ of the
     last stage (3x3, in (x_m, y_m, yaw_rad)), the fraction of endpoints within the last stage's
-    residual bound, their RMS residual, and whether the match is trusted."""
+    residual bound, their RMS residual, and whether the match is trusted; ``known_inlier_fraction``: the
+    inliers' share of the endpoints that fall among mapped cells."""
 
     poses: FloatArray
     information: FloatArray
     inlier_fraction: FloatArray
     rms_m: FloatArray
     ok: npt.NDArray[np.bool_]
+    known_inlier_fraction: FloatArray
 
 
 def world_points(
@@ -393,8 +400,47 @@ def match(
     count = inliers.sum(axis=1)
     fraction = count / max(n, 1)
     rms = np.sqrt(np.where(inliers, res.r * res.r, 0.0).sum(axis=1) / np.maximum(count, 1))
-    ok = (count >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
-    return MatchResult(poses, info, fraction, rms, ok)
+    known_fraction = count / np.maximum(res.known.sum(axis=1), 1)
+    ok = (
+        (count >= config.min_inliers)
+        & (fraction >= config.min_inlier_fraction)
+        & (known_fraction >= config.min_known_inlier_fraction)
+    )
+    return MatchResult(poses, info, fraction, rms, ok, known_fraction)
+
+
+def truncated_energy(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    poses: FloatArray,
+    bound_m: float,
+    prior_information: FloatArray | None = None,
+    centre: FloatArray | None = None,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+) -> FloatArray:
+    """The objective :func:`match` minimises, with every endpoint's residual truncated at ``bound_m``
+    (an endpoint farther than that from every wall counts ``bound_m``²), for poses (P, 3): sum_i
+    min(r_i, bound)² + (x - x0)ᵀ Λ (x - x0). Endpoints among unmapped cells count as the mean of the
+    others (as :func:`scan_log_likelihood`). Comparable between two matches of the same scan in the same
+    window: the lower one explains the scan better at the price the prior puts on its move."""
+    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
+    e2 = np.where(res.d < bound_m, res.r * res.r, bound_m * bound_m)
+    n = points_xy.shape[0]
+    n_known = res.known.sum(axis=1)
+    total = np.where(
+        n_known > 0,
+        np.where(res.known, e2, 0.0).sum(axis=1) * n / np.maximum(n_known, 1),
+        n * bound_m * bound_m,
+    )
+    if prior_information is not None and centre is not None:
+        offset = poses - centre
+        offset[:, 2] = wrap_angle(offset[:, 2])
+        prior = np.broadcast_to(prior_information, (poses.shape[0], 3, 3))
+        total = total + np.einsum("pi,pij,pj->p", offset, prior, offset)
+    energy: FloatArray = total
+    return energy
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from agent.slam.loops import (
     LoopClosureConfig,
     LoopConstraint,
     Verdict,
+    candidate_nodes,
     chain_poses,
     find_loop,
     judge_loop,
@@ -279,3 +280,20 @@ def test_a_link_that_slid_where_the_scans_fit_the_old_map_changes_nothing() -> N
     judgement = judge_loop(truth, hits, motions, [], slid, config)
     assert judgement.innovation_chi2 > config.agree_chi2
     assert judgement.verdict is Verdict.FITS and judgement.result is None
+
+
+def test_candidate_windows_are_the_nearest_old_nodes_of_distinct_passes() -> None:
+    """A corridor driven three times (out, back, out again, 1 m apart): a new node near it gets one window
+    per pass, nearest first, never two from the same stretch of path."""
+    out = np.array([[x, 0.0, 0.0] for x in np.arange(0.0, 20.0, 0.5)])
+    back = np.array([[x, 1.0, math.pi] for x in np.arange(20.0, 0.0, -0.5)])
+    again = np.array([[x, 2.0, 0.0] for x in np.arange(0.0, 20.0, 0.5)])
+    poses = np.vstack([out, back, again, [[10.0, 0.9, 0.0]]])
+    old_end = poses.shape[0] - 2
+    distance = np.hypot(*(poses[: old_end + 1, :2] - poses[-1, :2]).T)
+    taken = candidate_nodes(poses, distance, old_end, 3.0, 5.0, 3)
+    assert len(taken) == 3
+    assert taken[0] == int(np.argmin(distance))  # the nearest: on the way back (y = 1)
+    assert sorted(round(float(poses[k, 1])) for k in taken) == [0, 1, 2]
+    assert candidate_nodes(poses, distance, old_end, 3.0, 5.0, 1) == taken[:1]
+    assert candidate_nodes(poses, distance, old_end, 0.05, 5.0, 3) == []
