@@ -178,6 +178,12 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "listens (e.g. 'vlp-agent fleet list --listen tcp/127.0.0.1:7500'); repeatable",
     )
     p.add_argument(
+        "--fleet-ros2",
+        action="store_true",
+        help="with --robots: every robot's bridge also publishes its pose, map and status as ROS 2 topics "
+        "over rmw_zenoh ([ros2] enabled = true, namespace /rI; docs/fleet.md), audited with the rest",
+    )
+    p.add_argument(
         "--goal",
         action="append",
         type=_goal_argument,
@@ -424,6 +430,8 @@ def _config(args: argparse.Namespace) -> AgentConfig:
 def run(args: argparse.Namespace) -> int:
     if args.fleet_connect and args.robots == 1:
         raise UsageError("--fleet-connect goes with --robots N")
+    if args.fleet_ros2 and args.robots == 1:
+        raise UsageError("--fleet-ros2 goes with --robots N")
     if args.robots != 1:
         if not 2 <= args.robots <= 8:
             raise UsageError(f"--robots must be 1..8, not {args.robots}")

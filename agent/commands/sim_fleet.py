@@ -226,7 +226,8 @@ def run_fleet(args: argparse.Namespace) -> int:
             endpoints = ", ".join(json.dumps(e) for e in [*(f"tcp/127.0.0.1:{p}" for p in ports[:i]), *extra])
             (d / "bridge.toml").write_text(
                 f'[bridge]\nrobot = "{name}"\nsocket = "{d / "fleet.sock"}"\n[zenoh]\nmode = "peer"\n'
-                f'listen = ["tcp/127.0.0.1:{ports[i]}"]\nconnect = [{endpoints}]\n',
+                f'listen = ["tcp/127.0.0.1:{ports[i]}"]\nconnect = [{endpoints}]\n'
+                + ("[ros2]\nenabled = true\n" if args.fleet_ros2 else ""),
                 encoding="utf-8",
             )
             sim = ["sim", "--config", str(d / "robot.toml"), "--seconds", str(args.seconds), "--json"]

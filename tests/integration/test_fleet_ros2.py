@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from agent.fleet import audit, ros2_decode
 from agent.fleet.bridge import Bridge
 from agent.fleet.bridge_config import parse_bridge_config
 from agent.fleet.local_protocol import MapMessage, PoseMessage, StatusMessage, encode
@@ -187,6 +188,14 @@ def test_a_ros2_subscriber_on_rmw_zenohs_keys_decodes_the_bridges_topics(tmp_pat
     data, _ = heard.samples["status"][-1]
     status = store.deserialize_cdr(data, "std_msgs/msg/String").data
     assert '"robot":"r1"' in status
+
+    # The privacy audit accepts every sample the bridge's ROS 2 side put out, and its graph token keys.
+    for kind, samples in heard.samples.items():
+        for payload, _ in samples:
+            assert audit.classify("fleet", KEYS[kind], payload) == (f"ros2_{kind}", None)
+    for token in tokens:
+        ros2_decode.parse_token_key(token)
+        assert audit.check("fleet", token, b"") is None
 
     zid = tokens[0].split("/")[2]
     assert f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%r1/vlp_bridge" in tokens
