@@ -2,6 +2,8 @@
 ``vlp-agent sim --robots 2`` starts and until it ended (every robot's bridge connects to it,
 ``--fleet-connect``), and every message heard is audited (``agent.fleet.audit.check``): a documented fleet
 key of one of the two robots, a payload that decodes strictly by its schema and carries no field beyond it.
+The bridges run with ``[ros2] enabled`` (``--fleet-ros2``): their ROS 2 topics (rmw_zenoh keys, CDR) are heard
+and audited in the same run, each strictly the layout of its type (``agent.fleet.ros2_decode``).
 What the schemas allow is poses, status flags and counters, goals and goal states, laser-built maps and the
 topology: no image, nothing from camera pixels beyond the pose the LED observations give.
 
@@ -18,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from agent.fleet import audit, payloads
+from agent.fleet import audit, payloads, ros2_decode
 from tests.fleet_helpers import REPO, TIMEOUT_S, Heard, free_port, loopback, open_session, vlp_agent
 
 pytest.importorskip("zenoh")
@@ -51,6 +53,7 @@ def test_everything_a_two_robot_fleet_publishes_in_a_run_passes_the_privacy_audi
             "6.7,6.0",
         ]
         argv += ["--seconds", "20", "--json", "--out", str(tmp_path), "--fleet-connect", loopback(port)]
+        argv += ["--fleet-ros2"]
         done = subprocess.run(vlp_agent(*argv), cwd=REPO, capture_output=True, text=True, timeout=TIMEOUT_S)
     finally:
         session.close()
@@ -60,15 +63,20 @@ def test_everything_a_two_robot_fleet_publishes_in_a_run_passes_the_privacy_audi
         samples = list(heard.samples)
     kinds: dict[str, set[str]] = {"r1": set(), "r2": set()}
     for key, data in samples:
-        problem = audit.check("fleet", key, data)
+        kind, problem = audit.classify("fleet", key, data)
         assert problem is None, problem
-        robot = payloads.robot_of("fleet", key)
+        if kind.startswith("ros2_"):  # the bridge's ROS 2 topic of the robot: namespace /rI
+            robot = ros2_decode.parse_topic_key(key).namespace.lstrip("/")
+        else:
+            robot = payloads.robot_of("fleet", key)
         assert robot in kinds, key
-        kinds[robot].add(key.rsplit("/", 1)[-1])
-    # The run's traffic was heard: both robots' poses and statuses, and the laser-built maps (each robot sends
-    # its first when its SLAM has one: in a run this short, on a loaded machine, one robot may end first).
+        kinds[robot].add(kind)
+    # The run's traffic was heard: both robots' poses and statuses, as JSON and as ROS 2 topics, and the
+    # laser-built maps (each robot sends its first when its SLAM has one: in a run this short, on a loaded
+    # machine, one robot may end first).
     for robot, seen in kinds.items():
-        assert {"pose", "status"} <= seen, (robot, seen, summary["robots"])
-    assert "map" in kinds["r1"] | kinds["r2"], (kinds, summary["robots"])
+        assert {"pose", "status", "ros2_pose", "ros2_status"} <= seen, (robot, seen, summary["robots"])
+    assert {"map", "ros2_map"} <= kinds["r1"] | kinds["r2"], (kinds, summary["robots"])
     # The command's own audit (its observer on "**") agrees.
     assert summary["privacy"]["failed"] == 0 and summary["privacy"]["messages"] > 0, summary["privacy"]
+    assert {"ros2_pose", "ros2_status"} <= set(summary["privacy"]["by_kind"]), summary["privacy"]
