@@ -77,6 +77,7 @@ def group(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "collisions_walls": sum(int(r["collisions_walls"]) for r in runs),
         "collisions": sum(int(r["collisions"]) for r in runs),
         "retries": sum(int(r.get("retries", 0)) for r in runs),
+        "target_switches_median": _median(col("target_switches")),
         "blocked_branches": sum(len(r.get("blocked_branches", [])) for r in runs),
         "ate_m_max": max(col("ate_m"), default=None),
         "map_error_m_max": max(col("map_error_m"), default=None),

@@ -483,6 +483,7 @@ def run_exploration(
         ),
         "targets": len(run.targets),
         "retries": getattr(explorer, "retries", 0),
+        "target_switches": getattr(explorer, "switches", 0),
         "blocked_branches": list(getattr(explorer, "blocked_branches", [])),
         "navigation_failures": len(run.failures),
         "collisions": run.collisions_walls + run.collisions_people,

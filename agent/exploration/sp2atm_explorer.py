@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -273,6 +274,15 @@ class Sp2atmExplorer(FrontierExplorer):
             g_m = float(g)
             cost = cfg.potential_scale * c.path_m - cfg.gain_scale * g_m
             candidates.append(NodeCandidate(c.frontier, c.target, c.path_m, cost, "frontier", g_m, node))
+        # The current target, judged on its own (commitment): kept as a candidate, and its node bound, while
+        # it is still reachable with room and has information to gain, whether or not this scan's AST or
+        # frontiers found a candidate within ``merge_m`` of it (on a map SLAM builds the tips and frontier
+        # targets shift with each update, and a target that vanished for one decision was replaced at
+        # once: the robot turned between two goals, each switch resetting the progress watch).
+        current = self._current_candidate(base, place, gain, t_s)
+        if current is not None:
+            candidates.append(current)
+            self._target_node = current.node
         bound = {c.node for c in candidates}
         for n in self.htm.possible():
             if n not in bound:
@@ -295,6 +305,37 @@ class Sp2atmExplorer(FrontierExplorer):
             base.unreachable,
             True,
         )
+
+    def _current_candidate(
+        self,
+        base: Survey,
+        place: int,
+        gain: Callable[[FloatArray], tuple[FloatArray, IntArray]],
+        t_s: float,
+    ) -> NodeCandidate | None:
+        """The current target as a candidate, its cost measured where it is now (path cost from the
+        robot, gain at its spot), bound to the HTM like a frontier's target; None when there is no target,
+        or it is no longer reachable with room, is blacklisted, or has nothing left to gain."""
+        field, target, cfg = self.field, self.target, self.config
+        if target is None or field is None or self._state is not ExploreState.EXPLORING:
+            return None
+        spec = field.seen.spec
+        spot = np.array([[target.x_m, target.y_m]])
+        cell = spec.to_cell(spot)
+        if not spec.inside(cell)[0]:
+            return None
+        r, c = int(cell[0, 0]), int(cell[0, 1])
+        path = float(field.path_m[r, c])
+        if not math.isfinite(path) or not field.roomy[r, c] or self.blacklist.blocked(spot, t_s)[0]:
+            return None
+        g, k = gain(spot)
+        if g[0] < cfg.min_frontier_size_m or k[0] < 0:
+            return None
+        xy = (target.x_m, target.y_m)
+        src, cost_edge = self._seen_from(field.seen, xy, place, path)
+        (node,) = self.htm.integrate(src, [xy], costs=[cost_edge], anchor=self._place_pose(src))
+        cost = cfg.potential_scale * path - cfg.gain_scale * float(g[0])
+        return NodeCandidate(base.frontiers[int(k[0])], target, path, cost, "current", float(g[0]), node)
 
     def _pick(self, candidates: list[NodeCandidate], place: int, pose: Pose) -> NodeCandidate | None:
         if not candidates:
