@@ -22,6 +22,7 @@ from agent.exploration import (
 )
 from agent.exploration.admissible_tree import grid_scan
 from agent.exploration.htm import Htm, NodeKind, point_in_polygon
+from agent.exploration.lifecycle import Target
 from agent.exploration.regions import find_regions
 from agent.exploration.topology import from_geojson, to_geojson
 from agent.slam.mapio import load_topology, save_topology, topology_path
@@ -210,6 +211,33 @@ def test_it_drives_through_the_gap_and_builds_the_htm() -> None:
     explorer.report_reached(5.0)
     assert [n.kind for n in explorer.htm.nodes.values()].count(NodeKind.PLACE) == 2
     assert explorer.place is not None and (place, explorer.place) in explorer.htm.edges
+
+
+def test_the_current_target_is_kept_while_it_has_gain_though_no_candidate_lies_near_it() -> None:
+    """Commitment: the current target is a candidate of its own, costed where it is, its node kept; on a
+    map whose candidates shift with each update it is not dropped for want of a candidate within merge_m."""
+    grid = two_rooms(unknown_east=True)  # the east room unseen behind its 1 m door at x 4.5, y 2
+    pose = (2.5, 2.0, 0.0)
+    explorer = _started(SP2ATM, pose)
+    first = explorer.update(grid, pose, 0.0).target
+    assert first is not None and first.x_m > 4.0
+    # A target 1.1 m short of the door (as chosen from elsewhere, or the candidates moved since): no
+    # candidate of this map lies within merge_m of it, yet the door's frontier is within gain_radius_m.
+    held = Target(3.4, 2.0, 0.0)
+    explorer.target = held
+    near = [
+        math.hypot(c.target.x_m - 3.4, c.target.y_m - 2.0)
+        for c in explorer.survey(grid, pose, 1.0).candidates
+    ]
+    assert min(near) == 0.0 and sorted(near)[1] > SP2ATM.merge_m  # only itself
+    decision = explorer.update(grid, pose, 2.5)  # a replan: the door's own target is farther, not cheaper
+    assert decision.target == held
+    assert explorer.switches == 0
+    node = explorer._target_node
+    assert node is not None and explorer.htm.nodes[node].kind is NodeKind.POSSIBLE
+    # The east room seen: nothing left to gain there, the target goes and exploration is complete.
+    seen = two_rooms()
+    assert explorer.update(seen, pose, 5.0).state is ExploreState.COMPLETE
 
 
 def test_a_closed_map_is_complete_and_its_htm_has_nothing_possible() -> None:
