@@ -240,6 +240,23 @@ def test_the_current_target_is_kept_while_it_has_gain_though_no_candidate_lies_n
     assert explorer.update(seen, pose, 5.0).state is ExploreState.COMPLETE
 
 
+def test_a_reached_target_whose_frontier_stayed_unknown_is_not_driven_to_again() -> None:
+    """The arrival judged with SP2ATM's gain: the robot stood at the target facing the frontier and the map
+    did not change (a shadow): that frontier gains nothing from then on, so no target near it comes back
+    (the frontier explorer's own rule blocks only the spot and its 0.5 m)."""
+    grid = two_rooms(unknown_east=True)
+    pose = (2.5, 2.0, 0.0)
+    explorer = _started(SP2ATM, pose)
+    target = explorer.update(grid, pose, 0.0).target
+    assert target is not None and target.x_m > 4.0
+    at = (target.x_m, target.y_m, target.yaw_rad or 0.0)
+    explorer.report_reached(1.0)
+    for t in (1.6, 4.0, 8.0):  # settled, the same map: nothing was seen from there
+        decision = explorer.update(grid, at, t)
+        assert decision.target is None, decision.target
+    assert decision.state is ExploreState.COMPLETE and "slivers" in decision.reason
+
+
 def test_a_closed_map_is_complete_and_its_htm_has_nothing_possible() -> None:
     explorer = _started(SP2ATM, (2.5, 2.0, 0.0))
     decision = explorer.update(two_rooms(), (2.5, 2.0, 0.0), 0.0)
