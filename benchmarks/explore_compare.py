@@ -1,5 +1,5 @@
 """SP2ATM against the frontier baseline on one world and several seeds (issue 22's acceptance): each seed
-is run by both explorers with ``vlp-agent eval explore``'s simulation (``run_eval``: map from the true
+is run by both explorers with ``vlp-agent eval explore``'s simulation (``run_exploration``: map from the true
 pose, localization by odometry and VLP fixes, or with ``--map slam`` the RBPF's map and pose; faster than
 real time), one after the other.
 
@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.commands.eval_explore import MapSource, run_eval
+from agent.commands.eval_explore import MapSource, run_exploration
 from agent.exploration import ExplorerKind
 from drivers.sim.worldfile import load_world
 
@@ -77,6 +77,7 @@ def group(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "collisions_walls": sum(int(r["collisions_walls"]) for r in runs),
         "collisions": sum(int(r["collisions"]) for r in runs),
         "retries": sum(int(r.get("retries", 0)) for r in runs),
+        "target_switches_median": _median(col("target_switches")),
         "blocked_branches": sum(len(r.get("blocked_branches", [])) for r in runs),
         "ate_m_max": max(col("ate_m"), default=None),
         "map_error_m_max": max(col("map_error_m"), default=None),
@@ -100,7 +101,8 @@ def main() -> int:
     runs: dict[ExplorerKind, list[dict[str, Any]]] = {k: [] for k in kinds}
     for seed in seeds(args.seeds):
         for kind in kinds:
-            summary, picture, _ = run_eval(world, kind, seed, MapSource(args.map), args.budget_s)
+            e = run_exploration(world, kind, seed, MapSource(args.map), args.budget_s)
+            summary, picture = e.summary, e.picture
             if args.png_dir:
                 folder = Path(args.png_dir)
                 folder.mkdir(parents=True, exist_ok=True)

@@ -279,21 +279,6 @@ class Exploration:
     grid: GridMap
 
 
-def run_eval(
-    world: World,
-    explorer_kind: ExplorerKind,
-    seed: int,
-    map_source: MapSource = MapSource.TRUTH_POSE,
-    budget_s: float = DEFAULT_BUDGET_S,
-    progress: bool = False,
-    config: ExploreConfig | None = None,
-) -> tuple[dict[str, Any], npt.NDArray[np.uint8], dict[str, Any] | None]:
-    """Explore ``world`` (see the module docstring); the summary as a JSON-ready dict, the picture, and the
-    topological map (GeoJSON dict) for an explorer that makes one (sp2atm), else None."""
-    e = run_exploration(world, explorer_kind, seed, map_source, budget_s, progress, config)
-    return e.summary, e.picture, e.topology
-
-
 def run_exploration(
     world: World,
     explorer_kind: ExplorerKind,
@@ -303,7 +288,8 @@ def run_exploration(
     progress: bool = False,
     config: ExploreConfig | None = None,
 ) -> Exploration:
-    """:func:`run_eval`, with the final map."""
+    """Explore ``world`` (see the module docstring): the summary (JSON-ready), the picture, the topological
+    map (GeoJSON dict) for an explorer that makes one (sp2atm, else None) and the final map."""
     from agent.slam.fix import PoseFix
     from agent.slam.pose import between, compose
     from agent.slam.simlog import TICK_S, simulated_sensors
@@ -497,6 +483,7 @@ def run_exploration(
         ),
         "targets": len(run.targets),
         "retries": getattr(explorer, "retries", 0),
+        "target_switches": getattr(explorer, "switches", 0),
         "blocked_branches": list(getattr(explorer, "blocked_branches", [])),
         "navigation_failures": len(run.failures),
         "collisions": run.collisions_walls + run.collisions_people,
@@ -732,9 +719,10 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    summary, picture, topology = run_eval(
+    e = run_exploration(
         world, ExplorerKind(args.explorer), args.seed, MapSource(args.map), args.budget_s, progress=True
     )
+    summary, picture, topology = e.summary, e.picture, e.topology
     png = write_png(Path(args.png), picture)
     summary["png"] = str(png)
     if topology is not None:

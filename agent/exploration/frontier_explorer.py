@@ -118,6 +118,7 @@ class FrontierExplorer:
         self.decisions = 0
         self.field: Field | None = None  # the last search's map, path costs and roomy cells
         self.retries = 0  # targets chosen again where one had failed before
+        self.switches = 0  # targets replaced by another before they were reached or failed
         self.blocked_branches: list[dict[str, object]] = []  # branches pruned for a passage shut
         self.closed_m: FloatArray = np.zeros((0, 2))  # cells (centres, metres) of passages seen shut
         self._pose: Pose | None = None
@@ -416,6 +417,8 @@ class FrontierExplorer:
         switch = current is None or best.cost < current - cfg.switch_margin
         here = None if self.target is None else (self.target.x_m, self.target.y_m)
         if switch and (best.target.x_m, best.target.y_m) != here:
+            if self.target is not None:
+                self.switches += 1
             self._aim(best.target, pose, t_s)
             self._target_frontier = best.frontier
         self._set(ExploreState.EXPLORING, f"{len(survey.candidates)} reachable frontiers")

@@ -48,12 +48,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from agent.exploration.admissible_tree import grid_scan, scan_branches, to_world
+from agent.exploration.blacklist import EntryKind
 from agent.exploration.config import ExploreConfig
 from agent.exploration.frontier_explorer import Candidate, FrontierExplorer, Pose, Survey
 from agent.exploration.frontiers import GridMap, dilate
@@ -66,6 +68,7 @@ from agent.navigation.costmap import BoolArray, FloatArray, IntArray, segment_ce
 
 log = logging.getLogger(__name__)
 
+LOOKED_HALF_ANGLE = math.radians(100.0)  # a reached target's heading +- this is what the laser showed there
 REGIONS_EVERY_S = 4.0  # the rooms are re-found this often (and whenever a target has ended)
 ROOM_MAX_DOORS = 2  # a region touching more regions than this is a hub (a corridor), not a room to finish
 
@@ -96,6 +99,10 @@ class Sp2atmExplorer(FrontierExplorer):
         self._target_node: int | None = None
         self._t_regions = -math.inf
         self._wanted_regions = True
+        # Frontier a reached target was to show and did not: (spot x, y, heading or None), and the
+        # informative frontier points of the last search (for the arrival's judgement).
+        self._looked: list[tuple[float, float, float | None]] = []
+        self._gain_points: FloatArray = np.zeros((0, 2))
 
     # -- SLAM coupling ---------------------------------------------------------------------------------
     @property
@@ -210,6 +217,10 @@ class Sp2atmExplorer(FrontierExplorer):
             owner_list.append(np.full(int(keep.sum()), i, dtype=np.intp))
         fpoints = np.concatenate(fpoints_list) if fpoints_list else np.zeros((0, 2))
         owner = np.concatenate(owner_list) if owner_list else np.zeros(0, dtype=np.intp)
+        if self._looked and len(fpoints):
+            keep = ~self._looked_at(fpoints)
+            fpoints, owner = fpoints[keep], owner[keep]
+        self._gain_points = fpoints
 
         def gain(points: FloatArray) -> tuple[FloatArray, IntArray]:
             if len(fpoints) == 0 or len(points) == 0:
@@ -273,6 +284,15 @@ class Sp2atmExplorer(FrontierExplorer):
             g_m = float(g)
             cost = cfg.potential_scale * c.path_m - cfg.gain_scale * g_m
             candidates.append(NodeCandidate(c.frontier, c.target, c.path_m, cost, "frontier", g_m, node))
+        # The current target, judged on its own (commitment): kept as a candidate, and its node bound, while
+        # it is still reachable with room and has information to gain, whether or not this scan's AST or
+        # frontiers found a candidate within ``merge_m`` of it (on a map SLAM builds the tips and frontier
+        # targets shift with each update, and a target that vanished for one decision was replaced at
+        # once: the robot turned between two goals, each switch resetting the progress watch).
+        current = self._current_candidate(base, place, gain, t_s)
+        if current is not None:
+            candidates.append(current)
+            self._target_node = current.node
         bound = {c.node for c in candidates}
         for n in self.htm.possible():
             if n not in bound:
@@ -295,6 +315,77 @@ class Sp2atmExplorer(FrontierExplorer):
             base.unreachable,
             True,
         )
+
+    def _looked_at(self, points: FloatArray) -> BoolArray:
+        """The points a reached target faced, within ``gain_radius_m`` of it and ``LOOKED_HALF_ANGLE`` of
+        its heading (any bearing for a target without one), and did not make known."""
+        out = np.zeros(len(points), dtype=bool)
+        for x, y, yaw in self._looked:
+            dx, dy = points[:, 0] - x, points[:, 1] - y
+            near = np.hypot(dx, dy) <= self.config.gain_radius_m
+            if yaw is not None:
+                off = np.abs(np.remainder(np.arctan2(dy, dx) - yaw + math.pi, math.tau) - math.pi)
+                near &= off <= LOOKED_HALF_ANGLE
+            out |= near
+        return out
+
+    def _judge_arrival(self, survey: Survey, t_s: float) -> bool:
+        """The frontier explorer's judgement (frontier left within reach of the spot: unobservable), and
+        SP2ATM's own, with its measure of gain: a reached target facing at least ``min_frontier_size_m``
+        of informative frontier within ``gain_radius_m`` after the map settled could not show it (a
+        laser shadow, or a wall the map drew with free cells beside it: an AST tip's gain is counted that
+        far away). The spot is blacklisted as unobservable and that frontier counts no gain from then on:
+        without it the robot, leaving, saw the same tip again from a door and drove back to it, 10 m a
+        time (office seed 2 on the SLAM map, with the commitment: 16 times in 900 s)."""
+        arrived = self._arrived
+        judged = super()._judge_arrival(survey, t_s)
+        if arrived is None:
+            return judged
+        spot = arrived[0]
+        pts = self._gain_points
+        if len(pts) == 0:
+            return judged
+        self._looked.append((spot.x_m, spot.y_m, spot.yaw_rad))
+        left = float(np.count_nonzero(self._looked_at(pts))) * self.nav.resolution_m
+        if left < self.config.min_frontier_size_m:
+            self._looked.pop()
+            return judged
+        if not judged:
+            self.blacklist.add(
+                (spot.x_m, spot.y_m), t_s, "reached, its gain still unseen", EntryKind.UNOBSERVABLE
+            )
+        return True
+
+    def _current_candidate(
+        self,
+        base: Survey,
+        place: int,
+        gain: Callable[[FloatArray], tuple[FloatArray, IntArray]],
+        t_s: float,
+    ) -> NodeCandidate | None:
+        """The current target as a candidate, its cost measured where it is now (path cost from the
+        robot, gain at its spot), bound to the HTM like a frontier's target; None when there is no target,
+        or it is no longer reachable with room, is blacklisted, or has nothing left to gain."""
+        field, target, cfg = self.field, self.target, self.config
+        if target is None or field is None or self._state is not ExploreState.EXPLORING:
+            return None
+        spec = field.seen.spec
+        spot = np.array([[target.x_m, target.y_m]])
+        cell = spec.to_cell(spot)
+        if not spec.inside(cell)[0]:
+            return None
+        r, c = int(cell[0, 0]), int(cell[0, 1])
+        path = float(field.path_m[r, c])
+        if not math.isfinite(path) or not field.roomy[r, c] or self.blacklist.blocked(spot, t_s)[0]:
+            return None
+        g, k = gain(spot)
+        if g[0] < cfg.min_frontier_size_m or k[0] < 0:
+            return None
+        xy = (target.x_m, target.y_m)
+        src, cost_edge = self._seen_from(field.seen, xy, place, path)
+        (node,) = self.htm.integrate(src, [xy], costs=[cost_edge], anchor=self._place_pose(src))
+        cost = cfg.potential_scale * path - cfg.gain_scale * float(g[0])
+        return NodeCandidate(base.frontiers[int(k[0])], target, path, cost, "current", float(g[0]), node)
 
     def _pick(self, candidates: list[NodeCandidate], place: int, pose: Pose) -> NodeCandidate | None:
         if not candidates:

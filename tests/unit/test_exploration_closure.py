@@ -9,43 +9,25 @@ import math
 import numpy as np
 
 from agent.exploration import (
-    Command,
     EntryKind,
     ExploreConfig,
     ExplorerKind,
     ExploreState,
     GridMap,
     Sp2atmExplorer,
-    make_explorer,
 )
 from agent.exploration.closure import wall_to_wall
 from agent.exploration.htm import NodeKind
 from agent.exploration.lifecycle import Explorer
-from agent.navigation.config import NavConfig
-from agent.navigation.costmap import FloatArray, GridSpec
+from agent.navigation.costmap import FloatArray
+from tests.unit.exploration_helpers import NAV, SPEC, started, two_rooms
 
-RES = 0.05
-SPEC = GridSpec((0.0, 0.0), RES, (80, 200))  # 10 x 4 m
-NAV = NavConfig(radius_m=0.1, safety_margin_m=0.0)
 POSE = (2.5, 2.0, 0.0)
 
 
-def _cells(x0: float, y0: float, x1: float, y1: float) -> tuple[slice, slice]:
-    return slice(round(y0 / RES), round(y1 / RES)), slice(round(x0 / RES), round(x1 / RES))
-
-
 def _rooms() -> GridMap:
-    """Two rooms (x 0.5-4.5 and 4.5-8.5, y 0.25-3.75) joined by a 1 m door at y 2 in the wall x 4.5; the
-    west room and the east room's first 1.5 m seen free, the rest of the east room unknown."""
-    occupied = np.zeros(SPEC.shape, bool)
-    unknown = np.ones(SPEC.shape, bool)
-    rows, cols = _cells(0.5, 0.25, 8.55, 3.8)
-    occupied[rows, cols] = True
-    occupied[rows.start + 1 : rows.stop - 1, cols.start + 1 : cols.stop - 1] = False
-    occupied[_cells(4.5, 0.25, 4.55, 3.8)] = True
-    occupied[_cells(4.5, 1.5, 4.55, 2.5)] = False
-    unknown[_cells(0.5, 0.25, 6.0, 3.8)] = False
-    return GridMap(SPEC, occupied, unknown)
+    """The two rooms with the west room and the east room's first 1.5 m seen, the rest unknown."""
+    return two_rooms(known_to_x_m=6.0)
 
 
 def _door_hits() -> FloatArray:
@@ -61,8 +43,7 @@ def _person_hits() -> FloatArray:
 
 
 def _started(kind: ExplorerKind) -> Explorer:
-    explorer = make_explorer(ExploreConfig(explorer=kind), NAV)
-    assert explorer.command(Command.START, POSE, 0.0)
+    explorer = started(ExploreConfig(explorer=kind), POSE)
     decision = explorer.update(_rooms(), POSE, 0.0)
     target = decision.target
     assert decision.state is ExploreState.EXPLORING and target is not None

@@ -22,71 +22,36 @@ from agent.exploration import (
 )
 from agent.exploration.admissible_tree import grid_scan
 from agent.exploration.htm import Htm, NodeKind, point_in_polygon
+from agent.exploration.lifecycle import Target
 from agent.exploration.regions import find_regions
 from agent.exploration.topology import from_geojson, to_geojson
-from agent.navigation.config import NavConfig
-from agent.navigation.costmap import GridSpec
 from agent.slam.mapio import load_topology, save_topology, topology_path
 from drivers.errors import ConfigError
-
-RES = 0.05
-SPEC = GridSpec((0.0, 0.0), RES, (80, 200))  # 10 x 4 m
-NAV = NavConfig(radius_m=0.1, safety_margin_m=0.0)
+from tests.unit.exploration_helpers import NAV, SPEC, cells, opened, started, two_rooms
 
 
-def _cells(x0: float, y0: float, x1: float, y1: float) -> tuple[slice, slice]:
-    return slice(round(y0 / RES), round(y1 / RES)), slice(round(x0 / RES), round(x1 / RES))
-
-
-def _rooms(door_m: float = 1.0, unknown_east: bool = False) -> GridMap:
-    """Two 4 x 3.5 m rooms side by side (x 0.5-4.5 and 4.5-8.5, y 0.25-3.75), a door of ``door_m`` in the
-    shared wall at y 2; known free inside, unknown outside (and the east room unknown if asked)."""
-    occupied = np.zeros(SPEC.shape, bool)
-    unknown = np.ones(SPEC.shape, bool)
-    rows, cols = _cells(0.5, 0.25, 8.55, 3.8)
-    unknown[rows, cols] = False
-    occupied[rows, cols] = True
-    inner = slice(rows.start + 1, rows.stop - 1), slice(cols.start + 1, cols.stop - 1)
-    occupied[inner] = False
-    wall = _cells(4.5, 0.25, 4.55, 3.8)
-    occupied[wall] = True
-    occupied[_cells(4.5, 2.0 - door_m / 2, 4.55, 2.0 + door_m / 2)] = False
-    if unknown_east:
-        unknown[_cells(4.55, 0.3, 8.5, 3.75)] = True
-    return GridMap(SPEC, occupied, unknown)
-
-
-def _open(grid: GridMap, x0: float, y0: float, x1: float, y1: float) -> GridMap:
-    occupied, unknown = grid.occupied.copy(), grid.unknown.copy()
-    rows, cols = _cells(x0, y0, x1, y1)
-    occupied[rows, cols] = False
-    unknown[rows, cols] = False
-    return GridMap(SPEC, occupied, unknown)
-
-
-# -- the scan cast on the map ---------------------------------------------------------------------------
 def test_a_grid_scan_is_closed_at_walls_and_open_into_unknown_space() -> None:
-    grid = _open(_rooms(unknown_east=True), 0.5, 1.5, 0.55, 2.5)  # a 1 m gap in the west wall
-    angles, ranges, opened = grid_scan(grid, (2.5, 2.0, 0.0), 360, 5.0)
+    grid = opened(two_rooms(unknown_east=True), 0.5, 1.5, 0.55, 2.5)  # a 1 m gap in the west wall
+    angles, ranges, open_ = grid_scan(grid, (2.5, 2.0, 0.0), 360, 5.0)
     north = int(np.argmin(np.abs(angles - math.pi / 2)))
     west = int(np.argmin(np.abs(np.abs(angles) - math.pi)))
     east = int(np.argmin(np.abs(angles)))
-    assert not opened[north] and ranges[north] == pytest.approx(1.75, abs=0.1)  # the north wall
-    assert opened[west] and ranges[west] == pytest.approx(2.0, abs=0.1)  # out through the gap
-    assert opened[east] and ranges[east] == pytest.approx(2.05, abs=0.1)  # the unknown east room
+    assert not open_[north] and ranges[north] == pytest.approx(1.75, abs=0.1)  # the north wall
+    assert open_[west] and ranges[west] == pytest.approx(2.0, abs=0.1)  # out through the gap
+    assert open_[east] and ranges[east] == pytest.approx(2.05, abs=0.1)  # the unknown east room
 
 
 # -- regions -------------------------------------------------------------------------------------------
 def test_rooms_are_cut_at_a_door_and_a_wide_opening_joins_them() -> None:
-    labels, regions = find_regions(_rooms(door_m=1.0), door_width_m=1.2)
+    labels, regions = find_regions(two_rooms(door_m=1.0), door_width_m=1.2)
     assert len(regions) == 2
     assert all(10.0 < r.area_m2 < 15.0 for r in regions)
-    west = labels[_cells(2.0, 2.0, 2.05, 2.05)][0, 0]
-    east = labels[_cells(7.0, 2.0, 7.05, 2.05)][0, 0]
+    west = labels[cells(2.0, 2.0, 2.05, 2.05)][0, 0]
+    east = labels[cells(7.0, 2.0, 7.05, 2.05)][0, 0]
     assert west != east and west > 0 and east > 0
     assert point_in_polygon((2.5, 2.0), regions[west - 1].polygon)
     assert not point_in_polygon((6.5, 2.0), regions[west - 1].polygon)
-    _, one = find_regions(_rooms(door_m=2.0), door_width_m=1.2)  # wider than a door: one space
+    _, one = find_regions(two_rooms(door_m=2.0), door_width_m=1.2)  # wider than a door: one space
     assert len(one) == 1 and one[0].area_m2 > 25.0
 
 
@@ -220,9 +185,8 @@ def test_the_topology_is_written_atomically_beside_the_map(tmp_path: Path) -> No
 
 # -- the explorer --------------------------------------------------------------------------------------
 def _started(config: ExploreConfig, pose: tuple[float, float, float]) -> Sp2atmExplorer:
-    explorer = make_explorer(config, NAV)
+    explorer = started(config, pose)
     assert isinstance(explorer, Sp2atmExplorer)
-    assert explorer.command(Command.START, pose, 0.0)
     return explorer
 
 
@@ -230,7 +194,7 @@ SP2ATM = ExploreConfig(explorer=ExplorerKind.SP2ATM)
 
 
 def test_it_drives_through_the_gap_and_builds_the_htm() -> None:
-    grid = _open(_rooms(), 0.5, 1.5, 0.55, 2.5)  # a 1 m gap in the west wall
+    grid = opened(two_rooms(), 0.5, 1.5, 0.55, 2.5)  # a 1 m gap in the west wall
     pose = (2.5, 2.0, 0.0)
     explorer = _started(SP2ATM, pose)
     decision = explorer.update(grid, pose, 0.0)
@@ -249,9 +213,53 @@ def test_it_drives_through_the_gap_and_builds_the_htm() -> None:
     assert explorer.place is not None and (place, explorer.place) in explorer.htm.edges
 
 
+def test_the_current_target_is_kept_while_it_has_gain_though_no_candidate_lies_near_it() -> None:
+    """Commitment: the current target is a candidate of its own, costed where it is, its node kept; on a
+    map whose candidates shift with each update it is not dropped for want of a candidate within merge_m."""
+    grid = two_rooms(unknown_east=True)  # the east room unseen behind its 1 m door at x 4.5, y 2
+    pose = (2.5, 2.0, 0.0)
+    explorer = _started(SP2ATM, pose)
+    first = explorer.update(grid, pose, 0.0).target
+    assert first is not None and first.x_m > 4.0
+    # A target 1.1 m short of the door (as chosen from elsewhere, or the candidates moved since): no
+    # candidate of this map lies within merge_m of it, yet the door's frontier is within gain_radius_m.
+    held = Target(3.4, 2.0, 0.0)
+    explorer.target = held
+    near = [
+        math.hypot(c.target.x_m - 3.4, c.target.y_m - 2.0)
+        for c in explorer.survey(grid, pose, 1.0).candidates
+    ]
+    assert min(near) == 0.0 and sorted(near)[1] > SP2ATM.merge_m  # only itself
+    decision = explorer.update(grid, pose, 2.5)  # a replan: the door's own target is farther, not cheaper
+    assert decision.target == held
+    assert explorer.switches == 0
+    node = explorer._target_node
+    assert node is not None and explorer.htm.nodes[node].kind is NodeKind.POSSIBLE
+    # The east room seen: nothing left to gain there, the target goes and exploration is complete.
+    seen = two_rooms()
+    assert explorer.update(seen, pose, 5.0).state is ExploreState.COMPLETE
+
+
+def test_a_reached_target_whose_frontier_stayed_unknown_is_not_driven_to_again() -> None:
+    """The arrival judged with SP2ATM's gain: the robot stood at the target facing the frontier and the map
+    did not change (a shadow): that frontier gains nothing from then on, so no target near it comes back
+    (the frontier explorer's own rule blocks only the spot and its 0.5 m)."""
+    grid = two_rooms(unknown_east=True)
+    pose = (2.5, 2.0, 0.0)
+    explorer = _started(SP2ATM, pose)
+    target = explorer.update(grid, pose, 0.0).target
+    assert target is not None and target.x_m > 4.0
+    at = (target.x_m, target.y_m, target.yaw_rad or 0.0)
+    explorer.report_reached(1.0)
+    for t in (1.6, 4.0, 8.0):  # settled, the same map: nothing was seen from there
+        decision = explorer.update(grid, at, t)
+        assert decision.target is None, decision.target
+    assert decision.state is ExploreState.COMPLETE and "slivers" in decision.reason
+
+
 def test_a_closed_map_is_complete_and_its_htm_has_nothing_possible() -> None:
     explorer = _started(SP2ATM, (2.5, 2.0, 0.0))
-    decision = explorer.update(_rooms(), (2.5, 2.0, 0.0), 0.0)
+    decision = explorer.update(two_rooms(), (2.5, 2.0, 0.0), 0.0)
     assert decision.state is ExploreState.COMPLETE and decision.target is None
     assert explorer.htm.done
 
@@ -259,8 +267,8 @@ def test_a_closed_map_is_complete_and_its_htm_has_nothing_possible() -> None:
 def test_it_finishes_its_own_room_before_a_cheaper_gap_next_door() -> None:
     """SP2ATM's rule: the candidates of the robot's room come first. The frontier explorer takes the
     cheaper gap in the next room and has to come back for this room's later."""
-    grid = _open(_rooms(), 1.0, 3.75, 2.0, 3.8)  # 1 m gap north in the west room, about 3 m away
-    grid = _open(grid, 5.0, 0.25, 6.0, 0.3)  # 1 m gap south in the east room, about 2 m away
+    grid = opened(two_rooms(), 1.0, 3.75, 2.0, 3.8)  # 1 m gap north in the west room, about 3 m away
+    grid = opened(grid, 5.0, 0.25, 6.0, 0.3)  # 1 m gap south in the east room, about 2 m away
     pose = (4.0, 2.0, 0.0)
     sp2atm = _started(SP2ATM, pose).update(grid, pose, 0.0).target
     frontier = make_explorer(ExploreConfig(), NAV)
@@ -280,7 +288,7 @@ def test_no_premature_complete_while_a_reachable_gap_is_only_blacklisted_for_now
     config = ExploreConfig(
         explorer=SP2ATM.explorer, blacklist_radius_m=1.0, blacklist_expiry_s=10.0, max_failures=2
     )
-    grid = _open(_rooms(), 0.5, 1.5, 0.55, 2.5)
+    grid = opened(two_rooms(), 0.5, 1.5, 0.55, 2.5)
     pose = (2.5, 2.0, 0.0)
     explorer = _started(config, pose)
     assert explorer.update(grid, pose, 0.0).target is not None
@@ -294,7 +302,7 @@ def test_no_premature_complete_while_a_reachable_gap_is_only_blacklisted_for_now
 
 
 def test_the_explorer_writes_its_topology_and_moves_it_with_corrected_poses() -> None:
-    grid = _open(_rooms(), 0.5, 1.5, 0.55, 2.5)
+    grid = opened(two_rooms(), 0.5, 1.5, 0.55, 2.5)
     pose = (2.5, 2.0, 0.0)
     explorer = _started(SP2ATM, pose)
     explorer.update(grid, pose, 0.0)
@@ -312,17 +320,17 @@ def test_the_explorer_writes_its_topology_and_moves_it_with_corrected_poses() ->
 def test_only_unknown_worth_a_trip_gives_information() -> None:
     from agent.exploration.sp2atm_explorer import informative_unknown
 
-    grid = _rooms(unknown_east=True)  # the east room unseen behind its door: worth it
+    grid = two_rooms(unknown_east=True)  # the east room unseen behind its door: worth it
     occupied, unknown = grid.occupied.copy(), grid.unknown.copy()
-    unknown[_cells(1.0, 1.0, 3.0, 1.1)] = True  # a sliver 2 cells wide between far beams
-    box = _cells(1.0, 2.5, 2.0, 3.3)  # a box: walls seen, inside never
+    unknown[cells(1.0, 1.0, 3.0, 1.1)] = True  # a sliver 2 cells wide between far beams
+    box = cells(1.0, 2.5, 2.0, 3.3)  # a box: walls seen, inside never
     occupied[box] = True
     unknown[box[0].start + 1 : box[0].stop - 1, box[1].start + 1 : box[1].stop - 1] = True
     occupied[box[0].start + 1 : box[0].stop - 1, box[1].start + 1 : box[1].stop - 1] = False
     keep = informative_unknown(GridMap(SPEC, occupied, unknown), 0.25)
-    assert keep[_cells(6.0, 2.0, 6.05, 2.05)].all()  # the east room
-    assert not keep[_cells(1.0, 1.0, 3.0, 1.1)].any()  # the sliver
-    assert not keep[_cells(1.2, 2.7, 1.8, 3.1)].any()  # the box's inside
+    assert keep[cells(6.0, 2.0, 6.05, 2.05)].all()  # the east room
+    assert not keep[cells(1.0, 1.0, 3.0, 1.1)].any()  # the sliver
+    assert not keep[cells(1.2, 2.7, 1.8, 3.1)].any()  # the box's inside
 
 
 def test_backtracking_survives_a_misfired_negative_cycle_check(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -5,14 +5,22 @@ bad missions are refused with a clear reason and leave the robot as it was."""
 
 from __future__ import annotations
 
+import logging
 import math
+from pathlib import Path
 
 import numpy as np
+import pytest
 
+from agent.config import AgentConfig
+from agent.config_slam import SlamConfig
 from agent.exploration import Command, ExploreConfig, ExploreState, FrontierExplorer
 from agent.navigation.config import NavConfig
+from agent.runtime.agent import Agent
 from agent.runtime.arbiter import CommandArbiter, DriveSource
+from agent.runtime.devices import Devices
 from agent.runtime.mission_loop import LOOK_AROUND_TURNS, MISSION_GOAL_IDS, MissionLoop, NamedPlace
+from agent.slam.mapio import save_topology, topology_path
 from agent.slam.render import FREE_VALUE, OCCUPIED_VALUE, UNKNOWN_VALUE, OccupancyImage
 from firmware_protocol.command_frame import (
     NO_SEQUENCE,
@@ -304,3 +312,51 @@ def test_the_topology_names_the_places_and_a_saved_one_gives_a_new_loop_its_plac
     fresh.on_map(room_image())
     assert fresh.take(PlaceCommand(2, 2, "desk")).state is GoalState.ACCEPTED
     assert (fresh.places["desk"].x_m, fresh.places["desk"].y_m) == (2.0, 3.0)
+
+
+def _agent_starting_on(map_path: Path) -> Agent:
+    """An agent whose ``slam.map`` is ``map_path``, with a mission loop that knows one place already."""
+    agent = Agent(AgentConfig(file="test", devices={}, slam=SlamConfig(map=map_path)), Devices())
+    agent.missions = MissionLoop(
+        FrontierExplorer(ExploreConfig(), NavConfig()),
+        NavConfig(),
+        CommandArbiter(0.2, 1.0),
+        lambda status: None,
+        lambda: (1.0, 2.0, 0.0),
+        lambda: 0,
+        places={"dock": NamedPlace("dock", 0.5, 0.5)},
+    )
+    return agent
+
+
+def test_the_agent_reads_the_topology_beside_its_start_map_and_a_bad_file_loses_nothing(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rig = Rig()
+    rig.loop.on_map(room_image())
+    data = rig.loop.topology()
+    assert data is not None
+    map_path = tmp_path / "office.yaml"
+    path = save_topology(data, topology_path(map_path))
+    agent = _agent_starting_on(map_path)
+    agent._load_topology()
+    assert agent.missions is not None
+    assert set(agent.missions.places) == {"dock", "desk", "bin"}
+    assert (agent.missions.places["desk"].x_m, agent.missions.places["desk"].y_m) == (2.0, 3.0)
+    # No file beside the map: nothing to read, nothing said.
+    agent = _agent_starting_on(tmp_path / "other.yaml")
+    agent._load_topology()
+    assert agent.missions is not None and set(agent.missions.places) == {"dock"}
+    for broken, why in (
+        ("{not json", "not JSON"),
+        ('{"type": "FeatureCollection", "features": 3}', "features: must be a list"),
+        ("[1, 2]", "not a JSON object"),
+    ):
+        path.write_text(broken, encoding="utf-8")
+        agent = _agent_starting_on(map_path)
+        caplog.clear()
+        with caplog.at_level(logging.ERROR, logger="agent.runtime.agent"):
+            agent._load_topology()
+        assert agent.missions is not None and set(agent.missions.places) == {"dock"}  # kept, none added
+        assert f"topological map {path} not loaded" in caplog.text and why in caplog.text, caplog.text
+        assert path.read_text(encoding="utf-8") == broken  # the file left as it was, for the user to mend
