@@ -29,15 +29,7 @@ def make_scan(t_s: float, person: tuple[float, float] | None, seq: int) -> Scan:
 def test_it_follows_then_stops_on_the_first_step_after_the_person_is_lost() -> None:
     now = [0.0]
     sent: list[tuple[float, float]] = []
-    loop = FollowLoop(
-        Follower(),
-        PersonTracker(TrackerConfig(lost_after_s=1.0)),
-        (0.0, 0.0, 0.0),
-        lambda: (1.0, 3.0, 0.0),  # the robot stands still here (the test moves only the person)
-        lambda: None,  # no RFID reader: acquisition looks ahead
-        lambda v, w: sent.append((v, w)),
-        lambda: now[0],
-    )
+    loop = _loop(now, sent)  # the robot stands still (the test moves only the person), no RFID reader
     seq = 0
     for k in range(20):  # 2 s: the person walks away from 2.5 m ahead at 0.7 m/s
         now[0] = k * 0.1
@@ -73,14 +65,22 @@ def _walk_then(loop: FollowLoop, now: list[float], until_s: float) -> int:
     return seq
 
 
-def _loop(now: list[float], sent: list[tuple[float, float]], **kw: object) -> FollowLoop:
+def _loop(
+    now: list[float],
+    sent: list[tuple[float, float]] | None = None,
+    tracker: PersonTracker | None = None,
+    coarse: object = None,
+    **kw: object,
+) -> FollowLoop:
+    """A follow loop whose robot stands at (1, 3) facing +x, on the clock ``now[0]``; its commands go to
+    ``sent``; ``coarse``: the RFID layer (None: no reader, acquisition looks ahead)."""
     return FollowLoop(
         Follower(),
-        PersonTracker(TrackerConfig(lost_after_s=1.0)),
+        tracker if tracker is not None else PersonTracker(TrackerConfig(lost_after_s=1.0)),
         (0.0, 0.0, 0.0),
         lambda: (1.0, 3.0, 0.0),
-        lambda: None,
-        lambda v, w: sent.append((v, w)),
+        lambda: coarse,  # type: ignore[arg-type,return-value]
+        (lambda v, w: sent.append((v, w))) if sent is not None else (lambda v, w: None),
         lambda: now[0],
         **kw,  # type: ignore[arg-type]
     )
@@ -176,15 +176,7 @@ def test_no_tag_read_someone_elses_tag_and_two_tags_are_clear_states() -> None:
         layer = CoarseLayer(CoarseFilter(default_table(model)), ours, 0.25, lambda: (1.0, 3.0, 0.0))
         now = [0.0]
         sent: list[tuple[float, float]] = []
-        loop = FollowLoop(
-            Follower(),
-            PersonTracker(),
-            (0.0, 0.0, 0.0),
-            lambda: (1.0, 3.0, 0.0),
-            lambda: layer,
-            lambda v, w: sent.append((v, w)),
-            lambda: now[0],
-        )
+        loop = _loop(now, sent, PersonTracker(), layer)
         for k in range(120):  # 30 s of cycles
             t_ns = int(k * 0.25e9)
             for tag in tags:
@@ -243,15 +235,7 @@ def test_a_user_on_the_static_map_is_taken_once_the_rfid_window_has_held_them_ah
             latest=types.SimpleNamespace(estimate=estimate),
             filter=types.SimpleNamespace(within=lambda c, w: types.SimpleNamespace(probability=0.26)),
         )
-        loop = FollowLoop(
-            Follower(),
-            PersonTracker(),
-            (0.0, 0.0, 0.0),
-            lambda: (1.0, 3.0, 0.0),
-            lambda: coarse,  # type: ignore[arg-type,return-value]
-            lambda v, w: None,
-            lambda: now[0],
-        )
+        loop = _loop(now, None, PersonTracker(), coarse)
         loop._static = lambda laser, angles, ranges: np.ones(len(ranges), dtype=bool)  # type: ignore[method-assign]
         tracking = []
         angles = -math.radians(120.0) + INC * np.arange(N)
@@ -273,15 +257,7 @@ def test_a_scan_that_misses_the_person_wakes_the_step() -> None:
     """The stop is decided on the first missed scan; the loop steps at once rather than at its next period,
     and a scan that sees them does not wake it."""
     now = [0.0]
-    loop = FollowLoop(
-        Follower(),
-        PersonTracker(),
-        (0.0, 0.0, 0.0),
-        lambda: (1.0, 3.0, 0.0),
-        lambda: None,
-        lambda v, w: None,
-        lambda: now[0],
-    )
+    loop = _loop(now, None, PersonTracker())
     for k in range(5):
         now[0] = k * 0.1
         loop.on_scan(make_scan(now[0], (3.0 + 0.7 * now[0], 3.0), k))
@@ -298,15 +274,7 @@ def test_a_late_scan_slows_the_robot_before_the_no_scan_stop() -> None:
     scan_stale_s (the 'no laser scan' stop)."""
     now = [0.0]
     sent: list[tuple[float, float]] = []
-    loop = FollowLoop(
-        Follower(),
-        PersonTracker(),
-        (0.0, 0.0, 0.0),
-        lambda: (1.0, 3.0, 0.0),
-        lambda: None,
-        lambda v, w: sent.append((v, w)),
-        lambda: now[0],
-    )
+    loop = _loop(now, sent, PersonTracker())
     for k in range(10):
         now[0] = k * 0.1
         loop.on_scan(make_scan(now[0], (3.5 + 0.7 * now[0], 3.0), k))
