@@ -133,6 +133,12 @@ class TrackerConfig:
     distractor_offset: float = 1.0
     distractor_ratio: float = 0.75
     distractor_forget: float = 0.05
+    # ... and the box moved by distractor_near box sizes (overlapping the target) is one when its
+    # rho_colour is at least distractor_near_ratio times the target's: with 1, colour has no peak at the
+    # converged box (it does not localise the target: a large, evenly coloured person near the camera);
+    # distractor_near = 0 turns this off.
+    distractor_near: float = 0.5
+    distractor_near_ratio: float = 1.0
     max_iterations: int = 12
     epsilon_px: float = 0.5  # converged when a step is shorter
     max_pixels: int = 2500  # kernel samples per evaluation; bigger boxes are sampled on a grid
@@ -163,8 +169,13 @@ class TrackerConfig:
             self.distractor_offset > 0.0
             and self.distractor_ratio > 0.0
             and 0.0 <= self.distractor_forget <= 1.0
+            and self.distractor_near >= 0.0
+            and self.distractor_near_ratio > 0.0
         ):
-            raise ValueError("need distractor_offset > 0, distractor_ratio > 0, 0 <= distractor_forget <= 1")
+            raise ValueError(
+                "need distractor_offset > 0, distractor_ratio > 0, 0 <= distractor_forget <= 1, "
+                "distractor_near >= 0, distractor_near_ratio > 0"
+            )
         if self.background_every < 1:
             raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
@@ -717,22 +728,28 @@ class MeanShiftTracker:
         cfg = self.config
         kernel = self._kernel(self._size)
         least = max(8, len(kernel.k) // 4)
-        # Colour at each neighbour (bin counts only); the texture of the most alike one.
+        # Colour at each neighbour (bin counts only); the texture of the most alike one that colour
+        # would take for the target: on the far ring (distractor_offset) at distractor_ratio of the
+        # target's rho_c, on the near ring (distractor_near) at distractor_near_ratio.
+        rings = [(cfg.distractor_offset, cfg.distractor_ratio)]
+        if cfg.distractor_near > 0.0:
+            rings.append((cfg.distractor_near, cfg.distractor_near_ratio))
         best: tuple[float, IntArray, IntArray, FloatArray] | None = None
-        for ox, oy in _NEIGHBOURS:
-            at = centre + cfg.distractor_offset * self._size * np.array([ox, oy])
-            rows, cols, valid = window.cells(round(at[0]) + kernel.dx, round(at[1]) + kernel.dy)
-            if int(np.count_nonzero(valid)) < least:
-                continue
-            rows, cols, k = rows[valid], cols[valid], kernel.k[valid]
-            p_colour = np.bincount(window.colour[rows, cols], weights=k, minlength=self._bins).astype(
-                np.float64
-            )
-            rho_c = _bhattacharyya(p_colour, self._q_colour)
-            if best is None or rho_c > best[0]:
-                best = (rho_c, rows, cols, k)
+        for offset, ratio in rings:
+            for ox, oy in _NEIGHBOURS:
+                at = centre + offset * self._size * np.array([ox, oy])
+                rows, cols, valid = window.cells(round(at[0]) + kernel.dx, round(at[1]) + kernel.dy)
+                if int(np.count_nonzero(valid)) < least:
+                    continue
+                rows, cols, k = rows[valid], cols[valid], kernel.k[valid]
+                p_colour = np.bincount(window.colour[rows, cols], weights=k, minlength=self._bins).astype(
+                    np.float64
+                )
+                rho_c = _bhattacharyya(p_colour, self._q_colour)
+                if rho_c >= ratio * ev.rho_colour and (best is None or rho_c > best[0]):
+                    best = (rho_c, rows, cols, k)
         a0, b0 = self._exponents
-        if best is not None and best[0] >= cfg.distractor_ratio * ev.rho_colour:
+        if best is not None:
             _, rows, cols, k = best
             p_texture = np.bincount(texture[rows, cols], weights=k, minlength=self._labels).astype(np.float64)
             d_c = 1.0 - best[0]
