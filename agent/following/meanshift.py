@@ -126,7 +126,7 @@ class TrackerConfig:
     background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
     min_feature_weight: float = 0.5  # floor of a and b (of a only with texture_weighting=distractor)
-    texture_weighting: TextureWeighting = TextureWeighting.RING
+    texture_weighting: TextureWeighting = TextureWeighting.DISTRACTOR
     # distractor weighting: a neighbour (the box moved by distractor_offset box sizes, 8 directions) is a
     # distractor when its rho_colour is at least distractor_ratio times the target's; with none, a and b
     # relax toward the ring's by distractor_forget per confident tracking frame.

@@ -53,7 +53,8 @@ def test_distractor_weighting_gives_texture_its_say_only_near_a_look_alike() -> 
     beside the target it is at least the floor, and the target is held through the crossing."""
     frames = list(crossing_sequence(CrossingScene(seed=0)))
     truth = np.array([box for _, box in frames])
-    config = TrackerConfig(texture_weighting=TextureWeighting.DISTRACTOR)
+    config = TrackerConfig()
+    assert config.texture_weighting is TextureWeighting.DISTRACTOR  # the default
     tracker = MeanShiftTracker(config)
     tracker.start(*frames[0])
     weights = [tracker.feature_weights]
@@ -68,10 +69,28 @@ def test_distractor_weighting_gives_texture_its_say_only_near_a_look_alike() -> 
     errors = centre_errors(np.array(boxes), truth)
     assert precision_at(errors, 20.0) >= 0.95
     assert errors[-1] < 10.0
-    # The ring weighting (the default) floors texture at min_feature_weight throughout.
-    ring = MeanShiftTracker(TrackerConfig())
+    # The ring weighting floors texture at min_feature_weight throughout.
+    ring = MeanShiftTracker(TrackerConfig(texture_weighting=TextureWeighting.RING))
     ring.start(*frames[0])
     assert ring.feature_weights[1] >= config.min_feature_weight
+
+
+def test_the_near_ring_counts_a_neighbour_overlapping_the_target() -> None:
+    """``distractor_near``: the box moved by half its size is a distractor when its colour matches at
+    least ``distractor_near_ratio`` times as well as the box's (1 by default: colour has no peak at the
+    converged box). On the crossing scene's first frame colour does peak there (texture keeps the
+    ring's small exponent); a ratio of 0.5 flags the overlapping neighbours at once, and with the near
+    ring off the same ratio changes nothing."""
+    image, box = next(iter(crossing_sequence(CrossingScene(seed=0))))
+    floor = TrackerConfig().min_feature_weight
+    texture = {}
+    for near, ratio in ((0.5, 1.0), (0.5, 0.5), (0.0, 0.5)):
+        tracker = MeanShiftTracker(TrackerConfig(distractor_near=near, distractor_near_ratio=ratio))
+        tracker.start(image, box)
+        texture[near, ratio] = tracker.feature_weights[1]
+    assert texture[0.5, 1.0] < floor
+    assert texture[0.5, 0.5] >= floor
+    assert texture[0.0, 0.5] == texture[0.5, 1.0]
 
 
 def _occlusion_scene(frames: int = 70) -> list[tuple[np.ndarray, np.ndarray]]:
