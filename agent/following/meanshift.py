@@ -709,7 +709,11 @@ class MeanShiftTracker:
         ``window`` reaches (at least a quarter of a neighbour's kernel: the tracking window reaches about
         one box size past the box). The one with the highest ``rho_c`` is a distractor when that is at
         least ``distractor_ratio`` times the target's own ``rho_c``: colour alone would take it for the
-        target (a look-alike passer-by, the partner walking beside the user). Each feature then counts by
+        target (a look-alike passer-by, the partner walking beside the user). A second ring, the box moved
+        by ``distractor_near`` box sizes (overlapping it, inside the window), is a distractor when its
+        ``rho_c`` is at least ``distractor_near_ratio`` (1) times the target's: colour has no peak at the
+        converged box and does not localise the target (a large, evenly coloured person near the camera,
+        whose far neighbours lie past the window; ``track_left_turn`` seed 4). Each feature then counts by
         its distance from the distractor, ``1 - BC(q, p_distractor)``, over the larger of the two, both
         floored at ``min_feature_weight``: while a look-alike is near, texture has at least that say.
         With no distractor the exponents relax, by ``distractor_forget`` a confident frame, toward the
