@@ -223,3 +223,22 @@ def test_log_likelihood_peaks_at_the_truth() -> None:
     ll = scan_log_likelihood(field, np.zeros(1, dtype=np.int64), points, candidates, 0.05, 0.25)
     assert int(np.argmax(ll[0])) == 4
     assert np.all(np.diff(ll[0, :5]) > 0) and np.all(np.diff(ll[0, 4:]) < 0)
+
+
+def test_stack_field_is_each_window_field() -> None:
+    """The stack's windows are transformed one by one and scaled and coded together: nothing may leak
+    between them (a wall at one window's edge is no wall in the next)."""
+    rng = np.random.default_rng(3)
+    obstacles = rng.random((3, 40, 50)) < 0.02
+    obstacles[0, :, -1] = True  # a wall along y on the first window's last column
+    obstacles[1, 0, :] = True  # a wall along x on the second window's first row
+    obstacles[2, 10, 5:45] = obstacles[2, 11, 5:30] = True  # a wall two cells thick
+    known = rng.random((3, 40, 50)) < 0.97
+    known[:, :, 40:] = False
+    known |= obstacles
+    stack = DistanceField.from_obstacles(obstacles, (1.0, 2.0), RES, 0.55, known)
+    assert (stack.medial > 0).any() and (stack.distance_m < 0).any()
+    for k in range(3):
+        alone = DistanceField.from_obstacles(obstacles[k : k + 1], (1.0, 2.0), RES, 0.55, known[k : k + 1])
+        np.testing.assert_array_equal(stack.distance_m[k], alone.distance_m[0])
+        np.testing.assert_array_equal(stack.medial[k], alone.medial[0])
