@@ -16,6 +16,7 @@ view cost the map.
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5
     python benchmarks/slam_office.py --seeds $(seq 0 23) --out office.json
     python benchmarks/slam_office.py --seeds 0 1 2 --people none --seconds 60 --wheels nominal
+    python benchmarks/slam_office.py --seeds $(seq 8 23) --tune 0 1 2 3 4 5 6 7 --degenerate-noise-scale 1
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5 --edge-sigma 0.005 0.005 0.001 --match-sigma 0.1
 """
 
@@ -38,8 +39,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agent.commands.eval_slam import log_proposal
 from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import absolute_trajectory_error, aligned_trajectory_error
+from agent.slam.proposal import ProposalConfig
 from agent.slam.rbpf import RbpfConfig
 from agent.slam.replay import replay
 from agent.slam.simlog import (
@@ -86,6 +89,7 @@ def run_seed(
     loop_closure: bool = True,
     edge_sigma: tuple[float, float, float] | None = None,
     match_sigma: float | None = None,
+    degenerate_scale: float | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -94,9 +98,13 @@ def run_seed(
         fit = fit_wheels([WheelRun(*r) for r in runs])
         geometry = WheelGeometry(fit.wheel_radius_m, fit.track_m)
     simulated = simulate_log(world, seconds, wheel_errors=errors, wheel_geometry=geometry, seed=seed)
+    proposal = log_proposal("simulated", ProposalConfig())
+    if degenerate_scale is not None:
+        proposal = dataclasses.replace(proposal, degenerate_noise_scale=degenerate_scale)
     config = RbpfConfig(
         particles=30,
         noise=MOTION_NOISE,
+        proposal=proposal,
         initial_pose=simulated.start_pose(from_fix=False),
         seed=seed,
         loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
@@ -156,6 +164,11 @@ def main() -> int:
         help="the pose graph's front-end edge sigmas (LoopClosureConfig.motion_sigma)",
     )
     parser.add_argument("--match-sigma", type=float, help="loop factors with the match's covariance")
+    parser.add_argument(
+        "--degenerate-noise-scale",
+        type=float,
+        help="ProposalConfig.degenerate_noise_scale (default: eval slam's for the simulated robot; 1: off)",
+    )
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
     args = parser.parse_args()
@@ -164,7 +177,14 @@ def main() -> int:
     for seed in args.seeds:
         edge = tuple(args.edge_sigma) if args.edge_sigma else None
         row = run_seed(
-            world, seed, args.seconds, args.wheels, args.loop_closure == "on", edge, args.match_sigma
+            world,
+            seed,
+            args.seconds,
+            args.wheels,
+            args.loop_closure == "on",
+            edge,
+            args.match_sigma,
+            args.degenerate_noise_scale,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -178,6 +198,7 @@ def main() -> int:
         "loop_closure": args.loop_closure,
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
+        "degenerate_noise_scale": args.degenerate_noise_scale,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

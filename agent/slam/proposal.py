@@ -82,6 +82,12 @@ class ProposalConfig:
     # prior's too, and keep the one of lower truncated energy (see ``improved_proposal``). On for radish
     # logs in ``eval slam``, where the search runs at nearly every update (docs/slam.md, "Scan matching").
     keep_better_start: bool = False
+    # How much of the motion model's spread a drawn pose keeps in the directions the scan (and a fix, if
+    # any) does not constrain, a corridor's length: the draw's deviation is scaled as if the motion prior
+    # were this many times tighter there (:func:`degenerate_scaling`): by this factor where only the prior
+    # holds the pose, by ~1 where the scan does. 1: off (the paper's draw, the default). ``eval slam``
+    # sets 0.3 for the simulated robot (``eval_slam.log_proposal``; docs/slam.md, "Scan matching").
+    degenerate_noise_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -281,13 +287,42 @@ def improved_proposal(
     cov = np.einsum("pk,pki,pkj->pij", weights, dev, dev)
     cov += np.einsum("pi,ij->pij", steps**2 / 12.0, np.eye(3))
     chol = np.linalg.cholesky(cov)
-    draw = centre + mean_offset + np.einsum("pij,pj->pi", chol, rng.standard_normal((p, 3)))
+    noise_xyz = np.einsum("pij,pj->pi", chol, rng.standard_normal((p, 3)))
+    if config.degenerate_noise_scale != 1.0:
+        # Measured information: the scan's, and a fix's where one joined the prior (matcher_prior - prior).
+        measured = result.information + (matcher_prior - prior)
+        scaling = degenerate_scaling(measured, prior, config.degenerate_noise_scale)
+        noise_xyz = np.einsum("pij,pj->pi", scaling, noise_xyz)
+    draw = centre + mean_offset + noise_xyz
     # Where matching failed: the motion model (with a measurement, the Gaussian fitted around the prior,
     # which holds it).
     fallback = draw if measurement is not None else sample_motion(previous, increment, noise, rng)
     poses = np.where(ok[:, None], draw, fallback)
     poses[:, 2] = wrap_angle(poses[:, 2])
     return ProposalResult(poses, log_eta, ok, result)
+
+
+def degenerate_scaling(information: FloatArray, prior: FloatArray, scale: float) -> FloatArray:
+    """(P, 3, 3) maps M that shrink a draw's noise in the directions only the motion prior constrains.
+
+    In the prior's whitened coordinates y = Lᵀ x (Λ = L Lᵀ the prior's information) the prior is the
+    identity and the scan's information A = L⁻¹ H L⁻ᵀ = U diag(λ) Uᵀ; the posterior's standard deviation
+    along eigenvector u_i is (1 + λ_i)^-1/2, and with the prior k = ``scale`` times tighter it would be
+    (1/k² + λ_i)^-1/2. M = L⁻ᵀ U diag(sqrt((1 + λ) / (1/k² + λ))) Uᵀ Lᵀ rescales by their ratio: k along
+    a direction the scan says nothing about (λ = 0: a corridor's length), 1 where the scan dominates.
+    Why: in such a direction no weight can tell particles apart, so every update's draw is a random
+    step that resampling keeps at random, and the trajectory random-walks with the motion model's
+    spread (which is wider than the odometry's real error) instead of the odometry's."""
+    eye = np.eye(3)[None, :, :]
+    lower = np.linalg.cholesky(prior + 1e-12 * eye)
+    lower_inv = np.linalg.inv(lower)
+    whitened = lower_inv @ information @ np.swapaxes(lower_inv, 1, 2)
+    lam, vec = np.linalg.eigh(0.5 * (whitened + np.swapaxes(whitened, 1, 2)))
+    lam = np.maximum(lam, 0.0)
+    gain = np.sqrt((1.0 + lam) / (1.0 / scale**2 + lam))
+    inner = np.einsum("pij,pj,pkj->pik", vec, gain, vec)
+    out: FloatArray = np.swapaxes(lower_inv, 1, 2) @ inner @ np.swapaxes(lower, 1, 2)
+    return out
 
 
 def laplace_log_eta(

@@ -22,7 +22,7 @@ from agent.slam.mcl import MclConfig, MclLocalizer
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
 from agent.slam.pose import between, compose, inverse
-from agent.slam.proposal import ProposalConfig, laplace_log_eta
+from agent.slam.proposal import ProposalConfig, degenerate_scaling, laplace_log_eta
 from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind, systematic_resample
 from agent.slam.render import occupancy_image
 from agent.slam.replay import replay
@@ -195,6 +195,43 @@ def test_closed_form_eta_is_the_integral() -> None:
     volume = float(np.prod([a[1] - a[0] for a in axes]))
     numeric = log_f.max() + np.log(np.exp(log_f - log_f.max()).sum() * volume)
     assert closed[0] == pytest.approx(numeric, abs=0.02)
+
+
+def test_degenerate_directions_draw_less_spread() -> None:
+    """``degenerate_scaling``: a draw's covariance M C Mᵀ is the posterior's with the prior k times tighter:
+    along a corridor (no scan information) the spread shrinks by k, across it and in heading (the scan's)
+    it barely changes, whatever the corridor's direction and the prior's units."""
+    rng = np.random.default_rng(3)
+    prior = np.diag([1.0e3, 2.0e3, 5.0e4])  # the motion prior's information, x y yaw
+    angle = 0.7  # the corridor runs along (cos, sin) of this
+    c, s = math.cos(angle), math.sin(angle)
+    across = np.array([-s, c, 0.0])
+    scan = 1.0e6 * np.outer(across, across) + np.diag([0.0, 0.0, 1.0e7])
+    k = 0.3
+    m = degenerate_scaling(scan[None], prior[None], k)[0]
+    posterior = np.linalg.inv(scan + prior)
+    tighter = np.linalg.inv(scan + prior / k**2)
+    drawn = m @ posterior @ m.T
+    along = np.array([c, s, 0.0])
+    assert along @ drawn @ along == pytest.approx(along @ tighter @ along, rel=0.02)
+    assert along @ drawn @ along == pytest.approx(k**2 * (along @ posterior @ along), rel=0.05)
+    assert across @ drawn @ across == pytest.approx(across @ posterior @ across, rel=0.06)
+    assert drawn[2, 2] == pytest.approx(posterior[2, 2], rel=0.06)
+    # No scan information at all: every direction k times the prior's spread; k = 1: the identity.
+    assert degenerate_scaling(np.zeros((1, 3, 3)), prior[None], k)[0] == pytest.approx(k * np.eye(3))
+    random_info = rng.standard_normal((2, 3, 3))
+    random_info = random_info @ np.swapaxes(random_info, 1, 2)
+    assert degenerate_scaling(random_info, np.stack([prior, prior]), 1.0) == pytest.approx(
+        np.stack([np.eye(3), np.eye(3)]), abs=1e-9
+    )
+
+
+def test_slam_with_degenerate_noise_scale(loop: tuple[np.ndarray, ...]) -> None:
+    _times, truth, _odometry, _ = loop
+    start = tuple(float(v) for v in truth[0])
+    proposal = ProposalConfig(degenerate_noise_scale=0.3)
+    _slam, estimate = run_filter(loop, RbpfConfig(particles=8, initial_pose=start, proposal=proposal))
+    assert absolute_trajectory_error(truth, estimate) < 0.05
 
 
 def test_slam_with_closed_form_eta(loop: tuple[np.ndarray, ...]) -> None:
