@@ -373,3 +373,21 @@ def test_the_office_is_cut_into_its_eight_rooms_and_the_corridor() -> None:
     for r in regions[1:]:  # each room's outline holds one room's centre
         assert sum(point_in_polygon(c, r.polygon) for c in centres) == 1
     assert all(sum(point_in_polygon(c, r.polygon) for r in regions) == 1 for c in centres)
+
+
+def test_frontier_behind_a_wall_is_out_of_sight() -> None:
+    """Gain is frontier in sight of the candidate: the frontier of the room behind a wall, within the gain
+    radius, is not (office seed 0: a tip in a corner of room N2 drew its gain from room N1 through the
+    wall); through the door it is."""
+    from agent.exploration.sp2atm_explorer import in_sight
+
+    grid = two_rooms()  # the shared wall at x 4.5-4.55, the door at y 1.5-2.5
+    spot = np.array([[4.0, 2.6]])  # west of the wall, by the door
+    behind = np.array([[5.0, 3.2], [5.2, 3.4]])  # east of the wall, within 1.5 m
+    through = np.array([[5.0, 2.0]])  # seen through the door
+    targets = np.concatenate([behind, through])
+    pairs = np.ones((1, 3), dtype=bool)
+    assert in_sight(grid, spot, targets, pairs).tolist() == [[False, False, True]]
+    open_wall = opened(grid, 4.5, 0.3, 4.55, 3.7)  # no wall: all in sight
+    assert in_sight(open_wall, spot, targets, pairs).all()
+    assert not in_sight(grid, spot, targets, np.zeros((1, 3), dtype=bool)).any()  # only the pairs asked
