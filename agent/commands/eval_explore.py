@@ -180,13 +180,13 @@ class ScanMap:
         last[passed] = False
         last[ended] = True
         self.hit_t.reshape(-1)[ended] = t_s
+        np.clip(self.log_odds, -L_CLAMP, L_CLAMP, out=self.log_odds)
 
     def recent_hits(self, t_s: float, within_s: float) -> FloatArray:
         """The centres (metres) of the cells whose latest observation was a hit no older than
         ``within_s``: what the laser sees occupied now (a person's trail of older hits left out)."""
         cells = np.argwhere(self.last_hit & (self.hit_t >= t_s - within_s))
         return self.spec.to_world(cells)
-        np.clip(self.log_odds, -L_CLAMP, L_CLAMP, out=self.log_odds)
 
     def _flat(self, x: FloatArray, y: FloatArray) -> npt.NDArray[np.intp]:
         rows, cols = self.spec.shape
