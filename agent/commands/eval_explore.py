@@ -338,6 +338,17 @@ def run_exploration(
     stopped_reason = ""
     wall_start = time.perf_counter()
     last_progress = 0.0
+
+    def report(t_s: float, state: str) -> None:
+        """One progress line on stderr: the share of the true area explored on the current map."""
+        seen = float(np.count_nonzero(target_area & ~grid.unknown)) / max(int(target_area.sum()), 1)
+        print(
+            f"  t={t_s:6.0f} s  explored {seen:6.1%}  path {run.path_m:6.1f} m  decisions "
+            f"{len(run.decision_ms)}  {state}",
+            file=sys.stderr,
+            flush=True,
+        )
+
     tick = 0
     last = (start.x_m, start.y_m)
     scanned = False
@@ -433,23 +444,11 @@ def run_exploration(
             break
         if progress and t - last_progress >= PROGRESS_EVERY_S:
             last_progress = t
-            seen = float(np.count_nonzero(target_area & ~grid.unknown)) / max(int(target_area.sum()), 1)
-            print(
-                f"  t={t:6.0f} s  explored {seen:6.1%}  path {run.path_m:6.1f} m  decisions "
-                f"{len(run.decision_ms)}  {explorer.state.value}: {explorer.reason}",
-                file=sys.stderr,
-                flush=True,
-            )
+            report(t, f"{explorer.state.value}: {explorer.reason}")
     sim.set_body_velocity(0.0, 0.0)
     wall_s = time.perf_counter() - wall_start
     if progress:
-        seen = float(np.count_nonzero(target_area & ~grid.unknown)) / max(int(target_area.sum()), 1)
-        print(
-            f"  t={clock.t_s:6.0f} s  explored {seen:6.1%}  path {run.path_m:6.1f} m  decisions "
-            f"{len(run.decision_ms)}  end: {stopped_reason}",
-            file=sys.stderr,
-            flush=True,
-        )
+        report(clock.t_s, f"end: {stopped_reason}")
     grid = _grid(spec, scan_map, slam_map)
     # Judged on the building as it is at the end: a door that closed during the run cuts off what lies
     # behind it (the robot, wherever it is, could not get there now).
