@@ -286,7 +286,7 @@ def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
 
 def test_device_clock_wrap_is_unwrapped(sim: Simulation, tmp_path: Path) -> None:
     fake = FakeUrg(sim, clock_start_ms=WRAP - 500)
-    with PtyServer(fake, link=tmp_path / "urg") as srv, UrgLaser(srv.path, timeout_s=0.5) as laser:
+    with PtyServer(fake, link=tmp_path / "urg") as srv, UrgLaser(srv.path, timeout_s=2.0) as laser:
         laser.start()
         scans = [laser.read(1.0) for _ in range(10)]
     device = np.asarray([s.device_time_ms for s in scans], dtype=np.int64)
