@@ -91,7 +91,7 @@ def server(fake: FakeUrg, tmp_path: Path) -> Iterator[PtyServer]:
 
 @pytest.fixture
 def laser(server: PtyServer) -> Iterator[UrgLaser]:
-    dev = UrgLaser(server.path, timeout_s=0.5)
+    dev = UrgLaser(server.path, timeout_s=2.0)
     dev.open()
     yield dev
     dev.close()
@@ -126,7 +126,7 @@ def test_connect_from_any_sensor_state(sim: Simulation, tmp_path: Path, state: s
     with PtyServer(fake, link=tmp_path / "urg") as srv:
         if state == "streaming":
             time.sleep(0.25)  # scans of the old stream wait in the pty when the driver opens it
-        with UrgLaser(srv.path, timeout_s=0.5) as laser:
+        with UrgLaser(srv.path, timeout_s=2.0) as laser:
             assert laser.scan_once(1.0).ranges_mm.size == 682
         sent = [c.split(b";")[0] for c in fake.commands]
         assert b"SCIP2.0" in sent
@@ -143,7 +143,7 @@ def test_open_fails_cleanly(tmp_path: Path, sim: Simulation) -> None:
     fake.silent = False
     fake.hardware_fault = True
     with PtyServer(fake) as srv:
-        laser = UrgLaser(srv.path, timeout_s=0.5)
+        laser = UrgLaser(srv.path, timeout_s=2.0)
         with pytest.raises(UrgHardwareFault) as info:
             laser.open()
         assert info.value.status == "01" and not laser.is_open
@@ -196,7 +196,7 @@ def test_scan_once_gives_the_world_seen_by_the_laser(sim: Simulation, fake: Fake
 
 
 def test_scan_window_and_clusters(server: PtyServer) -> None:
-    with UrgLaser(server.path, first_step=300, last_step=468, cluster=3, timeout_s=0.5) as laser:
+    with UrgLaser(server.path, first_step=300, last_step=468, cluster=3, timeout_s=2.0) as laser:
         scan = laser.scan_once(1.0)
     assert scan.ranges_mm.size == math.ceil((468 - 300 + 1) / 3)
     assert scan.angle_min_rad == pytest.approx((301 - 384) * STEP_RAD)  # the centre of the first cluster
@@ -259,7 +259,7 @@ def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
     fake = FakeUrg(sim, seed=0)
     assert fake.next_output_in(time.monotonic()) is None  # nothing queued, no stream
     with PtyServer(fake, link=tmp_path / "urg", poll_interval_s=5.0) as srv:
-        laser = UrgLaser(srv.path, timeout_s=0.5)
+        laser = UrgLaser(srv.path, timeout_s=2.0)
         laser.open()
         try:
             laser.start()
@@ -306,7 +306,7 @@ def test_scans_arrive_over_a_19200_bps_serial_line(
     with PtyServer(fake, link=tmp_path / "urg") as srv:
         with caplog.at_level(logging.WARNING, logger="drivers.laser.urg"):
             # A pty moves bytes at once: say that this one stands for a serial line.
-            laser = UrgLaser(srv.path, baudrate=19200, serial_line=True, timeout_s=0.5, stall_timeout_s=1.0)
+            laser = UrgLaser(srv.path, baudrate=19200, serial_line=True, timeout_s=2.0, stall_timeout_s=1.0)
         warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         assert (
             len(warnings) == 1 and "laser.baudrate = 19200" in warnings[0] and "1 scan in 12" in warnings[0]
@@ -361,7 +361,7 @@ def test_the_line_rate_is_only_a_limit_on_a_serial_port(
 @pytest.mark.parametrize("power_cycle", [True, False])
 def test_unplug_and_replug(sim: Simulation, tmp_path: Path, power_cycle: bool) -> None:
     fake = FakeUrg(sim, clock_start_ms=1_000_000)
-    with PtyServer(fake, link=tmp_path / "urg") as server, UrgLaser(server.path, timeout_s=0.5) as laser:
+    with PtyServer(fake, link=tmp_path / "urg") as server, UrgLaser(server.path, timeout_s=2.0) as laser:
         _unplug_and_replug(server, fake, laser, power_cycle)
 
 
@@ -408,7 +408,7 @@ def test_junk_and_bad_checksums_between_frames(fake: FakeUrg, server: PtyServer)
     # below) cannot restart the stream in the middle, the queue holds every scan a starved reader has not
     # taken yet, and the scans delivered are compared with those the fake really sent (a starved fake
     # skips scans itself, as the sensor does when its host stops reading).
-    with UrgLaser(server.path, timeout_s=0.5, stall_timeout_s=60.0, queue_size=64) as laser:
+    with UrgLaser(server.path, timeout_s=2.0, stall_timeout_s=60.0, queue_size=64) as laser:
         laser.start()
         first = laser.read(5.0)
         junk = b"\x00\xffnoise\n\nQT\n"
