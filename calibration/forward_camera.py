@@ -36,7 +36,8 @@ from calibration.intrinsics import (
     truth_of,
 )
 from calibration.intrinsics import interactive as lens_questions
-from calibration.report import StepResult
+from calibration.report import CalibrationError, StepResult
+from drivers.errors import DeviceError
 
 __all__ = ["DEFAULT_FILE", "NAME", "add_arguments", "interactive", "run"]
 
@@ -109,7 +110,10 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         with Rig.for_context(ctx) as rig:
             exposure = None if options.exposure_ms is None else options.exposure_ms / 1000.0
             camera = rig.forward_camera(exposure_s=exposure)
-            frame = camera.grab(timeout_s=5.0)
+            try:
+                frame = camera.grab(timeout_s=5.0)
+            except DeviceError as exc:
+                raise CalibrationError(f"the forward camera gave no frame: {exc}") from exc
             height, width = frame.image.shape[:2]
             view = rig.forward_view
             f_guess = (

@@ -207,9 +207,6 @@ class Rig:
         camera: Camera = self._device(DeviceKind.CAMERA, **overrides)
         return camera
 
-    def has_forward_camera(self) -> bool:
-        return self._forward is not None
-
     def forward_camera(self, exposure_s: float | None = None) -> Camera:
         """The forward camera of ``[camera.forward]`` (person following's), opened with its settings
         (``exposure_s``: in place of the config's)."""
