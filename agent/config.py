@@ -326,7 +326,9 @@ class ForwardViewConfig:
     pitch (optical axis tilted up; rad); the lens: ``hfov_rad`` or ``fx_px`` (with ``fy_px``, None: the
     same), principal point ``cx_px``/``cy_px`` (None: the image centre), at ``width_px`` x ``height_px``
     (the ``width``/``height`` settings; None: the frames' own size; frames of another size scale them).
-    ``lens_given``: whether the config gave ``hfov`` or ``fx_px`` (following on a real camera needs it)."""
+    ``lens_given``: whether the config gave ``hfov`` or ``fx_px`` (following on a real camera needs it).
+    With ``camera_info`` (the file ``vlp-agent calibrate forward-camera`` wrote) the lens is that file's:
+    ``fx_px`` to ``height_px`` and ``distortion`` (OpenCV's k1, k2, p1, p2, k3)."""
 
     mount: MountConfig = field(default_factory=lambda: MountConfig(0.1, 0.0, 1.3))
     hfov_rad: float | None = None
@@ -336,6 +338,8 @@ class ForwardViewConfig:
     cy_px: float | None = None
     width_px: int | None = None
     height_px: int | None = None
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    camera_info: str | None = None
 
     @property
     def lens_given(self) -> bool:
@@ -1006,7 +1010,9 @@ class _Reader:
             options["image"] = str(image)
         options["settings"] = self._camera_settings(settings, t)
         width, height = settings.get("width"), settings.get("height")
-        if isinstance(width, int) and isinstance(height, int):
+        if view.camera_info is not None:
+            pass  # the calibration's own size; frames of another size scale it
+        elif isinstance(width, int) and isinstance(height, int):
             for key, v, side in (("cx_px", view.cx_px, width), ("cy_px", view.cy_px, height)):
                 if v is not None and not 0.0 <= v <= side:
                     raise t.error(key, f"must be inside the {width}x{height} image, got {v:g}")
@@ -1020,7 +1026,7 @@ class _Reader:
     def _forward_view(self, t: _Table, sim: SimConfig | None) -> ForwardViewConfig:
         """``[camera.forward.mount]`` and the lens keys; under ``[sim]`` the world's ``[forward_camera]``
         sets them (the renderer draws with those), so the config may not."""
-        given = [k for k in ("mount", *self._FORWARD_LENS) if t.has(k)]
+        given = [k for k in ("mount", "camera_info", *self._FORWARD_LENS) if t.has(k)]
         if sim is not None:
             if given:
                 raise t.error(
@@ -1041,6 +1047,26 @@ class _Reader:
             )
             m.finish()
         t.known.update(self._FORWARD_LENS)
+        t.known.add("camera_info")
+        if t.has("camera_info"):
+            lens = [k for k in self._FORWARD_LENS if t.has(k)]
+            if lens:
+                raise t.error(lens[0], "give camera_info (the calibrated lens) or the lens keys, not both")
+            path = t.path_value("camera_info", self.base)
+            assert path is not None
+            info = read_camera_info(path, t.key("camera_info"), self.file)
+            return ForwardViewConfig(
+                mount,
+                None,
+                info.fx_px,
+                info.fy_px,
+                info.cx_px,
+                info.cy_px,
+                info.width_px,
+                info.height_px,
+                info.distortion,
+                str(path),
+            )
         hfov = None
         if t.has("hfov_deg") or t.has("hfov_rad"):
             hfov = t.angle("hfov", 0.0)

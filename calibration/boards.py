@@ -97,8 +97,14 @@ class Detection:
 class BoardDetector:
     """Finds one board's corners in 8-bit grey images."""
 
-    def __init__(self, spec: BoardSpec) -> None:
+    def __init__(self, spec: BoardSpec, *, equalize_first: bool = True) -> None:
         self.spec = spec
+        # findChessboardCornersSB is tried with histogram equalisation and without, in this order. Over a
+        # frame that is mostly something else (the forward camera's room: a bright wall around a small board)
+        # the equalisation stretches the wall's noise and the board is lost: that camera tries without first.
+        plain = int(cv2.CALIB_CB_ACCURACY)
+        equalized = int(cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+        self._chessboard_flags = (equalized, plain) if equalize_first else (plain, equalized)
         self.target = spec.target()
         self._object_points = self.target.object_points()
         self._charuco: object = None
@@ -121,8 +127,12 @@ class BoardDetector:
         return self._charuco_corners(image)
 
     def _chessboard(self, image: ImageU8) -> Detection | None:
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
-        found, corners = cv2.findChessboardCornersSB(image, (self.spec.cols, self.spec.rows), flags=flags)
+        size = (self.spec.cols, self.spec.rows)
+        found, corners = False, None
+        for flags in self._chessboard_flags:
+            found, corners = cv2.findChessboardCornersSB(image, size, flags=flags)
+            if found and corners is not None:
+                break
         if not found or corners is None:
             return None
         pts = np.asarray(corners, dtype=np.float32).reshape(-1, 2)

@@ -46,12 +46,18 @@ __all__ = [
     "FolderSource",
     "Guidance",
     "IntrinsicsFit",
+    "LensSolution",
     "View",
     "ViewCollector",
     "add_arguments",
+    "add_lens_arguments",
     "calibrate",
+    "check_view_counts",
+    "first_image_size",
     "interactive",
     "run",
+    "solve_lens",
+    "truth_of",
 ]
 
 log = logging.getLogger(__name__)
@@ -458,7 +464,8 @@ def board_spec(options: argparse.Namespace) -> BoardSpec:
     )
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
+def add_lens_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every board calibration of a lens takes (this step's and ``forward-camera``'s)."""
     add_board_arguments(p)
     p.add_argument("--images", metavar="DIR", help="calibrate from the images in DIR instead of the camera")
     p.add_argument("--views", type=int, default=40, help="views to collect (default: 40)")
@@ -477,6 +484,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--timeout-s", type=float, default=300.0, help="live camera: stop collecting after this long"
     )
     p.add_argument("--exposure-ms", type=float, default=None, help="live camera: exposure while calibrating")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_lens_arguments(p)
     p.add_argument(
         "--sensor-size",
         metavar="WxH",
@@ -487,7 +498,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def interactive(ctx: StepContext, options: argparse.Namespace) -> argparse.Namespace:
-    """The wizard's questions for this step."""
+    """The wizard's questions for this step (and ``forward-camera``'s)."""
     console = ctx.console
     if ctx.sim is None:
         source = ask_choice(
@@ -521,14 +532,27 @@ def _resize(sensor: tuple[int, int] | None, width: int, height: int) -> NearestR
     return NearestResize(sensor[0], sensor[1], width, height)
 
 
-def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
-    console = ctx.console
-    spec = board_spec(options)
-    detector = BoardDetector(spec)
+def check_view_counts(options: argparse.Namespace) -> None:
     if options.min_views < 3 or options.views < options.min_views:
         raise CalibrationError(
             f"--views ({options.views}) must be at least --min-views ({options.min_views}) >= 3"
         )
+
+
+def first_image_size(folder: FolderSource) -> tuple[int, int]:
+    """Width and height of the folder's first image (the size every view must have)."""
+    first = cv2.imread(str(folder.paths[0]), cv2.IMREAD_GRAYSCALE)
+    if first is None:
+        raise CalibrationError(f"cannot read {folder.paths[0]} as an image")
+    height, width = first.shape[:2]
+    return width, height
+
+
+def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
+    console = ctx.console
+    spec = board_spec(options)
+    detector = BoardDetector(spec)
+    check_view_counts(options)
     output = ctx.output(options.output, DEFAULT_FILE)
     sensor = _sensor_size(options.sensor_size)
     truth: dict[str, float] | None = None
@@ -536,12 +560,9 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
 
     if options.images:
         folder = FolderSource(Path(options.images))
-        first = cv2.imread(str(folder.paths[0]), cv2.IMREAD_GRAYSCALE)
-        if first is None:
-            raise CalibrationError(f"cannot read {folder.paths[0]} as an image")
-        height, width = first.shape[:2]
+        width, height = first_image_size(folder)
         console.say(f"  {len(folder.paths)} images in {options.images}")
-        result = _collect_and_fit(
+        lens = solve_lens(
             ctx, options, detector, folder, width, height, 0.8 * width, _resize(sensor, width, height)
         )
     elif ctx.sim is not None:
@@ -551,16 +572,15 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         cam = world.camera
         renderer = target_renderer(cam, detector.target, seed=ctx.sim.seed)
         width, height = cam.output_width_px, cam.output_height_px
-        ti = renderer.output_intrinsics
-        truth = {"fx": ti.fx_px, "fy": ti.fy_px, "cx": ti.cx_px, "cy": ti.cy_px}
+        truth = truth_of(renderer.output_intrinsics)
         helper = BoardHelper(renderer, seed=ctx.sim.seed)
         console.say(
             f"  simulated camera of world {world.name!r} ({width}x{height}); a helper holds the board"
         )
         held = helper.source(max_images=max(6 * options.views, 60))
         sensor = sensor or (cam.sensor_width_px, cam.sensor_height_px)
-        result = _collect_and_fit(
-            ctx, options, detector, held, width, height, 0.8 * width, _resize(sensor, width, height)
+        lens = solve_lens(
+            ctx, options, detector, held, width, height, 0.8 * width, _resize(sensor, width, height), truth
         )
     else:
         ctx.require_robot("calibrating from the camera")
@@ -575,23 +595,99 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
             sensor = sensor or rig.nominal.sensor_size_px
             console.say("  hold the board still in front of the camera; a view is taken when it is still")
             live = CameraSource(camera, options.timeout_s)
-            result = _collect_and_fit(
+            lens = solve_lens(
                 ctx, options, detector, live, width, height, f_guess, _resize(sensor, width, height)
             )
-    fit, collector = result
+    use = [
+        f'set camera_info = "{output}" in the [vlp] table of the robot config',
+        "next: `vlp-agent calibrate mount` (camera tilt and yaw on the base) uses this file",
+    ]
+    return lens.result(NAME, output, "vlp_camera", options.max_rms, use)
 
-    info = CameraInfo.from_matrices(
-        fit.width,
-        fit.height,
-        fit.k,
-        _five(fit.d),
-        _projection(fit),
-        camera_name="vlp_camera",
-    )
+
+# -- the lens from collected views: shared with the forward camera's step (calibration/forward_camera.py) --
+def truth_of(intrinsics: Any) -> dict[str, float]:
+    """The simulated camera's true fx, fy, cx, cy (a ``drivers.sim.render.OutputIntrinsics``)."""
+    return {"fx": intrinsics.fx_px, "fy": intrinsics.fy_px, "cx": intrinsics.cx_px, "cy": intrinsics.cy_px}
+
+
+@dataclass
+class LensSolution:
+    """A lens calibrated from board views: the fit, how the views were collected, the quality checks, the
+    figures (``values``, for ``--json``) and the report lines; ``truth``: the simulated camera's, if any."""
+
+    fit: IntrinsicsFit
+    collector: ViewCollector
+    spec: BoardSpec
+    checks: list[Check]
+    values: dict[str, Any]
+    report: list[str]
+    truth: dict[str, float] | None
+
+    def camera_info(self, camera_name: str) -> CameraInfo:
+        fit = self.fit
+        return CameraInfo.from_matrices(
+            fit.width, fit.height, fit.k, _five(fit.d), _projection(fit), camera_name=camera_name
+        )
+
+    def advice(self, use: list[str]) -> list[str]:
+        """What to do about failed checks; when all pass, ``use`` (where the file goes, what comes next)."""
+        fit, checks = self.fit, self.checks
+        advice: list[str] = []
+        by_name = {c.name: c for c in checks}
+        if not by_name["reprojection rms"].ok:
+            advice.append(
+                "the rms error is high: views drawn red in the PNG are blurred or badly detected; retake "
+                "them, and check the square size and that the board is flat"
+            )
+        if not by_name["image cells covered"].ok:
+            missing = _coverage(fit).missing()
+            advice.append("add views with the board at the " + ", ".join(missing) + " of the picture")
+        if not by_name["focal length 1-sigma"].ok or not by_name["principal point 1-sigma"].ok:
+            advice.append(
+                "the fit is loose: add views with the board tilted 20-45 degrees, and near the corners"
+            )
+        if all(c.ok for c in checks):
+            advice += use
+        return advice
+
+    def result(self, step: str, output: Path, camera_name: str, max_rms: float, use: list[str]) -> StepResult:
+        """The step's result: the camera_info file at ``output`` and its PNG report beside it."""
+        fit = self.fit
+        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+        comment = (
+            f"vlp-agent calibrate {step}, {stamp}\n"
+            f"{len(fit.views)} views of {self.spec.describe()}; reprojection rms {fit.rms_px:.3f} px"
+        )
+        figure = _figure(fit, max_rms, self.checks, self.truth, step)
+        outputs = [
+            Output(output, format_camera_info(self.camera_info(camera_name), comment)),
+            Output(output.with_suffix(".png"), plot.png(figure), report=True),
+        ]
+        return StepResult(step, self.values, self.checks, self.report, self.advice(use), outputs)
+
+
+def solve_lens(
+    ctx: StepContext,
+    options: argparse.Namespace,
+    detector: BoardDetector,
+    source: ViewSource,
+    width: int,
+    height: int,
+    f_guess: float,
+    resize: NearestResize | None = None,
+    truth: dict[str, float] | None = None,
+) -> LensSolution:
+    """Collect views from ``source`` (options ``views``, ``min_views``), fit the lens (``k_coefficients``)
+    and judge it (``max_rms``; coverage; the fit's 1-sigma). CalibrationError, with what to change, when no
+    board was found or too few usable views."""
+    fit, collector = _collect_and_fit(ctx, options, detector, source, width, height, f_guess, resize)
+    spec = detector.spec
+    coverage = _coverage(fit)
     checks = [
         Check("reprojection rms", fit.rms_px, options.max_rms, "px"),
         Check("views used", float(len(fit.views)), float(options.min_views), "", at_least=True),
-        Check("image cells covered", float(_coverage(fit).covered), 7.0, "of 9", at_least=True),
+        Check("image cells covered", float(coverage.covered), 7.0, "of 9", at_least=True),
         Check("focal length 1-sigma", 100.0 * float(fit.std_intrinsics[0]) / fit.fx, 0.5, "%"),
         Check(
             "principal point 1-sigma",
@@ -615,7 +711,8 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         "dropped_views": [{"view": label, "rms_px": round(e, 3)} for label, e in fit.dropped],
         "images_seen": collector.images_seen,
         "boards_seen": collector.boards_seen,
-        "cells_covered": _coverage(fit).covered,
+        "cells_covered": coverage.covered,
+        "cells_missing": coverage.missing(),
         "fx_sigma_px": round(float(fit.std_intrinsics[0]), 4),
         "cx_sigma_px": round(float(fit.std_intrinsics[2]), 4),
         "cy_sigma_px": round(float(fit.std_intrinsics[3]), 4),
@@ -626,6 +723,8 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         f"fx {fit.fx:.2f}  fy {fit.fy:.2f}  cx {fit.cx:.2f}  cy {fit.cy:.2f} px  ({fit.width}x{fit.height})",
         "distortion (k1 k2 p1 p2 k3) " + " ".join(f"{v:+.5f}" for v in _five(fit.d)),
         f"reprojection rms {fit.rms_px:.3f} px; worst view {max(fit.per_view_rms_px):.3f} px",
+        f"coverage: {coverage.covered} of 9 image cells"
+        + (f" (missing: {', '.join(coverage.missing())})" if coverage.covered < 9 else ""),
     ]
     if fit.dropped:
         report.append(
@@ -643,19 +742,7 @@ def run(ctx: StepContext, options: argparse.Namespace) -> StepResult:
         report.append(
             f"against the simulated truth: fx off by {fx_err:.3f} %, principal point off by {pp_err:.3f} px"
         )
-    advice = _advice(fit, checks, output)
-    png_path = output.with_suffix(".png")
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-    comment = (
-        f"vlp-agent calibrate intrinsics, {stamp}\n"
-        f"{len(fit.views)} views of {spec.describe()}; reprojection rms {fit.rms_px:.3f} px"
-    )
-    figure = _figure(fit, options.max_rms, checks, truth)
-    outputs = [
-        Output(output, format_camera_info(info, comment)),
-        Output(png_path, plot.png(figure), report=True),
-    ]
-    return StepResult(NAME, values, checks, report, advice, outputs)
+    return LensSolution(fit, collector, spec, checks, values, report, truth)
 
 
 def _five(d: FloatArray) -> FloatArray:
@@ -729,26 +816,9 @@ def _collect_and_fit(
     return fit, collector
 
 
-def _advice(fit: IntrinsicsFit, checks: list[Check], output: Path) -> list[str]:
-    advice: list[str] = []
-    by_name = {c.name: c for c in checks}
-    if not by_name["reprojection rms"].ok:
-        advice.append(
-            "the rms error is high: views drawn red in the PNG are blurred or badly detected; retake them, "
-            "and check the square size and that the board is flat"
-        )
-    if not by_name["image cells covered"].ok:
-        missing = _coverage(fit).missing()
-        advice.append("add views with the board at the " + ", ".join(missing) + " of the picture")
-    if not by_name["focal length 1-sigma"].ok or not by_name["principal point 1-sigma"].ok:
-        advice.append("the fit is loose: add views with the board tilted 20-45 degrees, and near the corners")
-    if all(c.ok for c in checks):
-        advice.append(f'set camera_info = "{output}" in the [vlp] table of the robot config')
-        advice.append("next: `vlp-agent calibrate mount` (camera tilt and yaw on the base) uses this file")
-    return advice
-
-
-def _figure(fit: IntrinsicsFit, max_rms: float, checks: list[Check], truth: dict[str, float] | None) -> Any:
+def _figure(
+    fit: IntrinsicsFit, max_rms: float, checks: list[Check], truth: dict[str, float] | None, title: str
+) -> Any:
     bars = plot.bar_chart(
         fit.per_view_rms_px,
         title="reprojection rms per view",
@@ -789,5 +859,5 @@ def _figure(fit: IntrinsicsFit, max_rms: float, checks: list[Check], truth: dict
     if truth is not None:
         lines.append(f"truth fx {truth['fx']:.2f} cx {truth['cx']:.2f} cy {truth['cy']:.2f}")
     lines += [c.describe() for c in checks]
-    text = plot.text_panel(lines, title="intrinsics")
+    text = plot.text_panel(lines, title=title)
     return plot.grid([bars, cover, resid, text], columns=2)

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Self
@@ -57,6 +58,24 @@ def _mount(m: Any) -> Mount:
     return Mount(m.x_m, m.y_m, m.z_m, m.yaw_rad, m.roll_rad, m.pitch_rad)
 
 
+def _open_device(what: str, build: Callable[[], Any]) -> Any:
+    """Build and open a device; a DeviceError at open is retried (a missed reply at bring-up: a busy bus, an
+    adapter still enumerating), a ConfigError is not."""
+    for attempt in range(1, _OPEN_ATTEMPTS + 1):
+        try:
+            device = build()
+            device.open()
+            return device
+        except ConfigError as exc:
+            raise CalibrationError(f"cannot open the {what}: {exc}") from exc
+        except DeviceError as exc:
+            if attempt == _OPEN_ATTEMPTS:
+                raise CalibrationError(f"cannot open the {what}: {exc}") from exc
+            log.warning("opening the %s failed (%s); trying again", what, exc)
+            time.sleep(0.3)
+    raise AssertionError("unreachable")
+
+
 class Rig:
     """Devices of one robot for one step. Use as a context manager."""
 
@@ -68,13 +87,18 @@ class Rig:
         simulation: Simulation | None = None,
         robot: Any = None,
         seed: int = 0,
+        forward: tuple[Any, str, Any] | None = None,
     ) -> None:
         self._tables = tables
+        # [camera.forward]: its agent.config.DeviceConfig, the config file, its ForwardViewConfig.
+        self._forward = forward
+        self.forward_view = forward[2] if forward is not None else None
         self.nominal = nominal
         self.simulation = simulation
         self._robot = robot  # drivers.sim.harness.SimulatedRobot, when simulated
         self._seed = seed
         self._open: dict[DeviceKind, Any] = {}
+        self._extra: dict[str, Any] = {}  # devices of no DeviceKind of their own (the forward camera)
         self._stack = contextlib.ExitStack()
 
     # -- making one -------------------------------------------------------------------------------------
@@ -128,6 +152,11 @@ class Rig:
         from agent.config import load_config
 
         config = load_config(path)
+        forward = (
+            (config.forward_camera, config.file, config.forward_view)
+            if config.forward_camera is not None
+            else None
+        )
         if config.sim is not None:
             raise CalibrationError(
                 f"{path} describes the simulated robot ([sim]); use --sim instead of --config"
@@ -147,7 +176,7 @@ class Rig:
             if intr is not None and intr.sensor_width_px
             else None,
         )
-        return cls(tables, nominal)
+        return cls(tables, nominal, forward=forward)
 
     # -- devices ----------------------------------------------------------------------------------------
     def has(self, kind: DeviceKind) -> bool:
@@ -165,19 +194,7 @@ class Rig:
             cls = backend_class(kind, backend)
         except (DeviceError, ConfigError) as exc:
             raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
-        for attempt in range(1, _OPEN_ATTEMPTS + 1):
-            try:
-                device = cls(**options)
-                device.open()
-                break
-            except ConfigError as exc:
-                raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
-            except DeviceError as exc:
-                # A missed reply at bring-up (a busy bus, an adapter still enumerating) is worth a retry.
-                if attempt == _OPEN_ATTEMPTS:
-                    raise CalibrationError(f"cannot open the {kind.value} ({backend}): {exc}") from exc
-                log.warning("opening the %s failed (%s); trying again", kind.value, exc)
-                time.sleep(0.3)
+        device = _open_device(f"{kind.value} ({backend})", lambda: cls(**options))
         self._open[kind] = device
         return device
 
@@ -188,6 +205,30 @@ class Rig:
             settings = options.get("settings") or CameraSettings()
             overrides["settings"] = dataclasses.replace(settings, exposure_s=exposure_s)
         camera: Camera = self._device(DeviceKind.CAMERA, **overrides)
+        return camera
+
+    def forward_camera(self, exposure_s: float | None = None) -> Camera:
+        """The forward camera of ``[camera.forward]`` (person following's), opened with its settings
+        (``exposure_s``: in place of the config's)."""
+        if self._forward is None:
+            raise CalibrationError(
+                "the robot has no forward camera: its config has no [camera.forward] table (or it has "
+                "enabled = false); see docs/config.md"
+            )
+        if "forward_camera" in self._extra:
+            camera: Camera = self._extra["forward_camera"]
+            return camera
+        from agent.runtime.devices import build_forward_camera
+
+        device, file, _ = self._forward
+        if exposure_s is not None:
+            settings = device.options.get("settings") or CameraSettings()
+            options = {**device.options, "settings": dataclasses.replace(settings, exposure_s=exposure_s)}
+            device = dataclasses.replace(device, options=options)
+        camera = _open_device(
+            f"forward camera ({device.backend})", lambda: build_forward_camera(device, file)
+        )
+        self._extra["forward_camera"] = camera
         return camera
 
     def servos(self) -> WheelServos:
@@ -216,12 +257,14 @@ class Rig:
         if servos is not None:
             with contextlib.suppress(DeviceError):
                 servos.stop()
-        for kind, device in reversed(list(self._open.items())):
+        opened = [(kind.value, device) for kind, device in self._open.items()] + list(self._extra.items())
+        for name, device in reversed(opened):
             try:
                 device.close()
             except DeviceError as exc:
-                log.warning("closing the %s: %s", kind.value, exc)
+                log.warning("closing the %s: %s", name, exc)
         self._open.clear()
+        self._extra.clear()
         self._stack.close()
 
     def __enter__(self) -> Self:

@@ -1,8 +1,10 @@
 """The simulated robot as the calibration steps see it.
 
-* :class:`BoardHelper`: a person holding the board in front of the simulated camera. It follows the step's
-  guidance (the emptiest image cell, more tilt, closer), looks at the screen (it keeps the whole sheet in the
-  picture, as a person watching the live view does) and holds each pose still for one frame.
+* :class:`BoardHelper`: a person holding the board in front of a simulated camera (the ceiling camera's,
+  :func:`target_renderer`, or the forward camera's in its room, :func:`forward_target_renderer`). It
+  follows the step's guidance (the emptiest image cell, more tilt, closer), looks at the screen (it keeps
+  the whole sheet in the picture, as a person watching the live view does) and holds each pose still for
+  one frame.
 * :func:`as_built`: the robot as built rather than as drawn. A world file gives the design (wheel radius,
   track, where the laser and camera sit); a real robot differs from it by a worn tyre, a bracket a degree off.
   Each step's simulated robot is built with such deviations (seeded) in what that step measures, so the
@@ -16,20 +18,25 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Protocol
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from drivers.sim.forward_targets import ForwardTargetRenderer
 from drivers.sim.raycast import cast_rays, walls_array
-from drivers.sim.targets import Target, TargetLighting, TargetRenderer
+from drivers.sim.render import OutputIntrinsics
+from drivers.sim.targets import RenderedTarget, Target, TargetLighting, TargetRenderer
 from drivers.sim.world import CameraModel, Mount, Pose2D, World
 
 __all__ = [
     "AsBuilt",
+    "BoardCamera",
     "BoardHelper",
     "as_built",
     "corner_viewpoint",
+    "forward_target_renderer",
     "target_renderer",
 ]
 
@@ -44,6 +51,31 @@ def target_renderer(camera: CameraModel, target: Target, seed: int = 0) -> Targe
     return TargetRenderer(camera, target, TargetLighting(), seed=seed)
 
 
+def forward_target_renderer(world: World, target: Target, seed: int = 0) -> ForwardTargetRenderer:
+    """The simulated forward camera (the world's ``[forward_camera]``) looking at a board held in front of
+    it, the robot at its start pose in the world's room."""
+    return ForwardTargetRenderer(
+        world.forward_camera, target, walls_array(world.walls), world.robot.start, seed=seed
+    )
+
+
+class BoardCamera(Protocol):
+    """A simulated camera a board is shown to: the ceiling camera's :class:`TargetRenderer` or the forward
+    camera's :class:`ForwardTargetRenderer`."""
+
+    @property
+    def target(self) -> Target: ...
+
+    @property
+    def output_intrinsics(self) -> OutputIntrinsics: ...
+
+    def project(
+        self, points_board: FloatArray, rotation: FloatArray, translation_m: FloatArray
+    ) -> FloatArray: ...
+
+    def render(self, rotation: FloatArray, translation_m: FloatArray) -> RenderedTarget: ...
+
+
 def rotation_from_axis_angle(axis: FloatArray, angle_rad: float) -> FloatArray:
     rot, _ = cv2.Rodrigues(
         np.asarray(axis, dtype=np.float64) / max(float(np.linalg.norm(axis)), 1e-12) * angle_rad
@@ -54,7 +86,7 @@ def rotation_from_axis_angle(axis: FloatArray, angle_rad: float) -> FloatArray:
 class BoardHelper:
     """Holds the board where the guidance asks (image cell, tilt, distance), with a person's variety."""
 
-    def __init__(self, renderer: TargetRenderer, seed: int = 0, margin_px: float = 6.0) -> None:
+    def __init__(self, renderer: BoardCamera, seed: int = 0, margin_px: float = 6.0) -> None:
         self.renderer = renderer
         self.rng = np.random.default_rng(seed + 7919)
         self.margin_px = margin_px

@@ -93,6 +93,13 @@ STEPS: tuple[StepInfo, ...] = (
         "vlp.toml",
     ),
     StepInfo(
+        "forward-camera",
+        "calibration.forward_camera",
+        "forward camera (person following) focal length, principal point and lens distortion",
+        "a printed chessboard or ChArUco board; the forward camera (or a folder of images)",
+        "forward_camera_info.yaml",
+    ),
+    StepInfo(
         "rfid",
         "calibration.rfid",
         "RFID likelihood table of person following: reads of the tag walked round the robot",

@@ -50,7 +50,10 @@ class Wizard:
             return f"the simulated robot (world {ctx.sim.world_file.name}, seed {ctx.sim.seed})"
         if ctx.config is not None:
             return f"the robot in {ctx.config}"
-        return "no robot (pass --config FILE or --sim): only intrinsics from a folder of images can run"
+        return (
+            "no robot (pass --config FILE or --sim): only intrinsics and forward-camera from a folder of "
+            "images can run"
+        )
 
     def _status(self, step: StepInfo) -> str:
         if step.name in self.done:
@@ -66,10 +69,11 @@ class Wizard:
         say(f"  robot: {self._where()}")
         say(f"  files: {self.ctx.out_dir}")
         say("")
+        width = max(len(s.name) for s in STEPS)
         for n, step in enumerate(STEPS, start=1):
-            say(f"  {n}. {step.name:<11} {step.title}")
-            say(f"     {'':<11} needs: {step.needs}")
-            say(f"     {'':<11} status: {self._status(step)}")
+            say(f"  {f'{n}.':>3} {step.name:<{width}} {step.title}")
+            say(f"      {'':<{width}} needs: {step.needs}")
+            say(f"      {'':<{width}} status: {self._status(step)}")
         say("  q. quit")
         pending = [str(n) for n, s in enumerate(STEPS, start=1) if s.name not in self.done]
         default = pending[0] if pending else "q"

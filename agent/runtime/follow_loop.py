@@ -71,6 +71,31 @@ log = logging.getLogger(__name__)
 Pose = tuple[float, float, float]
 
 
+def distort(x: float, y: float, d: tuple[float, float, float, float, float]) -> tuple[float, float]:
+    """OpenCV's plumb_bob model on normalised coordinates: with r^2 = x^2 + y^2,
+    x' = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2), y' alike with p1 and p2 swapped."""
+    k1, k2, p1, p2, k3 = d
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (
+        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+    )
+
+
+def undistort(
+    xd: float, yd: float, d: tuple[float, float, float, float, float], iterations: int = 20
+) -> tuple[float, float]:
+    """The inverse of :func:`distort` by fixed-point iteration, as ``cv2.undistortPoints`` does it."""
+    if not any(d):
+        return xd, yd
+    x, y = xd, yd
+    for _ in range(iterations):
+        fx, fy = distort(x, y, d)
+        x, y = x + (xd - fx), y + (yd - fy)
+    return x, y
+
+
 @dataclass(frozen=True, slots=True)
 class CameraView:
     """The forward camera's geometry, enough to turn image points into bearings and a person's place into
@@ -78,7 +103,8 @@ class CameraView:
     focal length ``f_px`` along rows; ``fy_px`` down columns, None: the same), principal point ``cx_px``,
     ``cy_px``, at ``mount`` (x forward, y left, z up, yaw) on the base, its optical axis tilted up by
     ``pitch_rad`` (0: level; no roll). Tilted, a column is no longer one bearing: :meth:`bearing` takes the
-    row too."""
+    row too. ``distortion``: OpenCV's (k1, k2, p1, p2, k3) of the calibrated lens (``vlp-agent calibrate
+    forward-camera``), applied to the normalised coordinates as ``cv2.projectPoints`` does."""
 
     width_px: int
     height_px: int
@@ -88,6 +114,7 @@ class CameraView:
     mount: tuple[float, float, float, float]  # x, y, z (m), yaw (rad)
     fy_px: float | None = None
     pitch_rad: float = 0.0
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @property
     def f_px(self) -> float:
@@ -110,6 +137,7 @@ class CameraView:
             self.mount,
             self.fv_px * sy,
             self.pitch_rad,
+            self.distortion,
         )
 
     def origin(self, pose: Pose) -> tuple[float, float, float]:
@@ -127,12 +155,13 @@ class CameraView:
         if depth <= 0.05:
             return None
         up = -s * forward_m + c * z
-        return self.cx_px - self.f_px * left_m / depth, self.cy_px - self.fv_px * up / depth
+        x, y = distort(-left_m / depth, -up / depth, self.distortion)
+        return self.cx_px + self.f_px * x, self.cy_px + self.fv_px * y
 
     def column(self, bearing_rad: float, range_m: float = 2.0, height_m: float = 1.45) -> float:
         """The image column of a bearing in the camera's frame (left positive); tilted, of the point at
         ``range_m`` and ``height_m`` (a person's shoulders by default)."""
-        if self.pitch_rad == 0.0:
+        if self.pitch_rad == 0.0 and not any(self.distortion):
             return self.cx_px - self.f_px * math.tan(bearing_rad)
         uv = self.project(range_m * math.cos(bearing_rad), range_m * math.sin(bearing_rad), height_m)
         return self.cx_px - self.f_px * math.tan(bearing_rad) if uv is None else uv[0]
@@ -140,8 +169,12 @@ class CameraView:
     def bearing(self, column: float, row: float | None = None) -> float:
         """The bearing (camera frame, left positive) of the image point (``column``, ``row``); ``row``
         None: the principal point's (the same for every row of a level camera)."""
-        left = (self.cx_px - column) / self.f_px
-        up = 0.0 if row is None else (self.cy_px - row) / self.fv_px
+        x, y = undistort(
+            (column - self.cx_px) / self.f_px,
+            0.0 if row is None else (row - self.cy_px) / self.fv_px,
+            self.distortion,
+        )
+        left, up = -x, -y
         forward = math.cos(self.pitch_rad) - math.sin(self.pitch_rad) * up
         return math.atan2(left, forward)
 

@@ -40,8 +40,9 @@ def forward_view(view: ForwardViewConfig, file: str = "<config>") -> CameraView:
     if not view.lens_given:
         raise ConfigError(
             "camera.forward.hfov_deg",
-            "missing: following with the forward camera needs its lens (hfov_deg, or fx_px with cx_px, "
-            "cy_px, width and height) and its [camera.forward.mount]",
+            "missing: following with the forward camera needs its lens (camera_info = the file `vlp-agent "
+            "calibrate forward-camera` wrote, or hfov_deg, or fx_px with cx_px, cy_px, width and height) "
+            "and its [camera.forward.mount]",
             file,
         )
     width, height = view.width_px or DEFAULT_SIZE[0], view.height_px or DEFAULT_SIZE[1]
@@ -52,7 +53,17 @@ def forward_view(view: ForwardViewConfig, file: str = "<config>") -> CameraView:
     cx = (width - 1) / 2.0 if view.cx_px is None else view.cx_px
     cy = (height - 1) / 2.0 if view.cy_px is None else view.cy_px
     m = view.mount
-    return CameraView(width, height, hfov, cx, cy, (m.x_m, m.y_m, m.z_m, m.yaw_rad), view.fy_px, m.pitch_rad)
+    return CameraView(
+        width,
+        height,
+        hfov,
+        cx,
+        cy,
+        (m.x_m, m.y_m, m.z_m, m.yaw_rad),
+        view.fy_px,
+        m.pitch_rad,
+        view.distortion,
+    )
 
 
 def camera_view(model: Any) -> CameraView:

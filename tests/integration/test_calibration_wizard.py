@@ -16,7 +16,7 @@ from tests.integration.terminal import press_ctrl_c, signal_state, terminal_sign
 pexpect = pytest.importorskip("pexpect")
 
 REPO = Path(__file__).resolve().parents[2]
-MENU = r"step \(1-9, a name, or q\) \[\w+\]: "
+MENU = r"step \(1-10, a name, or q\) \[\w+\]: "
 
 
 def wizard(folder: Path) -> pexpect.spawn:
