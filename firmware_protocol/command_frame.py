@@ -509,7 +509,7 @@ def _decode_command_payload(payload: bytes) -> Command:
             raise CommandFrameError("value", f"unknown follow action {action}", payload) from None
         if tag_length > TAG_LENGTH or any(raw_tag[tag_length:]):
             raise CommandFrameError(
-                "value", f"tag_length {tag_length} with non-zero bytes after it or beyond {TAG_LENGTH}", payload
+                "value", f"tag_length {tag_length}: beyond {TAG_LENGTH}, or non-zero bytes after it", payload
             )
         if follow is FollowAction.STOP and tag_length:
             raise CommandFrameError("value", "a follow stop names no tag", payload)

@@ -179,7 +179,6 @@ class MavlinkCommandDecoder:
             return ResumeCommand(msg.get_seq())
         raise CommandFrameError("value", f"MAV_CMD_DO_PAUSE_CONTINUE param1 must be 0 or 1, got {msg.param1}")
 
-
     def _follow(self, msg: Any) -> Command:
         _finite(msg, "param1")
         beacon = msg.param1
