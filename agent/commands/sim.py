@@ -241,7 +241,7 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "following started, SECONDS (default 0) after the agent answered the one before (for the first, "
         "after the pose stream flows); repeatable, in order. Following is set up on command, as in "
         "`vlp-agent run`; the world's route is not driven. The run ends once the last one is answered "
-        "and 2 s more have passed, or at --seconds. The summary's 'follow_commands' has every status of "
+        "and a second more has passed, or at --seconds. The summary's 'follow_commands' has every status of "
         "the follow ids, 'follow_control' the agent's side, 'follow' the loop's",
     )
     p.add_argument(
@@ -705,9 +705,9 @@ def _watch(
             if (args.goal or missions) and controller is not None and controller.counts().goals_done:
                 return
             if args.send_follow and controller is not None and controller.counts().goals_done:
-                # The last follow command answered: 2 s more, for the statuses that follow it.
+                # The last follow command answered: a second more, for the statuses that follow it.
                 follows_done_s = follows_done_s if follows_done_s is not None else elapsed
-                if elapsed - follows_done_s >= 2.0:
+                if elapsed - follows_done_s >= 1.0:
                     return
             status = agent.status()
             dt = max(now - last_t, 1e-3)

@@ -23,7 +23,7 @@ def test_following_is_started_and_stopped_by_command_frames(tmp_path: Path) -> N
         "--send-follow",
         "stop@2",
         "--seconds",
-        "60",  # a bound only: the run ends 2 s after the stop is answered
+        "60",  # a bound only: the run ends a second after the stop is answered
         "--out",
         str(tmp_path / "out"),
         timeout_s=240,
