@@ -109,7 +109,7 @@ def _follow_loop(args: argparse.Namespace, config: AgentConfig, agent: Any) -> F
     from drivers.registry import DeviceKind
 
     if DeviceKind.LASER not in config.devices:
-        raise UsageError("--follow needs the laser ([laser]): it finds and tracks the person")
+        raise UsageError("following needs the laser ([laser]): it finds and tracks the person")
     world = config.sim.world if config.sim is not None else None
     view = None
     if config.forward_camera is not None and args.follow_fine == "on":
@@ -121,7 +121,7 @@ def _follow_loop(args: argparse.Namespace, config: AgentConfig, agent: Any) -> F
     m = laser_mount_for(config, world)
     loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad), view)
     log.info(
-        "following: on (%s)",
+        "following set up (%s): it follows when commanded, or from the start with --follow",
         "laser, RFID and the forward camera" if view is not None else "laser and RFID, no camera",
     )
     return loop
