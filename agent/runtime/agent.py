@@ -589,7 +589,7 @@ class Agent:
         """Person following's RFID layer when ``[following] tag_id`` names the tag: the calibrated table,
         or the physical model of ``antenna_yaws_rad`` on the reader's antenna ports."""
         fc = self.config.following
-        if fc.tag_id is None and self.follow_control is None:
+        if fc.tag_id is None and (self.follow_control is None or self.follow_control.loop is None):
             return None
         table = fc.table
         if table is None:
