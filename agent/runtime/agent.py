@@ -15,6 +15,7 @@ Loops (one module each; each thread beats its own heartbeat; the critical ones g
     output    output_loop    keeps the pose stream at rate_hz when nothing else writes
     commands  command_loop   the controller's commands on the pose port -> CommandArbiter -> statuses back;
               drive_loop     then what the arbiter says drives the base -> the velocity command
+              follow_control a follow frame -> the arbiter -> the follow loop on/off; its state -> statuses
     monitor   monitor_loop   heartbeats -> READY / WATCHDOG / STATUS / STOPPING
 
 A device that fails is reported (pose flags, status, log) and its loop keeps trying: the drivers that
