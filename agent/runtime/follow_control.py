@@ -113,8 +113,7 @@ class FollowControl:
         if command.tag is not None and self.coarse() is None:
             self.counts["refused_no_tag_reader"] += 1
             log.warning(
-                "follow %d refused: it names tag %s and the agent has no RFID layer (an RFID reader and "
-                "[following] tag_id or following on command set up)",
+                "follow %d refused: it names tag %s and the agent has no RFID reader ([rfid]) to hear it",
                 command.follow_id,
                 command.tag,
             )
