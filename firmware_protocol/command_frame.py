@@ -4,9 +4,10 @@ They share the pose frame's link (``COBS(payload || CRC-16/CCITT-FALSE LE) || 00
 :mod:`firmware_protocol.framing`) and line. Every payload starts with a type byte and a version byte::
 
      0  u8   type      0x21 velocity, 0x22 goal, 0x23 cancel, 0x24 stop, 0x25 resume,
-                       0x26 explore, 0x27 go to place (since v1.1) (controller -> agent)
+                       0x26 explore, 0x27 go to place (since v1.1), 0x28 follow (since v1.2)
+                       (controller -> agent)
                        0xA1 goal status (agent -> controller)
-     1  u8   version   major << 4 | minor: 0x10 (0x11 for the types added in v1.1)
+     1  u8   version   major << 4 | minor: 0x10 (0x11, 0x12 for the types added in v1.1, v1.2)
      2  u16  sequence  the sender's counter, +1 per frame, wrapping; a goal status echoes the command's
 
 The type byte never has 0x1 in its high nibble, which is the pose frame's version byte (0x1m), so a receiver
@@ -29,10 +30,17 @@ robot was when the command came), ``u8`` reserved, ``name`` 16 bytes of UTF-8, p
 bytes, no 0x00 inside). Both are answered, and end, with goal statuses whose ``goal_id`` is the
 ``mission_id``.
 
+Follow (24 bytes, v1.2): ``u16 follow_id``, ``u8 action`` (:class:`FollowAction`: 0 start, 1 stop), ``u8
+tag_length`` (0 to 16; 0: the agent's configured user tag), ``tag`` 16 bytes: the tag's EPC as the reader
+reports it, most significant byte first, padded with 0x00 after ``tag_length`` bytes. Answered, and ended,
+with goal statuses whose ``goal_id`` is the ``follow_id``; while following, ACTIVE statuses say how it goes
+(the reasons FOLLOWING, SEARCHING, PERSON_LOST, TAG_ABSENT, NO_CAMERA_FRAMES, NOT_LOCALIZED).
+
 Versioning as the pose frame's: a decoder rejects other majors, accepts any minor of its own and ignores
 fields appended after the layout of the minor version that introduced the type; a payload of that minor
 version has exactly its type's length. The types of v1.0 are still sent as 1.0 (their bytes unchanged);
-explore and go-to-place are sent as 1.1, and a frame of theirs claiming 1.0 is a version error.
+explore and go-to-place are sent as 1.1, follow as 1.2, and a frame of theirs claiming an older minor is a
+version error.
 """
 
 from __future__ import annotations
@@ -60,6 +68,8 @@ __all__ = [
     "CommandType",
     "ExploreAction",
     "ExploreCommand",
+    "FollowAction",
+    "FollowCommand",
     "GoalCommand",
     "GoalReason",
     "GoalState",
@@ -77,9 +87,10 @@ __all__ = [
 ]
 
 VERSION_MAJOR = 1
-VERSION_MINOR = 1  # the newest minor version this codec reads and writes
+VERSION_MINOR = 2  # the newest minor version this codec reads and writes
 VERSION = VERSION_MAJOR << 4  # v1.0: the version byte of the types v1.0 defined (their bytes unchanged)
 PLACE_NAME_LENGTH = 16  # bytes of a place's name in a go-to-place frame
+TAG_LENGTH = 16  # bytes of a tag's EPC in a follow frame (96- and 128-bit EPCs fit)
 MAX_PAYLOAD_LENGTH = 64  # the longest payload a later v1.x may send; bounds every decoder's buffer
 NO_GOAL = 0xFFFF
 NO_SEQUENCE = 0xFFFF
@@ -106,11 +117,12 @@ class CommandType(enum.IntEnum):
     RESUME = 0x25
     EXPLORE = 0x26  # since v1.1
     GO_TO_PLACE = 0x27  # since v1.1
+    FOLLOW = 0x28  # since v1.2
     GOAL_STATUS = 0xA1
 
 
 # The minor version that introduced each type (0: v1.0).
-_SINCE_MINOR = {CommandType.EXPLORE: 1, CommandType.GO_TO_PLACE: 1}
+_SINCE_MINOR = {CommandType.EXPLORE: 1, CommandType.GO_TO_PLACE: 1, CommandType.FOLLOW: 2}
 
 
 class ExploreAction(enum.IntEnum):
@@ -121,6 +133,13 @@ class ExploreAction(enum.IntEnum):
     RESUME = 2
     RETURN_HOME = 3
     CANCEL = 4
+
+
+class FollowAction(enum.IntEnum):
+    """What a follow command asks (docs/following.md, "Following on command")."""
+
+    START = 0
+    STOP = 1
 
 
 class GoalState(enum.IntEnum):
@@ -157,6 +176,14 @@ class GoalReason(enum.IntEnum):
     NO_FREE_SPACE = 18  # the map has no free space to drive in
     START_BLOCKED = 19  # the robot stands inside an obstacle on the map: no way out to plan from
     EXPLORED = 20  # (FAILED) exploration ended with reachable space it could not get to
+    # Since v1.2 (following):
+    FOLLOW_UNAVAILABLE = 21  # (REJECTED) following is not set up on this agent (no laser, no follow loop)
+    NO_TAG_READER = 22  # (REJECTED) a follow names a tag, and the agent has no RFID reader to hear it
+    FOLLOWING = 23  # (ACTIVE) the person is tracked: followed, or waited for at the distance
+    SEARCHING = 24  # (ACTIVE) no track: turning toward the RFID bearing to find them
+    PERSON_LOST = 25  # (ACTIVE) the person vanished or no track yet: stopped, waiting for them
+    TAG_ABSENT = 26  # (ACTIVE) the RFID layer hears no tag (out of reach, or no answer yet): stopped
+    NO_CAMERA_FRAMES = 27  # (ACTIVE) the forward camera the estimate uses gives no frames: stopped
 
 
 @dataclass(frozen=True, slots=True)
@@ -212,6 +239,17 @@ class PlaceCommand:
     come_back: bool = False
 
 
+@dataclass(frozen=True, slots=True)
+class FollowCommand:
+    """Start following the person wearing ``tag`` (EPC hex as the reader reports it; None: the agent's
+    configured user tag), or stop following."""
+
+    sequence: int
+    follow_id: int
+    action: FollowAction = FollowAction.START
+    tag: str | None = None
+
+
 Command = (
     VelocityCommand
     | GoalCommand
@@ -220,6 +258,7 @@ Command = (
     | ResumeCommand
     | ExploreCommand
     | PlaceCommand
+    | FollowCommand
 )
 
 
@@ -254,6 +293,7 @@ _LAYOUTS: dict[CommandType, struct.Struct] = {
     CommandType.RESUME: _HEADER,
     CommandType.EXPLORE: struct.Struct("<BBHHBB"),
     CommandType.GO_TO_PLACE: struct.Struct(f"<BBHHBB{PLACE_NAME_LENGTH}s"),
+    CommandType.FOLLOW: struct.Struct(f"<BBHHBB{TAG_LENGTH}s"),
     CommandType.GOAL_STATUS: struct.Struct("<BBHHHBBH"),
 }
 T = TypeVar("T")
@@ -344,6 +384,19 @@ def _encode_payload(message: Command | GoalStatus) -> bytes:
             0,
             _place_name(message.place),
         )
+    if isinstance(message, FollowCommand):
+        if message.action == FollowAction.STOP and message.tag is not None:
+            raise CommandFrameError("value", "a follow stop names no tag")
+        tag = _tag_bytes(message.tag)
+        return _LAYOUTS[CommandType.FOLLOW].pack(
+            CommandType.FOLLOW,
+            VERSION_MAJOR << 4 | 2,
+            seq,
+            _u16(message.follow_id, "follow_id"),
+            FollowAction(message.action),
+            len(tag),
+            tag,
+        )
     remaining = REMAINING_UNKNOWN
     if message.remaining_m is not None:
         # Farther than 655 m reads as 655.34 m: the frame says "far", never "unknown".
@@ -365,6 +418,20 @@ def _place_name(name: str) -> bytes:
     if not 1 <= len(raw) <= PLACE_NAME_LENGTH or b"\x00" in raw:
         raise CommandFrameError(
             "value", f"a place name is 1 to {PLACE_NAME_LENGTH} bytes of UTF-8 without NUL, got {name!r}"
+        )
+    return raw
+
+
+def _tag_bytes(tag: str | None) -> bytes:
+    if tag is None:
+        return b""
+    try:
+        raw = bytes.fromhex(tag)
+    except ValueError:
+        raw = b""
+    if not 1 <= len(raw) <= TAG_LENGTH or len(tag) != 2 * len(raw):
+        raise CommandFrameError(
+            "value", f"a tag is 1 to {TAG_LENGTH} bytes as an even number of hex digits, got {tag!r}"
         )
     return raw
 
@@ -434,6 +501,19 @@ def _decode_command_payload(payload: bytes) -> Command:
         if not name or b"\x00" in raw:
             raise CommandFrameError("value", "the place name is empty or has a NUL inside", payload)
         return PlaceCommand(seq, fields[3], name, bool(fields[4] & OPTION_COME_BACK))
+    if kind is CommandType.FOLLOW:
+        _, _, _, follow_id, action, tag_length, raw_tag = fields
+        try:
+            follow = FollowAction(action)
+        except ValueError:
+            raise CommandFrameError("value", f"unknown follow action {action}", payload) from None
+        if tag_length > TAG_LENGTH or any(raw_tag[tag_length:]):
+            raise CommandFrameError(
+                "value", f"tag_length {tag_length}: beyond {TAG_LENGTH}, or non-zero bytes after it", payload
+            )
+        if follow is FollowAction.STOP and tag_length:
+            raise CommandFrameError("value", "a follow stop names no tag", payload)
+        return FollowCommand(seq, follow_id, follow, raw_tag[:tag_length].hex().upper() or None)
     return ResumeCommand(seq)
 
 

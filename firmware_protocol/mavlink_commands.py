@@ -10,13 +10,19 @@ In, through pymavlink's parser (``robust_parsing``: junk becomes bad-data record
   ignored and vx used (bit 3 clear): a **velocity** ``v = vx``, ``omega = -yaw_rate`` (0 when bit 11 is
   set), held for ``velocity_timeout_s`` (MAVLink carries no timeout: stream it at 5 Hz or more).
 * ``COMMAND_LONG`` ``MAV_CMD_DO_PAUSE_CONTINUE`` (193): param1 0 is **stop**, 1 is **resume**.
+* ``COMMAND_LONG`` ``MAV_CMD_DO_FOLLOW`` (32): param1 is the "system ID of the FOLLOW_TARGET beacon"; here
+  the beacon is the user's tag: 1 to 255 **starts following** the agent's configured user tag (MAVLink
+  cannot carry an EPC) with that number as the follow id, 0 **stops following** (whatever following is on,
+  as MAVLink's "0 disables follow-me"). Params 2 to 7 (altitude modes) are ignored: the robot drives on
+  the floor.
 
 Messages for another system or component are ignored (``target_system`` 0 is a broadcast). Anything
 else addressed to us, or a field that is NaN or infinite, is a rejection (:class:`CommandFrameError` in
 :meth:`MavlinkCommandDecoder.take_rejected`) that the agent answers.
 
 Out: ``COMMAND_ACK`` (#77) for every status: ``command`` is ``MAV_CMD_NAV_WAYPOINT`` (16) for goals,
-``MAV_CMD_DO_CHANGE_SPEED`` (178) for velocities, ``MAV_CMD_DO_PAUSE_CONTINUE`` (193) for stop and resume;
+``MAV_CMD_DO_CHANGE_SPEED`` (178) for velocities, ``MAV_CMD_DO_PAUSE_CONTINUE`` (193) for stop and resume,
+``MAV_CMD_DO_FOLLOW`` (32) for following (its answer and its ACTIVE statuses: following, searching, lost);
 ``result`` ACCEPTED (0; also REACHED, with progress 100), DENIED (2: REJECTED), FAILED (4), IN_PROGRESS
 (5: ACTIVE), CANCELLED (6); ``result_param2`` is ``goal_id << 8 | reason``.
 """
@@ -32,6 +38,8 @@ from firmware_protocol.command_frame import (
     Command,
     CommandFrameError,
     CommandType,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalState,
     GoalStatus,
@@ -43,6 +51,7 @@ from firmware_protocol.mavlink_out import DEFAULT_COMPID, DEFAULT_SYSID, mavlink
 
 __all__ = [
     "MAV_CMD_DO_CHANGE_SPEED",
+    "MAV_CMD_DO_FOLLOW",
     "MAV_CMD_DO_PAUSE_CONTINUE",
     "MAV_CMD_NAV_WAYPOINT",
     "MavlinkCommandDecoder",
@@ -50,6 +59,7 @@ __all__ = [
 ]
 
 MAV_CMD_NAV_WAYPOINT = 16
+MAV_CMD_DO_FOLLOW = 32
 MAV_CMD_DO_CHANGE_SPEED = 178
 MAV_CMD_DO_PAUSE_CONTINUE = 193
 MAV_FRAME_LOCAL_NED = 1
@@ -158,6 +168,8 @@ class MavlinkCommandDecoder:
         )
 
     def _command_long(self, msg: Any) -> Command:
+        if msg.command == MAV_CMD_DO_FOLLOW:
+            return self._follow(msg)
         if msg.command != MAV_CMD_DO_PAUSE_CONTINUE:
             raise CommandFrameError("type", f"COMMAND_LONG command {msg.command} is not supported")
         _finite(msg, "param1")
@@ -166,6 +178,17 @@ class MavlinkCommandDecoder:
         if msg.param1 == 1:
             return ResumeCommand(msg.get_seq())
         raise CommandFrameError("value", f"MAV_CMD_DO_PAUSE_CONTINUE param1 must be 0 or 1, got {msg.param1}")
+
+    def _follow(self, msg: Any) -> Command:
+        _finite(msg, "param1")
+        beacon = msg.param1
+        if beacon != int(beacon) or not 0 <= beacon <= 255:
+            raise CommandFrameError(
+                "value", f"MAV_CMD_DO_FOLLOW param1 must be a system id 0..255 (0: stop), got {beacon}"
+            )
+        if beacon == 0:
+            return FollowCommand(msg.get_seq(), NO_GOAL, FollowAction.STOP)
+        return FollowCommand(msg.get_seq(), int(beacon), FollowAction.START)
 
 
 class MavlinkStatusEncoder:
@@ -180,6 +203,7 @@ class MavlinkStatusEncoder:
             CommandType.VELOCITY: MAV_CMD_DO_CHANGE_SPEED,
             CommandType.STOP: MAV_CMD_DO_PAUSE_CONTINUE,
             CommandType.RESUME: MAV_CMD_DO_PAUSE_CONTINUE,
+            CommandType.FOLLOW: MAV_CMD_DO_FOLLOW,
         }.get(answers if answers is not None else CommandType.GOAL, MAV_CMD_NAV_WAYPOINT)
         progress = 100 if status.state is GoalState.REACHED else 255
         param2 = (status.goal_id & 0xFFFF) << 8 | int(status.reason)

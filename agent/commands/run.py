@@ -12,9 +12,11 @@ A config with ``[sim]`` runs the same process on the simulated robot (nothing co
 `vlp-agent sim` is the one that drives the route); there ``output.url = "pty"`` means what it means for
 `vlp-agent sim`: a pseudo-terminal that a simulated controller (a child process) makes and reads as a
 controller would.
-With ``--follow`` the robot follows its tagged user from the start (``agent.runtime.follow_setup``: the same
-follow loop as ``vlp-agent sim --follow``; the forward camera's mount and lens from ``[camera.forward]``);
-the final status adds ``follow``.
+Following is set up whenever it can be (a laser; ``agent.runtime.follow_setup``: the same follow loop as
+``vlp-agent sim --follow``; the forward camera's mount and lens from ``[camera.forward]``) and the controller
+starts and stops it with follow frames (``agent.runtime.follow_control``; docs/following.md, "Following on
+command"); with ``--follow`` the robot follows its tagged user from the start too, as if commanded (follow
+id 0). The final status adds ``follow`` (the loop) and ``follow_control`` (the commands).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from agent.runtime.map_saver import save_topology_beside
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
+from firmware_protocol.command_frame import GoalState
 
 if TYPE_CHECKING:
     from agent.runtime.follow_loop import FollowLoop
@@ -63,10 +66,12 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
     p.add_argument(
         "--follow",
         action="store_true",
-        help="follow the tagged person ([following] tag_id) from the start: the laser person tracker seeded "
-        "by the RFID layer, refined by the forward camera's fine layer ([camera.forward] with its mount and "
-        "lens keys), the follower keeping [following] distance_m behind them through the navigation's "
-        "collision checks; the controller's commands take precedence (docs/following.md)",
+        help="follow the tagged person ([following] tag_id) from the start, as if the controller had sent a "
+        "follow start (follow id 0): the laser person tracker seeded by the RFID layer, refined by the "
+        "forward camera's fine layer ([camera.forward] with its mount and lens keys), the follower keeping "
+        "[following] distance_m behind them through the navigation's collision checks; a controller's goal, "
+        "velocity, stop, cancel or follow stop ends it (docs/following.md). Without --follow the robot "
+        "follows only when the controller sends a follow start",
     )
     p.add_argument(
         "--follow-fine",
@@ -104,7 +109,7 @@ def _follow_loop(args: argparse.Namespace, config: AgentConfig, agent: Any) -> F
     from drivers.registry import DeviceKind
 
     if DeviceKind.LASER not in config.devices:
-        raise UsageError("--follow needs the laser ([laser]): it finds and tracks the person")
+        raise UsageError("following needs the laser ([laser]): it finds and tracks the person")
     world = config.sim.world if config.sim is not None else None
     view = None
     if config.forward_camera is not None and args.follow_fine == "on":
@@ -116,9 +121,31 @@ def _follow_loop(args: argparse.Namespace, config: AgentConfig, agent: Any) -> F
     m = laser_mount_for(config, world)
     loop = make_follow_loop(agent, config, (m.x_m, m.y_m, m.yaw_rad), view)
     log.info(
-        "following: on (%s)",
+        "following set up (%s): it follows when commanded, or from the start with --follow",
         "laser, RFID and the forward camera" if view is not None else "laser and RFID, no camera",
     )
+    return loop
+
+
+def _follow_on_command(args: argparse.Namespace, config: AgentConfig, agent: Any) -> FollowLoop | None:
+    """The follow loop, set up for following on command (and from the start with ``--follow``). Without
+    ``--follow`` a robot that cannot follow (no laser, a forward camera without its lens) still runs: the
+    follow commands are refused FOLLOW_UNAVAILABLE, with the reason in the log."""
+    from drivers.errors import ConfigError
+
+    wanted = getattr(args, "follow", False)
+    try:
+        loop = _follow_loop(args, config, agent)
+    except (UsageError, ConfigError) as exc:
+        if wanted or agent.arbiter is None:
+            raise
+        agent.enable_following(None, f"following is not set up: {exc}")
+        log.info("following on command: unavailable (%s)", exc)
+        return None
+    if agent.enable_following(loop) is None and not wanted:
+        # No command line to start it on: without --follow nothing would ever turn it on.
+        agent.scan_listeners.remove(loop.on_scan)
+        return None
     return loop
 
 
@@ -164,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
         recorder = agent.flight_recorder
         requests.attach(agent.request_map_save, recorder.request_snapshot if recorder is not None else None)
         give_way_to_agent(agent, robot)
-        follow = _follow_loop(args, config, agent) if getattr(args, "follow", False) else None
+        follow = _follow_on_command(args, config, agent)
         agent.start()
         if follow is not None:
             from agent.runtime.follow_setup import start_following
@@ -172,6 +199,11 @@ def run(args: argparse.Namespace) -> int:
             follow_stop = threading.Event()
             start_following(agent, follow, follow_stop, stack)
             stack.callback(follow_stop.set)  # first at the end: the threads then end and are joined
+            control = agent.follow_control
+            if getattr(args, "follow", False) and control is not None:
+                answer = control.start_now()
+                if answer.state is not GoalState.ACCEPTED:
+                    raise UsageError(f"--follow: the agent refused to follow: {answer.reason.name}")
         agent.settle_heap()
         try:
             deadline = None if args.seconds is None else time.monotonic() + args.seconds
@@ -203,6 +235,7 @@ def run(args: argparse.Namespace) -> int:
         "unavailable": status.unavailable,
         "following": status.following,
         "follow": None if follow is None else follow_summary(follow),
+        "follow_control": None if agent.follow_control is None else agent.follow_control.summary(),
         "frames_received": controller.frames if controller is not None else None,
         "map_files": map_files,
     }

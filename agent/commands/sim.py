@@ -231,6 +231,20 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "the default), or follow on the laser and RFID only (off), to measure what the camera adds",
     )
     p.add_argument(
+        "--send-follow",
+        action="append",
+        type=_follow_argument,
+        default=[],
+        metavar="start[:TAG]|stop[@SECONDS]",
+        help="the simulated controller sends a follow command frame (docs/wire-format.md, 'Following'): "
+        "start following (the user's tag, [following] tag_id, or the EPC TAG in hex) or stop the last "
+        "following started, SECONDS (default 0) after the agent answered the one before (for the first, "
+        "after the pose stream flows); repeatable, in order. Following is set up on command, as in "
+        "`vlp-agent run`; the world's route is not driven. The run ends once the last one is answered "
+        "and a second more has passed, or at --seconds. The summary's 'follow_commands' has every status of "
+        "the follow ids, 'follow_control' the agent's side, 'follow' the loop's",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -356,6 +370,28 @@ def _goal_argument(text: str) -> tuple[float, float, float | None]:
     return values[0], values[1], math.radians(values[2]) if len(values) == 3 else None
 
 
+def _follow_argument(text: str) -> tuple[str, str, str | None, float]:
+    """``start``, ``start:TAG`` or ``stop``, with ``@SECONDS`` (>= 0) or not: a follow item for the simulated
+    controller (``drivers.sim.controller``)."""
+    what, _, at = text.partition("@")
+    action, _, tag = what.partition(":")
+    try:
+        delay = float(at) if at else 0.0
+    except ValueError:
+        delay = math.nan
+    bad_delay = not (math.isfinite(delay) and delay >= 0)
+    if action not in ("start", "stop") or (action == "stop" and tag) or bad_delay:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected start[:TAG][@SECONDS] or stop[@SECONDS]")
+    if tag:
+        from firmware_protocol.command_frame import CommandFrameError, FollowCommand, encode_command
+
+        try:
+            encode_command(FollowCommand(0, 1, tag=tag))
+        except CommandFrameError as exc:
+            raise argparse.ArgumentTypeError(f"{text!r}: {exc.args[0]}") from None
+    return "follow", action, tag.upper() or None, delay
+
+
 # -- the simulated controller on the pose stream's pty --------------------------------------------------
 def serve_pose_stream(
     stack: contextlib.ExitStack,
@@ -471,7 +507,16 @@ def run(args: argparse.Namespace) -> int:
             )
         if goals and missions:
             raise UsageError("--goal with --explore or --deliver: the robot drives one mission at a time")
+        sent_follows: list[tuple[Any, ...]] = args.send_follow
+        if sent_follows and (config.output.url != "pty" or config.output.format is OutputFormat.MAVLINK):
+            raise UsageError(
+                "--send-follow needs the simulated controller on a pty sending command frames "
+                '([output] url = "pty", format "frame")'
+            )
+        if sent_follows and (goals or missions or args.follow):
+            raise UsageError("--send-follow with --goal, --explore, --deliver or --follow: give one")
         commands: list[tuple[Any, ...]] = mission_items(args.deliver) if missions else list(goals)
+        commands += sent_follows
         url, controller = serve_pose_stream(
             stack, config, commands, not args.goals_known_map, args.controller_record
         )
@@ -519,7 +564,24 @@ def run(args: argparse.Namespace) -> int:
             )
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
             injector.follow_loop = loop
+        on_command = None
+        if sent_follows:
+            from agent.commands.run import follow_summary
+            from agent.runtime.agent import laser_mount_for
+            from agent.runtime.follow_setup import camera_view, make_follow_loop
+
+            m = laser_mount_for(config, world)
+            fine = args.follow_fine == "on" and config.forward_camera is not None
+            on_command = make_follow_loop(
+                agent, config, (m.x_m, m.y_m, m.yaw_rad), camera_view(world.forward_camera) if fine else None
+            )
+            agent.enable_following(on_command)
+            injector.follow_loop = on_command
         agent.start()
+        if on_command is not None:
+            from agent.runtime.follow_setup import start_following
+
+            start_following(agent, on_command, stop, stack)
         if follow is not None:
             from agent.runtime.follow_setup import start_following
 
@@ -528,7 +590,8 @@ def run(args: argparse.Namespace) -> int:
             thread.start()
             stack.callback(thread.join, 1.0)
         # The world's route, driven from the agent's own pose, unless goals, missions or following drive it.
-        route = () if goals or script is not None or follow is not None else world.route
+        driven = goals or script is not None or follow is not None or on_command is not None
+        route = () if driven else world.route
         autopilot = threading.Thread(
             target=_autopilot,
             args=(agent, route, world.route_speed_mps, stop),
@@ -564,6 +627,13 @@ def run(args: argparse.Namespace) -> int:
         summary["t0_us"] = t0_us
         if follow is not None:
             summary["follow"] = follow.figures()
+        if on_command is not None:
+            summary["goals"] = None  # the controller sent follow commands, no goals
+            summary["follow"] = follow_summary(on_command)
+            summary["follow_control"] = (
+                agent.follow_control.summary() if agent.follow_control is not None else None
+            )
+            summary["follow_commands"] = _follow_commands(controller, len(commands))
         if agent.flight_recorder is not None:
             summary["recording"] = {
                 "files": [str(p) for p in agent.flight_recorder.files],
@@ -619,6 +689,7 @@ def _watch(
     """Until --seconds, a stop request, (with --goal) the last goal's end, or (with --explore,
     --deliver) the missions' end; the status line each second."""
     next_status = t0 + 1.0
+    follows_done_s: float | None = None
     last_counts: dict[str, int] = {}
     last_t = t0
     while not shutdown.requested:
@@ -633,6 +704,11 @@ def _watch(
             missions = args.explore or args.deliver is not None
             if (args.goal or missions) and controller is not None and controller.counts().goals_done:
                 return
+            if args.send_follow and controller is not None and controller.counts().goals_done:
+                # The last follow command answered: a second more, for the statuses that follow it.
+                follows_done_s = follows_done_s if follows_done_s is not None else elapsed
+                if elapsed - follows_done_s >= 1.0:
+                    return
             status = agent.status()
             dt = max(now - last_t, 1e-3)
             rate = {
@@ -779,6 +855,15 @@ def _goal_summary(controller: SimulatedController | None) -> dict[str, Any] | No
         "all_ended": counts.goals_done,
         "statuses_decoded": len(counts.statuses),
     }
+
+
+def _follow_commands(controller: SimulatedController | None, sent: int) -> list[str]:
+    """Every status the simulated controller decoded about its follow ids (1..``sent``), in order, as
+    ``"ID STATE REASON"``."""
+    if controller is None:
+        return []
+    statuses = controller.counts().statuses
+    return [f"{goal_id} {state} {reason}" for goal_id, state, reason in statuses if 1 <= goal_id <= sent]
 
 
 def mission_items(deliver: tuple[str, str] | None) -> list[tuple[Any, ...]]:

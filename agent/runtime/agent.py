@@ -15,6 +15,7 @@ Loops (one module each; each thread beats its own heartbeat; the critical ones g
     output    output_loop    keeps the pose stream at rate_hz when nothing else writes
     commands  command_loop   the controller's commands on the pose port -> CommandArbiter -> statuses back;
               drive_loop     then what the arbiter says drives the base -> the velocity command
+              follow_control a follow frame -> the arbiter -> the follow loop on/off; its state -> statuses
     monitor   monitor_loop   heartbeats -> READY / WATCHDOG / STATUS / STOPPING
 
 A device that fails is reported (pose flags, status, log) and its loop keeps trying: the drivers that
@@ -32,7 +33,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -77,6 +78,10 @@ from firmware_protocol.command_frame import GoalCommand, GoalReason, GoalStatus
 from firmware_protocol.pose_frame import PoseFlags
 
 __all__ = ["Agent", "AgentStatus", "DeviceState"]
+
+if TYPE_CHECKING:
+    from agent.runtime.follow_control import FollowControl
+    from agent.runtime.follow_loop import FollowLoop
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +243,8 @@ class Agent:
         # Called with every scan in the laser loop after the navigation (person following); before start().
         self.scan_listeners: list[Callable[[Scan], None]] = []
         self.arbiter: CommandArbiter | None = None
+        # Following on command (``enable_following``); None: the controller cannot start following.
+        self.follow_control: FollowControl | None = None
         self.fleet: FleetLoop | None = None  # the bridge's Unix socket ([fleet] socket)
         self.commands: CommandLoop | None = None
         self.drive_step: DirectiveDrive | None = None
@@ -542,6 +549,8 @@ class Agent:
         )
 
     def _following_status(self) -> dict[str, float | int] | None:
+        if self.coarse is not None and not self.coarse.tag_id:  # on command, no tag followed yet
+            return None
         latest = self.coarse.latest if self.coarse is not None else None
         return latest.as_dict() if latest is not None else None
 
@@ -581,7 +590,7 @@ class Agent:
         """Person following's RFID layer when ``[following] tag_id`` names the tag: the calibrated table,
         or the physical model of ``antenna_yaws_rad`` on the reader's antenna ports."""
         fc = self.config.following
-        if fc.tag_id is None:
+        if fc.tag_id is None and (self.follow_control is None or self.follow_control.loop is None):
             return None
         table = fc.table
         if table is None:
@@ -603,7 +612,8 @@ class Agent:
             e = fusion.estimate()
             return e.x_m, e.y_m, e.yaw_rad
 
-        return CoarseLayer(CoarseFilter(table), fc.tag_id, fc.cycle_s, pose)
+        # Without [following] tag_id (following on command) the layer hears no tag until a follow names one.
+        return CoarseLayer(CoarseFilter(table), fc.tag_id or "", fc.cycle_s, pose)
 
     # -- helpers -----------------------------------------------------------------------------------
     def critical(self, name: str) -> bool:
@@ -644,6 +654,29 @@ class Agent:
         )
         self.navigator = self.navigation
         return True
+
+    def enable_following(self, loop: FollowLoop | None, unavailable: str = "") -> FollowControl | None:
+        """Following on command (``agent.runtime.follow_control``): the controller's follow frames turn
+        ``loop`` (``follow_setup.make_follow_loop``) on and off through the arbiter, and its state goes
+        back as goal statuses. ``loop`` None: following is not set up (``unavailable`` says why) and follow
+        commands are refused FOLLOW_UNAVAILABLE. Needs the command line (the pose output); None, saying why
+        in the log, without it. Before :meth:`start` (with a reader, the RFID layer is then made even
+        without ``[following] tag_id``, for a follow that names its tag)."""
+        if self.arbiter is None or self.commands is None:
+            log.warning("following on command off: it needs a command line (the pose output)")
+            return None
+        from agent.runtime.follow_control import FollowControl
+
+        self.follow_control = FollowControl(
+            self.arbiter,
+            self.commands.answer,
+            loop,
+            lambda: self.clock_ns() * 1e-9,
+            coarse=lambda: self.coarse,
+            configured_tag=self.config.following.tag_id,
+            unavailable=unavailable,
+        )
+        return self.follow_control
 
     def enable_missions(self, places: Mapping[str, NamedPlace] | None = None) -> bool:
         """Run local missions (``mission_loop``): exploring with the configured explorer

@@ -2,7 +2,7 @@
 
 Sources, by precedence (``docs/navigation.md``)::
 
-    controller velocity  >  controller goal  >  fleet goal | local mission goal (explore, deliver, ...)
+    controller velocity  >  controller goal | following  >  fleet goal | local mission goal (explore, ...)
 
 * A **velocity** command is in force for its own timeout; it preempts any goal (the goal is CANCELLED,
   SUPERSEDED) and is clamped to the base's limits (ACCEPTED with CLAMPED). When it expires the base
@@ -18,6 +18,15 @@ Sources, by precedence (``docs/navigation.md``)::
   is itself cancelled (SUPERSEDED) by any controller velocity or goal, and (STOPPED) by a stop. A mission
   goal is REJECTED, BUSY while a fleet goal is in force. It never drives past the dead-man: the base
   moves through the same navigator and wheels' dead-man as every goal.
+* **Following** (the controller's follow command, or ``vlp-agent run --follow`` at start-up) ranks with the
+  controller's goal, and the newer of the two wins: a follow start is REJECTED, BUSY while a controller
+  velocity is in force, REJECTED, STOPPED while a stop holds, REJECTED with ``check_follow``'s reason when
+  the agent cannot follow (FOLLOW_UNAVAILABLE, NO_TAG_READER); else ACCEPTED, and it cancels (SUPERSEDED)
+  any goal in force (controller, fleet, mission) and an earlier following. It ends (a status CANCELLED with
+  the follow id) by a follow stop or a cancel naming it (or NO_GOAL) (reason NONE), a controller goal or
+  velocity (SUPERSEDED), a stop (STOPPED). Mission and fleet goals are REJECTED, BUSY while it is on. The
+  follow loop drives the base while it is on (``DriveSource.FOLLOW``); its ACTIVE statuses
+  (:meth:`CommandArbiter.follow_status`) say how it goes.
 * **Stop** holds the base at zero and cancels everything until **resume**; commands in between are
   REJECTED, STOPPED.
 
@@ -41,6 +50,8 @@ from firmware_protocol.command_frame import (
     Command,
     CommandFrameError,
     ExploreCommand,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalReason,
     GoalState,
@@ -51,7 +62,9 @@ from firmware_protocol.command_frame import (
     VelocityCommand,
 )
 
-__all__ = ["CommandArbiter", "Directive", "DriveSource"]
+__all__ = ["STARTUP_FOLLOW_ID", "CommandArbiter", "Directive", "DriveSource"]
+
+STARTUP_FOLLOW_ID = 0  # the follow id of the following ``vlp-agent run --follow`` starts
 
 
 class DriveSource(enum.Enum):
@@ -61,6 +74,7 @@ class DriveSource(enum.Enum):
     GOAL = "goal"  # the controller's goal, through the navigator
     MISSION = "mission"  # a local mission's goal, through the navigator
     FLEET = "fleet"  # a goal from the fleet (the bridge), through the navigator
+    FOLLOW = "follow"  # following a person: the follow loop's velocity
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,10 +102,15 @@ class CommandArbiter:
         max_speed_mps: float,
         max_turn_radps: float,
         check_goal: Callable[[GoalCommand], GoalReason | None] | None = None,
+        check_follow: Callable[[FollowCommand], GoalReason | None] | None = None,
     ) -> None:
         self.max_speed_mps = max_speed_mps
         self.max_turn_radps = max_turn_radps
         self._check_goal = check_goal or (lambda goal: None)
+        # Without a follow loop there is nothing to follow with: every follow start is refused.
+        self.check_follow: Callable[[FollowCommand], GoalReason | None] = check_follow or (
+            lambda follow: GoalReason.FOLLOW_UNAVAILABLE
+        )
         self._lock = threading.Lock()
         self._sequence = 0
         self._stopped = False
@@ -99,6 +118,7 @@ class CommandArbiter:
         self._goal: GoalCommand | None = None
         self._mission: GoalCommand | None = None
         self._fleet: GoalCommand | None = None
+        self._follow: FollowCommand | None = None
         self.counts: dict[str, int] = {}
 
     # -- answers -------------------------------------------------------------------------------------
@@ -137,8 +157,14 @@ class CommandArbiter:
                 return [self._status(command.sequence, NO_GOAL, GoalState.ACCEPTED)]
             if isinstance(command, CancelCommand):
                 return self._cancel(command)
+            if isinstance(command, FollowCommand) and command.action == FollowAction.STOP:
+                return self._end_following(command)
             if self._stopped:
-                goal_id = command.goal_id if isinstance(command, GoalCommand) else NO_GOAL
+                goal_id = NO_GOAL
+                if isinstance(command, GoalCommand):
+                    goal_id = command.goal_id
+                elif isinstance(command, FollowCommand):
+                    goal_id = command.follow_id
                 return [self._status(command.sequence, goal_id, GoalState.REJECTED, GoalReason.STOPPED)]
             if isinstance(command, VelocityCommand):
                 return self._take_velocity(command, now_s)
@@ -149,6 +175,8 @@ class CommandArbiter:
                         command.sequence, command.mission_id, GoalState.REJECTED, GoalReason.UNKNOWN_TYPE
                     )
                 ]
+            if isinstance(command, FollowCommand):
+                return self._take_following(command)
             return self._take_goal(command)
 
     def _stop(self, command: StopCommand) -> list[GoalStatus]:
@@ -158,7 +186,30 @@ class CommandArbiter:
         out += self._drop_goals(GoalReason.STOPPED)
         return out
 
+    def _take_following(self, command: FollowCommand) -> list[GoalStatus]:
+        if self._velocity is not None:
+            return [self._status(command.sequence, command.follow_id, GoalState.REJECTED, GoalReason.BUSY)]
+        reason = self.check_follow(command)
+        if reason is not None:
+            return [self._status(command.sequence, command.follow_id, GoalState.REJECTED, reason)]
+        out = [self._status(command.sequence, command.follow_id, GoalState.ACCEPTED)]
+        out += self._drop_goals(GoalReason.SUPERSEDED)
+        self._follow = command
+        return out
+
+    def _end_following(self, command: FollowCommand) -> list[GoalStatus]:
+        active = self._follow
+        if active is None or command.follow_id not in (NO_GOAL, active.follow_id):
+            return [
+                self._status(command.sequence, command.follow_id, GoalState.REJECTED, GoalReason.UNKNOWN_GOAL)
+            ]
+        self._follow = None
+        return [self._status(command.sequence, active.follow_id, GoalState.CANCELLED)]
+
     def _cancel(self, command: CancelCommand) -> list[GoalStatus]:
+        if self._follow is not None and command.goal_id in (NO_GOAL, self._follow.follow_id):
+            follow, self._follow = self._follow, None
+            return [self._status(command.sequence, follow.follow_id, GoalState.CANCELLED)]
         active = self._goal or self._fleet or self._mission
         if active is None or command.goal_id not in (NO_GOAL, active.goal_id):
             return [
@@ -201,11 +252,15 @@ class CommandArbiter:
         return out
 
     def _drop_goals(self, reason: GoalReason) -> list[GoalStatus]:
+        """End every goal and the following in force, each with a CANCELLED status of ``reason``."""
         out = []
         for goal in (self._goal, self._fleet, self._mission):
             if goal is not None:
                 out.append(self._status(NO_SEQUENCE, goal.goal_id, GoalState.CANCELLED, reason))
+        if self._follow is not None:
+            out.append(self._status(NO_SEQUENCE, self._follow.follow_id, GoalState.CANCELLED, reason))
         self._goal = self._fleet = self._mission = None
+        self._follow = None
         return out
 
     def _expire(self, now_s: float) -> GoalStatus | None:
@@ -221,7 +276,8 @@ class CommandArbiter:
         with self._lock:
             if self._stopped:
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.STOPPED)
-            if self._goal is not None or self._velocity is not None or self._fleet is not None:
+            busy = (self._goal, self._velocity, self._fleet, self._follow)
+            if any(x is not None for x in busy):
                 return self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BUSY)
             reason = self._check_goal(goal)
             if reason is not None:
@@ -237,7 +293,8 @@ class CommandArbiter:
             self._expire(now_s)
             if self._stopped:
                 return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.STOPPED)]
-            if self._goal is not None or self._velocity is not None or self._mission is not None:
+            busy = (self._goal, self._velocity, self._mission, self._follow)
+            if any(x is not None for x in busy):
                 return [self._status(NO_SEQUENCE, goal.goal_id, GoalState.REJECTED, GoalReason.BUSY)]
             fields = (goal.x_m, goal.y_m, goal.tolerance_xy_m, goal.tolerance_yaw_rad)
             if not all(math.isfinite(x) for x in fields) or (
@@ -263,9 +320,25 @@ class CommandArbiter:
 
     @property
     def controller_in_force(self) -> bool:
-        """A controller's velocity or goal drives the base (a mission would not)."""
+        """A controller's velocity, goal or following drives the base (a mission would not)."""
         with self._lock:
-            return self._goal is not None or self._velocity is not None
+            return self._goal is not None or self._velocity is not None or self._follow is not None
+
+    @property
+    def following(self) -> FollowCommand | None:
+        """The follow command in force (None: not following)."""
+        with self._lock:
+            return self._follow
+
+    def follow_status(
+        self, follow_id: int, reason: GoalReason, distance_m: float | None = None
+    ) -> GoalStatus | None:
+        """An ACTIVE status about the following in force (``reason``: how it goes; ``distance_m``: to the
+        person, as the status's remaining distance); None if ``follow_id`` is no longer it."""
+        with self._lock:
+            if self._follow is None or self._follow.follow_id != follow_id:
+                return None
+            return self._status(NO_SEQUENCE, follow_id, GoalState.ACTIVE, reason, distance_m)
 
     @property
     def fleet_in_force(self) -> bool:
@@ -303,6 +376,8 @@ class CommandArbiter:
                 return Directive(DriveSource.FLEET, goal=self._fleet), expired
             if self._mission is not None:
                 return Directive(DriveSource.MISSION, goal=self._mission), expired
+            if self._follow is not None:
+                return Directive(DriveSource.FOLLOW), expired
             return Directive(DriveSource.NONE), expired
 
     def goal_progress(self, goal_id: int, remaining_m: float | None) -> GoalStatus | None:

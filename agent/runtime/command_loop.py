@@ -27,6 +27,7 @@ from firmware_protocol.command_frame import (
     CommandFrameError,
     CommandType,
     ExploreCommand,
+    FollowCommand,
     GoalCommand,
     GoalStatus,
     PlaceCommand,
@@ -58,6 +59,8 @@ def _kind(command: Command) -> CommandType:
         return CommandType.EXPLORE
     if isinstance(command, PlaceCommand):
         return CommandType.GO_TO_PLACE
+    if isinstance(command, FollowCommand):
+        return CommandType.FOLLOW
     if isinstance(command, VelocityCommand):
         return CommandType.VELOCITY
     if isinstance(command, GoalCommand):
@@ -137,8 +140,14 @@ class CommandLoop:
             if isinstance(command, (ExploreCommand, PlaceCommand)) and self.missions is not None:
                 self.answer(self.missions(command), _kind(command))
                 continue
+            following = self.arbiter.following
             for i, status in enumerate(self.arbiter.command(command, self.clock_s())):
-                self.answer(status, _kind(command) if i == 0 else CommandType.GOAL)
+                about = CommandType.GOAL
+                if i == 0:
+                    about = _kind(command)
+                elif following is not None and status.goal_id == following.follow_id:
+                    about = CommandType.FOLLOW  # the following this command ended
+                self.answer(status, about)
         return len(commands)
 
     def run(self, beat: Heartbeat, stop: threading.Event, then: Callable[[], object] | None = None) -> None:

@@ -8,6 +8,8 @@ velocity reaches :class:`~agent.runtime.motion.DriveCommand` within one poll of 
 * ``STOPPED``: zero, held (``DriveCommand.hold``) every pass until resume.
 * ``NONE``: nothing: whoever else commands the base (``Agent.command_velocity``: the sim's route follower)
   keeps doing so.
+* ``FOLLOW``: nothing here: the follow loop sends its velocity (``Agent.command_velocity``) while following
+  is on; when it ends, zero at once (as below).
 * ``GOAL`` / ``MISSION``: for the navigator (``navigator``), called with the directive each pass; without
   one nothing drives (and the agent answers goals NOT_LOCALIZED, see ``Agent``).
 
@@ -83,7 +85,13 @@ class DirectiveDrive:
                 navigator(directive, now_ns * 1e-9)
             else:
                 self.counts["drive_goal_without_navigator"] += 1
-        moving = (DriveSource.VELOCITY, DriveSource.GOAL, DriveSource.MISSION, DriveSource.FLEET)
+        moving = (
+            DriveSource.VELOCITY,
+            DriveSource.GOAL,
+            DriveSource.MISSION,
+            DriveSource.FLEET,
+            DriveSource.FOLLOW,
+        )
         if previous in moving and directive.source is not previous:
             # The controller's velocity or the goal ended (dead-man, cancel, a new source, stop): the base
             # stops now, not after DriveCommand's own timeout.

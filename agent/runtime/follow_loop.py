@@ -15,6 +15,11 @@
   bearing from the camera, fed to the track as a second measurement (``PersonTracker.update_bearing``): the
   person's estimate uses laser, RFID and camera.
 
+With ``active`` (the agent's following on command, ``agent.runtime.follow_control``) the loop idles while it
+says no: scans and frames are not looked at, nothing is sent (zero once when it turns off), and it starts
+afresh when it turns on (:meth:`FollowLoop.restart`: no track, no memory of the last time). Without it the
+loop follows from its start (``vlp-agent sim --follow``).
+
 A track not measured by the last scan is *occluded* when the scan has returns nearer than the track on
 its line of sight (a passer-by, a corner), *vanished* otherwise; the follower coasts through the first
 and stops on the second at the first scan that misses them (``stop_after_s``; ``docs/following.md``,
@@ -342,6 +347,48 @@ class FollowLoop:
         self.vanished_at_s: float | None = None  # when the person was last hidden (``blind``)
         self.vanish_stops_s: list[float] = []  # per hiding: from it to the first zero speed sent
         self.vanishings_s: list[float] = []  # when each hiding began
+        # Following on command: whether to follow now (None: always). Read by each step, scan and frame.
+        self.active: Callable[[], bool] | None = None
+        self._was_active = False
+        # Told each step's snapshot while following (the follow control reports the state from it).
+        self.on_step: Callable[[FollowSnapshot], None] | None = None
+
+    def sync_active(self) -> bool:
+        """Whether to step now (``active``; always without it). When it turns on the loop starts afresh
+        (:meth:`restart`); when it turns off, zero speed goes out once: the last velocity this loop sent
+        must not outlive the following."""
+        if self.active is None:
+            return True
+        active = self.active()
+        if active != self._was_active:
+            if active:
+                self.restart()
+                log.info("following: on")
+            else:
+                self.send(0.0, 0.0)
+                log.info("following: off")
+            self._was_active = active
+        return active
+
+    def restart(self) -> None:
+        """Start afresh: no track, no last scan or frame, no memory of a lost person or of the poses (the
+        robot may have been driven anywhere since the last following)."""
+        with self._lock:
+            self.tracker.drop()
+            self.follower.lost_since_s = None
+            self.follower.vanished = False
+            self.last_scan_s = None
+            self.last_frame_s = None
+            self.occluded = False
+            self._window_since_s = None
+            self._poses.clear()
+            self._epoch = None
+            self._walker_memory = {}
+            self.latest = None
+            self._fine_rejected = 0
+        if self.fine is not None:
+            self.fine.reset()
+        self.counts["restarts"] += 1
 
     @property
     def blind(self) -> bool:
@@ -377,6 +424,8 @@ class FollowLoop:
     # -- scans --------------------------------------------------------------------------------------
 
     def on_scan(self, scan: Scan) -> None:
+        if self.active is not None and not self._was_active:  # idle: following is off
+            return
         now = self.pose()
         if now is None:
             return
@@ -496,6 +545,8 @@ class FollowLoop:
         """One forward camera frame through the fine layer; its bearing to the track. None when there is
         no fine layer, no pose or no track to look for (a new track restarts the fine layer's target)."""
         fine, locator = self.fine, self.locator
+        if self.active is not None and not self._was_active:
+            return None
         self.last_frame_s = self.clock_s()
         pose = self.pose()
         if fine is None or locator is None or pose is None:
@@ -864,8 +915,12 @@ class FollowLoop:
                 self._wake.clear()
                 if stop.is_set():
                     break
+                if not self.sync_active():
+                    continue
                 try:
-                    self.step()
+                    snap = self.step()
+                    if self.on_step is not None:
+                        self.on_step(snap)
                 except Exception:  # a bad step stops the robot, it does not end following
                     log.exception("follow step failed")
                     self.send(0.0, 0.0)

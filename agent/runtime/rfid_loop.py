@@ -59,6 +59,24 @@ class CoarseLayer:
         self._cycles = 0
         self._lock = threading.Lock()
         self._latest: CoarseStatus | None = None
+        self._retag: str | None = None  # a tag to switch to, applied on the RFID loop's thread
+
+    def retag(self, tag_id: str) -> None:
+        """Follow another tag from the next read on: the filter starts afresh (its belief was about the
+        other tag). Any thread; applied on the RFID loop's."""
+        with self._lock:
+            self._retag = tag_id.upper()
+
+    def _apply_retag(self) -> None:
+        with self._lock:
+            tag, self._retag = self._retag, None
+            if tag is None or tag == self.tag_id:
+                return
+            self._latest = None
+        self.tag_id = tag
+        self.filter.reset()
+        self._reads.clear()
+        self._last_ns = self._last_pose = None
 
     @property
     def latest(self) -> CoarseStatus | None:
@@ -66,11 +84,13 @@ class CoarseLayer:
             return self._latest
 
     def add(self, read: TagRead) -> None:
+        self._apply_retag()
         if read.tag_id.upper() == self.tag_id:
             self._reads.append(read)
 
     def tick(self, now_ns: int) -> None:
         """Close the cycle when it is due: predict over the time and motion since the last, then update."""
+        self._apply_retag()
         if self._last_ns is None:
             self._last_ns, self._last_pose = now_ns, self.pose()
             self._reads.clear()

@@ -30,6 +30,12 @@ Missions (``vlp-agent sim --explore``, ``--deliver``) go the same way, one after
 ``("explore",)`` is sent as an explore command frame (start), ``("place", NAME, COME_BACK)`` as a
 go-to-place frame (command frames v1.1); the mission id is the item's place in the list, as a goal's
 id is, and the mission's end is a status of that id.
+
+Following (``vlp-agent sim --send-follow``) too: an item ``("follow", "start", TAG or None, DELAY_S)`` is a
+follow start frame (v1.2; the follow id is the item's place in the list), ``("follow", "stop", None,
+DELAY_S)`` a follow stop of the last follow started; each is sent ``DELAY_S`` after the item before it was
+answered (from when the pose stream flows, for the first), and counts as done at its answer (the status
+echoing its sequence). The following's ACTIVE statuses in between are decoded and kept as any status.
 """
 
 from __future__ import annotations
@@ -97,15 +103,26 @@ class _Commander:
         self._waiting = False  # a goal is out and has not ended yet
         self._retry_at: float | None = None
         self._tries = 0
+        self._answered_at: float | None = None  # when the last follow item was answered (or poses flowed)
+        self._follow_id = 0  # the last follow started
 
     @property
     def done(self) -> bool:
         """Every goal sent and the last one ended for good."""
         return self.sent == len(self.goals) and not self._waiting and self._retry_at is None
 
+    def _following(self) -> bool:
+        """The item out (or last sent) is a follow command."""
+        return 0 < self.sent <= len(self.goals) and self.goals[self.sent - 1][:1] == ("follow",)
+
     def take(self, data: bytes) -> None:
         for status in self._decoder.feed(data):
             self.statuses.append((status.goal_id, status.state.name, status.reason.name))
+            if self._following():
+                if self._waiting and status.command_sequence == self.sequence:
+                    self._waiting = False  # its answer: the next item may go (after its delay)
+                    self._answered_at = time.monotonic()
+                continue
             if self._waiting and status.goal_id == self.sent and status.state.name in _ENDED:
                 self._waiting = False
                 retry = status.state.name == "REJECTED" and status.reason.name == "NOT_LOCALIZED"
@@ -123,6 +140,12 @@ class _Commander:
             self._retry_at = None
             self._tries += 1
         elif self.sent < len(self.goals):
+            nxt = self.goals[self.sent]
+            if nxt[:1] == ("follow",):
+                if self._answered_at is None:
+                    self._answered_at = time.monotonic()  # the pose stream flows from now
+                if time.monotonic() < self._answered_at + float(nxt[3]):
+                    return b""
             self.sent += 1
             self._tries = 0
         else:
@@ -132,6 +155,13 @@ class _Commander:
         item = self.goals[self.sent - 1]
         self.sequence = (self.sequence + 1) & 0xFFFF
         self._waiting = True
+        if item[:1] == ("follow",):
+            from firmware_protocol.command_frame import FollowAction, FollowCommand
+
+            if item[1] == "start":
+                self._follow_id = self.sent
+                return encode_command(FollowCommand(self.sequence, self.sent, FollowAction.START, item[2]))
+            return encode_command(FollowCommand(self.sequence, self._follow_id, FollowAction.STOP))
         if item and isinstance(item[0], str):
             from firmware_protocol.command_frame import ExploreCommand, PlaceCommand
 

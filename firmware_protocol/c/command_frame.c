@@ -109,6 +109,27 @@ size_t cmd_encode_resume(uint8_t *out, uint16_t sequence)
     return frame(out, p, 4u);
 }
 
+size_t cmd_encode_follow(uint8_t *out, uint16_t sequence, uint16_t follow_id, uint8_t action,
+                         const uint8_t *tag, size_t tag_len)
+{
+    uint8_t p[24 + 2];
+    size_t i;
+
+    if (action > CMD_FOLLOW_STOP || tag_len > CMD_FOLLOW_TAG_MAX_LEN || (tag_len != 0u && tag == NULL) ||
+        (action == CMD_FOLLOW_STOP && tag_len != 0u)) {
+        return 0u;
+    }
+    header(p, CMD_TYPE_FOLLOW, sequence);
+    p[1] = CMD_FRAME_VERSION_FOLLOW;
+    put_u16(p + 4, follow_id);
+    p[6] = action;
+    p[7] = (uint8_t)tag_len;
+    for (i = 0; i < CMD_FOLLOW_TAG_MAX_LEN; i++) {
+        p[8 + i] = (i < tag_len) ? tag[i] : 0u;
+    }
+    return frame(out, p, 24u);
+}
+
 #define STATUS_PAYLOAD_LEN 12u
 
 status_result_t goal_status_parse(const uint8_t *decoded, size_t len, goal_status_t *out)
@@ -144,7 +165,7 @@ status_result_t goal_status_parse(const uint8_t *decoded, size_t len, goal_statu
     out->command_sequence = get_u16(decoded + 4);
     out->goal_id = get_u16(decoded + 6);
     out->state = decoded[8];
-    out->reason = (decoded[9] > REASON_EXPLORED) ? (uint8_t)REASON_NONE : decoded[9];
+    out->reason = (decoded[9] > REASON_LAST) ? (uint8_t)REASON_NONE : decoded[9];
     out->remaining = get_u16(decoded + 10);
     return STATUS_OK;
 }

@@ -24,7 +24,9 @@ extern "C" {
 #define CMD_FRAME_VERSION 0x10u         /* major << 4 | minor: 1.0 */
 #define CMD_FRAME_MAX_PAYLOAD_LEN 64u   /* the longest a later v1.x may send */
 #define CMD_FRAME_MAX_DECODED_LEN 66u   /* payload + CRC */
-#define CMD_FRAME_MAX_WIRE_LEN 28u      /* the longest v1.0 command (goal) on the wire, 0x00 included */
+#define CMD_FRAME_MAX_WIRE_LEN 28u      /* the longest command this code writes (follow, v1.2) on the wire, 0x00
+                                         * included */
+#define CMD_FRAME_VERSION_FOLLOW 0x12u  /* follow frames are sent as 1.2 */
 
 /* Type bytes (payload byte 0). */
 #define CMD_TYPE_VELOCITY 0x21u
@@ -32,6 +34,7 @@ extern "C" {
 #define CMD_TYPE_CANCEL 0x23u
 #define CMD_TYPE_STOP 0x24u
 #define CMD_TYPE_RESUME 0x25u
+#define CMD_TYPE_FOLLOW 0x28u /* since v1.2 */
 #define CMD_TYPE_GOAL_STATUS 0xA1u
 
 #define CMD_NO_GOAL 0xFFFFu           /* cancel: whatever goal is active; status: no goal */
@@ -39,6 +42,9 @@ extern "C" {
 #define CMD_REMAINING_UNKNOWN 0xFFFFu /* status: remaining distance unknown */
 #define CMD_GOAL_OPTION_YAW 0x01u     /* the goal's yaw is wanted */
 #define CMD_GOAL_OPTION_ALLOW_UNKNOWN 0x02u
+#define CMD_FOLLOW_START 0u             /* follow action: start following */
+#define CMD_FOLLOW_STOP 1u              /* follow action: stop following */
+#define CMD_FOLLOW_TAG_MAX_LEN 16u      /* bytes of a tag's EPC in a follow frame */
 
 /* Goal states and reasons, as GoalState / GoalReason in the Python codec. */
 enum {
@@ -52,8 +58,12 @@ enum {
     REASON_SUPERSEDED = 12, REASON_NOT_LOCALIZED = 13, REASON_UNKNOWN_GOAL = 14, REASON_DEAD_MAN = 15,
     REASON_BUSY = 16,
     /* v1.1 (missions) */
-    REASON_UNKNOWN_PLACE = 17, REASON_NO_FREE_SPACE = 18, REASON_START_BLOCKED = 19, REASON_EXPLORED = 20
+    REASON_UNKNOWN_PLACE = 17, REASON_NO_FREE_SPACE = 18, REASON_START_BLOCKED = 19, REASON_EXPLORED = 20,
+    /* v1.2 (following) */
+    REASON_FOLLOW_UNAVAILABLE = 21, REASON_NO_TAG_READER = 22, REASON_FOLLOWING = 23, REASON_SEARCHING = 24,
+    REASON_PERSON_LOST = 25, REASON_TAG_ABSENT = 26, REASON_NO_CAMERA_FRAMES = 27
 };
+#define REASON_LAST REASON_NO_CAMERA_FRAMES /* a later reason reads as REASON_NONE */
 
 typedef struct {
     uint16_t sequence;
@@ -84,6 +94,11 @@ size_t cmd_encode_goal(uint8_t *out, const cmd_goal_t *goal);
 size_t cmd_encode_cancel(uint8_t *out, uint16_t sequence, uint16_t goal_id);
 size_t cmd_encode_stop(uint8_t *out, uint16_t sequence);
 size_t cmd_encode_resume(uint8_t *out, uint16_t sequence);
+/* Follow (v1.2): CMD_FOLLOW_START the person wearing the tag (tag_len bytes of its EPC, most significant
+ * first, at most CMD_FOLLOW_TAG_MAX_LEN; 0 and tag NULL: the agent's configured user tag), or
+ * CMD_FOLLOW_STOP (tag_len 0). Returns 0, writing nothing, for an action or tag the agent would refuse. */
+size_t cmd_encode_follow(uint8_t *out, uint16_t sequence, uint16_t follow_id, uint8_t action,
+                         const uint8_t *tag, size_t tag_len);
 
 typedef enum {
     STATUS_OK = 0,

@@ -5,6 +5,7 @@
  *                                       v SEQ V_MM_S OMEGA_MRAD_S TIMEOUT_MS
  *                                       g SEQ GOAL_ID OPTIONS X Y YAW TOL_XY TOL_YAW
  *                                       c SEQ GOAL_ID      s SEQ      r SEQ
+ *                                       f SEQ FOLLOW_ID ACTION TAGHEX  (TAGHEX "-": no tag)
  *   test_command_frame FILE           decode the goal statuses in a byte stream from FILE ("-" = stdin):
  *                                     one CSV line per status on stdout, the decoder's counters on stderr
  *
@@ -24,6 +25,34 @@ static void print_hex(const uint8_t *p, size_t n)
         printf(i ? " %02x" : "%02x", p[i]);
     }
     printf("\n");
+}
+
+/* "SEQ FOLLOW_ID ACTION TAGHEX": the follow frame into out, its length into *n; 0 if the line is bad. */
+static int follow_line(const char *text, uint8_t *out, size_t *n)
+{
+    long seq, id, action;
+    char hex[2 * CMD_FOLLOW_TAG_MAX_LEN + 8];
+    uint8_t tag[CMD_FOLLOW_TAG_MAX_LEN];
+    size_t len = 0u;
+    unsigned int byte;
+
+    if (sscanf(text, "%ld %ld %ld %34s", &seq, &id, &action, hex) != 4) {
+        return 0;
+    }
+    if (strcmp(hex, "-") != 0) {
+        size_t digits = strlen(hex);
+        if (digits % 2u != 0u || digits / 2u > CMD_FOLLOW_TAG_MAX_LEN) {
+            return 0;
+        }
+        for (len = 0; len < digits / 2u; len++) {
+            if (sscanf(hex + 2u * len, "%2x", &byte) != 1) {
+                return 0;
+            }
+            tag[len] = (uint8_t)byte;
+        }
+    }
+    *n = cmd_encode_follow(out, (uint16_t)seq, (uint16_t)id, (uint8_t)action, len ? tag : NULL, len);
+    return *n != 0u;
 }
 
 static int encode_lines(void)
@@ -56,6 +85,8 @@ static int encode_lines(void)
             n = cmd_encode_stop(out, (uint16_t)a[0]);
         } else if (kind == 'r' && got == 1) {
             n = cmd_encode_resume(out, (uint16_t)a[0]);
+        } else if (kind == 'f' && follow_line(line + 1, out, &n)) {
+            /* n set */
         } else {
             fprintf(stderr, "bad line: %s", line);
             return 2;

@@ -19,6 +19,8 @@ from firmware_protocol.command_frame import (
     CancelCommand,
     Command,
     ExploreCommand,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalStatus,
     GoalStatusDecoder,
@@ -61,6 +63,8 @@ def as_line(command: Command) -> str:
         return f"g {u16[1]} {u16[2]} {payload[6]} {x} {y} {i16(u16[8])} {u16[9]} {u16[10]}"
     if isinstance(command, CancelCommand):
         return f"c {u16[1]} {u16[2]}"
+    if isinstance(command, FollowCommand):
+        return f"f {u16[1]} {u16[2]} {int(command.action)} {command.tag or '-'}"
     return f"{'s' if isinstance(command, StopCommand) else 'r'} {u16[1]}"
 
 
@@ -102,7 +106,8 @@ def python_rows(data: bytes) -> tuple[list[tuple[int, ...]], dict[str, int]]:
     return rows, stats
 
 
-# The C encoders write the v1.0 commands; the mission frames of v1.1 (explore, go to place) are not in C yet.
+# The C encoders write the v1.0 commands and follow (v1.2); the mission frames of v1.1 (explore, go to place)
+# are not in C yet.
 DOC_COMMANDS = [
     m for m in DOC_MESSAGES.values() if not isinstance(m, (GoalStatus, ExploreCommand, PlaceCommand))
 ]
@@ -135,7 +140,22 @@ commands = st.one_of(
     st.builds(CancelCommand, st.integers(0, 0xFFFF), st.integers(0, 0xFFFF)),
     st.builds(StopCommand, st.integers(0, 0xFFFF)),
     st.builds(ResumeCommand, st.integers(0, 0xFFFF)),
+    st.builds(
+        FollowCommand,
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.just(FollowAction.START),
+        st.one_of(st.none(), st.binary(min_size=1, max_size=16).map(lambda b: b.hex().upper())),
+    ),
+    st.builds(FollowCommand, st.integers(0, 0xFFFF), st.integers(0, 0xFFFF), st.just(FollowAction.STOP)),
 )
+
+
+@pytest.mark.parametrize("line", ["f 1 1 1 AB", "f 1 1 0 " + "00" * 17, "f 1 1 2 -"])
+def test_the_c_follow_encoder_refuses_what_the_python_encoder_does(c_program: Path, line: str) -> None:
+    """A stop naming a tag, a tag too long, an unknown action: no frame from C (the Python encoder raises)."""
+    proc = run(c_program, (line + "\n").encode(), "--encode")
+    assert proc.returncode == 2 and proc.stdout == b""
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -23,6 +23,8 @@ from firmware_protocol.command_frame import (
     CommandFrameError,
     ExploreAction,
     ExploreCommand,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalReason,
     GoalState,
@@ -57,6 +59,14 @@ DOC_MESSAGES: dict[str, Command | GoalStatus] = {
     "explore: pause, mission 7": ExploreCommand(14, 7, ExploreAction.PAUSE),
     "go to place: S3 and back, mission 8": PlaceCommand(15, 8, "S3", come_back=True),
     "status: rejected, unknown place": GoalStatus(5, 15, 8, GoalState.REJECTED, GoalReason.UNKNOWN_PLACE),
+    "follow: start, the configured tag, follow 9": FollowCommand(16, 9),
+    "follow: start, tag E2000017221101441890ABCD, follow 9": FollowCommand(
+        17, 9, tag="E2000017221101441890ABCD"
+    ),
+    "follow: stop, follow 9": FollowCommand(18, 9, FollowAction.STOP),
+    "status: active, following, 1.23 m away": GoalStatus(
+        6, NO_SEQUENCE, 9, GoalState.ACTIVE, GoalReason.FOLLOWING, 1.23
+    ),
 }
 
 
@@ -89,7 +99,7 @@ def test_the_doc_vectors_are_the_codecs_bytes_both_ways() -> None:
 
 
 def test_frame_lengths_on_the_wire() -> None:
-    lengths = [14, 26, 26, 10, 8, 8, 16, 16, 16, 16, 12, 12, 28, 16]
+    lengths = [14, 26, 26, 10, 8, 8, 16, 16, 16, 16, 12, 12, 28, 16, 28, 28, 28, 16]
     assert [len(wire(m)) for m in DOC_MESSAGES.values()] == lengths
 
 
@@ -353,3 +363,79 @@ def test_mission_frames_in_a_stream_with_junk() -> None:
     )
     assert decoder.feed(stream) == good
     assert decoder.errors["value"] == 1
+
+
+# -- following (v1.2) -------------------------------------------------------------------------------------
+@given(
+    st.integers(0, 0xFFFF),
+    st.integers(0, 0xFFFF),
+    st.one_of(st.none(), st.binary(min_size=1, max_size=16).map(lambda b: b.hex().upper())),
+)
+def test_follow_round_trip(seq: int, follow_id: int, tag: str | None) -> None:
+    for command in (FollowCommand(seq, follow_id, FollowAction.START, tag), FollowCommand(seq, follow_id, 1)):
+        assert decode_command(encode_command(command)) == command
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        FollowCommand(1, 1, tag=""),
+        FollowCommand(1, 1, tag="ABC"),  # an odd number of hex digits
+        FollowCommand(1, 1, tag="XY"),
+        FollowCommand(1, 1, tag="00" * 17),
+        FollowCommand(1, 1, FollowAction.STOP, tag="AB"),  # a stop names no tag
+        FollowCommand(1, 0x10000),
+    ],
+)
+def test_follow_values_that_cannot_cross_the_wire_raise(bad: Command) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        encode_command(bad)
+    assert info.value.kind == "value"
+
+
+def follow_payload(
+    action: int = 0, tag: bytes = b"", version: int = 0x12, length: int | None = None, extra: bytes = b""
+) -> bytes:
+    n = len(tag) if length is None else length
+    return bytes([0x28, version, 1, 0, 9, 0, action, n]) + tag.ljust(16, b"\x00")[:16] + extra
+
+
+@pytest.mark.parametrize(
+    ("payload", "kind"),
+    [
+        (follow_payload(action=2), "value"),  # no follow action 2
+        (follow_payload(tag=b"\xe2\x01", length=1), "value"),  # a tag byte after tag_length
+        (follow_payload(tag=b"\xe2", length=17), "value"),  # longer than the field
+        (follow_payload(action=1, tag=b"\xe2"), "value"),  # a stop naming a tag
+        (follow_payload(version=0x11), "version"),  # follow frames start at 1.2
+        (follow_payload(version=0x10), "version"),
+        (follow_payload(version=0x22), "version"),  # major 2
+        (follow_payload()[:-1], "length"),  # cut short
+        (follow_payload() + b"\x00", "length"),  # a stray byte at 1.2
+    ],
+)
+def test_malformed_follow_frames_are_rejected_with_their_kind(payload: bytes, kind: str) -> None:
+    with pytest.raises(CommandFrameError) as info:
+        decode_command(encode_link_frame(payload))
+    assert info.value.kind == kind, info.value
+
+
+def test_a_later_minor_follow_frame_with_appended_fields_is_read() -> None:
+    payload = follow_payload(tag=b"\x04\x15", version=0x13, extra=b"later")
+    assert decode_command(encode_link_frame(payload)) == FollowCommand(1, 9, FollowAction.START, "0415")
+
+
+def test_follow_frames_in_a_stream_with_junk_and_corruption() -> None:
+    decoder = CommandDecoder()
+    good = [FollowCommand(1, 9, tag="0415AB9C3D"), FollowCommand(2, 9, FollowAction.STOP)]
+    corrupt = bytearray(encode_command(FollowCommand(3, 10)))
+    corrupt[5] ^= 0x40  # a payload byte: the CRC fails
+    stream = (
+        b"\x13\x37\x00"
+        + encode_command(good[0])
+        + bytes(corrupt)
+        + encode_link_frame(follow_payload(action=7))
+        + encode_command(good[1])
+    )
+    assert decoder.feed(stream) == good
+    assert decoder.errors["value"] == 1 and decoder.errors["crc"] == 1

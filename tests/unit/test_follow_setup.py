@@ -4,6 +4,7 @@ camera backend feeds it frames, and a malformed table is a ConfigError naming it
 
 from __future__ import annotations
 
+import json
 import math
 import types
 from pathlib import Path
@@ -183,3 +184,19 @@ def test_the_fake_camera_paces_its_frames_and_stops_on_close(tmp_path: Path) -> 
     np.save(tmp_path / "grey.npy", np.zeros((4, 4), dtype=np.uint8))
     with pytest.raises(DeviceNotFound):
         FakeForwardCamera(str(tmp_path / "grey.npy")).open()
+
+
+def test_run_without_follow_runs_and_refuses_follow_commands_with_the_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without ``--follow`` a robot that cannot follow (a forward camera without its lens) still runs; its
+    follow commands would be refused FOLLOW_UNAVAILABLE, and the final status says why."""
+    from agent.cli import main
+
+    config = tmp_path / "robot.toml"
+    config.write_text(_config(tmp_path, "[camera.forward.mount]\nyaw_deg = 5.0\n"))
+    assert main(["run", "--config", str(config), "--seconds", "0.5", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    control = summary["follow_control"]
+    assert control["set_up"] is False and "camera.forward.hfov_deg" in control["unavailable"]
+    assert summary["follow"] is None

@@ -219,6 +219,29 @@ def test_the_runtime_layer_closes_cycles_with_the_robot_motion() -> None:
     }
 
 
+def test_the_runtime_layer_retagged_starts_afresh_on_the_new_tag() -> None:
+    """A follow frame naming another tag: from the RFID loop's next call the layer hears only that tag, its
+    belief and its cycle start again (the old belief was about someone else)."""
+    from agent.runtime.rfid_loop import CoarseLayer
+
+    table = default_table(MODEL)
+    layer = CoarseLayer(CoarseFilter(table), "", 0.25, lambda: (0.0, 0.0, 0.0))
+    layer.tick(0)
+    layer.add(TagRead(TAG, 1, "r", -50.0, 1))  # no tag followed yet: ignored
+    assert layer._reads == []
+    layer.filter.belief[:] = 0.0
+    layer.filter.belief[0] = 1.0
+    layer.tick(250_000_000)
+    assert layer.latest is not None
+    layer.retag(TAG.lower())
+    assert layer.tag_id == ""  # applied on the RFID loop's thread, at its next call
+    layer.add(TagRead(TAG, 1, "r", -50.0, 1))
+    assert layer.tag_id == TAG and len(layer._reads) == 1 and layer.latest is None
+    assert layer.filter.belief[0] < 1.0  # reset
+    layer.tick(300_000_000)  # a fresh first cycle: started, nothing closed yet
+    assert layer.latest is None
+
+
 def test_the_front_probability_and_a_window_of_the_posterior() -> None:
     f = CoarseFilter(default_table(MODEL))
     grid = f.grid

@@ -13,6 +13,8 @@ from hypothesis import strategies as st
 
 from firmware_protocol.command_frame import (
     CommandType,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalReason,
     GoalState,
@@ -23,6 +25,7 @@ from firmware_protocol.command_frame import (
 )
 from firmware_protocol.mavlink_commands import (
     MAV_CMD_DO_CHANGE_SPEED,
+    MAV_CMD_DO_FOLLOW,
     MAV_CMD_DO_PAUSE_CONTINUE,
     MAV_CMD_NAV_WAYPOINT,
     MavlinkCommandDecoder,
@@ -160,6 +163,20 @@ def test_any_bytes_decode_or_are_counted(data: bytes) -> None:
             255,
         ),
         (GoalStatus(6, 8, 0xFFFF, GoalState.ACCEPTED), CommandType.STOP, MAV_CMD_DO_PAUSE_CONTINUE, 0, 255),
+        (
+            GoalStatus(7, 0xFFFF, 3, GoalState.ACTIVE, GoalReason.SEARCHING),
+            CommandType.FOLLOW,
+            MAV_CMD_DO_FOLLOW,
+            5,
+            255,
+        ),
+        (
+            GoalStatus(8, 9, 3, GoalState.REJECTED, GoalReason.FOLLOW_UNAVAILABLE),
+            CommandType.FOLLOW,
+            MAV_CMD_DO_FOLLOW,
+            2,
+            255,
+        ),
     ],
 )
 def test_statuses_go_out_as_command_acks_that_pymavlink_reads(
@@ -172,3 +189,21 @@ def test_statuses_go_out_as_command_acks_that_pymavlink_reads(
     assert (msg.get_srcSystem(), msg.get_srcComponent()) == (1, 197)
     assert (msg.command, msg.result, msg.progress) == (command, result, progress)
     assert msg.result_param2 == status.goal_id << 8 | status.reason
+
+
+def test_do_follow_starts_following_the_configured_tag_and_zero_stops_it() -> None:
+    assert MAV_CMD_DO_FOLLOW == mavlink.MAV_CMD_DO_FOLLOW  # pymavlink's common dialect: 32
+    decoder = MavlinkCommandDecoder()
+    out = decoder.feed(command_long(MAV_CMD_DO_FOLLOW, 3) + command_long(MAV_CMD_DO_FOLLOW, 0))
+    assert [(type(c), c.follow_id, c.action, c.tag) for c in out] == [  # type: ignore[union-attr]
+        (FollowCommand, 3, FollowAction.START, None),
+        (FollowCommand, 0xFFFF, FollowAction.STOP, None),
+    ]
+
+
+@pytest.mark.parametrize("param1", [1.5, -1.0, 256.0, math.nan, math.inf])
+def test_do_follow_with_a_param1_that_is_no_system_id_is_rejected(param1: float) -> None:
+    decoder = MavlinkCommandDecoder()
+    assert decoder.feed(command_long(MAV_CMD_DO_FOLLOW, param1)) == []
+    (error,) = decoder.take_rejected()
+    assert error.kind == "value"

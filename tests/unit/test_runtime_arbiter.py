@@ -12,6 +12,8 @@ from firmware_protocol.command_frame import (
     NO_SEQUENCE,
     CancelCommand,
     CommandFrameError,
+    FollowAction,
+    FollowCommand,
     GoalCommand,
     GoalReason,
     GoalState,
@@ -239,3 +241,92 @@ def test_a_fleet_goal_waits_for_a_running_mission_and_bad_values_are_refused() -
     assert a.fleet_goal(fleet(0x8000), 1.0)[0].reason is GoalReason.BUSY
     b = arbiter()
     assert b.fleet_goal(fleet(0x8000, math.nan), 1.0)[0].reason is GoalReason.BAD_VALUE
+
+
+# -- following (follow frames, v1.2) ------------------------------------------------------------------------
+def follower_arbiter(refuse: GoalReason | None = None) -> CommandArbiter:
+    a = arbiter()
+    a.check_follow = lambda follow: refuse
+    return a
+
+
+def test_without_a_follow_check_every_follow_start_is_refused_unavailable() -> None:
+    a = arbiter()
+    assert states(a.command(FollowCommand(1, 5), 0.0)) == [
+        (5, GoalState.REJECTED, GoalReason.FOLLOW_UNAVAILABLE)
+    ]
+    assert a.following is None and a.directive(0.1)[0].source is DriveSource.NONE
+
+
+def test_a_follow_start_cancels_the_goal_and_the_follow_drives() -> None:
+    a = follower_arbiter()
+    a.command(GoalCommand(1, 7, 1.0, 1.0), 0.0)
+    assert states(a.command(FollowCommand(2, 5), 0.0)) == [
+        (5, GoalState.ACCEPTED, GoalReason.NONE),
+        (7, GoalState.CANCELLED, GoalReason.SUPERSEDED),
+    ]
+    assert a.directive(0.1)[0].source is DriveSource.FOLLOW and a.controller_in_force
+    progress = a.follow_status(5, GoalReason.FOLLOWING, 1.2)
+    assert progress is not None and (progress.state, progress.reason, progress.remaining_m) == (
+        GoalState.ACTIVE,
+        GoalReason.FOLLOWING,
+        1.2,
+    )
+
+
+@pytest.mark.parametrize(
+    ("command", "reason"),
+    [
+        (GoalCommand(3, 8, 1.0, 1.0), GoalReason.SUPERSEDED),
+        (VelocityCommand(3, 0.1, 0.0, 0.5), GoalReason.SUPERSEDED),
+        (StopCommand(3), GoalReason.STOPPED),
+    ],
+)
+def test_a_goal_a_velocity_or_a_stop_ends_following(command: object, reason: GoalReason) -> None:
+    a = follower_arbiter()
+    a.command(FollowCommand(1, 5), 0.0)
+    out = states(a.command(command, 0.0))  # type: ignore[arg-type]
+    assert out[0][1] is GoalState.ACCEPTED and out[1:] == [(5, GoalState.CANCELLED, reason)]
+    assert a.following is None and a.follow_status(5, GoalReason.FOLLOWING) is None
+
+
+@pytest.mark.parametrize(
+    "command", [FollowCommand(2, 5, FollowAction.STOP), FollowCommand(2, NO_GOAL, 1), CancelCommand(2)]
+)
+def test_a_follow_stop_or_a_cancel_ends_following(command: object) -> None:
+    a = follower_arbiter()
+    a.command(FollowCommand(1, 5), 0.0)
+    (answer,) = a.command(command, 0.0)  # type: ignore[arg-type]
+    assert (answer.command_sequence, answer.goal_id, answer.state) == (2, 5, GoalState.CANCELLED)
+    assert a.following is None and a.directive(0.1)[0].source is DriveSource.NONE
+    # Nothing is following now: another stop names nothing.
+    assert states(a.command(FollowCommand(3, 5, FollowAction.STOP), 0.0)) == [
+        (5, GoalState.REJECTED, GoalReason.UNKNOWN_GOAL)
+    ]
+
+
+def test_a_follow_start_is_refused_under_a_stop_a_velocity_or_the_check() -> None:
+    a = follower_arbiter()
+    a.command(StopCommand(1), 0.0)
+    assert states(a.command(FollowCommand(2, 5), 0.0)) == [(5, GoalState.REJECTED, GoalReason.STOPPED)]
+    a.command(ResumeCommand(3), 0.0)
+    a.command(VelocityCommand(4, 0.1, 0.0, 0.5), 0.0)
+    assert states(a.command(FollowCommand(5, 6), 0.1)) == [(6, GoalState.REJECTED, GoalReason.BUSY)]
+    b = follower_arbiter(GoalReason.NO_TAG_READER)
+    assert states(b.command(FollowCommand(1, 7, tag="AB"), 0.0)) == [
+        (7, GoalState.REJECTED, GoalReason.NO_TAG_READER)
+    ]
+
+
+def test_missions_and_fleet_goals_wait_while_following_and_a_new_follow_replaces_the_old() -> None:
+    a = follower_arbiter()
+    a.command(FollowCommand(1, 5), 0.0)
+    assert a.mission_goal(GoalCommand(NO_SEQUENCE, 0xC000, 1.0, 1.0)).reason is GoalReason.BUSY
+    (fleet,) = a.fleet_goal(GoalCommand(NO_SEQUENCE, 0x8000, 1.0, 1.0), 0.0)
+    assert fleet.reason is GoalReason.BUSY
+    assert states(a.command(FollowCommand(2, 6, tag="0415"), 0.0)) == [
+        (6, GoalState.ACCEPTED, GoalReason.NONE),
+        (5, GoalState.CANCELLED, GoalReason.SUPERSEDED),
+    ]
+    following = a.following
+    assert following is not None and following.tag == "0415"

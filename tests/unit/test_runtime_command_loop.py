@@ -155,3 +155,30 @@ def test_mission_frames_go_to_the_mission_loop_or_are_refused_without_one(pty: t
     ]
     assert taken == [ExploreCommand(6, 22), PlaceCommand(7, 23, "N4", True)]
     assert heard == answers and loop.counts["command_go_to_place"] == 2  # the refused one too
+
+
+def test_follow_over_mavlink_and_the_goal_that_ends_it_are_acked_as_do_follow(pty: tuple[int, str]) -> None:
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import common as mavlink
+
+    master, path = pty
+    _, loop, _ = setup(path, OutputFormat.MAVLINK)
+    loop.arbiter.check_follow = lambda follow: None  # a follow loop is set up
+    read_all(master)
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    start = mavlink.MAVLink_command_long_message(1, 197, mavlink.MAV_CMD_DO_FOLLOW, 0, 4, 0, 0, 0, 0, 0, 0)
+
+    def acks(n: int) -> Callable[[bytes], bool]:
+        return lambda r: len(mavlink.MAVLink(None).parse_buffer(r) or []) >= n
+
+    (ack,) = mavlink.MAVLink(None).parse_buffer(pump(loop, master, bytes(start.pack(gcs)), acks(1)))
+    assert (ack.command, ack.result, ack.result_param2) == (mavlink.MAV_CMD_DO_FOLLOW, 0, 4 << 8)
+    assert loop.arbiter.directive(0.0)[0].source is DriveSource.FOLLOW
+    goal = mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 197, 1, 0b110111111000, 1.0, 1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0
+    )
+    answers = mavlink.MAVLink(None).parse_buffer(pump(loop, master, bytes(goal.pack(gcs)), acks(2)))
+    assert [(a.command, a.result, a.result_param2) for a in answers] == [
+        (16, 0, 1 << 8),  # the goal, accepted
+        (mavlink.MAV_CMD_DO_FOLLOW, 6, 4 << 8 | GoalReason.SUPERSEDED),  # following ended by it
+    ]
