@@ -75,7 +75,7 @@ def log_proposal(source_format: str, proposal: Any) -> Any:
     if source_format not in SPARSE_SCAN_FORMATS:
         return proposal
     matcher = dataclasses.replace(proposal.matcher, min_inliers=10, min_inlier_fraction=0.0)
-    return dataclasses.replace(proposal, matcher=matcher, keep_better_start=True)
+    return dataclasses.replace(proposal, matcher=matcher, keep_better_start=True, failed_match_draw="grid")
 
 
 def add_parser(subparsers: Any) -> None:
