@@ -20,7 +20,8 @@ random-walks (on a synthetic room, a fixed 2 cm / 0.6 deg grid gave 6 cm traject
 
 Where matching fails (too few endpoints near obstacles: an empty map, a featureless view) the particle
 falls back to the motion model: x_t ~ p(x | x_{t-1}, u), and eta is the same grid sum taken around the
-odometry prediction, so the two kinds of weight stay comparable.
+odometry prediction, so the two kinds of weight stay comparable; or (``ProposalConfig.failed_match_draw``
+"grid") it is drawn from the Gaussian fitted on that grid, so that the pose drawn is the one eta judged.
 
 GMapping's released code skips steps 2-4 (it keeps x̂ and weights it by the likelihood there); the paper's
 form is used here because the sampled spread keeps particle diversity that the scan matcher would remove.
@@ -82,6 +83,14 @@ class ProposalConfig:
     # prior's too, and keep the one of lower truncated energy (see ``improved_proposal``). On for radish
     # logs in ``eval slam``, where the search runs at nearly every update (docs/slam.md, "Scan matching").
     keep_better_start: bool = False
+    # Where a particle's match fails: "motion", a draw from the motion model (the default), its weight
+    # eta the grid sum around the odometry prediction wherever the draw lands; "grid", a draw from the
+    # Gaussian fitted on that grid (its steps the motion model's deviations, clamped as the match's are),
+    # the pose eta was taken for. "grid" for radish logs in ``eval slam``, whose 1 m updates give the
+    # motion model ~13 deg of heading spread (Intel seed 2: a draw 33 deg off the scans won the resampling
+    # with the prediction's weight and bent the rest of the map); exp1's loop (0.25 m updates) closed for
+    # 2 seeds of 6 with it instead of 5 (docs/slam.md, "The filter").
+    failed_match_draw: Literal["motion", "grid"] = "motion"
     # How much of the motion model's spread a drawn pose keeps in the directions the scan (and a fix, if
     # any) does not constrain, a corridor's length: the draw's deviation is scaled as if the motion prior
     # were this many times tighter there (:func:`degenerate_scaling`): by this factor where only the prior
@@ -295,8 +304,12 @@ def improved_proposal(
         noise_xyz = np.einsum("pij,pj->pi", scaling, noise_xyz)
     draw = centre + mean_offset + noise_xyz
     # Where matching failed: the motion model (with a measurement, the Gaussian fitted around the prior,
-    # which holds it).
-    fallback = draw if measurement is not None else sample_motion(previous, increment, noise, rng)
+    # which holds it; with ``failed_match_draw`` "grid", the Gaussian fitted on the grid around the
+    # prediction, where eta was taken). The motion model's draw is taken in either case, so that the
+    # random stream stays as it was.
+    fallback = sample_motion(previous, increment, noise, rng) if measurement is None else draw
+    if config.failed_match_draw == "grid":
+        fallback = draw
     poses = np.where(ok[:, None], draw, fallback)
     poses[:, 2] = wrap_angle(poses[:, 2])
     return ProposalResult(poses, log_eta, ok, result)

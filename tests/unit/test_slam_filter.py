@@ -18,11 +18,12 @@ from agent.slam.fix import PoseFix, fix_log_likelihood, fuse_fixes, pending_fixe
 from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
 from agent.slam.logs import LogFormat, LogRecord, SlamLog
 from agent.slam.mapio import load_map, save_map
+from agent.slam.matcher import DistanceField, MatcherConfig
 from agent.slam.mcl import MclConfig, MclLocalizer
 from agent.slam.metrics import absolute_trajectory_error
 from agent.slam.motion import OdometryNoise, motion_log_density, sample_motion
 from agent.slam.pose import between, compose, inverse
-from agent.slam.proposal import ProposalConfig, degenerate_scaling, laplace_log_eta
+from agent.slam.proposal import ProposalConfig, degenerate_scaling, improved_proposal, laplace_log_eta
 from agent.slam.rbpf import MapMode, RbpfConfig, RbpfSlam, StepKind, systematic_resample
 from agent.slam.render import occupancy_image
 from agent.slam.replay import replay
@@ -224,6 +225,44 @@ def test_degenerate_directions_draw_less_spread() -> None:
     assert degenerate_scaling(random_info, np.stack([prior, prior]), 1.0) == pytest.approx(
         np.stack([np.eye(3), np.eye(3)]), abs=1e-9
     )
+
+
+def test_a_failed_match_can_draw_where_its_weight_was_taken() -> None:
+    """``failed_match_draw="grid"``: a particle whose match fails is drawn from the Gaussian fitted on the
+    grid around the odometry prediction (its steps the motion model's deviations, clamped), where its eta
+    was taken, so the draw stays near the prediction and leans to where the scan fits; the motion model's
+    draw (the default) spreads 0.2 rad here and ignores the scan. The prediction is one clamped grid step
+    (0.05 rad) short of the heading that puts the scan on the wall, and every match fails
+    (``min_inliers`` above the scan's size)."""
+    obstacles = np.zeros((1, 120, 120), dtype=bool)
+    previous = np.tile([-1.0, 0.0, -0.05], (400, 1))
+    increment = np.array([1.0, 0.0, 0.0])
+    noise = OdometryNoise(0.1, 0.2, 0.1, 0.2)  # slam_gmapping's: sigma_yaw 0.2 rad over 1 m
+    predicted = compose(previous[0], increment)
+    wall_x = predicted[0] + 2.0  # seen 2 m straight ahead at heading 0
+    obstacles[0, :, int((wall_x + 3.0) / 0.05)] = True
+    field = DistanceField.from_obstacles(obstacles, (-3.0, -3.0), 0.05, 0.6)
+    points = np.column_stack([np.full(41, 2.0), np.linspace(-1.0, 1.0, 41)])
+    failing = MatcherConfig(min_inliers=1000)
+    offsets = {}
+    for draw in ("grid", "motion"):
+        config = ProposalConfig(search=None, matcher=failing, failed_match_draw=draw)
+        result = improved_proposal(
+            field,
+            np.zeros(400, dtype=np.int64),
+            points,
+            previous,
+            increment,
+            noise,
+            config,
+            np.random.default_rng(5),
+            np.zeros(400),
+        )
+        assert not result.matched.any()
+        offsets[draw] = between(np.tile(predicted, (400, 1)), result.poses)
+    assert np.mean(offsets["grid"][:, 2]) > 0.03  # towards the wall's heading (+0.05)
+    assert abs(np.mean(offsets["motion"][:, 2])) < 0.03  # around the prediction
+    assert np.std(offsets["grid"][:, 2]) < 0.25 * np.std(offsets["motion"][:, 2])
 
 
 def test_slam_with_degenerate_noise_scale(loop: tuple[np.ndarray, ...]) -> None:
