@@ -231,6 +231,13 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "the default), or follow on the laser and RFID only (off), to measure what the camera adds",
     )
     p.add_argument(
+        "--follow-trace",
+        metavar="FILE",
+        help="with --follow: write every 50 ms sample of the score as CSV to FILE (time, the robot's true "
+        "pose and speed, the user's position and distance, the nearest body's gap, the loop's state, the "
+        "velocity sent, the track, the reason: docs/following.md), to see where a run left the band",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -518,6 +525,8 @@ def run(args: argparse.Namespace) -> int:
                 agent, config, (m.x_m, m.y_m, m.yaw_rad), camera_view(world.forward_camera) if fine else None
             )
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
+            if args.follow_trace:
+                follow.trace = []
             injector.follow_loop = loop
         agent.start()
         if follow is not None:
@@ -562,8 +571,11 @@ def run(args: argparse.Namespace) -> int:
         if script is not None and args.deliver:
             summary["delivery"] = script.delivery(controller)
         summary["t0_us"] = t0_us
+        summary["sim_devices"] = robot.lateness()
         if follow is not None:
             summary["follow"] = follow.figures()
+            if args.follow_trace:
+                follow.write_trace(args.follow_trace)
         if agent.flight_recorder is not None:
             summary["recording"] = {
                 "files": [str(p) for p in agent.flight_recorder.files],

@@ -101,6 +101,12 @@ class PtyServer:
         self._lock = threading.Lock()
         self.bytes_in = 0
         self.bytes_out = 0
+        # How late the serving thread woke past the timeout it slept for, at worst, and how often by more
+        # than ``late_warn_s`` (logged): a fake that shares a loaded machine with its client can be starved
+        # where real hardware would not be (``vlp-agent sim``'s summary reports it).
+        self.late_warn_s = 0.25
+        self.late_max_s = 0.0
+        self.late_count = 0
         # Called before the device handles bytes or is polled. A fake shares the process of the program
         # it serves under ``vlp-agent sim``, where real hardware would not: the simulation sets this so
         # that the fake waits while the agent's hot path runs (agent.runtime.hotpath).
@@ -233,12 +239,19 @@ class PtyServer:
                 if due_in is not None:
                     # Just past the due time: woken a hair early, the device would have nothing yet.
                     timeout = min(max(due_in, 0.0) + _SCHEDULE_SLACK_S, timeout)
+            slept = time.monotonic()
             try:
                 ready, _, _ = select.select([master], [], [], timeout)
             except (OSError, ValueError):
                 return
             self.give_way()
             now = time.monotonic()
+            late = now - slept - (0.0 if ready else timeout)
+            if late > self.late_max_s:
+                self.late_max_s = late
+            if late > self.late_warn_s:
+                self.late_count += 1
+                log.warning("fake device on %s: its thread ran %.2f s late", self.path, late)
             try:
                 if ready:
                     data = os.read(master, 4096)

@@ -163,6 +163,14 @@ class SimulatedRobot:
         for server in self.servers.values():
             server.give_way = hot_path
 
+    def lateness(self) -> dict[str, dict[str, float]]:
+        """Per served device: how late its thread woke at worst (s) and how often by more than its
+        warning threshold (``PtyServer.late_max_s``, ``late_count``): starved by the machine's load."""
+        return {
+            name: {"late_max_s": round(server.late_max_s, 3), "late_count": server.late_count}
+            for name, server in self.servers.items()
+        }
+
     def close(self) -> None:
         for server in self.servers.values():
             server.close()
