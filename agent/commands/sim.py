@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import os
@@ -47,7 +48,7 @@ from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.follow_loop import FollowLoop
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.mission_loop import MissionLoop, NamedPlace
-from agent.runtime.priority import SWITCH_INTERVAL_S
+from agent.runtime.priority import SWITCH_INTERVAL_S, realtime_thread
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
 from agent.sim_score import Scorer
@@ -387,6 +388,13 @@ def serve_pose_stream(
     return controller.url, controller
 
 
+def simulated_robot(sim: SimConfig) -> SimulatedRobot:
+    """The simulated robot of ``[sim]``, its fakes' threads real-time at ``device_priority`` (0: not)."""
+    priority = sim.device_priority
+    realtime = functools.partial(realtime_thread, priority) if priority else None
+    return SimulatedRobot(sim.world, seed=sim.seed, realtime=realtime)
+
+
 def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None) -> None:
     """The simulated hardware, threads of the agent's process here, waits while a frame is on the agent's
     hot path (see ``agent.runtime.hotpath``)."""
@@ -407,7 +415,7 @@ def _config(args: argparse.Namespace) -> AgentConfig:
         from drivers.sim.worldfile import load_world
 
         path = resolve_world(args.world)
-        sim = SimConfig(path, load_world(path), sim.seed)
+        sim = dataclasses.replace(sim, world_file=path, world=load_world(path))
     if args.seed is not None:
         sim = dataclasses.replace(sim, seed=args.seed)
     output = config.output
@@ -464,7 +472,7 @@ def run(args: argparse.Namespace) -> int:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
         requests = stack.enter_context(AgentRequests())
-        robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
+        robot = stack.enter_context(simulated_robot(config.sim))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         goals: list[tuple[float, float, float | None]] = args.goal

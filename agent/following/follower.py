@@ -294,7 +294,9 @@ def aside_is_safer(
     x, y, vx, vy, walking on) than braking to a stand where it is, by 5 cm at the closest over
     ``horizon_s``, and further than ``contact_m``: the step must not take the robot toward a walker (the
     nearest cell out of the walkers' sweeps can lie where one of them is about to be). Both begin with the
-    robot braking from ``v_now_mps`` along its heading (after ``latency_s``, at ``accel_mps2``)."""
+    robot braking from ``v_now_mps`` along its heading (after ``latency_s``, at ``accel_mps2``); the follow
+    loop leaves it at 0, the robot where it is: a braking model gentler than the base put the robot past a
+    walker's line when it stood in it, and the step back out of the line was refused."""
     if len(walkers) == 0:
         return True
     tau = np.arange(0.0, horizon_s + 1e-9, dt_s)

@@ -111,6 +111,9 @@ class PtyServer:
         # it serves under ``vlp-agent sim``, where real hardware would not: the simulation sets this so
         # that the fake waits while the agent's hot path runs (agent.runtime.hotpath).
         self.give_way: Callable[[], None] = _no_wait
+        # Called first in the serving thread (``SimulatedRobot`` puts it under real-time scheduling there:
+        # a fake stands in for hardware, which keeps its time whatever the computer's load).
+        self.on_thread_start: Callable[[], None] = _no_wait
 
     # -- lifecycle ---------------------------------------------------------------------------------
     @property
@@ -232,6 +235,7 @@ class PtyServer:
     def _run(self) -> None:
         master = self._master
         assert master is not None
+        self.on_thread_start()
         while not self._stop.is_set():
             timeout = self.poll_interval_s
             if self._schedule is not None:
