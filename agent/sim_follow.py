@@ -21,8 +21,10 @@ reports
   ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one;
 * with ``--fault person`` (the user hidden from the follow loop: they vanish), per hiding the time from
   its start to the first zero forward speed the loop sent (``vanish_stop_command_s``) and to the robot's
-  true speed below 0.02 m/s (``vanish_stop_s``; the acceptance: 0.5 s), the speed it had
-  (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside`` counts those).
+  true speed (the wheels') below 0.02 m/s, the crossing interpolated between samples (``vanish_stop_s``;
+  the acceptance: 0.5 s; ``vanish_stop_sampled_s``: from the speed between samples, as measured before),
+  the speed it had (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside``
+  counts those).
 """
 
 from __future__ import annotations

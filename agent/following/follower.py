@@ -48,6 +48,7 @@ __all__ = [
     "FollowerConfig",
     "aside_is_safer",
     "safe_speed",
+    "walker_body",
     "walker_threat",
 ]
 
@@ -318,6 +319,27 @@ def aside_is_safer(
     ay = np.where(moving, sy + uy * along, by)
     stepping = float(np.min(np.hypot(wx - ax, wy - ay)))
     return stepping > max(standing + 0.05, contact_m)
+
+
+def walker_body(
+    near: tuple[float, float, float, float], robot: Pose, robot_speed_mps: float, surface_m: float
+) -> tuple[float, float, float, float]:
+    """A walker's body centre and velocity (x, y, vx, vy) from a track of the scan's returns on its near
+    side (``near``: their centroid and its velocity), seen from the robot at ``robot`` driving at
+    ``robot_speed_mps`` along its heading: the centre lies ``surface_m`` further along the line of sight,
+    and as the robot drives past, the near side slides round the body at ``surface_m`` times the line of
+    sight's turn rate, which the centroid's velocity took for the walker's own (first order)."""
+    x, y, vx, vy = near
+    dist = math.hypot(robot[0] - x, robot[1] - y)
+    if dist <= 0.05:
+        return near
+    ux, uy = (robot[0] - x) / dist, (robot[1] - y) / dist  # from the walker to the robot
+    dist += surface_m
+    rx = robot_speed_mps * math.cos(robot[2]) - vx
+    ry = robot_speed_mps * math.sin(robot[2]) - vy
+    along = rx * ux + ry * uy
+    k = surface_m / dist
+    return x - surface_m * ux, y - surface_m * uy, vx - k * (rx - along * ux), vy - k * (ry - along * uy)
 
 
 def walker_threat(

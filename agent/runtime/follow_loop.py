@@ -44,6 +44,7 @@ from agent.following.follower import (
     FollowState,
     aside_is_safer,
     safe_speed,
+    walker_body,
     walker_threat,
 )
 from agent.following.person import (
@@ -777,26 +778,14 @@ class FollowLoop:
         walkers = []
         speed = (self._speed_now() or 0.0) if pose is not None else 0.0
         for w in nav.moving.moving():
-            vx, vy = w.vx_mps, w.vy_mps
-            x, y = w.x_m, w.y_m
-            ux = uy = dist = 0.0
+            x, y, vx, vy = w.x_m, w.y_m, w.vx_mps, w.vy_mps
             if pose is not None:
-                dist = math.hypot(pose[0] - x, pose[1] - y)
-                if dist > 0.05:
-                    ux, uy = (pose[0] - x) / dist, (pose[1] - y) / dist  # from the walker to the robot
-                    x, y = x - self.walker_surface_m * ux, y - self.walker_surface_m * uy
-                    dist += self.walker_surface_m
+                x, y, vx, vy = walker_body((x, y, vx, vy), pose, speed, self.walker_surface_m)
             old = self._walker_memory.get(id(w))
-            if old is not None and old[2] == w.t_s:
-                vx, vy = old[0], old[1]
-            else:
-                if dist > 0.0:
-                    rx = speed * math.cos(pose[2]) - vx if pose is not None else 0.0
-                    ry = speed * math.sin(pose[2]) - vy if pose is not None else 0.0
-                    along = rx * ux + ry * uy
-                    k = self.walker_surface_m / dist
-                    vx, vy = vx - k * (rx - along * ux), vy - k * (ry - along * uy)
-                if old is not None:
+            if old is not None:
+                if old[2] == w.t_s:
+                    vx, vy = old[0], old[1]
+                else:
                     a = self.walker_smoothing
                     vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
             memory[id(w)] = (vx, vy, w.t_s)

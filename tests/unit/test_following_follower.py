@@ -140,6 +140,20 @@ def test_a_step_aside_toward_where_a_walker_is_going_is_refused() -> None:
     assert aside_is_safer(robot, (0.0, -0.6), 0.3, np.zeros((0, 4)), 0.36)
 
 
+def test_a_walkers_near_side_is_taken_back_to_the_body_and_its_slide_off_the_velocity() -> None:
+    """A person standing at the origin, the robot 1 m east of them driving north at 0.9 m/s: the scan's
+    returns on their near side sit 0.13 m toward the robot and slide north with the line of sight (0.117
+    m/s), which a tracker of those returns takes for walking."""
+    from agent.following.follower import walker_body
+
+    x, y, vx, vy = walker_body((0.13, 0.0, 0.0, 0.117), (1.0, 0.0, math.pi / 2), 0.9, 0.13)
+    assert abs(x) < 1e-9 and abs(y) < 1e-9
+    assert math.hypot(vx, vy) < 0.03  # standing, to first order (was 0.117)
+    # Walking north past a standing robot, the near side lags the body (0.87 of their 1 m/s).
+    vx, vy = walker_body((0.13, 0.0, 0.0, 0.87), (1.0, 0.0, 0.0), 0.0, 0.13)[2:]
+    assert abs(vx) < 1e-9 and abs(vy - 1.0) < 0.03
+
+
 def test_a_walker_coming_at_the_standing_robot_is_a_threat_one_passing_wide_is_not() -> None:
     from agent.following.follower import walker_threat
 
