@@ -41,16 +41,7 @@ import numpy.typing as npt
 
 from agent.following.person import PersonEstimate
 
-__all__ = [
-    "FollowCommand",
-    "FollowState",
-    "Follower",
-    "FollowerConfig",
-    "aside_is_safer",
-    "safe_speed",
-    "walker_body",
-    "walker_threat",
-]
+__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed", "walker_threat"]
 
 Pose = tuple[float, float, float]
 
@@ -206,21 +197,6 @@ class Follower:
         return FollowCommand(v, omega, FollowState.FOLLOWING, "keeping the distance", dist)
 
 
-def _travel_m(
-    tau: npt.NDArray[np.float64], v_mps: float, v_now_mps: float | None, accel_mps2: float, latency_s: float
-) -> npt.NDArray[np.float64]:
-    """How far the robot has driven along its heading at each time of ``tau`` (from 0, rising) when told
-    to drive at ``v_mps``: at once (``v_now_mps`` None), or from its speed now, held for ``latency_s`` (the
-    command's way to the wheels), then changed toward ``v_mps`` at ``accel_mps2`` (the base's limit)."""
-    if v_now_mps is None:
-        return v_mps * tau
-    ramp = np.clip(tau - latency_s, 0.0, None)
-    change = np.clip(ramp * accel_mps2, 0.0, abs(v_mps - v_now_mps))
-    speed = v_now_mps + math.copysign(1.0, v_mps - v_now_mps) * change
-    steps = np.diff(tau, prepend=tau[:1])
-    return np.cumsum(0.5 * (speed + np.concatenate([speed[:1], speed[:-1]])) * steps)
-
-
 def safe_speed(
     pose: Pose,
     v_mps: float,
@@ -232,25 +208,18 @@ def safe_speed(
     *,
     faster: tuple[float, ...] = (),
     lead: tuple[float, float, float] | None = None,
-    v_now_mps: float | None = None,
-    accel_mps2: float = 2.0,
-    latency_s: float = 0.1,
-    contact_m: float = 0.0,
 ) -> float:
     """The first speed of ``v_mps``, then each of ``faster`` (absolute speeds, tried in order), then
     ``v_mps`` x each of ``fractions`` at which the robot keeps more than ``clearance_m`` (centre to centre)
     from every walker (rows x, y, vx, vy in the map frame, walking on at their velocity) over ``horizon_s``;
-    0 when none does. The robot drives straight on at the speed; with ``v_now_mps`` (its speed now) it gets
-    there as a base does: its speed held for ``latency_s``, then changed at ``accel_mps2`` (a base at 0.3 m/s
-    told 0.95 is not past a crossing walker at once). With ``lead`` = (the followed person's distance ahead
-    along the heading, their speed along it, the nearest the robot comes to them) it drives at the speed
-    only until it is that near, then at the person's pace behind them. A walker who crosses far ahead is let
-    pass or crossed in front of, by when they get there, rather than waited for as their whole sweep would
-    have it; one who would cut between the robot and its person is crossed in front of by closing up on the
-    person (``faster``) when that keeps clear. When no speed keeps clear, a faster one that keeps clearly
-    further (5 cm) than standing, and more than ``contact_m`` (footprint and body touching), is taken: the
-    robot drives on out of the walker's path rather than stopping in it; otherwise 0 (the caller then steps
-    aside)."""
+    0 when none does. The robot drives straight on at the speed; with ``lead`` = (the followed person's
+    distance ahead along the heading, their speed along it, the nearest the robot comes to them) it drives
+    at the speed only until it is that near, then at the person's pace behind them. A walker who crosses
+    far ahead is let pass or crossed in front of, by when they get there, rather than waited for as their
+    whole sweep would have it; one who would cut between the robot and its person is crossed in front of by
+    closing up on the person (``faster``) when that keeps clear. When no speed keeps clear, a faster one
+    that keeps clearly further (5 cm) than standing is taken: the robot drives on out of the walker's path
+    rather than stopping in it; otherwise 0 (the caller then steps aside)."""
     if v_mps <= 0.0 or len(walkers) == 0:
         return v_mps
     tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
@@ -264,82 +233,15 @@ def safe_speed(
     candidates = [v_mps, *(f for f in faster if f > v_mps), *(v_mps * f for f in fractions if f < 1.0)]
     best, best_gap = 0.0, -math.inf
     for v in [*candidates, 0.0]:
-        d = _travel_m(tau, v, v_now_mps, accel_mps2, latency_s)
-        if limit is not None:
-            d = np.minimum(d, np.maximum(limit, d[0]))
+        d = v * tau if limit is None else np.minimum(v * tau, limit)
         rx, ry = pose[0] + c * d, pose[1] + s * d
         gap = float(np.min(np.hypot(wx - rx, wy - ry)))
         if gap > clearance_m:
             return v
         if gap > best_gap + 0.05:  # a faster escape must be clearly better than standing or going slower
             best, best_gap = v, gap
-    # None keeps clear: standing in a walker's way is not safest when going on takes the robot out of it,
-    # but only when going on keeps the bodies apart.
-    return best if best_gap > max(contact_m, 0.0) and best in faster else 0.0
-
-
-def aside_is_safer(
-    pose: Pose,
-    target: tuple[float, float],
-    speed_mps: float,
-    walkers: npt.NDArray[np.float64],
-    contact_m: float,
-    horizon_s: float = 2.5,
-    dt_s: float = 0.05,
-    *,
-    v_now_mps: float = 0.0,
-    accel_mps2: float = 2.0,
-    latency_s: float = 0.1,
-) -> bool:
-    """Whether stepping toward ``target`` at ``speed_mps`` keeps the robot further from the walkers (rows
-    x, y, vx, vy, walking on) than braking to a stand where it is, by 5 cm at the closest over
-    ``horizon_s``, and further than ``contact_m``: the step must not take the robot toward a walker (the
-    nearest cell out of the walkers' sweeps can lie where one of them is about to be). Both begin with the
-    robot braking from ``v_now_mps`` along its heading (after ``latency_s``, at ``accel_mps2``); the follow
-    loop leaves it at 0, the robot where it is: a braking model gentler than the base put the robot past a
-    walker's line when it stood in it, and the step back out of the line was refused."""
-    if len(walkers) == 0:
-        return True
-    tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    brake = _travel_m(tau, 0.0, max(v_now_mps, 0.0), accel_mps2, latency_s)
-    bx, by = pose[0] + c * brake, pose[1] + s * brake
-    wx = walkers[:, 0:1] + walkers[:, 2:3] * tau
-    wy = walkers[:, 1:2] + walkers[:, 3:4] * tau
-    standing = float(np.min(np.hypot(wx - bx, wy - by)))
-    # The step begins once the robot has braked (a base turns and reverses from a stand).
-    stop_s = latency_s + max(v_now_mps, 0.0) / accel_mps2
-    sx, sy = float(bx[-1]), float(by[-1])
-    dx, dy = target[0] - sx, target[1] - sy
-    dist = math.hypot(dx, dy)
-    along = np.clip((tau - stop_s) * speed_mps, 0.0, dist)
-    ux, uy = (dx / dist, dy / dist) if dist > 1e-9 else (0.0, 0.0)
-    moving = tau >= stop_s
-    ax = np.where(moving, sx + ux * along, bx)
-    ay = np.where(moving, sy + uy * along, by)
-    stepping = float(np.min(np.hypot(wx - ax, wy - ay)))
-    return stepping > max(standing + 0.05, contact_m)
-
-
-def walker_body(
-    near: tuple[float, float, float, float], robot: Pose, robot_speed_mps: float, surface_m: float
-) -> tuple[float, float, float, float]:
-    """A walker's body centre and velocity (x, y, vx, vy) from a track of the scan's returns on its near
-    side (``near``: their centroid and its velocity), seen from the robot at ``robot`` driving at
-    ``robot_speed_mps`` along its heading: the centre lies ``surface_m`` further along the line of sight,
-    and as the robot drives past, the near side slides round the body at ``surface_m`` times the line of
-    sight's turn rate, which the centroid's velocity took for the walker's own (first order)."""
-    x, y, vx, vy = near
-    dist = math.hypot(robot[0] - x, robot[1] - y)
-    if dist <= 0.05:
-        return near
-    ux, uy = (robot[0] - x) / dist, (robot[1] - y) / dist  # from the walker to the robot
-    dist += surface_m
-    rx = robot_speed_mps * math.cos(robot[2]) - vx
-    ry = robot_speed_mps * math.sin(robot[2]) - vy
-    along = rx * ux + ry * uy
-    k = surface_m / dist
-    return x - surface_m * ux, y - surface_m * uy, vx - k * (rx - along * ux), vy - k * (ry - along * uy)
+    # None keeps clear: standing in a walker's way is not safest when going on takes the robot out of it.
+    return best if best_gap > 0.0 and best in faster else 0.0
 
 
 def walker_threat(

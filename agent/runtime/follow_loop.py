@@ -38,15 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.following.fine import FineLayer, FineResult, FineState, Locator
-from agent.following.follower import (
-    FollowCommand,
-    Follower,
-    FollowState,
-    aside_is_safer,
-    safe_speed,
-    walker_body,
-    walker_threat,
-)
+from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
 from agent.following.person import (
     DetectorConfig,
     PersonDetections,
@@ -250,10 +242,6 @@ class FollowLoop:
         close_up_m: float = 0.77,
         walker_horizon_s: float = 4.0,
         walker_smoothing: float = 0.7,
-        contact_m: float = 0.36,
-        walker_surface_m: float = 0.13,
-        accel_mps2: float = 2.0,
-        command_latency_s: float = 0.1,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -294,13 +282,6 @@ class FollowLoop:
         self.close_up_m = close_up_m
         self.walker_horizon_s = walker_horizon_s
         self.walker_smoothing = walker_smoothing
-        # The walker checks' robot: centres nearer than contact_m touch (footprint 0.105 + body 0.2 m, and
-        # 5 cm); its speed changes at accel_mps2 (the base brakes and speeds up no faster; the simulated
-        # one does 3 m/s^2) after command_latency_s (step -> drive loop -> servos).
-        self.contact_m = contact_m
-        self.walker_surface_m = walker_surface_m
-        self.accel_mps2 = accel_mps2
-        self.command_latency_s = command_latency_s
         self._walker_memory: dict[int, tuple[float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
@@ -745,42 +726,15 @@ class FollowLoop:
         self.counts["steps"] += 1
         return snap
 
-    def _speed_now(self) -> float | None:
-        """The robot's forward speed from the steps' poses over the last 0.1-0.3 s (>= 0), None before
-        there are two such poses."""
-        with self._lock:
-            poses = list(self._poses)
-        if len(poses) < 2:
-            return None
-        t1, p1 = poses[-1]
-        for t0, p0 in reversed(poses[:-1]):
-            dt = t1 - t0
-            if dt >= 0.1:
-                if dt > 0.3:
-                    return None
-                along = (p1[0] - p0[0]) * math.cos(p1[2]) + (p1[1] - p0[1]) * math.sin(p1[2])
-                return max(0.0, along / dt)
-        return None
-
-    def _walkers(self, nav: Navigator, person: PersonEstimate | None, pose: Pose | None = None) -> np.ndarray:
+    def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
         """The navigation's moving tracks (x, y, vx, vy) but the followed person's, their velocities
         smoothed further (``walker_smoothing``, per track, once per scan): the navigation's are a quick
         half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
-        cross in front of a walker hangs on when they get there.
-
-        With the robot's ``pose``: a track is the centroid of the returns, on the body's near side, which
-        slides round the body as the robot drives past (0.3 m/s sideways at 0.6 m while the robot does 0.9
-        m/s): a passer-by behind the robot's shoulder seemed to follow it, and the robot stopped, then stepped
-        back toward their real path. So each walker is put ``walker_surface_m`` further along the ray (the
-        body's centre) and that slide is taken off its velocity (first order: the near point moves by
-        ``walker_surface_m`` times the turn rate of the line of sight)."""
+        cross in front of a walker hangs on when they get there."""
         memory: dict[int, tuple[float, float, float]] = {}
         walkers = []
-        speed = (self._speed_now() or 0.0) if pose is not None else 0.0
         for w in nav.moving.moving():
-            x, y, vx, vy = w.x_m, w.y_m, w.vx_mps, w.vy_mps
-            if pose is not None:
-                x, y, vx, vy = walker_body((x, y, vx, vy), pose, speed, self.walker_surface_m)
+            vx, vy = w.vx_mps, w.vy_mps
             old = self._walker_memory.get(id(w))
             if old is not None:
                 if old[2] == w.t_s:
@@ -789,8 +743,8 @@ class FollowLoop:
                     a = self.walker_smoothing
                     vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
             memory[id(w)] = (vx, vy, w.t_s)
-            if person is None or math.dist((x, y), person.xy) > self.walker_is_person_m:
-                walkers.append((x, y, vx, vy))
+            if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m:
+                walkers.append((w.x_m, w.y_m, vx, vy))
         self._walker_memory = memory
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
 
@@ -798,7 +752,7 @@ class FollowLoop:
         """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
         (``give_way.aside_target``), or None when no walker threatens or there is nowhere to go."""
         nav = self.navigator()
-        if nav is None or not walker_threat(pose, self._walkers(nav, person, pose), self.walker_clear_m):
+        if nav is None or not walker_threat(pose, self._walkers(nav, person), self.walker_clear_m):
             return None
         target = aside_target(nav.costmap, pose, self.aside_reach_m, True)
         if log.isEnabledFor(logging.DEBUG):
@@ -806,21 +760,9 @@ class FollowLoop:
                 "following: aside from %s to %s; walkers %s",
                 tuple(round(x, 2) for x in pose),
                 target,
-                np.round(self._walkers(nav, person, pose), 2).tolist(),
+                np.round(self._walkers(nav, person), 2).tolist(),
             )
         if target is None:
-            return None
-        walkers = self._walkers(nav, person, pose)
-        if not aside_is_safer(
-            pose,
-            (float(target[0]), float(target[1])),
-            self.aside_speed_mps,
-            walkers,
-            self.contact_m,
-        ):
-            # The cell out of the walkers' sweeps lies where a walker is about to be (their velocities are
-            # a few scans' guess): standing is safer than that step.
-            self.counts["asides_refused"] += 1
             return None
         self.counts["steps_aside"] += 1
         bearing = math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], math.tau)
@@ -877,16 +819,11 @@ class FollowLoop:
         safe = safe_speed(
             pose,
             v,
-            self._walkers(nav, person, pose),
+            self._walkers(nav, person),
             self.walker_clear_m,
             self.walker_horizon_s,
-            0.05,
             faster=faster,
             lead=lead,
-            v_now_mps=self._speed_now(),
-            accel_mps2=self.accel_mps2,
-            latency_s=self.command_latency_s,
-            contact_m=self.contact_m,
         )
         if safe < v:
             self.counts["walker_slowdowns"] += 1
@@ -897,7 +834,7 @@ class FollowLoop:
                     safe,
                     tuple(round(x, 2) for x in pose),
                     None if lead is None else tuple(round(x, 2) for x in lead),
-                    np.round(self._walkers(nav, person, pose), 2).tolist(),
+                    np.round(self._walkers(nav, person), 2).tolist(),
                 )
         return safe
 

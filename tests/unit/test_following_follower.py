@@ -99,61 +99,6 @@ def test_safe_speed_lets_a_near_crosser_pass_and_crosses_in_front_of_a_far_one()
     assert safe_speed(robot, 0.5, np.zeros((0, 4)), 0.65) == 0.5
 
 
-def test_safe_speed_crosses_in_front_only_as_fast_as_the_base_gets_there() -> None:
-    """A walker 1 m to the side, about to cross 0.4 m ahead: told 0.95 m/s at once the robot would be past
-    their line in time, but a base at 0.3 m/s needs the command's way to the wheels and a few tenths of a
-    second of acceleration (it was walked into so); from its real speed it does not try."""
-    from agent.following.follower import safe_speed
-
-    robot = (0.0, 0.0, 0.0)
-    walker = np.array([[0.4, 1.0, 0.0, -1.0]])
-    assert safe_speed(robot, 0.3, walker, 0.55, 4.0, 0.05, faster=(0.95,)) == 0.95
-    assert safe_speed(robot, 0.3, walker, 0.55, 4.0, 0.05, faster=(0.95,), v_now_mps=0.3) == 0.0
-    # Far enough up the walker's way, the base makes it even so.
-    far = np.array([[0.4, 2.0, 0.0, -1.0]])
-    assert safe_speed(robot, 0.3, far, 0.55, 4.0, 0.05, faster=(0.95,), v_now_mps=0.3) == 0.95
-
-
-def test_safe_speed_drives_on_out_of_a_walkers_way_only_when_the_bodies_stay_apart() -> None:
-    from agent.following.follower import safe_speed
-
-    robot = (0.0, 0.0, 0.0)
-    # About to cross 0.1 m ahead from 0.5 m to the side: standing is walked into, and full speed keeps
-    # more than standing but still under contact (footprint and body, 0.36 m): not an escape.
-    walker = np.array([[0.1, 0.5, 0.0, -1.0]])
-    escape = safe_speed(robot, 0.3, walker, 0.55, 2.0, 0.05, faster=(0.95,))
-    assert escape == 0.95
-    assert safe_speed(robot, 0.3, walker, 0.55, 2.0, 0.05, faster=(0.95,), contact_m=0.36) == 0.0
-
-
-def test_a_step_aside_toward_where_a_walker_is_going_is_refused() -> None:
-    from agent.following.follower import aside_is_safer
-
-    robot = (0.0, 0.0, 0.0)
-    walker = np.array([[0.0, 1.5, 0.0, -1.0]])  # coming straight at the robot along x = 0
-    assert aside_is_safer(robot, (-0.6, 0.0), 0.3, walker, 0.36)  # out of their line
-    assert not aside_is_safer(robot, (0.0, 0.6), 0.3, walker, 0.36)  # into them
-    assert not aside_is_safer(robot, (0.0, -0.6), 0.3, walker, 0.36)  # ahead of them: overtaken
-    # Moving at 0.9 m/s toward their line, a step back to it is worse than braking where it is.
-    crossing = np.array([[-0.4, 1.2, 0.0, -1.0]])
-    assert not aside_is_safer(robot, (-0.5, 0.0), 0.3, crossing, 0.36, v_now_mps=0.9)
-    assert aside_is_safer(robot, (0.0, -0.6), 0.3, np.zeros((0, 4)), 0.36)
-
-
-def test_a_walkers_near_side_is_taken_back_to_the_body_and_its_slide_off_the_velocity() -> None:
-    """A person standing at the origin, the robot 1 m east of them driving north at 0.9 m/s: the scan's
-    returns on their near side sit 0.13 m toward the robot and slide north with the line of sight (0.117
-    m/s), which a tracker of those returns takes for walking."""
-    from agent.following.follower import walker_body
-
-    x, y, vx, vy = walker_body((0.13, 0.0, 0.0, 0.117), (1.0, 0.0, math.pi / 2), 0.9, 0.13)
-    assert abs(x) < 1e-9 and abs(y) < 1e-9
-    assert math.hypot(vx, vy) < 0.03  # standing, to first order (was 0.117)
-    # Walking north past a standing robot, the near side lags the body (0.87 of their 1 m/s).
-    vx, vy = walker_body((0.13, 0.0, 0.0, 0.87), (1.0, 0.0, 0.0), 0.0, 0.13)[2:]
-    assert abs(vx) < 1e-9 and abs(vy - 1.0) < 0.03
-
-
 def test_a_walker_coming_at_the_standing_robot_is_a_threat_one_passing_wide_is_not() -> None:
     from agent.following.follower import walker_threat
 
