@@ -250,6 +250,7 @@ class PtyServer:
                 return
             self.give_way()
             now = time.monotonic()
+            # Past the timeout slept for; a wait that bytes ended counts whole (when they came is not known).
             late = now - slept - (0.0 if ready else timeout)
             if late > self.late_max_s:
                 self.late_max_s = late
