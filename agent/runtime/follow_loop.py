@@ -242,6 +242,7 @@ class FollowLoop:
         close_up_m: float = 0.77,
         walker_horizon_s: float = 4.0,
         walker_smoothing: float = 0.7,
+        walker_hold_s: float = 0.6,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -283,6 +284,8 @@ class FollowLoop:
         self.walker_horizon_s = walker_horizon_s
         self.walker_smoothing = walker_smoothing
         self._walker_memory: dict[int, tuple[float, float, float]] = {}
+        self.walker_hold_s = walker_hold_s
+        self._walker_held: dict[int, tuple[float, float, float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
         self.locator = locator
@@ -732,6 +735,7 @@ class FollowLoop:
         half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
         cross in front of a walker hangs on when they get there."""
         memory: dict[int, tuple[float, float, float]] = {}
+        held: dict[int, tuple[float, float, float, float, float]] = {}
         walkers = []
         for w in nav.moving.moving():
             vx, vy = w.vx_mps, w.vy_mps
@@ -743,9 +747,26 @@ class FollowLoop:
                     a = self.walker_smoothing
                     vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
             memory[id(w)] = (vx, vy, w.t_s)
+            held[id(w)] = (w.x_m, w.y_m, vx, vy, w.t_s)
             if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m:
                 walkers.append((w.x_m, w.y_m, vx, vy))
+        # A walker the navigation stopped reporting (its track dropped, or split and young again, as they
+        # came within half a metre of the robot) walks on for walker_hold_s: steps that saw the passer-by
+        # and steps that did not alternated 0 and full speed, and the robot drove into them.
+        now = self.clock_s()
+        current = [(w[0], w[1]) for w in walkers]
+        for key, (x, y, vx, vy, t) in self._walker_held.items():
+            age = max(0.0, now - t)
+            if key in held or age > self.walker_hold_s:
+                continue
+            px, py = x + vx * age, y + vy * age
+            if any(math.dist((px, py), c) < self.walker_is_person_m for c in current):
+                continue  # tracked again (under a new track)
+            held[key] = (x, y, vx, vy, t)
+            if person is None or math.dist((px, py), person.xy) > self.walker_is_person_m:
+                walkers.append((px, py, vx, vy))
         self._walker_memory = memory
+        self._walker_held = held
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
