@@ -729,7 +729,7 @@ class FollowLoop:
         self.counts["steps"] += 1
         return snap
 
-    def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
+    def _walkers(self, nav: Navigator, person: PersonEstimate | None, pose: Pose | None = None) -> np.ndarray:
         """The navigation's moving tracks (x, y, vx, vy) but the followed person's, their velocities
         smoothed further (``walker_smoothing``, per track, once per scan): the navigation's are a quick
         half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
@@ -762,6 +762,11 @@ class FollowLoop:
             px, py = x + vx * age, y + vy * age
             if any(math.dist((px, py), c) < self.walker_is_person_m for c in current):
                 continue  # tracked again (under a new track)
+            if (
+                pose is not None
+                and (px - pose[0]) * math.cos(pose[2]) + (py - pose[1]) * math.sin(pose[2]) < 0
+            ):
+                continue  # behind the robot: it cannot drive into them (it steps aside only from a stand)
             held[key] = (x, y, vx, vy, t)
             if person is None or math.dist((px, py), person.xy) > self.walker_is_person_m:
                 walkers.append((px, py, vx, vy))
@@ -773,7 +778,7 @@ class FollowLoop:
         """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
         (``give_way.aside_target``), or None when no walker threatens or there is nowhere to go."""
         nav = self.navigator()
-        if nav is None or not walker_threat(pose, self._walkers(nav, person), self.walker_clear_m):
+        if nav is None or not walker_threat(pose, self._walkers(nav, person, pose), self.walker_clear_m):
             return None
         target = aside_target(nav.costmap, pose, self.aside_reach_m, True)
         if log.isEnabledFor(logging.DEBUG):
@@ -781,7 +786,7 @@ class FollowLoop:
                 "following: aside from %s to %s; walkers %s",
                 tuple(round(x, 2) for x in pose),
                 target,
-                np.round(self._walkers(nav, person), 2).tolist(),
+                np.round(self._walkers(nav, person, pose), 2).tolist(),
             )
         if target is None:
             return None
@@ -840,7 +845,7 @@ class FollowLoop:
         safe = safe_speed(
             pose,
             v,
-            self._walkers(nav, person),
+            self._walkers(nav, person, pose),
             self.walker_clear_m,
             self.walker_horizon_s,
             faster=faster,
@@ -855,7 +860,7 @@ class FollowLoop:
                     safe,
                     tuple(round(x, 2) for x in pose),
                     None if lead is None else tuple(round(x, 2) for x in lead),
-                    np.round(self._walkers(nav, person), 2).tolist(),
+                    np.round(self._walkers(nav, person, pose), 2).tolist(),
                 )
         return safe
 
