@@ -331,6 +331,7 @@ class FollowScore:
                         "costmap_stops",
                         "walker_slowdowns",
                         "steps_aside",
+                        "asides_refused",
                         "acquired_on_map",
                         "acquire_waits_on_map",
                         "late_scan_slowdowns",

@@ -243,6 +243,7 @@ class FollowLoop:
         walker_horizon_s: float = 4.0,
         walker_smoothing: float = 0.7,
         walker_hold_s: float = 0.6,
+        aside_walker_m: float = 1.5,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -285,6 +286,7 @@ class FollowLoop:
         self.walker_smoothing = walker_smoothing
         self._walker_memory: dict[int, tuple[float, float, float]] = {}
         self.walker_hold_s = walker_hold_s
+        self.aside_walker_m = aside_walker_m  # a step aside never heads toward a walker this near
         self._walker_held: dict[int, tuple[float, float, float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
@@ -790,6 +792,17 @@ class FollowLoop:
             )
         if target is None:
             return None
+        walkers = self._walkers(nav, person, pose)
+        if len(walkers):
+            # Never toward a walker near the robot: the cell out of the walkers' predicted sweeps can lie
+            # on their real path (their velocities are a few scans' guess; one just crossed behind the
+            # robot seemed to follow it, and the robot backed toward them to 0.085 m).
+            away = walkers[:, :2] - np.array(pose[:2])
+            near = np.hypot(away[:, 0], away[:, 1]) <= self.aside_walker_m
+            step = np.array([target[0] - pose[0], target[1] - pose[1]])
+            if np.any(near & (away @ step > 0.0)):
+                self.counts["asides_refused"] += 1
+                return None
         self.counts["steps_aside"] += 1
         bearing = math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], math.tau)
         w = max(-1.5, min(1.5, 2.5 * bearing))
