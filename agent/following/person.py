@@ -170,7 +170,9 @@ class PersonTracker:
         if self.x is None or self.p is None:
             return
         looked = t_s if looked_s is None else min(t_s, looked_s)
-        if looked - self.last_seen_s > self.config.lost_after_s:
+        # The scans' measurements only: camera bearings refine a track, they do not keep it alive (chained,
+        # each refreshing the last measurement, they held a track the scans no longer gated for 10 s).
+        if looked - self.scan_seen_s > self.config.lost_after_s:
             self.drop()
             return
         dt = t_s - self.t_s

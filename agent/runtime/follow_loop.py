@@ -527,10 +527,8 @@ class FollowLoop:
             # a stalled USB transfer) says where the person was, not where they are: not used.
             self.counts["fine_old_frames"] += 1
             return result
-        if (
-            est.t_s - est.last_seen_s > self.bearing_only_after_s
-            or self.clock_s() - self._fine_started_s < 1.0
-        ):
+        scan_seen = est.last_seen_s if est.scan_seen_s is None else est.scan_seen_s
+        if est.t_s - scan_seen > self.bearing_only_after_s or self.clock_s() - self._fine_started_s < 1.0:
             # The camera refines a track the laser holds; it does not keep one alive on its own (a box
             # drifting onto the wall would), nor steer one it has followed for less than a second.
             self.counts["fine_unused"] += 1
