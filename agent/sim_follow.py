@@ -332,7 +332,6 @@ class FollowScore:
                         "walker_slowdowns",
                         "steps_aside",
                         "asides_refused",
-                        "walker_latched",
                         "acquired_on_map",
                         "acquire_waits_on_map",
                         "late_scan_slowdowns",

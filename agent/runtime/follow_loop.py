@@ -243,7 +243,6 @@ class FollowLoop:
         walker_horizon_s: float = 4.0,
         walker_smoothing: float = 0.7,
         walker_hold_s: float = 0.6,
-        walker_latch_s: float = 0.4,
         aside_walker_m: float = 1.5,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
@@ -287,8 +286,6 @@ class FollowLoop:
         self.walker_smoothing = walker_smoothing
         self._walker_memory: dict[int, tuple[float, float, float]] = {}
         self.walker_hold_s = walker_hold_s
-        self.walker_latch_s = walker_latch_s
-        self._walker_latch = (-math.inf, 0.0)  # (until, the speed a walker allowed)
         self.aside_walker_m = aside_walker_m  # a step aside never heads toward a walker this near
         self._walker_held: dict[int, tuple[float, float, float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
@@ -865,16 +862,6 @@ class FollowLoop:
             faster=faster,
             lead=lead,
         )
-        now = self.clock_s()
-        if safe >= v and now < self._walker_latch[0]:
-            # A walker stopped or slowed the robot a moment ago: hold that decision for walker_latch_s.
-            # Step by step it flipped between standing and full speed with the same walker in sight (the
-            # check's other inputs jitter: the person's pace, the follower's command), and each flip to
-            # full speed took the robot further into the walker's way: it drove into them twice.
-            safe = min(safe, self._walker_latch[1])
-            self.counts["walker_latched"] += 1
-        elif safe < v:
-            self._walker_latch = (now + self.walker_latch_s, safe)
         if safe < v:
             self.counts["walker_slowdowns"] += 1
             if log.isEnabledFor(logging.DEBUG):
