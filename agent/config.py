@@ -151,6 +151,9 @@ class SimConfig:
     world_file: Path
     world: World
     seed: int = 0
+    # SCHED_FIFO priority of the fake devices' serving threads (0: time-shared): they stand in for hardware,
+    # which keeps its time whatever the computer's load (docs/config.md).
+    device_priority: int = 20
 
 
 @dataclass(frozen=True)
@@ -895,10 +898,18 @@ class _Reader:
         if not world.is_file():
             raise t.error("world", f"no such world file: {world}")
         seed = t.integer("seed", 0, _NON_NEGATIVE)
+        priority = t.integer(
+            "device_priority",
+            SimConfig.device_priority,
+            (
+                lambda v: 0 <= v <= MAX_REALTIME_PRIORITY,
+                f"must be 0..{MAX_REALTIME_PRIORITY} (0: the fake devices' threads time-shared)",
+            ),
+        )
         t.finish()
         from drivers.sim.worldfile import load_world
 
-        return SimConfig(world, load_world(world), seed)
+        return SimConfig(world, load_world(world), seed, priority)
 
     # devices -------------------------------------------------------------------------------------
     def _device(self, kind: DeviceKind, sim: SimConfig | None) -> DeviceConfig | None:

@@ -21,8 +21,10 @@ reports
   ``lost_events`` and ``lost_speed_mps_max``, the fastest it was going at one;
 * with ``--fault person`` (the user hidden from the follow loop: they vanish), per hiding the time from
   its start to the first zero forward speed the loop sent (``vanish_stop_command_s``) and to the robot's
-  true speed below 0.02 m/s (``vanish_stop_s``; the acceptance: 0.5 s), the speed it had
-  (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside`` counts those).
+  true speed (the wheels') below 0.02 m/s, the crossing interpolated between samples (``vanish_stop_s``;
+  the acceptance: 0.5 s; ``vanish_stop_sampled_s``: from the speed between samples, as measured before),
+  the speed it had (``vanish_speed_mps``); a step out of a walker's way ends it too (``vanish_then_aside``
+  counts those).
 """
 
 from __future__ import annotations
@@ -45,6 +47,26 @@ log = logging.getLogger(__name__)
 STOPPED_MPS = 0.02
 MOVING_MPS = 0.05  # a contact begun faster than this is the robot driving into someone
 CUE_LATEST_S = 5.0
+# ``--follow-trace``'s columns: the simulation's seconds from its start, the robot's true pose and speed
+# (between samples), the user's true position and distance, the footprint's gap to the nearest body, the
+# loop's state and the velocity it sent, the track's position, the command's reason.
+TRACE_COLUMNS = (
+    "t_s",
+    "robot_x_m",
+    "robot_y_m",
+    "robot_yaw_rad",
+    "robot_speed_mps",
+    "user_x_m",
+    "user_y_m",
+    "user_distance_m",
+    "person_gap_m",
+    "state",
+    "sent_v_mps",
+    "sent_omega_radps",
+    "track_x_m",
+    "track_y_m",
+    "reason",
+)
 SAFETY_COUNTS = ("costmap_stops", "walker_slowdowns", "steps_aside")
 
 
@@ -98,8 +120,13 @@ class FollowScore:
         self._vanishings_seen = 0
         self._vanish_t: float | None = None
         self.vanish_stops: list[float] = []
+        self.vanish_stops_sampled: list[float] = []
+        self._vanish_sampled_t: float | None = None
+        self._last_v: float | None = None
         self.vanish_speeds: list[float] = []
         self.vanish_aside = 0  # hidings whose stop was cut short by a step out of a walker's way
+        # With ``trace``: one row per sample (TRACE_COLUMNS), for ``--follow-trace``.
+        self.trace: list[tuple[Any, ...]] | None = None
 
     def sample(self) -> None:
         sim = self.sim
@@ -111,6 +138,14 @@ class FollowScore:
             if self._last_pose is not None and dt > 0:
                 speed = math.hypot(base.x_m - self._last_pose[0], base.y_m - self._last_pose[1]) / dt
             self._last_t, self._last_pose = t, (base.x_m, base.y_m)
+            # The true forward speed now (the wheels'), and when it fell under STOPPED_MPS: between the last
+            # sample and this one, linearly (the base brakes at a constant rate). The speed above is over
+            # the last period_s, which lags a braking base by half of it.
+            v_true = abs(sim.body_motion()[0])
+            stopped_t = t
+            if self._last_v is not None and self._last_v > STOPPED_MPS >= v_true and dt > 0:
+                stopped_t = t - dt * (STOPPED_MPS - v_true) / (self._last_v - v_true)
+            self._last_v = v_true
             positions = {p.name: sim.person_position(p, t) for p in sim.world.people}
             for p in sim.world.people:
                 px, py = positions[p.name]
@@ -160,15 +195,43 @@ class FollowScore:
             vanishings = self.loop.vanishings_s
             if len(vanishings) > self._vanishings_seen:
                 self._vanishings_seen = len(vanishings)
-                self._vanish_t = vanishings[-1]
-                self.vanish_speeds.append(speed)
+                self._vanish_t = self._vanish_sampled_t = vanishings[-1]
+                self.vanish_speeds.append(v_true)
             snap = self.loop.latest
             aside = snap is not None and snap.aside
-            if self._vanish_t is not None and (speed <= STOPPED_MPS or aside):
+            if self._vanish_t is not None and (v_true <= STOPPED_MPS or aside):
                 # Stopped, or stepping out of a walker's way (the walkers do not yield; counted apart).
-                self.vanish_stops.append(max(0.0, t - self._vanish_t))
-                self.vanish_aside += int(aside and speed > STOPPED_MPS)
+                self.vanish_stops.append(
+                    max(0.0, (stopped_t if v_true <= STOPPED_MPS else t) - self._vanish_t)
+                )
+                self.vanish_aside += int(aside and v_true > STOPPED_MPS)
                 self._vanish_t = None
+            if self._vanish_sampled_t is not None and (speed <= STOPPED_MPS or aside):
+                # The same from the speed between samples, on the samples' times (the measure before).
+                self.vanish_stops_sampled.append(max(0.0, t - self._vanish_sampled_t))
+                self._vanish_sampled_t = None
+            if self.trace is not None:
+                user_xy = positions[self.user.name] if self.user is not None else (math.nan, math.nan)
+                person = None if snap is None else snap.person
+                self.trace.append(
+                    (
+                        round(t - sim.t_start, 3),
+                        round(base.x_m, 3),
+                        round(base.y_m, 3),
+                        round(base.yaw_rad, 3),
+                        round(speed, 3),
+                        round(user_xy[0], 3),
+                        round(user_xy[1], 3),
+                        round(math.hypot(user_xy[0] - base.x_m, user_xy[1] - base.y_m), 3),
+                        round(person_gap, 3),
+                        "" if snap is None else snap.command.state.value,
+                        "" if snap is None else round(snap.sent[0], 3),
+                        "" if snap is None else round(snap.sent[1], 3),
+                        "" if person is None else round(person.xy[0], 3),
+                        "" if person is None else round(person.xy[1], 3),
+                        "" if snap is None else snap.command.reason,
+                    )
+                )
             if snap is None:
                 return
             if self.ready_t is None and snap.command.reason != NO_POSE:
@@ -207,6 +270,17 @@ class FollowScore:
                 self._lost_since = None
             self._was_lost = lost
 
+    def write_trace(self, path: str) -> None:
+        """The samples as CSV (``TRACE_COLUMNS``); nothing without ``trace``."""
+        import csv
+
+        with self._lock:
+            rows = list(self.trace or ())
+        with open(path, "w", newline="", encoding="utf-8") as f:
+            out = csv.writer(f)
+            out.writerow(TRACE_COLUMNS)
+            out.writerows(rows)
+
     def run(self, stop: threading.Event, period_s: float = 0.05) -> None:
         while not stop.wait(period_s):
             self.sample()
@@ -244,6 +318,7 @@ class FollowScore:
                 "lost_then_aside": self.aside_ended,
                 "vanish_stop_command_s": [round(x, 3) for x in self.loop.vanish_stops_s],
                 "vanish_stop_s": [round(x, 3) for x in self.vanish_stops],
+                "vanish_stop_sampled_s": [round(x, 3) for x in self.vanish_stops_sampled],
                 "vanish_speed_mps": [round(x, 3) for x in self.vanish_speeds],
                 "vanish_then_aside": self.vanish_aside,
                 "occluded_scans": self.loop.counts.get("occluded_scans", 0),
@@ -256,6 +331,7 @@ class FollowScore:
                         "costmap_stops",
                         "walker_slowdowns",
                         "steps_aside",
+                        "asides_refused",
                         "acquired_on_map",
                         "acquire_waits_on_map",
                         "late_scan_slowdowns",

@@ -171,11 +171,10 @@ def run(args: argparse.Namespace) -> int:
         # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
         requests = stack.enter_context(AgentRequests())
         robot = None
-        if config.sim is not None:
-            from drivers.sim.harness import SimulatedRobot
+        from agent.commands.sim import give_way_to_agent, serve_pose_stream, simulated_robot
 
-            robot = stack.enter_context(SimulatedRobot(config.sim.world, seed=config.sim.seed))
-        from agent.commands.sim import give_way_to_agent, serve_pose_stream
+        if config.sim is not None:
+            robot = stack.enter_context(simulated_robot(config.sim))
 
         url, controller = serve_pose_stream(stack, config)
         directory = map_directory(config)

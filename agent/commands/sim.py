@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import os
@@ -47,7 +48,7 @@ from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.follow_loop import FollowLoop
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.mission_loop import MissionLoop, NamedPlace
-from agent.runtime.priority import SWITCH_INTERVAL_S
+from agent.runtime.priority import SWITCH_INTERVAL_S, realtime_thread
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 from agent.shipped import DEFAULT_SIM_CONFIG
 from agent.sim_score import Scorer
@@ -245,6 +246,13 @@ def add_parser(sub: Any, argv: Sequence[str] = ()) -> None:
         "the follow ids, 'follow_control' the agent's side, 'follow' the loop's",
     )
     p.add_argument(
+        "--follow-trace",
+        metavar="FILE",
+        help="with --follow: write every 50 ms sample of the score as CSV to FILE (time, the robot's true "
+        "pose and speed, the user's position and distance, the nearest body's gap, the loop's state, the "
+        "velocity sent, the track, the reason: docs/following.md), to see where a run left the band",
+    )
+    p.add_argument(
         "--goals-known-map",
         action="store_true",
         help="with --goal: goals may not cross unknown space (by default they may, since the map is being "
@@ -416,6 +424,13 @@ def serve_pose_stream(
     return controller.url, controller
 
 
+def simulated_robot(sim: SimConfig) -> SimulatedRobot:
+    """The simulated robot of ``[sim]``, its fakes' threads real-time at ``device_priority`` (0: not)."""
+    priority = sim.device_priority
+    realtime = functools.partial(realtime_thread, priority) if priority else None
+    return SimulatedRobot(sim.world, seed=sim.seed, realtime=realtime)
+
+
 def give_way_to_agent(agent: Agent, robot: SimulatedRobot | None) -> None:
     """The simulated hardware, threads of the agent's process here, waits while a frame is on the agent's
     hot path (see ``agent.runtime.hotpath``)."""
@@ -436,7 +451,7 @@ def _config(args: argparse.Namespace) -> AgentConfig:
         from drivers.sim.worldfile import load_world
 
         path = resolve_world(args.world)
-        sim = SimConfig(path, load_world(path), sim.seed)
+        sim = dataclasses.replace(sim, world_file=path, world=load_world(path))
     if args.seed is not None:
         sim = dataclasses.replace(sim, seed=args.seed)
     output = config.output
@@ -493,7 +508,7 @@ def run(args: argparse.Namespace) -> int:
         shutdown = stack.enter_context(ShutdownRequest())
         # SIGUSR1: save the map now; SIGUSR2: a flight-recorder snapshot (dropped until the agent exists).
         requests = stack.enter_context(AgentRequests())
-        robot = stack.enter_context(SimulatedRobot(world, seed=config.sim.seed))
+        robot = stack.enter_context(simulated_robot(config.sim))
         scorer = Scorer(robot.simulation, Path(args.truth) if args.truth else None)
         stack.callback(scorer.discard)  # after a clean run the truth file is already in place
         goals: list[tuple[float, float, float | None]] = args.goal
@@ -563,6 +578,8 @@ def run(args: argparse.Namespace) -> int:
                 agent, config, (m.x_m, m.y_m, m.yaw_rad), camera_view(world.forward_camera) if fine else None
             )
             follow = FollowScore(robot, loop, config.following.tag_id, config.following.distance_m)
+            if args.follow_trace:
+                follow.trace = []
             injector.follow_loop = loop
         on_command = None
         if sent_follows:
@@ -625,8 +642,11 @@ def run(args: argparse.Namespace) -> int:
         if script is not None and args.deliver:
             summary["delivery"] = script.delivery(controller)
         summary["t0_us"] = t0_us
+        summary["sim_devices"] = robot.lateness()
         if follow is not None:
             summary["follow"] = follow.figures()
+            if args.follow_trace:
+                follow.write_trace(args.follow_trace)
         if on_command is not None:
             summary["goals"] = None  # the controller sent follow commands, no goals
             summary["follow"] = follow_summary(on_command)

@@ -115,7 +115,13 @@ class Follower:
         taken for a person gone (None: ``t_s``)."""
         cfg = self.config
         looked = t_s if looked_s is None else min(t_s, looked_s)
-        unseen_s = max(0.0, looked - person.last_seen_s) if person is not None else 0.0
+        # Since the last *scan* that showed them: a camera bearing taken a few hundredths after a scan's
+        # stamp (step 0; the person ahead is swept 0.04 s later) made the first scan that missed them look
+        # older than the track, and the stop came on the second, 0.1 s later.
+        unseen_s = 0.0
+        if person is not None:
+            seen = person.last_seen_s if person.scan_seen_s is None else person.scan_seen_s
+            unseen_s = max(0.0, looked - seen)
         if person is None or unseen_s <= cfg.grace_s:
             self.vanished = False
         if person is not None and unseen_s > cfg.grace_s and (self.vanished or not occluded):

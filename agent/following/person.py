@@ -128,7 +128,9 @@ class TrackerConfig:
 @dataclass(frozen=True, slots=True)
 class PersonEstimate:
     """The followed person: ``xy`` and ``velocity`` in the map frame, ``covariance`` (4 x 4, of x, y, vx,
-    vy), ``track_id`` (a new one every acquisition), ``t_s`` of the estimate, ``last_seen_s``."""
+    vy), ``track_id`` (a new one every acquisition), ``t_s`` of the estimate, ``last_seen_s`` (the last
+    measurement, a camera bearing included), ``scan_seen_s`` (the last scan that showed the person; None:
+    not kept apart)."""
 
     xy: tuple[float, float]
     velocity: tuple[float, float]
@@ -136,6 +138,7 @@ class PersonEstimate:
     track_id: int
     t_s: float
     last_seen_s: float
+    scan_seen_s: float | None = None
 
     @property
     def speed_mps(self) -> float:
@@ -151,6 +154,7 @@ class PersonTracker:
         self.p: FloatArray | None = None
         self.t_s = -math.inf
         self.last_seen_s = -math.inf
+        self.scan_seen_s = -math.inf  # the last scan measurement (bearings not counted)
         self.track_id = 0
         self.counts: dict[str, int] = {"acquired": 0, "lost": 0, "updates": 0, "rejected": 0}
         self.last_lost: PersonEstimate | None = None  # the track when it was dropped
@@ -166,7 +170,9 @@ class PersonTracker:
         if self.x is None or self.p is None:
             return
         looked = t_s if looked_s is None else min(t_s, looked_s)
-        if looked - self.last_seen_s > self.config.lost_after_s:
+        # The scans' measurements only: camera bearings refine a track, they do not keep it alive (chained,
+        # each refreshing the last measurement, they held a track the scans no longer gated for 10 s).
+        if looked - self.scan_seen_s > self.config.lost_after_s:
             self.drop()
             return
         dt = t_s - self.t_s
@@ -215,7 +221,7 @@ class PersonTracker:
         cfg = self.config
         self.x = np.array([*detections.centres[k], 0.0, 0.0])
         self.p = np.diag([cfg.position_sd_m**2] * 2 + [cfg.initial_speed_sd_mps**2] * 2)
-        self.t_s = self.last_seen_s = t_s
+        self.t_s = self.last_seen_s = self.scan_seen_s = t_s
         self.track_id += 1
         self.counts["acquired"] += 1
         return True
@@ -242,6 +248,7 @@ class PersonTracker:
         self.x = self.x + gain @ innov[k]
         self.p = (np.eye(4) - gain @ h) @ self.p
         self.last_seen_s = max(self.last_seen_s, t_s)
+        self.scan_seen_s = max(self.scan_seen_s, t_s)
         self.counts["updates"] += 1
         return True
 
@@ -296,6 +303,7 @@ class PersonTracker:
             self.track_id,
             self.t_s,
             self.last_seen_s,
+            self.scan_seen_s,
         )
 
     def drop(self) -> None:

@@ -270,6 +270,12 @@ class Agent:
     # -- public -------------------------------------------------------------------------------------
     def start(self) -> None:
         """Start every loop. Devices are opened by their loops; the output is opened now if it can be."""
+        # Collect and freeze the heap before any loop runs, when a long pass stalls nobody: settle_heap's
+        # pass once started then has only what starting made to look at. Its full pass over everything
+        # held the interpreter lock for up to a second on a loaded machine, the device loops (and the
+        # simulator's fakes) stalled behind it, and a laser open timed out.
+        gc.collect()
+        gc.freeze()
         self._started_ns = self.clock_ns()
         self._hold_cpu_latency()
         if self.recorder is not None:

@@ -280,6 +280,8 @@ class FollowLoop:
         close_up_m: float = 0.77,
         walker_horizon_s: float = 4.0,
         walker_smoothing: float = 0.7,
+        walker_hold_s: float = 0.6,
+        aside_walker_m: float = 1.5,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -321,6 +323,9 @@ class FollowLoop:
         self.walker_horizon_s = walker_horizon_s
         self.walker_smoothing = walker_smoothing
         self._walker_memory: dict[int, tuple[float, float, float]] = {}
+        self.walker_hold_s = walker_hold_s
+        self.aside_walker_m = aside_walker_m  # a step aside never heads toward a walker this near
+        self._walker_held: dict[int, tuple[float, float, float, float, float]] = {}
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
         self.locator = locator
@@ -606,10 +611,8 @@ class FollowLoop:
             # a stalled USB transfer) says where the person was, not where they are: not used.
             self.counts["fine_old_frames"] += 1
             return result
-        if (
-            est.t_s - est.last_seen_s > self.bearing_only_after_s
-            or self.clock_s() - self._fine_started_s < 1.0
-        ):
+        scan_seen = est.last_seen_s if est.scan_seen_s is None else est.scan_seen_s
+        if est.t_s - scan_seen > self.bearing_only_after_s or self.clock_s() - self._fine_started_s < 1.0:
             # The camera refines a track the laser holds; it does not keep one alive on its own (a box
             # drifting onto the wall would), nor steer one it has followed for less than a second.
             self.counts["fine_unused"] += 1
@@ -810,12 +813,13 @@ class FollowLoop:
         self.counts["steps"] += 1
         return snap
 
-    def _walkers(self, nav: Navigator, person: PersonEstimate | None) -> np.ndarray:
+    def _walkers(self, nav: Navigator, person: PersonEstimate | None, pose: Pose | None = None) -> np.ndarray:
         """The navigation's moving tracks (x, y, vx, vy) but the followed person's, their velocities
         smoothed further (``walker_smoothing``, per track, once per scan): the navigation's are a quick
         half-and-half blend of each scan's step, noisy by a few tenths of a m/s, and whether the robot can
         cross in front of a walker hangs on when they get there."""
         memory: dict[int, tuple[float, float, float]] = {}
+        held: dict[int, tuple[float, float, float, float, float]] = {}
         walkers = []
         for w in nav.moving.moving():
             vx, vy = w.vx_mps, w.vy_mps
@@ -827,20 +831,60 @@ class FollowLoop:
                     a = self.walker_smoothing
                     vx, vy = a * old[0] + (1 - a) * vx, a * old[1] + (1 - a) * vy
             memory[id(w)] = (vx, vy, w.t_s)
+            held[id(w)] = (w.x_m, w.y_m, vx, vy, w.t_s)
             if person is None or math.dist((w.x_m, w.y_m), person.xy) > self.walker_is_person_m:
                 walkers.append((w.x_m, w.y_m, vx, vy))
+        # A walker the navigation stopped reporting (its track dropped, or split and young again, as they
+        # came within half a metre of the robot) walks on for walker_hold_s: steps that saw the passer-by
+        # and steps that did not alternated 0 and full speed, and the robot drove into them.
+        now = self.clock_s()
+        current = [(w[0], w[1]) for w in walkers]
+        for key, (x, y, vx, vy, t) in self._walker_held.items():
+            age = max(0.0, now - t)
+            if key in held or age > self.walker_hold_s:
+                continue
+            px, py = x + vx * age, y + vy * age
+            if any(math.dist((px, py), c) < self.walker_is_person_m for c in current):
+                continue  # tracked again (under a new track)
+            if (
+                pose is not None
+                and (px - pose[0]) * math.cos(pose[2]) + (py - pose[1]) * math.sin(pose[2]) < 0
+            ):
+                continue  # behind the robot: it cannot drive into them (it steps aside only from a stand)
+            held[key] = (x, y, vx, vy, t)
+            if person is None or math.dist((px, py), person.xy) > self.walker_is_person_m:
+                walkers.append((px, py, vx, vy))
         self._walker_memory = memory
+        self._walker_held = held
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
         """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
         (``give_way.aside_target``), or None when no walker threatens or there is nowhere to go."""
         nav = self.navigator()
-        if nav is None or not walker_threat(pose, self._walkers(nav, person), self.walker_clear_m):
+        if nav is None or not walker_threat(pose, self._walkers(nav, person, pose), self.walker_clear_m):
             return None
         target = aside_target(nav.costmap, pose, self.aside_reach_m, True)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug(
+                "following: aside from %s to %s; walkers %s",
+                tuple(round(x, 2) for x in pose),
+                target,
+                np.round(self._walkers(nav, person, pose), 2).tolist(),
+            )
         if target is None:
             return None
+        walkers = self._walkers(nav, person, pose)
+        if len(walkers):
+            # Never toward a walker near the robot: the cell out of the walkers' predicted sweeps can lie
+            # on their real path (their velocities are a few scans' guess; one just crossed behind the
+            # robot seemed to follow it, and the robot backed toward them to 0.085 m).
+            away = walkers[:, :2] - np.array(pose[:2])
+            near = np.hypot(away[:, 0], away[:, 1]) <= self.aside_walker_m
+            step = np.array([target[0] - pose[0], target[1] - pose[1]])
+            if np.any(near & (away @ step > 0.0)):
+                self.counts["asides_refused"] += 1
+                return None
         self.counts["steps_aside"] += 1
         bearing = math.remainder(math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2], math.tau)
         w = max(-1.5, min(1.5, 2.5 * bearing))
@@ -896,7 +940,7 @@ class FollowLoop:
         safe = safe_speed(
             pose,
             v,
-            self._walkers(nav, person),
+            self._walkers(nav, person, pose),
             self.walker_clear_m,
             self.walker_horizon_s,
             faster=faster,
@@ -904,6 +948,15 @@ class FollowLoop:
         )
         if safe < v:
             self.counts["walker_slowdowns"] += 1
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug(
+                    "following: walkers slow %.2f to %.2f at %s (lead %s); walkers %s",
+                    v,
+                    safe,
+                    tuple(round(x, 2) for x in pose),
+                    None if lead is None else tuple(round(x, 2) for x in lead),
+                    np.round(self._walkers(nav, person, pose), 2).tolist(),
+                )
         return safe
 
     def run(self, stop: threading.Event) -> None:

@@ -101,10 +101,19 @@ class PtyServer:
         self._lock = threading.Lock()
         self.bytes_in = 0
         self.bytes_out = 0
+        # How late the serving thread woke past the timeout it slept for, at worst, and how often by more
+        # than ``late_warn_s`` (logged): a fake that shares a loaded machine with its client can be starved
+        # where real hardware would not be (``vlp-agent sim``'s summary reports it).
+        self.late_warn_s = 0.25
+        self.late_max_s = 0.0
+        self.late_count = 0
         # Called before the device handles bytes or is polled. A fake shares the process of the program
         # it serves under ``vlp-agent sim``, where real hardware would not: the simulation sets this so
         # that the fake waits while the agent's hot path runs (agent.runtime.hotpath).
         self.give_way: Callable[[], None] = _no_wait
+        # Called first in the serving thread (``SimulatedRobot`` puts it under real-time scheduling there:
+        # a fake stands in for hardware, which keeps its time whatever the computer's load).
+        self.on_thread_start: Callable[[], None] = _no_wait
 
     # -- lifecycle ---------------------------------------------------------------------------------
     @property
@@ -226,6 +235,7 @@ class PtyServer:
     def _run(self) -> None:
         master = self._master
         assert master is not None
+        self.on_thread_start()
         while not self._stop.is_set():
             timeout = self.poll_interval_s
             if self._schedule is not None:
@@ -233,12 +243,20 @@ class PtyServer:
                 if due_in is not None:
                     # Just past the due time: woken a hair early, the device would have nothing yet.
                     timeout = min(max(due_in, 0.0) + _SCHEDULE_SLACK_S, timeout)
+            slept = time.monotonic()
             try:
                 ready, _, _ = select.select([master], [], [], timeout)
             except (OSError, ValueError):
                 return
             self.give_way()
             now = time.monotonic()
+            # Past the timeout slept for; a wait that bytes ended counts whole (when they came is not known).
+            late = now - slept - (0.0 if ready else timeout)
+            if late > self.late_max_s:
+                self.late_max_s = late
+            if late > self.late_warn_s:
+                self.late_count += 1
+                log.warning("fake device on %s: its thread ran %.2f s late", self.path, late)
             try:
                 if ready:
                     data = os.read(master, 4096)

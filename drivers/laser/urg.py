@@ -624,7 +624,14 @@ class UrgLaser(LaserScanner):
         if self._stash:
             self.count("unexpected_replies", len(self._stash))
             self._stash.clear()
-        port.write(command)
+        try:
+            port.write(command)
+        except serial.SerialTimeoutException as exc:
+            # The sensor did not take the command within the write timeout (its side of the line was not
+            # read: a stalled device, or a busy machine): a timeout like a missing reply, not the end of
+            # the loop that opened it (the laser loop died of this once, on a starved machine).
+            why = f"{echo}: the command was not taken within {self.timeout_s} s"
+            raise DeviceTimeout(why, self.name) from exc
         while True:
             for i, (reply, rx_ns) in enumerate(self._stash):
                 if reply.echo == echo:

@@ -74,8 +74,21 @@ def remove_stale_folders(temp_dir: Path | None = None) -> list[Path]:
 class SimulatedRobot:
     """Fake devices for one world, up while the context is open."""
 
-    def __init__(self, world: World, simulation: Simulation | None = None, seed: int = 0) -> None:
+    def __init__(
+        self,
+        world: World,
+        simulation: Simulation | None = None,
+        seed: int = 0,
+        realtime: Callable[[], str | None] | None = None,
+    ) -> None:
+        """``realtime``: called first in each fake's serving thread to put it under real-time scheduling
+        (``agent.runtime.priority.realtime_thread``: None when it took, else why not). The fakes stand in
+        for hardware, which keeps its time whatever the computer's load; on a loaded machine time-shared
+        fakes went quiet for tenths of a second at a time (no scan, no servo reply), which a real sensor
+        never does. Where the system does not permit it they stay time-shared (logged once)."""
         self.world = world
+        self.realtime = realtime
+        self.device_realtime: dict[str, str | None] = {}
         self.simulation = simulation or Simulation(world, seed=seed)
         self.urg = FakeUrg(self.simulation, seed=seed)
         self.servos = FakeDynamixelBus(self.simulation)
@@ -148,6 +161,8 @@ class SimulatedRobot:
             ("rfid", self.rfid, 0.02),
         ):
             server = PtyServer(device, link=self._dir / name, poll_interval_s=poll_s)
+            if self.realtime is not None:
+                server.on_thread_start = self._realtime(name, self.realtime)
             server.start()
             self.servers[name] = server
         self._imu = FakeI2cBus(directory=self._dir)
@@ -156,12 +171,33 @@ class SimulatedRobot:
         self._imu.attach(0x68, self.imu)
         log.info("simulated robot up in %s", self._dir)
 
+    def _realtime(self, name: str, realtime: Callable[[], str | None]) -> Callable[[], None]:
+        def start() -> None:
+            refused = realtime()
+            self.device_realtime[name] = refused
+            if refused is not None and len([r for r in self.device_realtime.values() if r]) == 1:
+                log.warning("simulated devices time-shared: real-time scheduling %s", refused)
+
+        return start
+
     def give_way_to(self, hot_path: Callable[[], None]) -> None:
         """Make every fake wait while ``hot_path`` says the program under test is busy (see
         ``PtyServer.give_way``): the simulated hardware must not take the agent's interpreter lock from
         its latency-critical path, as real hardware could not."""
         for server in self.servers.values():
             server.give_way = hot_path
+
+    def lateness(self) -> dict[str, dict[str, float | int | bool]]:
+        """Per served device: how late its thread woke at worst (s) and how often by more than its
+        warning threshold (``PtyServer.late_max_s``, ``late_count``): starved by the machine's load."""
+        return {
+            name: {
+                "late_max_s": round(server.late_max_s, 3),
+                "late_count": server.late_count,
+                "realtime": name in self.device_realtime and self.device_realtime[name] is None,
+            }
+            for name, server in self.servers.items()
+        }
 
     def close(self) -> None:
         for server in self.servers.values():

@@ -37,6 +37,7 @@ def test_the_simulated_robot_example_loads() -> None:
     assert config.sim is not None
     assert config.sim.world.name == "office"
     assert config.sim.world_file == OFFICE
+    assert config.sim.device_priority == 20  # the fakes stand in for hardware: real-time where permitted
     # Every device of the simulated robot, each on the backend its fake speaks.
     assert {k: d.backend for k, d in config.devices.items()} == {
         DeviceKind.CAMERA: "sim",
@@ -258,6 +259,7 @@ BAD = [
     (sim_config('[camera]\nbackend = "v4l2"\n'), "camera.backend", "sim"),
     ('[sim]\nworld = "no/such/world.toml"\n', "sim.world", "no such world"),
     ("[sim]\nseed = 1\n", "sim.world", "missing"),
+    (sim_config("device_priority = 60\n"), "sim.device_priority", "0..49"),
     ('[output]\nurl = "/dev/ttyS0"\n', "", "no pose source"),
     (REAL + "[scheduling]\nrealtime_priority = 60\n", "scheduling.realtime_priority", "0..49"),
     (REAL + "[scheduling]\nrealtime_priority = 2.5\n", "scheduling.realtime_priority", "whole number"),

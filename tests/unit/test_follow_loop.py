@@ -288,3 +288,29 @@ def test_a_late_scan_slows_the_robot_before_the_no_scan_stop() -> None:
         speeds.append(sent[-1][0])
     assert speeds[0] > speeds[1] > speeds[2] > speeds[3] > 0.0
     assert loop.counts["late_scan_slowdowns"] == 3
+
+
+def test_a_walker_the_navigation_stops_reporting_walks_on_for_a_moment() -> None:
+    """The navigation's track of a passer-by can drop out as they come close to the robot; the walker
+    checks keep them, walking on at their velocity, for walker_hold_s (steps that saw them and steps that
+    did not alternated standing and full speed, and the robot drove into them)."""
+    from types import SimpleNamespace
+
+    now = [10.0]
+    loop = _loop(now)
+    track = SimpleNamespace(x_m=2.5, y_m=4.0, vx_mps=0.0, vy_mps=-1.0, t_s=10.0)
+    tracks = [track]
+    nav = SimpleNamespace(moving=SimpleNamespace(moving=lambda: list(tracks)))
+    seen = loop._walkers(nav, None)  # type: ignore[arg-type]
+    assert seen.shape == (1, 4)
+    tracks.clear()
+    now[0] = 10.3
+    held = loop._walkers(nav, None)  # type: ignore[arg-type]
+    assert held.shape == (1, 4) and abs(held[0, 1] - 3.7) < 1e-9  # walked on 0.3 m
+    # Tracked again under a new track: once, not twice.
+    tracks.append(SimpleNamespace(x_m=2.5, y_m=3.6, vx_mps=0.0, vy_mps=-1.0, t_s=10.4))
+    now[0] = 10.4
+    assert loop._walkers(nav, None).shape == (1, 4)  # type: ignore[arg-type]
+    tracks.clear()
+    now[0] = 11.5
+    assert loop._walkers(nav, None).shape == (0, 4)  # type: ignore[arg-type]

@@ -587,3 +587,20 @@ def test_clock_restart_and_stale_data() -> None:
     # Within a TM round trip's tolerance, even a small jump back is a restart.
     clock.observe_scan(1234, int(1e12 + 1e10), delay)
     assert clock.unwrap(1000, int(1e12 + 1e10 + delay), tolerance_ms=50.0) == 1000 and clock.resets == 2
+
+
+def test_a_command_the_sensor_does_not_take_is_a_timeout_not_a_crash(laser: UrgLaser) -> None:
+    """A write timeout (the sensor's side of the line not read: a stalled device or a starved machine) is a
+    DeviceTimeout like a missing reply, which the laser loop handles; raised as pyserial's own exception it
+    ended the loop that opened the laser."""
+    import serial
+
+    port = laser._port
+    assert port is not None
+
+    def stuck(data: bytes) -> int:
+        raise serial.SerialTimeoutException("Write timeout")
+
+    port.write = stuck  # type: ignore[method-assign]
+    with pytest.raises(DeviceTimeout, match="not taken"):
+        laser._transact(scip.encode_vv())
