@@ -236,7 +236,8 @@ def _normal_step(
     # same operations: the step is the one of a single elimination, bit for bit.
     count = loops.size
     per = max(1, _WOODBURY_BYTES // (n * 3 * 3 * 8))
-    solved = np.empty((n, 3, 1 + 3 * count))
+    x0 = np.empty((n, 3, 1))
+    y = np.empty((n, 3, 3 * count))  # contiguous: Y's (3N x 3L) view below is no copy
     for l0 in range(0, max(count, 1), per):
         l1 = min(l0 + per, count)
         cols = 3 * np.arange(l1 - l0)
@@ -245,17 +246,17 @@ def _normal_step(
             u[li[l0:l1], :, cols + c] = a_loop[l0:l1, c, :]
             u[lj[l0:l1], :, cols + c] += b_loop[l0:l1, c, :]
         if l0 == 0:  # g rides with the first part
-            solved[:, :, : 1 + 3 * l1] = _block_tridiagonal_solve(
-                diag, upper, np.concatenate([g[:, :, None], u], axis=2)
-            )
+            solved = _block_tridiagonal_solve(diag, upper, np.concatenate([g[:, :, None], u], axis=2))
+            x0[...] = solved[:, :, :1]
+            y[:, :, : 3 * l1] = solved[:, :, 1:]
+            del solved
         else:
-            solved[:, :, 1 + 3 * l0 : 1 + 3 * l1] = _block_tridiagonal_solve(diag, upper, u)
+            y[:, :, 3 * l0 : 3 * l1] = _block_tridiagonal_solve(diag, upper, u)
         del u
-    x = solved[:, :, 0].reshape(-1)
+    x = x0.reshape(-1)
     if count:
-        y = solved[:, :, 1:]
         uty = (a_loop @ y[li] + b_loop @ y[lj]).reshape(3 * count, -1)
-        utx = (a_loop @ solved[li, :, :1] + b_loop @ solved[lj, :, :1]).reshape(-1)
+        utx = (a_loop @ x0[li] + b_loop @ x0[lj]).reshape(-1)
         capacitance = np.eye(uty.shape[0]) + uty
         x = x - y.reshape(3 * n, -1) @ np.linalg.solve(capacitance, utx)
     out: FloatArray = -x.reshape(n, 3)
