@@ -280,7 +280,7 @@ class ScanPoints:
     origin_xy: tuple[float, float]
     hit_xy: FloatArray
     fan_xy: FloatArray
-    polygon: IntArray
+    polygon: npt.NDArray[np.int32]
 
 
 def prepare_scan(
@@ -325,7 +325,8 @@ def prepare_scan(
     fan_ids = np.arange(beam_of_fan.size, dtype=np.int64)
     order = np.argsort(np.concatenate([fan_ids * 2 + 1, np.flatnonzero(gap_before) * 2]), kind="stable")
     vertices = np.concatenate([fan_ids, np.full(int(gap_before.sum()), -1, dtype=np.int64)])[order]
-    polygon = np.concatenate([[-1], vertices]).astype(np.int64)
+    # int32: a loop closure keeps every node's scan for its rebuilds (Intel: ~0.7 MB less than int64).
+    polygon = np.concatenate([[-1], vertices]).astype(np.int32)
     return ScanPoints((float(mount[0]), float(mount[1])), hit_xy, fan_xy, polygon)
 
 

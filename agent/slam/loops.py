@@ -193,7 +193,11 @@ def lattice_search(
 ) -> Lattice:
     """Mean truncated squared distance min(d, c)² of the points at every lattice pose around ``centre``
     (translations in whole cells of the field, rotations by ``yaw_step_rad``); each rotation's points are
-    computed once, and one rotation at a time bounds the memory."""
+    computed once, and one rotation at a time bounds the memory. A point's cell is clamped into the
+    field: the field is padded by its edge cells (and the points' cells clamped to within the lattice's
+    reach of it first, which lands every shifted point where clamping each would), so that each lattice
+    pose is one offset into the flat table of squared distances, one add and one gather per point and
+    pose."""
     _u, h, w = field.distance_m.shape
     res = field.resolution_m
     reach = max(round(xy_m / res), 0)
@@ -201,7 +205,11 @@ def lattice_search(
     sy, sx = (a.ravel() for a in np.meshgrid(shifts, shifts, indexing="ij"))
     n_yaw = max(round(yaw_rad / yaw_step_rad), 0)
     yaw_offsets = np.arange(-n_yaw, n_yaw + 1) * yaw_step_rad
-    flat = np.minimum(field.distance_m[0], np.float32(truncate_m)).reshape(-1)
+    truncated = np.minimum(field.distance_m[0], np.float32(truncate_m))
+    pad = 2 * reach
+    flat = np.pad(truncated * truncated, pad, mode="edge").reshape(-1)
+    width = w + 2 * pad
+    offsets = (sy * width + sx)[:, None]
     costs = np.empty((yaw_offsets.size, sx.size))
     for r, yaw_offset in enumerate(yaw_offsets):
         candidate = centre.copy()
@@ -209,10 +217,9 @@ def lattice_search(
         wx, wy, _, _ = world_points(candidate[None, :], points_xy)
         col = np.floor((wx[0] - field.origin_m[0]) / res).astype(np.int64) + 1
         row = np.floor((wy[0] - field.origin_m[1]) / res).astype(np.int64) + 1
-        cols = np.clip(col[None, :] + sx[:, None], 0, w - 1)
-        rows = np.clip(row[None, :] + sy[:, None], 0, h - 1)
-        d = flat[rows * w + cols]
-        costs[r] = np.mean(d * d, axis=1)
+        col = np.clip(col, -reach, w - 1 + reach) + pad
+        row = np.clip(row, -reach, h - 1 + reach) + pad
+        costs[r] = np.mean(flat[(row * width + col)[None, :] + offsets], axis=1)
     return Lattice(
         yaw_offsets.astype(np.float64), (sx * res).astype(np.float64), (sy * res).astype(np.float64), costs
     )

@@ -15,7 +15,8 @@ huber / e beyond): a wrong loop closure pulls with a bounded force instead of be
 The normal equations H dx = -g, H = JᵀWJ, are sparse (3 x 3 blocks along the factors). Factors between
 consecutive nodes (the chain) and absolute factors make a block-tridiagonal T; every other factor (a loop
 closure) adds a rank-3 term, H = T + U Uᵀ with U (3N x 3L) the loops' whitened Jacobians. The solve is
-block-tridiagonal elimination for T⁻¹ [g, U] and the Woodbury identity for the rest:
+block-tridiagonal elimination for T⁻¹ [g, U] (a few loops' columns at a time: memory) and the Woodbury
+identity for the rest:
 H⁻¹ g = T⁻¹ g - T⁻¹ U (I + Uᵀ T⁻¹ U)⁻¹ Uᵀ T⁻¹ g, a dense 3L x 3L system (L loops: tens). Plain numpy:
 scipy's sparse solver (SuperLU) gave the same steps to rounding, but importing scipy.sparse.linalg puts
 about 30 MB into the resident memory of the SLAM process (Intel's whole-log peak was 181 MB with it).
@@ -182,6 +183,9 @@ def optimize(
     return GraphResult(poses, iterations, chi2_initial, _chi2(poses, relative, absolute), downweighted)
 
 
+_WOODBURY_BYTES = 2 << 20
+
+
 def _normal_step(
     n: int,
     fi: IntArray,
@@ -219,24 +223,40 @@ def _normal_step(
     if fix_first:
         a_loop = np.where((li == 0)[:, None, None], 0.0, a_loop)
         b_loop = np.where((lj == 0)[:, None, None], 0.0, b_loop)
-    u = np.zeros((n, 3, 3 * loops.size))
-    cols = 3 * np.arange(loops.size)
-    for c in range(3):
-        u[li, :, cols + c] = a_loop[:, c, :]
-        u[lj, :, cols + c] += b_loop[:, c, :]
     diag += 1e-9 * np.eye(3)
     if fix_first:
         diag[0] = np.eye(3)
         g[0] = 0.0
         if n > 1:
             upper[0] = 0.0
-    solved = _block_tridiagonal_solve(diag, upper, np.concatenate([g[:, :, None], u], axis=2))
-    x = solved[:, :, 0].reshape(-1)
-    if loops.size:
-        # Woodbury; Uᵀ Y from U's two blocks per loop, not the dense (3N x 3L) U.
-        y = solved[:, :, 1:]
-        uty = (a_loop @ y[li] + b_loop @ y[lj]).reshape(3 * loops.size, -1)
-        utx = (a_loop @ solved[li, :, :1] + b_loop @ solved[lj, :, :1]).reshape(-1)
+    # Woodbury: Y = T⁻¹ U, Uᵀ Y from U's two blocks per loop, H⁻¹ g = T⁻¹ g - Y (I + Uᵀ Y)⁻¹ Uᵀ T⁻¹ g.
+    # T⁻¹ [g, U] is eliminated a few loops' columns at a time (~_WOODBURY_BYTES of U each): its
+    # elimination's temporaries are several times what they eliminate (Intel, ~900 nodes and ~120 loops:
+    # ~8 MB each, ~40 MB at once, the SLAM process's peak RSS); Y itself is kept. Column by column the
+    # same operations: the step is the one of a single elimination, bit for bit.
+    count = loops.size
+    per = max(1, _WOODBURY_BYTES // (n * 3 * 3 * 8))
+    x0 = np.empty((n, 3, 1))
+    y = np.empty((n, 3, 3 * count))  # contiguous: Y's (3N x 3L) view below is no copy
+    for l0 in range(0, max(count, 1), per):
+        l1 = min(l0 + per, count)
+        cols = 3 * np.arange(l1 - l0)
+        u = np.zeros((n, 3, 3 * (l1 - l0)))
+        for c in range(3):
+            u[li[l0:l1], :, cols + c] = a_loop[l0:l1, c, :]
+            u[lj[l0:l1], :, cols + c] += b_loop[l0:l1, c, :]
+        if l0 == 0:  # g rides with the first part
+            solved = _block_tridiagonal_solve(diag, upper, np.concatenate([g[:, :, None], u], axis=2))
+            x0[...] = solved[:, :, :1]
+            y[:, :, : 3 * l1] = solved[:, :, 1:]
+            del solved
+        else:
+            y[:, :, 3 * l0 : 3 * l1] = _block_tridiagonal_solve(diag, upper, u)
+        del u
+    x = x0.reshape(-1)
+    if count:
+        uty = (a_loop @ y[li] + b_loop @ y[lj]).reshape(3 * count, -1)
+        utx = (a_loop @ x0[li] + b_loop @ x0[lj]).reshape(-1)
         capacitance = np.eye(uty.shape[0]) + uty
         x = x - y.reshape(3 * n, -1) @ np.linalg.solve(capacitance, utx)
     out: FloatArray = -x.reshape(n, 3)

@@ -13,6 +13,7 @@ from agent.slam.matcher import (
     DistanceField,
     MatcherConfig,
     SearchConfig,
+    _medial_at,
     correlative_search,
     match,
     scan_log_likelihood,
@@ -242,3 +243,25 @@ def test_stack_field_is_each_window_field() -> None:
         alone = DistanceField.from_obstacles(obstacles[k : k + 1], (1.0, 2.0), RES, 0.55, known[k : k + 1])
         np.testing.assert_array_equal(stack.distance_m[k], alone.distance_m[0])
         np.testing.assert_array_equal(stack.medial[k], alone.medial[0])
+
+
+def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
+    """The codes a lookup computes for its cells are the whole stack's (walls one and two cells thick,
+    along either axis, clutter, unknown cells)."""
+    rng = np.random.default_rng(5)
+    obstacles = np.zeros((2, 40, 50), dtype=bool)
+    obstacles[0, 10, 5:40] = True
+    obstacles[0, 20:22, 5:40] = True
+    obstacles[1, 3:35, 12] = True
+    obstacles[1, 3:35, 30:32] = True
+    obstacles |= rng.random(obstacles.shape) < 0.02
+    known = (rng.random(obstacles.shape) < 0.9) | obstacles
+    field = DistanceField.from_obstacles(obstacles, (0.0, 0.0), 0.05, 0.55, known)
+    _u, hp, wp = field.distance_m.shape
+    rows, cols = np.meshgrid(np.arange(1, hp - 1), np.arange(1, wp - 1), indexing="ij")
+    cells = (np.arange(2)[:, None, None] * hp + rows) * wp + cols
+    whole = field.medial
+    assert (whole > 0).sum() > 100
+    np.testing.assert_array_equal(
+        _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp), whole.reshape(-1)[cells.reshape(-1)]
+    )

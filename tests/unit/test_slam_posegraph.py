@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from agent.slam import posegraph
 from agent.slam.pose import between
 from agent.slam.posegraph import (
     AbsoluteFactors,
@@ -69,8 +70,15 @@ def test_block_tridiagonal_solve_matches_dense(n: int) -> None:
     np.testing.assert_allclose(dense @ x.reshape(3 * n, 4), rhs.reshape(3 * n, 4), atol=1e-9)
 
 
-@pytest.mark.parametrize(("n", "absolute"), [(30, False), (31, True), (2, False)])
-def test_normal_step_matches_dense(n: int, absolute: bool) -> None:
+@pytest.mark.parametrize(
+    ("n", "absolute", "part_bytes"),
+    [(30, False, None), (31, True, None), (2, False, None), (30, False, 1), (31, True, 2000)],
+)
+def test_normal_step_matches_dense(
+    n: int, absolute: bool, part_bytes: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if part_bytes is not None:  # T⁻¹ [g, U] eliminated in parts of one / two loops
+        monkeypatch.setattr(posegraph, "_WOODBURY_BYTES", part_bytes)
     rng = np.random.default_rng(n)
     chain = np.arange(n - 1)
     loops_i = rng.integers(0, max(n - 5, 1), 6)
