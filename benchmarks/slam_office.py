@@ -90,6 +90,7 @@ def run_seed(
     edge_sigma: tuple[float, float, float] | None = None,
     match_sigma: float | None = None,
     degenerate_scale: float | None = None,
+    particles: int = 30,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -102,7 +103,7 @@ def run_seed(
     if degenerate_scale is not None:
         proposal = dataclasses.replace(proposal, degenerate_noise_scale=degenerate_scale)
     config = RbpfConfig(
-        particles=30,
+        particles=particles,
         noise=MOTION_NOISE,
         proposal=proposal,
         initial_pose=simulated.start_pose(from_fix=False),
@@ -169,6 +170,7 @@ def main() -> int:
         type=float,
         help="ProposalConfig.degenerate_noise_scale (default: eval slam's for the simulated robot; 1: off)",
     )
+    parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
     args = parser.parse_args()
@@ -185,6 +187,7 @@ def main() -> int:
             edge,
             args.match_sigma,
             args.degenerate_noise_scale,
+            args.particles,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -199,6 +202,7 @@ def main() -> int:
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
         "degenerate_noise_scale": args.degenerate_noise_scale,
+        "particles": args.particles,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

@@ -62,20 +62,33 @@ SPARSE_SCAN_FORMATS = ("radish",)
 DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "mcap": 1.0}
 
 
-def log_proposal(source_format: str, proposal: Any) -> Any:
-    """``proposal`` (a ``ProposalConfig``) with the settings ``source_format`` gets (see
-    ``SPARSE_SCAN_FORMATS``)."""
+def front_end(source_format: str) -> Any:
+    """The ``[slam]`` front-end keys (an ``agent.config_slam.SlamConfig``, its other keys at their defaults)
+    ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE`` and, for
+    ``SPARSE_SCAN_FORMATS``, a match trusted on 10 endpoints whatever their share, from both starts. The
+    agent's defaults are the URG's (``breezyslam``); a config for another robot sets these keys to the
+    values its source was measured with (``examples/sim.toml``: ``simulated``'s)."""
     import dataclasses
 
-    proposal = dataclasses.replace(
-        proposal,
+    from agent.config_slam import SlamConfig
+
+    config = SlamConfig(
         along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format],
         degenerate_noise_scale=DEGENERATE_NOISE_SCALE[source_format],
     )
     if source_format not in SPARSE_SCAN_FORMATS:
-        return proposal
-    matcher = dataclasses.replace(proposal.matcher, min_inliers=10, min_inlier_fraction=0.0)
-    return dataclasses.replace(proposal, matcher=matcher, keep_better_start=True)
+        return config
+    return dataclasses.replace(
+        config, match_min_inliers=10, match_min_inlier_fraction=0.0, match_both_starts=True
+    )
+
+
+def log_proposal(source_format: str, proposal: Any) -> Any:
+    """``proposal`` (a ``ProposalConfig``) with the front end ``source_format`` gets (``front_end``), set
+    by the function the agent's filters are built with (``agent.runtime.mapper.front_end_proposal``)."""
+    from agent.runtime.mapper import front_end_proposal
+
+    return front_end_proposal(front_end(source_format), proposal)
 
 
 def add_parser(subparsers: Any) -> None:
