@@ -91,6 +91,7 @@ def run_seed(
     match_sigma: float | None = None,
     degenerate_scale: float | None = None,
     particles: int = 30,
+    grid_offset: float = 0.0,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -106,13 +107,15 @@ def run_seed(
         particles=particles,
         noise=MOTION_NOISE,
         proposal=proposal,
-        initial_pose=simulated.start_pose(from_fix=False),
+        initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
         seed=seed,
         loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
     )
     t0, c0 = time.perf_counter(), time.process_time()
     result = replay(simulated.log, config)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    # The filter's frame: the world's moved by grid_offset in x and y; its poses moved back for the ATE.
+    result = dataclasses.replace(result, poses=result.poses - np.array([grid_offset, grid_offset, 0.0]))
     truth = simulated.truth[: len(simulated.log)]
     error = np.hypot(*(result.poses[:, :2] - truth[:, :2]).T)
     stats = result.slam.stats
@@ -170,6 +173,15 @@ def main() -> int:
         type=float,
         help="ProposalConfig.degenerate_noise_scale (default: eval slam's for the simulated robot; 1: off)",
     )
+    parser.add_argument(
+        "--grid-offset",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="start the map M metres off the world's origin in x and y (poses moved back before the ATE): "
+        "the office's walls all lie on 5 cm boundaries, which with the 5 cm grid's are the worst case; "
+        "a real building's walls fall anywhere in a cell (default 0: the office as issue 20 measures it)",
+    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -188,6 +200,7 @@ def main() -> int:
             args.match_sigma,
             args.degenerate_noise_scale,
             args.particles,
+            args.grid_offset,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -203,6 +216,7 @@ def main() -> int:
         "match_sigma": args.match_sigma,
         "degenerate_noise_scale": args.degenerate_noise_scale,
         "particles": args.particles,
+        "grid_offset_m": args.grid_offset,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

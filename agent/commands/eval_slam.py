@@ -64,8 +64,9 @@ DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "m
 
 def front_end(source_format: str) -> Any:
     """The ``[slam]`` front-end keys (an ``agent.config_slam.SlamConfig``, its other keys at their defaults)
-    ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE`` and, for
-    ``SPARSE_SCAN_FORMATS``, a match trusted on 10 endpoints whatever their share, from both starts. The
+    ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``, the
+    simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
+    trusted on 10 endpoints whatever their share, from both starts. The
     agent's defaults are the URG's (``breezyslam``); a config for another robot sets these keys to the
     values its source was measured with (``examples/sim.toml``: ``simulated``'s)."""
     import dataclasses
@@ -76,6 +77,11 @@ def front_end(source_format: str) -> Any:
         along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format],
         degenerate_noise_scale=DEGENERATE_NOISE_SCALE[source_format],
     )
+    if source_format == "simulated":
+        from agent.slam.simlog import MOTION_NOISE
+
+        noise = MOTION_NOISE
+        config = dataclasses.replace(config, odometry_noise=(noise.srr, noise.srt, noise.str, noise.stt))
     if source_format not in SPARSE_SCAN_FORMATS:
         return config
     return dataclasses.replace(
@@ -347,13 +353,11 @@ def run(args: argparse.Namespace) -> int:
     if args.span < 1:
         raise ConfigError("--span", f"must be at least 1 scan, got {args.span}")
     defaults = RbpfConfig()
-    noise = defaults.noise
+    from agent.runtime.mapper import front_end_noise
+
+    noise = front_end_noise(front_end(source_format))
     if args.odometry_noise:
         noise = OdometryNoise(*args.odometry_noise)
-    elif simulated is not None:
-        from agent.slam.simlog import MOTION_NOISE
-
-        noise = MOTION_NOISE
     temperature = args.proposal_temperature
     if temperature is None:
         temperature = defaults.proposal.proposal_temperature

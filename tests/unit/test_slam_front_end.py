@@ -35,6 +35,8 @@ def test_eval_slam_sets_each_source_through_the_agents_function() -> None:
     simulated = log_proposal("simulated", ProposalConfig())
     assert simulated.degenerate_noise_scale == 0.3
     assert simulated.matcher == ProposalConfig().matcher and not simulated.keep_better_start
+    assert front_end_noise(front_end("simulated")) == MOTION_NOISE
+    assert front_end_noise(front_end("radish")) == OdometryNoise()
 
 
 def test_the_keys_load_and_reach_the_filter() -> None:
