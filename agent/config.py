@@ -1319,6 +1319,9 @@ class _Reader:
             ),
             match_both_starts=t.boolean("match_both_starts", d.match_both_starts),
             odometry_noise=self._odometry_noise(t),
+            free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
+            if t.has("free_margin_m")
+            else None,
         )
         if not slam.angular_update_rad > 0:
             raise t.error("angular_update_rad", "must be > 0")

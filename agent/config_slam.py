@@ -59,5 +59,7 @@ class SlamConfig:
     match_min_inliers: int = 20  # MatcherConfig.min_inliers
     match_min_inlier_fraction: float = 0.1  # MatcherConfig.min_inlier_fraction
     match_both_starts: bool = False  # ProposalConfig.keep_better_start
+    # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
+    free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's
     odometry_noise: tuple[float, float, float, float] | None = None

@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.commands.eval_slam import log_proposal
+from agent.commands.eval_slam import front_end, log_proposal
 from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import absolute_trajectory_error, aligned_trajectory_error
 from agent.slam.proposal import ProposalConfig
@@ -92,6 +92,7 @@ def run_seed(
     degenerate_scale: float | None = None,
     particles: int = 30,
     grid_offset: float = 0.0,
+    free_margin: float | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -108,6 +109,7 @@ def run_seed(
         noise=MOTION_NOISE,
         proposal=proposal,
         initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
+        free_margin_m=free_margin,
         seed=seed,
         loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
     )
@@ -182,6 +184,13 @@ def main() -> int:
         "the office's walls all lie on 5 cm boundaries, which with the 5 cm grid's are the worst case; "
         "a real building's walls fall anywhere in a cell (default 0: the office as issue 20 measures it)",
     )
+    parser.add_argument(
+        "--free-margin",
+        type=float,
+        metavar="M",
+        help="RbpfConfig.free_margin_m: a beam's free space stops M short of its endpoint "
+        "(default: eval slam's for the simulated robot)",
+    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -201,6 +210,7 @@ def main() -> int:
             args.degenerate_noise_scale,
             args.particles,
             args.grid_offset,
+            args.free_margin if args.free_margin is not None else front_end("simulated").free_margin_m,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -217,6 +227,7 @@ def main() -> int:
         "degenerate_noise_scale": args.degenerate_noise_scale,
         "particles": args.particles,
         "grid_offset_m": args.grid_offset,
+        "free_margin_m": args.free_margin,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

@@ -34,6 +34,7 @@ def test_eval_slam_sets_each_source_through_the_agents_function() -> None:
     assert radish.keep_better_start and radish.along_surface_weight == 0.0
     simulated = log_proposal("simulated", ProposalConfig())
     assert simulated.degenerate_noise_scale == 0.3
+    assert front_end("simulated").free_margin_m == 0.1 and front_end("radish").free_margin_m is None
     assert simulated.matcher == ProposalConfig().matcher and not simulated.keep_better_start
     assert front_end_noise(front_end("simulated")) == MOTION_NOISE
     assert front_end_noise(front_end("radish")) == OdometryNoise()
@@ -43,7 +44,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     text = LASER + (
         "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
         "match_min_inlier_fraction = 0.0\nmatch_both_starts = true\n"
-        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nprocess = false\n"
+        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nprocess = false\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3)
@@ -58,6 +59,8 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         log_proposal("radish", ProposalConfig()), degenerate_noise_scale=0.3
     )
     assert built.noise == MOTION_NOISE
+    assert built.free_margin_m == 0.1
+    assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
 
 
 _FRONT_END_KEYS = (
@@ -79,6 +82,7 @@ _FRONT_END_KEYS = (
         ('match_both_starts = "yes"', "slam.match_both_starts"),
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
+        ("free_margin_m = -0.01", "slam.free_margin_m"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:
