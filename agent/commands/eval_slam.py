@@ -60,13 +60,12 @@ SPARSE_SCAN_FORMATS = ("radish",)
 # 9 to 4 of 16 over 3 cm; seeds 0-7 from 2.63 to 2.98 (docs/slam.md, "Scan matching"). The logs keep the
 # paper's draw (1): not measured there.
 DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "mcap": 1.0}
-# RbpfConfig.free_margin_m per format (None: half a cell). The simulated office's walls all lie on the 5 cm
-# grid's cell boundaries, where half a cell of margin leaves the cell in front of a wall cleared about as
-# often as hit; the map's walls then come out half a cell off and the trajectory settles there. With
-# 0.1 m office seeds 0-23 went from mean 2.90 to 1.61 cm, 7 to 1 of 24 over 3 cm (seeds 0, 1, 5 tuned on;
-# docs/slam.md, "Open problems"). exp1 (the URG) closed its loop for 3 of 6 seeds with 0.1 against 5 of
-# 6: the logs keep half a cell.
-FREE_MARGIN_M: dict[str, float | None] = {"breezyslam": None, "radish": None, "simulated": 0.1, "mcap": None}
+# RbpfConfig.free_margin_m per format (None: half a cell, every format). 0.1 m took the simulated office
+# from mean 2.90 to 1.61 cm (7 to 1 of 24 seeds over 3 cm), but only because its walls all lie on the 5 cm
+# grid's cell boundaries: with the walls a quarter cell or half a cell off them it did worse than half a
+# cell (seeds 0-7 mean 2.54 / 2.15 cm against 2.05 / 0.82), and exp1 closed its loop for 3 of 6 seeds
+# against 5 (docs/slam.md, "Open problems"): a real building's walls fall anywhere in a cell.
+FREE_MARGIN_M: dict[str, float | None] = {"breezyslam": None, "radish": None, "simulated": None, "mcap": None}
 
 
 def front_end(source_format: str) -> Any:

@@ -34,7 +34,6 @@ def test_eval_slam_sets_each_source_through_the_agents_function() -> None:
     assert radish.keep_better_start and radish.along_surface_weight == 0.0
     simulated = log_proposal("simulated", ProposalConfig())
     assert simulated.degenerate_noise_scale == 0.3
-    assert front_end("simulated").free_margin_m == 0.1 and front_end("radish").free_margin_m is None
     assert simulated.matcher == ProposalConfig().matcher and not simulated.keep_better_start
     assert front_end_noise(front_end("simulated")) == MOTION_NOISE
     assert front_end_noise(front_end("radish")) == OdometryNoise()
