@@ -563,6 +563,7 @@ class _Table(TomlTable):
 
 _POSITIVE = (lambda v: v > 0, "must be > 0")
 _NON_NEGATIVE = (lambda v: v >= 0, "must be >= 0")
+_UNIT_INTERVAL = (lambda v: 0 <= v <= 1, "must be in [0, 1]")
 _SURVEY_SIGMA = (lambda v: 0 <= v <= 1.0, "must be in [0, 1] m")
 _PROBABILITY = (lambda v: 0 < v < 1, "must be strictly between 0 and 1")
 _BYTE = (lambda v: 0 <= v <= 255, "must be 0..255")
@@ -1341,6 +1342,24 @@ class _Reader:
             sigma_yaw_rad=t.angle("sigma_yaw", d.sigma_yaw_rad),
             seed=t.integer("seed", d.seed, _NON_NEGATIVE),
             process=t.boolean("process", d.process),
+            along_surface_weight=t.number("along_surface_weight", d.along_surface_weight, _UNIT_INTERVAL),
+            degenerate_noise_scale=t.number(
+                "degenerate_noise_scale",
+                d.degenerate_noise_scale,
+                (lambda v: 0 < v <= 1, "must be in (0, 1]"),
+            ),
+            match_min_inliers=t.integer(
+                "match_min_inliers", d.match_min_inliers, (lambda v: 1 <= v <= 10000, "must be 1..10000")
+            ),
+            match_min_inlier_fraction=t.number(
+                "match_min_inlier_fraction", d.match_min_inlier_fraction, _UNIT_INTERVAL
+            ),
+            match_both_starts=t.boolean("match_both_starts", d.match_both_starts),
+            failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
+            odometry_noise=self._odometry_noise(t),
+            free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
+            if t.has("free_margin_m")
+            else None,
         )
         if not slam.angular_update_rad > 0:
             raise t.error("angular_update_rad", "must be > 0")
@@ -1348,6 +1367,17 @@ class _Reader:
             raise t.error("sigma_yaw_rad", "must be > 0")
         t.finish()
         return slam
+
+    @staticmethod
+    def _odometry_noise(t: _Table) -> tuple[float, float, float, float] | None:
+        """``[slam] odometry_noise``: the motion model's [srr, srt, str, stt], each >= 0."""
+        values = t.numbers("odometry_noise", 4)
+        if values is None:
+            return None
+        if not all(v >= 0 for v in values):
+            raise t.error("odometry_noise", f"must be >= 0, got {list(values)}")
+        srr, srt, str_, stt = values
+        return srr, srt, str_, stt
 
     # [fusion] ------------------------------------------------------------------------------------
     def _fusion(self) -> FusionConfig:

@@ -50,3 +50,19 @@ class SlamConfig:
     sigma_yaw_rad: float = math.radians(1.0)
     seed: int = 0
     process: bool = True  # the filter in a child process (agent.runtime.slam_worker), not the agent's
+    # The scan match's front end (docs/slam.md, "Scan matching"; docs/config.md). The defaults are the
+    # filter's own, which are what the robot's laser (a URG-04LX, an update every 0.25 m: exp1, `eval slam
+    # --format breezyslam`) was measured with; `eval slam` runs each other source with its own
+    # (agent.commands.eval_slam.FRONT_END), which a config can set here.
+    along_surface_weight: float = 1.0  # ProposalConfig.along_surface_weight: 1 point to point, 0 to line
+    degenerate_noise_scale: float = 1.0  # ProposalConfig.degenerate_noise_scale: 1 the paper's draw
+    match_min_inliers: int = 20  # MatcherConfig.min_inliers
+    match_min_inlier_fraction: float = 0.1  # MatcherConfig.min_inlier_fraction
+    match_both_starts: bool = False  # ProposalConfig.keep_better_start
+    # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
+    # motion model) or "grid" (near the odometry prediction, where its weight was taken)
+    failed_match_draw: str = "motion"
+    # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
+    free_margin_m: float | None = None
+    # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's
+    odometry_noise: tuple[float, float, float, float] | None = None

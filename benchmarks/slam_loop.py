@@ -15,6 +15,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --proposal-temperature 3 --eta-integral laplace
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
 """
 
 from __future__ import annotations
@@ -97,6 +98,13 @@ def main() -> int:
         metavar="R",
         help="read each record's odometry R records later (negative: earlier), interpolated",
     )
+    parser.add_argument(
+        "--free-margin",
+        type=float,
+        default=defaults.free_margin_m,
+        metavar="M",
+        help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -120,6 +128,7 @@ def main() -> int:
             search_updates=args.search_updates,
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
+            free_margin_m=args.free_margin,
             seed=seed,
         )
         result = replay(log, config)

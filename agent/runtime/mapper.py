@@ -38,6 +38,8 @@ __all__ = [
     "MclMapper",
     "RbpfMapper",
     "ScanMapper",
+    "front_end_noise",
+    "front_end_proposal",
     "make_local_mapper",
     "prior_log_odds",
     "save_map",
@@ -51,6 +53,39 @@ Pose = tuple[float, float, float]
 # Filter updates of trajectory history the RBPF keeps (for the trajectory plot): bounded, so that a service
 # running for days does not grow; at one update per 0.25 m that is the last 1.25 km.
 _HISTORY_UPDATES = 5000
+
+
+def front_end_proposal(config: SlamConfig, base: Any) -> Any:
+    """``base`` (an ``agent.slam.proposal.ProposalConfig``) with the scan match's front end the ``[slam]``
+    keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*``, ``failed_match_draw``). The agent's filters are
+    built with it, and so is what ``vlp-agent eval slam`` runs for each source (``eval_slam.FRONT_END``):
+    what was measured is what runs."""
+    import dataclasses
+
+    matcher = dataclasses.replace(
+        base.matcher,
+        min_inliers=config.match_min_inliers,
+        min_inlier_fraction=config.match_min_inlier_fraction,
+    )
+    return dataclasses.replace(
+        base,
+        matcher=matcher,
+        along_surface_weight=config.along_surface_weight,
+        degenerate_noise_scale=config.degenerate_noise_scale,
+        keep_better_start=config.match_both_starts,
+        failed_match_draw=config.failed_match_draw,
+    )
+
+
+def front_end_noise(config: SlamConfig) -> Any:
+    """The filter's motion model (``agent.slam.motion.OdometryNoise``) for ``[slam] odometry_noise``:
+    slam_gmapping's when the key is not set."""
+    from agent.slam.motion import OdometryNoise
+
+    if config.odometry_noise is None:
+        return OdometryNoise()
+    srr, srt, str_, stt = config.odometry_noise
+    return OdometryNoise(srr, srt, str_, stt)
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,6 +170,9 @@ class RbpfMapper:
             geometry,
             rbpf.RbpfConfig(
                 particles=cfg.particles,
+                noise=front_end_noise(cfg),
+                free_margin_m=cfg.free_margin_m,
+                proposal=front_end_proposal(cfg, rbpf.RbpfConfig().proposal),
                 map_mode=rbpf.MapMode(cfg.map_mode),
                 grid=GridGeometry(resolution_m=cfg.resolution_m),
                 linear_update_m=cfg.linear_update_m,
@@ -297,7 +335,12 @@ class MclMapper:
             self.localizer = mcl.MclLocalizer(
                 LaserGeometry.from_scan(scan, self.mount),
                 self.occupancy,
-                mcl.MclConfig(particles=max(self.config.particles, 30), seed=self.config.seed),
+                mcl.MclConfig(
+                    particles=max(self.config.particles, 30),
+                    noise=front_end_noise(self.config),
+                    proposal=front_end_proposal(self.config, mcl.MclConfig().proposal),
+                    seed=self.config.seed,
+                ),
             )
         if not self.localizer.initialized:
             start = self.start_pose(scan.host_time_ns)

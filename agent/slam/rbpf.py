@@ -91,6 +91,13 @@ class RbpfConfig:
     field_margin_m: float = 0.6
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     deskew: bool = True
+    # How far short of its endpoint a beam's free space stops (metres); None: half a cell. The swept fan
+    # is rasterised with its edge pixels (cv2.fillPoly), and range noise puts half the hits on a wall
+    # short of it, so with half a cell a wall that lies on a cell boundary has the cell in front of it
+    # cleared about as often as hit: it comes out one cell thick on the far side, half a cell off, and a
+    # trajectory settles there (the simulated office, whose walls all lie on 5 cm boundaries:
+    # docs/slam.md, "Open problems").
+    free_margin_m: float | None = None
     # The correlative search of ``proposal.search`` (for the leading particle, its correction moving every
     # particle's start) runs at the first ``search_updates`` filter updates and at an update whose odometry
     # increment reaches ``search_increment_m`` or ``search_increment_rad`` (after a gap in the scans), where
@@ -322,7 +329,7 @@ class RbpfSlam:
             max(self.laser.min_range_m, cfg.min_range_m),
             self.laser.no_return_m,
             cfg.max_usable_range_m,
-            cfg.grid.resolution_m / 2.0,
+            cfg.grid.resolution_m / 2.0 if cfg.free_margin_m is None else cfg.free_margin_m,
             beam_offsets,
         )
         if not self._started:

@@ -1,0 +1,107 @@
+"""The scan match's front end as ``[slam]`` keys (issue 20): what ``vlp-agent eval slam`` measured for a
+source is what the agent's filter runs when its config says so, and the defaults are the robot's own
+laser's (the URG logs: ``eval slam --format breezyslam``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from agent.commands.eval_slam import front_end, log_proposal
+from agent.config import MountConfig, SlamConfig, parse_config
+from agent.runtime.mapper import RbpfMapper, front_end_noise, front_end_proposal
+from agent.slam.motion import OdometryNoise
+from agent.slam.proposal import ProposalConfig
+from agent.slam.simlog import MOTION_NOISE
+from drivers.errors import ConfigError
+from drivers.samples import Scan
+from tests.helpers import REAL_ROBOT
+
+LASER = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+
+
+def test_the_defaults_are_the_filters_and_the_urg_logs() -> None:
+    assert front_end("breezyslam") == SlamConfig()
+    assert front_end_proposal(SlamConfig(), ProposalConfig()) == ProposalConfig()
+    assert front_end_noise(SlamConfig()) == OdometryNoise()
+
+
+def test_eval_slam_sets_each_source_through_the_agents_function() -> None:
+    radish = log_proposal("radish", ProposalConfig())
+    assert radish.matcher.min_inliers == 10 and radish.matcher.min_inlier_fraction == 0.0
+    assert radish.keep_better_start and radish.along_surface_weight == 0.0
+    assert (
+        radish.failed_match_draw == "grid"
+        and log_proposal("breezyslam", ProposalConfig()).failed_match_draw == "motion"
+    )
+    simulated = log_proposal("simulated", ProposalConfig())
+    assert simulated.degenerate_noise_scale == 0.3
+    assert simulated.matcher == ProposalConfig().matcher and not simulated.keep_better_start
+    assert front_end_noise(front_end("simulated")) == MOTION_NOISE
+    assert front_end_noise(front_end("radish")) == OdometryNoise()
+
+
+def test_the_keys_load_and_reach_the_filter() -> None:
+    text = LASER + (
+        "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
+        'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
+        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nprocess = false\n"
+    )
+    config = parse_config(text).slam
+    radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3)
+    assert [getattr(config, f) for f in _FRONT_END_KEYS] == [getattr(radish, f) for f in _FRONT_END_KEYS]
+    assert front_end_noise(config) == MOTION_NOISE
+
+    mapper = RbpfMapper(config, MountConfig(), lambda t_ns: (0.0, 0.0, 0.0))
+    step = mapper.update(_room_scan(), (0.0, 0.0, 0.0))
+    assert step.kind == "first"
+    built = mapper.slam.config
+    assert built.proposal == dataclasses.replace(
+        log_proposal("radish", ProposalConfig()), degenerate_noise_scale=0.3
+    )
+    assert built.noise == MOTION_NOISE
+    assert built.free_margin_m == 0.1
+    assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
+
+
+_FRONT_END_KEYS = (
+    "along_surface_weight",
+    "degenerate_noise_scale",
+    "match_min_inliers",
+    "match_min_inlier_fraction",
+    "match_both_starts",
+    "failed_match_draw",
+)
+
+
+@pytest.mark.parametrize(
+    ("line", "key"),
+    [
+        ("along_surface_weight = 1.5", "slam.along_surface_weight"),
+        ("degenerate_noise_scale = 0.0", "slam.degenerate_noise_scale"),
+        ("match_min_inliers = 0", "slam.match_min_inliers"),
+        ("match_min_inlier_fraction = -0.1", "slam.match_min_inlier_fraction"),
+        ('match_both_starts = "yes"', "slam.match_both_starts"),
+        ('failed_match_draw = "anywhere"', "slam.failed_match_draw"),
+        ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
+        ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
+        ("free_margin_m = -0.01", "slam.free_margin_m"),
+    ],
+)
+def test_a_bad_value_names_its_key(line: str, key: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(LASER + f"[slam]\n{line}\n")
+    assert info.value.key == key
+
+
+def _room_scan() -> Scan:
+    """One URG sweep in a 4 m x 3 m room, the laser in its middle."""
+    angles = np.linspace(-2.0, 2.0, 400)
+    ranges = np.minimum(
+        2.0 / np.maximum(np.abs(np.cos(angles)), 1e-6), 1.5 / np.maximum(np.abs(np.sin(angles)), 1e-6)
+    )
+    return Scan(
+        np.round(ranges * 1000.0).astype(np.int32), -2.0, float(angles[1] - angles[0]), 20, 5600, 0, 0
+    )
