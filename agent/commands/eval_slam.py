@@ -60,6 +60,23 @@ SPARSE_SCAN_FORMATS = ("radish",)
 # 9 to 4 of 16 over 3 cm; seeds 0-7 from 2.63 to 2.98 (docs/slam.md, "Scan matching"). The logs keep the
 # paper's draw (1): not measured there.
 DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "mcap": 1.0}
+# The log-odds a swept (free) cell loses per scan (grid.LogOddsModel.miss; the filter's default -0.4) per
+# format. The radish logs' 1 deg beams reach a corridor's walls at grazing angles: a wall cell is a hit
+# for the one or two scans that see it side-on and is passed through by the many that look along the
+# corridor (a pose a few centimetres off puts their beams across it), so at -0.4 one hit outlived two
+# misses and ACES's corridor walls went free; the match then slid along the corridor to the nearest
+# remaining obstacle (0.2-0.45 m per update in the inner corridors, the same updates at every seed). At
+# -0.1 one hit outlives four misses, two hits twelve (GMapping keeps a cell as an obstacle at 10 % hits
+# among its visits). ACES seeds 0 / 1: ate_aligned_m 0.278 / 0.253 -> 0.169 / 0.111 m (docs/slam.md,
+# "Measurements"). The URG logs and the simulated robot (0.35 deg beams, 0.25 m updates) keep -0.4.
+MISS_LOG_ODDS = {"breezyslam": -0.4, "radish": -0.1, "simulated": -0.4, "mcap": -0.4}
+
+
+def log_odds_model(source_format: str) -> Any:
+    """The grid's inverse sensor model for ``source_format`` (``MISS_LOG_ODDS``)."""
+    from agent.slam.grid import LogOddsModel
+
+    return LogOddsModel(miss=MISS_LOG_ODDS[source_format])
 
 
 def log_proposal(source_format: str, proposal: Any) -> Any:
@@ -222,6 +239,7 @@ def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_clos
     return RbpfConfig(
         particles=particles,
         proposal=log_proposal(source_format, defaults.proposal),
+        log_odds=log_odds_model(source_format),
         max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
         loop_closure=defaults.loop_closure if loop_closure else None,
         seed=seed,
@@ -360,6 +378,7 @@ def run(args: argparse.Namespace) -> int:
     config = RbpfConfig(
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
+        log_odds=log_odds_model(source_format),
         noise=noise,
         proposal=dataclasses.replace(
             log_proposal(source_format, defaults.proposal),
