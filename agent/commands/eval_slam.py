@@ -69,6 +69,15 @@ DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "m
 # -0.1 one hit outlives four misses, two hits twelve (GMapping keeps a cell as an obstacle at 10 % hits
 # among its visits). ACES seeds 0 / 1: ate_aligned_m 0.278 / 0.253 -> 0.169 / 0.111 m (docs/slam.md,
 # "Measurements"). The URG logs and the simulated robot (0.35 deg beams, 0.25 m updates) keep -0.4.
+# The correlative search on the SPARSE_SCAN_FORMATS logs also runs at every update a turn triggers (just
+# under the 0.2 rad angular update gate; the default is 0.5 rad): FR079's odometry turns 10-22 deg off
+# GMapping's within single 0.2 rad updates while the robot turns on the spot (records 771-819), beyond
+# Gauss-Newton's reach from the prior, and the whole building after was folded by 45 deg. FR079 seed 0
+# ate_aligned_m 7.68 -> 3.59 m (GMapping 3.58 m). Its yaw window there is +-0.45 rad instead of 0.2: the
+# same on FR079, Intel seeds 0 / 1 0.114 / 0.067 m against 0.080 / 0.167 with 0.2 (0.127 / 0.108 before
+# either), ACES seeds 0 / 1 0.278 / 0.121 against 0.183 / 0.123; docs/slam.md, Measurements.
+SPARSE_SEARCH_INCREMENT_RAD = 0.19
+SPARSE_SEARCH_YAW_RAD = 0.45
 MISS_LOG_ODDS = {"breezyslam": -0.4, "radish": -0.1, "simulated": -0.4, "mcap": -0.4}
 
 
@@ -92,7 +101,19 @@ def log_proposal(source_format: str, proposal: Any) -> Any:
     if source_format not in SPARSE_SCAN_FORMATS:
         return proposal
     matcher = dataclasses.replace(proposal.matcher, min_inliers=10, min_inlier_fraction=0.0)
-    return dataclasses.replace(proposal, matcher=matcher, keep_better_start=True)
+    search = proposal.search
+    if search is not None:
+        search = dataclasses.replace(search, yaw_range_rad=SPARSE_SEARCH_YAW_RAD)
+    return dataclasses.replace(proposal, matcher=matcher, keep_better_start=True, search=search)
+
+
+def search_increment_rad(source_format: str) -> float:
+    """``RbpfConfig.search_increment_rad`` for ``source_format`` (see ``SPARSE_SEARCH_INCREMENT_RAD``)."""
+    from agent.slam.rbpf import RbpfConfig
+
+    if source_format in SPARSE_SCAN_FORMATS:
+        return SPARSE_SEARCH_INCREMENT_RAD
+    return RbpfConfig().search_increment_rad
 
 
 def add_parser(subparsers: Any) -> None:
@@ -240,6 +261,7 @@ def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_clos
         particles=particles,
         proposal=log_proposal(source_format, defaults.proposal),
         log_odds=log_odds_model(source_format),
+        search_increment_rad=search_increment_rad(source_format),
         max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
         loop_closure=defaults.loop_closure if loop_closure else None,
         seed=seed,
@@ -379,6 +401,7 @@ def run(args: argparse.Namespace) -> int:
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
         log_odds=log_odds_model(source_format),
+        search_increment_rad=search_increment_rad(source_format),
         noise=noise,
         proposal=dataclasses.replace(
             log_proposal(source_format, defaults.proposal),
