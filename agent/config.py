@@ -1356,6 +1356,15 @@ class _Reader:
             ),
             match_both_starts=t.boolean("match_both_starts", d.match_both_starts),
             failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
+            miss_log_odds=t.number(
+                "miss_log_odds", d.miss_log_odds, (lambda v: -2.0 <= v < 0, "must be in [-2, 0)")
+            ),
+            search_increment_rad=t.number(
+                "search_increment_rad", d.search_increment_rad, (lambda v: v > 0, "must be > 0")
+            ),
+            search_yaw_rad=t.number(
+                "search_yaw_rad", d.search_yaw_rad, (lambda v: 0 < v <= math.pi, "must be in (0, pi]")
+            ),
             odometry_noise=self._odometry_noise(t),
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")

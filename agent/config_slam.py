@@ -62,6 +62,12 @@ class SlamConfig:
     # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
     # motion model) or "grid" (near the odometry prediction, where its weight was taken)
     failed_match_draw: str = "motion"
+    # The log-odds a swept (free) cell loses per scan (grid.LogOddsModel.miss)
+    miss_log_odds: float = -0.4
+    # The correlative search runs at an update whose turn since the last reaches this
+    # (RbpfConfig.search_increment_rad), over +-search_yaw_rad (SearchConfig.yaw_range_rad)
+    search_increment_rad: float = 0.5
+    search_yaw_rad: float = 0.2
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's

@@ -70,14 +70,34 @@ DEGENERATE_NOISE_SCALE = {"breezyslam": 1.0, "radish": 1.0, "simulated": 0.3, "m
 # against 5 (docs/slam.md, "Open problems"): a real building's walls fall anywhere in a cell.
 FREE_MARGIN_M: dict[str, float | None] = {"breezyslam": None, "radish": None, "simulated": None, "mcap": None}
 
+# The log-odds a swept (free) cell loses per scan (grid.LogOddsModel.miss; the filter's default -0.4) per
+# format. The radish logs' 1 deg beams reach a corridor's walls at grazing angles: a wall cell is a hit
+# for the one or two scans that see it side-on and is passed through by the many that look along the
+# corridor (a pose a few centimetres off puts their beams across it), so at -0.4 one hit outlived two
+# misses and ACES's corridor walls went free; the match then slid along the corridor to the nearest
+# remaining obstacle (0.2-0.45 m per update in the inner corridors, the same updates at every seed). At
+# -0.1 one hit outlives four misses, two hits twelve (GMapping keeps a cell as an obstacle at 10 % hits
+# among its visits). ACES seeds 0 / 1: ate_aligned_m 0.278 / 0.253 -> 0.169 / 0.111 m (docs/slam.md,
+# "Measurements"). The URG logs and the simulated robot (0.35 deg beams, 0.25 m updates) keep -0.4.
+# The correlative search on the SPARSE_SCAN_FORMATS logs also runs at every update a turn triggers (just
+# under the 0.2 rad angular update gate; the default is 0.5 rad): FR079's odometry turns 10-22 deg off
+# GMapping's within single 0.2 rad updates while the robot turns on the spot (records 771-819), beyond
+# Gauss-Newton's reach from the prior, and the whole building after was folded by 45 deg. FR079 seed 0
+# ate_aligned_m 7.68 -> 3.59 m (GMapping 3.58 m). Its yaw window there is +-0.45 rad instead of 0.2: the
+# same on FR079, Intel seeds 0 / 1 0.114 / 0.067 m against 0.080 / 0.167 with 0.2 (0.127 / 0.108 before
+# either), ACES seeds 0 / 1 0.278 / 0.121 against 0.183 / 0.123; docs/slam.md, Measurements.
+SPARSE_SEARCH_INCREMENT_RAD = 0.19
+SPARSE_SEARCH_YAW_RAD = 0.45
+MISS_LOG_ODDS = {"breezyslam": -0.4, "radish": -0.1, "simulated": -0.4, "mcap": -0.4}
+
 
 def front_end(source_format: str) -> Any:
     """The ``[slam]`` front-end keys (an ``agent.config_slam.SlamConfig``, its other keys at their defaults)
     ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``,
-    ``FREE_MARGIN_M``, the
+    ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, the
     simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
-    trusted on 10 endpoints whatever their share, from both starts, and a failed match drawn near the
-    odometry prediction. The
+    trusted on 10 endpoints whatever their share, from both starts, a failed match drawn near the
+    odometry prediction and the correlative search at turns over a wider yaw window. The
     agent's defaults are the URG's (``breezyslam``); a config for another robot sets these keys to the
     values its source was measured with (``examples/sim.toml``: ``simulated``'s)."""
     import dataclasses
@@ -88,6 +108,7 @@ def front_end(source_format: str) -> Any:
         along_surface_weight=DEFAULT_ALONG_SURFACE_WEIGHT[source_format],
         degenerate_noise_scale=DEGENERATE_NOISE_SCALE[source_format],
         free_margin_m=FREE_MARGIN_M[source_format],
+        miss_log_odds=MISS_LOG_ODDS[source_format],
     )
     if source_format == "simulated":
         from agent.slam.simlog import MOTION_NOISE
@@ -102,7 +123,16 @@ def front_end(source_format: str) -> Any:
         match_min_inlier_fraction=0.0,
         match_both_starts=True,
         failed_match_draw="grid",
+        search_increment_rad=SPARSE_SEARCH_INCREMENT_RAD,
+        search_yaw_rad=SPARSE_SEARCH_YAW_RAD,
     )
+
+
+def log_odds_model(source_format: str) -> Any:
+    """The grid's inverse sensor model for ``source_format`` (``MISS_LOG_ODDS``)."""
+    from agent.runtime.mapper import front_end_log_odds
+
+    return front_end_log_odds(front_end(source_format))
 
 
 def log_proposal(source_format: str, proposal: Any) -> Any:
@@ -111,6 +141,11 @@ def log_proposal(source_format: str, proposal: Any) -> Any:
     from agent.runtime.mapper import front_end_proposal
 
     return front_end_proposal(front_end(source_format), proposal)
+
+
+def search_increment_rad(source_format: str) -> float:
+    """``RbpfConfig.search_increment_rad`` for ``source_format`` (``SPARSE_SEARCH_INCREMENT_RAD``)."""
+    return float(front_end(source_format).search_increment_rad)
 
 
 def add_parser(subparsers: Any) -> None:
@@ -258,6 +293,8 @@ def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_clos
         particles=particles,
         proposal=log_proposal(source_format, defaults.proposal),
         free_margin_m=front_end(source_format).free_margin_m,
+        log_odds=log_odds_model(source_format),
+        search_increment_rad=search_increment_rad(source_format),
         max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
         loop_closure=defaults.loop_closure if loop_closure else None,
         seed=seed,
@@ -394,6 +431,8 @@ def run(args: argparse.Namespace) -> int:
     config = RbpfConfig(
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
+        log_odds=log_odds_model(source_format),
+        search_increment_rad=search_increment_rad(source_format),
         noise=noise,
         proposal=dataclasses.replace(
             log_proposal(source_format, defaults.proposal),

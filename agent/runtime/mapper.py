@@ -38,6 +38,7 @@ __all__ = [
     "MclMapper",
     "RbpfMapper",
     "ScanMapper",
+    "front_end_log_odds",
     "front_end_noise",
     "front_end_proposal",
     "make_local_mapper",
@@ -57,9 +58,9 @@ _HISTORY_UPDATES = 5000
 
 def front_end_proposal(config: SlamConfig, base: Any) -> Any:
     """``base`` (an ``agent.slam.proposal.ProposalConfig``) with the scan match's front end the ``[slam]``
-    keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*``, ``failed_match_draw``). The agent's filters are
-    built with it, and so is what ``vlp-agent eval slam`` runs for each source (``eval_slam.FRONT_END``):
-    what was measured is what runs."""
+    keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*``, ``failed_match_draw``,
+    ``search_yaw_rad``). The agent's filters are built with it, and so is what ``vlp-agent eval slam`` runs
+    for each source (``eval_slam.front_end``): what was measured is what runs."""
     import dataclasses
 
     matcher = dataclasses.replace(
@@ -74,7 +75,17 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         degenerate_noise_scale=config.degenerate_noise_scale,
         keep_better_start=config.match_both_starts,
         failed_match_draw=config.failed_match_draw,
+        search=None
+        if base.search is None
+        else dataclasses.replace(base.search, yaw_range_rad=config.search_yaw_rad),
     )
+
+
+def front_end_log_odds(config: SlamConfig) -> Any:
+    """The grid's inverse sensor model (``agent.slam.grid.LogOddsModel``) for ``[slam] miss_log_odds``."""
+    from agent.slam.grid import LogOddsModel
+
+    return LogOddsModel(miss=config.miss_log_odds)
 
 
 def front_end_noise(config: SlamConfig) -> Any:
@@ -172,6 +183,8 @@ class RbpfMapper:
                 particles=cfg.particles,
                 noise=front_end_noise(cfg),
                 free_margin_m=cfg.free_margin_m,
+                log_odds=front_end_log_odds(cfg),
+                search_increment_rad=cfg.search_increment_rad,
                 proposal=front_end_proposal(cfg, rbpf.RbpfConfig().proposal),
                 map_mode=rbpf.MapMode(cfg.map_mode),
                 grid=GridGeometry(resolution_m=cfg.resolution_m),

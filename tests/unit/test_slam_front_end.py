@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from agent.commands.eval_slam import front_end, log_proposal
+from agent.commands.eval_slam import front_end, log_odds_model, log_proposal
 from agent.config import MountConfig, SlamConfig, parse_config
 from agent.runtime.mapper import RbpfMapper, front_end_noise, front_end_proposal
 from agent.slam.motion import OdometryNoise
@@ -47,6 +47,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     text = LASER + (
         "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
         'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
+        "miss_log_odds = -0.1\nsearch_increment_rad = 0.19\nsearch_yaw_rad = 0.45\n"
         "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nprocess = false\n"
     )
     config = parse_config(text).slam
@@ -63,6 +64,8 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     )
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
+    assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
+    assert built.proposal.search is not None and built.proposal.search.yaw_range_rad == 0.45
     assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
 
 
@@ -73,6 +76,9 @@ _FRONT_END_KEYS = (
     "match_min_inlier_fraction",
     "match_both_starts",
     "failed_match_draw",
+    "miss_log_odds",
+    "search_increment_rad",
+    "search_yaw_rad",
 )
 
 
@@ -85,6 +91,9 @@ _FRONT_END_KEYS = (
         ("match_min_inlier_fraction = -0.1", "slam.match_min_inlier_fraction"),
         ('match_both_starts = "yes"', "slam.match_both_starts"),
         ('failed_match_draw = "anywhere"', "slam.failed_match_draw"),
+        ("miss_log_odds = 0.1", "slam.miss_log_odds"),
+        ("search_increment_rad = 0", "slam.search_increment_rad"),
+        ("search_yaw_rad = 4.0", "slam.search_yaw_rad"),
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
         ("free_margin_m = -0.01", "slam.free_margin_m"),
