@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 from agent.commands.args import UsageError, dumps_json, positive_seconds
 from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
+from agent.runtime.follow_loop import follow_summary
 from agent.runtime.map_saver import save_topology_beside
 from agent.runtime.mapper import save_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
@@ -147,19 +148,6 @@ def _follow_on_command(args: argparse.Namespace, config: AgentConfig, agent: Any
         agent.scan_listeners.remove(loop.on_scan)
         return None
     return loop
-
-
-def follow_summary(loop: FollowLoop) -> dict[str, Any]:
-    """The follow loop's last state and counts, for the final status."""
-    latest = loop.latest
-    return {
-        "state": None if latest is None else latest.command.state.value,
-        "reason": None if latest is None else latest.command.reason,
-        "person": None if latest is None or latest.person is None else list(latest.person.xy),
-        "counts": dict(loop.counts),
-        "tracker": dict(loop.tracker.counts),
-        "fine": dict(loop.locator.counts) if loop.locator is not None else None,
-    }
 
 
 def run(args: argparse.Namespace) -> int:

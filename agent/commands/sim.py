@@ -583,8 +583,8 @@ def run(args: argparse.Namespace) -> int:
             injector.follow_loop = loop
         on_command = None
         if sent_follows:
-            from agent.commands.run import follow_summary
             from agent.runtime.agent import laser_mount_for
+            from agent.runtime.follow_loop import follow_summary
             from agent.runtime.follow_setup import camera_view, make_follow_loop
 
             m = laser_mount_for(config, world)

@@ -39,6 +39,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -979,3 +980,16 @@ class FollowLoop:
                     self.send(0.0, 0.0)
         finally:
             self.send(0.0, 0.0)
+
+
+def follow_summary(loop: FollowLoop) -> dict[str, Any]:
+    """The follow loop's last state and counts, for the final status."""
+    latest = loop.latest
+    return {
+        "state": None if latest is None else latest.command.state.value,
+        "reason": None if latest is None else latest.command.reason,
+        "person": None if latest is None or latest.person is None else list(latest.person.xy),
+        "counts": dict(loop.counts),
+        "tracker": dict(loop.tracker.counts),
+        "fine": dict(loop.locator.counts) if loop.locator is not None else None,
+    }
