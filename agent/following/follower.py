@@ -237,26 +237,30 @@ def walker_decision(
     then slower ones, then 0 last) given each one's predicted least gap to the walkers (``gaps``, centre to
     centre, :func:`predicted_gaps`), and the decision it stands for. A hysteresis on the decision to yield:
 
-    * ``GO`` (driving on): the first speed that keeps more than ``clearance_m``; else, committed to
-      crossing in front, the follower's speed or a faster one whose gap stays above ``keep_m`` (the best
-      of them): a dip of the prediction under ``clearance_m`` (a few centimetres of track noise, the
-      person's pace between a camera bearing and a scan) does not turn a crossing into a stop in the
-      walker's way and back, step after step; else a faster speed clearly (5 cm) better than standing (out
-      of the walker's way rather than stopped in it); else 0, ``YIELD``;
-    * ``YIELD`` (stopped for a walker): the first speed that keeps more than ``resume_m`` (default
-      ``clearance_m``); else, only when standing itself comes nearer than ``keep_m`` (the walker is coming
-      at the robot), a faster speed clearly better than standing; else 0: it lets the walker pass.
+    * ``GO`` (driving on): the first moving speed that keeps more than ``clearance_m``; else, committed
+      to crossing in front, the follower's speed or a faster one whose gap stays above ``keep_m`` (the
+      best of them), before standing (when standing keeps clear, ``YIELD``): a dip of the prediction
+      under ``clearance_m`` (a few centimetres of track noise, the person's pace between a camera bearing
+      and a scan) does not turn a crossing into a stop in the walker's way and back, step after step;
+      else a faster speed clearly (5 cm) better than standing (out of the walker's way rather than
+      stopped in it); else 0, ``YIELD``;
+    * ``YIELD`` (stopped for a walker): the first moving speed that keeps more than ``resume_m`` (default
+      ``clearance_m``); else standing when it keeps it; else, only when standing itself comes nearer
+      than ``keep_m`` (the walker is coming at the robot), a faster speed clearly better than standing;
+      else 0: it lets the walker pass.
 
     With ``keep_m`` = inf and ``previous`` = ``GO`` this is the plain check of :func:`safe_speed`. Pure."""
     if len(speeds) != len(gaps) or not speeds or speeds[-1] != 0.0:
         raise ValueError("speeds and gaps must align, with standing (0) last")
     resume = clearance_m if resume_m is None else resume_m
     need = clearance_m if previous is WalkerMode.GO else resume
-    for v, gap in zip(speeds, gaps, strict=True):
+    for v, gap in zip(speeds[:-1], gaps[:-1], strict=True):
         if gap > need:
-            return v, (WalkerMode.GO if v > 0.0 else WalkerMode.YIELD)
+            return v, WalkerMode.GO
     standing = gaps[-1]
     if previous is WalkerMode.GO:
+        # Committed: a crossing under way is kept before a stop is considered (a stop "clear" by the
+        # prediction is not, for a robot already driving into the walker's way at speed).
         crossing = [
             (g, v) for v, g in zip(speeds, gaps, strict=True) if v > 0.0 and (v == v_mps or v in faster)
         ]
@@ -264,6 +268,8 @@ def walker_decision(
             g, v = max(crossing)
             if g > keep_m:
                 return v, WalkerMode.GO
+    if standing > need:
+        return 0.0, WalkerMode.YIELD
     if previous is WalkerMode.GO or standing <= keep_m:
         best, best_gap = 0.0, -math.inf
         for v, gap in zip(speeds, gaps, strict=True):

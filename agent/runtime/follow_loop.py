@@ -293,6 +293,7 @@ class FollowLoop:
         aside_walker_m: float = 1.5,
         walker_keep_m: float = 0.45,
         walker_resume_m: float = 0.65,
+        walker_match_m: float = 0.6,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -343,6 +344,7 @@ class FollowLoop:
         self.walker_keep_m = walker_keep_m
         self.walker_resume_m = walker_resume_m
         self.walker_mode = WalkerMode.GO
+        self.walker_match_m = walker_match_m  # a new track this near a known walker carries their velocity
         self._check: dict[str, object] = {}  # this step's walker check, for the DEBUG log
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
@@ -858,6 +860,16 @@ class FollowLoop:
         for w in nav.moving.moving():
             vx, vy = w.vx_mps, w.vy_mps
             old = self._walker_memory.get(id(w))
+            if old is None:
+                # A track new to the loop where a walker was: the navigation re-tracks a passer-by (a
+                # track dropped, or a body split in two) with the velocity started from 0 and halved
+                # toward theirs scan by scan (1 m/s read as 0.6-0.85 for its first scans), which made
+                # the crossing look clear and the check flip to it (issue 23): the walker's velocity
+                # goes on.
+                prior = self._walker_prior(w.x_m, w.y_m, w.t_s)
+                if prior is not None:
+                    old = (prior[0], prior[1], w.t_s)
+                    self.counts["walker_velocity_carried"] += 1
             if old is not None:
                 if old[2] == w.t_s:
                     vx, vy = old[0], old[1]
@@ -891,6 +903,17 @@ class FollowLoop:
         self._walker_memory = memory
         self._walker_held = held
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
+
+    def _walker_prior(self, x: float, y: float, t_s: float) -> tuple[float, float] | None:
+        """The velocity of the walker the loop knew (tracked or held at its last call) whose position,
+        walked on to ``t_s``, is nearest (x, y) within ``walker_match_m``; None when none is."""
+        best, best_d = None, self.walker_match_m
+        for px, py, vx, vy, t in self._walker_held.values():
+            age = max(0.0, t_s - t)
+            d = math.dist((px + vx * age, py + vy * age), (x, y))
+            if d < best_d:
+                best, best_d = (vx, vy), d
+        return best
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
         """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
