@@ -265,9 +265,11 @@ def walker_decision(
             (g, v) for v, g in zip(speeds, gaps, strict=True) if v > 0.0 and (v == v_mps or v in faster)
         ]
         if crossing:
-            g, v = max(crossing)
-            if g > keep_m:
-                return v, WalkerMode.GO
+            top = max(g for g, _ in crossing)
+            if top > keep_m:
+                # The slowest as good as the best (within 1 cm): once the robot is close behind its person
+                # every speed drives at their pace in the prediction, and a faster command only closes in.
+                return min(v for g, v in crossing if g >= top - 0.01), WalkerMode.GO
     if standing > need:
         return 0.0, WalkerMode.YIELD
     if previous is WalkerMode.GO or standing <= keep_m:
