@@ -237,9 +237,10 @@ def walker_decision(
     then slower ones, then 0 last) given each one's predicted least gap to the walkers (``gaps``, centre to
     centre, :func:`predicted_gaps`), and the decision it stands for. A hysteresis on the decision to yield:
 
-    * ``GO`` (driving on): the first moving speed that keeps more than ``clearance_m``; else, committed
-      to crossing in front, the follower's speed or a faster one whose gap stays above ``keep_m`` (the
-      best of them), before standing (when standing keeps clear, ``YIELD``): a dip of the prediction
+    * ``GO`` (driving on): the follower's speed or the first faster one that keeps more than
+      ``clearance_m``; else, committed to crossing in front, the one of them whose gap stays above
+      ``keep_m`` (the best, the slowest of equals); else the first slower one that keeps
+      ``clearance_m``; else standing when it keeps it (``YIELD``): a dip of the prediction
       under ``clearance_m`` (a few centimetres of track noise, the person's pace between a camera bearing
       and a scan) does not turn a crossing into a stop in the walker's way and back, step after step;
       else a faster speed clearly (5 cm) better than standing (out of the walker's way rather than
@@ -254,22 +255,24 @@ def walker_decision(
         raise ValueError("speeds and gaps must align, with standing (0) last")
     resume = clearance_m if resume_m is None else resume_m
     need = clearance_m if previous is WalkerMode.GO else resume
-    for v, gap in zip(speeds[:-1], gaps[:-1], strict=True):
+    ahead = [(v, g) for v, g in zip(speeds, gaps, strict=True) if v > 0.0 and (v == v_mps or v in faster)]
+    slower = [(v, g) for v, g in zip(speeds[:-1], gaps[:-1], strict=True) if (v, g) not in ahead]
+    for v, gap in ahead:
+        if gap > need:
+            return v, WalkerMode.GO
+    if previous is WalkerMode.GO and ahead:
+        # Committed: a crossing in front under way is kept before slowing down or stopping is considered
+        # (a slower speed or a stop "clear" by the prediction is not, for a robot driving into the
+        # walker's way at speed, and alternating them was the flip of issue 23).
+        top = max(g for _, g in ahead)
+        if top > keep_m:
+            # The slowest as good as the best (within 1 cm): once the robot is close behind its person every
+            # speed drives at their pace in the prediction, and a faster command only closes in.
+            return min(v for v, g in ahead if g >= top - 0.01), WalkerMode.GO
+    for v, gap in slower:
         if gap > need:
             return v, WalkerMode.GO
     standing = gaps[-1]
-    if previous is WalkerMode.GO:
-        # Committed: a crossing under way is kept before a stop is considered (a stop "clear" by the
-        # prediction is not, for a robot already driving into the walker's way at speed).
-        crossing = [
-            (g, v) for v, g in zip(speeds, gaps, strict=True) if v > 0.0 and (v == v_mps or v in faster)
-        ]
-        if crossing:
-            top = max(g for g, _ in crossing)
-            if top > keep_m:
-                # The slowest as good as the best (within 1 cm): once the robot is close behind its person
-                # every speed drives at their pace in the prediction, and a faster command only closes in.
-                return min(v for g, v in crossing if g >= top - 0.01), WalkerMode.GO
     if standing > need:
         return 0.0, WalkerMode.YIELD
     if previous is WalkerMode.GO or standing <= keep_m:
