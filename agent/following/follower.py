@@ -232,6 +232,7 @@ def walker_decision(
     clearance_m: float,
     keep_m: float = math.inf,
     resume_m: float | None = None,
+    hit_m: float = 0.35,
 ) -> tuple[float, WalkerMode]:
     """The speed to drive at among ``speeds`` (the follower's ``v_mps`` first, then each of ``faster``,
     then slower ones, then 0 last) given each one's predicted least gap to the walkers (``gaps``, centre to
@@ -246,9 +247,11 @@ def walker_decision(
       else a faster speed clearly (5 cm) better than standing (out of the walker's way rather than
       stopped in it); else 0, ``YIELD``;
     * ``YIELD`` (stopped for a walker): the first moving speed that keeps more than ``resume_m`` (default
-      ``clearance_m``); else standing when it keeps it; else, only when standing itself comes nearer
-      than ``keep_m`` (the walker is coming at the robot), a faster speed clearly better than standing;
-      else 0: it lets the walker pass.
+      ``clearance_m``); else standing when it keeps it; else, only when standing itself comes within
+      ``hit_m`` (the walker walks into the robot: contact is at 0.305 m), a faster speed clearly better
+      than standing; else 0: it lets the walker pass. (A few hundredths of a m/s of the walker's
+      velocity toward the robot, noise, put standing under ``keep_m`` and the escape drove the robot
+      into the walker's way.)
 
     With ``keep_m`` = inf and ``previous`` = ``GO`` this is the plain check of :func:`safe_speed`. Pure."""
     if len(speeds) != len(gaps) or not speeds or speeds[-1] != 0.0:
@@ -275,7 +278,7 @@ def walker_decision(
     standing = gaps[-1]
     if standing > need:
         return 0.0, WalkerMode.YIELD
-    if previous is WalkerMode.GO or standing <= keep_m:
+    if previous is WalkerMode.GO or standing <= hit_m:
         best, best_gap = 0.0, -math.inf
         for v, gap in zip(speeds, gaps, strict=True):
             if gap > best_gap + 0.05:  # a faster escape must be clearly better than standing or slower
