@@ -291,7 +291,7 @@ class FollowLoop:
         walker_smoothing: float = 0.7,
         walker_hold_s: float = 0.6,
         aside_walker_m: float = 1.5,
-        walker_keep_m: float = 0.45,
+        walker_keep_m: float = 0.40,
         walker_resume_m: float = 0.65,
         walker_match_m: float = 0.6,
         occluder_margin_m: float = 0.3,
