@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from agent.following.follower import Follower, FollowerConfig, FollowState
+from agent.following.follower import Follower, FollowerConfig, FollowState, WalkerMode
 from agent.following.person import PersonEstimate
 
 
@@ -143,7 +143,7 @@ def test_an_occluded_person_is_coasted_on_not_stopped_for() -> None:
     assert cmd.state is FollowState.FOLLOWING and 0.0 < cmd.v_mps < full.v_mps and "occluded" in cmd.reason
 
 
-def _decide(gap_ahead: float, standing: float, previous: object, **kw: float) -> tuple[float, object]:
+def _decide(gap_ahead: float, standing: float, previous: WalkerMode, **kw: float) -> tuple[float, WalkerMode]:
     """The walker check's decision with the follower at 0.7 m/s, faster 0.8 and 0.95, slower 0.46 and
     0.23, standing last; ``gap_ahead`` the predicted gap at 0.95 (the others a little less)."""
     from agent.following.follower import walker_decision
@@ -155,7 +155,7 @@ def _decide(gap_ahead: float, standing: float, previous: object, **kw: float) ->
         gaps,
         v_mps=0.7,
         faster=(0.8, 0.95),
-        previous=previous,  # type: ignore[arg-type]
+        previous=previous,
         clearance_m=0.55,
         keep_m=kw.pop("keep_m", 0.45),
         resume_m=0.65,
@@ -166,8 +166,6 @@ def test_walker_decision_keeps_a_crossing_whose_predicted_gap_jitters_about_the_
     """Issue 23: with the crossing's gap at 0.53/0.57 step by step (the person's pace after a camera
     bearing and after a scan) and standing "clear", the memoryless check alternated 0.95 and 0 and the
     robot drove into the passer-by at half speed; the decision kept crosses at 0.95 throughout."""
-    from agent.following.follower import WalkerMode
-
     plain = [_decide(g, 0.8, WalkerMode.GO, keep_m=math.inf)[0] for g in (0.57, 0.53, 0.57, 0.53)]
     assert plain == [0.95, 0.0, 0.95, 0.0]
     mode, kept = WalkerMode.GO, []
@@ -180,8 +178,6 @@ def test_walker_decision_keeps_a_crossing_whose_predicted_gap_jitters_about_the_
 
 
 def test_walker_decision_holds_a_stop_until_a_speed_keeps_the_resume_gap() -> None:
-    from agent.following.follower import WalkerMode
-
     # Stopped for a walker: 0.6 m at 0.95 is clear (0.55) but not by the margin (0.65): stays stopped.
     assert _decide(0.6, 0.8, WalkerMode.YIELD) == (0.0, WalkerMode.YIELD)
     assert _decide(0.6, 0.8, WalkerMode.GO) == (0.95, WalkerMode.GO)
@@ -194,7 +190,7 @@ def test_walker_decision_holds_a_stop_until_a_speed_keeps_the_resume_gap() -> No
 
 
 def test_walker_decision_prefers_a_committed_crossing_to_slowing_down_and_the_slowest_of_equals() -> None:
-    from agent.following.follower import WalkerMode, walker_decision
+    from agent.following.follower import walker_decision
 
     # Going: crossing at 0.5 m beats crawling at 0.46 m/s toward the walker's line "clear" at 0.6 m.
     assert _decide(0.5, 0.8, WalkerMode.GO, slow=0.6) == (0.95, WalkerMode.GO)
