@@ -330,6 +330,9 @@ class FollowScore:
                     for k in (
                         "costmap_stops",
                         "walker_slowdowns",
+                        "walker_yield",
+                        "walker_go",
+                        "walker_velocity_carried",
                         "steps_aside",
                         "asides_refused",
                         "acquired_on_map",

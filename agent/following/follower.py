@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,18 @@ import numpy.typing as npt
 
 from agent.following.person import PersonEstimate
 
-__all__ = ["FollowCommand", "FollowState", "Follower", "FollowerConfig", "safe_speed", "walker_threat"]
+__all__ = [
+    "FollowCommand",
+    "FollowState",
+    "Follower",
+    "FollowerConfig",
+    "WalkerMode",
+    "predicted_gaps",
+    "safe_speed",
+    "walker_candidates",
+    "walker_decision",
+    "walker_threat",
+]
 
 Pose = tuple[float, float, float]
 
@@ -203,6 +215,79 @@ class Follower:
         return FollowCommand(v, omega, FollowState.FOLLOWING, "keeping the distance", dist)
 
 
+class WalkerMode(enum.StrEnum):
+    """The walker check's standing decision, kept from step to step (:func:`walker_decision`)."""
+
+    GO = "go"  # driving on: clear of the walkers, or crossing in front of one (committed)
+    YIELD = "yield"  # stopped to let a walker pass: stays stopped until a speed is clear with a margin
+
+
+def walker_decision(
+    speeds: Sequence[float],
+    gaps: Sequence[float],
+    *,
+    v_mps: float,
+    faster: Sequence[float],
+    previous: WalkerMode,
+    clearance_m: float,
+    keep_m: float = math.inf,
+    resume_m: float | None = None,
+    hit_m: float = 0.35,
+) -> tuple[float, WalkerMode]:
+    """The speed to drive at among ``speeds`` (the follower's ``v_mps`` first, then each of ``faster``,
+    then slower ones, then 0 last) given each one's predicted least gap to the walkers (``gaps``, centre to
+    centre, :func:`predicted_gaps`), and the decision it stands for. A hysteresis on the decision to yield:
+
+    * ``GO`` (driving on): the follower's speed or the first faster one that keeps more than
+      ``clearance_m``; else, committed to crossing in front, the one of them whose gap stays above
+      ``keep_m`` (the best, the slowest of equals); else the first slower one that keeps
+      ``clearance_m``; else standing when it keeps it (``YIELD``): a dip of the prediction
+      under ``clearance_m`` (a few centimetres of track noise, the person's pace between a camera bearing
+      and a scan) does not turn a crossing into a stop in the walker's way and back, step after step;
+      else a faster speed clearly (5 cm) better than standing (out of the walker's way rather than
+      stopped in it); else 0, ``YIELD``;
+    * ``YIELD`` (stopped for a walker): the first moving speed that keeps more than ``resume_m`` (default
+      ``clearance_m``); else standing when it keeps it; else, only when standing itself comes within
+      ``hit_m`` (the walker walks into the robot: contact is at 0.305 m), a faster speed clearly better
+      than standing; else 0: it lets the walker pass. (A few hundredths of a m/s of the walker's
+      velocity toward the robot, noise, put standing under ``keep_m`` and the escape drove the robot
+      into the walker's way.)
+
+    With ``keep_m`` = inf and ``previous`` = ``GO`` this is the plain check of :func:`safe_speed`. Pure."""
+    if len(speeds) != len(gaps) or not speeds or speeds[-1] != 0.0:
+        raise ValueError("speeds and gaps must align, with standing (0) last")
+    resume = clearance_m if resume_m is None else resume_m
+    need = clearance_m if previous is WalkerMode.GO else resume
+    ahead = [(v, g) for v, g in zip(speeds, gaps, strict=True) if v > 0.0 and (v == v_mps or v in faster)]
+    slower = [(v, g) for v, g in zip(speeds[:-1], gaps[:-1], strict=True) if (v, g) not in ahead]
+    for v, gap in ahead:
+        if gap > need:
+            return v, WalkerMode.GO
+    if previous is WalkerMode.GO and ahead:
+        # Committed: a crossing in front under way is kept before slowing down or stopping is considered
+        # (a slower speed or a stop "clear" by the prediction is not, for a robot driving into the
+        # walker's way at speed, and alternating them was the flip of issue 23).
+        top = max(g for _, g in ahead)
+        if top > keep_m:
+            # The slowest as good as the best (within 1 cm): once the robot is close behind its person every
+            # speed drives at their pace in the prediction, and a faster command only closes in.
+            return min(v for v, g in ahead if g >= top - 0.01), WalkerMode.GO
+    for v, gap in slower:
+        if gap > need:
+            return v, WalkerMode.GO
+    standing = gaps[-1]
+    if standing > need:
+        return 0.0, WalkerMode.YIELD
+    if previous is WalkerMode.GO or standing <= hit_m:
+        best, best_gap = 0.0, -math.inf
+        for v, gap in zip(speeds, gaps, strict=True):
+            if gap > best_gap + 0.05:  # a faster escape must be clearly better than standing or slower
+                best, best_gap = v, gap
+        if best_gap > 0.0 and best in faster:
+            return best, WalkerMode.GO
+    return 0.0, WalkerMode.YIELD
+
+
 def safe_speed(
     pose: Pose,
     v_mps: float,
@@ -225,9 +310,40 @@ def safe_speed(
     whole sweep would have it; one who would cut between the robot and its person is crossed in front of by
     closing up on the person (``faster``) when that keeps clear. When no speed keeps clear, a faster one
     that keeps clearly further (5 cm) than standing is taken: the robot drives on out of the walker's path
-    rather than stopping in it; otherwise 0 (the caller then steps aside)."""
+    rather than stopping in it; otherwise 0 (the caller then steps aside). Memoryless: the follow loop
+    keeps its decision from step to step with :func:`walker_decision`."""
     if v_mps <= 0.0 or len(walkers) == 0:
         return v_mps
+    speeds = walker_candidates(v_mps, faster, fractions)
+    gaps = predicted_gaps(pose, speeds, walkers, horizon_s, dt_s, lead)
+    v, _ = walker_decision(
+        speeds, gaps.tolist(), v_mps=v_mps, faster=faster, previous=WalkerMode.GO, clearance_m=clearance_m
+    )
+    return v
+
+
+def walker_candidates(
+    v_mps: float, faster: Sequence[float], fractions: Sequence[float] = (1.0, 0.66, 0.33)
+) -> list[float]:
+    """The speeds the walker check tries, in order: ``v_mps``, each of ``faster`` above it, ``v_mps`` x
+    each of ``fractions`` below 1, standing (0) last."""
+    return [v_mps, *(f for f in faster if f > v_mps), *(v_mps * f for f in fractions if f < 1.0), 0.0]
+
+
+def predicted_gaps(
+    pose: Pose,
+    speeds: list[float],
+    walkers: npt.NDArray[np.float64],
+    horizon_s: float,
+    dt_s: float = 0.1,
+    lead: tuple[float, float, float] | None = None,
+) -> npt.NDArray[np.float64]:
+    """Per speed of ``speeds``: the least distance between the robot's centre and any walker's (rows x, y,
+    vx, vy, walking on at their velocity) over ``horizon_s``, the robot driving straight on at that speed
+    (with ``lead``, as in :func:`safe_speed`, only until it is that near its person, then at their pace);
+    ``inf`` with no walker."""
+    if len(walkers) == 0:
+        return np.full(len(speeds), math.inf)
     tau = np.arange(0.0, horizon_s + 1e-9, dt_s)
     c, s = math.cos(pose[2]), math.sin(pose[2])
     wx = walkers[:, 0:1] + walkers[:, 2:3] * tau  # (n, t)
@@ -236,18 +352,12 @@ def safe_speed(
     if lead is not None:
         ahead, pace, nearest = lead
         limit = max(ahead - nearest, 0.0) + max(pace, 0.0) * tau
-    candidates = [v_mps, *(f for f in faster if f > v_mps), *(v_mps * f for f in fractions if f < 1.0)]
-    best, best_gap = 0.0, -math.inf
-    for v in [*candidates, 0.0]:
+    out = np.empty(len(speeds))
+    for i, v in enumerate(speeds):
         d = v * tau if limit is None else np.minimum(v * tau, limit)
         rx, ry = pose[0] + c * d, pose[1] + s * d
-        gap = float(np.min(np.hypot(wx - rx, wy - ry)))
-        if gap > clearance_m:
-            return v
-        if gap > best_gap + 0.05:  # a faster escape must be clearly better than standing or going slower
-            best, best_gap = v, gap
-    # None keeps clear: standing in a walker's way is not safest when going on takes the robot out of it.
-    return best if best_gap > 0.0 and best in faster else 0.0
+        out[i] = float(np.min(np.hypot(wx - rx, wy - ry)))
+    return out
 
 
 def walker_threat(

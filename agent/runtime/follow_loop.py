@@ -44,7 +44,16 @@ from typing import Any
 import numpy as np
 
 from agent.following.fine import FineLayer, FineResult, FineState, Locator
-from agent.following.follower import FollowCommand, Follower, FollowState, safe_speed, walker_threat
+from agent.following.follower import (
+    FollowCommand,
+    Follower,
+    FollowState,
+    WalkerMode,
+    predicted_gaps,
+    walker_candidates,
+    walker_decision,
+    walker_threat,
+)
 from agent.following.person import (
     DetectorConfig,
     PersonDetections,
@@ -283,6 +292,9 @@ class FollowLoop:
         walker_smoothing: float = 0.7,
         walker_hold_s: float = 0.6,
         aside_walker_m: float = 1.5,
+        walker_keep_m: float = 0.40,
+        walker_resume_m: float = 0.65,
+        walker_match_m: float = 0.6,
         occluder_margin_m: float = 0.3,
         fine: FineLayer | None = None,
         locator: ProjectedLocator | None = None,
@@ -327,6 +339,14 @@ class FollowLoop:
         self.walker_hold_s = walker_hold_s
         self.aside_walker_m = aside_walker_m  # a step aside never heads toward a walker this near
         self._walker_held: dict[int, tuple[float, float, float, float, float]] = {}
+        # The walker check's decision kept from step to step (``walker_decision``): a crossing in front
+        # goes on while its predicted gap stays above walker_keep_m; a stop for a walker holds until a
+        # speed keeps walker_resume_m. Without it the decision flipped 0.95/0 step by step (issue 23).
+        self.walker_keep_m = walker_keep_m
+        self.walker_resume_m = walker_resume_m
+        self.walker_mode = WalkerMode.GO
+        self.walker_match_m = walker_match_m  # a new track this near a known walker carries their velocity
+        self._check: dict[str, object] = {}  # this step's walker check, for the DEBUG log
         self.occluder_margin_m = occluder_margin_m
         self.fine = fine
         self.locator = locator
@@ -390,6 +410,8 @@ class FollowLoop:
             self._poses.clear()
             self._epoch = None
             self._walker_memory = {}
+            self._walker_held = {}
+            self.walker_mode = WalkerMode.GO
             self.latest = None
             self._fine_rejected = 0
         if self.fine is not None:
@@ -779,6 +801,7 @@ class FollowLoop:
             v *= max(0.0, (self.scan_stale_s - age) / (self.scan_stale_s - self.scan_late_s))
             self.counts["late_scan_slowdowns"] += 1
         stepping_aside = False
+        self._check = {}
         if pose is not None:
             v = self._safe(pose, v, person)
             if v <= 0.0:
@@ -786,8 +809,21 @@ class FollowLoop:
                 if aside is not None:
                     v, w = aside
                     stepping_aside = True
+        checked = v
         if self.guard is not None:
             v, w = self.guard(v, w, t_s)
+        if self._check and log.isEnabledFor(logging.DEBUG):
+            # Every step with a walker in sight: the check's inputs and each stage's answer (issue 23).
+            log.debug(
+                "walker check t=%.3f pose=%s follower=%.2f %s aside=%s checked=%.2f sent=%.2f",
+                t_s,
+                tuple(round(x, 3) for x in pose) if pose is not None else None,
+                command.v_mps,
+                " ".join(f"{k}={val}" for k, val in self._check.items()),
+                stepping_aside,
+                checked,
+                v,
+            )
         self.send(v, w)
         if self._blind and self.vanished_at_s is not None and v <= 0.0:
             self.vanish_stops_s.append(t_s - self.vanished_at_s)
@@ -825,6 +861,16 @@ class FollowLoop:
         for w in nav.moving.moving():
             vx, vy = w.vx_mps, w.vy_mps
             old = self._walker_memory.get(id(w))
+            if old is None:
+                # A track new to the loop where a walker was: the navigation re-tracks a passer-by (a
+                # track dropped, or a body split in two) with the velocity started from 0 and halved
+                # toward theirs scan by scan (1 m/s read as 0.6-0.85 for its first scans), which made
+                # the crossing look clear and the check flip to it (issue 23): the walker's velocity
+                # goes on.
+                prior = self._walker_prior(w.x_m, w.y_m, w.t_s)
+                if prior is not None:
+                    old = (prior[0], prior[1], w.t_s)
+                    self.counts["walker_velocity_carried"] += 1
             if old is not None:
                 if old[2] == w.t_s:
                     vx, vy = old[0], old[1]
@@ -858,6 +904,17 @@ class FollowLoop:
         self._walker_memory = memory
         self._walker_held = held
         return np.array(walkers, dtype=np.float64).reshape(-1, 4)
+
+    def _walker_prior(self, x: float, y: float, t_s: float) -> tuple[float, float] | None:
+        """The velocity of the walker the loop knew (tracked or held at its last call) whose position,
+        walked on to ``t_s``, is nearest (x, y) within ``walker_match_m``; None when none is."""
+        best, best_d = None, self.walker_match_m
+        for px, py, vx, vy, t in self._walker_held.values():
+            age = max(0.0, t_s - t)
+            d = math.dist((px + vx * age, py + vy * age), (x, y))
+            if d < best_d:
+                best, best_d = (vx, vy), d
+        return best
 
     def _aside(self, pose: Pose, person: PersonEstimate | None) -> tuple[float, float] | None:
         """Standing in a walker's way (they do not yield): a velocity toward the nearest free cell out of it
@@ -901,10 +958,11 @@ class FollowLoop:
         driving plus the stopping distance at ``decel_mps2``, short of the followed person by
         ``person_clear_m``: they are the target, the collision monitor keeps the robot off them) must keep
         the footprint off the scanned obstacles, and the robot must keep ``walker_clear_m`` from every
-        other walker the navigation tracks over their next seconds (:func:`safe_speed`); those within
-        ``walker_is_person_m`` of the followed person's track are them (the navigation's tracks sit on a
-        body's near surface, and lag). The static layer is left to the scan: SLAM maps a person who stood
-        still, and a wall ahead is in the scan."""
+        other walker the navigation tracks over their next seconds (:func:`walker_decision`, its decision
+        kept from step to step in ``walker_mode``); those within ``walker_is_person_m`` of the followed
+        person's track are them (the navigation's tracks sit on a body's near surface, and lag). The
+        static layer is left to the scan: SLAM maps a person who stood still, and a wall ahead is in the
+        scan."""
         nav = self.navigator()
         if nav is None or v <= 0.0:
             return v
@@ -928,6 +986,7 @@ class FollowLoop:
                     ok = spec.inside(near) & np.any(near != here, axis=1)
                     if np.any(costmap.obstacles[near[ok, 0], near[ok, 1]]):
                         self.counts["costmap_stops"] += 1
+                        self._check["costmap_stop"] = round(float(reach), 2)
                         return 0.0
         lead = None
         faster: tuple[float, ...] = ()
@@ -938,26 +997,33 @@ class FollowLoop:
             lead = (ahead, pace, self.close_up_m)
             top = self.follower.config.max_speed_mps
             faster = tuple(float(x) for x in np.linspace(v, top, 4)[1:])
-        safe = safe_speed(
-            pose,
-            v,
-            self._walkers(nav, person, pose),
-            self.walker_clear_m,
-            self.walker_horizon_s,
+        walkers = self._walkers(nav, person, pose)
+        if not len(walkers):
+            self.walker_mode = WalkerMode.GO
+            return v
+        speeds = walker_candidates(v, faster)
+        gaps = predicted_gaps(pose, speeds, walkers, self.walker_horizon_s, lead=lead)
+        previous = self.walker_mode
+        safe, self.walker_mode = walker_decision(
+            speeds,
+            gaps.tolist(),
+            v_mps=v,
             faster=faster,
-            lead=lead,
+            previous=previous,
+            clearance_m=self.walker_clear_m,
+            keep_m=self.walker_keep_m,
+            resume_m=self.walker_resume_m,
         )
         if safe < v:
             self.counts["walker_slowdowns"] += 1
-            if log.isEnabledFor(logging.DEBUG):
-                log.debug(
-                    "following: walkers slow %.2f to %.2f at %s (lead %s); walkers %s",
-                    v,
-                    safe,
-                    tuple(round(x, 2) for x in pose),
-                    None if lead is None else tuple(round(x, 2) for x in lead),
-                    np.round(self._walkers(nav, person, pose), 2).tolist(),
-                )
+        if self.walker_mode is not previous:
+            self.counts[f"walker_{self.walker_mode.value}"] += 1
+        if log.isEnabledFor(logging.DEBUG):
+            self._check["lead"] = None if lead is None else tuple(round(x, 3) for x in lead)
+            self._check["walkers"] = np.round(walkers, 3).tolist()
+            self._check["gaps"] = " ".join(f"{a:.2f}:{g:.2f}" for a, g in zip(speeds, gaps, strict=True))
+            self._check["mode"] = f"{previous.value}->{self.walker_mode.value}"
+            self._check["safe"] = round(safe, 3)
         return safe
 
     def run(self, stop: threading.Event) -> None:

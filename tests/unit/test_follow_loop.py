@@ -314,3 +314,23 @@ def test_a_walker_the_navigation_stops_reporting_walks_on_for_a_moment() -> None
     tracks.clear()
     now[0] = 11.5
     assert loop._walkers(nav, None).shape == (0, 4)  # type: ignore[arg-type]
+
+
+def test_a_new_navigation_track_where_a_walker_was_carries_their_velocity() -> None:
+    """Issue 23: the navigation re-tracks a passer-by with the velocity started from 0 (1 m/s read as
+    0.6-0.85 for a few scans), which made a crossing look clear; the loop's walker goes on at theirs."""
+    from types import SimpleNamespace
+
+    now = [10.0]
+    loop = _loop(now)
+    tracks = [SimpleNamespace(x_m=2.5, y_m=4.0, vx_mps=0.0, vy_mps=-1.0, t_s=10.0)]
+    nav = SimpleNamespace(moving=SimpleNamespace(moving=lambda: list(tracks)))
+    loop._walkers(nav, None)  # type: ignore[arg-type]
+    tracks[:] = [SimpleNamespace(x_m=2.5, y_m=3.75, vx_mps=0.0, vy_mps=-0.6, t_s=10.2)]
+    now[0] = 10.2
+    carried = loop._walkers(nav, None)  # type: ignore[arg-type]
+    assert carried.shape == (1, 4) and carried[0, 3] == -1.0
+    assert loop.counts["walker_velocity_carried"] == 1
+    # A new track nowhere near a known walker keeps its own.
+    tracks.append(SimpleNamespace(x_m=6.0, y_m=1.0, vx_mps=0.5, vy_mps=0.0, t_s=10.2))
+    assert loop._walkers(nav, None)[1, 2] == 0.5  # type: ignore[arg-type]

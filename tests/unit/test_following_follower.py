@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
-from agent.following.follower import Follower, FollowerConfig, FollowState
+from agent.following.follower import Follower, FollowerConfig, FollowState, WalkerMode
 from agent.following.person import PersonEstimate
 
 
@@ -140,3 +141,83 @@ def test_an_occluded_person_is_coasted_on_not_stopped_for() -> None:
     full = f.step(0.0, (0.0, 0.0, 0.0), seen, 0.0, 0.0)
     cmd = f.step(0.8, (0.0, 0.0, 0.0), seen, 0.0, 0.0, occluded=True)
     assert cmd.state is FollowState.FOLLOWING and 0.0 < cmd.v_mps < full.v_mps and "occluded" in cmd.reason
+
+
+def _decide(gap_ahead: float, standing: float, previous: WalkerMode, **kw: float) -> tuple[float, WalkerMode]:
+    """The walker check's decision with the follower at 0.7 m/s, faster 0.8 and 0.95, slower 0.46 and
+    0.23, standing last; ``gap_ahead`` the predicted gap at 0.95 (the others a little less)."""
+    from agent.following.follower import walker_decision
+
+    speeds = [0.7, 0.8, 0.95, 0.46, 0.23, 0.0]
+    gaps = [gap_ahead - 0.1, gap_ahead - 0.05, gap_ahead, kw.pop("slow", 0.1), 0.1, standing]
+    return walker_decision(
+        speeds,
+        gaps,
+        v_mps=0.7,
+        faster=(0.8, 0.95),
+        previous=previous,
+        clearance_m=0.55,
+        keep_m=kw.pop("keep_m", 0.45),
+        resume_m=0.65,
+    )
+
+
+def test_walker_decision_keeps_a_crossing_whose_predicted_gap_jitters_about_the_clearance() -> None:
+    """Issue 23: with the crossing's gap at 0.53/0.57 step by step (the person's pace after a camera
+    bearing and after a scan) and standing "clear", the memoryless check alternated 0.95 and 0 and the
+    robot drove into the passer-by at half speed; the decision kept crosses at 0.95 throughout."""
+    plain = [_decide(g, 0.8, WalkerMode.GO, keep_m=math.inf)[0] for g in (0.57, 0.53, 0.57, 0.53)]
+    assert plain == [0.95, 0.0, 0.95, 0.0]
+    mode, kept = WalkerMode.GO, []
+    for g in (0.57, 0.53, 0.57, 0.53, 0.48):
+        v, mode = _decide(g, 0.8, mode)
+        kept.append(v)
+    assert kept == [0.95, 0.95, 0.95, 0.95, 0.95] and mode is WalkerMode.GO
+    # The crossing is given up when its gap falls under walker_keep_m: stop, and let the walker pass.
+    assert _decide(0.42, 0.8, WalkerMode.GO) == (0.0, WalkerMode.YIELD)
+
+
+def test_walker_decision_holds_a_stop_until_a_speed_keeps_the_resume_gap() -> None:
+    # Stopped for a walker: 0.6 m at 0.95 is clear (0.55) but not by the margin (0.65): stays stopped.
+    assert _decide(0.6, 0.8, WalkerMode.YIELD) == (0.0, WalkerMode.YIELD)
+    assert _decide(0.6, 0.8, WalkerMode.GO) == (0.95, WalkerMode.GO)
+    assert _decide(0.7, 0.8, WalkerMode.YIELD) == (0.95, WalkerMode.GO)
+    # A faster escape from a stop only when standing itself is walked into (0.35 m), not when standing
+    # is merely under walker_keep_m (velocity noise toward the robot did that, and the escape hit them).
+    assert _decide(0.5, 0.5, WalkerMode.YIELD) == (0.0, WalkerMode.YIELD)
+    assert _decide(0.52, 0.43, WalkerMode.YIELD) == (0.0, WalkerMode.YIELD)
+    assert _decide(0.5, 0.3, WalkerMode.YIELD) == (0.95, WalkerMode.GO)
+
+
+def test_walker_decision_prefers_a_committed_crossing_to_slowing_down_and_the_slowest_of_equals() -> None:
+    from agent.following.follower import walker_decision
+
+    # Going: crossing at 0.5 m beats crawling at 0.46 m/s toward the walker's line "clear" at 0.6 m.
+    assert _decide(0.5, 0.8, WalkerMode.GO, slow=0.6) == (0.95, WalkerMode.GO)
+    # The plain check takes the slower speed.
+    assert _decide(0.5, 0.8, WalkerMode.GO, slow=0.6, keep_m=math.inf) == (0.46, WalkerMode.GO)
+    # Close behind the person every speed gives the same gap: the slowest, not a faster closing-in.
+    v, _ = walker_decision(
+        [0.4, 0.7, 0.95, 0.26, 0.0],
+        [0.5, 0.5, 0.5, 0.2, 0.1],
+        v_mps=0.4,
+        faster=(0.7, 0.95),
+        previous=WalkerMode.GO,
+        clearance_m=0.55,
+        keep_m=0.45,
+    )
+    assert v == 0.4
+    with pytest.raises(ValueError):
+        walker_decision([0.5], [1.0], v_mps=0.5, faster=(), previous=WalkerMode.GO, clearance_m=0.55)
+
+
+def test_predicted_gaps_follow_the_lead_and_the_walkers() -> None:
+    from agent.following.follower import predicted_gaps
+
+    walker = np.array([[2.0, 1.0, 0.0, -1.0]])  # crosses the robot's line 2 m ahead in 1 s
+    fast, stand = predicted_gaps((0.0, 0.0, 0.0), [2.0, 0.0], walker, 3.0)
+    assert stand == pytest.approx(2.0) and fast < 0.2
+    # Held to the person's pace 0.5 m ahead: the robot cannot get there first.
+    held, _ = predicted_gaps((0.0, 0.0, 0.0), [2.0, 0.0], walker, 3.0, lead=(1.0, 0.0, 0.5))
+    assert held == pytest.approx(1.5)
+    assert np.all(np.isinf(predicted_gaps((0.0, 0.0, 0.0), [1.0], np.zeros((0, 4)), 3.0)))
