@@ -602,7 +602,10 @@ class Agent:
         if table is None:
             ports = tuple(getattr(reader, "antenna_ports", (1,)))
             if len(ports) != len(fc.antenna_yaws_rad):
-                log.warning(
+                # Only a config that names the user's tag asked for following by RFID: without one the layer
+                # is made for a follow command that may never come, on the default yaws.
+                log.log(
+                    logging.WARNING if fc.tag_id is not None else logging.DEBUG,
                     "[following] antenna_yaws_rad gives %d yaws for the reader's %d antenna ports %s; "
                     "using the first %d",
                     len(fc.antenna_yaws_rad),
