@@ -1360,7 +1360,6 @@ class _Reader:
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,
-            subcell=t.boolean("subcell", d.subcell),
         )
         if not slam.angular_update_rad > 0:
             raise t.error("angular_update_rad", "must be > 0")

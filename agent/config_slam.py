@@ -64,7 +64,5 @@ class SlamConfig:
     failed_match_draw: str = "motion"
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
-    # Sub-cell walls (RbpfConfig.subcell): cells keep where in them their endpoints lay; off by default
-    subcell: bool = False
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's
     odometry_noise: tuple[float, float, float, float] | None = None

@@ -105,12 +105,6 @@ def main() -> int:
         metavar="M",
         help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
     )
-    parser.add_argument(
-        "--subcell",
-        action="store_true",
-        help="RbpfConfig.subcell: map cells keep where in them their endpoints lay, and the matcher's "
-        "distance near a straight wall is to their mean (default: off)",
-    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -135,7 +129,6 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
-            subcell=args.subcell,
             seed=seed,
         )
         result = replay(log, config)

@@ -93,7 +93,6 @@ def run_seed(
     particles: int = 30,
     grid_offset: float = 0.0,
     free_margin: float | None = None,
-    subcell: bool = False,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -111,7 +110,6 @@ def run_seed(
         proposal=proposal,
         initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
         free_margin_m=free_margin,
-        subcell=subcell,
         seed=seed,
         loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
     )
@@ -193,12 +191,6 @@ def main() -> int:
         help="RbpfConfig.free_margin_m: a beam's free space stops M short of its endpoint "
         "(default: eval slam's for the simulated robot)",
     )
-    parser.add_argument(
-        "--subcell",
-        action="store_true",
-        help="RbpfConfig.subcell: map cells keep where in them their endpoints lay, and the matcher's "
-        "distance near a straight wall is to their mean (default: off)",
-    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -219,7 +211,6 @@ def main() -> int:
             args.particles,
             args.grid_offset,
             args.free_margin if args.free_margin is not None else front_end("simulated").free_margin_m,
-            args.subcell,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -237,7 +228,6 @@ def main() -> int:
         "particles": args.particles,
         "grid_offset_m": args.grid_offset,
         "free_margin_m": args.free_margin,
-        "subcell": args.subcell,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

@@ -172,7 +172,6 @@ class RbpfMapper:
                 particles=cfg.particles,
                 noise=front_end_noise(cfg),
                 free_margin_m=cfg.free_margin_m,
-                subcell=cfg.subcell,
                 proposal=front_end_proposal(cfg, rbpf.RbpfConfig().proposal),
                 map_mode=rbpf.MapMode(cfg.map_mode),
                 grid=GridGeometry(resolution_m=cfg.resolution_m),

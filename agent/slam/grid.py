@@ -146,21 +146,14 @@ class TileRect:
 class TiledMaps:
     """A set of log-odds maps (one per table row) sharing a copy-on-write tile pool."""
 
-    def __init__(
-        self, geometry: GridGeometry, maps: int, initial_tiles: int = _RESERVED_TILES, channels: int = 1
-    ) -> None:
-        """``channels`` > 1 stores that many int8 values per cell (last axis of the windows ``gather``
-        returns and ``scatter`` takes: (U, H, W, channels)); 1 stores one, without that axis."""
+    def __init__(self, geometry: GridGeometry, maps: int, initial_tiles: int = _RESERVED_TILES) -> None:
         if maps < 1:
             raise ValueError("need at least one map")
-        if channels < 1:
-            raise ValueError("need at least one channel")
         self.geometry = geometry
         t = geometry.tile_cells
-        self._extra: tuple[int, ...] = () if channels == 1 else (channels,)
         # Zero-filled by the kernel on first touch: slots that were never used take address space, not
         # memory (``np.zeros`` of this size is a fresh anonymous mapping).
-        self.pool: Int8Array = np.zeros((max(initial_tiles, 2), t, t, *self._extra), dtype=np.int8)
+        self.pool: Int8Array = np.zeros((max(initial_tiles, 2), t, t), dtype=np.int8)
         self.refcount: IntArray = np.zeros(self.pool.shape[0], dtype=np.int64)
         self.refcount[UNKNOWN_TILE] = 1 << 40  # pinned: never written, never freed
         self._next = 1  # slots from here on were never used
@@ -231,14 +224,13 @@ class TiledMaps:
 
     # -- windows ---------------------------------------------------------------------------------------
     def gather(self, rows: npt.ArrayLike, rect: TileRect) -> Int8Array:
-        """Copies of the maps' stored log-odds over ``rect``: shape (len(rows), h*T, w*T) (and the
-        channels, if more than one)."""
+        """Copies of the maps' stored log-odds over ``rect``: shape (len(rows), h*T, w*T)."""
         ids = self.tables[np.asarray(rows, dtype=np.int64)][:, rect.ty0 : rect.ty1, rect.tx0 : rect.tx1]
         u, h, w = ids.shape
         t = self.geometry.tile_cells
-        out = np.empty((u, h, t, w, t, *self._extra), dtype=np.int8)
-        out[...] = self.pool[ids].transpose(0, 1, 3, 2, 4, *range(5, 5 + len(self._extra)))
-        return out.reshape(u, h * t, w * t, *self._extra)
+        out = np.empty((u, h, t, w, t), dtype=np.int8)
+        out[...] = self.pool[ids].transpose(0, 1, 3, 2, 4)
+        return out.reshape(u, h * t, w * t)
 
     def scatter(self, rows: npt.ArrayLike, rect: TileRect, windows: Int8Array, touched: BoolArray) -> None:
         """Write ``windows`` (U, h*T, w*T) back into maps ``rows`` (U,) over ``rect``, for the tiles
@@ -259,7 +251,7 @@ class TiledMaps:
             self.refcount[new_ids] = 1
             ids[shared] = new_ids
             self.tables[map_rows[shared], ty[shared] + rect.ty0, tx[shared] + rect.tx0] = new_ids
-        blocks = windows.reshape(u, h, t, w, t, *self._extra)
+        blocks = windows.reshape(u, h, t, w, t)
         self.pool[ids] = blocks[k, ty, :, tx, :]
 
     def extent(self, row: int) -> TileRect | None:
@@ -442,47 +434,6 @@ def integrate_scans(
     runs = cv2.reduce(codes.reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
     touched: BoolArray = runs.reshape(u, h // tile_cells, tile_cells, w // tile_cells).max(axis=2) > 0
     return touched
-
-
-SUBCELL_SCALE = 254.0  # stored endpoint offsets: int8 units of 1/254 cell (+-127: +-half a cell)
-
-
-def accumulate_hits(
-    subcell: Int8Array,
-    window_origin_m: tuple[float, float],
-    resolution_m: float,
-    base_poses: FloatArray,
-    scan: ScanPoints,
-    count_cap: int,
-) -> None:
-    """Where in each cell the endpoints that hit it lie: ``subcell`` (U, H, W, 3) int8, in place, holds
-    per cell the running mean of its endpoints' offsets from the cell centre in x and y (units of
-    1/``SUBCELL_SCALE`` cell) and their count (read as uint8), capped at ``count_cap`` <= 255 (beyond it
-    the mean forgets the oldest endpoints geometrically). Window u sees the scan from ``base_poses[u]``, as in
-    :func:`integrate_scans`; points outside a window are dropped."""
-    u, h, w, _c = subcell.shape
-    if scan.hit_xy.shape[0] == 0:
-        return
-    poses = np.asarray(base_poses, dtype=np.float64).reshape(u, 3)
-    hits = transform_points(poses, scan.hit_xy[None, :, :])
-    cx = (hits[..., 0] - window_origin_m[0]) / resolution_m
-    cy = (hits[..., 1] - window_origin_m[1]) / resolution_m
-    col = np.floor(cx).astype(np.int64)
-    row = np.floor(cy).astype(np.int64)
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    which = np.broadcast_to(np.arange(u)[:, None], col.shape)
-    cells = ((which * h + row) * w + col)[inside]
-    cells, inverse = np.unique(cells, return_inverse=True)
-    k = np.bincount(inverse).astype(np.float64)
-    sx = np.bincount(inverse, weights=(cx - col - 0.5)[inside] * SUBCELL_SCALE)
-    sy = np.bincount(inverse, weights=(cy - row - 0.5)[inside] * SUBCELL_SCALE)
-    flat = subcell.reshape(-1, 3)
-    count = flat[:, 2].view(np.uint8)  # the count is unsigned: up to 255
-    n = count[cells].astype(np.float64)
-    total = n + k
-    flat[cells, 0] = np.clip(np.rint((n * flat[cells, 0] + sx) / total), -127, 127).astype(np.int8)
-    flat[cells, 1] = np.clip(np.rint((n * flat[cells, 1] + sy) / total), -127, 127).astype(np.int8)
-    count[cells] = np.minimum(total, count_cap).astype(np.uint8)
 
 
 def swept_cells_sampled(

@@ -55,12 +55,6 @@ class DistanceField:
     origin_m: tuple[float, float]
     resolution_m: float
     cap_m: float
-    # Optional (U, H + 2, W + 2, 3) int8, same layout: per cell the mean offset of the endpoints that hit
-    # it from its centre, x and y in 1/254 cell, and their count (read as uint8; ``grid.accumulate_hits``).
-    # With it, the medial line of a straight wall is the count-weighted mean of the endpoints in the wall
-    # cell and its two neighbours across the wall instead of a cell centre or boundary: a wall that lies
-    # anywhere in a cell is found where it lies (RbpfConfig.subcell).
-    subcell: npt.NDArray[np.int8] | None = None
 
     @property
     def medial(self) -> npt.NDArray[np.int8]:
@@ -201,10 +195,6 @@ class DistanceField:
             wall = near & (code > 0)
             along_y = code <= 3
             shift = ((code - 1) % 3 - 1) * 0.5
-            if self.subcell is not None:
-                shift = _endpoint_shift(
-                    self.subcell.reshape(-1, 3), cell, along_y, wp, shift.astype(np.float64)
-                )
             # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
             offset = np.where(
                 along_y,
@@ -216,29 +206,6 @@ class DistanceField:
             ddx = np.where(wall, np.where(along_y, sign, 0.0), ddx)
             ddy = np.where(wall, np.where(along_y, 0.0, sign), ddy)
         return d, ddx, ddy, known
-
-
-def _endpoint_shift(
-    subcell: npt.NDArray[np.int8],
-    cells: IntArray,
-    along_y: npt.NDArray[np.bool_],
-    wp: int,
-    fallback: FloatArray,
-) -> FloatArray:
-    """The medial line across a straight wall at flat cells ``cells`` (wall along y where ``along_y``),
-    in cells from the cell centre: the count-weighted mean of the endpoints stored in the cell and its two
-    neighbours across the wall; ``fallback`` where none of them holds an endpoint."""
-    step = np.where(along_y, 1, wp)
-    axis = np.where(along_y, 0, 1)
-    num = np.zeros(cells.shape)
-    den = np.zeros(cells.shape)
-    for o in (-1, 0, 1):
-        c = cells + o * step
-        n = subcell[c, 2].view(np.uint8).astype(np.float64)
-        num += n * (o + subcell[c, axis] / 254.0)
-        den += n
-    out: FloatArray = np.where(den > 0, num / np.maximum(den, 1.0), fallback)
-    return out
 
 
 def _medial_at(flat: Float32Array, cells: IntArray, wp: int) -> IntArray:

@@ -48,7 +48,6 @@ from agent.slam.grid import (
     ScanPoints,
     TiledMaps,
     TileRect,
-    accumulate_hits,
     integrate_scans,
     prepare_scan,
     surface_normals,
@@ -99,11 +98,6 @@ class RbpfConfig:
     # trajectory settles there (the simulated office, whose walls all lie on 5 cm boundaries:
     # docs/slam.md, "Open problems").
     free_margin_m: float | None = None
-    # Sub-cell walls: each map cell also keeps the running mean of where in it its endpoints lay (x, y,
-    # count: three more bytes per cell, the maps' memory four times), and the matcher's distance near a
-    # straight wall is to their mean instead of a cell centre or boundary (``DistanceField.subcell``).
-    # Opt-in: docs/slam.md, "Open problems" (the office's walls on cell boundaries).
-    subcell: bool = False
     # The correlative search of ``proposal.search`` (for the leading particle, its correction moving every
     # particle's start) runs at the first ``search_updates`` filter updates and at an update whose odometry
     # increment reaches ``search_increment_m`` or ``search_increment_rad`` (after a gap in the scans), where
@@ -212,9 +206,6 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
 
 # Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
 _INTEGRATE_CELLS = 2_000_000
-# Endpoints a cell's sub-cell mean averages over before it forgets geometrically (the count is a uint8;
-# 64 and 127 gave the office's seed 0 mean errors of (-2.0, 2.2) and (1.1, 1.8) cm per axis, 255 (1.2, 1.8))
-_SUBCELL_COUNT_CAP = 255
 
 
 def _no_wait() -> None:
@@ -235,7 +226,7 @@ class RbpfSlam:
         self.poses: FloatArray = np.tile(np.asarray(cfg.initial_pose, dtype=np.float64), (n, 1))
         self.log_weights: FloatArray = np.zeros(n)
         rows = n if cfg.map_mode is MapMode.PER_PARTICLE else 1
-        self.maps = TiledMaps(cfg.grid, rows, channels=4 if cfg.subcell else 1)
+        self.maps = TiledMaps(cfg.grid, rows)
         # Particles with the same group id have identical maps (duplicates after resampling).
         self._groups: IntArray = np.zeros(n, dtype=np.int64)
         self._started = False
@@ -373,8 +364,6 @@ class RbpfSlam:
         if rect is None:
             return None
         stored = self.maps.gather([row], rect)[0]
-        if self.config.subcell:
-            stored = stored[..., 0]
         return self.config.log_odds.to_log_odds(stored), rect.origin_m(self.config.grid)
 
     def memory_bytes(self) -> int:
@@ -398,8 +387,7 @@ class RbpfSlam:
         )
         rx, ry = rect.origin_m(grid)
         col0, row0 = round((x0 - rx) / res), round((y0 - ry) / res)
-        full = self.maps.gather([0], rect)[0]
-        window = full[..., 0] if cfg.subcell else full  # a view: writes reach ``full``
+        window = self.maps.gather([0], rect)[0]
         counts = np.clip(
             np.round(np.asarray(log_odds, dtype=np.float64) / model.step),
             model.counts(model.minimum),
@@ -419,7 +407,7 @@ class RbpfSlam:
         touched: BoolArray = np.any(
             known.reshape(known.shape[0] // t, t, known.shape[1] // t, t), axis=(1, 3)
         )
-        self._prior = (rect, full[None].copy(), touched[None].copy())
+        self._prior = (rect, window[None].copy(), touched[None].copy())
         self._put_prior()
 
     def _put_prior(self) -> None:
@@ -465,14 +453,9 @@ class RbpfSlam:
         r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
         occupied = cfg.log_odds.counts(cfg.log_odds.occupied)
 
-        subcell = np.zeros((rows.shape[0], r1 - r0 + 2, c1 - c0 + 2, 3), np.int8) if cfg.subcell else None
-
         def window(k: int) -> tuple[BoolArray, BoolArray]:
             # One map at a time: the whole stack of windows (and its masks) is never held.
             cropped = self.maps.gather(rows[k : k + 1], rect)[0, r0:r1, c0:c1]
-            if subcell is not None:
-                subcell[k, 1:-1, 1:-1] = cropped[..., 1:]
-                cropped = cropped[..., 0]
             return cropped > occupied, cropped != 0
 
         field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
@@ -484,8 +467,6 @@ class RbpfSlam:
             res,
             field_cap + res,
         )
-        if subcell is not None:
-            field = dataclasses.replace(field, subcell=subcell)
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
 
     def _proposal_for(self, increment: FloatArray) -> ProposalConfig:
@@ -609,38 +590,20 @@ class RbpfSlam:
         for k in range(0, rows.shape[0], chunk):
             part = slice(k, k + chunk)
             windows = self.maps.gather(rows[part], rect)
-            touched = self._integrate_windows(
-                windows, rect.origin_m(cfg.grid), self.poses[targets[part]], scan
+            touched = integrate_scans(
+                windows,
+                rect.origin_m(cfg.grid),
+                cfg.grid.resolution_m,
+                self.poses[targets[part]],
+                scan,
+                cfg.log_odds,
+                t,
             )
             self.maps.scatter(rows[part], rect, windows, touched)
         if cfg.map_mode is MapMode.PER_PARTICLE:
             copies = np.flatnonzero(rows[groups] != np.arange(cfg.particles))
             self.maps.share(rows[groups[copies]], copies)
         self._groups = groups
-
-    def _integrate_windows(
-        self,
-        windows: npt.NDArray[np.int8],
-        origin_m: tuple[float, float],
-        poses: FloatArray,
-        scan: ScanPoints,
-    ) -> BoolArray:
-        """:func:`integrate_scans` on windows as ``TiledMaps.gather`` returns them, in place; with
-        ``subcell``, the endpoints' running means too (:func:`accumulate_hits`)."""
-        cfg = self.config
-        if not cfg.subcell:
-            return integrate_scans(
-                windows, origin_m, cfg.grid.resolution_m, poses, scan, cfg.log_odds, cfg.grid.tile_cells
-            )
-        log_odds = np.ascontiguousarray(windows[..., 0])
-        touched = integrate_scans(
-            log_odds, origin_m, cfg.grid.resolution_m, poses, scan, cfg.log_odds, cfg.grid.tile_cells
-        )
-        windows[..., 0] = log_odds
-        sub = np.ascontiguousarray(windows[..., 1:])
-        accumulate_hits(sub, origin_m, cfg.grid.resolution_m, poses, scan, _SUBCELL_COUNT_CAP)
-        windows[..., 1:] = sub
-        return touched
 
     # -- loop closure -------------------------------------------------------------------------------
     def _add_node(self, scan: ScanPoints, parents: IntArray, points: FloatArray | None) -> None:
@@ -802,7 +765,15 @@ class RbpfSlam:
                 slice(tx * t, (tx + rect.shape[1]) * t),
             )
             part = np.ascontiguousarray(window[cells])
-            touched[tiles] |= self._integrate_windows(part, rect.origin_m(cfg.grid), poses[k][None, :], scan)
+            touched[tiles] |= integrate_scans(
+                part,
+                rect.origin_m(cfg.grid),
+                cfg.grid.resolution_m,
+                poses[k][None, :],
+                scan,
+                cfg.log_odds,
+                t,
+            )
             window[cells] = part
             if k % 64 == 63:
                 self.give_way()

@@ -14,7 +14,6 @@ from agent.config import MountConfig, SlamConfig, parse_config
 from agent.runtime.mapper import RbpfMapper, front_end_noise, front_end_proposal
 from agent.slam.motion import OdometryNoise
 from agent.slam.proposal import ProposalConfig
-from agent.slam.rbpf import RbpfConfig
 from agent.slam.simlog import MOTION_NOISE
 from drivers.errors import ConfigError
 from drivers.samples import Scan
@@ -48,7 +47,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     text = LASER + (
         "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
         'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
-        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nsubcell = true\nprocess = false\n"
+        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nprocess = false\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3)
@@ -64,8 +63,6 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     )
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
-    assert built.subcell and not SlamConfig().subcell and not RbpfConfig().subcell
-    assert mapper.slam.maps.pool.shape[-1] == 4  # log-odds, the endpoints' mean x and y, their count
     assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
 
 
@@ -91,7 +88,6 @@ _FRONT_END_KEYS = (
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
         ("free_margin_m = -0.01", "slam.free_margin_m"),
-        ('subcell = "yes"', "slam.subcell"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:

@@ -10,14 +10,11 @@ import numpy as np
 import pytest
 
 from agent.slam.grid import (
-    SUBCELL_SCALE,
     UNKNOWN_TILE,
     GridGeometry,
     LogOddsModel,
-    ScanPoints,
     TiledMaps,
     TileRect,
-    accumulate_hits,
     integrate_scans,
     prepare_scan,
     swept_cells_sampled,
@@ -221,46 +218,3 @@ def test_pool_grows_and_extent() -> None:
     maps.share([0], [1])
     assert maps.tiles_in_use() == 16
     _consistent(maps)
-
-
-def test_channels_round_trip_with_copy_on_write() -> None:
-    """With channels, gather and scatter carry every channel of every cell; a shared tile is copied
-    before one map writes it, the other keeps its values."""
-    geometry = GridGeometry(resolution_m=0.05, tile_cells=4, tiles_per_side=8)
-    maps = TiledMaps(geometry, 2, channels=4)
-    rect = TileRect(2, 3, 4, 5)
-    rng = np.random.default_rng(1)
-    windows = rng.integers(-100, 100, size=(1, 8, 8, 4)).astype(np.int8)
-    touched = np.ones((1, 2, 2), dtype=bool)
-    maps.scatter([0], rect, windows.copy(), touched)
-    maps.share([0], [1])
-    np.testing.assert_array_equal(maps.gather([0, 1], rect), np.concatenate([windows, windows]))
-    changed = windows.copy()
-    changed[0, 0, 0, 2] += 1
-    maps.scatter([1], rect, changed, np.array([[[True, False], [False, False]]]))
-    np.testing.assert_array_equal(maps.gather([0], rect), windows)
-    np.testing.assert_array_equal(maps.gather([1], rect), changed)
-
-
-def test_accumulate_hits_keeps_each_cells_endpoint_mean() -> None:
-    """Per cell: the mean offset of its endpoints from the centre (1/254 cell) and their count, merged
-    with what the cell held before, the count capped."""
-    res = 0.05
-    # Base at the origin, laser on it: endpoints straight at (x, y) world.
-    hits = np.array([[0.26, 0.11], [0.24, 0.12], [0.26, 0.14], [0.51, 0.51]])
-    scan = ScanPoints((0.0, 0.0), hits, np.zeros((0, 2)), np.zeros(1, dtype=np.int32))
-    sub = np.zeros((1, 20, 20, 3), dtype=np.int8)
-    accumulate_hits(sub, (0.0, 0.0), res, np.zeros((1, 3)), scan, count_cap=4)
-    # Cell (row 2, col 5) holds 0.26/0.11 and 0.26/0.14 (0.24 is in col 4): x offsets 0.2-0.5 = -0.3 cell.
-    assert sub[0, 2, 5, 2] == 2
-    assert sub[0, 2, 5, 0] == round(-0.3 * SUBCELL_SCALE)
-    assert sub[0, 2, 5, 1] == round(((0.2 + 0.8) / 2 - 0.5) * SUBCELL_SCALE)
-    assert sub[0, 2, 4, 2] == 1 and sub[0, 2, 4, 0] == round(0.3 * SUBCELL_SCALE)
-    assert sub[0, 10, 10, 2] == 1
-    # Three more at x = 0.2525 (offset -0.45 cell): count 5 capped to 4, mean (2 * -0.3 + 3 * -0.45) / 5.
-    more = ScanPoints(
-        (0.0, 0.0), np.array([[0.2525, 0.12]] * 3), np.zeros((0, 2)), np.zeros(1, dtype=np.int32)
-    )
-    accumulate_hits(sub, (0.0, 0.0), res, np.zeros((1, 3)), more, count_cap=4)
-    assert sub[0, 2, 5, 2] == 4
-    assert abs(sub[0, 2, 5, 0] - (2 * round(-0.3 * SUBCELL_SCALE) - 3 * 0.45 * SUBCELL_SCALE) / 5) <= 0.5

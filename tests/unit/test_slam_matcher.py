@@ -265,23 +265,3 @@ def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     np.testing.assert_array_equal(
         _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp), whole.reshape(-1)[cells.reshape(-1)]
     )
-
-
-def test_subcell_puts_a_one_cell_wall_where_its_endpoints_lay() -> None:
-    """A wall one cell thick, along y in column 10 (x 0.50-0.55): without sub-cell data its medial line
-    is the cell centre; with its endpoints stored at the cell's left edge (and a few in the free cell in
-    front, across it), the line is their count-weighted mean, and so is the distance's zero."""
-    obstacles = np.zeros((1, 30, 30), dtype=bool)
-    obstacles[0, 2:28, 10] = True
-    field = DistanceField.from_obstacles(obstacles, (0.0, 0.0), 0.05, 0.3)
-    y = np.full((1, 5), 0.7)
-    x = np.array([[0.47, 0.49, 0.5, 0.51, 0.53]])
-    d, _dx, _dy = field.sample(np.array([0]), x, y)
-    np.testing.assert_allclose(d[0], np.abs(x[0] - 0.525), atol=1e-6)
-    sub = np.zeros((1, 32, 32, 3), dtype=np.int8)
-    sub[0, 1:-1, 11, :] = (-127, 0, 6)  # the wall's cell (column 10, +1 for the border): its left edge
-    sub[0, 1:-1, 10, :] = (127, 0, 2)  # the free cell in front of it: its right edge, the same line
-    with_sub = DistanceField(field.distance_m, field.origin_m, field.resolution_m, field.cap_m, sub)
-    d, dx, _dy = with_sub.sample(np.array([0]), x, y)
-    np.testing.assert_allclose(d[0], np.abs(x[0] - 0.5), atol=2e-4)
-    np.testing.assert_array_equal(dx[0], np.sign(x[0] - 0.5 + 1e-4))
