@@ -18,4 +18,3 @@ def test_the_thresholds_are_set_on_glibc_and_large_arrays_still_work() -> None:
         a = np.ones(size, dtype=np.uint8)
         assert int(a.sum()) == size
         del a
-
