@@ -211,9 +211,11 @@ def ours_worker(
     import cv2
 
     from agent.commands.eval_slam import log_config
+    from agent.slam.malloc import tune_malloc
     from agent.slam.replay import replay
 
     cv2.setNumThreads(1)
+    tune_malloc()  # as the robot's SLAM process (agent.runtime.slam_worker) does
     log = read_log(log_path, log_format)
     config = log_config(log_format, seed=seed, particles=particles, loop_closure=loop_closure)
     if config.loop_closure is not None and (edge_sigma is not None or match_sigma is not None):

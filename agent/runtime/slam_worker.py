@@ -47,6 +47,7 @@ import numpy.typing as npt
 from agent.config_slam import MountConfig, SlamConfig, SlamMode
 from agent.runtime.mapper import MapperStep, Pose, make_local_mapper
 from agent.runtime.types import AbsoluteFix
+from agent.slam.malloc import tune_malloc
 from drivers.child_process import child_connection, start_child, stop_child
 from drivers.samples import Scan
 
@@ -156,6 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.nice(_NICE)
+    tune_malloc()  # the filter's per-update distance fields: agent.slam.malloc
     _serve(conn)
     return 0
 

@@ -45,6 +45,13 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class LoopClosureConfig:
     check_every: int = 3
+    # While nothing closes: once ``idle_updates`` updates have passed since a link last agreed with the
+    # graph or closed, a check runs only where the odometry path since the last check reaches
+    # ``idle_path_m`` (a robot turning on the spot, or creeping, is not checked every ``check_every``
+    # updates). None (the default): every ``check_every`` updates. Measured for issue 20 and not adopted:
+    # docs/slam.md, "Speed and memory beside GMapping".
+    idle_updates: int | None = None
+    idle_path_m: float = 2.0
     min_separation: int = 40  # updates between the two nodes
     window_path_m: float = 5.0  # the old map: the nodes within this path length of node i
     # The search window grows with the distance driven since the last closure (the graph's drift):

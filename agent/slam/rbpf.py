@@ -254,6 +254,7 @@ class RbpfSlam:
         self._node_motions: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
+        self._last_check = 0  # the last node a loop check ran at
         self._pending: list[LoopConstraint] = []  # links that disagreed with the graph, unconfirmed
         self._anchored = 0  # nodes up to here hold graph-optimised poses in the history
         # VLP fixes fused at a node stay in the graph as absolute factors: (node, mean, sigma).
@@ -627,6 +628,11 @@ class RbpfSlam:
             self._node_fix = None
         if points is None or j % lc.check_every != 0:
             return
+        if lc.idle_updates is not None and j - self._last_agreement > lc.idle_updates:
+            odom = np.array(list(self.history_odom)[self._last_check :])
+            if float(np.sum(np.hypot(*np.diff(odom[:, :2], axis=0).T))) < lc.idle_path_m:
+                return
+        self._last_check = j
         t0 = time.perf_counter()
         self.stats.loop_checks += 1
         _, path, _ = self.trajectory()

@@ -17,6 +17,7 @@ import pytest
 from agent.slam.fix import PoseFix, fix_log_likelihood, fuse_fixes, pending_fixes_log_likelihood
 from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
 from agent.slam.logs import LogFormat, LogRecord, SlamLog
+from agent.slam.loops import LoopClosureConfig
 from agent.slam.mapio import load_map, save_map
 from agent.slam.matcher import DistanceField, MatcherConfig
 from agent.slam.mcl import MclConfig, MclLocalizer
@@ -425,6 +426,24 @@ def test_history_can_be_bounded_for_long_runs(loop: tuple[np.ndarray, ...]) -> N
     assert slam.stats.updates > 5
     assert poses.shape == (5, 3) and times.shape == (5,) and odometry.shape == (5, 3)
     np.testing.assert_allclose(poses[-1], slam.poses[slam.best_index])
+
+
+def test_idle_loop_checks_wait_for_the_path(loop: tuple[np.ndarray, ...]) -> None:
+    start = tuple(float(v) for v in loop[1][0])
+    short = tuple(a[:120] for a in loop)
+
+    def checks(loops: LoopClosureConfig) -> int:
+        slam, _ = run_filter(short, RbpfConfig(particles=3, initial_pose=start, loop_closure=loops))
+        return slam.stats.loop_checks
+
+    every = checks(LoopClosureConfig())
+    assert every > 3
+    # Idle from the start: a check only where the odometry path since the last one reaches the bound.
+    assert checks(LoopClosureConfig(idle_updates=0, idle_path_m=0.0)) == every
+    assert 0 < checks(LoopClosureConfig(idle_updates=0, idle_path_m=1.0)) < every
+    assert checks(LoopClosureConfig(idle_updates=0, idle_path_m=1e6)) == 0
+    # Not idle yet: every check runs.
+    assert checks(LoopClosureConfig(idle_updates=10_000, idle_path_m=1e6)) == every
 
 
 def test_replay_with_a_bounded_history(loop: tuple[np.ndarray, ...]) -> None:
