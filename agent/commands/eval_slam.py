@@ -317,6 +317,7 @@ def run(args: argparse.Namespace) -> int:
     from agent import figure
     from agent.slam.fix import TimedFix
     from agent.slam.logs import SlamLog, read_log
+    from agent.slam.malloc import tune_malloc
     from agent.slam.mapio import save_map, write_png
     from agent.slam.metrics import (
         absolute_trajectory_error,
@@ -332,6 +333,7 @@ def run(args: argparse.Namespace) -> int:
     from agent.slam.replay import replay
     from drivers.errors import ConfigError
 
+    tune_malloc()  # as the agent's SLAM process does (agent.slam.malloc): what is measured is what runs
     if args.particles < 1:
         raise ConfigError("--particles", "must be at least 1")
     simulated = None
