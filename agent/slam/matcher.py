@@ -264,6 +264,11 @@ class MatcherConfig:
     max_step_rad: float = 0.1
     converged_m: float = 5e-4
     converged_rad: float = 5e-4
+    # Per-pose convergence: within a stage, a pose whose step fell below ``converged_m`` /
+    # ``converged_rad`` leaves the batch, and later iterations cost only the poses still moving (each
+    # pose then gets exactly the answer it would get matched alone). Off: the whole batch iterates
+    # until every pose has converged (a converged pose takes the extra, tiny, steps too).
+    per_pose_convergence: bool = False
 
 
 @dataclass(frozen=True)
@@ -382,38 +387,61 @@ def match(
         else np.broadcast_to(prior_information, (x0.shape[0], 3, 3))
     )
     n = points_xy.shape[0]
-    eye = np.eye(3)[None, :, :]
     info = np.zeros((poses.shape[0], 3, 3))
-    for stage, (bound_m, iterations) in enumerate(config.stages):
-        # Sub-cell (medial-line) distances only where the match settles: the last stage.
-        fine = stage == len(config.stages) - 1
-        for _ in range(iterations):
-            res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight, fine)
-            jac = np.empty((poses.shape[0], n, 3), dtype=np.float32)
-            jac[..., 0] = res.jx
-            jac[..., 1] = res.jy
-            jac[..., 2] = res.jy * res.rx - res.jx * res.ry
-            wj = jac * (res.d < bound_m)[..., None]
-            info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
-            offset = poses - x0
-            offset[:, 2] = wrap_angle(offset[:, 2])
-            grad = np.matmul(wj.transpose(0, 2, 1), res.r[..., None])[..., 0] + np.einsum(
-                "pij,pj->pi", prior, offset
-            )
-            info_total = info + prior
-            scale = np.maximum(np.trace(info_total, axis1=1, axis2=2) / 3.0, 1e-9)[:, None, None]
-            step = -np.linalg.solve(info_total + config.damping * scale * eye + 1e-12 * eye, grad[..., None])[
-                ..., 0
-            ]
-            # Trust region: never jump farther than the stage can justify in one iteration.
-            step[:, :2] = np.clip(step[:, :2], -config.max_step_m, config.max_step_m)
-            step[:, 2] = np.clip(step[:, 2], -config.max_step_rad, config.max_step_rad)
-            poses += step
-            poses[:, 2] = wrap_angle(poses[:, 2])
-            if np.all(np.abs(step[:, :2]) < config.converged_m) and np.all(
-                np.abs(step[:, 2]) < config.converged_rad
-            ):
-                break
+    if config.per_pose_convergence:
+        windows = np.broadcast_to(np.asarray(window_index, dtype=np.int64), (poses.shape[0],))
+        for stage, (bound_m, iterations) in enumerate(config.stages):
+            fine = stage == len(config.stages) - 1
+            active = np.arange(poses.shape[0])
+            for _ in range(iterations):
+                sub = poses[active]
+                step, info_active = _gauss_newton_step(
+                    field,
+                    windows[active],
+                    points_xy,
+                    sub,
+                    x0[active],
+                    prior[active],
+                    config,
+                    bound_m,
+                    fine,
+                    normals_xy,
+                    along_weight,
+                )
+                sub += step
+                sub[:, 2] = wrap_angle(sub[:, 2])
+                poses[active] = sub
+                info[active] = info_active
+                moving = (np.abs(step[:, :2]) >= config.converged_m).any(axis=1) | (
+                    np.abs(step[:, 2]) >= config.converged_rad
+                )
+                active = active[moving]
+                if active.size == 0:
+                    break
+    else:
+        for stage, (bound_m, iterations) in enumerate(config.stages):
+            # Sub-cell (medial-line) distances only where the match settles: the last stage.
+            fine = stage == len(config.stages) - 1
+            for _ in range(iterations):
+                step, info = _gauss_newton_step(
+                    field,
+                    window_index,
+                    points_xy,
+                    poses,
+                    x0,
+                    prior,
+                    config,
+                    bound_m,
+                    fine,
+                    normals_xy,
+                    along_weight,
+                )
+                poses += step
+                poses[:, 2] = wrap_angle(poses[:, 2])
+                if np.all(np.abs(step[:, :2]) < config.converged_m) and np.all(
+                    np.abs(step[:, 2]) < config.converged_rad
+                ):
+                    break
     res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
     d = res.d
     last_bound = config.stages[-1][0]
@@ -428,6 +456,42 @@ def match(
         & (known_fraction >= config.min_known_inlier_fraction)
     )
     return MatchResult(poses, info, fraction, rms, ok, known_fraction)
+
+
+def _gauss_newton_step(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    poses: FloatArray,
+    x0: FloatArray,
+    prior: FloatArray,
+    config: MatcherConfig,
+    bound_m: float,
+    fine: bool,
+    normals_xy: FloatArray | None,
+    along_weight: float,
+) -> tuple[FloatArray, FloatArray]:
+    """One Gauss-Newton step of :func:`match` for every pose (P, 3): the clipped step (P, 3) and the
+    information matrix sum_i w_i J_i J_iᵀ (P, 3, 3) at the poses."""
+    n = points_xy.shape[0]
+    eye = np.eye(3)[None, :, :]
+    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight, fine)
+    jac = np.empty((poses.shape[0], n, 3), dtype=np.float32)
+    jac[..., 0] = res.jx
+    jac[..., 1] = res.jy
+    jac[..., 2] = res.jy * res.rx - res.jx * res.ry
+    wj = jac * (res.d < bound_m)[..., None]
+    info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
+    offset = poses - x0
+    offset[:, 2] = wrap_angle(offset[:, 2])
+    grad = np.matmul(wj.transpose(0, 2, 1), res.r[..., None])[..., 0] + np.einsum("pij,pj->pi", prior, offset)
+    info_total = info + prior
+    scale = np.maximum(np.trace(info_total, axis1=1, axis2=2) / 3.0, 1e-9)[:, None, None]
+    step = -np.linalg.solve(info_total + config.damping * scale * eye + 1e-12 * eye, grad[..., None])[..., 0]
+    # Trust region: never jump farther than the stage can justify in one iteration.
+    step[:, :2] = np.clip(step[:, :2], -config.max_step_m, config.max_step_m)
+    step[:, 2] = np.clip(step[:, 2], -config.max_step_rad, config.max_step_rad)
+    return step, info
 
 
 def truncated_energy(

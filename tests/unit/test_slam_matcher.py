@@ -265,3 +265,54 @@ def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     np.testing.assert_array_equal(
         _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp), whole.reshape(-1)[cells.reshape(-1)]
     )
+
+
+def test_per_pose_convergence_gives_each_pose_its_answer_alone() -> None:
+    """With ``per_pose_convergence`` a pose that converged leaves the batch: every pose of the batch
+    then gets what matching it alone gives (a batch of one stops when its pose converges), pose,
+    information and trust alike; the all-together batch differs only by the extra tiny steps."""
+    field = room_field()
+    truth = np.array([0.4, -0.3, 0.35])
+    points = voxel_filter(prepared(tuple(truth)).hit_xy, 0.1, 200)
+    normals = np.zeros_like(points)
+    normals[::2, 0] = 1.0  # some endpoints with a normal, to run the point-to-line residual too
+    offsets = np.array(
+        [
+            [0.15, -0.10, math.radians(5.0)],
+            [-0.2, 0.05, math.radians(-4.0)],
+            [0.0, 0.0, 0.0],
+            [0.002, -0.001, 0.0005],
+            [0.3, 0.25, math.radians(-8.0)],
+        ]
+    )
+    start = truth[None, :] + offsets
+    prior = np.diag([4.0, 4.0, 1.0])
+    per_pose = MatcherConfig(per_pose_convergence=True)
+    batch = match(field, np.zeros(5, dtype=np.int64), points, start, per_pose, prior, None, normals, 0.5)
+    together = match(
+        field, np.zeros(5, dtype=np.int64), points, start, MatcherConfig(), prior, None, normals, 0.5
+    )
+    for k in range(start.shape[0]):
+        alone = match(
+            field, np.zeros(1, dtype=np.int64), points, start[k : k + 1], per_pose, prior, None, normals, 0.5
+        )
+        np.testing.assert_allclose(batch.poses[k], alone.poses[0], rtol=0.0, atol=1e-9)
+        np.testing.assert_allclose(batch.information[k], alone.information[0], rtol=1e-9, atol=1e-9)
+        assert batch.ok[k] == alone.ok[0]
+        assert batch.inlier_fraction[k] == pytest.approx(alone.inlier_fraction[0])
+        # The flag off and alone are the same algorithm for a batch of one.
+        off_alone = match(
+            field,
+            np.zeros(1, dtype=np.int64),
+            points,
+            start[k : k + 1],
+            MatcherConfig(),
+            prior,
+            None,
+            normals,
+            0.5,
+        )
+        np.testing.assert_array_equal(off_alone.poses, alone.poses)
+    # The poses reach the same optimum either way (within the convergence tolerance, a few of them).
+    np.testing.assert_allclose(batch.poses, together.poses, atol=5e-3)
+    assert not np.array_equal(batch.poses, together.poses)  # the extra steps do move the converged ones
