@@ -143,11 +143,6 @@ def log_proposal(source_format: str, proposal: Any) -> Any:
     return front_end_proposal(front_end(source_format), proposal)
 
 
-def search_increment_rad(source_format: str) -> float:
-    """``RbpfConfig.search_increment_rad`` for ``source_format`` (``SPARSE_SEARCH_INCREMENT_RAD``)."""
-    return float(front_end(source_format).search_increment_rad)
-
-
 def add_parser(subparsers: Any) -> None:
     p: argparse.ArgumentParser = subparsers.add_parser(
         "slam",
@@ -286,15 +281,13 @@ def log_config(source_format: str, seed: int = 0, particles: int = 30, loop_clos
     """The filter's configuration for a recorded log with every option at its default (what
     ``eval slam --log FILE --format F --seed S`` runs; ``benchmarks/slam_vs_gmapping.py`` runs the same)."""
 
+    from agent.runtime.mapper import front_end_filter
     from agent.slam.rbpf import RbpfConfig
 
     defaults = RbpfConfig()
     return RbpfConfig(
         particles=particles,
-        proposal=log_proposal(source_format, defaults.proposal),
-        free_margin_m=front_end(source_format).free_margin_m,
-        log_odds=log_odds_model(source_format),
-        search_increment_rad=search_increment_rad(source_format),
+        **front_end_filter(front_end(source_format), defaults.proposal),
         max_usable_range_m=DEFAULT_MAX_RANGE_M[source_format],
         loop_closure=defaults.loop_closure if loop_closure else None,
         seed=seed,
@@ -409,11 +402,11 @@ def run(args: argparse.Namespace) -> int:
     if args.span < 1:
         raise ConfigError("--span", f"must be at least 1 scan, got {args.span}")
     defaults = RbpfConfig()
-    from agent.runtime.mapper import front_end_noise
+    from agent.runtime.mapper import front_end_filter
 
-    noise = front_end_noise(front_end(source_format))
+    filter_keys = front_end_filter(front_end(source_format), defaults.proposal)
     if args.odometry_noise:
-        noise = OdometryNoise(*args.odometry_noise)
+        filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
     temperature = args.proposal_temperature
     if temperature is None:
         temperature = defaults.proposal.proposal_temperature
@@ -424,6 +417,9 @@ def run(args: argparse.Namespace) -> int:
         along = DEFAULT_ALONG_SURFACE_WEIGHT[source_format]
     if not 0.0 <= along <= 1.0:
         raise ConfigError("--along-surface-weight", "must be in [0, 1]")
+    filter_keys["proposal"] = dataclasses.replace(
+        filter_keys["proposal"], proposal_temperature=temperature, along_surface_weight=along
+    )
     initial_pose = defaults.initial_pose
     reference = log.reference_poses()
     if simulated is not None:
@@ -433,15 +429,7 @@ def run(args: argparse.Namespace) -> int:
     config = RbpfConfig(
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
-        log_odds=log_odds_model(source_format),
-        search_increment_rad=search_increment_rad(source_format),
-        noise=noise,
-        proposal=dataclasses.replace(
-            log_proposal(source_format, defaults.proposal),
-            proposal_temperature=temperature,
-            along_surface_weight=along,
-        ),
-        free_margin_m=front_end(source_format).free_margin_m,
+        **filter_keys,
         linear_update_m=args.linear_update if args.linear_update is not None else defaults.linear_update_m,
         angular_update_rad=args.angular_update
         if args.angular_update is not None

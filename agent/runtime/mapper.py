@@ -38,6 +38,7 @@ __all__ = [
     "MclMapper",
     "RbpfMapper",
     "ScanMapper",
+    "front_end_filter",
     "front_end_log_odds",
     "front_end_noise",
     "front_end_proposal",
@@ -79,6 +80,20 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         if base.search is None
         else dataclasses.replace(base.search, yaw_range_rad=config.search_yaw_rad),
     )
+
+
+def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
+    """The ``agent.slam.rbpf.RbpfConfig`` fields the ``[slam]`` front-end keys set: ``noise``,
+    ``free_margin_m``, ``log_odds``, ``search_increment_rad`` and ``proposal`` (``base_proposal`` with the
+    match's keys, ``front_end_proposal``). The agent's mapping filter and ``vlp-agent eval slam`` are both
+    configured with it."""
+    return {
+        "noise": front_end_noise(config),
+        "free_margin_m": config.free_margin_m,
+        "log_odds": front_end_log_odds(config),
+        "search_increment_rad": config.search_increment_rad,
+        "proposal": front_end_proposal(config, base_proposal),
+    }
 
 
 def front_end_log_odds(config: SlamConfig) -> Any:
@@ -181,11 +196,7 @@ class RbpfMapper:
             geometry,
             rbpf.RbpfConfig(
                 particles=cfg.particles,
-                noise=front_end_noise(cfg),
-                free_margin_m=cfg.free_margin_m,
-                log_odds=front_end_log_odds(cfg),
-                search_increment_rad=cfg.search_increment_rad,
-                proposal=front_end_proposal(cfg, rbpf.RbpfConfig().proposal),
+                **front_end_filter(cfg, rbpf.RbpfConfig().proposal),
                 map_mode=rbpf.MapMode(cfg.map_mode),
                 grid=GridGeometry(resolution_m=cfg.resolution_m),
                 linear_update_m=cfg.linear_update_m,
