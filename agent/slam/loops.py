@@ -98,6 +98,17 @@ class LoopClosureConfig:
     # match turned the robot by 10 deg against its wheels, either the wheels slipped or the match failed,
     # and a loop's correction belongs there rather than spread over every edge.
     correction_share: float = 0.5
+    # A front-end edge's covariance from its own scan match instead (``edge_match_sigma_m`` set; the
+    # filter then records each node's match information, :func:`edge_covariances`): the edge k-1 -> k
+    # is diag(motion_sigma²) plus the covariance of node k's match against its particle's map,
+    # (Σ J Jᵀ / s² + diag(edge_max_sigma)⁻²)⁻¹ in node k's frame, s this (an endpoint's residual,
+    # inflated for neighbouring endpoints that err together): a match the walls hold is tight in every
+    # direction whatever odometry said (an on-the-spot turn where the wheels slipped 10 deg), a corridor's
+    # is loose along the corridor, a failed match is ``edge_max_sigma`` loose. ``correction_share`` then
+    # widens only the loop search (:func:`yaw_doubt`), not the edges. None (the default): the edges as
+    # above. Measured for issue 20: docs/slam.md, "Open problems".
+    edge_match_sigma_m: float | None = None
+    edge_max_sigma: tuple[float, float, float] = (0.3, 0.3, 0.1)
     # An optimisation that moves no node by more than this leaves the filter as it is (its map rebuild
     # costs a whole map's integration); the loop factor stays for the next one.
     apply_min_shift_m: float = 0.05
@@ -451,6 +462,7 @@ def judge_loop(
     absolute: AbsoluteFactors | None = None,
     odometry_motions: FloatArray | None = None,
     pending: list[LoopConstraint] | None = None,
+    node_information: FloatArray | None = None,
 ) -> Judgement:
     """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
     accepted ``loops``, in this order: the newest ``verify_nodes`` scans must fit the old map (the nodes
@@ -461,7 +473,7 @@ def judge_loop(
     the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
     fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
     poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
-    its robot frame."""
+    its robot frame; ``odometry_motions``, ``node_information``: the chain's sigmas (:func:`optimize_graph`)."""
     innovation = loop_residual_chi2(poses, candidate, config)
     j = candidate.j
     old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
@@ -480,9 +492,13 @@ def judge_loop(
     ]
     if config.require_confirmation and not partners:
         return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
-    before = optimize_graph(poses, motions, loops, config, absolute, odometry_motions) if loops else None
+    before = (
+        optimize_graph(poses, motions, loops, config, absolute, odometry_motions, node_information)
+        if loops
+        else None
+    )
     result = optimize_graph(
-        poses, motions, [*loops, *partners, candidate], config, absolute, odometry_motions
+        poses, motions, [*loops, *partners, candidate], config, absolute, odometry_motions, node_information
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_before = (
@@ -520,6 +536,35 @@ def match_covariance(information: FloatArray, yaw_i_rad: float, sigma_m: float) 
     return 0.5 * (covariance + covariance.T)
 
 
+def robot_frame_information(information: FloatArray, yaw_rad: float) -> FloatArray:
+    """A match's information Σ J Jᵀ (3, 3) in world (x, y, yaw) turned into the robot frame of a pose at
+    heading ``yaw_rad``: Aᵀ I A, A = diag(R(yaw), 1) (a robot-frame step δ moves the world pose by A δ)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    a = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = a.T @ np.asarray(information, dtype=np.float64) @ a
+    return 0.5 * (out + out.T)
+
+
+def edge_covariances(motions: FloatArray, node_information: FloatArray, config: LoopClosureConfig) -> FloatArray:
+    """(N-1, 3, 3) covariances of the front-end edges k-1 -> k (``motions[k]``, node k in node k-1's
+    frame, k >= 1) from node k's scan match (``node_information[k]``: Σ J Jᵀ in node k's robot frame,
+    :func:`robot_frame_information`; zeros where the match failed): diag(motion_sigma²) + B (Σ J Jᵀ / s²
+    + diag(edge_max_sigma)⁻²)⁻¹ Bᵀ with s = ``edge_match_sigma_m`` and B = diag(R(motion yaw), 1), node
+    k's frame turned into node k-1's."""
+    if config.edge_match_sigma_m is None:
+        raise ValueError("edge_covariances needs LoopClosureConfig.edge_match_sigma_m")
+    info = np.asarray(node_information[1:], dtype=np.float64) / config.edge_match_sigma_m**2
+    info = info + np.diag(1.0 / np.square(np.asarray(config.edge_max_sigma)))[None, :, :]
+    match_cov = np.linalg.inv(info)
+    yaw = np.asarray(motions[1:, 2], dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    b = np.zeros((yaw.size, 3, 3))
+    b[:, 0, 0], b[:, 0, 1], b[:, 1, 0], b[:, 1, 1], b[:, 2, 2] = c, -s, s, c, 1.0
+    covariance: FloatArray = b @ match_cov @ b.transpose(0, 2, 1)
+    covariance = 0.5 * (covariance + covariance.transpose(0, 2, 1))
+    return covariance + np.diag(np.square(np.asarray(config.motion_sigma)))[None, :, :]
+
+
 def optimize_graph(
     poses: FloatArray,
     motions: FloatArray,
@@ -527,13 +572,17 @@ def optimize_graph(
     config: LoopClosureConfig,
     absolute: AbsoluteFactors | None = None,
     odometry_motions: FloatArray | None = None,
+    node_information: FloatArray | None = None,
 ) -> GraphResult:
     """The chain 0 -> 1 -> ... (``motions[k]``: node k in node k-1's frame, k >= 1) plus the loop factors,
-    optimised from ``poses``."""
+    optimised from ``poses``. The chain's sigmas: ``motion_sigma``, widened by ``correction_share`` of
+    each edge's departure from ``odometry_motions``; or, with ``edge_match_sigma_m`` and
+    ``node_information`` (each node's match, robot frame), :func:`edge_covariances`."""
     n = poses.shape[0]
     chain = np.arange(1, n, dtype=np.int64)
     motion_sigma = np.tile(np.asarray(config.motion_sigma), (n - 1, 1))
-    if odometry_motions is not None:
+    from_matches = config.edge_match_sigma_m is not None and node_information is not None
+    if odometry_motions is not None and not from_matches:
         gap = np.abs(motions[1:n] - odometry_motions[1:n])
         gap[:, 2] = np.abs(wrap_angle(gap[:, 2]))
         motion_sigma = np.maximum(motion_sigma, config.correction_share * gap)
@@ -547,8 +596,13 @@ def optimize_graph(
         ]
     )
     whitening = None
-    if any(c.covariance is not None for c in loops):
+    if from_matches or any(c.covariance is not None for c in loops):
         whitening = RelativeFactors(i, j, z, sigma).whitening()
+    if from_matches:
+        assert whitening is not None and node_information is not None
+        whitening[: n - 1] = sqrt_information(edge_covariances(motions[:n], node_information[:n], config))
+    if any(c.covariance is not None for c in loops):
+        assert whitening is not None
         whitening[n - 1 :] = np.array([loop_sqrt_information(c, config) for c in loops])
     return optimize(poses, RelativeFactors(i, j, z, sigma, whitening), absolute, huber=config.huber)
 

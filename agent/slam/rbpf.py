@@ -52,7 +52,15 @@ from agent.slam.grid import (
     prepare_scan,
     surface_normals,
 )
-from agent.slam.loops import LoopClosureConfig, LoopConstraint, Verdict, find_loop, judge_loop, yaw_doubt
+from agent.slam.loops import (
+    LoopClosureConfig,
+    LoopConstraint,
+    Verdict,
+    find_loop,
+    judge_loop,
+    robot_frame_information,
+    yaw_doubt,
+)
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
@@ -248,10 +256,13 @@ class RbpfSlam:
         self.give_way: Callable[[], None] = _no_wait
         self.stats = FilterStats()
         # Loop closure: per node (filter update) its scan (for a map rebuild), its endpoints (for the old
-        # map) and its motion from the node before along the leading lineage; the loop factors found.
+        # map) and its motion from the node before along the leading lineage, with that lineage's scan
+        # match information (robot frame; zeros where it failed: ``edge_match_sigma_m``); the loop
+        # factors found.
         self._node_scans: list[ScanPoints] = []
         self._node_hits: list[FloatArray] = []
         self._node_motions: list[FloatArray] = []
+        self._node_information: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
         self._last_check = 0  # the last node a loop check ran at
@@ -338,7 +349,7 @@ class RbpfSlam:
             self._integrate(scan, np.zeros(cfg.particles, dtype=np.int64), fresh=True)
             self._update_odom = odom
             self._record(t_s, odom, np.arange(cfg.particles))
-            self._add_node(scan, np.arange(cfg.particles), None)
+            self._add_node(scan, np.arange(cfg.particles), None, None)
             return StepResult(StepKind.FIRST, self._pose_at(None), odometry=odom)
         return self._update(t_s, scan, odom, increment)
 
@@ -493,6 +504,7 @@ class RbpfSlam:
             self.poses = sample_motion(self.poses, increment, cfg.noise, self.rng)
             proposal_log_eta = np.zeros(cfg.particles)
             matched = np.zeros(cfg.particles, dtype=bool)
+            information = None
         else:
             predicted = compose(self.poses, increment[None, :])
             field, window_index = self._field(predicted, points)
@@ -520,6 +532,7 @@ class RbpfSlam:
             self.poses = result.poses
             proposal_log_eta = result.log_eta
             matched = result.matched
+            information = np.where(matched[:, None, None], result.match.information, 0.0)
             # The field (up to ~27 MB for 30 maps of a 15 m scan's box) is done with: not held through
             # the map integration and a loop closure's rebuild below.
             del field, result
@@ -551,7 +564,7 @@ class RbpfSlam:
         self._update_odom = odom
         self._record(t_s, odom, parents)
         self.stats.updates += 1
-        self._add_node(scan, parents, points)
+        self._add_node(scan, parents, points, information)
         return StepResult(
             StepKind.UPDATED,
             self._pose_at(None),
@@ -607,7 +620,15 @@ class RbpfSlam:
         self._groups = groups
 
     # -- loop closure -------------------------------------------------------------------------------
-    def _add_node(self, scan: ScanPoints, parents: IntArray, points: FloatArray | None) -> None:
+    def _add_node(
+        self,
+        scan: ScanPoints,
+        parents: IntArray,
+        points: FloatArray | None,
+        information: FloatArray | None,
+    ) -> None:
+        """A graph node for this update; ``information``: each particle's scan match information (world
+        frame, before resampling: indexed by ``parents``), None where nothing was matched."""
         lc = self.config.loop_closure
         if lc is None:
             return
@@ -621,6 +642,12 @@ class RbpfSlam:
         self._node_scans.append(scan)
         self._node_hits.append(voxel_filter(scan.hit_xy, lc.resolution_m, 400))
         self._node_motions.append(motion)
+        node_information = np.zeros((3, 3))
+        if information is not None:
+            node_information = robot_frame_information(
+                information[int(parents[best])], float(self.history_poses[-1][best, 2])
+            )
+        self._node_information.append(node_information)
         j = len(self._node_scans) - 1
         if self._node_fix is not None:
             variance = 1.0 / np.maximum(np.diag(self._node_fix.information), 1e-12)
@@ -653,7 +680,16 @@ class RbpfSlam:
         assert lc is not None
         motions, odometry_motions, absolute = self._graph_inputs(path)
         judgement = judge_loop(
-            path, self._node_hits, motions, self._loops, found, lc, absolute, odometry_motions, self._pending
+            path,
+            self._node_hits,
+            motions,
+            self._loops,
+            found,
+            lc,
+            absolute,
+            odometry_motions,
+            self._pending,
+            np.array(self._node_information),
         )
         self.stats.loop_verdicts[judgement.verdict.value] += 1
         log.debug(

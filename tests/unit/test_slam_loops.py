@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.slam.loops import (
     LoopClosureConfig,
@@ -13,10 +14,12 @@ from agent.slam.loops import (
     Verdict,
     candidate_nodes,
     chain_poses,
+    edge_covariances,
     find_loop,
     judge_loop,
     match_covariance,
     optimize_graph,
+    robot_frame_information,
 )
 from agent.slam.pose import between, compose, inverse, transform_points
 from agent.slam.posegraph import AbsoluteFactors, RelativeFactors, optimize, sqrt_information
@@ -157,6 +160,58 @@ def test_the_graph_spreads_a_closure_over_the_edges_the_matcher_bent() -> None:
     loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
     result = optimize_graph(path, front_end, loops, LoopClosureConfig(), odometry_motions=odometry)
     assert np.hypot(*(result.poses[:, :2] - truth[:, :2]).T).max() < 0.1
+
+
+def test_edges_from_the_matches_own_information_take_a_closure_where_the_match_was_unsure() -> None:
+    # The square again. At edge 15 the robot turned on the spot and its wheels slipped 10 deg, but the
+    # scan match (a corner: every direction held) got the turn right; at edge 25, in a corridor along
+    # the robot's x, the match shortened the run by 0.6 m (it held y and yaw only). A true loop 0 -> end.
+    true_motions = _square()
+    front_end = true_motions.copy()
+    front_end[25, 0] -= 0.6
+    odometry = true_motions.copy()
+    odometry[15, 2] += math.radians(10.0)
+    path = chain_poses(np.zeros(3), front_end)
+    truth = chain_poses(np.zeros(3), true_motions)
+    n = path.shape[0]
+    corner = np.diag([400.0, 400.0, 4000.0])
+    information = np.tile(corner, (n, 1, 1))
+    information[25] = np.diag([1e-4, 400.0, 4000.0])
+    loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
+
+    def worst(result_poses: np.ndarray) -> float:
+        return float(np.hypot(*(result_poses[:, :2] - truth[:, :2]).T).max())
+
+    # Widened by the departure from odometry, the sure edge 15 takes much of the correction.
+    by_odometry = optimize_graph(path, front_end, loops, LoopClosureConfig(), odometry_motions=odometry)
+    # (A match that holds nothing in a direction: up to 1 m there, against 3 cm for each of the other
+    # 39 edges.)
+    config = LoopClosureConfig(edge_match_sigma_m=0.1, edge_max_sigma=(1.0, 1.0, 0.1))
+    by_match = optimize_graph(
+        path, front_end, loops, config, odometry_motions=odometry, node_information=information
+    )
+    assert worst(by_match.poses) < 0.1 < worst(by_odometry.poses)
+    # Without node information the config's edges are the odometry-widened ones.
+    same = optimize_graph(path, front_end, loops, config, odometry_motions=odometry)
+    np.testing.assert_allclose(same.poses, by_odometry.poses, atol=1e-9)
+
+
+def test_an_edge_covariance_is_its_match_in_the_frame_before_and_bounded_where_it_failed() -> None:
+    # A wall across world x seen from a robot heading +90 deg holds the robot's own y.
+    robot = robot_frame_information(np.diag([100.0, 0.0, 0.0]), math.pi / 2)
+    np.testing.assert_allclose(robot, np.diag([0.0, 100.0, 0.0]), atol=1e-12)
+    config = LoopClosureConfig(edge_match_sigma_m=0.1, motion_sigma=(0.03, 0.03, 0.01))
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, math.pi / 2], [1.0, 0.0, 0.0]])
+    information = np.zeros((3, 3, 3))
+    information[1] = np.diag([1e6, 0.0, 1e6])  # node 1: held along its own x only (and in yaw)
+    cov = edge_covariances(motions, information, config)
+    floor = np.square(config.motion_sigma)
+    loose = floor + np.square(config.edge_max_sigma)
+    # Node 1's x is node 0's y after the quarter turn: tight there, loose along node 0's x.
+    np.testing.assert_allclose(np.diag(cov[0]), [loose[0], floor[1] + 1e-8, floor[2] + 1e-8], rtol=1e-3)
+    np.testing.assert_allclose(cov[1], np.diag(loose), rtol=1e-9)  # a failed match: bounded, not infinite
+    with pytest.raises(ValueError, match="edge_match_sigma_m"):
+        edge_covariances(motions, information, LoopClosureConfig())
 
 
 def test_a_loop_factor_with_full_covariance_pulls_only_where_the_match_is_sure() -> None:
