@@ -16,6 +16,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.slam.logs import read_log
+from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import wall_thickness
 from agent.slam.motion import OdometryNoise
 from agent.slam.proposal import ProposalConfig
@@ -105,6 +107,13 @@ def main() -> int:
         metavar="M",
         help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
     )
+    parser.add_argument(
+        "--edge-match-sigma",
+        type=float,
+        metavar="S",
+        help="the pose graph's front-end edges from each update's scan match information "
+        "(LoopClosureConfig.edge_match_sigma_m; default: off)",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -129,6 +138,7 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
+            loop_closure=dataclasses.replace(LoopClosureConfig(), edge_match_sigma_m=args.edge_match_sigma),
             seed=seed,
         )
         result = replay(log, config)

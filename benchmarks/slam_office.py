@@ -70,10 +70,15 @@ def with_people(world: World, people: str) -> World:
 
 
 def loop_config(
-    edge_sigma: tuple[float, float, float] | None, match_sigma: float | None
+    edge_sigma: tuple[float, float, float] | None,
+    match_sigma: float | None,
+    edge_match_sigma: float | None = None,
 ) -> LoopClosureConfig:
-    """The loop closure's defaults with the pose graph's edge sigmas and loop-factor covariance set."""
+    """The loop closure's defaults with the pose graph's edge sigmas, loop-factor covariance and
+    front-end edges from the match's information (``edge_match_sigma_m``) set."""
     config = LoopClosureConfig()
+    if edge_match_sigma is not None:
+        config = dataclasses.replace(config, edge_match_sigma_m=edge_match_sigma)
     if edge_sigma is not None:
         config = dataclasses.replace(config, motion_sigma=edge_sigma)
     if match_sigma is not None:
@@ -93,6 +98,7 @@ def run_seed(
     particles: int = 30,
     grid_offset: float = 0.0,
     free_margin: float | None = None,
+    edge_match_sigma: float | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -111,7 +117,7 @@ def run_seed(
         initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
         free_margin_m=free_margin,
         seed=seed,
-        loop_closure=loop_config(edge_sigma, match_sigma) if loop_closure else None,
+        loop_closure=loop_config(edge_sigma, match_sigma, edge_match_sigma) if loop_closure else None,
     )
     t0, c0 = time.perf_counter(), time.process_time()
     result = replay(simulated.log, config)
@@ -171,6 +177,13 @@ def main() -> int:
     )
     parser.add_argument("--match-sigma", type=float, help="loop factors with the match's covariance")
     parser.add_argument(
+        "--edge-match-sigma",
+        type=float,
+        metavar="S",
+        help="front-end edges from each update's scan match information "
+        "(LoopClosureConfig.edge_match_sigma_m)",
+    )
+    parser.add_argument(
         "--degenerate-noise-scale",
         type=float,
         help="ProposalConfig.degenerate_noise_scale (default: eval slam's for the simulated robot; 1: off)",
@@ -211,6 +224,7 @@ def main() -> int:
             args.particles,
             args.grid_offset,
             args.free_margin if args.free_margin is not None else front_end("simulated").free_margin_m,
+            args.edge_match_sigma,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -224,6 +238,7 @@ def main() -> int:
         "loop_closure": args.loop_closure,
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
+        "edge_match_sigma": args.edge_match_sigma,
         "degenerate_noise_scale": args.degenerate_noise_scale,
         "particles": args.particles,
         "grid_offset_m": args.grid_offset,

@@ -473,7 +473,8 @@ def judge_loop(
     the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
     fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
     poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
-    its robot frame; ``odometry_motions``, ``node_information``: the chain's sigmas (:func:`optimize_graph`)."""
+    its robot frame; ``odometry_motions``, ``node_information``: the chain's sigmas
+    (:func:`optimize_graph`)."""
     innovation = loop_residual_chi2(poses, candidate, config)
     j = candidate.j
     old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
@@ -545,7 +546,9 @@ def robot_frame_information(information: FloatArray, yaw_rad: float) -> FloatArr
     return 0.5 * (out + out.T)
 
 
-def edge_covariances(motions: FloatArray, node_information: FloatArray, config: LoopClosureConfig) -> FloatArray:
+def edge_covariances(
+    motions: FloatArray, node_information: FloatArray, config: LoopClosureConfig
+) -> FloatArray:
     """(N-1, 3, 3) covariances of the front-end edges k-1 -> k (``motions[k]``, node k in node k-1's
     frame, k >= 1) from node k's scan match (``node_information[k]``: Σ J Jᵀ in node k's robot frame,
     :func:`robot_frame_information`; zeros where the match failed): diag(motion_sigma²) + B (Σ J Jᵀ / s²

@@ -486,3 +486,20 @@ def test_the_correlative_search_runs_where_it_is_due() -> None:
     assert searched == [True] * 5 + [True, False, False, True, True]
     # The search-free settings are the filter's own otherwise.
     assert first._proposal_for(step).matcher == first.config.proposal.matcher
+
+
+def test_each_node_keeps_its_scan_match_information_for_the_graph(loop: tuple[np.ndarray, ...]) -> None:
+    # LoopClosureConfig.edge_match_sigma_m: the graph's front-end edges from each node's own match.
+    _times, truth, _odometry, _ = loop
+    start = tuple(float(v) for v in truth[0])
+    short = tuple(a[:120] for a in loop)
+    loops = LoopClosureConfig(edge_match_sigma_m=0.1)
+    slam, estimate = run_filter(short, RbpfConfig(particles=3, initial_pose=start, loop_closure=loops))
+    information = np.array(slam._node_information)
+    assert information.shape == (slam.stats.updates + 1, 3, 3)
+    np.testing.assert_array_equal(information[0], 0.0)  # the first scan: nothing matched
+    np.testing.assert_allclose(information, information.transpose(0, 2, 1), atol=1e-6)
+    # The room's walls hold every matched node in every direction.
+    held = np.linalg.eigvalsh(information[1:])[:, 0] > 1.0
+    assert np.count_nonzero(held) >= 0.9 * (information.shape[0] - 1)
+    assert absolute_trajectory_error(truth[:120], estimate) < 0.05
