@@ -16,6 +16,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.slam.logs import read_log
+from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import wall_thickness
 from agent.slam.motion import OdometryNoise
 from agent.slam.proposal import ProposalConfig
@@ -105,6 +107,16 @@ def main() -> int:
         metavar="M",
         help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
     )
+    loop_defaults = LoopClosureConfig()
+    parser.add_argument(
+        "--loop-hypotheses",
+        type=int,
+        default=loop_defaults.hypotheses,
+        metavar="N",
+        help="loop search: the N best coarse poses of each old window refined and judged over the old"
+        " map's known area (LoopClosureConfig.hypotheses; 0: the coarse ambiguity test; default"
+        f" {loop_defaults.hypotheses})",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -129,6 +141,7 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
+            loop_closure=dataclasses.replace(loop_defaults, hypotheses=args.loop_hypotheses),
             seed=seed,
         )
         result = replay(log, config)
@@ -143,6 +156,7 @@ def main() -> int:
             "return_on_first_map": round(fraction_on_walls(log, result.poses), 3),
             "wall_thin_fraction": round(wall_thickness(window[0] > MODEL.occupied).thin_fraction, 3),
             "resamples": result.slam.stats.resamples,
+            "loop_verdicts": dict(result.slam.stats.loop_verdicts),
             "update_ms_median": round(float(np.median(result.update_ms)), 1),
         }
         closed.append(slam_m < 0.1 and slam_deg < 2.0)
