@@ -171,12 +171,20 @@ class LoopConstraint:
 
 
 def old_map_field(
-    poses: FloatArray, hits: list[FloatArray], nodes: range, resolution_m: float, cap_m: float
+    poses: FloatArray,
+    hits: list[FloatArray],
+    nodes: range,
+    resolution_m: float,
+    cap_m: float,
+    cover_poses: bool = False,
 ) -> DistanceField:
-    """Distance field of the scan endpoints of ``nodes`` placed at their poses (one window)."""
+    """Distance field of the scan endpoints of ``nodes`` placed at their poses (one window); it spans the
+    endpoints, and with ``cover_poses`` the nodes' positions too (the beams' whole length:
+    :func:`known_cells`)."""
     world = np.vstack([transform_points(poses[k], hits[k]) for k in nodes])
-    lo = world.min(axis=0) - 4 * resolution_m
-    hi = world.max(axis=0) + 4 * resolution_m
+    extent = np.vstack([world, poses[nodes.start : nodes.stop, :2]]) if cover_poses else world
+    lo = extent.min(axis=0) - 4 * resolution_m
+    hi = extent.max(axis=0) + 4 * resolution_m
     shape = np.ceil((hi - lo) / resolution_m).astype(np.int64)
     obstacles = np.zeros((1, int(shape[1]), int(shape[0])), dtype=bool)
     cells = np.floor((world - lo) / resolution_m).astype(np.int64)
@@ -389,7 +397,8 @@ def distinct_minima(lattice: Lattice, count: int, xy_m: float, yaw_rad: float) -
 
 
 def known_cells(poses: FloatArray, hits: list[FloatArray], nodes: range, field_: DistanceField) -> BoolArray:
-    """(H, W) over the cells of ``field_`` (an :func:`old_map_field` of ``nodes``, without its border):
+    """(H, W) over the cells of ``field_`` (an :func:`old_map_field` of ``nodes`` with ``cover_poses``,
+    without its border):
     True where a beam of an old node reached, from the node's position to each of its endpoints (the
     free space it crossed and the wall it hit). Beams without a return are not in ``hits`` and add
     nothing: the known area is, if anything, too small."""
@@ -495,7 +504,7 @@ def _find_loop_known(
             config.coarse_yaw_step_rad,
             config.coarse_truncate_m,
         )
-        old = old_map_field(poses, hits, nodes, config.resolution_m, cap)
+        old = old_map_field(poses, hits, nodes, config.resolution_m, cap, cover_poses=True)
         known = known_cells(poses, hits, nodes, old)
         for r, t in distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad):
             start = coarse.pose(poses[j], r, t)
