@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from agent.slam.loops import (
-    LoopClosureConfig,
     Lattice,
+    LoopClosureConfig,
     LoopConstraint,
     Verdict,
     candidate_nodes,
