@@ -17,6 +17,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4
 """
 
 from __future__ import annotations
@@ -114,6 +115,16 @@ def main() -> int:
         help="the pose graph's front-end edges from each update's scan match information "
         "(LoopClosureConfig.edge_match_sigma_m; default: off)",
     )
+    loop_defaults = LoopClosureConfig()
+    parser.add_argument(
+        "--loop-hypotheses",
+        type=int,
+        default=loop_defaults.hypotheses,
+        metavar="N",
+        help="loop search: the N best coarse poses of each old window refined and judged over the old"
+        " map's known area (LoopClosureConfig.hypotheses; 0: the coarse ambiguity test; default"
+        f" {loop_defaults.hypotheses})",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -138,7 +149,9 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
-            loop_closure=dataclasses.replace(LoopClosureConfig(), edge_match_sigma_m=args.edge_match_sigma),
+            loop_closure=dataclasses.replace(
+                loop_defaults, edge_match_sigma_m=args.edge_match_sigma, hypotheses=args.loop_hypotheses
+            ),
             seed=seed,
         )
         result = replay(log, config)
@@ -153,6 +166,7 @@ def main() -> int:
             "return_on_first_map": round(fraction_on_walls(log, result.poses), 3),
             "wall_thin_fraction": round(wall_thickness(window[0] > MODEL.occupied).thin_fraction, 3),
             "resamples": result.slam.stats.resamples,
+            "loop_verdicts": dict(result.slam.stats.loop_verdicts),
             "update_ms_median": round(float(np.median(result.update_ms)), 1),
         }
         closed.append(slam_m < 0.1 and slam_deg < 2.0)
