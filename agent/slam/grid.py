@@ -431,8 +431,12 @@ def integrate_scans(
     cv2.max(flat_windows, model.counts(model.minimum), dst=flat_windows)  # type: ignore[call-overload]
     cv2.min(flat_windows, model.counts(model.maximum), dst=flat_windows)  # type: ignore[call-overload]
     # A tile changed if any of its cells has a code: max over runs of T cells, then over T rows.
+    # (numpy's max over the middle axis of (U, H/T, T, W/T) walks it with a strided inner loop, ~20x
+    # slower than cv2.reduce over the runs laid out contiguously.)
     runs = cv2.reduce(codes.reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
-    touched: BoolArray = runs.reshape(u, h // tile_cells, tile_cells, w // tile_cells).max(axis=2) > 0
+    columns = runs.reshape(u * (h // tile_cells), tile_cells, w // tile_cells).transpose(0, 2, 1)
+    tiles = cv2.reduce(np.ascontiguousarray(columns).reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
+    touched: BoolArray = tiles.reshape(u, h // tile_cells, w // tile_cells) > 0
     return touched
 
 

