@@ -139,6 +139,9 @@ class LoopClosureConfig:
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
 
 
+_LATTICE_INDICES = 1 << 18  # lattice_search: (rotations, translations, points) indices per batch
+
+
 @dataclass(frozen=True)
 class LoopConstraint:
     i: int
@@ -218,17 +221,21 @@ def lattice_search(
     pad = 2 * reach
     flat = np.pad(truncated * truncated, pad, mode="edge").reshape(-1)
     width = w + 2 * pad
-    offsets = (sy * width + sx)[:, None]
+    offsets = (sy * width + sx)[None, :, None]
     costs = np.empty((yaw_offsets.size, sx.size))
-    for r, yaw_offset in enumerate(yaw_offsets):
-        candidate = centre.copy()
-        candidate[2] += yaw_offset
-        wx, wy, _, _ = world_points(candidate[None, :], points_xy)
-        col = np.floor((wx[0] - field.origin_m[0]) / res).astype(np.int64) + 1
-        row = np.floor((wy[0] - field.origin_m[1]) / res).astype(np.int64) + 1
+    candidates = np.tile(centre, (yaw_offsets.size, 1))
+    candidates[:, 2] += yaw_offsets
+    # A few rotations at a time (their (r, T, N) indices within ~2 MB): per rotation the Python-level
+    # calls cost as much as the gather on the loop windows' small lattices.
+    per = max(1, _LATTICE_INDICES // max(sx.size * points_xy.shape[0], 1))
+    for r0 in range(0, yaw_offsets.size, per):
+        r1 = min(r0 + per, yaw_offsets.size)
+        wx, wy, _, _ = world_points(candidates[r0:r1], points_xy)
+        col = np.floor((wx - field.origin_m[0]) / res).astype(np.int64) + 1
+        row = np.floor((wy - field.origin_m[1]) / res).astype(np.int64) + 1
         col = np.clip(col, -reach, w - 1 + reach) + pad
         row = np.clip(row, -reach, h - 1 + reach) + pad
-        costs[r] = np.mean(flat[(row * width + col)[None, :] + offsets], axis=1)
+        costs[r0:r1] = np.mean(flat[(row * width + col)[:, None, :] + offsets], axis=2)
     return Lattice(
         yaw_offsets.astype(np.float64), (sx * res).astype(np.float64), (sy * res).astype(np.float64), costs
     )
