@@ -139,7 +139,7 @@ class LoopClosureConfig:
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
 
 
-_LATTICE_INDICES = 1 << 18  # lattice_search: (rotations, translations, points) indices per batch
+_LATTICE_INDICES = 1 << 16  # lattice_search: (rotations, translations, points) indices per batch (0.5 MB)
 
 
 @dataclass(frozen=True)
@@ -225,7 +225,7 @@ def lattice_search(
     costs = np.empty((yaw_offsets.size, sx.size))
     candidates = np.tile(centre, (yaw_offsets.size, 1))
     candidates[:, 2] += yaw_offsets
-    # A few rotations at a time (their (r, T, N) indices within ~2 MB): per rotation the Python-level
+    # A few rotations at a time (their (r, T, N) indices within ~0.5 MB): per rotation the Python-level
     # calls cost as much as the gather on the loop windows' small lattices.
     per = max(1, _LATTICE_INDICES // max(sx.size * points_xy.shape[0], 1))
     for r0 in range(0, yaw_offsets.size, per):

@@ -53,6 +53,7 @@ from agent.slam.grid import (
     surface_normals,
 )
 from agent.slam.loops import LoopClosureConfig, LoopConstraint, Verdict, find_loop, judge_loop, yaw_doubt
+from agent.slam.malloc import trim_heap
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
@@ -552,6 +553,7 @@ class RbpfSlam:
         self._record(t_s, odom, parents)
         self.stats.updates += 1
         self._add_node(scan, parents, points)
+        trim_heap()  # a no-op unless this process asked for it (agent.slam.malloc.tune_malloc)
         return StepResult(
             StepKind.UPDATED,
             self._pose_at(None),
