@@ -11,6 +11,15 @@ of faulting fresh ones in (with the trim at glibc's 128 KB default, a 1 MB thres
 Intel seeds 0 / 2 (whole log, the benchmark's worker): peak RSS 113.1 / 116.1 MB against 120.3 / 120.3,
 CPU 21.7 / 22.3 s against 21.6 s; the results are the same (docs/slam.md, "Speed and memory beside
 GMapping", session slam-perf-9).
+
+What the heap keeps free is still resident, and a rare burst (a loop closure's graph optimisation, ~25
+MB of temporaries on Intel) left 18-37 MB free beneath later updates' fields, moving Intel's peak by
+10-15 MB from one build to the next for the same poses. ``tune_malloc`` therefore also sets a slack:
+after each filter update :func:`trim_heap` hands the heap's free pages back (``malloc_trim(0)``) when
+more than ``heap_slack`` bytes are free (16 MB: at 8 MB it trimmed nearly every update, 1.4 M minor
+faults and 2.6 s of system time on Intel; at 16 MB 152 k and 0.4 s). :func:`release_pages` hands back
+pages of a buffer whose contents are dead (the tile pool's slots when a rebuild clears the maps).
+Session slam-perf-11, docs/slam.md.
 """
 
 from __future__ import annotations
@@ -100,7 +109,7 @@ def tune_malloc(
 _MADV_DONTNEED = 4  # Linux's asm-generic/mman-common.h
 
 
-def release_pages(array: np.ndarray) -> bool:  # type: ignore[type-arg]
+def release_pages(array: np.ndarray) -> bool:
     """Hand the whole pages inside a C-contiguous array's buffer back to the kernel (Linux
     ``madvise(MADV_DONTNEED)``): they stop counting in RSS, and the kernel supplies zero-filled pages the
     next time they are touched, so the contents are lost. For buffers whose contents are dead and will
@@ -121,4 +130,4 @@ def release_pages(array: np.ndarray) -> bool:  # type: ignore[type-arg]
     last = (start + array.nbytes) // page * page
     if last <= first:
         return False
-    return madvise(first, last - first, _MADV_DONTNEED) == 0
+    return bool(madvise(first, last - first, _MADV_DONTNEED) == 0)
