@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -122,14 +123,30 @@ class DistanceField:
             if obstacles.shape != shape or (known is not None and known.shape != shape):
                 raise ValueError(f"window {k}: obstacles and known must be {shape}")
             out = padded[k]
-            canvas[...] = 1  # the border is free: it gets the cap below
-            np.logical_not(obstacles, out=canvas[1:-1, 1:-1], casting="unsafe")  # DT: distance to the 0s
-            cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out)
-            if known is not None:
-                canvas[...] = 0
-                canvas[1:-1, 1:-1] = known
-                near_known = cv2.dilate(canvas, kernel)
-                np.copyto(out, unknown, where=near_known == 0)
+            if known is None:
+                canvas[...] = 1  # the border is free: it gets the cap below
+                np.logical_not(obstacles, out=canvas[1:-1, 1:-1], casting="unsafe")  # DT: distance to 0s
+                cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out)
+                continue
+            # Only the box of the known cells and the obstacles, one cell wider, can hold anything but
+            # UNKNOWN: the transform and the dilation run there (the same values as over the whole
+            # window: the 5x5 chamfer distance between two cells is a path of mask moves inside their
+            # bounding box, so cropping the image to a box holding every obstacle changes no cell of it;
+            # a unit test checks this against the whole window).
+            r0, r1, c0, c1 = _known_box(obstacles, known)
+            if r0 >= r1:
+                out[...] = unknown
+                continue
+            region = out[1 + r0 : 1 + r1, 1 + c0 : 1 + c1]
+            box = canvas[: r1 - r0, : c1 - c0]
+            np.logical_not(obstacles[r0:r1, c0:c1], out=box, casting="unsafe")  # DT: distance to the 0s
+            cv2.distanceTransform(box, cv2.DIST_L2, 5, dst=region)
+            near_known = cv2.dilate(known[r0:r1, c0:c1].view(np.uint8), kernel)
+            np.copyto(region, unknown, where=near_known == 0)
+            out[: 1 + r0] = unknown
+            out[1 + r1 :] = unknown
+            out[1 + r0 : 1 + r1, : 1 + c0] = unknown
+            out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
         # What is the same for every window, once for the stack: the per-window calls were a fixed cost
         # each, as much as the transform itself on exp1's 30 windows of 130 x 130 cells.
         np.multiply(padded, np.float32(resolution_m), out=padded)
@@ -154,17 +171,29 @@ class DistanceField:
         """:meth:`sample`, and whether each point lies among known cells (all four bilinear neighbours).
         ``medial=False`` skips the medial-line distances near walls (plain bilinear: cheaper, for coarse
         stages that do not need sub-cell precision)."""
+        d, ddx, ddy, known, _g = self._sample(window_index, x_m, y_m, medial)
+        return d, ddx, ddy, known
+
+    def _sample(
+        self, window_index: IntArray, x_m: FloatArray, y_m: FloatArray, medial: bool
+    ) -> tuple[FloatArray, FloatArray, FloatArray, npt.NDArray[np.bool_], FloatArray | None]:
+        """:meth:`sample_known`, and |gradient| (``np.hypot(ddx, ddy)``, bit for bit) where the medial
+        lookups computed it on the way (None otherwise): :func:`residuals` needs it, and hypot is the
+        dearest elementwise operation of a match."""
         _u, hp, wp = self.distance_m.shape
         inv_res = 1.0 / self.resolution_m
         # Cell centres sit at integer coordinates c = (x - x0) / res - 1/2, plus 1 for the border.
-        cx = np.clip(x_m * inv_res + (0.5 - self.origin_m[0] * inv_res), 0.0, wp - 1.001)
-        cy = np.clip(y_m * inv_res + (0.5 - self.origin_m[1] * inv_res), 0.0, hp - 1.001)
+        cx = x_m * inv_res + (0.5 - self.origin_m[0] * inv_res)
+        cy = y_m * inv_res + (0.5 - self.origin_m[1] * inv_res)
+        _clip(cx, 0.0, wp - 1.001, out=cx)
+        _clip(cy, 0.0, hp - 1.001, out=cy)
         ix = cx.astype(np.int64)
         iy = cy.astype(np.int64)
         fx = cx - ix
         fy = cy - iy
         flat = self.distance_m.reshape(-1)
-        base = (np.asarray(window_index, dtype=np.int64)[:, None] * hp + iy) * wp + ix
+        window_base = np.asarray(window_index, dtype=np.int64)[:, None] * hp
+        base = (window_base + iy) * wp + ix
         f00 = flat[base]
         f01 = flat[base + 1]
         f10 = flat[base + wp]
@@ -185,27 +214,73 @@ class DistanceField:
             ddy = np.where(known, ddy, 0.0)
         # Near straight walls: the distance to the wall's medial line (see the class docstring).
         near = known & (d < MEDIAL_REACH_CELLS * self.resolution_m)
-        if medial and near.any():
-            g = np.hypot(ddx, ddy)
-            step = np.where(g > 1e-9, d * inv_res / np.maximum(g, 1e-9), 0.0)
-            jx = np.clip(np.rint(cx - step * ddx), 1, wp - 2).astype(np.int64)
-            jy = np.clip(np.rint(cy - step * ddy), 1, hp - 2).astype(np.int64)
-            cell = (np.asarray(window_index, dtype=np.int64)[:, None] * hp + jy) * wp + jx
-            code = _medial_at(self.distance_m.reshape(-1), cell, wp)
-            wall = near & (code > 0)
-            along_y = code <= 3
-            shift = ((code - 1) % 3 - 1) * 0.5
-            # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
-            offset = np.where(
-                along_y,
-                x_m - ((jx - 0.5 + shift) * self.resolution_m + self.origin_m[0]),
-                y_m - ((jy - 0.5 + shift) * self.resolution_m + self.origin_m[1]),
-            )
-            sign = np.where(offset >= 0.0, 1.0, -1.0)
-            d = np.where(wall, np.abs(offset), d)
-            ddx = np.where(wall, np.where(along_y, sign, 0.0), ddx)
-            ddy = np.where(wall, np.where(along_y, 0.0, sign), ddy)
-        return d, ddx, ddy, known
+        if not (medial and near.any()):
+            return d, ddx, ddy, known, None
+        g = np.hypot(ddx, ddy)
+        step = np.zeros_like(g)
+        np.divide(d * inv_res, g, out=step, where=g > 1e-9)
+        jx = np.rint(cx - step * ddx)
+        jy = np.rint(cy - step * ddy)
+        jx = _clip(jx, 1, wp - 2, out=jx).astype(np.int64)
+        jy = _clip(jy, 1, hp - 2, out=jy).astype(np.int64)
+        cell = (window_base + jy) * wp + jx
+        wall, along_y, shift = _medial_walls(flat, cell, wp)
+        wall &= near
+        # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
+        offset = np.where(
+            along_y,
+            x_m - ((jx - 0.5 + shift) * self.resolution_m + self.origin_m[0]),
+            y_m - ((jy - 0.5 + shift) * self.resolution_m + self.origin_m[1]),
+        )
+        sign = np.where(offset >= 0.0, 1.0, -1.0)
+        # d, ddx, ddy and g are this call's own arrays: replaced in place on the walls.
+        np.copyto(d, np.abs(offset), where=wall)
+        np.copyto(ddx, np.where(along_y, sign, 0.0), where=wall)
+        np.copyto(ddy, np.where(along_y, 0.0, sign), where=wall)
+        g[wall] = 1.0  # hypot(+-1, 0)
+        return d, ddx, ddy, known, g
+
+
+def _known_box(obstacles: npt.NDArray[np.bool_], known: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
+    """Rows [r0, r1) and columns [c0, c1) of the smallest box holding every known cell and obstacle,
+    one cell wider on each side (within the window); r0 >= r1 when there are none."""
+    h, w = known.shape
+    boxes = [cv2.boundingRect(known.view(np.uint8)), cv2.boundingRect(obstacles.view(np.uint8))]
+    boxes = [b for b in boxes if b[2] > 0 and b[3] > 0]
+    if not boxes:
+        return 0, 0, 0, 0
+    c0 = max(min(b[0] for b in boxes) - 1, 0)
+    r0 = max(min(b[1] for b in boxes) - 1, 0)
+    c1 = min(max(b[0] + b[2] for b in boxes) + 1, w)
+    r1 = min(max(b[1] + b[3] for b in boxes) + 1, h)
+    return r0, r1, c0, c1
+
+
+def _medial_walls(
+    flat: Float32Array, cells: IntArray, wp: int
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], FloatArray]:
+    """:func:`_medial_at` as the lookups use it: whether each cell lies on a straight wall (code > 0),
+    whether along y (code 1-3), and its medial line's shift across the wall in cells ((k - 1) / 2:
+    -0.5, 0, 0.5; meaningful on walls only). The same neighbour tests, without building the codes."""
+    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
+    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
+    across_x = left & right
+    across_y = below & above
+    along_y = across_y & ~across_x
+    along_x = across_x & ~across_y
+    wall = along_y | along_x
+    wall &= flat[cells] == 0.0
+    high = np.where(along_y, right, above).view(np.int8)
+    low = np.where(along_y, left, below).view(np.int8)
+    shift: FloatArray = (high - low) * 0.5
+    return wall, along_y, shift
+
+
+def _clip(a: npt.NDArray[Any], lo: float, hi: float, out: npt.NDArray[Any]) -> npt.NDArray[Any]:
+    """``np.clip(a, lo, hi, out=out)`` without its Python-level argument handling (~10 us a call, and
+    the lookups clip four arrays per residual evaluation): the same ufunc."""
+    result: npt.NDArray[Any] = np.minimum(np.maximum(a, lo, out=out), hi, out=out)
+    return result
 
 
 def _medial_at(flat: Float32Array, cells: IntArray, wp: int) -> IntArray:
@@ -314,6 +389,26 @@ class Residuals:
     ry: FloatArray
     known: npt.NDArray[np.bool_]
 
+    def rows(self, index: IntArray) -> Residuals:
+        """These residuals for the poses ``index`` (each pose's row depends on that pose alone, so this
+        is what :func:`residuals` gives for those poses)."""
+        return Residuals(
+            self.d[index],
+            self.r[index],
+            self.jx[index],
+            self.jy[index],
+            self.rx[index],
+            self.ry[index],
+            self.known[index],
+        )
+
+    def with_rows(self, index: IntArray, other: Residuals) -> Residuals:
+        """A copy with the rows ``index`` replaced by ``other``'s rows (in order)."""
+        out = self.rows(np.arange(self.d.shape[0]))
+        for name in ("d", "r", "jx", "jy", "rx", "ry", "known"):
+            getattr(out, name)[index] = getattr(other, name)
+        return out
+
 
 def residuals(
     field: DistanceField,
@@ -337,7 +432,7 @@ def residuals(
     corridor, while keeping some of what wall ends and door frames say along the wall.
     """
     wx, wy, rx, ry = world_points(poses, points_xy)
-    d, gx, gy, known = field.sample_known(window_index, wx, wy, medial)
+    d, gx, gy, known, g_norm = field._sample(window_index, wx, wy, medial)
     if normals_xy is None or along_weight == 1.0:
         return Residuals(d, d, gx, gy, rx, ry, known)
     c = np.cos(poses[:, 2])[:, None]
@@ -345,15 +440,22 @@ def residuals(
     nx = c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1]
     ny = s * normals_xy[None, :, 0] + c * normals_xy[None, :, 1]
     has = ((normals_xy[:, 0] != 0.0) | (normals_xy[:, 1] != 0.0))[None, :]
-    g_norm = np.hypot(gx, gy)
-    scale = np.where(g_norm > 1e-6, d / np.maximum(g_norm, 1e-6), 0.0)
+    if g_norm is None:
+        g_norm = np.hypot(gx, gy)
+    # (Divisions where the divisor is above the floor, 0 elsewhere: what dividing by the floored divisor
+    # under np.where gave, in fewer passes.)
+    scale = np.zeros_like(d)
+    np.divide(d, g_norm, out=scale, where=g_norm > 1e-6)
     vx, vy = gx * scale, gy * scale
     across = vx * nx + vy * ny
     along = vy * nx - vx * ny  # v . t, t = (-n_y, n_x)
     r_line = np.sqrt(across * across + along_weight * along * along)
-    inv_r = np.where(r_line > 1e-9, 1.0 / np.maximum(r_line, 1e-9), 0.0)
+    inv_r = np.zeros_like(r_line)
+    np.divide(1.0, r_line, out=inv_r, where=r_line > 1e-9)
     jx = (nx * across - along_weight * ny * along) * inv_r
     jy = (ny * across + along_weight * nx * along) * inv_r
+    if has.all():
+        return Residuals(d, r_line, jx, jy, rx, ry, known)
     return Residuals(d, np.where(has, r_line, d), np.where(has, jx, gx), np.where(has, jy, gy), rx, ry, known)
 
 
@@ -368,7 +470,34 @@ def match(
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
 ) -> MatchResult:
-    """Gauss-Newton on E(x) = sum_i w_i r_i(x)^2 + (x - x0)ᵀ Λ (x - x0) for every pose of the batch.
+    """See :func:`match_with_residuals` (this is its match alone)."""
+    return match_with_residuals(
+        field,
+        window_index,
+        points_xy,
+        initial_poses,
+        config,
+        prior_information,
+        centre,
+        normals_xy,
+        along_weight,
+    )[0]
+
+
+def match_with_residuals(
+    field: DistanceField,
+    window_index: IntArray,
+    points_xy: FloatArray,
+    initial_poses: FloatArray,
+    config: MatcherConfig,
+    prior_information: FloatArray | None = None,
+    centre: FloatArray | None = None,
+    normals_xy: FloatArray | None = None,
+    along_weight: float = 1.0,
+) -> tuple[MatchResult, Residuals]:
+    """Gauss-Newton on E(x) = sum_i w_i r_i(x)^2 + (x - x0)ᵀ Λ (x - x0) for every pose of the batch;
+    returns the match and :func:`residuals` at the matched poses (what the match's verdict was taken
+    from: callers that score the same poses reuse them instead of sampling the field again).
 
     r_i is the endpoint's distance to the nearest obstacle, or with ``normals_xy`` and ``along_weight``
     < 1 its offset from the surface with the part along the surface weighted down (:func:`residuals`);
@@ -455,7 +584,7 @@ def match(
         & (fraction >= config.min_inlier_fraction)
         & (known_fraction >= config.min_known_inlier_fraction)
     )
-    return MatchResult(poses, info, fraction, rms, ok, known_fraction)
+    return MatchResult(poses, info, fraction, rms, ok, known_fraction), res
 
 
 def _gauss_newton_step(
@@ -504,13 +633,18 @@ def truncated_energy(
     centre: FloatArray | None = None,
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
+    residuals_at_poses: Residuals | None = None,
 ) -> FloatArray:
     """The objective :func:`match` minimises, with every endpoint's residual truncated at ``bound_m``
     (an endpoint farther than that from every wall counts ``bound_m``²), for poses (P, 3): sum_i
     min(r_i, bound)² + (x - x0)ᵀ Λ (x - x0). Endpoints among unmapped cells count as the mean of the
     others (as :func:`scan_log_likelihood`). Comparable between two matches of the same scan in the same
-    window: the lower one explains the scan better at the price the prior puts on its move."""
-    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
+    window: the lower one explains the scan better at the price the prior puts on its move.
+    ``residuals_at_poses``: :func:`residuals` at these poses if already computed (the match's own, from
+    :func:`match_with_residuals`), not computed again."""
+    res = residuals_at_poses
+    if res is None:
+        res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
     e2 = np.where(res.d < bound_m, res.r * res.r, bound_m * bound_m)
     n = points_xy.shape[0]
     n_known = res.known.sum(axis=1)
@@ -570,19 +704,20 @@ def correlative_search(
     wx, wy, _, _ = world_points(candidates, points_xy)  # (R, N)
     col = np.floor((wx - field.origin_m[0]) / res).astype(np.int64) + 1
     row = np.floor((wy - field.origin_m[1]) / res).astype(np.int64) + 1
-    # The (R, T, N) cell indices built in place, two int64 arrays at a time: with the update's field
-    # alive this was the filter's peak memory (Intel: ~10 MB of index temporaries at 200 points).
-    index = row[:, None, :] + sy[None, :, None]  # (R, T, N) rows, then flat indices
-    inside = index >= 0
-    inside &= index < h
-    np.clip(index, 0, h - 1, out=index)
-    index *= w
-    cols = col[:, None, :] + sx[None, :, None]
-    inside &= cols >= 0
-    inside &= cols < w
+    # The translations are a grid, shifts (rows) x shifts (columns), t = row shift * S + column shift:
+    # each row and column index is clamped and tested for (R, S, N) first, and only their sums and
+    # masks are (R, S, S, N) = (R, T, N) (the whole-size work was a dozen int64 passes; with the
+    # update's field alive those temporaries were the filter's peak memory on Intel).
+    s_count = shifts.size
+    rows = row[:, None, :] + shifts[None, :, None]  # (R, S, N)
+    row_in = (rows >= 0) & (rows < h)
+    np.clip(rows, 0, h - 1, out=rows)
+    rows *= w
+    cols = col[:, None, :] + shifts[None, :, None]
+    col_in = (cols >= 0) & (cols < w)
     np.clip(cols, 0, w - 1, out=cols)
-    index += cols
-    del cols
+    index = (rows[:, :, None, :] + cols[:, None, :, :]).reshape(yaws.size, s_count * s_count, -1)
+    inside = (row_in[:, :, None, :] & col_in[:, None, :, :]).reshape(index.shape)
     flat = field.distance_m[window].reshape(-1)
     d = np.where(inside, flat[index], field.cap_m)
     del index
@@ -652,11 +787,15 @@ def _linearized_sums(
     outlier_m: float,
     normals_xy: FloatArray | None,
     along_weight: float,
+    residuals_at_centres: Residuals | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray]:
     """The endpoints' residuals linearised at poses centres (P, 3): A = sum J Jᵀ (P, 3, 3), b = sum J r
     (P, 3) over the endpoints within ``outlier_m``, c = sum r^2 (P,) with each known endpoint beyond it
-    counting outlier_m^2, and the number of known endpoints (P,)."""
-    res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
+    counting outlier_m^2, and the number of known endpoints (P,). ``residuals_at_centres``: the
+    residuals there, if already computed."""
+    res = residuals_at_centres
+    if res is None:
+        res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
     inlier = res.known & (res.d < outlier_m)
     w = inlier.astype(np.float64)
     jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
@@ -679,6 +818,7 @@ def linearized_log_likelihood(
     outlier_m: float,
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
+    residuals_at_centres: Residuals | None = None,
 ) -> FloatArray:
     """:func:`scan_log_likelihood` at poses centres (P, 3) + offsets (P, K, 3), with each endpoint's
     residual linearised at its centre: e_i(delta) = r_i + J_i delta for the endpoints within ``outlier_m``
@@ -688,7 +828,7 @@ def linearized_log_likelihood(
     (the proposal's grid spans the match's own standard deviation, millimetres).
     """
     a, b, c, n_known = _linearized_sums(
-        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight
+        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight, residuals_at_centres
     )
     n = points_xy.shape[0]
     scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0)

@@ -45,7 +45,8 @@ from agent.slam.matcher import (
     correlative_search,
     linearized_log_likelihood,
     log_likelihood_quadratic,
-    match,
+    match_with_residuals,
+    residuals,
     scan_log_likelihood,
     truncated_energy,
 )
@@ -178,7 +179,7 @@ def improved_proposal(
         # lead alone on a coarse lattice, and where the scans overlap little (Intel's 1 m updates, 20-40 %
         # of the endpoints on mapped walls) its best cell can be a wrong turn that every particle would
         # otherwise follow.
-        two = match(
+        two, two_res = match_with_residuals(
             field,
             np.concatenate([window_index, window_index]),
             points_xy,
@@ -199,9 +200,11 @@ def improved_proposal(
             np.vstack([centre_prior, centre_prior]),
             normals_xy,
             config.along_surface_weight,
+            two_res,
         )
         use_prior = two.ok[p:] & (~two.ok[:p] | (energy[p:] < energy[:p]))
         pick = np.where(use_prior, np.arange(p) + p, np.arange(p))
+        matched_res = two_res.rows(pick)
         result = MatchResult(
             two.poses[pick],
             two.information[pick],
@@ -211,7 +214,7 @@ def improved_proposal(
             two.known_inlier_fraction[pick],
         )
     else:
-        result = match(
+        result, matched_res = match_with_residuals(
             field,
             window_index,
             points_xy,
@@ -224,6 +227,22 @@ def improved_proposal(
         )
     ok = result.ok
     centre = np.where(ok[:, None], result.poses, centre_prior)
+    # The residuals at the centres: the match's own where it was trusted (each pose's row depends on
+    # that pose alone), sampled afresh at the prior where it failed.
+    at_centres = matched_res
+    if not ok.all():
+        failed_rows = np.flatnonzero(~ok)
+        at_centres = matched_res.with_rows(
+            failed_rows,
+            residuals(
+                field,
+                window_index[failed_rows],
+                points_xy,
+                centre_prior[failed_rows],
+                normals_xy,
+                config.along_surface_weight,
+            ),
+        )
     # Grid steps: the Laplace standard deviations of the match (motion model's where matching failed).
     scale = config.sigma_hit_m**2 * config.proposal_temperature
     eye = np.eye(3)[None, :, :]
@@ -250,6 +269,7 @@ def improved_proposal(
         config.outlier_m,
         normals_xy,
         config.along_surface_weight,
+        at_centres,
     )
     if not ok.all():
         failed = np.flatnonzero(~ok)

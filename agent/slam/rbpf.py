@@ -61,9 +61,10 @@ from agent.slam.loops import (
     robot_frame_information,
     yaw_doubt,
 )
+from agent.slam.malloc import trim_heap
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
-from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
+from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import ProposalConfig, improved_proposal
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
@@ -446,9 +447,9 @@ class RbpfSlam:
 
     def _field(self, predicted: FloatArray, points_xy: FloatArray) -> tuple[DistanceField, IntArray]:
         cfg = self.config
-        world = transform_points(predicted, points_xy[None, :, :]).reshape(-1, 2)
-        lo = world.min(axis=0) - cfg.field_margin_m
-        hi = world.max(axis=0) + cfg.field_margin_m
+        lo, hi = transform_bounds(predicted, points_xy[None, :, :])
+        lo -= cfg.field_margin_m
+        hi += cfg.field_margin_m
         rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
         _groups, first, window_index = np.unique(self._groups, return_index=True, return_inverse=True)
         rows = self._map_rows(first.astype(np.int64))
@@ -565,6 +566,7 @@ class RbpfSlam:
         self._record(t_s, odom, parents)
         self.stats.updates += 1
         self._add_node(scan, parents, points, information)
+        trim_heap()  # a no-op unless this process asked for it (agent.slam.malloc.tune_malloc)
         return StepResult(
             StepKind.UPDATED,
             self._pose_at(None),
@@ -593,9 +595,9 @@ class RbpfSlam:
             rows = np.array([0])
             groups = np.zeros(cfg.particles, dtype=np.int64)
         local = np.vstack([scan.hit_xy, scan.fan_xy, np.array([scan.origin_xy])])
-        world = transform_points(self.poses[targets], local[None, :, :]).reshape(-1, 2)
-        lo = world.min(axis=0) - cfg.grid.resolution_m
-        hi = world.max(axis=0) + cfg.grid.resolution_m
+        lo, hi = transform_bounds(self.poses[targets], local[None, :, :])
+        lo -= cfg.grid.resolution_m
+        hi += cfg.grid.resolution_m
         rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
         # A few maps at a time: each window, its codes and its update are about one byte per cell, and a
         # 15 m scan's window is 640 x 640 cells (for 30 maps at once, 36 MB passing through the heap).
@@ -783,9 +785,9 @@ class RbpfSlam:
         rects = []
         for k, scan in enumerate(self._node_scans):
             local = np.vstack([scan.hit_xy, scan.fan_xy, np.array([scan.origin_xy])])
-            world = transform_points(poses[k][None, :], local[None, :, :]).reshape(-1, 2)
-            lo = world.min(axis=0) - cfg.grid.resolution_m
-            hi = world.max(axis=0) + cfg.grid.resolution_m
+            lo, hi = transform_bounds(poses[k][None, :], local[None, :, :])
+            lo -= cfg.grid.resolution_m
+            hi += cfg.grid.resolution_m
             rects.append(
                 TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
             )

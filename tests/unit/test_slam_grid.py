@@ -250,3 +250,24 @@ def test_grazing_corridor_walls_stay_obstacles_with_the_radish_miss() -> None:
     # exact poses).
     assert shares["radish"] > 0.5
     assert shares["default"] < 0.35
+
+
+def test_clear_hands_the_used_slots_back_and_the_maps_refill() -> None:
+    """After ``clear`` (a loop closure's rebuild) the used slots' pages go back to the kernel; the unknown
+    tile stays zero and maps written afterwards read back what was written."""
+    geometry = GridGeometry(tile_cells=32, tiles_per_side=16)
+    maps = TiledMaps(geometry, 2, initial_tiles=64)
+    rect = TileRect(0, 0, 4, 4)
+    maps.scatter([0, 1], rect, np.full((2, 128, 128), 7, dtype=np.int8), np.ones((2, 4, 4), dtype=bool))
+    assert maps.tiles_in_use() == 32
+    maps.clear()
+    assert maps.tiles_in_use() == 0
+    assert not maps.pool[UNKNOWN_TILE].any()
+    assert maps.gather([0, 1], rect).max() == 0
+    window = np.full((1, 128, 128), -2, dtype=np.int8)
+    touched = np.zeros((1, 4, 4), dtype=bool)
+    touched[0, 1, 2] = True
+    maps.scatter([0], rect, window, touched)
+    out = maps.gather([0, 1], rect)
+    assert (out[0, 32:64, 64:96] == -2).all() and (out[0, :32].max() == 0) and out[1].max() == 0
+    _consistent(maps)

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import mmap
 import platform
 import sys
 
 import numpy as np
 
-from agent.slam.malloc import tune_malloc
+from agent.slam.malloc import release_pages, tune_malloc
 
 
 def test_the_thresholds_are_set_on_glibc_and_large_arrays_still_work() -> None:
@@ -18,3 +19,21 @@ def test_the_thresholds_are_set_on_glibc_and_large_arrays_still_work() -> None:
         a = np.ones(size, dtype=np.uint8)
         assert int(a.sum()) == size
         del a
+
+
+def test_release_pages_drops_whole_pages_only() -> None:
+    """The whole pages inside a buffer read back as zeros once released; the bytes before its first page
+    boundary and after its last (shared with whatever lies beside it) keep their values."""
+    page = mmap.PAGESIZE
+    a = np.ones(6 * page, dtype=np.uint8)
+    view = a[100 : 5 * page + 100]
+    released = release_pages(view)
+    assert released is sys.platform.startswith("linux")
+    start = view.ctypes.data
+    first = -(-start // page) * page - start  # offsets within the view
+    last = (start + view.nbytes) // page * page - start
+    if released:
+        assert not view[first:last].any()
+        assert view[:first].all() and view[last:].all()
+    assert a[:100].all() and a[5 * page + 100 :].all()
+    assert release_pages(np.ones((4, 4), dtype=np.uint8)[:, ::2]) is False  # not contiguous

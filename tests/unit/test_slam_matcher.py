@@ -245,6 +245,55 @@ def test_stack_field_is_each_window_field() -> None:
         np.testing.assert_array_equal(stack.medial[k], alone.medial[0])
 
 
+def _whole_window_field(
+    obstacles: np.ndarray, known: np.ndarray, cap_m: float, resolution_m: float
+) -> np.ndarray:
+    """The padded distance stack as ``from_windows`` built it before it cropped to the known box: the
+    transform and the dilation over every window's whole canvas."""
+    import cv2
+
+    from agent.slam.matcher import UNKNOWN
+
+    u, h, w = obstacles.shape
+    out = np.empty((u, h + 2, w + 2), dtype=np.float32)
+    for k in range(u):
+        canvas = np.ones((h + 2, w + 2), dtype=np.uint8)
+        canvas[1:-1, 1:-1] = ~obstacles[k]
+        cv2.distanceTransform(canvas, cv2.DIST_L2, 5, dst=out[k])
+        canvas[...] = 0
+        canvas[1:-1, 1:-1] = known[k]
+        near = cv2.dilate(canvas, np.ones((3, 3), np.uint8))
+        np.copyto(out[k], np.float32(UNKNOWN / resolution_m), where=near == 0)
+    out *= np.float32(resolution_m)
+    np.minimum(out, np.float32(cap_m), out=out)
+    out[:, 0, :] = out[:, -1, :] = cap_m
+    out[:, :, 0] = out[:, :, -1] = cap_m
+    return out
+
+
+def test_field_cropped_to_the_known_box_is_the_whole_windows_bit_for_bit() -> None:
+    """The transform runs on the box of the known cells and obstacles only: every cell as over the
+    whole window (boxes touching each edge, a box in the middle, an empty window, a lone obstacle)."""
+    rng = np.random.default_rng(7)
+    u, h, w = 8, 70, 90
+    obstacles = rng.random((u, h, w)) < 0.03
+    known = rng.random((u, h, w)) < 0.9
+    boxes = [(0, 40, 0, 50), (30, 70, 40, 90), (10, 60, 20, 70), (0, 70, 0, 90), (5, 6, 80, 90)]
+    for k, (r0, r1, c0, c1) in enumerate(boxes):
+        inside = np.zeros((h, w), dtype=bool)
+        inside[r0:r1, c0:c1] = True
+        known[k] &= inside
+        obstacles[k] &= known[k]
+    known[5] = obstacles[5] = False  # nothing mapped
+    known[6] = False
+    obstacles[6] = False
+    obstacles[6, 35, 45] = known[6, 35, 45] = True  # one obstacle
+    obstacles[7, 0:70:7, :] = True  # walls to the edges, some cells not marked known
+    for cap in (0.55, 5.0):
+        field = DistanceField.from_obstacles(obstacles, (1.0, 2.0), RES, cap, known)
+        np.testing.assert_array_equal(field.distance_m, _whole_window_field(obstacles, known, cap, RES))
+
+
 def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     """The codes a lookup computes for its cells are the whole stack's (walls one and two cells thick,
     along either axis, clutter, unknown cells)."""
