@@ -57,7 +57,7 @@ from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_points, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
-from agent.slam.proposal import ProposalConfig, improved_proposal
+from agent.slam.proposal import ProposalConfig, improved_proposal, travel_reversed
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
@@ -115,9 +115,19 @@ class RbpfConfig:
     history_limit: int | None = 10_000
     # Loop closure against the map built long ago, into a pose graph (``agent.slam.loops``); None: off.
     loop_closure: LoopClosureConfig | None = field(default_factory=LoopClosureConfig)
+    # The direction-of-travel check (``proposal.travel_reversed``): at an update whose odometry translation
+    # reaches ``REVERSAL_MIN_M``, the leading particle is matched from the odometry's prediction and from
+    # the one with the translation reversed, and where the reversed match's truncated energy is below
+    # this ratio times the forward one's, the update takes the reversed increment for every particle.
+    # None: off (the default: wheel odometry knows which way it turned). For odometry rebuilt from
+    # unsigned increments (the radish logs: FR079's robot backs 3 m out of a room at records 1372-1400
+    # while its odometry drives on forward). docs/slam.md, "Scan matching".
+    reversal_ratio: float | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.reversal_ratio is not None and not 0.0 < self.reversal_ratio <= 1.0:
+            raise ValueError("reversal_ratio must be in (0, 1] (or None)")
         if self.particles < 1:
             raise ValueError("particles must be >= 1")
         if not 0.0 < self.resample_threshold <= 1.0:
@@ -154,6 +164,7 @@ class FilterStats:
     updates: int = 0
     resamples: int = 0
     match_failures: int = 0
+    reversals: int = 0  # updates whose odometry translation the scan reversed (RbpfConfig.reversal_ratio)
     fixes_applied: int = 0
     loop_checks: int = 0
     loop_closures: int = 0
@@ -206,6 +217,9 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
 
 # Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
 _INTEGRATE_CELLS = 2_000_000
+# The direction-of-travel check (RbpfConfig.reversal_ratio) runs at updates that translate at least this
+# far: below it the two predictions are within the match's first robust bound of each other anyway.
+REVERSAL_MIN_M = 0.1
 
 
 def _no_wait() -> None:
@@ -495,8 +509,39 @@ class RbpfSlam:
             matched = np.zeros(cfg.particles, dtype=bool)
         else:
             predicted = compose(self.poses, increment[None, :])
-            field, window_index = self._field(predicted, points)
+            check = (
+                cfg.reversal_ratio is not None
+                and math.hypot(increment[0], increment[1]) >= REVERSAL_MIN_M
+            )
+            lead = self.best_index
+            reversed_lead = compose(self.poses[lead], increment * np.array([-1.0, -1.0, 1.0]))
+            field, window_index = self._field(
+                np.vstack([predicted, reversed_lead[None, :]]) if check else predicted, points
+            )
             self.give_way()
+            if check:
+                assert cfg.reversal_ratio is not None
+                travel = travel_reversed(
+                    field,
+                    int(window_index[lead]),
+                    points,
+                    self.poses[lead],
+                    increment,
+                    cfg.noise,
+                    cfg.proposal,
+                    cfg.reversal_ratio,
+                    normals,
+                )
+                log.debug(
+                    "travel check at update %d: energy forward %.4f, reversed %.4f",
+                    self.stats.updates,
+                    travel.energy_forward,
+                    travel.energy_reversed,
+                )
+                if travel.reversed:
+                    increment = increment * np.array([-1.0, -1.0, 1.0])
+                    predicted = compose(self.poses, increment[None, :])
+                    self.stats.reversals += 1
             measurement = None
             if self._pending_fixes:
                 # The fixes join the proposal (and so eta): see ``improved_proposal``.
