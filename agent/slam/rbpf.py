@@ -510,8 +510,7 @@ class RbpfSlam:
         else:
             predicted = compose(self.poses, increment[None, :])
             check = (
-                cfg.reversal_ratio is not None
-                and math.hypot(increment[0], increment[1]) >= REVERSAL_MIN_M
+                cfg.reversal_ratio is not None and math.hypot(increment[0], increment[1]) >= REVERSAL_MIN_M
             )
             lead = self.best_index
             reversed_lead = compose(self.poses[lead], increment * np.array([-1.0, -1.0, 1.0]))
