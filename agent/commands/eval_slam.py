@@ -478,6 +478,7 @@ def run(args: argparse.Namespace) -> int:
         "map_mb": _round(slam.maps.used_bytes() / 1e6),
         "resamples": slam.stats.resamples,
         "match_failures": slam.stats.match_failures,
+        "reversals": slam.stats.reversals,
         "loop_closure": args.loop_closure,
         "loop_checks": slam.stats.loop_checks,
         "loop_closures": slam.stats.loop_closures,
@@ -685,7 +686,7 @@ def _print_table(s: dict[str, Any]) -> None:
     print(f"  particles          {s['particles']} ({s['map_mode']} maps)")
     print(
         f"  filter updates     {s['updates']}, {s['resamples']} resamplings, "
-        f"{s['match_failures']} failed matches"
+        f"{s['match_failures']} failed matches, {s['reversals']} odometry translations reversed"
     )
     print(
         f"  update time        median {s['update_ms_median']} ms, p95 {s['update_ms_p95']} ms, "
