@@ -1366,6 +1366,9 @@ class _Reader:
                 "search_yaw_rad", d.search_yaw_rad, (lambda v: 0 < v <= math.pi, "must be in (0, pi]")
             ),
             odometry_noise=self._odometry_noise(t),
+            reversal_ratio=t.number("reversal_ratio", 0.5, (lambda v: 0 < v <= 1, "must be in (0, 1]"))
+            if t.has("reversal_ratio")
+            else None,
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

@@ -68,6 +68,10 @@ class SlamConfig:
     # (RbpfConfig.search_increment_rad), over +-search_yaw_rad (SearchConfig.yaw_range_rad)
     search_increment_rad: float = 0.5
     search_yaw_rad: float = 0.2
+    # The direction-of-travel check (RbpfConfig.reversal_ratio): the scan may reverse an update's odometry
+    # translation when the reversed prediction's match energy is below this ratio of the forward one's;
+    # None: off (wheel odometry knows its sign; the radish logs' rebuilt odometry does not)
+    reversal_ratio: float | None = None
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's

@@ -89,12 +89,23 @@ FREE_MARGIN_M: dict[str, float | None] = {"breezyslam": None, "radish": None, "s
 SPARSE_SEARCH_INCREMENT_RAD = 0.19
 SPARSE_SEARCH_YAW_RAD = 0.45
 MISS_LOG_ODDS = {"breezyslam": -0.4, "radish": -0.1, "simulated": -0.4, "mcap": -0.4}
+# RbpfConfig.reversal_ratio per format (None: off). The radish logs' odometry is rebuilt from the logs'
+# increments without their sign: FR079's reference drives backwards in 249 steps, its odometry in 2 (it
+# drives on forward), 8.7 m in all, 3.1 m of it at records 1372-1400, where the robot backs out of a room
+# into the corridor and the match, 0.6 m per update from the prediction, followed the odometry: the rooms
+# east of there were mapped 5-10 m south. The lead particle's match from the reversed prediction has a
+# truncated energy 0.07-0.3 of the forward one's at the true reversals there (0.69 or more at every update
+# of the whole log without a backward step of the reference's, and a false reversal costs twice the
+# step), hence 0.5; the check runs only after a standstill (rbpf.REVERSAL_WINDOW_M). FR079 seed 0
+# ate_aligned_m 3.586 -> 0.197 m. Wheel odometry (the URG logs, the simulated robot, a recording) knows
+# its sign. docs/slam.md, "Scan matching".
+REVERSAL_RATIO: dict[str, float | None] = {"breezyslam": None, "radish": 0.5, "simulated": None, "mcap": None}
 
 
 def front_end(source_format: str) -> Any:
     """The ``[slam]`` front-end keys (an ``agent.config_slam.SlamConfig``, its other keys at their defaults)
     ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``,
-    ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, the
+    ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, ``REVERSAL_RATIO``, the
     simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
     trusted on 10 endpoints whatever their share, from both starts, a failed match drawn near the
     odometry prediction and the correlative search at turns over a wider yaw window. The
@@ -109,6 +120,7 @@ def front_end(source_format: str) -> Any:
         degenerate_noise_scale=DEGENERATE_NOISE_SCALE[source_format],
         free_margin_m=FREE_MARGIN_M[source_format],
         miss_log_odds=MISS_LOG_ODDS[source_format],
+        reversal_ratio=REVERSAL_RATIO[source_format],
     )
     if source_format == "simulated":
         from agent.slam.simlog import MOTION_NOISE
@@ -468,6 +480,7 @@ def run(args: argparse.Namespace) -> int:
         "map_mb": _round(slam.maps.used_bytes() / 1e6),
         "resamples": slam.stats.resamples,
         "match_failures": slam.stats.match_failures,
+        "reversals": slam.stats.reversals,
         "loop_closure": args.loop_closure,
         "loop_checks": slam.stats.loop_checks,
         "loop_closures": slam.stats.loop_closures,
@@ -675,7 +688,7 @@ def _print_table(s: dict[str, Any]) -> None:
     print(f"  particles          {s['particles']} ({s['map_mode']} maps)")
     print(
         f"  filter updates     {s['updates']}, {s['resamples']} resamplings, "
-        f"{s['match_failures']} failed matches"
+        f"{s['match_failures']} failed matches, {s['reversals']} odometry translations reversed"
     )
     print(
         f"  update time        median {s['update_ms_median']} ms, p95 {s['update_ms_p95']} ms, "

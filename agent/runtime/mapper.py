@@ -84,14 +84,15 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
 
 def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
     """The ``agent.slam.rbpf.RbpfConfig`` fields the ``[slam]`` front-end keys set: ``noise``,
-    ``free_margin_m``, ``log_odds``, ``search_increment_rad`` and ``proposal`` (``base_proposal`` with the
-    match's keys, ``front_end_proposal``). The agent's mapping filter and ``vlp-agent eval slam`` are both
-    configured with it."""
+    ``free_margin_m``, ``log_odds``, ``search_increment_rad``, ``reversal_ratio`` and ``proposal``
+    (``base_proposal`` with the match's keys, ``front_end_proposal``). The agent's mapping filter and
+    ``vlp-agent eval slam`` are both configured with it."""
     return {
         "noise": front_end_noise(config),
         "free_margin_m": config.free_margin_m,
         "log_odds": front_end_log_odds(config),
         "search_increment_rad": config.search_increment_rad,
+        "reversal_ratio": config.reversal_ratio,
         "proposal": front_end_proposal(config, base_proposal),
     }
 

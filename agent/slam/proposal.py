@@ -30,6 +30,7 @@ p(z | m, x) is tempered, log p / T, because neighbouring beams are not independe
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -419,3 +420,74 @@ def laplace_log_eta(
         f0 + 0.5 * np.einsum("pi,pi->p", grad, solved) - 0.5 * log_det + 1.5 * np.log(2.0 * np.pi)
     )
     return out
+
+
+@dataclass(frozen=True)
+class TravelCheck:
+    """:func:`travel_reversed`'s verdict and the two truncated energies it compared (the match from the
+    odometry's prediction, and from the prediction with the translation reversed)."""
+
+    reversed: bool
+    energy_forward: float
+    energy_reversed: float
+
+
+def travel_reversed(
+    field: DistanceField,
+    window: int,
+    points_xy: FloatArray,
+    previous: FloatArray,
+    increment: FloatArray,
+    noise: OdometryNoise,
+    config: ProposalConfig,
+    ratio: float,
+    normals_xy: FloatArray | None = None,
+) -> TravelCheck:
+    """Whether the scan says the robot drove the odometry increment's translation the other way.
+
+    One particle (``previous``, (3,), with its map's ``window`` of ``field``) is matched twice: from
+    x ⊕ u and from x ⊕ ū, where ū is ``increment`` with its translation reversed (the same turn), each
+    under the motion prior centred on its own prediction (the proposal's prior, so a scan the match
+    cannot place, a featureless corridor, costs both the same). Reversed when the reversed match is
+    trusted and its truncated energy (:func:`agent.slam.matcher.truncated_energy`, each with its own
+    prior) is below ``ratio`` times the forward one's. Odometry rebuilt from unsigned increments (the
+    radish logs': the robot backs out of a room and the odometry drives on forward) puts the prediction
+    twice the step off, beyond Gauss-Newton's reach, and the match follows the odometry."""
+    reversed_increment = increment * np.array([-1.0, -1.0, 1.0])
+    predicted = compose(np.broadcast_to(previous, (2, 3)), np.stack([increment, reversed_increment]))
+    # The same prior for both (the motion model's spread does not depend on the direction of travel,
+    # and the turn is the same), rotated into the world frame at the predicted heading.
+    sig = noise.sigmas(increment)
+    c, s = math.cos(predicted[0, 2]), math.sin(predicted[0, 2])
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    prior = (
+        config.prior_weight
+        * config.sigma_hit_m**2
+        * config.proposal_temperature
+        * (rot @ np.diag(1.0 / sig**2) @ rot.T)
+    )
+    windows = np.full(2, window, dtype=np.int64)
+    result = match(
+        field,
+        windows,
+        points_xy,
+        predicted,
+        config.matcher,
+        prior,
+        centre=predicted,
+        normals_xy=normals_xy,
+        along_weight=config.along_surface_weight,
+    )
+    energy = truncated_energy(
+        field,
+        windows,
+        points_xy,
+        result.poses,
+        config.matcher.stages[-1][0],
+        prior,
+        predicted,
+        normals_xy,
+        config.along_surface_weight,
+    )
+    forward, backward = float(energy[0]), float(energy[1])
+    return TravelCheck(bool(result.ok[1]) and backward < ratio * forward, forward, backward)

@@ -66,7 +66,7 @@ from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
-from agent.slam.proposal import ProposalConfig, improved_proposal
+from agent.slam.proposal import ProposalConfig, improved_proposal, travel_reversed
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
@@ -124,9 +124,20 @@ class RbpfConfig:
     history_limit: int | None = 10_000
     # Loop closure against the map built long ago, into a pose graph (``agent.slam.loops``); None: off.
     loop_closure: LoopClosureConfig | None = field(default_factory=LoopClosureConfig)
+    # The direction-of-travel check (``proposal.travel_reversed``): at an update whose odometry translation
+    # reaches ``REVERSAL_MIN_M`` soon after a standstill (``REVERSAL_WINDOW_M``), the leading particle is
+    # matched from the odometry's prediction and from the one with the translation reversed, and where the
+    # reversed match's truncated energy is below this ratio times the other's, every particle takes the
+    # reversed increment, at this update and at the next ones until the check runs again.
+    # None: off (the default: wheel odometry knows which way it turned). For odometry rebuilt from
+    # unsigned increments (the radish logs: FR079's robot backs 3 m out of a room at records 1372-1400
+    # while its odometry drives on forward). docs/slam.md, "Scan matching".
+    reversal_ratio: float | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.reversal_ratio is not None and not 0.0 < self.reversal_ratio <= 1.0:
+            raise ValueError("reversal_ratio must be in (0, 1] (or None)")
         if self.particles < 1:
             raise ValueError("particles must be >= 1")
         if not 0.0 < self.resample_threshold <= 1.0:
@@ -163,6 +174,7 @@ class FilterStats:
     updates: int = 0
     resamples: int = 0
     match_failures: int = 0
+    reversals: int = 0  # checks that reversed the direction of travel (RbpfConfig.reversal_ratio)
     fixes_applied: int = 0
     loop_checks: int = 0
     loop_closures: int = 0
@@ -215,6 +227,18 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
 
 # Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
 _INTEGRATE_CELLS = 2_000_000
+# The direction-of-travel check (RbpfConfig.reversal_ratio) runs at updates that translate at least
+# REVERSAL_MIN_M (below it the two predictions are within the match's first robust bound of each other
+# anyway), and only within REVERSAL_WINDOW_M of odometry path after a standstill: a robot changes its
+# direction of travel only from rest, so the check is not run where the odometry shows it moving on (ACES,
+# one record per ~1 m: a corridor update whose forward match fitted badly was once reversed, 2 m off, and
+# seed 0 went from 0.28 to 0.48 m). A standstill is a record whose odometry moved slower than
+# REVERSAL_STOP_M_S since the record before (FR079 cruises at ~0.4 m/s; every one of its backward runs
+# follows a record under 0.065 m/s within the 8 before it). The direction the check chose holds until it
+# runs again; at each check the odometry's direction is the default.
+REVERSAL_MIN_M = 0.1
+REVERSAL_WINDOW_M = 1.0
+REVERSAL_STOP_M_S = 0.07
 
 
 def _no_wait() -> None:
@@ -244,6 +268,11 @@ class RbpfSlam:
         self._odom_correction: FloatArray = np.zeros(3)
         self._update_odom: FloatArray | None = None  # (corrected) odometry at the last filter update
         self._last_odom: FloatArray | None = None  # (corrected) odometry of the last accepted scan
+        self._last_t_s: float | None = None  # the time of the last accepted scan
+        # The direction of travel (RbpfConfig.reversal_ratio): +1 the odometry's, -1 reversed; and the
+        # odometry path since the last standstill.
+        self._direction = 1.0
+        self._since_stop_m = 0.0
         self._pending_fixes: list[tuple[PoseFix, FloatArray]] = []
         # Per update: poses (P, 3) after resampling, parent index of each in the previous update, time,
         # odometry. Bounded by ``history_limit`` on board; the oldest entries go first.
@@ -324,7 +353,15 @@ class RbpfSlam:
             beam_offsets = sweep_offsets(
                 self.laser, t_s - self.gate.previous_t_s, between(self._last_odom, odom)
             )
+        if self._last_odom is not None and self._last_t_s is not None:
+            moved = between(self._last_odom, odom)
+            step_m = math.hypot(moved[0], moved[1])
+            if step_m < REVERSAL_STOP_M_S * (t_s - self._last_t_s):
+                self._since_stop_m = 0.0
+            else:
+                self._since_stop_m += step_m
         self._last_odom = odom
+        self._last_t_s = t_s
         increment = np.zeros(3)
         if self._started:
             assert self._update_odom is not None
@@ -499,6 +536,16 @@ class RbpfSlam:
     def _update(self, t_s: float, scan: ScanPoints, odom: FloatArray, increment: FloatArray) -> StepResult:
         cfg = self.config
         points, normals = self._match_points(scan)
+        flip = np.array([-1.0, -1.0, 1.0])
+        check = (
+            cfg.reversal_ratio is not None
+            and math.hypot(increment[0], increment[1]) >= REVERSAL_MIN_M
+            and self._since_stop_m <= REVERSAL_WINDOW_M
+        )
+        if check:
+            self._direction = 1.0  # the odometry's direction, unless the scan clearly says otherwise
+        elif self._direction < 0:
+            increment = increment * flip
         fixes_weighted = False
         if points.shape[0] < cfg.proposal.matcher.min_inliers:
             # Too little structure to match: move by the motion model only, keep the weights.
@@ -508,8 +555,36 @@ class RbpfSlam:
             information = None
         else:
             predicted = compose(self.poses, increment[None, :])
-            field, window_index = self._field(predicted, points)
+            lead = self.best_index
+            reversed_lead = compose(self.poses[lead], increment * flip)
+            field, window_index = self._field(
+                np.vstack([predicted, reversed_lead[None, :]]) if check else predicted, points
+            )
             self.give_way()
+            if check:
+                assert cfg.reversal_ratio is not None
+                travel = travel_reversed(
+                    field,
+                    int(window_index[lead]),
+                    points,
+                    self.poses[lead],
+                    increment,
+                    cfg.noise,
+                    cfg.proposal,
+                    cfg.reversal_ratio,
+                    normals,
+                )
+                log.debug(
+                    "travel check at update %d: energy forward %.4f, reversed %.4f",
+                    self.stats.updates,
+                    travel.energy_forward,
+                    travel.energy_reversed,
+                )
+                if travel.reversed:
+                    increment = increment * flip
+                    predicted = compose(self.poses, increment[None, :])
+                    self._direction = -1.0
+                    self.stats.reversals += 1
             measurement = None
             if self._pending_fixes:
                 # The fixes join the proposal (and so eta): see ``improved_proposal``.

@@ -48,7 +48,8 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
         'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
         "miss_log_odds = -0.1\nsearch_increment_rad = 0.19\nsearch_yaw_rad = 0.45\n"
-        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nprocess = false\n"
+        "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nreversal_ratio = 0.5\n"
+        "process = false\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3)
@@ -66,7 +67,9 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     assert built.free_margin_m == 0.1
     assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
     assert built.proposal.search is not None and built.proposal.search.yaw_range_rad == 0.45
+    assert built.reversal_ratio == 0.5 == front_end("radish").reversal_ratio
     assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
+    assert SlamConfig().reversal_ratio is None and front_end("breezyslam").reversal_ratio is None
 
 
 _FRONT_END_KEYS = (
@@ -79,6 +82,7 @@ _FRONT_END_KEYS = (
     "miss_log_odds",
     "search_increment_rad",
     "search_yaw_rad",
+    "reversal_ratio",
 )
 
 
@@ -97,6 +101,8 @@ _FRONT_END_KEYS = (
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
         ("free_margin_m = -0.01", "slam.free_margin_m"),
+        ("reversal_ratio = 0", "slam.reversal_ratio"),
+        ("reversal_ratio = 1.5", "slam.reversal_ratio"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:
