@@ -46,6 +46,7 @@ from agent.slam.matcher import (
     correlative_search,
     linearized_log_likelihood,
     log_likelihood_quadratic,
+    match,
     match_with_residuals,
     residuals,
     scan_log_likelihood,
