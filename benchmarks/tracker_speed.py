@@ -1,7 +1,7 @@
 """The person tracker's cost per 640 x 480 frame while tracking, and the head-shoulder pre-locator's cost
 when it runs, on one core. Prints one JSON object.
 
-    python benchmarks/tracker_speed.py [--frames 120] [--repeats 5]
+    python benchmarks/tracker_speed.py [--frames 120] [--repeats 5] [--scale-search contrast|ladder]
 
 Budgets (issue 23): the fine layer <= 5 ms median per 640 x 480 frame while tracking; the pre-locator
 <= 30 ms. The frames are the synthetic scene (``agent.following.synthetic``, no passer-by) at 640 x 480 with
@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.following.meanshift import Features, MeanShiftTracker, Silhouette, TrackerConfig
+from agent.following.meanshift import Features, MeanShiftTracker, ScaleSearch, Silhouette, TrackerConfig
 from agent.following.prelocate import HeadShoulderLocator, LocatorKind, PreLocatorConfig
 from agent.following.synthetic import CrossingScene, crossing_sequence
 
@@ -50,7 +50,9 @@ def _ms(samples: list[float]) -> dict[str, float]:
     }
 
 
-def tracker_case(size: tuple[int, int], silhouette: Silhouette, frames: int) -> dict[str, object]:
+def tracker_case(
+    size: tuple[int, int], silhouette: Silhouette, frames: int, scale: ScaleSearch
+) -> dict[str, object]:
     scene = CrossingScene(
         width_px=640,
         height_px=480,
@@ -70,7 +72,9 @@ def tracker_case(size: tuple[int, int], silhouette: Silhouette, frames: int) -> 
     plain_ms = statistics.median(plain)
     out["plain_pass_ms_median"] = round(plain_ms, 3)
     for features in Features:
-        tracker = MeanShiftTracker(TrackerConfig(features=features, silhouette=silhouette))
+        tracker = MeanShiftTracker(
+            TrackerConfig(features=features, silhouette=silhouette, scale_search=scale)
+        )
         tracker.start(sequence[0][0], sequence[0][1])
         times = []
         tracking = 0
@@ -147,7 +151,7 @@ def rendered_frames(frames: int) -> list[np.ndarray]:
     return out
 
 
-def fine_layer_case(frames: int) -> dict[str, object]:
+def fine_layer_case(frames: int, scale: ScaleSearch) -> dict[str, object]:
     """The fine layer as ``eval follow`` runs it (HSV colour, Omega silhouette, the omega pre-locator
     correcting the box every 3 frames) on rendered frames: per frame, the tracker alone and the whole layer
     (pre-locator frames included), with this thread's CPU time beside the wall time."""
@@ -168,7 +172,10 @@ def fine_layer_case(frames: int) -> dict[str, object]:
     for features in Features:
         config = FineLayerConfig(
             tracker=TrackerConfig(
-                features=features, silhouette=Silhouette.OMEGA, colour_space=ColourSpace.HSV
+                features=features,
+                silhouette=Silhouette.OMEGA,
+                colour_space=ColourSpace.HSV,
+                scale_search=scale,
             )
         )
         layer = FineLayer(HeadShoulderLocator(PreLocatorConfig(kind=LocatorKind.OMEGA)), config)
@@ -197,14 +204,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=120, help="frames per tracker case (default 120)")
     parser.add_argument("--repeats", type=int, default=5, help="pre-locator calls per case (default 5)")
+    parser.add_argument(
+        "--scale-search",
+        choices=[s.value for s in ScaleSearch],
+        default=TrackerConfig().scale_search.value,
+        help="the trackers' scale_search (default: TrackerConfig's)",
+    )
     args = parser.parse_args()
+    scale = ScaleSearch(args.scale_search)
     cv2.setNumThreads(1)
     result: dict[str, object] = {
         "frame_px": [640, 480],
         "budget_ms": {"tracker_median": 5.0, "prelocator": 30.0},
-        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames),
-        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames),
-        "fine_layer_rendered": fine_layer_case(args.frames),
+        "scale_search": scale.value,
+        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames, scale),
+        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames, scale),
+        "fine_layer_rendered": fine_layer_case(args.frames, scale),
         "prelocator": prelocator_case(args.repeats),
     }
     print(json.dumps(result, indent=2))
