@@ -52,6 +52,7 @@ import numpy.typing as npt
 
 from agent.following.lbp import RIU2_LABELS, RIU2_LUT, U2_LABELS, U2_LUT, lbp_codes
 from agent.following.scale import ScaleFilter, ScaleFilterConfig
+from agent.following.translation import TranslationFilter, TranslationFilterConfig
 
 __all__ = [
     "ColourSpace",
@@ -123,6 +124,18 @@ class ScaleSearch(enum.StrEnum):
     LADDER = "ladder"
 
 
+class Translation(enum.StrEnum):
+    """What DSST's translation filter (agent.following.translation: learnt at the start box, then at the
+    body it finds each tracking frame) does beside the mean shift, which stays the tracker."""
+
+    NONE = "none"  # not run
+    # It finds the body's offset from the converged mean-shift centre; the scale filter's ladder is read
+    # and learnt there (scale_search=ladder only).
+    PLACE = "place"
+    # The same, and the reported box is centred there too (the mean shift climbs on from its own centre).
+    REFINE = "refine"
+
+
 class TrackState(enum.StrEnum):
     TRACKING = "tracking"
     OCCLUDED = "occluded"  # rho too low: coasting on the motion model, searching each frame
@@ -167,6 +180,10 @@ class TrackerConfig:
     scale_learning_rate: float = 0.025
     scale_sigma_factor: float = 0.25
     scale_template_area: int = 512
+    translation: Translation = Translation.NONE
+    # translation != none: the translation filter's template area for the target's part, pixels
+    # (agent.following.translation.TranslationFilterConfig; its other values are DSST's).
+    translation_template_area: int = 2048
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
@@ -198,8 +215,11 @@ class TrackerConfig:
                 "need distractor_offset > 0, distractor_ratio > 0, 0 <= distractor_forget <= 1, "
                 "distractor_near >= 0, distractor_near_ratio > 0"
             )
-        # The ladder's own checks, at construction rather than at the first frame.
+        # The filters' own checks, at construction rather than at the first frame.
         self.scale_filter_config()
+        self.translation_filter_config()
+        if self.translation == Translation.PLACE and self.scale_search != ScaleSearch.LADDER:
+            raise ValueError("translation=place places the scale ladder: it needs scale_search=ladder")
         if self.background_every < 1:
             raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
@@ -214,6 +234,10 @@ class TrackerConfig:
             sigma_factor=self.scale_sigma_factor,
             max_area=self.scale_template_area,
         )
+
+    def translation_filter_config(self) -> TranslationFilterConfig:
+        """The translation filter's configuration (``translation`` != none)."""
+        return TranslationFilterConfig(max_area=self.translation_template_area)
 
 
 @dataclass(frozen=True)
@@ -325,6 +349,8 @@ class MeanShiftTracker:
         self._ladder: ScaleFilter | None = None
         if self.config.scale_search == ScaleSearch.LADDER:
             self._ladder = ScaleFilter(self.config.scale_filter_config())
+        self._translation: TranslationFilter | None = None
+        self._offset = np.zeros(2)  # the translation filter's body from the mean-shift centre (x, y)
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = False
@@ -333,7 +359,10 @@ class MeanShiftTracker:
 
     @property
     def box(self) -> FloatArray:
-        return np.concatenate([self._centre - self._size / 2.0, self._size])
+        centre = self._centre
+        if self.config.translation == Translation.REFINE:
+            centre = centre + self._offset
+        return np.concatenate([centre - self._size / 2.0, self._size])
 
     @property
     def feature_weights(self) -> tuple[float, float]:
@@ -360,6 +389,12 @@ class MeanShiftTracker:
         if self.config.scale_search == ScaleSearch.LADDER:
             # Learnt from the first tracking frame on (``_accept``), not here: see there.
             self._ladder = ScaleFilter(self.config.scale_filter_config())
+        self._offset = np.zeros(2)
+        self._translation = None
+        if self.config.translation != Translation.NONE:
+            # Learnt at the start box: the target as given, not the colour model's mode.
+            self._translation = TranslationFilter(self.config.translation_filter_config())
+            self._translation.start(frame, self._centre, self._size)
         if self._distractor_weighting:
             self._exponents = self._ring_exponents
         self._rho_ref = 1.0
@@ -377,6 +412,8 @@ class MeanShiftTracker:
         cfg = self.config
         x, y, w, h = (float(b) for b in box)
         centre = np.array([x + w / 2.0, y + h / 2.0])
+        if cfg.translation == Translation.REFINE:
+            centre = centre - self._offset  # the reported box is the mean shift's plus the offset
         self._centre = self._centre + gain * (centre - self._centre)
         size = self._size + gain * (np.array([w, h]) - self._size)
         self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
@@ -415,6 +452,12 @@ class MeanShiftTracker:
 
     def _accept(self, frame: ImageU8, window: _Window, centre: FloatArray, ev: _Evaluation) -> None:
         cfg = self.config
+        body = centre
+        if self._translation is not None:
+            # Where the target as learnt sits in the window around the converged centre.
+            self._offset, _ = self._translation.estimate(frame, centre, self._size)
+            body = centre + self._offset
+        ladder_centre = body if cfg.translation != Translation.NONE else centre
         if self._ladder is None:
             self._scale(window, centre, ev)
         elif not self._ladder.started:
@@ -423,9 +466,9 @@ class MeanShiftTracker:
             # sits 10-17 px above it from the second frame on), and a ladder learnt at one centre and
             # read at another takes the offset for a change of scale (measured: Woman's box grew from 95
             # to 117 px in 22 frames, the truth's 95-96).
-            self._ladder.start(frame, centre, self._size)
+            self._ladder.start(frame, ladder_centre, self._size)
         else:
-            factor, _ = self._ladder.estimate(frame, centre, self._size)
+            factor, _ = self._ladder.estimate(frame, ladder_centre, self._size)
             size = self._size * factor
             self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
         step = centre - self._centre
@@ -443,7 +486,9 @@ class MeanShiftTracker:
             self._updates += 1
             if self._ladder is not None:
                 # The scale filter learns where the colour model does: on confident frames only.
-                self._ladder.learn(frame, centre, self._size)
+                self._ladder.learn(frame, ladder_centre, self._size)
+            if self._translation is not None:
+                self._translation.learn(frame, body, self._size)
             if self._updates % cfg.background_every == 0:
                 self._background(window)
             else:
