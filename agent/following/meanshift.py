@@ -183,7 +183,7 @@ class TrackerConfig:
     translation: Translation = Translation.NONE
     # translation != none: the translation filter's template area for the target's part, pixels
     # (agent.following.translation.TranslationFilterConfig; its other values are DSST's).
-    translation_template_area: int = 2048
+    translation_template_area: int = 1024
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
@@ -488,7 +488,8 @@ class MeanShiftTracker:
                 # The scale filter learns where the colour model does: on confident frames only.
                 self._ladder.learn(frame, ladder_centre, self._size)
             if self._translation is not None:
-                self._translation.learn(frame, body, self._size)
+                # At the body it found: this frame's patch, the desired peak moved to the offset.
+                self._translation.learn_last(self._offset)
             if self._updates % cfg.background_every == 0:
                 self._background(window)
             else:

@@ -69,6 +69,8 @@ class TranslationFilter:
         self._window = np.ones((3, 3))
         self._num: npt.NDArray[np.complex128] | None = None
         self._den: FloatArray | None = None
+        self._last: FloatArray | None = None  # the last estimate's cells, not windowed
+        self._last_patch = (1.0, 1.0)  # ... and its size in frame pixels
 
     @property
     def started(self) -> bool:
@@ -91,7 +93,7 @@ class TranslationFilter:
         dx = _signed(cols)[None, :]
         g = np.exp(-0.5 * (dx * dx + dy * dy) / sigma**2)
         self._g_hat = np.fft.fft2(g)
-        self._window = np.hanning(rows + 2)[1:-1, None] * np.hanning(cols + 2)[None, 1:-1]
+        self._window = _hann(rows, 0.0)[:, None] * _hann(cols, 0.0)[None, :]
         self._num = None
         self._den = None
         self.learn(frame, centre, size)
@@ -102,7 +104,9 @@ class TranslationFilter:
         from alone, lower as the target's look changes)."""
         if self._num is None or self._den is None:
             raise RuntimeError("TranslationFilter.estimate before start")
-        z_hat = np.fft.fft2(self._features(frame, centre, size), axes=(0, 1))
+        raw = self._features(frame, centre, size)
+        self._last = raw
+        z_hat = np.fft.fft2(raw * self._window[:, :, None], axes=(0, 1))
         response = np.real(
             np.fft.ifft2(
                 np.sum(np.conj(self._num) * z_hat, axis=2) / (self._den + self.config.regularisation)
@@ -114,14 +118,35 @@ class TranslationFilter:
         sy = _signed(rows)[i] + _vertex(response[(i - 1) % rows, j], peak, response[(i + 1) % rows, j])
         sx = _signed(cols)[j] + _vertex(response[i, (j - 1) % cols], peak, response[i, (j + 1) % cols])
         pw, ph = self._patch(size)
+        self._last_patch = (pw, ph)
         return np.array([sx * pw / cols, sy * ph / rows]), peak
 
     def learn(self, frame: ImageU8, centre: FloatArray, size: FloatArray) -> None:
         """Blend this frame's patch at ``centre`` (the target's accepted centre) into the filter."""
         if self._g_hat is None:
             raise RuntimeError("TranslationFilter.learn before start")
-        x_hat = np.fft.fft2(self._features(frame, centre, size), axes=(0, 1))
-        num = np.conj(self._g_hat)[:, :, None] * x_hat
+        x = self._features(frame, centre, size) * self._window[:, :, None]
+        self._blend(np.fft.fft2(x, axes=(0, 1)), self._g_hat)
+
+    def learn_last(self, offset: FloatArray) -> None:
+        """Blend the last :meth:`estimate`'s patch into the filter, the target at ``offset`` (x, y pixels)
+        from its centre: the Hann window and the desired response's peak (by a phase ramp) moved there
+        instead of a new patch cut around the target, which halves the filter's cost per frame. The same
+        as :meth:`learn` at the patch's centre plus ``offset`` but for the patch's border (what lies past
+        it on the far side of the shift is missing, where the window is low)."""
+        if self._last is None or self._g_hat is None:
+            raise RuntimeError("TranslationFilter.learn_last before estimate")
+        cols, rows = self._cells
+        pw, ph = self._last_patch
+        dx, dy = float(offset[0]) * cols / pw, float(offset[1]) * rows / ph  # in cells
+        window = _hann(rows, dy)[:, None] * _hann(cols, dx)[None, :]
+        x_hat = np.fft.fft2(self._last * window[:, :, None], axes=(0, 1))
+        ky = np.fft.fftfreq(rows)[:, None]
+        kx = np.fft.fftfreq(cols)[None, :]
+        self._blend(x_hat, self._g_hat * np.exp(-2j * np.pi * (kx * dx + ky * dy)))
+
+    def _blend(self, x_hat: npt.NDArray[np.complex128], g_hat: npt.NDArray[np.complex128]) -> None:
+        num = np.conj(g_hat)[:, :, None] * x_hat
         den = np.sum(np.real(x_hat * np.conj(x_hat)), axis=2)
         if self._num is None or self._den is None:
             self._num, self._den = num, den
@@ -136,23 +161,36 @@ class TranslationFilter:
 
     def _features(self, frame: ImageU8, centre: FloatArray, size: FloatArray) -> FloatArray:
         """(rows, cols, 10) cells of the patch around ``centre``: 9 orientation bins and the mean grey
-        level in [-0.5, 0.5], Hann-weighted."""
+        level in [-0.5, 0.5] (not windowed)."""
         import cv2
 
         cols, rows = self._cells
         pw, ph = self._patch(size)
-        # Sub-pixel crop (border replicated past the frame's edge), then one resize onto the template.
-        lw, lh = max(2, round(pw)), max(2, round(ph))
-        region = cv2.getRectSubPix(frame, (lw, lh), (float(centre[0]), float(centre[1])))
         tw, th = cols * _CELL, rows * _CELL
-        shrinking = tw < lw and th < lh
-        patch = cv2.resize(region, (tw, th), interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+        # One affine sampling of the patch (bilinear, sub-pixel, the border replicated past the frame's
+        # edge) at twice the template's resolution, then one 2 x 2 area average onto it: the cost is the
+        # template's, not the patch's (a 200 x 220 px person's 400 x 440 px patch cost 0.7 ms to crop and
+        # shrink; this 0.1 ms).
+        sx, sy = pw / (2 * tw), ph / (2 * th)
+        m = np.array(
+            [
+                [sx, 0.0, float(centre[0]) - (2 * tw - 1) / 2.0 * sx],
+                [0.0, sy, float(centre[1]) - (2 * th - 1) / 2.0 * sy],
+            ]
+        )
+        fine = cv2.warpAffine(
+            frame,
+            m,
+            (2 * tw, 2 * th),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        patch = cv2.resize(fine, (tw, th), interpolation=cv2.INTER_AREA)
         pixels = np.asarray(patch, dtype=np.float32)[None]
         hog = _cell_features(pixels).reshape(rows, cols, -1)
         grey = pixels[0, :, :, 0] * 0.114 + pixels[0, :, :, 1] * 0.587 + pixels[0, :, :, 2] * 0.299
         mean = grey.reshape(rows, _CELL, cols, _CELL).mean(axis=(1, 3)) / 255.0 - 0.5
-        feats = np.concatenate([hog, mean[:, :, None].astype(np.float64)], axis=2)
-        return feats * self._window[:, :, None]
+        return np.concatenate([hog, mean[:, :, None].astype(np.float64)], axis=2)
 
 
 def _signed(n: int) -> npt.NDArray[np.intp]:
@@ -162,8 +200,20 @@ def _signed(n: int) -> npt.NDArray[np.intp]:
     return d
 
 
+def _hann(n: int, shift: float) -> FloatArray:
+    """``n`` samples of a Hann window ``n + 1`` samples long, centred ``shift`` samples past the middle
+    (``numpy.hanning(n + 2)[1:-1]`` for no shift; zero past its ends)."""
+    k = np.clip(np.arange(1, n + 1, dtype=np.float64) - shift, 0.0, n + 1.0)
+    return 0.5 - 0.5 * np.cos(2.0 * np.pi * k / (n + 1.0))
+
+
 def _vertex(left: float, mid: float, right: float) -> float:
-    """The sub-cell offset of a parabola's vertex through three samples (0 if not a maximum)."""
+    """The sub-cell offset of the peak through three samples: the vertex of the parabola through their
+    logarithms (exact for a Gaussian peak, which the desired response is; a parabola through the values
+    themselves locks onto the cells, measured 1.1-1.5 px short of a 3 px shift on 8 px cells), or through
+    the values if a neighbour is not positive; 0 if ``mid`` is not a maximum."""
+    if left > 0.0 and right > 0.0 and mid > 0.0:
+        left, mid, right = math.log(left), math.log(mid), math.log(right)
     curvature = left - 2.0 * mid + right
     if curvature >= 0.0:
         return 0.0
