@@ -184,6 +184,10 @@ class TrackerConfig:
     # translation != none: the translation filter's template area for the target's part, pixels
     # (agent.following.translation.TranslationFilterConfig; its other values are DSST's).
     translation_template_area: int = 1024
+    # translation != none: the filter's offset is taken (and the filter learnt) only on frames whose
+    # response peak is at least this many times its running level (rho_ref_rate); else the last offset
+    # is held (0: always taken).
+    translation_confidence: float = 0.0
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
@@ -218,6 +222,8 @@ class TrackerConfig:
         # The filters' own checks, at construction rather than at the first frame.
         self.scale_filter_config()
         self.translation_filter_config()
+        if self.translation_confidence < 0.0:
+            raise ValueError("translation_confidence must be at least 0")
         if self.translation == Translation.PLACE and self.scale_search != ScaleSearch.LADDER:
             raise ValueError("translation=place places the scale ladder: it needs scale_search=ladder")
         if self.background_every < 1:
@@ -351,6 +357,7 @@ class MeanShiftTracker:
             self._ladder = ScaleFilter(self.config.scale_filter_config())
         self._translation: TranslationFilter | None = None
         self._offset = np.zeros(2)  # the translation filter's body from the mean-shift centre (x, y)
+        self._peak_ref: float | None = None  # the translation filter's running peak level
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = False
@@ -390,6 +397,7 @@ class MeanShiftTracker:
             # Learnt from the first tracking frame on (``_accept``), not here: see there.
             self._ladder = ScaleFilter(self.config.scale_filter_config())
         self._offset = np.zeros(2)
+        self._peak_ref = None
         self._translation = None
         if self.config.translation != Translation.NONE:
             # Learnt at the start box: the target as given, not the colour model's mode.
@@ -453,9 +461,18 @@ class MeanShiftTracker:
     def _accept(self, frame: ImageU8, window: _Window, centre: FloatArray, ev: _Evaluation) -> None:
         cfg = self.config
         body = centre
+        trusted = False
         if self._translation is not None:
-            # Where the target as learnt sits in the window around the converged centre.
-            self._offset, _ = self._translation.estimate(frame, centre, self._size)
+            # Where the target as learnt sits in the window around the converged centre; an unsure
+            # answer (a peak well under its running level: something else overlaps the target) is not
+            # taken, the last offset is held.
+            offset, peak = self._translation.estimate(frame, centre, self._size)
+            if self._peak_ref is None:
+                self._peak_ref = peak
+            if peak >= cfg.translation_confidence * self._peak_ref:
+                trusted = True
+                self._offset = offset
+                self._peak_ref += cfg.rho_ref_rate * (peak - self._peak_ref)
             body = centre + self._offset
         ladder_centre = body if cfg.translation != Translation.NONE else centre
         if self._ladder is None:
@@ -487,7 +504,7 @@ class MeanShiftTracker:
             if self._ladder is not None:
                 # The scale filter learns where the colour model does: on confident frames only.
                 self._ladder.learn(frame, ladder_centre, self._size)
-            if self._translation is not None:
+            if self._translation is not None and trusted:
                 # At the body it found: this frame's patch, the desired peak moved to the offset.
                 self._translation.learn_last(self._offset)
             if self._updates % cfg.background_every == 0:
