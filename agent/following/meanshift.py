@@ -469,7 +469,7 @@ class MeanShiftTracker:
             offset, peak = self._translation.estimate(frame, centre, self._size)
             if self._peak_ref is None:
                 self._peak_ref = peak
-            if peak >= cfg.translation_confidence * self._peak_ref:
+            if cfg.translation_confidence <= 0.0 or peak >= cfg.translation_confidence * self._peak_ref:
                 trusted = True
                 self._offset = offset
                 self._peak_ref += cfg.rho_ref_rate * (peak - self._peak_ref)
