@@ -1,7 +1,8 @@
 """The person tracker's cost per 640 x 480 frame while tracking, and the head-shoulder pre-locator's cost
 when it runs, on one core. Prints one JSON object.
 
-    python benchmarks/tracker_speed.py [--frames 120] [--repeats 5]
+    python benchmarks/tracker_speed.py [--frames 120] [--repeats 5] [--scale-search contrast|ladder]
+        [--translation none|place|refine]
 
 Budgets (issue 23): the fine layer <= 5 ms median per 640 x 480 frame while tracking; the pre-locator
 <= 30 ms. The frames are the synthetic scene (``agent.following.synthetic``, no passer-by) at 640 x 480 with
@@ -35,7 +36,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.following.meanshift import Features, MeanShiftTracker, Silhouette, TrackerConfig
+from agent.following.meanshift import (
+    Features,
+    MeanShiftTracker,
+    ScaleSearch,
+    Silhouette,
+    TrackerConfig,
+    Translation,
+)
 from agent.following.prelocate import HeadShoulderLocator, LocatorKind, PreLocatorConfig
 from agent.following.synthetic import CrossingScene, crossing_sequence
 
@@ -50,7 +58,9 @@ def _ms(samples: list[float]) -> dict[str, float]:
     }
 
 
-def tracker_case(size: tuple[int, int], silhouette: Silhouette, frames: int) -> dict[str, object]:
+def tracker_case(
+    size: tuple[int, int], silhouette: Silhouette, frames: int, scale: ScaleSearch, translation: Translation
+) -> dict[str, object]:
     scene = CrossingScene(
         width_px=640,
         height_px=480,
@@ -70,7 +80,11 @@ def tracker_case(size: tuple[int, int], silhouette: Silhouette, frames: int) -> 
     plain_ms = statistics.median(plain)
     out["plain_pass_ms_median"] = round(plain_ms, 3)
     for features in Features:
-        tracker = MeanShiftTracker(TrackerConfig(features=features, silhouette=silhouette))
+        tracker = MeanShiftTracker(
+            TrackerConfig(
+                features=features, silhouette=silhouette, scale_search=scale, translation=translation
+            )
+        )
         tracker.start(sequence[0][0], sequence[0][1])
         times = []
         tracking = 0
@@ -147,7 +161,7 @@ def rendered_frames(frames: int) -> list[np.ndarray]:
     return out
 
 
-def fine_layer_case(frames: int) -> dict[str, object]:
+def fine_layer_case(frames: int, scale: ScaleSearch, translation: Translation) -> dict[str, object]:
     """The fine layer as ``eval follow`` runs it (HSV colour, Omega silhouette, the omega pre-locator
     correcting the box every 3 frames) on rendered frames: per frame, the tracker alone and the whole layer
     (pre-locator frames included), with this thread's CPU time beside the wall time."""
@@ -168,7 +182,11 @@ def fine_layer_case(frames: int) -> dict[str, object]:
     for features in Features:
         config = FineLayerConfig(
             tracker=TrackerConfig(
-                features=features, silhouette=Silhouette.OMEGA, colour_space=ColourSpace.HSV
+                features=features,
+                silhouette=Silhouette.OMEGA,
+                colour_space=ColourSpace.HSV,
+                scale_search=scale,
+                translation=translation,
             )
         )
         layer = FineLayer(HeadShoulderLocator(PreLocatorConfig(kind=LocatorKind.OMEGA)), config)
@@ -197,14 +215,30 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=120, help="frames per tracker case (default 120)")
     parser.add_argument("--repeats", type=int, default=5, help="pre-locator calls per case (default 5)")
+    parser.add_argument(
+        "--scale-search",
+        choices=[s.value for s in ScaleSearch],
+        default=TrackerConfig().scale_search.value,
+        help="the trackers' scale_search (default: TrackerConfig's)",
+    )
+    parser.add_argument(
+        "--translation",
+        choices=[t.value for t in Translation],
+        default=TrackerConfig().translation.value,
+        help="the trackers' translation (DSST's translation filter; place needs --scale-search ladder)",
+    )
     args = parser.parse_args()
+    scale = ScaleSearch(args.scale_search)
+    translation = Translation(args.translation)
     cv2.setNumThreads(1)
     result: dict[str, object] = {
         "frame_px": [640, 480],
         "budget_ms": {"tracker_median": 5.0, "prelocator": 30.0},
-        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames),
-        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames),
-        "fine_layer_rendered": fine_layer_case(args.frames),
+        "scale_search": scale.value,
+        "translation": translation.value,
+        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames, scale, translation),
+        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames, scale, translation),
+        "fine_layer_rendered": fine_layer_case(args.frames, scale, translation),
         "prelocator": prelocator_case(args.repeats),
     }
     print(json.dumps(result, indent=2))

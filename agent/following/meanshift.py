@@ -51,11 +51,14 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.following.lbp import RIU2_LABELS, RIU2_LUT, U2_LABELS, U2_LUT, lbp_codes
+from agent.following.scale import ScaleFilter, ScaleFilterConfig
+from agent.following.translation import TranslationFilter, TranslationFilterConfig
 
 __all__ = [
     "ColourSpace",
     "Features",
     "MeanShiftTracker",
+    "ScaleSearch",
     "Silhouette",
     "TextureWeighting",
     "TrackResult",
@@ -109,6 +112,30 @@ class TextureWeighting(enum.StrEnum):
     DISTRACTOR = "distractor"
 
 
+class ScaleSearch(enum.StrEnum):
+    """How the box's size follows the target (the same for both feature sets)."""
+
+    # Comaniciu's +-scale_step test at the converged centre, scored by the contrast with a ring, the
+    # winner pulling the size by scale_gain: a walk of 1 % steps.
+    CONTRAST = "contrast"
+    # A discriminative scale-space filter (DSST's, agent.following.scale) over scale_rungs sizes
+    # scale_ladder_step apart at the converged centre, learnt online on confident frames: the size jumps
+    # to the best rung.
+    LADDER = "ladder"
+
+
+class Translation(enum.StrEnum):
+    """What DSST's translation filter (agent.following.translation: learnt at the start box, then at the
+    body it finds each tracking frame) does beside the mean shift, which stays the tracker."""
+
+    NONE = "none"  # not run
+    # It finds the body's offset from the converged mean-shift centre; the scale filter's ladder is read
+    # and learnt there (scale_search=ladder only).
+    PLACE = "place"
+    # The same, and the reported box is centred there too (the mean shift climbs on from its own centre).
+    REFINE = "refine"
+
+
 class TrackState(enum.StrEnum):
     TRACKING = "tracking"
     OCCLUDED = "occluded"  # rho too low: coasting on the motion model, searching each frame
@@ -145,6 +172,22 @@ class TrackerConfig:
     scale_step: float = 0.1
     scale_gain: float = 0.1
     scale_ring: float = 1.2  # the scale test's ring reaches this many times the size
+    scale_search: ScaleSearch = ScaleSearch.CONTRAST
+    # scale_search=ladder: the ladder's rungs (odd), their ratio, the filter's learning rate, the
+    # template's area (agent.following.scale.ScaleFilterConfig).
+    scale_rungs: int = 17
+    scale_ladder_step: float = 1.04
+    scale_learning_rate: float = 0.025
+    scale_sigma_factor: float = 0.25
+    scale_template_area: int = 512
+    translation: Translation = Translation.NONE
+    # translation != none: the translation filter's template area for the target's part, pixels
+    # (agent.following.translation.TranslationFilterConfig; its other values are DSST's).
+    translation_template_area: int = 1024
+    # translation != none: the filter's offset is taken (and the filter learnt) only on frames whose
+    # response peak is at least this many times its running level (rho_ref_rate); else the last offset
+    # is held (0: always taken).
+    translation_confidence: float = 0.0
     min_scale: float = 0.5  # of the starting size
     max_scale: float = 2.0
     velocity_gain: float = 0.5  # v <- gain * (y1 - y0) + (1 - gain) * v
@@ -176,10 +219,31 @@ class TrackerConfig:
                 "need distractor_offset > 0, distractor_ratio > 0, 0 <= distractor_forget <= 1, "
                 "distractor_near >= 0, distractor_near_ratio > 0"
             )
+        # The filters' own checks, at construction rather than at the first frame.
+        self.scale_filter_config()
+        self.translation_filter_config()
+        if self.translation_confidence < 0.0:
+            raise ValueError("translation_confidence must be at least 0")
+        if self.translation == Translation.PLACE and self.scale_search != ScaleSearch.LADDER:
+            raise ValueError("translation=place places the scale ladder: it needs scale_search=ladder")
         if self.background_every < 1:
             raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
             raise ValueError("need 0 < occlusion_ratio <= reacquire_ratio <= 1")
+
+    def scale_filter_config(self) -> ScaleFilterConfig:
+        """The ladder's configuration (``scale_search=ladder``)."""
+        return ScaleFilterConfig(
+            scales=self.scale_rungs,
+            step=self.scale_ladder_step,
+            learning_rate=self.scale_learning_rate,
+            sigma_factor=self.scale_sigma_factor,
+            max_area=self.scale_template_area,
+        )
+
+    def translation_filter_config(self) -> TranslationFilterConfig:
+        """The translation filter's configuration (``translation`` != none)."""
+        return TranslationFilterConfig(max_area=self.translation_template_area)
 
 
 @dataclass(frozen=True)
@@ -288,6 +352,12 @@ class MeanShiftTracker:
         self._ring_exponents = (1.0, 0.0)  # distractor weighting: the exponents with no distractor near
         self._colour_factor = np.ones(self._bins)  # the background weighting of the colour bins
         self._updates = 0
+        self._ladder: ScaleFilter | None = None
+        if self.config.scale_search == ScaleSearch.LADDER:
+            self._ladder = ScaleFilter(self.config.scale_filter_config())
+        self._translation: TranslationFilter | None = None
+        self._offset = np.zeros(2)  # the translation filter's body from the mean-shift centre (x, y)
+        self._peak_ref: float | None = None  # the translation filter's running peak level
         self.state = TrackState.TRACKING
         self.frames_lost = 0
         self._started = False
@@ -296,7 +366,10 @@ class MeanShiftTracker:
 
     @property
     def box(self) -> FloatArray:
-        return np.concatenate([self._centre - self._size / 2.0, self._size])
+        centre = self._centre
+        if self.config.translation == Translation.REFINE:
+            centre = centre + self._offset
+        return np.concatenate([centre - self._size / 2.0, self._size])
 
     @property
     def feature_weights(self) -> tuple[float, float]:
@@ -320,6 +393,16 @@ class MeanShiftTracker:
         self._q_colour_raw = ev.p_colour
         self._q_texture_raw = ev.p_texture if ev.p_texture is not None else np.zeros(self._labels)
         self._background(window)
+        if self.config.scale_search == ScaleSearch.LADDER:
+            # Learnt from the first tracking frame on (``_accept``), not here: see there.
+            self._ladder = ScaleFilter(self.config.scale_filter_config())
+        self._offset = np.zeros(2)
+        self._peak_ref = None
+        self._translation = None
+        if self.config.translation != Translation.NONE:
+            # Learnt at the start box: the target as given, not the colour model's mode.
+            self._translation = TranslationFilter(self.config.translation_filter_config())
+            self._translation.start(frame, self._centre, self._size)
         if self._distractor_weighting:
             self._exponents = self._ring_exponents
         self._rho_ref = 1.0
@@ -337,6 +420,8 @@ class MeanShiftTracker:
         cfg = self.config
         x, y, w, h = (float(b) for b in box)
         centre = np.array([x + w / 2.0, y + h / 2.0])
+        if cfg.translation == Translation.REFINE:
+            centre = centre - self._offset  # the reported box is the mean shift's plus the offset
         self._centre = self._centre + gain * (centre - self._centre)
         size = self._size + gain * (np.array([w, h]) - self._size)
         self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
@@ -375,7 +460,34 @@ class MeanShiftTracker:
 
     def _accept(self, frame: ImageU8, window: _Window, centre: FloatArray, ev: _Evaluation) -> None:
         cfg = self.config
-        self._scale(window, centre, ev)
+        body = centre
+        trusted = False
+        if self._translation is not None:
+            # Where the target as learnt sits in the window around the converged centre; an unsure
+            # answer (a peak well under its running level: something else overlaps the target) is not
+            # taken, the last offset is held.
+            offset, peak = self._translation.estimate(frame, centre, self._size)
+            if self._peak_ref is None:
+                self._peak_ref = peak
+            if cfg.translation_confidence <= 0.0 or peak >= cfg.translation_confidence * self._peak_ref:
+                trusted = True
+                self._offset = offset
+                self._peak_ref += cfg.rho_ref_rate * (peak - self._peak_ref)
+            body = centre + self._offset
+        ladder_centre = body if cfg.translation != Translation.NONE else centre
+        if self._ladder is None:
+            self._scale(window, centre, ev)
+        elif not self._ladder.started:
+            # The ladder learns its first look at the mean shift's converged centre, not at the box the
+            # tracker was started with: the colour model's mode is not the box's centre (on OTB Woman it
+            # sits 10-17 px above it from the second frame on), and a ladder learnt at one centre and
+            # read at another takes the offset for a change of scale (measured: Woman's box grew from 95
+            # to 117 px in 22 frames, the truth's 95-96).
+            self._ladder.start(frame, ladder_centre, self._size)
+        else:
+            factor, _ = self._ladder.estimate(frame, ladder_centre, self._size)
+            size = self._size * factor
+            self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
         step = centre - self._centre
         self._velocity = cfg.velocity_gain * step + (1.0 - cfg.velocity_gain) * self._velocity
         g = cfg.coast_velocity_gain
@@ -389,6 +501,12 @@ class MeanShiftTracker:
             if cur.p_texture is not None:
                 self._q_texture_raw = (1.0 - a) * self._q_texture_raw + a * cur.p_texture
             self._updates += 1
+            if self._ladder is not None:
+                # The scale filter learns where the colour model does: on confident frames only.
+                self._ladder.learn(frame, ladder_centre, self._size)
+            if self._translation is not None and trusted:
+                # At the body it found: this frame's patch, the desired peak moved to the offset.
+                self._translation.learn_last(self._offset)
             if self._updates % cfg.background_every == 0:
                 self._background(window)
             else:
