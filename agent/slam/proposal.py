@@ -467,15 +467,30 @@ def travel_reversed(
         * config.proposal_temperature
         * (rot @ np.diag(1.0 / sig**2) @ rot.T)
     )
-    windows = np.full(2, window, dtype=np.int64)
+    # The test: the match from the reversed prediction fits clearly better than the one from the odometry's
+    # (``ratio``). Where the proposal searches, each direction is also matched from the best pose of a
+    # correlative search around its prediction, and a reversal must also beat the forward side's best fit
+    # so found: a forward match stuck in a local minimum (an odometry error beyond Gauss-Newton's reach)
+    # is not read as a reversal (ACES seed 5, one record per ~1 m: forward 1.04 against reversed 0.35 was
+    # reversed and broke the map, 10.9 m; searched, the forward side fits at 0.32).
+    centres = predicted
+    starts = predicted
+    if config.search is not None:
+        search = config.search
+        found = np.stack(
+            [correlative_search(field, window, points_xy, x, search, prior)[0] for x in predicted]
+        )
+        centres = np.vstack([predicted, predicted])
+        starts = np.vstack([predicted, found])
+    windows = np.full(starts.shape[0], window, dtype=np.int64)
     result = match(
         field,
         windows,
         points_xy,
-        predicted,
+        starts,
         config.matcher,
         prior,
-        centre=predicted,
+        centre=centres,
         normals_xy=normals_xy,
         along_weight=config.along_surface_weight,
     )
@@ -486,9 +501,11 @@ def travel_reversed(
         result.poses,
         config.matcher.stages[-1][0],
         prior,
-        predicted,
+        centres,
         normals_xy,
         config.along_surface_weight,
     )
+    # Rows: forward, reversed (from the predictions), then the same from the searches' poses.
     forward, backward = float(energy[0]), float(energy[1])
-    return TravelCheck(bool(result.ok[1]) and backward < ratio * forward, forward, backward)
+    confirmed = float(energy[1::2].min()) < float(energy[0::2].min())
+    return TravelCheck(bool(result.ok[1]) and backward < ratio * forward and confirmed, forward, backward)

@@ -5,6 +5,7 @@ scan says which way it went. On the synthetic room of ``test_slam_filter``."""
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -101,3 +102,18 @@ def test_the_filter_follows_the_scan_where_the_odometry_lost_its_sign() -> None:
     # With: within 0.12 m (the update where it turns round, net 5 cm against the odometry's 25, is off by
     # 0.11 m and the next ones take it back); without: metres.
     assert errors[0.5, 3] < 0.15 and errors[None, 3] > 1.0 and errors[0.5, 0] > 1.0, errors
+
+
+def test_a_forward_match_stuck_in_a_local_minimum_is_not_a_reversal(shared_data: Path) -> None:
+    """ACES, seed 5 (the ``eval slam`` configuration): at update 273 the match from the odometry's
+    prediction was stuck at energy 1.04 and the reversed one fitted at 0.35, under the ratio; the robot
+    drove on (ACES's reference never backs up) and the reversal broke the map (10.9 m). The forward side
+    matched from a correlative search too fits at 0.32, so ``travel_reversed`` keeps the direction."""
+    from agent.commands.eval_slam import log_config
+    from agent.slam.logs import read_log
+    from agent.slam.replay import replay
+
+    log = read_log(shared_data / "slam/radish/aces_scans.txt", "radish").sliced(0, 290)
+    config = log_config("radish", seed=5)
+    assert config.reversal_ratio is not None  # the check runs on this log
+    assert replay(log, config).slam.stats.reversals == 0
