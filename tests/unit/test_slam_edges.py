@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.slam.loops import LoopClosureConfig, LoopConstraint, chain_poses, optimize_graph
 from agent.slam.motion import OdometryNoise
@@ -73,3 +74,25 @@ def test_a_departure_beyond_the_odometry_noise_still_widens_its_edge() -> None:
         odometry_sigmas=OdometryNoise().sigmas(true_motions),
     )
     assert np.hypot(*(result.poses[:, :2] - truth[:, :2]).T).max() < 0.1
+
+
+def test_the_key_loads_and_reaches_the_filters_graph() -> None:
+    from agent.commands.eval_slam import front_end, log_config
+    from agent.config import SlamConfig, parse_config
+    from agent.runtime.mapper import front_end_filter
+    from agent.slam.proposal import ProposalConfig
+    from drivers.errors import ConfigError
+    from tests.helpers import REAL_ROBOT
+
+    laser = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+    config = parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = 2.0\n").slam
+    loop = front_end_filter(config, ProposalConfig())["loop_closure"]
+    assert loop == LoopClosureConfig(correction_odometry_sigmas=2.0)
+    assert front_end_filter(SlamConfig(), ProposalConfig())["loop_closure"] == LoopClosureConfig()
+    assert front_end("radish").loop_correction_odometry_sigmas == 1.0
+    assert front_end("breezyslam").loop_correction_odometry_sigmas is None
+    radish = log_config("radish")
+    assert radish.loop_closure is not None and radish.loop_closure.correction_odometry_sigmas == 1.0
+    assert log_config("radish", loop_closure=False).loop_closure is None
+    with pytest.raises(ConfigError):
+        parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = -1\n")
