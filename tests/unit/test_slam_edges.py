@@ -89,10 +89,10 @@ def test_the_key_loads_and_reaches_the_filters_graph() -> None:
     loop = front_end_filter(config, ProposalConfig())["loop_closure"]
     assert loop == LoopClosureConfig(correction_odometry_sigmas=2.0)
     assert front_end_filter(SlamConfig(), ProposalConfig())["loop_closure"] == LoopClosureConfig()
-    assert front_end("radish").loop_correction_odometry_sigmas == 1.0
+    assert front_end("radish").loop_correction_odometry_sigmas is None
     assert front_end("breezyslam").loop_correction_odometry_sigmas is None
     radish = log_config("radish")
-    assert radish.loop_closure is not None and radish.loop_closure.correction_odometry_sigmas == 1.0
+    assert radish.loop_closure == LoopClosureConfig()
     assert log_config("radish", loop_closure=False).loop_closure is None
     with pytest.raises(ConfigError):
         parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = -1\n")
