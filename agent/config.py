@@ -1369,6 +1369,11 @@ class _Reader:
             reversal_ratio=t.number("reversal_ratio", 0.5, (lambda v: 0 < v <= 1, "must be in (0, 1]"))
             if t.has("reversal_ratio")
             else None,
+            loop_correction_odometry_sigmas=t.number(
+                "loop_correction_odometry_sigmas", 1.0, (lambda v: 0 <= v <= 10, "must be in [0, 10]")
+            )
+            if t.has("loop_correction_odometry_sigmas")
+            else None,
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

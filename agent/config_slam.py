@@ -72,6 +72,11 @@ class SlamConfig:
     # translation when the reversed prediction's match energy is below this ratio of the forward one's;
     # None: off (wheel odometry knows its sign; the radish logs' rebuilt odometry does not)
     reversal_ratio: float | None = None
+    # The pose graph widens a front-end edge only by the match's departure from odometry beyond this many
+    # of the motion model's sigmas of that increment (loops.LoopClosureConfig.correction_odometry_sigmas);
+    # None: by the whole departure (wheel odometry; the radish logs' rebuilt odometry is as bad as the
+    # model says)
+    loop_correction_odometry_sigmas: float | None = None
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's

@@ -122,6 +122,15 @@ class LoopClosureConfig:
     # match turned the robot by 10 deg against its wheels, either the wheels slipped or the match failed,
     # and a loop's correction belongs there rather than spread over every edge.
     correction_share: float = 0.5
+    # ... counting only the part of that departure the odometry's own noise does not explain
+    # (``correction_odometry_sigmas`` = k set, and the filter's motion model's sigmas of each odometry
+    # increment handed in, ``OdometryNoise.sigmas``): the edge is widened by share * max(0, |match -
+    # odometry| - k sigma_odometry) per component. Where the wheels are as bad as the motion model says
+    # (Intel's and ACES's rebuilt odometry: on-the-spot turns 5-14 deg off), a match that departs from them
+    # by that much is no sign that the match failed, and a loop's correction put on such an edge bends the
+    # trajectory there (a heading kink that every later node inherits until the next loop). None (the
+    # default): the whole departure. Measured for issue 20: docs/slam.md, "Loop closure".
+    correction_odometry_sigmas: float | None = None
     # A front-end edge's covariance from its own scan match instead (``edge_match_sigma_m`` set; the
     # filter then records each node's match information, :func:`edge_covariances`): the edge k-1 -> k
     # is diag(motion_sigma²) plus the covariance of node k's match against its particle's map,
@@ -722,6 +731,7 @@ def judge_loop(
     odometry_motions: FloatArray | None = None,
     pending: list[LoopConstraint] | None = None,
     node_information: FloatArray | None = None,
+    odometry_sigmas: FloatArray | None = None,
 ) -> Judgement:
     """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
     accepted ``loops``, in this order: the newest ``verify_nodes`` scans must fit the old map (the nodes
@@ -732,7 +742,7 @@ def judge_loop(
     the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
     fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
     poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
-    its robot frame; ``odometry_motions``, ``node_information``: the chain's sigmas
+    its robot frame; ``odometry_motions``, ``node_information``, ``odometry_sigmas``: the chain's sigmas
     (:func:`optimize_graph`)."""
     innovation = loop_residual_chi2(poses, candidate, config)
     j = candidate.j
@@ -753,12 +763,21 @@ def judge_loop(
     if config.require_confirmation and not partners:
         return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
     before = (
-        optimize_graph(poses, motions, loops, config, absolute, odometry_motions, node_information)
+        optimize_graph(
+            poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
+        )
         if loops
         else None
     )
     result = optimize_graph(
-        poses, motions, [*loops, *partners, candidate], config, absolute, odometry_motions, node_information
+        poses,
+        motions,
+        [*loops, *partners, candidate],
+        config,
+        absolute,
+        odometry_motions,
+        node_information,
+        odometry_sigmas,
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_before = (
@@ -835,10 +854,13 @@ def optimize_graph(
     absolute: AbsoluteFactors | None = None,
     odometry_motions: FloatArray | None = None,
     node_information: FloatArray | None = None,
+    odometry_sigmas: FloatArray | None = None,
 ) -> GraphResult:
     """The chain 0 -> 1 -> ... (``motions[k]``: node k in node k-1's frame, k >= 1) plus the loop factors,
     optimised from ``poses``. The chain's sigmas: ``motion_sigma``, widened by ``correction_share`` of
-    each edge's departure from ``odometry_motions``; or, with ``edge_match_sigma_m`` and
+    each edge's departure from ``odometry_motions`` (less ``correction_odometry_sigmas`` times
+    ``odometry_sigmas``, (N, 3): the motion model's sigmas of each odometry increment, where both are
+    set); or, with ``edge_match_sigma_m`` and
     ``node_information`` (each node's match, robot frame), :func:`edge_covariances`."""
     n = poses.shape[0]
     chain = np.arange(1, n, dtype=np.int64)
@@ -847,6 +869,8 @@ def optimize_graph(
     if odometry_motions is not None and not from_matches:
         gap = np.abs(motions[1:n] - odometry_motions[1:n])
         gap[:, 2] = np.abs(wrap_angle(gap[:, 2]))
+        if config.correction_odometry_sigmas is not None and odometry_sigmas is not None:
+            gap = np.maximum(gap - config.correction_odometry_sigmas * odometry_sigmas[1:n], 0.0)
         motion_sigma = np.maximum(motion_sigma, config.correction_share * gap)
     i = np.concatenate([chain - 1, np.array([c.i for c in loops], dtype=np.int64)])
     j = np.concatenate([chain, np.array([c.j for c in loops], dtype=np.int64)])

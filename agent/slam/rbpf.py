@@ -767,6 +767,7 @@ class RbpfSlam:
             odometry_motions,
             self._pending,
             np.array(self._node_information),
+            self.config.noise.sigmas(odometry_motions) if lc.correction_odometry_sigmas is not None else None,
         )
         self.stats.loop_verdicts[judgement.verdict.value] += 1
         log.debug(

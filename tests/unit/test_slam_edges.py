@@ -1,0 +1,98 @@
+"""The pose graph's front-end edges: how much of a match's departure from odometry widens an edge
+(``LoopClosureConfig.correction_odometry_sigmas``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.slam.loops import LoopClosureConfig, LoopConstraint, chain_poses, optimize_graph
+from agent.slam.motion import OdometryNoise
+from agent.slam.pose import between, wrap_angle
+
+
+def _square(side_steps: int = 10, step_m: float = 1.0) -> np.ndarray:
+    motions = [np.zeros(3)]
+    for corner in range(4):
+        for k in range(side_steps):
+            turn = math.pi / 2 if (k == side_steps - 1 and corner < 3) else 0.0
+            motions.append(np.array([step_m, 0.0, turn]))
+    return np.array(motions)
+
+
+def test_a_departure_the_odometry_noise_explains_does_not_draw_a_loop_correction() -> None:
+    # The front end's heading drifts 0.3 deg a metre; at the first corner (edge 10: a 90 deg turn over
+    # 1 m) the wheels slipped 10 deg, well inside what the motion model allows a 90 deg turn (~29 deg),
+    # and the match got the turn right (within its drift). A true loop 0 -> end.
+    true_motions = _square()
+    front_end = true_motions.copy()
+    front_end[1:, 2] += math.radians(0.3)
+    odometry = true_motions.copy()
+    odometry[10, 2] += math.radians(10.0)
+    path = chain_poses(np.zeros(3), front_end)
+    truth = chain_poses(np.zeros(3), true_motions)
+    n = path.shape[0]
+    loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
+    sigmas = OdometryNoise().sigmas(odometry)
+
+    def kink(poses: np.ndarray) -> float:
+        # The worst edge's heading error after the optimisation.
+        moved = between(poses[:-1], poses[1:])
+        return float(np.max(np.abs(wrap_angle(moved[:, 2] - true_motions[1:, 2]))))
+
+    whole = optimize_graph(path, front_end, loops, LoopClosureConfig(), odometry_motions=odometry)
+    config = LoopClosureConfig(correction_odometry_sigmas=1.0)
+    beyond = optimize_graph(path, front_end, loops, config, odometry_motions=odometry, odometry_sigmas=sigmas)
+    # The whole departure widens edge 10 to 5 deg: a quarter of the loop's 12 deg of heading goes there.
+    assert kink(whole.poses) > math.radians(2.5)
+    # Beyond the odometry's noise there is none: the correction is spread, every edge within 0.3 deg.
+    assert kink(beyond.poses) < math.radians(0.35)
+    # Without the sigmas handed in the option changes nothing.
+    same = optimize_graph(path, front_end, loops, config, odometry_motions=odometry)
+    np.testing.assert_allclose(same.poses, whole.poses, atol=1e-9)
+
+
+def test_a_departure_beyond_the_odometry_noise_still_widens_its_edge() -> None:
+    # A straight run of 1 m steps (the model allows ~11 deg of heading each); at edge 10 the match turned
+    # the robot 40 deg against its wheels: 29 deg beyond one sigma, the edge is still the loose one.
+    true_motions = np.tile(np.array([1.0, 0.0, 0.0]), (21, 1))
+    true_motions[0] = 0.0
+    front_end = true_motions.copy()
+    front_end[10, 2] += math.radians(40.0)
+    path = chain_poses(np.zeros(3), front_end)
+    truth = chain_poses(np.zeros(3), true_motions)
+    loops = [LoopConstraint(0, 20, between(truth[0], truth[20]), 1.0)]
+    config = LoopClosureConfig(correction_odometry_sigmas=1.0)
+    result = optimize_graph(
+        path,
+        front_end,
+        loops,
+        config,
+        odometry_motions=true_motions,
+        odometry_sigmas=OdometryNoise().sigmas(true_motions),
+    )
+    assert np.hypot(*(result.poses[:, :2] - truth[:, :2]).T).max() < 0.1
+
+
+def test_the_key_loads_and_reaches_the_filters_graph() -> None:
+    from agent.commands.eval_slam import front_end, log_config
+    from agent.config import SlamConfig, parse_config
+    from agent.runtime.mapper import front_end_filter
+    from agent.slam.proposal import ProposalConfig
+    from drivers.errors import ConfigError
+    from tests.helpers import REAL_ROBOT
+
+    laser = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+    config = parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = 2.0\n").slam
+    loop = front_end_filter(config, ProposalConfig())["loop_closure"]
+    assert loop == LoopClosureConfig(correction_odometry_sigmas=2.0)
+    assert front_end_filter(SlamConfig(), ProposalConfig())["loop_closure"] == LoopClosureConfig()
+    assert front_end("radish").loop_correction_odometry_sigmas is None
+    assert front_end("breezyslam").loop_correction_odometry_sigmas is None
+    radish = log_config("radish")
+    assert radish.loop_closure == LoopClosureConfig()
+    assert log_config("radish", loop_closure=False).loop_closure is None
+    with pytest.raises(ConfigError):
+        parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = -1\n")
