@@ -103,7 +103,8 @@ REVERSAL_RATIO: dict[str, float | None] = {"breezyslam": None, "radish": 0.5, "s
 # MatcherConfig.gate_on_residual per format ([slam] match_gate_residual; it acts only point to line, the
 # radish logs'). Off everywhere: on ACES it takes the inner corridors' along-track shortening at some
 # records (seed 0 without loop closure, record 300: -0.39 -> -0.13 m) but not others, and the runs it
-# changes are a draw (docs/slam.md, "Open problems", ACES).
+# changes are a draw: ACES seeds 0-5 0.189 / 0.141 / 0.244 / 0.201 / 0.195 / 0.250 m against 0.190 / 0.121
+# / 0.176 / 0.218 / 0.240 / 0.207 (docs/slam.md, "Open problems", ACES).
 MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False, "mcap": False}
 
 
