@@ -1355,6 +1355,7 @@ class _Reader:
                 "match_min_inlier_fraction", d.match_min_inlier_fraction, _UNIT_INTERVAL
             ),
             match_both_starts=t.boolean("match_both_starts", d.match_both_starts),
+            match_gate_residual=t.boolean("match_gate_residual", d.match_gate_residual),
             failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
             miss_log_odds=t.number(
                 "miss_log_odds", d.miss_log_odds, (lambda v: -2.0 <= v < 0, "must be in [-2, 0)")

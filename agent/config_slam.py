@@ -59,6 +59,9 @@ class SlamConfig:
     match_min_inliers: int = 20  # MatcherConfig.min_inliers
     match_min_inlier_fraction: float = 0.1  # MatcherConfig.min_inlier_fraction
     match_both_starts: bool = False  # ProposalConfig.keep_better_start
+    # The match's robust kernel judges an endpoint by its point-to-line residual, not its distance to the
+    # nearest obstacle (MatcherConfig.gate_on_residual; only where along_surface_weight < 1)
+    match_gate_residual: bool = False
     # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
     # motion model) or "grid" (near the odometry prediction, where its weight was taken)
     failed_match_draw: str = "motion"

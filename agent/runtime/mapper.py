@@ -59,7 +59,8 @@ _HISTORY_UPDATES = 5000
 
 def front_end_proposal(config: SlamConfig, base: Any) -> Any:
     """``base`` (an ``agent.slam.proposal.ProposalConfig``) with the scan match's front end the ``[slam]``
-    keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*``, ``failed_match_draw``,
+    keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*`` (``match_gate_residual``:
+    ``MatcherConfig.gate_on_residual``), ``failed_match_draw``,
     ``search_yaw_rad``). The agent's filters are built with it, and so is what ``vlp-agent eval slam`` runs
     for each source (``eval_slam.front_end``): what was measured is what runs."""
     import dataclasses
@@ -68,6 +69,7 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         base.matcher,
         min_inliers=config.match_min_inliers,
         min_inlier_fraction=config.match_min_inlier_fraction,
+        gate_on_residual=config.match_gate_residual,
     )
     return dataclasses.replace(
         base,

@@ -344,6 +344,11 @@ class MatcherConfig:
     # pose then gets exactly the answer it would get matched alone). Off: the whole batch iterates
     # until every pose has converged (a converged pose takes the extra, tiny, steps too).
     per_pose_convergence: bool = False
+    # The robust kernel's inlier test on the residual the match minimises instead of the distance to the
+    # nearest obstacle (``residuals(gate_residual=True)``; differs only point to line, with normals).
+    # Where it is on, the proposal's likelihood and energies judge endpoints the same way. On for radish
+    # logs in ``eval slam`` (``[slam] match_gate_residual``; docs/slam.md, "Scan matching").
+    gate_on_residual: bool = False
 
 
 @dataclass(frozen=True)
@@ -379,7 +384,9 @@ def world_points(
 class Residuals:
     """Per pose and endpoint (P, N): the distance d to the nearest obstacle, the residual r the match
     minimises, dr/d(x, y) (``jx``, ``jy``) and the endpoint rotated into the world (``rx``, ``ry``), so
-    that dr/dyaw = jy rx - jx ry."""
+    that dr/dyaw = jy rx - jx ry. ``gate``: what the robust kernels compare with their bounds (an endpoint
+    is an inlier of a bound b when gate < b): d, or with ``residuals(gate_residual=True)`` r itself
+    where the field holds a nearest wall (d below its cap less a cell), the cap elsewhere."""
 
     d: FloatArray
     r: FloatArray
@@ -388,6 +395,7 @@ class Residuals:
     rx: FloatArray
     ry: FloatArray
     known: npt.NDArray[np.bool_]
+    gate: FloatArray
 
     def rows(self, index: IntArray) -> Residuals:
         """These residuals for the poses ``index`` (each pose's row depends on that pose alone, so this
@@ -400,12 +408,13 @@ class Residuals:
             self.rx[index],
             self.ry[index],
             self.known[index],
+            self.gate[index],
         )
 
     def with_rows(self, index: IntArray, other: Residuals) -> Residuals:
         """A copy with the rows ``index`` replaced by ``other``'s rows (in order)."""
         out = self.rows(np.arange(self.d.shape[0]))
-        for name in ("d", "r", "jx", "jy", "rx", "ry", "known"):
+        for name in ("d", "r", "jx", "jy", "rx", "ry", "known", "gate"):
             getattr(out, name)[index] = getattr(other, name)
         return out
 
@@ -418,6 +427,7 @@ def residuals(
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
     medial: bool = True,
+    gate_residual: bool = False,
 ) -> Residuals:
     """Point-to-map residuals for endpoints (N, 2) at poses (P, 3).
 
@@ -430,11 +440,17 @@ def residuals(
     grazing angles are) is pulled along the wall towards the mapped patches, which lie nearer the places
     the map was seen from; w < 1 weakens that pull, and with it the slide of a match back along a
     corridor, while keeping some of what wall ends and door frames say along the wall.
+
+    ``gate_residual``: the robust kernels judge an endpoint by r (the residual minimised), not by d,
+    wherever the field holds a wall near it (``Residuals.gate``). With d, an endpoint on a wall the map
+    holds in patches is an outlier where it lies between the patches (d the distance along the wall to the
+    nearest one) and an inlier where it lies on one, so the kernel alone pulls a match along a corridor
+    towards poses that put the scan's side walls on the mapped patches, whatever r says.
     """
     wx, wy, rx, ry = world_points(poses, points_xy)
     d, gx, gy, known, g_norm = field._sample(window_index, wx, wy, medial)
     if normals_xy is None or along_weight == 1.0:
-        return Residuals(d, d, gx, gy, rx, ry, known)
+        return Residuals(d, d, gx, gy, rx, ry, known, d)
     c = np.cos(poses[:, 2])[:, None]
     s = np.sin(poses[:, 2])[:, None]
     nx = c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1]
@@ -454,9 +470,12 @@ def residuals(
     np.divide(1.0, r_line, out=inv_r, where=r_line > 1e-9)
     jx = (nx * across - along_weight * ny * along) * inv_r
     jy = (ny * across + along_weight * nx * along) * inv_r
-    if has.all():
-        return Residuals(d, r_line, jx, jy, rx, ry, known)
-    return Residuals(d, np.where(has, r_line, d), np.where(has, jx, gx), np.where(has, jy, gy), rx, ry, known)
+    if not has.all():
+        r_line, jx, jy = np.where(has, r_line, d), np.where(has, jx, gx), np.where(has, jy, gy)
+    gate = d
+    if gate_residual:
+        gate = np.where(d < field.cap_m - field.resolution_m, r_line, field.cap_m)
+    return Residuals(d, r_line, jx, jy, rx, ry, known, gate)
 
 
 def match(
@@ -571,10 +590,11 @@ def match_with_residuals(
                     np.abs(step[:, 2]) < config.converged_rad
                 ):
                     break
-    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
-    d = res.d
+    res = residuals(
+        field, window_index, points_xy, poses, normals_xy, along_weight, gate_residual=config.gate_on_residual
+    )
     last_bound = config.stages[-1][0]
-    inliers = d < last_bound
+    inliers = res.gate < last_bound
     count = inliers.sum(axis=1)
     fraction = count / max(n, 1)
     rms = np.sqrt(np.where(inliers, res.r * res.r, 0.0).sum(axis=1) / np.maximum(count, 1))
@@ -604,12 +624,14 @@ def _gauss_newton_step(
     information matrix sum_i w_i J_i J_iᵀ (P, 3, 3) at the poses."""
     n = points_xy.shape[0]
     eye = np.eye(3)[None, :, :]
-    res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight, fine)
+    res = residuals(
+        field, window_index, points_xy, poses, normals_xy, along_weight, fine, config.gate_on_residual
+    )
     jac = np.empty((poses.shape[0], n, 3), dtype=np.float32)
     jac[..., 0] = res.jx
     jac[..., 1] = res.jy
     jac[..., 2] = res.jy * res.rx - res.jx * res.ry
-    wj = jac * (res.d < bound_m)[..., None]
+    wj = jac * (res.gate < bound_m)[..., None]
     info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
     offset = poses - x0
     offset[:, 2] = wrap_angle(offset[:, 2])
@@ -634,6 +656,7 @@ def truncated_energy(
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
     residuals_at_poses: Residuals | None = None,
+    gate_residual: bool = False,
 ) -> FloatArray:
     """The objective :func:`match` minimises, with every endpoint's residual truncated at ``bound_m``
     (an endpoint farther than that from every wall counts ``bound_m``²), for poses (P, 3): sum_i
@@ -641,11 +664,13 @@ def truncated_energy(
     others (as :func:`scan_log_likelihood`). Comparable between two matches of the same scan in the same
     window: the lower one explains the scan better at the price the prior puts on its move.
     ``residuals_at_poses``: :func:`residuals` at these poses if already computed (the match's own, from
-    :func:`match_with_residuals`), not computed again."""
+    :func:`match_with_residuals`), not computed again. ``gate_residual``: as :func:`residuals`."""
     res = residuals_at_poses
     if res is None:
-        res = residuals(field, window_index, points_xy, poses, normals_xy, along_weight)
-    e2 = np.where(res.d < bound_m, res.r * res.r, bound_m * bound_m)
+        res = residuals(
+            field, window_index, points_xy, poses, normals_xy, along_weight, gate_residual=gate_residual
+        )
+    e2 = np.where(res.gate < bound_m, res.r * res.r, bound_m * bound_m)
     n = points_xy.shape[0]
     n_known = res.known.sum(axis=1)
     total = np.where(
@@ -748,6 +773,7 @@ def scan_log_likelihood(
     outlier_m: float,
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
+    gate_residual: bool = False,
 ) -> FloatArray:
     """log p(z | x, m) up to a constant, for poses (P, K, 3) in windows (P,):
     -sum_i e_i^2 / (2 sigma^2), e_i = r_i (:func:`residuals`: the distance, or with normals the offset
@@ -766,8 +792,9 @@ def scan_log_likelihood(
         poses.reshape(p * k, 3),
         normals_xy,
         along_weight,
+        gate_residual=gate_residual,
     )
-    e2 = np.where(res.d < outlier_m, res.r * res.r, outlier_m * outlier_m)
+    e2 = np.where(res.gate < outlier_m, res.r * res.r, outlier_m * outlier_m)
     n_known = res.known.sum(axis=1)
     known_sum = np.where(res.known, e2, 0.0).sum(axis=1)
     total = np.where(
@@ -788,6 +815,7 @@ def _linearized_sums(
     normals_xy: FloatArray | None,
     along_weight: float,
     residuals_at_centres: Residuals | None = None,
+    gate_residual: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray]:
     """The endpoints' residuals linearised at poses centres (P, 3): A = sum J Jᵀ (P, 3, 3), b = sum J r
     (P, 3) over the endpoints within ``outlier_m``, c = sum r^2 (P,) with each known endpoint beyond it
@@ -795,8 +823,10 @@ def _linearized_sums(
     residuals there, if already computed."""
     res = residuals_at_centres
     if res is None:
-        res = residuals(field, window_index, points_xy, centres, normals_xy, along_weight)
-    inlier = res.known & (res.d < outlier_m)
+        res = residuals(
+            field, window_index, points_xy, centres, normals_xy, along_weight, gate_residual=gate_residual
+        )
+    inlier = res.known & (res.gate < outlier_m)
     w = inlier.astype(np.float64)
     jac = np.stack([res.jx, res.jy, res.jy * res.rx - res.jx * res.ry], axis=-1)  # (P, N, 3)
     wj = jac * w[..., None]
@@ -819,6 +849,7 @@ def linearized_log_likelihood(
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
     residuals_at_centres: Residuals | None = None,
+    gate_residual: bool = False,
 ) -> FloatArray:
     """:func:`scan_log_likelihood` at poses centres (P, 3) + offsets (P, K, 3), with each endpoint's
     residual linearised at its centre: e_i(delta) = r_i + J_i delta for the endpoints within ``outlier_m``
@@ -828,7 +859,15 @@ def linearized_log_likelihood(
     (the proposal's grid spans the match's own standard deviation, millimetres).
     """
     a, b, c, n_known = _linearized_sums(
-        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight, residuals_at_centres
+        field,
+        window_index,
+        points_xy,
+        centres,
+        outlier_m,
+        normals_xy,
+        along_weight,
+        residuals_at_centres,
+        gate_residual,
     )
     n = points_xy.shape[0]
     scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0)
@@ -851,13 +890,14 @@ def log_likelihood_quadratic(
     outlier_m: float,
     normals_xy: FloatArray | None = None,
     along_weight: float = 1.0,
+    gate_residual: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """:func:`linearized_log_likelihood` as the quadratic itself: log p(z | centre + delta) =
     l0 + gᵀ delta - 1/2 deltaᵀ H delta for poses centres (P, 3); returns l0 (P,), g (P, 3), H (P, 3, 3)
     (l0 = -s c / 2 sigma^2, g = -s b / sigma^2, H = s A / sigma^2 with A, b, c and the imputation scale s
     = N / N_known as there)."""
     a, b, c, n_known = _linearized_sums(
-        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight
+        field, window_index, points_xy, centres, outlier_m, normals_xy, along_weight, None, gate_residual
     )
     n = points_xy.shape[0]
     scale = np.where(n_known > 0, n / np.maximum(n_known, 1), 0.0) / (sigma_m * sigma_m)

@@ -49,10 +49,10 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
         "miss_log_odds = -0.1\nsearch_increment_rad = 0.19\nsearch_yaw_rad = 0.45\n"
         "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nreversal_ratio = 0.5\n"
-        "process = false\n"
+        "match_gate_residual = true\nprocess = false\n"
     )
     config = parse_config(text).slam
-    radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3)
+    radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3, match_gate_residual=True)
     assert [getattr(config, f) for f in _FRONT_END_KEYS] == [getattr(radish, f) for f in _FRONT_END_KEYS]
     assert front_end_noise(config) == MOTION_NOISE
 
@@ -60,8 +60,11 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     step = mapper.update(_room_scan(), (0.0, 0.0, 0.0))
     assert step.kind == "first"
     built = mapper.slam.config
+    radish_proposal = log_proposal("radish", ProposalConfig())
     assert built.proposal == dataclasses.replace(
-        log_proposal("radish", ProposalConfig()), degenerate_noise_scale=0.3
+        radish_proposal,
+        degenerate_noise_scale=0.3,
+        matcher=dataclasses.replace(radish_proposal.matcher, gate_on_residual=True),
     )
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
@@ -78,6 +81,7 @@ _FRONT_END_KEYS = (
     "match_min_inliers",
     "match_min_inlier_fraction",
     "match_both_starts",
+    "match_gate_residual",
     "failed_match_draw",
     "miss_log_odds",
     "search_increment_rad",
@@ -94,6 +98,7 @@ _FRONT_END_KEYS = (
         ("match_min_inliers = 0", "slam.match_min_inliers"),
         ("match_min_inlier_fraction = -0.1", "slam.match_min_inlier_fraction"),
         ('match_both_starts = "yes"', "slam.match_both_starts"),
+        ('match_gate_residual = "yes"', "slam.match_gate_residual"),
         ('failed_match_draw = "anywhere"', "slam.failed_match_draw"),
         ("miss_log_odds = 0.1", "slam.miss_log_odds"),
         ("search_increment_rad = 0", "slam.search_increment_rad"),

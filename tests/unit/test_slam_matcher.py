@@ -365,3 +365,29 @@ def test_per_pose_convergence_gives_each_pose_its_answer_alone() -> None:
     # The poses reach the same optimum either way (within the convergence tolerance, a few of them).
     np.testing.assert_allclose(batch.poses, together.poses, atol=5e-3)
     assert not np.array_equal(batch.poses, together.poses)  # the extra steps do move the converged ones
+
+
+def test_the_residual_gate_scores_new_wall_beyond_the_mapped_end_by_its_line() -> None:
+    """A wall mapped up to x = 1 (free space known beyond it), seen up to x = 1.5: point to line, gated on
+    the distance to the nearest obstacle, the endpoints past the mapped end are outliers and a pose slid
+    back along the wall (every endpoint on mapped cells) scores better than the true one; gated on the
+    residual (their offset across the wall's line) they count as fitting it."""
+    h, w = 40, 80
+    obstacles = np.zeros((1, h, w), dtype=bool)
+    obstacles[0, 20, : int(1.0 / RES) + 40] = True  # y = 1.025, x from -2 to 1
+    field = DistanceField.from_obstacles(obstacles, (-2.0, 0.0), RES, 0.6, np.ones_like(obstacles))
+    xs = np.arange(0.0, 1.5, 0.05)  # within the field's reach (its cap less a cell) of the mapped end
+    points = np.stack([xs, np.full_like(xs, 1.025)], axis=1)
+    normals = np.tile([0.0, 1.0], (xs.size, 1))
+    poses = np.array([[0.0, 0.0, 0.0], [-0.5, 0.0, 0.0]])  # the truth, slid back 0.5 m
+    windows = np.zeros(2, dtype=np.int64)
+
+    def energy(gate: bool) -> np.ndarray:
+        return truncated_energy(field, windows, points, poses, 0.12, None, None, normals, 0.0, None, gate)
+
+    by_distance, by_residual = energy(False), energy(True)
+    assert by_distance[0] > by_distance[1] + 5 * 0.12**2  # the endpoints past x ~ 1.1: outliers
+    # Gated on the residual they are inliers, each at its (bilinear field's) offset across the line, a few
+    # centimetres: the truth's handicap against the slid pose shrinks to a third.
+    assert by_residual[1] == pytest.approx(by_distance[1], abs=1e-9)  # on the mapped wall: the same
+    assert by_residual[0] - by_residual[1] < (by_distance[0] - by_distance[1]) / 3

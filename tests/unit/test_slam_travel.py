@@ -85,23 +85,30 @@ def test_the_filter_follows_the_scan_where_the_odometry_lost_its_sign() -> None:
     """The robot drives along the room, stops and backs again, its odometry driving on forward. With
     ``reversal_ratio`` the filter stays where the robot is (the check runs within ``REVERSAL_WINDOW_M`` of
     the standstill, and the direction it found holds after); without, the match follows the odometry's
-    prediction. Without the standstill the check does not run (a robot turns round from rest)."""
+    prediction. Without the standstill the check does not run (a robot turns round from rest). Where the
+    update turns as far as the correlative search's trigger (here every update: trigger 0) the check's
+    matches start from the search's poses, and it finds the same."""
     errors = {}
-    for ratio, stop in ((0.5, 3), (None, 3), (0.5, 0)):
+    for ratio, stop, trigger in ((0.5, 3, 0.5), (None, 3, 0.5), (0.5, 0, 0.5), (0.5, 3, 0.0)):
         poses, odometry, ranges = _there_and_back(stop)
         config = RbpfConfig(
-            particles=8, initial_pose=tuple(poses[0]), loop_closure=None, reversal_ratio=ratio
+            particles=8,
+            initial_pose=tuple(poses[0]),
+            loop_closure=None,
+            reversal_ratio=ratio,
+            search_increment_rad=trigger,
         )
         slam = RbpfSlam(LASER, config)
         worst = 0.0
         for k, (odom, r) in enumerate(zip(odometry, ranges, strict=True)):
             if slam.process(0.1 * k, r, odom).kind is StepKind.UPDATED:  # the pose of each update
                 worst = max(worst, float(np.hypot(*(slam.pose()[:2] - poses[k, :2]))))
-        errors[ratio, stop] = worst
+        errors[ratio, stop, trigger] = worst
         assert (slam.stats.reversals > 0) == (ratio is not None and stop > 0)
     # With: within 0.12 m (the update where it turns round, net 5 cm against the odometry's 25, is off by
     # 0.11 m and the next ones take it back); without: metres.
-    assert errors[0.5, 3] < 0.15 and errors[None, 3] > 1.0 and errors[0.5, 0] > 1.0, errors
+    assert errors[0.5, 3, 0.5] < 0.15 and errors[None, 3, 0.5] > 1.0 and errors[0.5, 0, 0.5] > 1.0, errors
+    assert errors[0.5, 3, 0.0] < 0.15, errors
 
 
 def test_a_forward_match_stuck_in_a_local_minimum_is_not_a_reversal(shared_data: Path) -> None:
