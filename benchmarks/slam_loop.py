@@ -125,6 +125,13 @@ def main() -> int:
         " map's known area (LoopClosureConfig.hypotheses; 0: the coarse ambiguity test; default"
         f" {loop_defaults.hypotheses})",
     )
+    parser.add_argument(
+        "--loop-hypotheses-everywhere",
+        action="store_true",
+        help="with --loop-hypotheses: the known-area rule in place of the coarse tests, its links judged as"
+        " theirs (LoopClosureConfig.known_area_fallback false); default: only where the coarse tests find"
+        " nothing, acting only on links that disagree with the graph",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -150,7 +157,10 @@ def main() -> int:
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
             loop_closure=dataclasses.replace(
-                loop_defaults, edge_match_sigma_m=args.edge_match_sigma, hypotheses=args.loop_hypotheses
+                loop_defaults,
+                edge_match_sigma_m=args.edge_match_sigma,
+                hypotheses=args.loop_hypotheses,
+                known_area_fallback=not args.loop_hypotheses_everywhere,
             ),
             seed=seed,
         )
