@@ -109,8 +109,19 @@ class LoopClosureConfig:
     # counted, not added: it would change nothing but add a match's noise). False: the rule replaces the
     # coarse tests and its links are judged as theirs are: 4 closes exp1's loop for 6 of 6 seeds (0-5) but
     # makes Intel, ACES and the office worse (docs/slam.md, "Open problems", exp1's loop, seed 1).
-    hypotheses: int = 0
+    # ``known_area_after_m``: with the fallback, the rule runs only once the front end has driven this far
+    # since a link last joined the graph (a long loop's first return, where the window is at its widest
+    # and the coarse ambiguity test at its weakest: exp1's 25 m). On Intel (seed 0) known-area links
+    # found after 1-17 m, where the coarse tests were ambiguous, disagreed with a graph that was right
+    # (innovations of 11-3300, 20 acted on: ate_aligned_m 0.074 -> 0.338 m).
+    hypotheses: int = 4
     known_area_fallback: bool = True
+    known_area_after_m: float = 20.0
+    # A known-area link acts only where the newest scans show the map come apart by at least this (the
+    # judge's ``fit_m`` for its links: their matches are the ones the coarse tests found ambiguous, so
+    # they need the scans' plainer word). exp1 (seeds 1, 2): 0.20-0.25 m; Intel seed 0's first return
+    # (66 m, a link that took ate_aligned_m 0.074 -> 0.120 m): 0.10 m.
+    known_area_fit_m: float = 0.15
     known_ambiguity: float = 0.3
     prior_chi2: float = 11.34
     # Standard deviations of the factors (x, y in the first node's frame; yaw).
@@ -325,7 +336,7 @@ def find_loop(
     if config.hypotheses > 0 and not config.known_area_fallback:
         return _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
     found = _find_loop_coarse(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
-    if found is None and config.hypotheses > 0:
+    if found is None and config.hypotheses > 0 and travelled_m >= config.known_area_after_m:
         known = _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
         if known is not None:
             return replace(known, known_area=True)
@@ -776,7 +787,7 @@ def judge_loop(
     old = window_nodes(poses, candidate.i, j - config.min_separation, config.window_path_m)
     new = range(max(j - config.verify_nodes + 1, old.stop), j + 1)
     score_before = scan_map_score(poses, hits, old, new, config)
-    if score_before < config.fit_m**2:
+    if score_before < (config.known_area_fit_m if candidate.known_area else config.fit_m) ** 2:
         if innovation < config.agree_chi2:
             return Judgement(Verdict.AGREES, innovation, score_before=score_before)
         log.debug("loop %d -> %d: the scans fit the old map already (%.4f)", candidate.i, j, score_before)
