@@ -770,8 +770,9 @@ def judge_loop(
 ) -> Judgement:
     """Whether ``candidate`` should join the graph of ``poses`` (the front end's), ``motions`` and the
     accepted ``loops``, in this order: a known-area link (``LoopConstraint.known_area``) whose innovation
-    is below ``agree_chi2`` is NEAR (counted, neither added nor acted on); the newest ``verify_nodes`` scans must fit the old map (the nodes
-    around i) badly at the current poses (``fit_m``); where they fit, the map holds together there and
+    is below ``agree_chi2`` is NEAR (counted, neither added nor acted on); the newest ``verify_nodes``
+    scans must fit the old map (the nodes around i) badly at the current poses (``fit_m``;
+    ``known_area_fit_m`` for a known-area link); where they fit, the map holds together there and
     the link is AGREES (joins the graph, not acted on) when it agrees with the graph within its own
     noise (``agree_chi2``), FITS (dropped: it slid) when not; with ``require_confirmation`` one of the
     ``pending`` links (earlier candidates left UNCONFIRMED, within ``confirm_nodes``) must agree with it;
