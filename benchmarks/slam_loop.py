@@ -17,7 +17,8 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
-    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 0
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4 --loop-hypotheses-everywhere
 """
 
 from __future__ import annotations
@@ -122,7 +123,8 @@ def main() -> int:
         default=loop_defaults.hypotheses,
         metavar="N",
         help="loop search: the N best coarse poses of each old window refined and judged over the old"
-        " map's known area (LoopClosureConfig.hypotheses; 0: the coarse ambiguity test; default"
+        " map's known area where the coarse tests find nothing (LoopClosureConfig.hypotheses; 0: the"
+        " coarse ambiguity test alone; default"
         f" {loop_defaults.hypotheses})",
     )
     parser.add_argument(
