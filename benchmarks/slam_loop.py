@@ -17,7 +17,8 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
-    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 0
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4 --loop-hypotheses-everywhere
 """
 
 from __future__ import annotations
@@ -122,8 +123,16 @@ def main() -> int:
         default=loop_defaults.hypotheses,
         metavar="N",
         help="loop search: the N best coarse poses of each old window refined and judged over the old"
-        " map's known area (LoopClosureConfig.hypotheses; 0: the coarse ambiguity test; default"
+        " map's known area where the coarse tests find nothing (LoopClosureConfig.hypotheses; 0: the"
+        " coarse ambiguity test alone; default"
         f" {loop_defaults.hypotheses})",
+    )
+    parser.add_argument(
+        "--loop-hypotheses-everywhere",
+        action="store_true",
+        help="with --loop-hypotheses: the known-area rule in place of the coarse tests, its links judged as"
+        " theirs (LoopClosureConfig.known_area_fallback false); default: only where the coarse tests find"
+        " nothing, acting only on links that disagree with the graph",
     )
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -150,7 +159,10 @@ def main() -> int:
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
             loop_closure=dataclasses.replace(
-                loop_defaults, edge_match_sigma_m=args.edge_match_sigma, hypotheses=args.loop_hypotheses
+                loop_defaults,
+                edge_match_sigma_m=args.edge_match_sigma,
+                hypotheses=args.loop_hypotheses,
+                known_area_fallback=not args.loop_hypotheses_everywhere,
             ),
             seed=seed,
         )

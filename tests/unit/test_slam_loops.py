@@ -4,6 +4,7 @@ against the map of old nodes (agent.slam.loops)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -169,13 +170,34 @@ def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> 
     hits = [_scan_from(p, seen if k < 20 else walls) for k, p in enumerate(truth)]
     graph = truth.copy()
     graph[60] = compose(truth[60], np.array([0.4, -0.3, math.radians(4.0)]))
-    coarse = LoopClosureConfig(min_separation=40)
+    coarse = LoopClosureConfig(min_separation=40, hypotheses=0)
     assert find_loop(graph, hits, hits[60], 60, coarse, travelled_m=40.0) is None
-    found = find_loop(graph, hits, hits[60], 60, LoopClosureConfig(min_separation=40, hypotheses=4), 40.0)
-    assert found is not None and found.j == 60 and found.i < 20
+    config = LoopClosureConfig(min_separation=40, hypotheses=4)
+    # Only after known_area_after_m without a link (here 20 m) does the rule run where the coarse tests
+    # found nothing; its link is marked as the rule's.
+    assert find_loop(graph, hits, hits[60], 60, config, 19.0) is None
+    found = find_loop(graph, hits, hits[60], 60, config, 40.0)
+    assert found is not None and found.j == 60 and found.i < 20 and found.known_area
     error = between(between(truth[found.i], truth[60]), found.z)
     assert math.hypot(error[0], error[1]) < 0.05 and abs(error[2]) < math.radians(1.0)
     assert found.inlier_fraction >= 0.75  # of the endpoints in the known area
+
+
+def test_a_known_area_link_the_graph_agrees_with_is_counted_and_not_acted_on() -> None:
+    truth, path, hits = _drifted_revisit()
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    config = LoopClosureConfig(min_separation=40)
+    found = find_loop(truth, hits, hits[64], 64, config, travelled_m=60.0)
+    assert found is not None
+    near = replace(found, known_area=True)
+    judgement = judge_loop(truth, hits, motions, [], near, config)
+    assert judgement.verdict is Verdict.NEAR and judgement.result is None
+    # The same link where the graph has drifted (0.4 m) disagrees with it: judged as any other.
+    drifted = np.zeros_like(path)
+    drifted[1:] = between(path[:-1], path[1:])
+    far = judge_loop(path, hits, drifted, [], near, config)
+    assert far.innovation_chi2 > config.agree_chi2 and far.verdict is not Verdict.NEAR
 
 
 def test_known_fit_counts_walls_free_space_and_the_unseen_apart() -> None:
