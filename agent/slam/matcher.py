@@ -146,7 +146,7 @@ class DistanceField:
             # np.copyto(region, unknown, where=near_known == 0), in half the time.
             if fill is None:
                 fill = np.full(shape, unknown, dtype=np.float32)
-            far = cv2.compare(near_known, 0, cv2.CMP_EQ)
+            far = cv2.compare(near_known, 0, cv2.CMP_EQ)  # type: ignore[call-overload]  # (scalar operand)
             cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
             out[: 1 + r0] = unknown
             out[1 + r1 :] = unknown
