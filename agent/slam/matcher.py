@@ -118,6 +118,7 @@ class DistanceField:
         canvas = np.empty((h + 2, w + 2), dtype=np.uint8)
         kernel = np.ones((3, 3), np.uint8)
         unknown = np.float32(UNKNOWN / resolution_m)
+        fill: Float32Array | None = None  # UNKNOWN, copied where no known cell is near (cv2.copyTo)
         for k in range(count):
             obstacles, known = window(k)
             if obstacles.shape != shape or (known is not None and known.shape != shape):
@@ -142,7 +143,11 @@ class DistanceField:
             np.logical_not(obstacles[r0:r1, c0:c1], out=box, casting="unsafe")  # DT: distance to the 0s
             cv2.distanceTransform(box, cv2.DIST_L2, 5, dst=region)
             near_known = cv2.dilate(known[r0:r1, c0:c1].view(np.uint8), kernel)
-            np.copyto(region, unknown, where=near_known == 0)
+            # np.copyto(region, unknown, where=near_known == 0), in half the time.
+            if fill is None:
+                fill = np.full(shape, unknown, dtype=np.float32)
+            far = cv2.compare(near_known, 0, cv2.CMP_EQ)  # type: ignore[call-overload]  # (scalar operand)
+            cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
             out[: 1 + r0] = unknown
             out[1 + r1 :] = unknown
             out[1 + r0 : 1 + r1, : 1 + c0] = unknown
@@ -150,7 +155,10 @@ class DistanceField:
         # What is the same for every window, once for the stack: the per-window calls were a fixed cost
         # each, as much as the transform itself on exp1's 30 windows of 130 x 130 cells.
         np.multiply(padded, np.float32(resolution_m), out=padded)
-        np.minimum(padded, np.float32(cap_m), out=padded)
+        # min(d, cap) as OpenCV's truncating threshold (in place, the cap rounded to float32 as
+        # np.minimum's float32 scalar is: the same values, ~7x faster than np.minimum's NaN-aware loop).
+        flat_rows = padded.reshape(-1, w + 2)
+        cv2.threshold(flat_rows, cap_m, 0.0, cv2.THRESH_TRUNC, dst=flat_rows)
         padded[:, 0, :] = padded[:, -1, :] = cap_m
         padded[:, :, 0] = padded[:, :, -1] = cap_m
         return cls(padded, origin_m, resolution_m, cap_m)
