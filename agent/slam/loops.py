@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from agent.slam.matcher import DistanceField, MatcherConfig, match, world_points
+from agent.slam.matcher import DistanceField, MatcherConfig, MatchResult, match, world_points
 from agent.slam.pose import between, compose, transform_points, wrap_angle
 from agent.slam.posegraph import (
     AbsoluteFactors,
@@ -317,6 +317,24 @@ def lattice_search(
     )
 
 
+def _refine(
+    old: DistanceField, points_xy: FloatArray, start: FloatArray, config: LoopClosureConfig
+) -> MatchResult:
+    """A coarse candidate refined against one old window: the fine lattice around ``start``, then
+    Gauss-Newton from its best pose (one pose: ``MatchResult`` rows of one)."""
+    fine = lattice_search(
+        old,
+        points_xy,
+        start,
+        config.coarse_resolution_m,
+        config.coarse_yaw_step_rad,
+        config.fine_yaw_step_rad,
+        config.truncate_m,
+    )
+    best = fine.pose(start, *fine.best())
+    return match(old, np.zeros(1, dtype=np.int64), points_xy, best[None, :], config.matcher)
+
+
 def find_loop(
     poses: FloatArray,
     hits: list[FloatArray],
@@ -382,17 +400,7 @@ def _find_loop_coarse(
     _cost, i, nodes, start = best
     cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
     old = old_map_field(poses, hits, nodes, config.resolution_m, cap)
-    fine = lattice_search(
-        old,
-        match_points,
-        start,
-        config.coarse_resolution_m,
-        config.coarse_yaw_step_rad,
-        config.fine_yaw_step_rad,
-        config.truncate_m,
-    )
-    start = fine.pose(start, *fine.best())
-    refined = match(old, np.zeros(1, dtype=np.int64), match_points, start[None, :], config.matcher)
+    refined = _refine(old, match_points, start, config)
     fraction = float(refined.inlier_fraction[0])
     if not refined.ok[0] or fraction < config.min_inlier_fraction:
         log.debug("node %d vs %d: %.2f of the endpoints on the old map", j, i, fraction)
@@ -586,18 +594,7 @@ def _find_loop_known(
         old = old_map_field(poses, hits, nodes, config.resolution_m, cap, cover_poses=True)
         known = known_cells(poses, hits, nodes, old)
         for r, t in distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad):
-            start = coarse.pose(poses[j], r, t)
-            fine = lattice_search(
-                old,
-                match_points,
-                start,
-                config.coarse_resolution_m,
-                config.coarse_yaw_step_rad,
-                config.fine_yaw_step_rad,
-                config.truncate_m,
-            )
-            start = fine.pose(start, *fine.best())
-            m = match(old, np.zeros(1, dtype=np.int64), match_points, start[None, :], config.matcher)
+            m = _refine(old, match_points, coarse.pose(poses[j], r, t), config)
             fit = known_fit(old, known, match_points, m.poses[0], inlier_m, config.truncate_m)
             refined.append(_Hypothesis(i, m.poses[0], fit, bool(m.ok[0]), m.information[0]))
     if not refined:

@@ -50,25 +50,25 @@ def between(a: npt.ArrayLike, b: npt.ArrayLike) -> FloatArray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(pb[..., 2] - pa[..., 2])], axis=-1)
 
 
-def transform_points(pose: npt.ArrayLike, points_xy: npt.ArrayLike) -> FloatArray:
-    """Points (..., N, 2) in the pose's frame -> parent frame, for poses of shape (..., 3)."""
+def _transformed_xy(pose: npt.ArrayLike, points_xy: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """The parent-frame x and y (..., N) of points (..., N, 2) in the frames of poses (..., 3)."""
     p = np.asarray(pose, dtype=np.float64)
     q = np.asarray(points_xy, dtype=np.float64)
     c = np.cos(p[..., 2])[..., None]
     s = np.sin(p[..., 2])[..., None]
     x = p[..., 0][..., None] + c * q[..., 0] - s * q[..., 1]
     y = p[..., 1][..., None] + s * q[..., 0] + c * q[..., 1]
-    return np.stack([x, y], axis=-1)
+    return x, y
+
+
+def transform_points(pose: npt.ArrayLike, points_xy: npt.ArrayLike) -> FloatArray:
+    """Points (..., N, 2) in the pose's frame -> parent frame, for poses of shape (..., 3)."""
+    return np.stack(_transformed_xy(pose, points_xy), axis=-1)
 
 
 def transform_bounds(pose: npt.ArrayLike, points_xy: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """The (x, y) minimum and maximum of :func:`transform_points` (pose, points_xy) over all poses and
     points, bit for bit: x and y are computed as there but reduced apart, not stacked into (..., N, 2)
     pairs first (a min over the first axis of pairs runs an inner loop of two elements per row)."""
-    p = np.asarray(pose, dtype=np.float64)
-    q = np.asarray(points_xy, dtype=np.float64)
-    c = np.cos(p[..., 2])[..., None]
-    s = np.sin(p[..., 2])[..., None]
-    x = p[..., 0][..., None] + c * q[..., 0] - s * q[..., 1]
-    y = p[..., 1][..., None] + s * q[..., 0] + c * q[..., 1]
+    x, y = _transformed_xy(pose, points_xy)
     return np.array([x.min(), y.min()]), np.array([x.max(), y.max()])
