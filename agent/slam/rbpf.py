@@ -235,13 +235,10 @@ _INTEGRATE_CELLS = 2_000_000
 # seed 0 went from 0.28 to 0.48 m). A standstill is a record whose odometry moved slower than
 # REVERSAL_STOP_M_S since the record before (FR079 cruises at ~0.4 m/s; every one of its backward runs
 # follows a record under 0.065 m/s within the 8 before it). The direction the check chose holds until it
-# runs again; at each check the odometry's direction is the default. Where the update turns as far as the
-# correlative search's trigger (RbpfConfig.search_increment_rad) odometry's heading is itself in doubt, and
-# both of the check's matches start from the search's best pose around their predictions (from the
-# predictions themselves, both were off in heading and which ended lower was chance: ACES record 275,
-# 0.12 m and a 50 deg turn that odometry makes 39 deg, was reversed at seed 5, and at seeds 1 and 2 with
-# [slam] match_gate_residual, each then 9-11 m off; skipping the check at such updates instead cost
-# FR079 seed 0 0.197 -> 0.357 m, 7 reversals).
+# runs again; at each check the odometry's direction is the default. Where the filter searches, a
+# reversal must also beat the forward side's best fit from a correlative search around its prediction
+# (``proposal.travel_reversed``: ACES seed 5, record 275, a forward match stuck in a local minimum was
+# reversed and the map ended 10.9 m off).
 REVERSAL_MIN_M = 0.1
 REVERSAL_WINDOW_M = 1.0
 REVERSAL_STOP_M_S = 0.07
@@ -562,10 +559,11 @@ class RbpfSlam:
         else:
             predicted = compose(self.poses, increment[None, :])
             lead = self.best_index
-            reversed_lead = compose(self.poses[lead], increment * flip)
-            field, window_index = self._field(
-                np.vstack([predicted, reversed_lead[None, :]]) if check else predicted, points
-            )
+            # The field also covers the lead's reversed prediction where the direction is checked.
+            reach = predicted
+            if check:
+                reach = np.vstack([predicted, compose(self.poses[lead], increment * flip)[None, :]])
+            field, window_index = self._field(reach, points)
             self.give_way()
             if check:
                 assert cfg.reversal_ratio is not None

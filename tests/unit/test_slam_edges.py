@@ -11,15 +11,7 @@ import pytest
 from agent.slam.loops import LoopClosureConfig, LoopConstraint, chain_poses, optimize_graph
 from agent.slam.motion import OdometryNoise
 from agent.slam.pose import between, wrap_angle
-
-
-def _square(side_steps: int = 10, step_m: float = 1.0) -> np.ndarray:
-    motions = [np.zeros(3)]
-    for corner in range(4):
-        for k in range(side_steps):
-            turn = math.pi / 2 if (k == side_steps - 1 and corner < 3) else 0.0
-            motions.append(np.array([step_m, 0.0, turn]))
-    return np.array(motions)
+from tests.unit.test_slam_loops import _square
 
 
 def test_a_departure_the_odometry_noise_explains_does_not_draw_a_loop_correction() -> None:
