@@ -58,6 +58,11 @@ def room() -> World:
                  laser=LaserModel(range_noise_mm=10.0))  # fmt: skip
 
 
+# The driver's reply timeout in tests that are not about timeouts: a deadline for behaviour, not speed (a
+# starved CI machine once kept the fake from answering SCIP2.0 within 2 s).
+REPLY_TIMEOUT_S = 5.0
+
+
 def device_ms(scan: Scan) -> int:
     assert scan.device_time_ms is not None, "a URG scan always carries the sensor's clock"
     return scan.device_time_ms
@@ -126,7 +131,7 @@ def test_connect_from_any_sensor_state(sim: Simulation, tmp_path: Path, state: s
     with PtyServer(fake, link=tmp_path / "urg") as srv:
         if state == "streaming":
             time.sleep(0.25)  # scans of the old stream wait in the pty when the driver opens it
-        with UrgLaser(srv.path, timeout_s=2.0) as laser:
+        with UrgLaser(srv.path, timeout_s=REPLY_TIMEOUT_S) as laser:
             assert laser.scan_once(1.0).ranges_mm.size == 682
         sent = [c.split(b";")[0] for c in fake.commands]
         assert b"SCIP2.0" in sent
@@ -143,7 +148,7 @@ def test_open_fails_cleanly(tmp_path: Path, sim: Simulation) -> None:
     fake.silent = False
     fake.hardware_fault = True
     with PtyServer(fake) as srv:
-        laser = UrgLaser(srv.path, timeout_s=2.0)
+        laser = UrgLaser(srv.path, timeout_s=REPLY_TIMEOUT_S)
         with pytest.raises(UrgHardwareFault) as info:
             laser.open()
         assert info.value.status == "01" and not laser.is_open
@@ -231,7 +236,7 @@ def test_a_faulty_sensor_refuses_with_typed_errors(fake: FakeUrg, laser: UrgLase
 def test_md_streaming_timestamps_and_alignment(fake: FakeUrg, laser: UrgLaser) -> None:
     laser.start()
     assert laser.streaming and fake.streaming
-    scans = [laser.read(1.0) for _ in range(10)]
+    scans = [laser.read(REPLY_TIMEOUT_S) for _ in range(10)]
     device = [device_ms(s) for s in scans]
     steps = [b - a for a, b in itertools.pairwise(device)]
     assert all(step > 0 and step % 100 == 0 for step in steps)  # one scan per 100 ms revolution
@@ -259,7 +264,7 @@ def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
     fake = FakeUrg(sim, seed=0)
     assert fake.next_output_in(time.monotonic()) is None  # nothing queued, no stream
     with PtyServer(fake, link=tmp_path / "urg", poll_interval_s=5.0) as srv:
-        laser = UrgLaser(srv.path, timeout_s=2.0)
+        laser = UrgLaser(srv.path, timeout_s=REPLY_TIMEOUT_S)
         laser.open()
         try:
             laser.start()
@@ -286,9 +291,12 @@ def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
 
 def test_device_clock_wrap_is_unwrapped(sim: Simulation, tmp_path: Path) -> None:
     fake = FakeUrg(sim, clock_start_ms=WRAP - 500)
-    with PtyServer(fake, link=tmp_path / "urg") as srv, UrgLaser(srv.path, timeout_s=2.0) as laser:
+    with (
+        PtyServer(fake, link=tmp_path / "urg") as srv,
+        UrgLaser(srv.path, timeout_s=REPLY_TIMEOUT_S) as laser,
+    ):
         laser.start()
-        scans = [laser.read(1.0) for _ in range(10)]
+        scans = [laser.read(REPLY_TIMEOUT_S) for _ in range(10)]
     device = np.asarray([s.device_time_ms for s in scans], dtype=np.int64)
     assert device[0] < WRAP < device[-1]
     assert np.all(np.diff(device) > 0) and np.all(np.diff(device) % 100 == 0)
@@ -361,7 +369,10 @@ def test_the_line_rate_is_only_a_limit_on_a_serial_port(
 @pytest.mark.parametrize("power_cycle", [True, False])
 def test_unplug_and_replug(sim: Simulation, tmp_path: Path, power_cycle: bool) -> None:
     fake = FakeUrg(sim, clock_start_ms=1_000_000)
-    with PtyServer(fake, link=tmp_path / "urg") as server, UrgLaser(server.path, timeout_s=2.0) as laser:
+    with (
+        PtyServer(fake, link=tmp_path / "urg") as server,
+        UrgLaser(server.path, timeout_s=REPLY_TIMEOUT_S) as laser,
+    ):
         _unplug_and_replug(server, fake, laser, power_cycle)
 
 
