@@ -32,6 +32,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import enum
+import itertools
 import logging
 import math
 import time
@@ -737,7 +738,7 @@ class RbpfSlam:
         if points is None or j % lc.check_every != 0:
             return
         if lc.idle_updates is not None and j - self._last_agreement > lc.idle_updates:
-            odom = np.array(list(self.history_odom)[self._last_check :])
+            odom = np.array(list(itertools.islice(self.history_odom, self._last_check, None)))
             if float(np.sum(np.hypot(*np.diff(odom[:, :2], axis=0).T))) < lc.idle_path_m:
                 return
         self._last_check = j
@@ -746,7 +747,7 @@ class RbpfSlam:
         _, path, _ = self.trajectory()
         since = self._last_agreement
         travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
-        odometry = np.array(list(self.history_odom)[since:])
+        odometry = np.array(list(itertools.islice(self.history_odom, since, None)))
         doubt = yaw_doubt(
             between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
         )
