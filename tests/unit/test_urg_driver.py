@@ -459,7 +459,7 @@ def test_silent_sensor_times_out_without_hanging(fake: FakeUrg, laser: UrgLaser)
 
 
 def test_a_stalled_stream_is_restarted(server: PtyServer, fake: FakeUrg) -> None:
-    with UrgLaser(server.path, timeout_s=0.5, stall_timeout_s=0.5) as laser:
+    with UrgLaser(server.path, timeout_s=2.0, stall_timeout_s=0.5) as laser:
         laser.start()
         before = laser.read(1.0)
         fake.power_cycle()  # a brown-out: the stream stops, the port stays
