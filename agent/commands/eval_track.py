@@ -80,9 +80,10 @@ def add_parser(subparsers: Any) -> None:
         default=[],
         help="set one of the tracker's parameters (agent.following.meanshift.TrackerConfig, listed in "
         "docs/following.md), e.g. --param scale_gain=0 --param adaptive_weights=false; repeat for several. "
-        "Names starting anchor_ set the pre-locator's scale anchor (agent.following.anchor.ScaleAnchorConfig, "
-        "off by default): --param anchor_every=5 runs the HOG people detector around the track every 5 "
-        "tracked frames and pulls the box's size toward a matching detection's",
+        "Names starting anchor_ set the pre-locator's scale anchor "
+        "(agent.following.anchor.ScaleAnchorConfig, off by default): --param anchor_every=5 runs the HOG "
+        "people detector around the track every 5 tracked frames (and on re-acquisition) and pulls the "
+        "box's size toward a matching detection's",
     )
     p.add_argument(
         "--sre",

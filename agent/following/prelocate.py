@@ -185,8 +185,9 @@ class HeadShoulderLocator:
                     d.box[1] += y0
                     d.head_shoulder[1] += y0
             elif crop.shape[0] >= 128 and crop.shape[1] >= 64:
+                origin = np.array([x0, y0, 0.0, 0.0])
                 for found_rect, score in self._detect(crop):
-                    detections.append(self._detection(found_rect / scale + np.array([x0, y0, 0.0, 0.0]), score))
+                    detections.append(self._detection(found_rect / scale + origin, score))
         detections.sort(key=lambda d: -d.score)
         self.last_ms = (time.perf_counter() - t0) * 1e3
         return detections
