@@ -14,7 +14,8 @@ slow or busy machine shows as a ratio that stays put (``*_over_plain_pass``).
 The pre-locator runs on a real frame when ``../shared/data/person`` is there (OTB Couple frame 1, two
 people, scaled to 640 x 480), else on a synthetic frame: over the whole frame shrunk to 320 and to 160 px
 wide (a user close ahead is large), and over a band of a third of the width (the coarse layer's sector)
-at full resolution.
+at full resolution; and the scale anchor's search around a tracked walker (``hog_around_track``: OTB
+Woman's first box, the image scaled so that it is 130 px tall).
 """
 
 from __future__ import annotations
@@ -134,7 +135,35 @@ def prelocator_case(repeats: int) -> dict[str, object]:
                 found = len(locator.locate(frame, band))
                 times.append(locator.last_ms)
             out[f"{kind.value}_{name}"] = {**_ms(times), "detections": found}
+    out["hog_around_track"] = anchor_case(repeats)
     return out
+
+
+def anchor_case(repeats: int) -> dict[str, object]:
+    """The scale anchor's search (``agent.following.anchor``): HOG in the window around a walker's box,
+    scaled so the start box is 130 px tall. Its cost follows the box's aspect, not the frame's size."""
+    from agent.following.anchor import ScaleAnchor, ScaleAnchorConfig
+
+    folder = SHARED / "data/person/Woman"
+    if (folder / "img/0001.jpg").is_file():
+        from agent.following.otb import load_sequence
+
+        target = load_sequence(folder).targets[0]
+        frame = cv2.imread(str(folder / "img/0001.jpg"))
+        box, source = target.boxes[0], "OTB Woman frame 1, its first box (21 x 95 px)"
+    else:
+        frame, box = next(iter(crossing_sequence(CrossingScene(width_px=640, height_px=480))))
+        source = "synthetic crossing scene (../shared absent)"
+    config = ScaleAnchorConfig(every=5)
+    locator = HeadShoulderLocator(PreLocatorConfig(scale_step=config.detector_scale_step))
+    scale = ScaleAnchor.upscale_for(config, np.asarray(box, dtype=np.float64))
+    locator.locate_around(frame, box, scale)  # warm-up
+    times = []
+    found = 0
+    for _ in range(repeats):
+        found = len(locator.locate_around(frame, box, scale, config.window_width, config.window_height))
+        times.append(locator.last_ms)
+    return {"frame": source, **_ms(times), "detections": found}
 
 
 def rendered_frames(frames: int) -> list[np.ndarray]:

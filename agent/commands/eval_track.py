@@ -20,7 +20,10 @@ from typing import Any
 import numpy as np
 
 from agent.commands.args import dumps_json
+from agent.following.anchor import ScaleAnchorConfig
 from agent.following.meanshift import Features, Silhouette, TrackerConfig
+
+ANCHOR_PREFIX = "anchor_"
 
 FloatArray = np.ndarray[Any, np.dtype[np.float64]]
 
@@ -76,7 +79,11 @@ def add_parser(subparsers: Any) -> None:
         action="append",
         default=[],
         help="set one of the tracker's parameters (agent.following.meanshift.TrackerConfig, listed in "
-        "docs/following.md), e.g. --param scale_gain=0 --param adaptive_weights=false; repeat for several",
+        "docs/following.md), e.g. --param scale_gain=0 --param adaptive_weights=false; repeat for several. "
+        "Names starting anchor_ set the pre-locator's scale anchor "
+        "(agent.following.anchor.ScaleAnchorConfig, off by default): --param anchor_every=5 runs the HOG "
+        "people detector around the track every 5 tracked frames (and on re-acquisition) and pulls the "
+        "box's size toward a matching detection's",
     )
     p.add_argument(
         "--sre",
@@ -104,15 +111,45 @@ def tracker_config(features: Features, silhouette: Silhouette, params: list[str]
     """The tracker's configuration with ``NAME=VALUE`` overrides, each VALUE read as its field's type."""
     from drivers.errors import ConfigError
 
-    fields = {f.name: f for f in dataclasses.fields(TrackerConfig)}
     values: dict[str, Any] = {"features": features, "silhouette": silhouette}
+    values.update(_parse_fields(TrackerConfig, params, "", ("features", "silhouette")))
+    try:
+        return TrackerConfig(**values)
+    except ValueError as exc:
+        raise ConfigError("--param", str(exc)) from None
+
+
+def anchor_config(params: list[str]) -> ScaleAnchorConfig:
+    """The detector anchor's configuration from ``anchor_NAME=VALUE`` items (``anchor_every=5`` sets
+    ``ScaleAnchorConfig.every``)."""
+    from drivers.errors import ConfigError
+
+    try:
+        return ScaleAnchorConfig(**_parse_fields(ScaleAnchorConfig, params, ANCHOR_PREFIX, ()))
+    except ValueError as exc:
+        raise ConfigError("--param", str(exc)) from None
+
+
+def split_params(params: list[str]) -> tuple[list[str], list[str]]:
+    """``--param`` items for the tracker, and those for the detector anchor (named ``anchor_...``)."""
+    anchor = [p for p in params if p.strip().startswith(ANCHOR_PREFIX)]
+    return [p for p in params if p not in anchor], anchor
+
+
+def _parse_fields(cls: Any, params: list[str], prefix: str, fixed: tuple[str, ...]) -> dict[str, Any]:
+    from drivers.errors import ConfigError
+
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    defaults = cls()
+    values: dict[str, Any] = {}
     for item in params:
-        name, sep, text = item.partition("=")
-        name = name.strip()
-        if not sep or name not in fields or name in ("features", "silhouette"):
-            known = ", ".join(n for n in fields if n not in ("features", "silhouette"))
+        full, sep, text = item.partition("=")
+        full = full.strip()
+        name = full[len(prefix) :] if full.startswith(prefix) else ""
+        if not sep or name not in fields or name in fixed:
+            known = ", ".join(prefix + n for n in fields if n not in fixed)
             raise ConfigError("--param", f"{item!r}: want NAME=VALUE with NAME one of {known}")
-        default = getattr(TrackerConfig(), name)
+        default = getattr(defaults, name)
         try:
             if isinstance(default, bool):
                 if text.strip().lower() not in ("true", "false", "1", "0"):
@@ -120,28 +157,39 @@ def tracker_config(features: Features, silhouette: Silhouette, params: list[str]
                 values[name] = text.strip().lower() in ("true", "1")
             elif isinstance(default, enum.Enum):
                 values[name] = type(default)(text.strip())
+            elif isinstance(default, str):
+                values[name] = text.strip()
             else:
                 values[name] = type(default)(text)
         except ValueError:
             raise ConfigError("--param", f"{item!r}: not a {type(default).__name__}") from None
-    try:
-        return TrackerConfig(**values)
-    except ValueError as exc:
-        raise ConfigError("--param", str(exc)) from None
+    return values
 
 
 def track_target(
-    frames: list[Path], start: FloatArray, config: TrackerConfig
+    frames: list[Path], start: FloatArray, config: TrackerConfig, anchor: ScaleAnchorConfig | None = None
 ) -> tuple[FloatArray, dict[str, float]]:
-    """Track one target from ``start`` (its first box) over ``frames``; its boxes (N, 4) and timing."""
+    """Track one target from ``start`` (its first box) over ``frames``; its boxes (N, 4) and timing.
+
+    With ``anchor`` (``every`` > 0) the fine layer's pre-locator anchors the size: it runs around the
+    start box on the first frame (the anchor learns its ratios there, from the start box only), then
+    around the track every ``every`` tracked frames and on the first tracked frame after a
+    re-acquisition (``agent.following.anchor``)."""
     import cv2
 
+    from agent.following.anchor import ScaleAnchor
     from agent.following.meanshift import MeanShiftTracker, TrackState
 
     tracker = MeanShiftTracker(config)
+    anchored = anchor is not None and anchor.every > 0
+    scale_anchor = ScaleAnchor(anchor) if anchor is not None and anchored else None
+    locator = _anchor_locator(anchor) if anchor is not None and anchored else None
     out = np.zeros((len(frames), 4))
     track_s = 0.0
+    locate_s: list[float] = []
     occluded = 0
+    since = 0
+    was_tracking = True
     t_start = time.perf_counter()
     for i, path in enumerate(frames):
         decoded = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -154,22 +202,65 @@ def track_target(
         if i == 0:
             tracker.start(image, start)
             out[0] = start
+            if scale_anchor is not None and locator is not None and anchor is not None:
+                found = _around(locator, image, start, anchor, ScaleAnchor.upscale_for(anchor, start))
+                locate_s.append(locator.last_ms)
+                scale_anchor.start(start, found)
         else:
             result = tracker.update(image)
-            out[i] = result.box
-            occluded += result.state is TrackState.OCCLUDED
+            tracking = result.state is TrackState.TRACKING
+            occluded += not tracking
+            box = result.box
+            if scale_anchor is not None and locator is not None and anchor is not None and tracking:
+                scale_anchor.predict()
+                since += 1
+                if scale_anchor.learnt and (since >= anchor.every or not was_tracking):
+                    since = 0
+                    found = _around(locator, image, box, anchor, scale_anchor.upscale)
+                    locate_s.append(locator.last_ms)
+                    pull = scale_anchor.observe(box, found)
+                    if pull is not None:
+                        tracker.rescale(pull.factor, pull.centre)
+                        box = tracker.box
+            was_tracking = tracking
+            out[i] = box
         track_s += time.perf_counter() - t0
     wall_s = time.perf_counter() - t_start
     n = len(frames)
-    return out, {
+    timing: dict[str, float] = {
         "fps": n / track_s if track_s > 0 else float("inf"),
         "fps_with_decode": n / wall_s if wall_s > 0 else float("inf"),
         "occluded_frames": occluded,
     }
+    if scale_anchor is not None:
+        timing["anchor_learnt"] = float(scale_anchor.learnt)
+        timing["anchor_measurements"] = scale_anchor.measurements
+        timing["anchor_runs"] = len(locate_s)
+        timing["anchor_locate_ms_median"] = float(np.median(locate_s)) if locate_s else 0.0
+    return out, timing
+
+
+def _anchor_locator(anchor: ScaleAnchorConfig) -> Any:
+    from agent.following.prelocate import HeadShoulderLocator, LocatorKind, PreLocatorConfig
+
+    return HeadShoulderLocator(
+        PreLocatorConfig(kind=LocatorKind(anchor.detector), scale_step=anchor.detector_scale_step)
+    )
+
+
+def _around(
+    locator: Any, image: Any, box: FloatArray, anchor: ScaleAnchorConfig, scale: float
+) -> list[FloatArray]:
+    found = locator.locate_around(image, box, scale, anchor.window_width, anchor.window_height)
+    return [d.box for d in found]
 
 
 def evaluate_sequence(
-    directory: str, config: TrackerConfig, max_frames: int | None = None, sre: bool = False
+    directory: str,
+    config: TrackerConfig,
+    max_frames: int | None = None,
+    sre: bool = False,
+    anchor: ScaleAnchorConfig | None = None,
 ) -> dict[str, Any]:
     from agent.following.otb import centre_errors, load_sequence, overlaps, precision_at, success_auc
 
@@ -179,7 +270,7 @@ def evaluate_sequence(
         n = len(target.boxes) if max_frames is None else min(max_frames, len(target.boxes))
         truth = target.boxes[:n]
         frames = list(sequence.frames[:n])
-        boxes, timing = track_target(frames, truth[0], config)
+        boxes, timing = track_target(frames, truth[0], config, anchor)
         errors = centre_errors(boxes, truth)
         ious = overlaps(boxes, truth)
         row: dict[str, Any] = {
@@ -192,7 +283,7 @@ def evaluate_sequence(
             **timing,
         }
         if sre:
-            runs = [track_target(frames, start, config)[0] for start in sre_boxes(truth[0])]
+            runs = [track_target(frames, start, config, anchor)[0] for start in sre_boxes(truth[0])]
             row["sre_precision_20px"] = float(np.mean([precision_at(centre_errors(b, truth)) for b in runs]))
             row["sre_success_auc"] = float(np.mean([success_auc(overlaps(b, truth)) for b in runs]))
         targets.append(row)
@@ -223,15 +314,21 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--frames", "must be at least 2")
     features = Features(args.tracker)
     silhouette = Silhouette(args.silhouette)
-    config = tracker_config(features, silhouette, args.param)
+    tracker_params, anchor_params = split_params(args.param)
+    config = tracker_config(features, silhouette, tracker_params)
+    anchor = anchor_config(anchor_params)
     sequences = []
     for directory in args.sequence:
-        sequences.append(evaluate_sequence(directory, config, args.frames, args.sre))
+        sequences.append(evaluate_sequence(directory, config, args.frames, args.sre, anchor))
         if not args.json:
             print(f"  {Path(directory).name} done", file=sys.stderr, flush=True)
     summary: dict[str, Any] = {"tracker": features.value, "silhouette": silhouette.value}
     if args.param:
-        summary["params"] = {k: str(v) for k, v in sorted(vars(config).items()) if k in _named(args.param)}
+        named = _named(args.param)
+        summary["params"] = {k: str(v) for k, v in sorted(vars(config).items()) if k in named}
+        summary["params"].update(
+            {ANCHOR_PREFIX + k: str(v) for k, v in sorted(vars(anchor).items()) if ANCHOR_PREFIX + k in named}
+        )
     if len(sequences) == 1:
         summary.update(sequences[0])
     else:

@@ -426,6 +426,21 @@ class MeanShiftTracker:
         size = self._size + gain * (np.array([w, h]) - self._size)
         self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
 
+    def rescale(self, factor: float, centre: FloatArray | None = None) -> None:
+        """Multiply the size by ``factor`` (within the scale limits), keeping the aspect; and move the
+        mean shift's centre to ``centre`` if given (the reported box's centre, as :meth:`correct`): a
+        detector's anchor on the size (``agent.following.anchor``)."""
+        cfg = self.config
+        if not (math.isfinite(factor) and factor > 0.0):
+            raise ValueError(f"scale factor must be finite and > 0, got {factor}")
+        if centre is not None:
+            target = np.asarray(centre, dtype=np.float64)
+            if cfg.translation == Translation.REFINE:
+                target = target - self._offset
+            self._centre = target.copy()
+        size = self._size * factor
+        self._size = np.clip(size, cfg.min_scale * self._size0, cfg.max_scale * self._size0)
+
     def update(self, frame: ImageU8, hints: tuple[FloatArray, ...] | list[FloatArray] = ()) -> TrackResult:
         """Track into ``frame``. ``hints``: candidate boxes (x, y, w, h) from elsewhere (the pre-locator,
         the coarse layer's bearing band) tried as re-acquisition starts while the target is occluded."""
