@@ -223,15 +223,18 @@ def turning_point(odometry: FloatArray, estimate: FloatArray, min_turns: int = 1
     return out
 
 
-def turn_ratio(reference: FloatArray, estimate: FloatArray, min_turn_rad: float = 0.3) -> float:
+def turn_ratio(
+    reference: FloatArray, estimate: FloatArray, min_turn_rad: float = 0.3, min_turns: int = 10
+) -> float:
     """Σ θ θ* / Σ θ*² over the consecutive records whose reference turns at least ``min_turn_rad`` (θ the
     estimate's turn, θ* the reference's): 1 where the estimate turns as much as the reference on average,
-    below where it turns less; NaN without such records. A turning scale that the relations do not show
+    below where it turns less; NaN with fewer than ``min_turns`` such records (FR079, whose records are
+    0.2 rad apart at most turns, has 2). A turning scale that the relations do not show
     (each record's error is a fraction of a degree), but which a stretch of turns on the spot in one
     direction carries into every relation across it."""
     ref = between(reference[:-1], reference[1:])[:, 2]
     est = between(estimate[:-1], estimate[1:])[:, 2]
     turns = np.abs(ref) >= min_turn_rad
-    if not turns.any():
+    if int(np.count_nonzero(turns)) < max(min_turns, 1):
         return math.nan
     return float(np.sum(est[turns] * ref[turns]) / np.sum(ref[turns] ** 2))

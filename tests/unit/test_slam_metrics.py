@@ -76,7 +76,7 @@ def test_the_turning_point_is_where_the_odometry_turns_about() -> None:
 
 def test_turn_ratio_is_how_much_the_estimate_turns_against_the_reference() -> None:
     """``turn_ratio``: 1 for the reference itself, 0.99 for a trajectory whose every turn is 1 % short;
-    steps that turn less than the threshold do not count; NaN without turns."""
+    steps that turn less than the threshold do not count; NaN with fewer than ``min_turns`` turns."""
     rng = np.random.default_rng(2)
     base, _ = _turns_on_the_spot(np.zeros(2), rng)
     steps = between(base[:-1], base[1:])
@@ -86,3 +86,4 @@ def test_turn_ratio_is_how_much_the_estimate_turns_against_the_reference() -> No
     assert turn_ratio(base, base) == 1.0
     assert math.isclose(turn_ratio(base, np.array(short)), 0.99, rel_tol=1e-9)
     assert math.isnan(turn_ratio(base[:2], base[:2]))
+    assert math.isnan(turn_ratio(base[:8], base[:8])) and turn_ratio(base[:8], base[:8], min_turns=5) == 1.0
