@@ -354,6 +354,8 @@ def run(args: argparse.Namespace) -> int:
         aligned_trajectory_error,
         far_relation_error,
         relative_pose_error,
+        turn_ratio,
+        turning_point,
         wall_thickness,
     )
     from agent.slam.motion import OdometryNoise
@@ -534,6 +536,10 @@ def run(args: argparse.Namespace) -> int:
                 ate_max_m=_round(float(position_error.max()), 4),
                 final_error_m=_round(float(position_error[-1]), 4),
             )
+    # Where the odometry turns about, in the filter's frame (the laser's moved by its configured mount), from
+    # the turns on the spot: a mount the configuration does not hold (docs/slam.md, "Loop closure", Intel).
+    turning = turning_point(log.odometry_poses(), result.poses)
+    summary["turning_point_m"] = None if turning is None else [_round(float(v), 4) for v in turning]
     if reference is not None:
         odometry = log.odometry_poses()
         error = relative_pose_error(reference, result.poses)
@@ -552,6 +558,8 @@ def run(args: argparse.Namespace) -> int:
             relation_over_10m_m=_round(far.trans_error_m_mean, 4),
             relation_over_10m_deg=_round(far.rot_error_deg_mean, 3),
             odometry_relation_over_10m_m=_round(odometry_far.trans_error_m_mean, 4),
+            turn_ratio=_round(turn_ratio(reference, result.poses), 4),
+            odometry_turn_ratio=_round(turn_ratio(reference, odometry), 4),
         )
         if len(log) > args.span:
             first = np.arange(len(log) - args.span)
@@ -780,6 +788,14 @@ def _print_table(s: dict[str, Any]) -> None:
             f"(raw odometry {s['odometry_span_trans_error_m_mean']} m, "
             f"{s['odometry_span_rot_error_deg_mean']} deg)"
         )
+    if s.get("turn_ratio") is not None:
+        print(
+            f"  turns              {s['turn_ratio']} of the reference's where it turns 0.3 rad or more "
+            f"(raw odometry {s['odometry_turn_ratio']})"
+        )
+    if s.get("turning_point_m") is not None:
+        x_m, y_m = s["turning_point_m"]
+        print(f"  odometry turns     about ({x_m}, {y_m}) m in the filter's frame (turns on the spot)")
     if "wall_thin_fraction" in s:
         print(
             f"  walls              {s['wall_thin_fraction']:.0%} of occupied cells in walls "

@@ -59,6 +59,10 @@ def test_eval_slam_json_on_radish(
     assert summary["ate_aligned_m"] < 0.2 * summary["odometry_ate_aligned_m"]
     assert summary["relations_over_10m"] > 100
     assert summary["relation_over_10m_m"] < 0.2 * summary["odometry_relation_over_10m_m"]
+    # The turns against the reference's (a scale of turning) and where the odometry turns about.
+    assert 0.9 < summary["turn_ratio"] < 1.1 and summary["odometry_turn_ratio"] > 0.9
+    # Intel's odometry turns about a point behind the laser (0.07 m over these 60 scans, ~0.094 m over all).
+    assert 0.03 < summary["turning_point_m"][0] < 0.15 and abs(summary["turning_point_m"][1]) < 0.05
     assert summary["loop_closure"] == "on" and summary["loop_checks"] >= 1
     assert summary["loop_closures"] >= summary["loop_rebuilds"] >= 0
     image = load_map(out / "map.yaml")
