@@ -176,6 +176,7 @@ class DistanceField:
             raise ValueError(f"occupied must be >= 0 (every obstacle a known cell), got {occupied}")
         h, w = shape
         padded = np.empty((count, h + 2, w + 2), dtype=np.float32)
+        scratch = np.empty((3, h, w), dtype=np.uint8)  # the masks, reused from window to window
         kernel = np.ones((3, 3), np.uint8)
         unknown = np.float32(UNKNOWN / resolution_m)
         fill: Float32Array | None = None
@@ -193,11 +194,13 @@ class DistanceField:
             box = counts[r0:r1, c0:c1]
             region = out[1 + r0 : 1 + r1, 1 + c0 : 1 + c1]
             # DT: distance to the 0s, the obstacles (255 elsewhere, as 1 was).
-            free = cv2.compare(box, occupied, cv2.CMP_LE)  # type: ignore[call-overload]  # (scalar operand)
+            free, unknown_cells, far = (a[: r1 - r0, : c1 - c0] for a in scratch)
+            cv2.compare(box, occupied, cv2.CMP_LE, dst=free)  # type: ignore[call-overload]  # (scalar)
             cv2.distanceTransform(free, cv2.DIST_L2, 5, dst=region)
             # No known cell in the 3 x 3 neighbourhood: the unknown cells eroded (outside the box, and the
             # window, counts as unknown: erode's default border, as dilate's was for the known cells).
-            far = cv2.erode(cv2.compare(box, 0, cv2.CMP_EQ), kernel)  # type: ignore[call-overload]
+            cv2.compare(box, 0, cv2.CMP_EQ, dst=unknown_cells)  # type: ignore[call-overload]
+            cv2.erode(unknown_cells, kernel, dst=far)
             if fill is None:
                 fill = np.full(shape, unknown, dtype=np.float32)
             cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
@@ -818,29 +821,37 @@ def correlative_search(
     wx, wy, _, _ = world_points(candidates, points_xy)  # (R, N)
     col = np.floor((wx - field.origin_m[0]) / res).astype(np.int64) + 1
     row = np.floor((wy - field.origin_m[1]) / res).astype(np.int64) + 1
+    # Each point's cost min(d, c)² (0 where the cell is unknown) and whether its cell is known, as two
+    # tables over the window (each cell's value once, not once per point and pose). A point outside the
+    # window costs as the cap: the tables are padded by ``pad`` cells of the cap's values and each
+    # point's row and column clamped to within reach + 1 of the window, so that every shift of a point
+    # outside lands in the padding.
+    #
     # The translations are a grid, shifts (rows) x shifts (columns), t = row shift * S + column shift:
-    # each row and column index is clamped and tested for (R, S, N) first, and only their sums and
-    # masks are (R, S, S, N) = (R, T, N) (the whole-size work was a dozen int64 passes; with the
-    # update's field alive those temporaries were the filter's peak memory on Intel).
+    # the rows and columns are (R, S, N), and only their sums are (R, S, S, N) = (R, T, N).
     s_count = shifts.size
-    rows = row[:, None, :] + shifts[None, :, None]  # (R, S, N)
-    row_in = (rows >= 0) & (rows < h)
-    np.clip(rows, 0, h - 1, out=rows)
-    rows *= w
-    cols = col[:, None, :] + shifts[None, :, None]
-    col_in = (cols >= 0) & (cols < w)
-    np.clip(cols, 0, w - 1, out=cols)
+    far = int(shifts[-1]) + 1
+    pad = 2 * far - 1
+    window_d = field.distance_m[window]
+    # (float32 throughout, as the per-point arithmetic on the gathered float32 distances was.)
+    truncated = np.minimum(window_d, config.truncate_m)
+    window_known = window_d >= 0.0
+    cost_table = np.full((h + 2 * pad, w + 2 * pad), np.float32(0.0), dtype=np.float32)
+    outside = np.minimum(np.float32(field.cap_m), np.float32(config.truncate_m))
+    cost_table[...] = outside * outside
+    cost_table[pad:-pad, pad:-pad] = np.where(window_known, truncated * truncated, np.float32(0.0))
+    known_table = np.ones((h + 2 * pad, w + 2 * pad), dtype=bool)
+    known_table[pad:-pad, pad:-pad] = window_known
+    width = w + 2 * pad
+    rows = np.clip(row, -far, h - 1 + far)[:, None, :] + (shifts + pad)[None, :, None]  # (R, S, N)
+    rows *= width
+    cols = np.clip(col, -far, w - 1 + far)[:, None, :] + (shifts + pad)[None, :, None]
     index = (rows[:, :, None, :] + cols[:, None, :, :]).reshape(yaws.size, s_count * s_count, -1)
-    inside = (row_in[:, :, None, :] & col_in[:, None, :, :]).reshape(index.shape)
-    flat = field.distance_m[window].reshape(-1)
-    d = np.where(inside, flat[index], field.cap_m)
-    del index
     # Unknown cells: the mean cost of the candidate's other points (see scan_log_likelihood).
-    known = d >= 0.0
-    d = np.minimum(d, config.truncate_m)
     n_points = points_xy.shape[0]
-    n_known = known.sum(axis=2)
-    cost = np.where(known, d * d, 0.0).sum(axis=2)  # (R, T)
+    n_known = known_table.reshape(-1)[index].sum(axis=2)
+    cost = cost_table.reshape(-1)[index].sum(axis=2)  # (R, T)
+    del index
     cost = np.where(n_known > 0, cost * n_points / np.maximum(n_known, 1), n_points * config.truncate_m**2)
     offsets = np.stack(
         np.broadcast_arrays(sx[None, :] * res, sy[None, :] * res, (yaws - centre[2])[:, None]), axis=-1
