@@ -233,9 +233,13 @@ class TiledMaps:
         ids = self.tables[np.asarray(rows, dtype=np.int64)][:, rect.ty0 : rect.ty1, rect.tx0 : rect.tx1]
         u, h, w = ids.shape
         t = self.geometry.tile_cells
-        out = np.empty((u, h, t, w, t), dtype=np.int8)
-        out[...] = self.pool[ids].transpose(0, 1, 3, 2, 4)
-        return out.reshape(u, h * t, w * t)
+        # One gather of tile rows (T bytes each, as one opaque item) in the window's order: window row
+        # (tile row i, cell row r) is, tile column by tile column, pool row ids[i, j] * T + r. (Gathering
+        # whole tiles and transposing them into place was two copies.)
+        tile_rows = self.pool.reshape(-1, t).view(np.dtype((np.void, t))).reshape(-1)
+        index = ids.astype(np.int64)[:, :, None, :] * t + np.arange(t)[None, None, :, None]
+        out: Int8Array = tile_rows[index.reshape(-1)].view(np.int8).reshape(u, h * t, w * t)
+        return out
 
     def scatter(self, rows: npt.ArrayLike, rect: TileRect, windows: Int8Array, touched: BoolArray) -> None:
         """Write ``windows`` (U, h*T, w*T) back into maps ``rows`` (U,) over ``rect``, for the tiles

@@ -297,21 +297,27 @@ def lattice_search(
     pad = 2 * reach
     flat = np.pad(truncated * truncated, pad, mode="edge").reshape(-1)
     width = w + 2 * pad
-    offsets = (sy * width + sx)[None, :, None]
+    side = shifts.size
     costs = np.empty((yaw_offsets.size, sx.size))
     candidates = np.tile(centre, (yaw_offsets.size, 1))
     candidates[:, 2] += yaw_offsets
-    # A few rotations at a time (their (r, T, N) indices within ~0.5 MB): per rotation the Python-level
-    # calls cost as much as the gather on the loop windows' small lattices.
-    per = max(1, _LATTICE_INDICES // max(sx.size * points_xy.shape[0], 1))
+    # A few rotations at a time (their (r, S, N) indices within ~0.5 MB): per rotation the Python-level
+    # calls cost as much as the gather on the loop windows' small lattices. The indices are built for
+    # the column shifts only (from the lowest row shift); row shift b reads them through the view of the
+    # table b rows on (flat[k:][i] is flat[i + k]): the same cells, with no index array per
+    # translation, and the costs of translations b * S .. b * S + S - 1 (t = row shift * S + column
+    # shift) are each a mean over the same N values in the same order.
+    per = max(1, _LATTICE_INDICES // max(side * points_xy.shape[0], 1))
     for r0 in range(0, yaw_offsets.size, per):
         r1 = min(r0 + per, yaw_offsets.size)
         wx, wy, _, _ = world_points(candidates[r0:r1], points_xy)
         col = np.floor((wx - field.origin_m[0]) / res).astype(np.int64) + 1
         row = np.floor((wy - field.origin_m[1]) / res).astype(np.int64) + 1
-        col = np.clip(col, -reach, w - 1 + reach) + pad
-        row = np.clip(row, -reach, h - 1 + reach) + pad
-        costs[r0:r1] = np.mean(flat[(row * width + col)[:, None, :] + offsets], axis=2)
+        col = np.clip(col, -reach, w - 1 + reach) + (pad - reach)
+        row = np.clip(row, -reach, h - 1 + reach) + (pad - reach)
+        lowest = (row * width + col)[:, None, :] + np.arange(side)[None, :, None]  # (r, S, N)
+        for b in range(side):
+            costs[r0:r1, b * side : (b + 1) * side] = np.mean(flat[b * width :][lowest], axis=2)
     return Lattice(
         yaw_offsets.astype(np.float64), (sx * res).astype(np.float64), (sy * res).astype(np.float64), costs
     )

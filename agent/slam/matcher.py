@@ -152,12 +152,75 @@ class DistanceField:
             out[1 + r1 :] = unknown
             out[1 + r0 : 1 + r1, : 1 + c0] = unknown
             out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
-        # What is the same for every window, once for the stack: the per-window calls were a fixed cost
-        # each, as much as the transform itself on exp1's 30 windows of 130 x 130 cells.
+        return cls._finished(padded, origin_m, resolution_m, cap_m)
+
+    @classmethod
+    def from_log_odds(
+        cls,
+        count: int,
+        shape: tuple[int, int],
+        window: Callable[[int], npt.NDArray[np.int8]],
+        occupied: int,
+        origin_m: tuple[float, float],
+        resolution_m: float,
+        cap_m: float,
+    ) -> DistanceField:
+        """:meth:`from_windows` for windows of stored log-odds counts (``agent.slam.grid``): ``window(k)``
+        returns window k (H, W) as int8 counts (a view will do), whose obstacles are the cells above
+        ``occupied`` and whose known cells are the nonzero ones. The same field, bit for bit, from fewer
+        passes: ``occupied`` >= 0 makes every obstacle a known cell, so the box is the known cells' alone;
+        the transform's input and the unknown cells come from the counts by one comparison each, and
+        "no known cell within one" is the unknown mask eroded rather than the known one dilated and
+        inverted."""
+        if occupied < 0:
+            raise ValueError(f"occupied must be >= 0 (every obstacle a known cell), got {occupied}")
+        h, w = shape
+        padded = np.empty((count, h + 2, w + 2), dtype=np.float32)
+        scratch = np.empty((3, h, w), dtype=np.uint8)  # the masks, reused from window to window
+        kernel = np.ones((3, 3), np.uint8)
+        unknown = np.float32(UNKNOWN / resolution_m)
+        fill: Float32Array | None = None
+        for k in range(count):
+            counts = window(k)
+            if counts.shape != shape:
+                raise ValueError(f"window {k}: counts must be {shape}, got {counts.shape}")
+            out = padded[k]
+            x, y, box_w, box_h = cv2.boundingRect(counts.view(np.uint8))  # the nonzero (known) cells
+            if box_w == 0 or box_h == 0:
+                out[...] = unknown
+                continue
+            r0, r1 = max(y - 1, 0), min(y + box_h + 1, h)
+            c0, c1 = max(x - 1, 0), min(x + box_w + 1, w)
+            box = counts[r0:r1, c0:c1]
+            region = out[1 + r0 : 1 + r1, 1 + c0 : 1 + c1]
+            # DT: distance to the 0s, the obstacles (255 elsewhere, as 1 was).
+            free, unknown_cells, far = (a[: r1 - r0, : c1 - c0] for a in scratch)
+            cv2.compare(box, occupied, cv2.CMP_LE, dst=free)  # type: ignore[call-overload]  # (scalar)
+            cv2.distanceTransform(free, cv2.DIST_L2, 5, dst=region)
+            # No known cell in the 3 x 3 neighbourhood: the unknown cells eroded (outside the box, and the
+            # window, counts as unknown: erode's default border, as dilate's was for the known cells).
+            cv2.compare(box, 0, cv2.CMP_EQ, dst=unknown_cells)  # type: ignore[call-overload]
+            cv2.erode(unknown_cells, kernel, dst=far)
+            if fill is None:
+                fill = np.full(shape, unknown, dtype=np.float32)
+            cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
+            out[: 1 + r0] = unknown
+            out[1 + r1 :] = unknown
+            out[1 + r0 : 1 + r1, : 1 + c0] = unknown
+            out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
+        return cls._finished(padded, origin_m, resolution_m, cap_m)
+
+    @classmethod
+    def _finished(
+        cls, padded: Float32Array, origin_m: tuple[float, float], resolution_m: float, cap_m: float
+    ) -> DistanceField:
+        """The field from a stack of transforms in cells (UNKNOWN cells already filled): what is the
+        same for every window, once for the stack (the per-window calls were a fixed cost each, as much
+        as the transform itself on exp1's 30 windows of 130 x 130 cells)."""
         np.multiply(padded, np.float32(resolution_m), out=padded)
         # min(d, cap) as OpenCV's truncating threshold (in place, the cap rounded to float32 as
         # np.minimum's float32 scalar is: the same values, ~7x faster than np.minimum's NaN-aware loop).
-        flat_rows = padded.reshape(-1, w + 2)
+        flat_rows = padded.reshape(-1, padded.shape[2])
         cv2.threshold(flat_rows, cap_m, 0.0, cv2.THRESH_TRUNC, dst=flat_rows)
         padded[:, 0, :] = padded[:, -1, :] = cap_m
         padded[:, :, 0] = padded[:, :, -1] = cap_m
@@ -202,10 +265,12 @@ class DistanceField:
         flat = self.distance_m.reshape(-1)
         window_base = np.asarray(window_index, dtype=np.int64)[:, None] * hp
         base = (window_base + iy) * wp + ix
+        # The neighbours through views of the table that start 1, wp, wp + 1 cells on (flat[k:][base] is
+        # flat[base + k]): no index array per neighbour.
         f00 = flat[base]
-        f01 = flat[base + 1]
-        f10 = flat[base + wp]
-        f11 = flat[base + (wp + 1)]
+        f01 = flat[1:][base]
+        f10 = flat[wp:][base]
+        f11 = flat[wp + 1 :][base]
         # d = (1-fy)[f00 + fx (f01 - f00)] + fy[f10 + fx (f11 - f10)]
         d_top = f01 - f00
         d_bottom = f11 - f10
@@ -215,7 +280,13 @@ class DistanceField:
         d = top + fy * vertical
         ddx = (d_top + fy * (d_bottom - d_top)) * inv_res
         ddy = vertical * inv_res
-        known = np.minimum(np.minimum(f00, f01), np.minimum(f10, f11)) >= 0.0
+        # All four neighbours >= 0 (known): no sign bit among them. The field holds no -0.0 (distances
+        # are +0 or above, UNKNOWN below 0), so this is min(f00, f01, f10, f11) >= 0 without numpy's
+        # NaN-aware float minimum.
+        signs = f00.view(np.int32) | f01.view(np.int32)
+        signs |= f10.view(np.int32)
+        signs |= f11.view(np.int32)
+        known = signs >= 0
         if not known.all():
             d = np.where(known, d, self.cap_m)
             ddx = np.where(known, ddx, 0.0)
@@ -235,10 +306,11 @@ class DistanceField:
         wall, along_y, shift = _medial_walls(flat, cell, wp)
         wall &= near
         # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
-        offset = np.where(
-            along_y,
-            x_m - ((jx - 0.5 + shift) * self.resolution_m + self.origin_m[0]),
-            y_m - ((jy - 0.5 + shift) * self.resolution_m + self.origin_m[1]),
+        # (The operands chosen per point first, then one expression: the same operations on the same
+        # operands as computing both sides and choosing, in fewer passes.)
+        offset = np.where(along_y, x_m, y_m) - (
+            (np.where(along_y, jx, jy) - 0.5 + shift) * self.resolution_m
+            + np.where(along_y, self.origin_m[0], self.origin_m[1])
         )
         sign = np.where(offset >= 0.0, 1.0, -1.0)
         # d, ddx, ddy and g are this call's own arrays: replaced in place on the walls.
@@ -270,14 +342,16 @@ def _medial_walls(
     """:func:`_medial_at` as the lookups use it: whether each cell lies on a straight wall (code > 0),
     whether along y (code 1-3), and its medial line's shift across the wall in cells ((k - 1) / 2:
     -0.5, 0, 0.5; meaningful on walls only). The same neighbour tests, without building the codes."""
-    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
-    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
+    # Through views of the table (flat[k:][low] is flat[low + k]): one index array for the five cells.
+    low = cells - wp
+    below, above = flat[low] == 0.0, flat[2 * wp :][low] == 0.0
+    left, right = flat[wp - 1 :][low] == 0.0, flat[wp + 1 :][low] == 0.0
     across_x = left & right
     across_y = below & above
     along_y = across_y & ~across_x
     along_x = across_x & ~across_y
     wall = along_y | along_x
-    wall &= flat[cells] == 0.0
+    wall &= flat[wp:][low] == 0.0
     high = np.where(along_y, right, above).view(np.int8)
     low = np.where(along_y, left, below).view(np.int8)
     shift: FloatArray = (high - low) * 0.5
@@ -472,12 +546,22 @@ def residuals(
     np.divide(d, g_norm, out=scale, where=g_norm > 1e-6)
     vx, vy = gx * scale, gy * scale
     across = vx * nx + vy * ny
-    along = vy * nx - vx * ny  # v . t, t = (-n_y, n_x)
-    r_line = np.sqrt(across * across + along_weight * along * along)
-    inv_r = np.zeros_like(r_line)
-    np.divide(1.0, r_line, out=inv_r, where=r_line > 1e-9)
-    jx = (nx * across - along_weight * ny * along) * inv_r
-    jy = (ny * across + along_weight * nx * along) * inv_r
+    if along_weight == 0.0:
+        # Point to line: the terms along the surface are +-0 (finite v . t times 0), so these are the
+        # general expressions' values without computing v . t (up to the sign of a zero Jacobian entry,
+        # which no sum, product or comparison downstream can see).
+        r_line = np.sqrt(across * across)
+        inv_r = np.zeros_like(r_line)
+        np.divide(1.0, r_line, out=inv_r, where=r_line > 1e-9)
+        jx = nx * across * inv_r
+        jy = ny * across * inv_r
+    else:
+        along = vy * nx - vx * ny  # v . t, t = (-n_y, n_x)
+        r_line = np.sqrt(across * across + along_weight * along * along)
+        inv_r = np.zeros_like(r_line)
+        np.divide(1.0, r_line, out=inv_r, where=r_line > 1e-9)
+        jx = (nx * across - along_weight * ny * along) * inv_r
+        jy = (ny * across + along_weight * nx * along) * inv_r
     if not has.all():
         r_line, jx, jy = np.where(has, r_line, d), np.where(has, jx, gx), np.where(has, jy, gy)
     gate = d
@@ -737,29 +821,37 @@ def correlative_search(
     wx, wy, _, _ = world_points(candidates, points_xy)  # (R, N)
     col = np.floor((wx - field.origin_m[0]) / res).astype(np.int64) + 1
     row = np.floor((wy - field.origin_m[1]) / res).astype(np.int64) + 1
+    # Each point's cost min(d, c)² (0 where the cell is unknown) and whether its cell is known, as two
+    # tables over the window (each cell's value once, not once per point and pose). A point outside the
+    # window costs as the cap: the tables are padded by ``pad`` cells of the cap's values and each
+    # point's row and column clamped to within reach + 1 of the window, so that every shift of a point
+    # outside lands in the padding.
+    #
     # The translations are a grid, shifts (rows) x shifts (columns), t = row shift * S + column shift:
-    # each row and column index is clamped and tested for (R, S, N) first, and only their sums and
-    # masks are (R, S, S, N) = (R, T, N) (the whole-size work was a dozen int64 passes; with the
-    # update's field alive those temporaries were the filter's peak memory on Intel).
+    # the rows and columns are (R, S, N), and only their sums are (R, S, S, N) = (R, T, N).
     s_count = shifts.size
-    rows = row[:, None, :] + shifts[None, :, None]  # (R, S, N)
-    row_in = (rows >= 0) & (rows < h)
-    np.clip(rows, 0, h - 1, out=rows)
-    rows *= w
-    cols = col[:, None, :] + shifts[None, :, None]
-    col_in = (cols >= 0) & (cols < w)
-    np.clip(cols, 0, w - 1, out=cols)
+    far = int(shifts[-1]) + 1
+    pad = 2 * far - 1
+    window_d = field.distance_m[window]
+    # (float32 throughout, as the per-point arithmetic on the gathered float32 distances was.)
+    truncated = np.minimum(window_d, config.truncate_m)
+    window_known = window_d >= 0.0
+    cost_table = np.full((h + 2 * pad, w + 2 * pad), np.float32(0.0), dtype=np.float32)
+    outside = np.minimum(np.float32(field.cap_m), np.float32(config.truncate_m))
+    cost_table[...] = outside * outside
+    cost_table[pad:-pad, pad:-pad] = np.where(window_known, truncated * truncated, np.float32(0.0))
+    known_table = np.ones((h + 2 * pad, w + 2 * pad), dtype=bool)
+    known_table[pad:-pad, pad:-pad] = window_known
+    width = w + 2 * pad
+    rows = np.clip(row, -far, h - 1 + far)[:, None, :] + (shifts + pad)[None, :, None]  # (R, S, N)
+    rows *= width
+    cols = np.clip(col, -far, w - 1 + far)[:, None, :] + (shifts + pad)[None, :, None]
     index = (rows[:, :, None, :] + cols[:, None, :, :]).reshape(yaws.size, s_count * s_count, -1)
-    inside = (row_in[:, :, None, :] & col_in[:, None, :, :]).reshape(index.shape)
-    flat = field.distance_m[window].reshape(-1)
-    d = np.where(inside, flat[index], field.cap_m)
-    del index
     # Unknown cells: the mean cost of the candidate's other points (see scan_log_likelihood).
-    known = d >= 0.0
-    d = np.minimum(d, config.truncate_m)
     n_points = points_xy.shape[0]
-    n_known = known.sum(axis=2)
-    cost = np.where(known, d * d, 0.0).sum(axis=2)  # (R, T)
+    n_known = known_table.reshape(-1)[index].sum(axis=2)
+    cost = cost_table.reshape(-1)[index].sum(axis=2)  # (R, T)
+    del index
     cost = np.where(n_known > 0, cost * n_points / np.maximum(n_known, 1), n_points * config.truncate_m**2)
     offsets = np.stack(
         np.broadcast_arrays(sx[None, :] * res, sy[None, :] * res, (yaws - centre[2])[:, None]), axis=-1

@@ -507,16 +507,16 @@ class RbpfSlam:
         r1 = min(max(int(np.ceil((hi[1] - origin[1]) / res)), r0 + 1), h)
         occupied = cfg.log_odds.counts(cfg.log_odds.occupied)
 
-        def window(k: int) -> tuple[BoolArray, BoolArray]:
+        def window(k: int) -> Int8Array:
             # One map at a time: the whole stack of windows (and its masks) is never held.
-            cropped = self.maps.gather(rows[k : k + 1], rect)[0, r0:r1, c0:c1]
-            return cropped > occupied, cropped != 0
+            return self.maps.gather(rows[k : k + 1], rect)[0, r0:r1, c0:c1]
 
         field_cap = max(max(stage[0] for stage in cfg.proposal.matcher.stages), cfg.proposal.outlier_m)
-        field = DistanceField.from_windows(
+        field = DistanceField.from_log_odds(
             rows.shape[0],
             (r1 - r0, c1 - c0),
             window,
+            occupied,
             (origin[0] + c0 * res, origin[1] + r0 * res),
             res,
             field_cap + res,

@@ -294,6 +294,34 @@ def test_field_cropped_to_the_known_box_is_the_whole_windows_bit_for_bit() -> No
         np.testing.assert_array_equal(field.distance_m, _whole_window_field(obstacles, known, cap, RES))
 
 
+def test_field_from_log_odds_counts_is_from_windows_bit_for_bit() -> None:
+    """``from_log_odds`` (the update's field, straight from the stored counts) gives ``from_windows``'s
+    field of obstacles = counts > occupied and known = counts != 0, from views of larger arrays too
+    (boxes touching each edge, an empty window, a lone obstacle, cells known but free)."""
+    rng = np.random.default_rng(11)
+    u, h, w = 7, 60, 80
+    occupied = 8
+    counts = rng.integers(-40, 40, size=(u, h + 4, w + 6)).astype(np.int8)
+    counts[rng.random(counts.shape) < 0.5] = 0
+    counts[0, :30] = 0  # known cells only in the upper half
+    counts[1, :, 50:] = 0
+    counts[2] = 0  # nothing mapped
+    counts[3] = 0
+    counts[3, 30, 40] = 20  # one obstacle
+    counts[4] = np.where(counts[4] > occupied, 0, counts[4])  # known, no obstacle
+    views = counts[:, 2 : 2 + h, 3 : 3 + w]  # (rows of the larger array: strided)
+    for cap in (0.55, 5.0):
+        from_counts = DistanceField.from_log_odds(
+            u, (h, w), lambda k: views[k], occupied, (1.0, 2.0), RES, cap
+        )
+        masks = DistanceField.from_windows(
+            u, (h, w), lambda k: (views[k] > occupied, views[k] != 0), (1.0, 2.0), RES, cap
+        )
+        np.testing.assert_array_equal(from_counts.distance_m, masks.distance_m)
+    with pytest.raises(ValueError):
+        DistanceField.from_log_odds(1, (h, w), lambda k: views[k], -1, (1.0, 2.0), RES, 0.55)
+
+
 def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     """The codes a lookup computes for its cells are the whole stack's (walls one and two cells thick,
     along either axis, clutter, unknown cells)."""
