@@ -117,10 +117,14 @@ LOOP_CORRECTION_ODOMETRY_SIGMAS: dict[str, float | None] = {
 # / 0.176 / 0.218 / 0.240 / 0.207 (docs/slam.md, "Open problems", ACES).
 MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False, "mcap": False}
 # The scan's surface normals per format (ProposalConfig.normal_radius_per_m / normal_thickness_m, [slam]
-# normal_radius_per_m / normal_thickness_m; they act only point to line, the radish logs'). MEASURED BELOW.
+# normal_radius_per_m / normal_thickness_m; they act only point to line, the radish logs'), and the
+# degeneracy-aware match steps (MatcherConfig.min_translation_information, [slam]
+# match_min_translation_information; 0 off). The fixed 0.25 m and off everywhere: on ACES, normals at 0.1 x
+# range and 3 cm with the steps at 2 gave seeds 0-5 0.126 / 0.201 / 0.150 / 0.141 / 0.208 / 0.209 m
+# against 0.190 / 0.121 / 0.176 / 0.218 / 0.240 / 0.207, and Intel seeds 0 / 1 0.085 / 0.081 m against
+# 0.074 / 0.075 (docs/slam.md, "Scan matching", *Normals at range*).
 NORMAL_RADIUS_PER_M = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 NORMAL_THICKNESS_M = {"breezyslam": 0.015, "radish": 0.015, "simulated": 0.015, "mcap": 0.015}
-# MatcherConfig.min_translation_information per format ([slam] match_min_translation_information; 0 off).
 MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 
 

@@ -78,8 +78,8 @@ class ProposalConfig:
     along_surface_weight: float = 1.0
     # The scan's surface normals (``grid.surface_normals``, used where along_surface_weight < 1): a point's
     # neighbourhood reaches max(0.25 m, normal_radius_per_m × its range), and it is a line when at most
-    # normal_thickness_m thick. 0 / 0.015 by default (a fixed 0.25 m); ``eval slam`` sets the radish
-    # logs' (``eval_slam.NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``; docs/slam.md, "Scan matching").
+    # normal_thickness_m thick. 0 / 0.015 (a fixed 0.25 m) by default and for every source in ``eval
+    # slam`` (``eval_slam.NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``; docs/slam.md, "Scan matching").
     normal_radius_per_m: float = 0.0
     normal_thickness_m: float = 0.015
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
