@@ -125,7 +125,7 @@ MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False,
 # 0.074 / 0.075 (docs/slam.md, "Scan matching", *Normals at range*).
 NORMAL_RADIUS_PER_M = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 NORMAL_THICKNESS_M = {"breezyslam": 0.015, "radish": 0.015, "simulated": 0.015, "mcap": 0.015}
-MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 2.0, "simulated": 0.0, "mcap": 0.0}
+MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 
 
 def front_end(source_format: str) -> Any:
