@@ -122,7 +122,9 @@ MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False,
 # match_min_translation_information; 0 off). The fixed 0.25 m and off everywhere: on ACES, normals at 0.1 x
 # range and 3 cm with the steps at 2 gave seeds 0-5 0.126 / 0.201 / 0.150 / 0.141 / 0.208 / 0.209 m
 # against 0.190 / 0.121 / 0.176 / 0.218 / 0.240 / 0.207, and Intel seeds 0 / 1 0.085 / 0.081 m against
-# 0.074 / 0.075 (docs/slam.md, "Scan matching", *Normals at range*).
+# 0.074 / 0.075; the steps alone at 2: ACES 0.184 / 0.201 / 0.131 / 0.109 / 0.171 / 0.173 m, Intel seeds 0-5
+# 0.127 / 0.130 / 0.168 / 0.152 / 0.167 / 0.147 m against 0.074 / 0.075 / 0.079 / 0.069 / 0.117 / 0.079
+# (docs/slam.md, "Scan matching", *Normals at range*).
 NORMAL_RADIUS_PER_M = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 NORMAL_THICKNESS_M = {"breezyslam": 0.015, "radish": 0.015, "simulated": 0.015, "mcap": 0.015}
 MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}

@@ -363,6 +363,10 @@ class MatcherConfig:
     # it there: a corridor's length).
     # 0: off (the default). ``[slam] match_min_translation_information``; docs/slam.md, "Scan matching".
     min_translation_information: float = 0.0
+    # ... and only where the other translation direction is observed at least this many times as well
+    # (a corridor: walls on both sides, nothing along it; a scan with few surfaces in any direction, a
+    # cluttered room, is left to the whole Σ J Jᵀ). 0: any weak direction.
+    degenerate_ratio: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -664,7 +668,9 @@ def _gauss_newton_step(
                 ],
                 axis=-2,
             )
-        projection = degenerate_projection(observed, config.min_translation_information)
+        projection = degenerate_projection(
+            observed, config.min_translation_information, config.degenerate_ratio
+        )
         if projection is not None:
             # The scan's Jacobians with their part along each weak direction taken out (the residuals and
             # the yaw column kept): the step then moves the pose there by the prior alone.
@@ -691,11 +697,16 @@ def _gauss_newton_step(
     return step, info
 
 
-def degenerate_projection(information_xy: FloatArray, threshold: float) -> FloatArray | None:
+def degenerate_projection(
+    information_xy: FloatArray, threshold: float, ratio: float = 0.0
+) -> FloatArray | None:
     """Per pose, the 2x2 projection I - sum u uᵀ over the eigenvectors u of the translation information
-    (P, 2, 2) whose eigenvalue is below ``threshold``; None when no pose has such a direction."""
+    (P, 2, 2) whose eigenvalue is below ``threshold`` (and, with ``ratio`` > 0, below 1/``ratio`` of the
+    largest); None when no pose has such a direction."""
     values, vectors = np.linalg.eigh(information_xy)
     weak = values < threshold
+    if ratio > 0.0:
+        weak &= values * ratio <= values[:, -1:]
     if not weak.any():
         return None
     kept = vectors * (~weak)[:, None, :]

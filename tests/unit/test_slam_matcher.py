@@ -22,6 +22,7 @@ from agent.slam.matcher import (
     SearchConfig,
     _medial_at,
     correlative_search,
+    degenerate_projection,
     match,
     scan_log_likelihood,
     truncated_energy,
@@ -446,3 +447,12 @@ def test_degeneracy_aware_steps_leave_a_corridor_s_length_to_the_prior() -> None
     same = match(*args, aware_config, normals_xy=normals_room, along_weight=0.0)
     assert np.array_equal(plain.poses, same.poses)
     assert np.allclose(same.poses[0], (0.3, -0.2, 0.1), atol=0.01)
+    # With a ratio, a direction is weak only beside a well-observed one: a corridor (40 across, 1 along)
+    # is, a scan with few surfaces anywhere (3 and 1) is not.
+    info = np.array([[[40.0, 0.0], [0.0, 1.0]], [[3.0, 0.0], [0.0, 1.0]]])
+    both = degenerate_projection(info, 2.0)
+    corridor_only = degenerate_projection(info, 2.0, ratio=10.0)
+    assert both is not None and corridor_only is not None
+    assert np.allclose(both, [[[1.0, 0.0], [0.0, 0.0]], [[1.0, 0.0], [0.0, 0.0]]])
+    assert np.allclose(corridor_only, [[[1.0, 0.0], [0.0, 0.0]], np.eye(2)])
+    assert degenerate_projection(info[1:], 2.0, ratio=10.0) is None
