@@ -1356,6 +1356,15 @@ class _Reader:
             ),
             match_both_starts=t.boolean("match_both_starts", d.match_both_starts),
             match_gate_residual=t.boolean("match_gate_residual", d.match_gate_residual),
+            normal_radius_per_m=t.number(
+                "normal_radius_per_m", d.normal_radius_per_m, (lambda v: 0 <= v <= 1, "must be in [0, 1]")
+            ),
+            normal_thickness_m=t.number(
+                "normal_thickness_m", d.normal_thickness_m, (lambda v: 0 < v <= 0.5, "must be in (0, 0.5] m")
+            ),
+            match_min_translation_information=t.number(
+                "match_min_translation_information", d.match_min_translation_information, _NON_NEGATIVE
+            ),
             failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
             miss_log_odds=t.number(
                 "miss_log_odds", d.miss_log_odds, (lambda v: -2.0 <= v < 0, "must be in [-2, 0)")

@@ -62,6 +62,14 @@ class SlamConfig:
     # The match's robust kernel judges an endpoint by its point-to-line residual, not its distance to the
     # nearest obstacle (MatcherConfig.gate_on_residual; only where along_surface_weight < 1)
     match_gate_residual: bool = False
+    # The scan's surface normals (ProposalConfig.normal_radius_per_m, normal_thickness_m): a point's
+    # neighbourhood reaches max(0.25 m, normal_radius_per_m x its range); a line when at most
+    # normal_thickness_m thick
+    normal_radius_per_m: float = 0.0
+    normal_thickness_m: float = 0.015
+    # Degeneracy-aware match steps (MatcherConfig.min_translation_information; 0 off): the scan does not
+    # move the pose along a translation direction whose information is below this
+    match_min_translation_information: float = 0.0
     # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
     # motion model) or "grid" (near the odometry prediction, where its weight was taken)
     failed_match_draw: str = "motion"

@@ -116,13 +116,26 @@ LOOP_CORRECTION_ODOMETRY_SIGMAS: dict[str, float | None] = {
 # changes are a draw: ACES seeds 0-5 0.189 / 0.141 / 0.244 / 0.201 / 0.195 / 0.250 m against 0.190 / 0.121
 # / 0.176 / 0.218 / 0.240 / 0.207 (docs/slam.md, "Open problems", ACES).
 MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False, "mcap": False}
+# The scan's surface normals per format (ProposalConfig.normal_radius_per_m / normal_thickness_m, [slam]
+# normal_radius_per_m / normal_thickness_m; they act only point to line, the radish logs'), and the
+# degeneracy-aware match steps (MatcherConfig.min_translation_information, [slam]
+# match_min_translation_information; 0 off). The fixed 0.25 m and off everywhere: on ACES, normals at 0.1 x
+# range and 3 cm with the steps at 2 gave seeds 0-5 0.126 / 0.201 / 0.150 / 0.141 / 0.208 / 0.209 m
+# against 0.190 / 0.121 / 0.176 / 0.218 / 0.240 / 0.207, and Intel seeds 0 / 1 0.085 / 0.081 m against
+# 0.074 / 0.075; the steps alone at 2: ACES 0.184 / 0.201 / 0.131 / 0.109 / 0.171 / 0.173 m, Intel seeds 0-5
+# 0.127 / 0.130 / 0.168 / 0.152 / 0.167 / 0.147 m against 0.074 / 0.075 / 0.079 / 0.069 / 0.117 / 0.079
+# (docs/slam.md, "Scan matching", *Normals at range*).
+NORMAL_RADIUS_PER_M = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
+NORMAL_THICKNESS_M = {"breezyslam": 0.015, "radish": 0.015, "simulated": 0.015, "mcap": 0.015}
+MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 
 
 def front_end(source_format: str) -> Any:
     """The ``[slam]`` front-end keys (an ``agent.config_slam.SlamConfig``, its other keys at their defaults)
     ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``,
     ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, ``REVERSAL_RATIO``, ``LOOP_CORRECTION_ODOMETRY_SIGMAS``,
-    ``MATCH_GATE_RESIDUAL``, the
+    ``MATCH_GATE_RESIDUAL``, ``NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``,
+    ``MATCH_MIN_TRANSLATION_INFORMATION``, the
     simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
     trusted on 10 endpoints whatever their share, from both starts, a failed match drawn near the
     odometry prediction and the correlative search at turns over a wider yaw window. The
@@ -140,6 +153,9 @@ def front_end(source_format: str) -> Any:
         reversal_ratio=REVERSAL_RATIO[source_format],
         loop_correction_odometry_sigmas=LOOP_CORRECTION_ODOMETRY_SIGMAS[source_format],
         match_gate_residual=MATCH_GATE_RESIDUAL[source_format],
+        normal_radius_per_m=NORMAL_RADIUS_PER_M[source_format],
+        normal_thickness_m=NORMAL_THICKNESS_M[source_format],
+        match_min_translation_information=MATCH_MIN_TRANSLATION_INFORMATION[source_format],
     )
     if source_format == "simulated":
         from agent.slam.simlog import MOTION_NOISE

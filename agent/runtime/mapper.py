@@ -60,7 +60,9 @@ _HISTORY_UPDATES = 5000
 def front_end_proposal(config: SlamConfig, base: Any) -> Any:
     """``base`` (an ``agent.slam.proposal.ProposalConfig``) with the scan match's front end the ``[slam]``
     keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*`` (``match_gate_residual``:
-    ``MatcherConfig.gate_on_residual``), ``failed_match_draw``,
+    ``MatcherConfig.gate_on_residual``; ``match_min_translation_information``:
+    ``MatcherConfig.min_translation_information``), ``normal_radius_per_m``, ``normal_thickness_m``,
+    ``failed_match_draw``,
     ``search_yaw_rad``). The agent's filters are built with it, and so is what ``vlp-agent eval slam`` runs
     for each source (``eval_slam.front_end``): what was measured is what runs."""
     import dataclasses
@@ -70,11 +72,14 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         min_inliers=config.match_min_inliers,
         min_inlier_fraction=config.match_min_inlier_fraction,
         gate_on_residual=config.match_gate_residual,
+        min_translation_information=config.match_min_translation_information,
     )
     return dataclasses.replace(
         base,
         matcher=matcher,
         along_surface_weight=config.along_surface_weight,
+        normal_radius_per_m=config.normal_radius_per_m,
+        normal_thickness_m=config.normal_thickness_m,
         degenerate_noise_scale=config.degenerate_noise_scale,
         keep_better_start=config.match_both_starts,
         failed_match_draw=config.failed_match_draw,

@@ -347,11 +347,16 @@ def surface_normals(
     min_points: int = 5,
     max_thickness_m: float = 0.015,
     min_length_m: float = 0.04,
+    radius_per_m: float = 0.0,
+    origin_xy: tuple[float, float] = (0.0, 0.0),
 ) -> FloatArray:
     """Unit normals of the surface through a scan's endpoints (N, 2, in beam order), for the points
     ``subset`` (indices; default all): (len(subset), 2), (0, 0) where the neighbourhood is not a line.
 
-    For point k the neighbours are the points k - ``window`` .. k + ``window`` within ``radius_m``; with
+    For point k the neighbours are the points k - ``window`` .. k + ``window`` within its radius,
+    max(``radius_m``, ``radius_per_m`` × its range from ``origin_xy``, the laser): a scan's beams fan out,
+    so a far wall's endpoints lie range × beam spacing apart or more (the SICK's 1° beams: 0.17 m at 10
+    m, several times that at a grazing angle), and a fixed radius leaves every far endpoint alone; with
     at least ``min_points`` of them, their scatter matrix S = (1/n) sum (p - mean)(p - mean)ᵀ has
     eigenvalues l1 <= l2: the neighbourhood is a line when sqrt(l1) <= ``max_thickness_m`` (range noise)
     and sqrt(l2) >= ``min_length_m`` and l2 >= 9 l1; the normal is l1's eigenvector. Corners, wall ends,
@@ -368,7 +373,11 @@ def surface_normals(
     idx = np.clip(idx, 0, n - 1)
     nb = points_xy[idx]  # (M, K, 2)
     rel = nb - points_xy[centre][:, None, :]
-    use = inside & (rel[..., 0] ** 2 + rel[..., 1] ** 2 <= radius_m * radius_m)
+    radius = np.full(centre.size, radius_m)
+    if radius_per_m > 0.0:
+        ranges = np.hypot(points_xy[centre, 0] - origin_xy[0], points_xy[centre, 1] - origin_xy[1])
+        radius = np.maximum(radius, radius_per_m * ranges)
+    use = inside & (rel[..., 0] ** 2 + rel[..., 1] ** 2 <= (radius * radius)[:, None])
     count = use.sum(axis=1)
     w = use / np.maximum(count, 1)[:, None]
     mean = np.einsum("nk,nki->ni", w, rel)

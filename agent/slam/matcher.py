@@ -431,6 +431,16 @@ class MatcherConfig:
     # Where it is on, the proposal's likelihood and energies judge endpoints the same way. On for radish
     # logs in ``eval slam`` (``[slam] match_gate_residual``; docs/slam.md, "Scan matching").
     gate_on_residual: bool = False
+    # Degeneracy-aware steps: where the scan's translation information has an eigenvalue below this (in
+    # endpoints' worth: each inlier adds |J|² ~ 1; with surface normals, sum n nᵀ over the inliers that
+    # have one), the scan's residuals do not move the pose along that eigenvector (the prior alone holds
+    # it there: a corridor's length).
+    # 0: off (the default). ``[slam] match_min_translation_information``; docs/slam.md, "Scan matching".
+    min_translation_information: float = 0.0
+    # ... and only where the other translation direction is observed at least this many times as well
+    # (a corridor: walls on both sides, nothing along it; a scan with few surfaces in any direction, a
+    # cluttered room, is left to the whole Σ J Jᵀ). 0: any weak direction.
+    degenerate_ratio: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -725,16 +735,67 @@ def _gauss_newton_step(
     jac[..., 2] = res.jy * res.rx - res.jx * res.ry
     wj = jac * (res.gate < bound_m)[..., None]
     info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
+    if config.min_translation_information > 0.0:
+        # Which directions the scan observes, judged by the inliers with a surface normal where the scan
+        # has normals (sum n nᵀ: the scan's own geometry; an endpoint without one, pulled along a wall
+        # the map holds in patches, adds information along the wall that is no observation of it).
+        observed = info[:, :2, :2]
+        if normals_xy is not None:
+            has = ((normals_xy[:, 0] != 0.0) | (normals_xy[:, 1] != 0.0))[None, :] & (res.gate < bound_m)
+            c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+            nx = np.where(has, c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1], 0.0)
+            ny = np.where(has, s * normals_xy[None, :, 0] + c * normals_xy[None, :, 1], 0.0)
+            observed = np.stack(
+                [
+                    np.stack([(nx * nx).sum(axis=1), (nx * ny).sum(axis=1)], axis=-1),
+                    np.stack([(nx * ny).sum(axis=1), (ny * ny).sum(axis=1)], axis=-1),
+                ],
+                axis=-2,
+            )
+        projection = degenerate_projection(
+            observed, config.min_translation_information, config.degenerate_ratio
+        )
+        if projection is not None:
+            # The scan's Jacobians with their part along each weak direction taken out (the residuals and
+            # the yaw column kept): the step then moves the pose there by the prior alone.
+            jac_xy = np.einsum("pij,pnj->pni", projection, jac[..., :2].astype(np.float64))
+            jac = jac.copy()
+            jac[..., :2] = jac_xy
+            wj = jac * (res.gate < bound_m)[..., None]
+            raw_info = info
+            info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
+            step_info, info = info, raw_info
+        else:
+            step_info = info
+    else:
+        step_info = info
     offset = poses - x0
     offset[:, 2] = wrap_angle(offset[:, 2])
     grad = np.matmul(wj.transpose(0, 2, 1), res.r[..., None])[..., 0] + np.einsum("pij,pj->pi", prior, offset)
-    info_total = info + prior
+    info_total = step_info + prior
     scale = np.maximum(np.trace(info_total, axis1=1, axis2=2) / 3.0, 1e-9)[:, None, None]
     step = -np.linalg.solve(info_total + config.damping * scale * eye + 1e-12 * eye, grad[..., None])[..., 0]
     # Trust region: never jump farther than the stage can justify in one iteration.
     step[:, :2] = np.clip(step[:, :2], -config.max_step_m, config.max_step_m)
     step[:, 2] = np.clip(step[:, 2], -config.max_step_rad, config.max_step_rad)
     return step, info
+
+
+def degenerate_projection(
+    information_xy: FloatArray, threshold: float, ratio: float = 0.0
+) -> FloatArray | None:
+    """Per pose, the 2x2 projection I - sum u uᵀ over the eigenvectors u of the translation information
+    (P, 2, 2) whose eigenvalue is below ``threshold`` (and, with ``ratio`` > 0, below 1/``ratio`` of the
+    largest); None when no pose has such a direction."""
+    values, vectors = np.linalg.eigh(information_xy)
+    weak = values < threshold
+    if ratio > 0.0:
+        weak &= values * ratio <= values[:, -1:]
+    if not weak.any():
+        return None
+    kept = vectors * (~weak)[:, None, :]
+    projection: FloatArray = np.einsum("pik,pjk->pij", kept, vectors)
+    return projection
 
 
 def truncated_energy(

@@ -22,11 +22,11 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.slam.fix import PoseFix, fuse_fixes, pending_fixes_log_likelihood
-from agent.slam.grid import prepare_scan, surface_normals
+from agent.slam.grid import prepare_scan
 from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, wrap_angle
-from agent.slam.proposal import ProposalConfig, improved_proposal
+from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals
 from agent.slam.rbpf import (
     FilterStats,
     StepKind,
@@ -185,7 +185,7 @@ class MclLocalizer:
         )
         kept = voxel_indices(scan.hit_xy, cfg.match_voxel_m, cfg.max_match_points)
         points = scan.hit_xy[kept]
-        normals = None if cfg.proposal.along_surface_weight == 1.0 else surface_normals(scan.hit_xy, kept)
+        normals = None if cfg.proposal.along_surface_weight == 1.0 else scan_normals(scan, kept, cfg.proposal)
         window_index = np.zeros(cfg.particles, dtype=np.int64)
         fixes_weighted = False
         if points.shape[0] < cfg.proposal.matcher.min_inliers:

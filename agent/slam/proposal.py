@@ -39,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.slam.fix import PoseMeasurement
+from agent.slam.grid import ScanPoints, surface_normals
 from agent.slam.matcher import (
     DistanceField,
     MatcherConfig,
@@ -75,6 +76,12 @@ class ProposalConfig:
     # 1 point to point (the default: it closes exp1's loop best), 0 point to line. docs/slam.md has the
     # measurements ("Scan matching").
     along_surface_weight: float = 1.0
+    # The scan's surface normals (``grid.surface_normals``, used where along_surface_weight < 1): a point's
+    # neighbourhood reaches max(0.25 m, normal_radius_per_m × its range), and it is a line when at most
+    # normal_thickness_m thick. 0 / 0.015 (a fixed 0.25 m) by default and for every source in ``eval
+    # slam`` (``eval_slam.NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``; docs/slam.md, "Scan matching").
+    normal_radius_per_m: float = 0.0
+    normal_thickness_m: float = 0.015
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     search: SearchConfig | None = field(default_factory=SearchConfig)
     # How eta (the weight) integrates p(z|m, x)^(1/T) p(x|x_{t-1}, u) where the match holds: "grid", the
@@ -101,6 +108,18 @@ class ProposalConfig:
     # holds the pose, by ~1 where the scan does. 1: off (the paper's draw, the default). ``eval slam``
     # sets 0.3 for the simulated robot (``eval_slam.log_proposal``; docs/slam.md, "Scan matching").
     degenerate_noise_scale: float = 1.0
+
+
+def scan_normals(scan: ScanPoints, kept: IntArray, config: ProposalConfig) -> FloatArray:
+    """The surface normals (robot frame) of ``scan``'s endpoints ``kept`` (indices into ``hit_xy``),
+    their neighbourhoods as ``config`` says (``normal_radius_per_m``, ``normal_thickness_m``)."""
+    return surface_normals(
+        scan.hit_xy,
+        kept,
+        max_thickness_m=config.normal_thickness_m,
+        radius_per_m=config.normal_radius_per_m,
+        origin_xy=scan.origin_xy,
+    )
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,6 @@ from agent.slam.grid import (
     TileRect,
     integrate_scans,
     prepare_scan,
-    surface_normals,
 )
 from agent.slam.loops import (
     LoopClosureConfig,
@@ -67,7 +66,7 @@ from agent.slam.matcher import DistanceField
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
-from agent.slam.proposal import ProposalConfig, improved_proposal, travel_reversed
+from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals, travel_reversed
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
@@ -484,7 +483,7 @@ class RbpfSlam:
         kept = voxel_indices(scan.hit_xy, self.config.match_voxel_m, self.config.max_match_points)
         if self.config.proposal.along_surface_weight == 1.0:
             return scan.hit_xy[kept], None
-        return scan.hit_xy[kept], surface_normals(scan.hit_xy, kept)
+        return scan.hit_xy[kept], scan_normals(scan, kept, self.config.proposal)
 
     def _field(self, predicted: FloatArray, points_xy: FloatArray) -> tuple[DistanceField, IntArray]:
         cfg = self.config

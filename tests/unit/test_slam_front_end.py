@@ -9,7 +9,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from agent.commands.eval_slam import front_end, log_odds_model, log_proposal
+from agent.commands.eval_slam import (
+    MATCH_MIN_TRANSLATION_INFORMATION,
+    NORMAL_RADIUS_PER_M,
+    NORMAL_THICKNESS_M,
+    front_end,
+    log_odds_model,
+    log_proposal,
+)
 from agent.config import MountConfig, SlamConfig, parse_config
 from agent.runtime.mapper import RbpfMapper, front_end_noise, front_end_proposal
 from agent.slam.motion import OdometryNoise
@@ -50,6 +57,9 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         "miss_log_odds = -0.1\nsearch_increment_rad = 0.19\nsearch_yaw_rad = 0.45\n"
         "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nreversal_ratio = 0.5\n"
         "match_gate_residual = true\nprocess = false\n"
+        f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
+        f"normal_thickness_m = {NORMAL_THICKNESS_M['radish']}\n"
+        f"match_min_translation_information = {MATCH_MIN_TRANSLATION_INFORMATION['radish']}\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3, match_gate_residual=True)
@@ -87,6 +97,9 @@ _FRONT_END_KEYS = (
     "search_increment_rad",
     "search_yaw_rad",
     "reversal_ratio",
+    "normal_radius_per_m",
+    "normal_thickness_m",
+    "match_min_translation_information",
 )
 
 
@@ -108,6 +121,9 @@ _FRONT_END_KEYS = (
         ("free_margin_m = -0.01", "slam.free_margin_m"),
         ("reversal_ratio = 0", "slam.reversal_ratio"),
         ("reversal_ratio = 1.5", "slam.reversal_ratio"),
+        ("normal_radius_per_m = -0.1", "slam.normal_radius_per_m"),
+        ("normal_thickness_m = 0", "slam.normal_thickness_m"),
+        ("match_min_translation_information = -1", "slam.match_min_translation_information"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:

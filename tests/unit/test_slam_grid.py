@@ -17,6 +17,7 @@ from agent.slam.grid import (
     TileRect,
     integrate_scans,
     prepare_scan,
+    surface_normals,
     swept_cells_sampled,
 )
 from agent.slam.logs import read_log
@@ -271,3 +272,25 @@ def test_clear_hands_the_used_slots_back_and_the_maps_refill() -> None:
     out = maps.gather([0, 1], rect)
     assert (out[0, 32:64, 64:96] == -2).all() and (out[0, :32].max() == 0) and out[1].max() == 0
     _consistent(maps)
+
+
+def test_normals_of_far_walls_with_a_neighbourhood_that_grows_with_range() -> None:
+    """A SICK's 1° beams on a wall 8 m ahead land ~0.14 m apart: within the fixed 0.25 m radius a point has
+    three neighbours and no normal; with the radius grown to 0.1 × range (0.8 m) every point but the
+    ends' gets the wall's normal. A corner near the laser stays without one either way."""
+    angles = np.radians(np.arange(-20.0, 21.0, 1.0))
+    far = np.stack([np.full_like(angles, 8.0), 8.0 * np.tan(angles)], axis=1)  # the wall x = 8
+    fixed = surface_normals(far)
+    grown = surface_normals(far, radius_per_m=0.1, origin_xy=(0.0, 0.0))
+    assert not np.any(fixed)
+    inner = grown[3:-3]
+    assert np.allclose(np.abs(inner[:, 0]), 1.0) and np.allclose(inner[:, 1], 0.0)
+    # A right-angled corner 1 m away, points 5 cm apart: not a line at any radius.
+    leg = np.arange(0.0, 0.5, 0.05)
+    one = np.full_like(leg, 1.0)
+    corner = np.concatenate([np.stack([1.0 - leg[::-1], one], 1), np.stack([one, 1.0 - leg], 1)])
+    at_corner = surface_normals(corner, np.array([leg.size - 1, leg.size]), radius_per_m=0.1)
+    assert not np.any(at_corner)
+    # The laser's position sets the range: seen from 7.5 m nearer, the same wall keeps the fixed radius.
+    near = surface_normals(far, radius_per_m=0.1, origin_xy=(7.5, 0.0))
+    assert not np.any(near[np.abs(far[:, 1]) < 0.5])

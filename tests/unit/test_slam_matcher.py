@@ -8,19 +8,27 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from agent.slam.grid import GridGeometry, LogOddsModel, TileRect, integrate_scans, prepare_scan
+from agent.slam.grid import (
+    GridGeometry,
+    LogOddsModel,
+    TileRect,
+    integrate_scans,
+    prepare_scan,
+    surface_normals,
+)
 from agent.slam.matcher import (
     DistanceField,
     MatcherConfig,
     SearchConfig,
     _medial_at,
     correlative_search,
+    degenerate_projection,
     match,
     scan_log_likelihood,
     truncated_energy,
 )
 from agent.slam.pose import between
-from agent.slam.rbpf import voxel_filter
+from agent.slam.rbpf import voxel_filter, voxel_indices
 from drivers.sim.raycast import cast_rays
 
 RES = 0.05
@@ -419,3 +427,60 @@ def test_the_residual_gate_scores_new_wall_beyond_the_mapped_end_by_its_line() -
     # centimetres: the truth's handicap against the slid pose shrinks to a third.
     assert by_residual[1] == pytest.approx(by_distance[1], abs=1e-9)  # on the mapped wall: the same
     assert by_residual[0] - by_residual[1] < (by_distance[0] - by_distance[1]) / 3
+
+
+def test_degeneracy_aware_steps_leave_a_corridor_s_length_to_the_prior() -> None:
+    """A corridor whose walls are mapped in patches (every other metre): the patches pull an endpoint
+    between them along the wall (point to point), so with a weak prior the match slides along the
+    corridor, and those pulls are information along it (sum J Jᵀ). The scan's surface normals all lie
+    across the corridor: with ``min_translation_information`` the scan does not move the pose along it
+    (the prior holds it at its centre), while across the corridor and in heading the walls still decide.
+    In a room, where every direction is well observed, the option changes nothing."""
+    walls = np.array([(-20.0, -1.0, 20.0, -1.0), (-20.0, 1.0, 20.0, 1.0)]) + 0.025
+    ranges = cast_rays((0.0, 0.0), ANGLES, walls, None, 5.6)
+    scan = prepare_scan(
+        np.where(np.isfinite(ranges), ranges, 0.0), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2
+    )
+    rect = TileRect.covering(GEOMETRY, (-6.0, -3.0), (6.0, 3.0))
+    h, w = rect.shape[0] * GEOMETRY.tile_cells, rect.shape[1] * GEOMETRY.tile_cells
+    windows = np.zeros((1, h, w), dtype=np.int8)
+    integrate_scans(windows, rect.origin_m(GEOMETRY), RES, np.zeros((1, 3)), scan, MODEL, GEOMETRY.tile_cells)
+    obstacles = windows > MODEL.counts(MODEL.occupied)
+    x_cells = rect.origin_m(GEOMETRY)[0] + (np.arange(w) + 0.5) * RES
+    obstacles[0][:, (np.floor(x_cells) % 2) == 1] = False  # walls mapped on alternate metres only
+    field = DistanceField.from_obstacles(obstacles, rect.origin_m(GEOMETRY), RES, 0.6)
+    kept = voxel_indices(scan.hit_xy, 0.1, 200)
+    points = scan.hit_xy[kept]
+    normals = surface_normals(scan.hit_xy, kept)
+    assert np.mean(np.abs(normals[:, 1]) > 0.99) > 0.5  # most endpoints: a normal across the corridor
+    start = np.array([[0.3, 0.05, 0.02]])
+    prior = np.diag([2.0, 2.0, 0.0])
+    ix = np.zeros(1, dtype=np.int64)
+    free = match(field, ix, points, start, MatcherConfig(), prior, normals_xy=normals)
+    aware_config = MatcherConfig(min_translation_information=10.0)
+    aware = match(field, ix, points, start, aware_config, prior, normals_xy=normals)
+    assert free.information[0, 0, 0] > 10.0  # the patches' pulls: information along the corridor
+    assert abs(free.poses[0, 0] - 0.3) > 0.02  # pulled along the corridor by the patches
+    assert abs(aware.poses[0, 0] - 0.3) < 0.005  # held where the prior puts it
+    for result in (free, aware):
+        assert abs(result.poses[0, 1]) < 0.01
+        assert abs(result.poses[0, 2]) < math.radians(0.5)
+    room = room_field()
+    scan_room = prepared((0.3, -0.2, 0.1))
+    kept_room = voxel_indices(scan_room.hit_xy, 0.1, 200)
+    normals_room = surface_normals(scan_room.hit_xy, kept_room)
+    guess = np.array([[0.35, -0.15, 0.12]])
+    args = (room, ix, scan_room.hit_xy[kept_room], guess)
+    plain = match(*args, MatcherConfig(), normals_xy=normals_room, along_weight=0.0)
+    same = match(*args, aware_config, normals_xy=normals_room, along_weight=0.0)
+    assert np.array_equal(plain.poses, same.poses)
+    assert np.allclose(same.poses[0], (0.3, -0.2, 0.1), atol=0.01)
+    # With a ratio, a direction is weak only beside a well-observed one: a corridor (40 across, 1 along)
+    # is, a scan with few surfaces anywhere (3 and 1) is not.
+    info = np.array([[[40.0, 0.0], [0.0, 1.0]], [[3.0, 0.0], [0.0, 1.0]]])
+    both = degenerate_projection(info, 2.0)
+    corridor_only = degenerate_projection(info, 2.0, ratio=10.0)
+    assert both is not None and corridor_only is not None
+    assert np.allclose(both, [[[1.0, 0.0], [0.0, 0.0]], [[1.0, 0.0], [0.0, 0.0]]])
+    assert np.allclose(corridor_only, [[[1.0, 0.0], [0.0, 0.0]], np.eye(2)])
+    assert degenerate_projection(info[1:], 2.0, ratio=10.0) is None
