@@ -126,6 +126,14 @@ class LoopClosureConfig:
     # they need the scans' plainer word). exp1 (seeds 1, 2): 0.20-0.25 m; Intel seed 0's first return
     # (66 m, a link that took ate_aligned_m 0.074 -> 0.120 m): 0.10 m.
     known_area_fit_m: float = 0.15
+    # ... and only where the graph's correction brings the newest scans onto the old walls plainly: their
+    # score at the optimised poses at most this share of their score before (the judge's ``verify_ratio``
+    # for its links; squared distances, so 0.25 is the median endpoint's distance halved). Without it the
+    # office's seeds 10, 14, 18 and 22 acted on one link each (i 25 -> j 93-105, 0.04-0.37 m off the
+    # truth where the graph was 0.02-0.04 m off) whose newest scans lay nowhere near the old window
+    # (median at the truncation, 0.3 m, before and after: "comes apart" and "no worse" both held by
+    # saturation); exp1's links (seeds 1, 2) take the median from 0.25 / 0.20 m to 0.05 m.
+    known_area_verify_ratio: float = 0.25
     known_ambiguity: float = 0.3
     prior_chi2: float = 11.34
     # Standard deviations of the factors (x, y in the first node's frame; yaw).
@@ -789,7 +797,8 @@ def judge_loop(
     ``pending`` links (earlier candidates left UNCONFIRMED, within ``confirm_nodes``) must agree with it;
     the graph optimised with it (and the pending links that agree with it, ``Judgement.partners``) must
     fit it and every earlier loop (``accept_chi2``); and those scans must fit the old map at the optimised
-    poses at least as well as at the current ones (``verify_ratio``). ``hits``: each node's endpoints in
+    poses at least as well as at the current ones (``verify_ratio``; a known-area link's must fit them
+    plainly better, ``known_area_verify_ratio``). ``hits``: each node's endpoints in
     its robot frame; ``odometry_motions``, ``node_information``, ``odometry_sigmas``: the chain's sigmas
     (:func:`optimize_graph`)."""
     innovation = loop_residual_chi2(poses, candidate, config)
@@ -847,7 +856,8 @@ def judge_loop(
         )
         return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
     score_after = scan_map_score(result.poses, hits, old, new, config)
-    if score_after > config.verify_ratio * score_before:
+    ratio = config.known_area_verify_ratio if candidate.known_area else config.verify_ratio
+    if score_after > ratio * score_before or (candidate.known_area and not math.isfinite(score_before)):
         log.debug("loop %d -> %d: scans fit worse (%.4f -> %.4f)", candidate.i, j, score_before, score_after)
         return Judgement(Verdict.WORSE, innovation, residual, score_before, score_after)
     return Judgement(
