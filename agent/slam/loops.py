@@ -352,11 +352,15 @@ def find_loop(
     config: LoopClosureConfig,
     travelled_m: float = 0.0,
     yaw_doubt_rad: float = 0.0,
+    known_area_travelled_m: float | None = None,
 ) -> LoopConstraint | None:
     """A loop factor for node j (its endpoints to match: ``match_points``, in the robot frame) against
     the old nodes' map, or None (no old node near, or no match good and unambiguous enough).
     ``travelled_m``: the distance driven since the last closure, and ``yaw_doubt_rad``: the heading the
-    front end may have lost since (see :func:`yaw_doubt`), which widen the search."""
+    front end may have lost since (see :func:`yaw_doubt`), which widen the search.
+    ``known_area_travelled_m``: the distance that gates the known-area rule (``known_area_after_m``;
+    the filter's: since the last closure or the last known-area link it judged and did not act on;
+    None: ``travelled_m``)."""
     old_end = j - config.min_separation
     if old_end < 0 or match_points.shape[0] < config.matcher.min_inliers:
         return None
@@ -376,7 +380,8 @@ def find_loop(
     if config.hypotheses > 0 and not config.known_area_fallback:
         return _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
     found = _find_loop_coarse(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
-    if found is None and config.hypotheses > 0 and travelled_m >= config.known_area_after_m:
+    known_travelled = travelled_m if known_area_travelled_m is None else known_area_travelled_m
+    if found is None and config.hypotheses > 0 and known_travelled >= config.known_area_after_m:
         known = _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
         if known is not None:
             return replace(known, known_area=True)
