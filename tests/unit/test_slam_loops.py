@@ -176,6 +176,9 @@ def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> 
     # Only after known_area_after_m without a link (here 20 m) does the rule run where the coarse tests
     # found nothing; its link is marked as the rule's.
     assert find_loop(graph, hits, hits[60], 60, config, 19.0) is None
+    # ... nor within known_area_after_m of a known-area link it judged and did not act on (the filter's
+    # known_area_travelled_m), however far since the last closure.
+    assert find_loop(graph, hits, hits[60], 60, config, 40.0, known_area_travelled_m=19.0) is None
     found = find_loop(graph, hits, hits[60], 60, config, 40.0)
     assert found is not None and found.j == 60 and found.i < 20 and found.known_area
     error = between(between(truth[found.i], truth[60]), found.z)
