@@ -18,6 +18,7 @@ view cost the map.
     python benchmarks/slam_office.py --seeds 0 1 2 --people none --seconds 60 --wheels nominal
     python benchmarks/slam_office.py --seeds $(seq 8 23) --tune 0 1 2 3 4 5 6 7 --degenerate-noise-scale 1
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5 --edge-sigma 0.005 0.005 0.001 --match-sigma 0.1
+    python benchmarks/slam_office.py --seeds 10 14 18 22 --loop-hypotheses 0
 """
 
 from __future__ import annotations
@@ -73,10 +74,14 @@ def loop_config(
     edge_sigma: tuple[float, float, float] | None,
     match_sigma: float | None,
     edge_match_sigma: float | None = None,
+    hypotheses: int | None = None,
 ) -> LoopClosureConfig:
-    """The loop closure's defaults with the pose graph's edge sigmas, loop-factor covariance and
-    front-end edges from the match's information (``edge_match_sigma_m``) set."""
+    """The loop closure's defaults with the pose graph's edge sigmas, loop-factor covariance,
+    front-end edges from the match's information (``edge_match_sigma_m``) and the known-area rule
+    (``hypotheses``) set."""
     config = LoopClosureConfig()
+    if hypotheses is not None:
+        config = dataclasses.replace(config, hypotheses=hypotheses)
     if edge_match_sigma is not None:
         config = dataclasses.replace(config, edge_match_sigma_m=edge_match_sigma)
     if edge_sigma is not None:
@@ -99,6 +104,7 @@ def run_seed(
     grid_offset: float = 0.0,
     free_margin: float | None = None,
     edge_match_sigma: float | None = None,
+    hypotheses: int | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -117,7 +123,9 @@ def run_seed(
         initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
         free_margin_m=free_margin,
         seed=seed,
-        loop_closure=loop_config(edge_sigma, match_sigma, edge_match_sigma) if loop_closure else None,
+        loop_closure=(
+            loop_config(edge_sigma, match_sigma, edge_match_sigma, hypotheses) if loop_closure else None
+        ),
     )
     t0, c0 = time.perf_counter(), time.process_time()
     result = replay(simulated.log, config)
@@ -204,6 +212,13 @@ def main() -> int:
         help="RbpfConfig.free_margin_m: a beam's free space stops M short of its endpoint "
         "(default: eval slam's for the simulated robot)",
     )
+    parser.add_argument(
+        "--loop-hypotheses",
+        type=int,
+        metavar="N",
+        help="LoopClosureConfig.hypotheses: the known-area rule's best coarse poses per window, where the"
+        f" coarse tests find nothing (0: off; default the config's, {LoopClosureConfig().hypotheses})",
+    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -225,6 +240,7 @@ def main() -> int:
             args.grid_offset,
             args.free_margin if args.free_margin is not None else front_end("simulated").free_margin_m,
             args.edge_match_sigma,
+            args.loop_hypotheses,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -238,6 +254,7 @@ def main() -> int:
         "loop_closure": args.loop_closure,
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
+        "loop_hypotheses": args.loop_hypotheses,
         "edge_match_sigma": args.edge_match_sigma,
         "degenerate_noise_scale": args.degenerate_noise_scale,
         "particles": args.particles,

@@ -298,6 +298,9 @@ class RbpfSlam:
         self._node_information: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
+        # The last node a known-area link (LoopClosureConfig.hypotheses) was judged at without being acted
+        # on: the rule waits known_area_after_m from here too.
+        self._known_area_judged = 0
         self._last_check = 0  # the last node a loop check ran at
         self._pending: list[LoopConstraint] = []  # links that disagreed with the graph, unconfirmed
         self._anchored = 0  # nodes up to here hold graph-optimised poses in the history
@@ -750,7 +753,9 @@ class RbpfSlam:
         doubt = yaw_doubt(
             between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
         )
-        found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt)
+        known_since = max(since, self._known_area_judged)
+        known_travelled = float(np.sum(np.hypot(*np.diff(path[known_since:, :2], axis=0).T)))
+        found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt, known_travelled)
         if found is not None:
             self._judge(path, found)
         self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
@@ -774,6 +779,8 @@ class RbpfSlam:
             self.config.noise.sigmas(odometry_motions) if lc.correction_odometry_sigmas is not None else None,
         )
         self.stats.loop_verdicts[judgement.verdict.value] += 1
+        if found.known_area and judgement.verdict is not Verdict.ACCEPTED:
+            self._known_area_judged = found.j
         log.debug(
             "loop %d -> %d: %s (innovation chi2 %.1f, residual %.1f, scans %.4f -> %.4f)",
             found.i,

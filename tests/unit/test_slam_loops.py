@@ -176,6 +176,9 @@ def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> 
     # Only after known_area_after_m without a link (here 20 m) does the rule run where the coarse tests
     # found nothing; its link is marked as the rule's.
     assert find_loop(graph, hits, hits[60], 60, config, 19.0) is None
+    # ... nor within known_area_after_m of a known-area link it judged and did not act on (the filter's
+    # known_area_travelled_m), however far since the last closure.
+    assert find_loop(graph, hits, hits[60], 60, config, 40.0, known_area_travelled_m=19.0) is None
     found = find_loop(graph, hits, hits[60], 60, config, 40.0)
     assert found is not None and found.j == 60 and found.i < 20 and found.known_area
     error = between(between(truth[found.i], truth[60]), found.z)
@@ -432,3 +435,33 @@ def test_candidate_windows_are_the_nearest_old_nodes_of_distinct_passes() -> Non
     assert sorted(round(float(poses[k, 1])) for k in taken) == [0, 1, 2]
     assert candidate_nodes(poses, distance, old_end, 3.0, 5.0, 1) == taken[:1]
     assert candidate_nodes(poses, distance, old_end, 0.05, 5.0, 3) == []
+
+
+def test_a_known_area_link_acts_only_where_it_brings_the_newest_scans_onto_the_old_walls() -> None:
+    # The office's seeds 10/14/18/22 (docs/slam.md, "Loop closure"): the graph is right, the newest scans
+    # see only what the old window never did (their median distance to its walls at the truncation,
+    # before and after any correction), and a known-area link 0.35 m off says the map came apart. "No
+    # worse" held by saturation; it must now fit them plainly better (known_area_verify_ratio).
+    truth, path, hits = _drifted_revisit()
+    far = np.stack([np.linspace(-15.0, -12.0, 60), np.linspace(-1.0, 1.0, 60)], axis=1)  # behind the room
+    elsewhere = [*hits[:60], *(far for _ in range(60, 65))]
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    config = LoopClosureConfig(min_separation=40)
+    off = LoopConstraint(
+        6, 64, compose(between(truth[6], truth[64]), np.array([0.35, 0.0, 0.0])), 0.9, known_area=True
+    )
+    judgement = judge_loop(truth, elsewhere, motions, [], off, config)
+    assert judgement.innovation_chi2 > config.agree_chi2
+    assert judgement.score_after == judgement.score_before == config.truncate_m**2
+    assert judgement.verdict is Verdict.WORSE and judgement.result is None
+    saturated = judge_loop(truth, elsewhere, motions, [], off, replace(config, known_area_verify_ratio=1.0))
+    assert saturated.verdict is Verdict.ACCEPTED  # what the rule did before
+    # exp1's case: the front end drifted 0.4 m, the newest scans show the map come apart, and a right
+    # known-area link takes them onto the old walls: acted on.
+    drifted = np.zeros_like(path)
+    drifted[1:] = between(path[:-1], path[1:])
+    right = LoopConstraint(6, 64, between(truth[6], truth[64]), 0.9, known_area=True)
+    accepted = judge_loop(path, hits, drifted, [], right, config)
+    assert accepted.verdict is Verdict.ACCEPTED, accepted
+    assert accepted.score_after <= config.known_area_verify_ratio * accepted.score_before
