@@ -118,10 +118,11 @@ class LoopClosureConfig:
     # (held-out Intel seed 4: ate_aligned_m 0.117 -> 0.124 m); but the office's held-out seeds 10, 14, 18
     # and 22 acted on known-area links and rebuilt (0.026-0.029 -> 0.146 / 0.156 / 0.043 / 0.119 m; 11 of
     # 24 over 3 cm against 7) until ``known_area_verify_ratio`` (below) refused those links. With it and
-    # 4, SLAMCHECK's whole table holds (exp1 6 of 6, the office identical at every seed), but exp1's CPU
-    # ratio beside GMapping went 0.450-0.472 -> 0.497-0.508 (limit 0.5; the rule's searches +5-9 % of
-    # our CPU), so the default stays 0 (docs/slam.md, "Loop closure"; `slam_loop.py --loop-hypotheses 4`).
-    hypotheses: int = 0
+    # 4, SLAMCHECK's whole table holds (exp1 6 of 6, the office identical at every seed, ACES seed 2
+    # 0.176 -> 0.139 m); its searches cost 3-6 % of our CPU on exp1 (cpu_ratio beside GMapping 0.44-0.46
+    # off, 0.46-0.485 on, three alternating runs at load 1; 0.497-0.508 at load 3-5 before slam-cpu-13's
+    # exact speed-ups). The default since session 13 (docs/slam.md, "Loop closure"; 0 turns it off).
+    hypotheses: int = 4
     known_area_fallback: bool = True
     known_area_after_m: float = 20.0
     # A known-area link acts only where the newest scans show the map come apart by at least this (the
