@@ -20,7 +20,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -353,6 +353,33 @@ def _refine(
     return match(old, np.zeros(1, dtype=np.int64), points_xy, best[None, :], config.matcher)
 
 
+def _refine_batch(
+    old: DistanceField, points_xy: FloatArray, starts: FloatArray, config: LoopClosureConfig
+) -> MatchResult:
+    """:func:`_refine` of each of ``starts`` (P, 3), the Gauss-Newton runs as one batch that stops each
+    pose where its own run would (``MatcherConfig.per_pose_convergence``; each pose's rows depend on that
+    pose alone), so row k is ``_refine(old, points_xy, starts[k], config)``'s. With degeneracy-aware steps
+    (``min_translation_information``) one pose's weak direction changes every pose's step: one at a
+    time then."""
+    bests = []
+    for start in starts:
+        fine = lattice_search(
+            old,
+            points_xy,
+            start,
+            config.coarse_resolution_m,
+            config.coarse_yaw_step_rad,
+            config.fine_yaw_step_rad,
+            config.truncate_m,
+        )
+        bests.append(fine.pose(start, *fine.best()))
+    if config.matcher.min_translation_information > 0.0:
+        ones = [match(old, np.zeros(1, dtype=np.int64), points_xy, b[None, :], config.matcher) for b in bests]
+        return MatchResult(*(np.concatenate([getattr(o, f.name) for o in ones]) for f in fields(MatchResult)))
+    matcher = replace(config.matcher, per_pose_convergence=True)
+    return match(old, np.zeros(len(bests), dtype=np.int64), points_xy, np.array(bests), matcher)
+
+
 def find_loop(
     poses: FloatArray,
     hits: list[FloatArray],
@@ -619,10 +646,15 @@ def _find_loop_known(
             coarse = coarse_lattice(poses, hits, match_points, j, nodes, config, xy_m, yaw_rad)
         old = old_map_field(poses, hits, nodes, config.resolution_m, cap, cover_poses=True)
         known = known_cells(poses, hits, nodes, old)
-        for r, t in distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad):
-            m = _refine(old, match_points, coarse.pose(poses[j], r, t), config)
-            fit = known_fit(old, known, match_points, m.poses[0], inlier_m, config.truncate_m)
-            refined.append(_Hypothesis(i, m.poses[0], fit, bool(m.ok[0]), m.information[0]))
+        minima = distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad)
+        if not minima:
+            continue
+        m = _refine_batch(
+            old, match_points, np.array([coarse.pose(poses[j], r, t) for r, t in minima]), config
+        )
+        for k in range(len(minima)):
+            fit = known_fit(old, known, match_points, m.poses[k], inlier_m, config.truncate_m)
+            refined.append(_Hypothesis(i, m.poses[k], fit, bool(m.ok[k]), m.information[k]))
     if not refined:
         return None
     best = min(refined, key=lambda h: h.fit.cost)
