@@ -495,3 +495,23 @@ def test_the_known_area_rule_reuses_the_coarse_lattices_exactly(monkeypatch: pyt
     assert (again.i, again.j, again.inlier_fraction) == (reused.i, reused.j, reused.inlier_fraction)
     assert np.array_equal(again.z, reused.z)
     assert np.array_equal(again.covariance, reused.covariance)
+
+
+def test_a_batch_of_refinements_is_each_refinement_alone() -> None:
+    # The known-area rule refines a window's hypotheses as one Gauss-Newton batch, each pose stopping where
+    # its own run would: row k is what refining start k alone gives, to the bit.
+    from dataclasses import fields
+
+    import agent.slam.loops as loops
+    from agent.slam.matcher import MatchResult
+
+    _truth, graph, hits = _half_seen_revisit()
+    config = LoopClosureConfig(min_separation=40, hypotheses=4)
+    old = old_map_field(graph, hits, range(20), config.resolution_m, 0.6, cover_poses=True)
+    offsets = np.array([[0.0, 0.0, 0.0], [-0.4, 0.3, -0.07], [0.5, 0.2, 0.1], [1.5, -1.0, 0.3]])
+    starts = graph[60] + offsets
+    batch = loops._refine_batch(old, hits[60], starts, config)
+    for k, start in enumerate(starts):
+        alone = loops._refine(old, hits[60], start, config)
+        for f in fields(MatchResult):
+            assert np.array_equal(getattr(batch, f.name)[k], getattr(alone, f.name)[0]), (k, f.name)
