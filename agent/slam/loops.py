@@ -20,7 +20,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -353,6 +353,33 @@ def _refine(
     return match(old, np.zeros(1, dtype=np.int64), points_xy, best[None, :], config.matcher)
 
 
+def _refine_batch(
+    old: DistanceField, points_xy: FloatArray, starts: FloatArray, config: LoopClosureConfig
+) -> MatchResult:
+    """:func:`_refine` of each of ``starts`` (P, 3), the Gauss-Newton runs as one batch that stops each
+    pose where its own run would (``MatcherConfig.per_pose_convergence``; each pose's rows depend on that
+    pose alone), so row k is ``_refine(old, points_xy, starts[k], config)``'s. With degeneracy-aware steps
+    (``min_translation_information``) one pose's weak direction changes every pose's step: one at a
+    time then."""
+    bests = []
+    for start in starts:
+        fine = lattice_search(
+            old,
+            points_xy,
+            start,
+            config.coarse_resolution_m,
+            config.coarse_yaw_step_rad,
+            config.fine_yaw_step_rad,
+            config.truncate_m,
+        )
+        bests.append(fine.pose(start, *fine.best()))
+    if config.matcher.min_translation_information > 0.0:
+        ones = [match(old, np.zeros(1, dtype=np.int64), points_xy, b[None, :], config.matcher) for b in bests]
+        return MatchResult(*(np.concatenate([getattr(o, f.name) for o in ones]) for f in fields(MatchResult)))
+    matcher = replace(config.matcher, per_pose_convergence=True)
+    return match(old, np.zeros(len(bests), dtype=np.int64), points_xy, np.array(bests), matcher)
+
+
 def find_loop(
     poses: FloatArray,
     hits: list[FloatArray],
@@ -388,10 +415,15 @@ def find_loop(
         return None
     if config.hypotheses > 0 and not config.known_area_fallback:
         return _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
-    found = _find_loop_coarse(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
+    # The coarse tests' lattices, one per window, are the known-area rule's too (the same windows, field
+    # and search): handed on, not rebuilt.
+    lattices: dict[int, Lattice] = {}
+    found = _find_loop_coarse(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach, lattices)
     known_travelled = travelled_m if known_area_travelled_m is None else known_area_travelled_m
     if found is None and config.hypotheses > 0 and known_travelled >= config.known_area_after_m:
-        known = _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
+        known = _find_loop_known(
+            poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach, lattices
+        )
         if known is not None:
             return replace(known, known_area=True)
     return found
@@ -407,15 +439,19 @@ def _find_loop_coarse(
     yaw_rad: float,
     distance: FloatArray,
     reach: float,
+    lattices: dict[int, Lattice] | None = None,
 ) -> LoopConstraint | None:
     """:func:`find_loop`'s coarse tests: the least coarse cost among the windows whose best is
     unambiguous (``max_ambiguity``), refined, with ``min_inlier_fraction`` of the endpoints on the old
-    walls."""
+    walls. ``lattices``: where given, each window's coarse lattice is stored in it by its centre node."""
     old_end = j - config.min_separation
     best: tuple[float, int, range, FloatArray] | None = None
     for i in candidate_nodes(poses, distance, old_end, reach, config.window_path_m, config.max_windows):
         nodes = window_nodes(poses, i, old_end, config.window_path_m)
-        found = coarse_match(poses, hits, match_points, j, i, nodes, config, xy_m, yaw_rad)
+        coarse = coarse_lattice(poses, hits, match_points, j, nodes, config, xy_m, yaw_rad)
+        if lattices is not None:
+            lattices[i] = coarse
+        found = coarse_best(coarse, poses[j], j, i, config)
         if found is not None and (best is None or found[0] < best[0]):
             best = (found[0], i, nodes, found[1])
     if best is None:
@@ -450,33 +486,37 @@ def candidate_nodes(
     return taken
 
 
-def coarse_match(
+def coarse_lattice(
     poses: FloatArray,
     hits: list[FloatArray],
     match_points: FloatArray,
     j: int,
-    i: int,
     nodes: range,
     config: LoopClosureConfig,
     xy_m: float,
     yaw_rad: float,
-) -> tuple[float, FloatArray] | None:
-    """The coarse lattice search of node j's endpoints against the old window ``nodes`` (around node i):
-    its best cost and pose, or None when a pose at least ``distinct_*`` away scores nearly as well
-    (``max_ambiguity``)."""
-    centre = poses[j]
+) -> Lattice:
+    """The coarse lattice search of node j's endpoints against the old window ``nodes``, around node j's
+    pose."""
     coarse_field = old_map_field(
         poses, hits, nodes, config.coarse_resolution_m, config.coarse_truncate_m + config.coarse_resolution_m
     )
-    coarse = lattice_search(
+    return lattice_search(
         coarse_field,
         match_points,
-        centre,
+        poses[j],
         xy_m,
         yaw_rad,
         config.coarse_yaw_step_rad,
         config.coarse_truncate_m,
     )
+
+
+def coarse_best(
+    coarse: Lattice, centre: FloatArray, j: int, i: int, config: LoopClosureConfig
+) -> tuple[float, FloatArray] | None:
+    """A coarse lattice's best cost and pose (node j's against the window around node i), or None when
+    a pose at least ``distinct_*`` away scores nearly as well (``max_ambiguity``)."""
     r, t = coarse.best()
     elsewhere = coarse.best_elsewhere(r, t, config.distinct_xy_m, config.distinct_yaw_rad)
     if not coarse.costs[r, t] < config.max_ambiguity * elsewhere:
@@ -589,37 +629,32 @@ def _find_loop_known(
     yaw_rad: float,
     distance: FloatArray,
     reach: float,
+    lattices: dict[int, Lattice] | None = None,
 ) -> LoopConstraint | None:
     """:func:`find_loop` with ``config.hypotheses`` > 0: every window's best distinct coarse poses
-    refined, and judged over the old window's known area (``LoopClosureConfig.hypotheses``)."""
+    refined, and judged over the old window's known area (``LoopClosureConfig.hypotheses``).
+    ``lattices``: the coarse tests' lattices by window centre (:func:`_find_loop_coarse`), used where
+    present instead of searching again."""
     old_end = j - config.min_separation
     cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
     inlier_m = config.matcher.stages[-1][0]
     refined: list[_Hypothesis] = []
     for i in candidate_nodes(poses, distance, old_end, reach, config.window_path_m, config.max_windows):
         nodes = window_nodes(poses, i, old_end, config.window_path_m)
-        coarse_field = old_map_field(
-            poses,
-            hits,
-            nodes,
-            config.coarse_resolution_m,
-            config.coarse_truncate_m + config.coarse_resolution_m,
-        )
-        coarse = lattice_search(
-            coarse_field,
-            match_points,
-            poses[j],
-            xy_m,
-            yaw_rad,
-            config.coarse_yaw_step_rad,
-            config.coarse_truncate_m,
-        )
+        coarse = lattices.get(i) if lattices is not None else None
+        if coarse is None:
+            coarse = coarse_lattice(poses, hits, match_points, j, nodes, config, xy_m, yaw_rad)
         old = old_map_field(poses, hits, nodes, config.resolution_m, cap, cover_poses=True)
         known = known_cells(poses, hits, nodes, old)
-        for r, t in distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad):
-            m = _refine(old, match_points, coarse.pose(poses[j], r, t), config)
-            fit = known_fit(old, known, match_points, m.poses[0], inlier_m, config.truncate_m)
-            refined.append(_Hypothesis(i, m.poses[0], fit, bool(m.ok[0]), m.information[0]))
+        minima = distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad)
+        if not minima:
+            continue
+        m = _refine_batch(
+            old, match_points, np.array([coarse.pose(poses[j], r, t) for r, t in minima]), config
+        )
+        for k in range(len(minima)):
+            fit = known_fit(old, known, match_points, m.poses[k], inlier_m, config.truncate_m)
+            refined.append(_Hypothesis(i, m.poses[k], fit, bool(m.ok[k]), m.information[k]))
     if not refined:
         return None
     best = min(refined, key=lambda h: h.fit.cost)

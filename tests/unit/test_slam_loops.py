@@ -155,11 +155,9 @@ def test_a_corridor_is_ambiguous_and_no_factor_is_made(hypotheses: int) -> None:
     assert find_loop(graph, hits, hits[60], 60, config, travelled_m=60.0) is None
 
 
-def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> None:
-    # exp1's seed 1 (docs/slam.md, "Open problems"): the first pass saw only part of what the revisit
-    # sees, so most of the new endpoints fall where no old beam reached. The coarse tests count them as
-    # misses (too few on the old walls, every pose about as bad); judged over the known area the match
-    # stands out, and it is right.
+def _half_seen_revisit() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Truth, graph and endpoints of a revisit (node 60, 0.4 m and 4 degrees off in the graph) of a room
+    whose first pass (nodes 0-19) saw only its part west of x = 4.5."""
     rng = np.random.default_rng(3)
     walls = _room_points(rng)
     truth = np.zeros((61, 3))
@@ -170,6 +168,15 @@ def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> 
     hits = [_scan_from(p, seen if k < 20 else walls) for k, p in enumerate(truth)]
     graph = truth.copy()
     graph[60] = compose(truth[60], np.array([0.4, -0.3, math.radians(4.0)]))
+    return truth, graph, hits
+
+
+def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> None:
+    # exp1's seed 1 (docs/slam.md, "Open problems"): the first pass saw only part of what the revisit
+    # sees, so most of the new endpoints fall where no old beam reached. The coarse tests count them as
+    # misses (too few on the old walls, every pose about as bad); judged over the known area the match
+    # stands out, and it is right.
+    truth, graph, hits = _half_seen_revisit()
     coarse = LoopClosureConfig(min_separation=40, hypotheses=0)
     assert find_loop(graph, hits, hits[60], 60, coarse, travelled_m=40.0) is None
     config = LoopClosureConfig(min_separation=40, hypotheses=4)
@@ -465,3 +472,46 @@ def test_a_known_area_link_acts_only_where_it_brings_the_newest_scans_onto_the_o
     accepted = judge_loop(path, hits, drifted, [], right, config)
     assert accepted.verdict is Verdict.ACCEPTED, accepted
     assert accepted.score_after <= config.known_area_verify_ratio * accepted.score_before
+
+
+def test_the_known_area_rule_reuses_the_coarse_lattices_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The rule's windows and coarse searches are the coarse tests': it takes their lattices instead of
+    # searching again, and finds what it finds when it searches itself, to the bit.
+    import agent.slam.loops as loops
+
+    _truth, graph, hits = _half_seen_revisit()
+    config = LoopClosureConfig(min_separation=40, hypotheses=4)
+    searches = []
+    coarse_lattice = loops.coarse_lattice
+    monkeypatch.setattr(loops, "coarse_lattice", lambda *a: searches.append(a[5]) or coarse_lattice(*a))
+    reused = find_loop(graph, hits, hits[60], 60, config, 40.0)
+    assert reused is not None and reused.known_area and len(searches) == len(set(searches))
+    coarse_pass = loops._find_loop_coarse
+    # The coarse tests keeping their lattices to themselves: the rule searches each window again.
+    monkeypatch.setattr(loops, "_find_loop_coarse", lambda *a: coarse_pass(*a[:-1], None))
+    searches.clear()
+    again = find_loop(graph, hits, hits[60], 60, config, 40.0)
+    assert again is not None and len(searches) == 2 * len(set(searches)) > 0
+    assert (again.i, again.j, again.inlier_fraction) == (reused.i, reused.j, reused.inlier_fraction)
+    assert np.array_equal(again.z, reused.z)
+    assert np.array_equal(again.covariance, reused.covariance)
+
+
+def test_a_batch_of_refinements_is_each_refinement_alone() -> None:
+    # The known-area rule refines a window's hypotheses as one Gauss-Newton batch, each pose stopping where
+    # its own run would: row k is what refining start k alone gives, to the bit.
+    from dataclasses import fields
+
+    import agent.slam.loops as loops
+    from agent.slam.matcher import MatchResult
+
+    _truth, graph, hits = _half_seen_revisit()
+    config = LoopClosureConfig(min_separation=40, hypotheses=4)
+    old = old_map_field(graph, hits, range(20), config.resolution_m, 0.6, cover_poses=True)
+    offsets = np.array([[0.0, 0.0, 0.0], [-0.4, 0.3, -0.07], [0.5, 0.2, 0.1], [1.5, -1.0, 0.3]])
+    starts = graph[60] + offsets
+    batch = loops._refine_batch(old, hits[60], starts, config)
+    for k, start in enumerate(starts):
+        alone = loops._refine(old, hits[60], start, config)
+        for f in fields(MatchResult):
+            assert np.array_equal(getattr(batch, f.name)[k], getattr(alone, f.name)[0]), (k, f.name)
