@@ -24,6 +24,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from agent.following.anchor import box_iou
 from agent.following.meanshift import ColourSpace, MeanShiftTracker, Silhouette, TrackerConfig, TrackState
 from agent.following.prelocate import Detection
 
@@ -142,8 +143,8 @@ class FineLayer:
             # camera is larger).
             width = float(result.box[2])
             alike = [b for b in found if abs(float(b[2]) - width) <= cfg.correct_size * width]
-            best = max(alike, key=lambda b: _iou(b, result.box), default=None)
-            if best is not None and _iou(best, result.box) >= cfg.correct_iou:
+            best = max(alike, key=lambda b: box_iou(b, result.box), default=None)
+            if best is not None and box_iou(best, result.box) >= cfg.correct_iou:
                 size = result.box[2:]
                 seen = (best[:2] + best[2:] / 2.0 - result.box[:2] - size / 2.0) / size
                 self._offset += cfg.offset_rate * (seen - self._offset)
@@ -164,13 +165,3 @@ class FineLayer:
         """Forget the target (another user, or the coarse layer says the tracked one is not the tag's)."""
         self._tracker = None
         self._offset = np.zeros(2)
-
-
-def _iou(a: FloatArray, b: FloatArray) -> float:
-    ax, ay, aw, ah = (float(v) for v in a)
-    bx, by, bw, bh = (float(v) for v in b)
-    iw = max(0.0, min(ax + aw, bx + bw) - max(ax, bx))
-    ih = max(0.0, min(ay + ah, by + bh) - max(ay, by))
-    inter = iw * ih
-    union = aw * ah + bw * bh - inter
-    return inter / union if union > 0 else 0.0

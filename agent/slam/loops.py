@@ -340,6 +340,14 @@ def _refine(
 ) -> MatchResult:
     """A coarse candidate refined against one old window: the fine lattice around ``start``, then
     Gauss-Newton from its best pose (one pose: ``MatchResult`` rows of one)."""
+    best = _fine_best(old, points_xy, start, config)
+    return match(old, np.zeros(1, dtype=np.int64), points_xy, best[None, :], config.matcher)
+
+
+def _fine_best(
+    old: DistanceField, points_xy: FloatArray, start: FloatArray, config: LoopClosureConfig
+) -> FloatArray:
+    """The best pose of the fine lattice around ``start`` (a coarse candidate) against ``old``."""
     fine = lattice_search(
         old,
         points_xy,
@@ -349,8 +357,7 @@ def _refine(
         config.fine_yaw_step_rad,
         config.truncate_m,
     )
-    best = fine.pose(start, *fine.best())
-    return match(old, np.zeros(1, dtype=np.int64), points_xy, best[None, :], config.matcher)
+    return fine.pose(start, *fine.best())
 
 
 def _refine_batch(
@@ -361,18 +368,7 @@ def _refine_batch(
     pose alone), so row k is ``_refine(old, points_xy, starts[k], config)``'s. With degeneracy-aware steps
     (``min_translation_information``) one pose's weak direction changes every pose's step: one at a
     time then."""
-    bests = []
-    for start in starts:
-        fine = lattice_search(
-            old,
-            points_xy,
-            start,
-            config.coarse_resolution_m,
-            config.coarse_yaw_step_rad,
-            config.fine_yaw_step_rad,
-            config.truncate_m,
-        )
-        bests.append(fine.pose(start, *fine.best()))
+    bests = [_fine_best(old, points_xy, start, config) for start in starts]
     if config.matcher.min_translation_information > 0.0:
         ones = [match(old, np.zeros(1, dtype=np.int64), points_xy, b[None, :], config.matcher) for b in bests]
         return MatchResult(*(np.concatenate([getattr(o, f.name) for o in ones]) for f in fields(MatchResult)))

@@ -148,10 +148,7 @@ class DistanceField:
                 fill = np.full(shape, unknown, dtype=np.float32)
             far = cv2.compare(near_known, 0, cv2.CMP_EQ)  # type: ignore[call-overload]  # (scalar operand)
             cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
-            out[: 1 + r0] = unknown
-            out[1 + r1 :] = unknown
-            out[1 + r0 : 1 + r1, : 1 + c0] = unknown
-            out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
+            _fill_outside(out, r0, r1, c0, c1, unknown)
         return cls._finished(padded, origin_m, resolution_m, cap_m)
 
     @classmethod
@@ -204,10 +201,7 @@ class DistanceField:
             if fill is None:
                 fill = np.full(shape, unknown, dtype=np.float32)
             cv2.copyTo(fill[: r1 - r0, : c1 - c0], far, region)
-            out[: 1 + r0] = unknown
-            out[1 + r1 :] = unknown
-            out[1 + r0 : 1 + r1, : 1 + c0] = unknown
-            out[1 + r0 : 1 + r1, 1 + c1 :] = unknown
+            _fill_outside(out, r0, r1, c0, c1, unknown)
         return cls._finished(padded, origin_m, resolution_m, cap_m)
 
     @classmethod
@@ -1067,3 +1061,12 @@ def log_likelihood_quadratic(
     grad: FloatArray = -scale[:, None] * b
     hess: FloatArray = scale[:, None, None] * a
     return l0, grad, hess
+
+
+def _fill_outside(out: Float32Array, r0: int, r1: int, c0: int, c1: int, value: np.float32) -> None:
+    """``value`` in the padded window ``out`` outside the box of rows ``r0:r1``, columns ``c0:c1`` of the
+    unpadded window (the transform filled the box)."""
+    out[: 1 + r0] = value
+    out[1 + r1 :] = value
+    out[1 + r0 : 1 + r1, : 1 + c0] = value
+    out[1 + r0 : 1 + r1, 1 + c1 :] = value
