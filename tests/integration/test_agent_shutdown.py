@@ -22,7 +22,7 @@ import cv2
 import pytest
 
 from agent.slam.mapio import load_map
-from firmware_protocol.pose_frame import PoseFrameDecoder
+from firmware_protocol.pose_frame import PoseFlags, PoseFrameDecoder
 from tests.integration.test_agent_accuracy import REPO, PtyReader, read_truth, vlp_agent
 
 DEADLINE_S = 2.0
@@ -38,12 +38,21 @@ def assert_stopped_in_time(summary: dict[str, object], stderr: str) -> None:
         assert overrun not in stderr, stderr[-2000:]
 
 
-def wait_for_frames(reader: PtyReader, proc: subprocess.Popen[str], n: int, timeout_s: float = 60.0) -> None:
-    """Until the stream carries ``n`` frames (the agent is up and driving)."""
+def wait_for_frames(
+    reader: PtyReader, proc: subprocess.Popen[str], n: int, timeout_s: float = 60.0, slam: bool = False
+) -> None:
+    """Until the stream carries ``n`` frames (the agent is up and driving) and, with ``slam``, one whose
+    flags say the SLAM pose is fused: the SLAM process has started and made its first filter updates, so
+    there is a map to save. A frame count alone was not that on a loaded machine: the SLAM process runs
+    niced, and at load 5-6 it was still starting (no map, and the SLAM thread still waiting on it at the
+    stop) after 7 s of frames."""
     deadline = time.monotonic() + timeout_s
-    while len(PoseFrameDecoder().feed(reader.snapshot())) < n:
+    while True:
+        frames = PoseFrameDecoder().feed(reader.snapshot())
+        if len(frames) >= n and (not slam or any(PoseFlags.SLAM in f.flags for f in frames)):
+            return
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-        assert time.monotonic() < deadline, "no pose stream"
+        assert time.monotonic() < deadline, f"{len(frames)} frames, SLAM fused: no"
         time.sleep(0.1)
 
 
@@ -72,7 +81,7 @@ def test_sim_stops_within_two_seconds_with_its_files_intact(tmp_path: Path, sign
     )
     try:
         # Long enough for SLAM to make its first filter updates (a map to write) at 0.18 m/s.
-        wait_for_frames(reader, proc, 7 * 25)
+        wait_for_frames(reader, proc, 7 * 25, timeout_s=120.0, slam=True)
         proc.send_signal(signum)
         stdout, stderr = proc.communicate(timeout=HANG_S)
     finally:
