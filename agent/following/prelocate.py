@@ -110,8 +110,7 @@ class HeadShoulderLocator:
         width when None), best first."""
         import cv2
 
-        if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
-            raise ValueError(f"want a BGR uint8 (H, W, 3) frame, got {frame.dtype} {frame.shape}")
+        _check_frame(frame)
         t0 = time.perf_counter()
         _height, width = frame.shape[:2]
         c0, c1 = (0, width) if band is None else (max(0, int(band[0])), min(width, int(band[1])))
@@ -157,8 +156,7 @@ class HeadShoulderLocator:
         import cv2
 
         frame = np.asarray(frame)
-        if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
-            raise ValueError(f"want a BGR uint8 (H, W, 3) frame, got {frame.dtype} {frame.shape}")
+        _check_frame(frame)
         t0 = time.perf_counter()
         x, y, w, h = (float(v) for v in box)
         if not (w > 0.0 and h > 0.0):
@@ -227,6 +225,11 @@ class HeadShoulderLocator:
             for rect, weight in zip(rects, np.ravel(weights), strict=False):
                 found.append((np.asarray(rect, dtype=np.float64), float(weight)))
         return found
+
+
+def _check_frame(frame: ImageU8) -> None:
+    if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+        raise ValueError(f"want a BGR uint8 (H, W, 3) frame, got {frame.dtype} {frame.shape}")
 
 
 def _cascade_path(name: str) -> str:

@@ -195,8 +195,7 @@ def test_a_revisit_that_sees_mostly_new_space_is_found_over_the_known_area() -> 
 
 def test_a_known_area_link_the_graph_agrees_with_is_counted_and_not_acted_on() -> None:
     truth, path, hits = _drifted_revisit()
-    motions = np.zeros_like(truth)
-    motions[1:] = between(truth[:-1], truth[1:])
+    motions = _true_motions(truth)
     config = LoopClosureConfig(min_separation=40)
     found = find_loop(truth, hits, hits[64], 64, config, travelled_m=60.0)
     assert found is not None
@@ -333,6 +332,14 @@ def test_a_loop_factor_with_full_covariance_pulls_only_where_the_match_is_sure()
     assert turned[1, 1] > 100 * turned[0, 0]
 
 
+def _true_motions(truth: np.ndarray) -> np.ndarray:
+    """The graph's front-end motions along ``truth``: row k is node k-1 to node k, row 0 zero
+    (:func:`chain_poses`' input)."""
+    motions = np.zeros_like(truth)
+    motions[1:] = between(truth[:-1], truth[1:])
+    return motions
+
+
 def _drifted_revisit() -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Truth and a front end's path through the L-shaped room: nodes 0-19 along it, 20-59 far away
     (they see nothing of it), 60-64 back along the first stretch; the front end drifts from node 20 on,
@@ -375,8 +382,7 @@ def test_a_revisit_that_corrects_the_drift_is_accepted() -> None:
 
 def test_a_revisit_the_graph_already_agrees_with_changes_nothing() -> None:
     truth, _, hits = _drifted_revisit()
-    motions = np.zeros_like(truth)
-    motions[1:] = between(truth[:-1], truth[1:])
+    motions = _true_motions(truth)
     config = LoopClosureConfig(min_separation=40)
     found = find_loop(truth, hits, hits[64], 64, config, travelled_m=60.0)
     assert found is not None
@@ -387,8 +393,7 @@ def test_a_revisit_the_graph_already_agrees_with_changes_nothing() -> None:
 def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected() -> None:
     truth = chain_poses(np.zeros(3), _square())
     n = truth.shape[0]
-    motions = np.zeros_like(truth)
-    motions[1:] = between(truth[:-1], truth[1:])
+    motions = _true_motions(truth)
     hits = [np.zeros((0, 2)) for _ in range(n)]
     config = LoopClosureConfig(min_separation=10)
     loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
@@ -418,8 +423,7 @@ def test_a_link_that_slid_where_the_scans_fit_the_old_map_changes_nothing() -> N
     # The graph is right (the truth); a link 20 cm off along the first stretch disagrees with it, but the
     # newest scans lie on the old walls at the graph's poses: the link slid, not the map.
     truth, _, hits = _drifted_revisit()
-    motions = np.zeros_like(truth)
-    motions[1:] = between(truth[:-1], truth[1:])
+    motions = _true_motions(truth)
     config = LoopClosureConfig(min_separation=40)
     slid = LoopConstraint(6, 64, compose(between(truth[6], truth[64]), np.array([0.2, 0.0, 0.0])), 0.9)
     judgement = judge_loop(truth, hits, motions, [], slid, config)
@@ -452,8 +456,7 @@ def test_a_known_area_link_acts_only_where_it_brings_the_newest_scans_onto_the_o
     truth, path, hits = _drifted_revisit()
     far = np.stack([np.linspace(-15.0, -12.0, 60), np.linspace(-1.0, 1.0, 60)], axis=1)  # behind the room
     elsewhere = [*hits[:60], *(far for _ in range(60, 65))]
-    motions = np.zeros_like(truth)
-    motions[1:] = between(truth[:-1], truth[1:])
+    motions = _true_motions(truth)
     config = LoopClosureConfig(min_separation=40)
     off = LoopConstraint(
         6, 64, compose(between(truth[6], truth[64]), np.array([0.35, 0.0, 0.0])), 0.9, known_area=True

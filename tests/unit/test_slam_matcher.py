@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from scipy import ndimage
 
 from agent.slam.grid import (
     GridGeometry,
     LogOddsModel,
+    ScanPoints,
     TileRect,
     integrate_scans,
     prepare_scan,
@@ -179,8 +181,9 @@ def test_truncated_energy_ranks_the_true_pose_first_and_counts_the_prior() -> No
     assert with_prior[0] == pytest.approx(energy[0] + 100.0 * 0.3**2)
 
 
-def test_prior_holds_the_unconstrained_direction() -> None:
-    """In a corridor (two parallel walls) the scan does not fix x; with a prior the match stays put."""
+def _mapped_corridor() -> tuple[ScanPoints, TileRect, npt.NDArray[np.bool_]]:
+    """A corridor (two parallel walls 2 m apart, off the cell boundaries) scanned once from its centre: the
+    scan, the map's tile rectangle and its obstacle cells (1, H, W)."""
     walls = np.array([(-20.0, -1.0, 20.0, -1.0), (-20.0, 1.0, 20.0, 1.0)]) + 0.025
     ranges = cast_rays((0.0, 0.0), ANGLES, walls, None, 5.6)
     scan = prepare_scan(
@@ -190,9 +193,13 @@ def test_prior_holds_the_unconstrained_direction() -> None:
     h, w = rect.shape[0] * GEOMETRY.tile_cells, rect.shape[1] * GEOMETRY.tile_cells
     windows = np.zeros((1, h, w), dtype=np.int8)
     integrate_scans(windows, rect.origin_m(GEOMETRY), RES, np.zeros((1, 3)), scan, MODEL, GEOMETRY.tile_cells)
-    field = DistanceField.from_obstacles(
-        windows > MODEL.counts(MODEL.occupied), rect.origin_m(GEOMETRY), RES, 0.6
-    )
+    return scan, rect, windows > MODEL.counts(MODEL.occupied)
+
+
+def test_prior_holds_the_unconstrained_direction() -> None:
+    """In a corridor (two parallel walls) the scan does not fix x; with a prior the match stays put."""
+    scan, rect, obstacles = _mapped_corridor()
+    field = DistanceField.from_obstacles(obstacles, rect.origin_m(GEOMETRY), RES, 0.6)
     points = voxel_filter(scan.hit_xy, 0.1, 200)
     start = np.array([[0.3, 0.08, 0.02]])
     free = match(field, np.zeros(1, dtype=np.int64), points, start, MatcherConfig())
@@ -436,17 +443,8 @@ def test_degeneracy_aware_steps_leave_a_corridor_s_length_to_the_prior() -> None
     across the corridor: with ``min_translation_information`` the scan does not move the pose along it
     (the prior holds it at its centre), while across the corridor and in heading the walls still decide.
     In a room, where every direction is well observed, the option changes nothing."""
-    walls = np.array([(-20.0, -1.0, 20.0, -1.0), (-20.0, 1.0, 20.0, 1.0)]) + 0.025
-    ranges = cast_rays((0.0, 0.0), ANGLES, walls, None, 5.6)
-    scan = prepare_scan(
-        np.where(np.isfinite(ranges), ranges, 0.0), ANGLES, (0.0, 0.0, 0.0), 0.1, 5.6, 5.5, RES / 2
-    )
-    rect = TileRect.covering(GEOMETRY, (-6.0, -3.0), (6.0, 3.0))
-    h, w = rect.shape[0] * GEOMETRY.tile_cells, rect.shape[1] * GEOMETRY.tile_cells
-    windows = np.zeros((1, h, w), dtype=np.int8)
-    integrate_scans(windows, rect.origin_m(GEOMETRY), RES, np.zeros((1, 3)), scan, MODEL, GEOMETRY.tile_cells)
-    obstacles = windows > MODEL.counts(MODEL.occupied)
-    x_cells = rect.origin_m(GEOMETRY)[0] + (np.arange(w) + 0.5) * RES
+    scan, rect, obstacles = _mapped_corridor()
+    x_cells = rect.origin_m(GEOMETRY)[0] + (np.arange(obstacles.shape[2]) + 0.5) * RES
     obstacles[0][:, (np.floor(x_cells) % 2) == 1] = False  # walls mapped on alternate metres only
     field = DistanceField.from_obstacles(obstacles, rect.origin_m(GEOMETRY), RES, 0.6)
     kept = voxel_indices(scan.hit_xy, 0.1, 200)
