@@ -173,3 +173,20 @@ def test_eval_span_must_be_a_scan_or_more(tmp_path: Path, capsys: pytest.Capture
     assert main([*args, "--span", "0"]) == 1
     err = capsys.readouterr().err
     assert "--span: must be at least 1 scan, got 0" in err and "Traceback" not in err
+
+
+def test_eval_degenerate_noise_scale_is_checked_and_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "tiny_scans.txt"
+    ranges = " ".join(["2.0"] * 180)
+    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
+    for bad in ("0", "1.5"):
+        assert main([*args, "--degenerate-noise-scale", bad]) == 1
+        err = capsys.readouterr().err
+        assert "--degenerate-noise-scale: must be in (0, 1]" in err and "Traceback" not in err
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["degenerate_noise_scale"] == 1.0  # radish: the paper's draw
+    assert main([*args, "--degenerate-noise-scale", "0.15"]) == 0
+    assert json.loads(capsys.readouterr().out)["degenerate_noise_scale"] == 0.15
