@@ -6,7 +6,11 @@ later filter update (odometry o_t) by the Gaussian likelihood
     w_i *= N(z; x_i ⊕ (o_fix⁻¹ ⊕ o_t)⁻¹, R + Q)
 
 i.e. the particle is moved back along the odometry to the fix's time (with its own heading, so a fix
-without yaw is handled exactly) and Q, the motion model's covariance for that stretch, widens R.
+without yaw is handled exactly) and Q, the motion model's covariance for that stretch, widens R. Q is
+the model's spread without its floor (``OdometryNoise.spread``): a fix taken 2 cm before the scan is
+widened by what 2 cm of odometry can err, not by the 5 mm floor that keeps one update's motion density
+proper (with the floor, every fused office fix was claimed >= 5 mm per axis whatever it was: its
+normalised error 1.25 against 3 expected; docs/slam.md, "VLP fixes: the carried covariance").
 Because the fixes are in the building's LED frame, particles that drift away from it lose weight: the
 map is built in that frame and the drift stays bounded.
 """
@@ -82,7 +86,7 @@ def pending_fixes_log_likelihood(
     for fix, odom_at_fix in fixes:
         moved = between(odom_at_fix, odom_now)
         at_fix_time = compose(poses, inverse(moved)[None, :])
-        total += fix_log_likelihood(at_fix_time, fix, np.diag(noise.sigmas(moved) ** 2))
+        total += fix_log_likelihood(at_fix_time, fix, np.diag(noise.spread(moved) ** 2))
     return total
 
 
@@ -111,7 +115,8 @@ def fuse_fixes(
     Each fix z is moved on by the odometry since, m = o_fix⁻¹ ⊕ o_now: z' = z ⊕ m (a fix without yaw uses
     ``heading_rad`` - m_yaw as its heading, the filter's own). Its covariance is the fix's carried
     through that composition, J R Jᵀ (J = d(z ⊕ m)/dz: the yaw error swings the motion's lever arm),
-    plus the motion's own noise Q(m) rotated into the world. Fixes taken within one filter update share
+    plus the motion's own noise Q(m) rotated into the world (``OdometryNoise.spread``: no floor, so a
+    fix taken at the scan's odometry is not widened at all). Fixes taken within one filter update share
     most of their odometry, so their errors are not independent: the fused covariance is
     (sum_i (J_i R_i J_iᵀ)⁻¹)⁻¹ + mean_i Q_i (the fixes' own noise averages down, the odometry's does not),
     around the information-weighted mean of the z'_i.
@@ -140,7 +145,7 @@ def fuse_fixes(
             info = np.zeros((3, 3))
             info[:2, :2] = np.linalg.inv(cov[:2, :2])
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        odometry_cov += rot @ np.diag(noise.sigmas(moved) ** 2) @ rot.T
+        odometry_cov += rot @ np.diag(noise.spread(moved) ** 2) @ rot.T
         if reference_yaw is None:
             reference_yaw = float(forwarded[2])
         forwarded[2] = reference_yaw + float(wrap_angle(forwarded[2] - reference_yaw))

@@ -9,7 +9,8 @@ deviations that grow with the motion:
 
 so, as in GMapping's code, ``srt`` scales rotation noise per metre travelled and ``str`` translation noise
 per radian turned. The new pose is x_{t-1} ⊕ (u + noise). A small floor keeps the density proper when the
-robot has barely moved.
+robot has barely moved. :meth:`OdometryNoise.spread` is the same without the floor: the odometry's own
+error over a stretch, which is zero over no motion (``agent.slam.fix`` carries a VLP fix forward by it).
 """
 
 from __future__ import annotations
@@ -45,6 +46,17 @@ class OdometryNoise:
             [np.maximum(sx, self.floor_m), np.maximum(sy, self.floor_m), np.maximum(syaw, self.floor_rad)],
             axis=-1,
         )
+
+    def spread(self, increment: FloatArray) -> FloatArray:
+        """:meth:`sigmas` without the floor (..., 3): zero for no motion. The floor is for one filter
+        update's motion density; the error odometry adds in carrying a measurement over a stretch (a VLP
+        fix taken a few centimetres before the scan) has none. ``sigmas`` keeps its own copy of these
+        terms: it is on every update's path (a test checks that the two agree above the floor)."""
+        dx, dy, dyaw = np.abs(increment[..., 0]), np.abs(increment[..., 1]), np.abs(increment[..., 2])
+        sx = self.srr * dx + self.str * dyaw + 0.3 * self.srr * dy
+        sy = self.srr * dy + self.str * dyaw + 0.3 * self.srr * dx
+        syaw = self.stt * dyaw + self.srt * np.hypot(dx, dy)
+        return np.stack([sx, sy, syaw], axis=-1)
 
 
 def sample_motion(

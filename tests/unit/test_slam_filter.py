@@ -361,6 +361,35 @@ def test_fixes_carried_forward_fuse_into_one_measurement() -> None:
     assert position_only.log_likelihood(np.array([1.0, 2.2, 3.0])) == pytest.approx(0.0)
 
 
+def test_a_fix_is_widened_by_the_odometry_it_is_carried_over_not_by_the_motion_floor() -> None:
+    # The motion model's floor (5 mm, 0.002 rad) keeps one update's motion density proper; carrying a fix
+    # over no motion adds nothing, over a stretch what that stretch's odometry can err (docs/slam.md, "VLP
+    # fixes: the carried covariance").
+    noise = OdometryNoise(0.03, 0.05, 0.03, 0.05)
+    cov = np.diag([0.002**2, 0.003**2, math.radians(0.3) ** 2])
+    odom = np.array([10.0, 0.0, 0.0])
+    at_scan = fuse_fixes([(PoseFix(1.0, 2.0, 0.0, cov), odom)], odom, noise, 0.0)
+    np.testing.assert_allclose(np.linalg.inv(at_scan.information), cov, rtol=1e-9)
+    fix = PoseFix(1.0, 2.0, None, cov[:2, :2])
+    poses = np.array([[1.0, 2.004, 0.0]])
+    assert pending_fixes_log_likelihood(poses, [(fix, odom)], odom, noise)[0] == pytest.approx(
+        fix_log_likelihood(poses, fix)[0]
+    )
+    # 4 cm on: the odometry's spread for 4 cm (1.2 mm along, 0.36 mm across), far below the floor.
+    moved = np.array([0.04, 0.0, 0.0])
+    carried = fuse_fixes([(PoseFix(1.0, 2.0, 0.0, cov), odom)], compose(odom, moved), noise, 0.0)
+    spread = noise.spread(moved)
+    np.testing.assert_allclose(spread, [0.0012, 0.00036, 0.002])
+    assert np.linalg.inv(carried.information)[0, 0] == pytest.approx(0.002**2 + 0.0012**2, rel=1e-9)
+    assert np.linalg.inv(carried.information)[0, 0] < 0.002**2 + noise.floor_m**2
+    # The floor is all that sets sigmas apart from spread.
+    increments = np.array([[0.0, 0.0, 0.0], moved, [0.3, -0.1, 0.4], [-1.0, 0.2, -2.0]])
+    np.testing.assert_array_equal(
+        noise.sigmas(increments),
+        np.maximum(noise.spread(increments), [noise.floor_m, noise.floor_m, noise.floor_rad]),
+    )
+
+
 def test_without_structure_to_match_fixes_still_weigh(loop: tuple[np.ndarray, ...]) -> None:
     times, truth, odometry, ranges = loop
     start = tuple(float(v) for v in truth[0])
