@@ -396,6 +396,10 @@ class Agent:
         self._stopped = True
         self.health.stopping("stopping: wheels to zero, closing devices")
         self.state.stop.set()
+        if self.mapper is not None:
+            # A SLAM process leaves the update it is in now (and the SLAM thread its wait for it), so that
+            # the thread joins within the deadline below and the final map is taken out of it promptly.
+            self.mapper.begin_stop()
         self.hot_path.close()
         self.frames.close()
         self.forward_frames.close()
