@@ -145,7 +145,13 @@ def _stop_check(conn: multiprocessing.connection.Connection) -> Callable[[], Non
 
 def _serve(conn: multiprocessing.connection.Connection) -> None:
     """Build the mapper from the first message, then answer every request until the parent hangs up."""
-    config, mount = conn.recv()
+    try:
+        first = conn.recv()
+    except (EOFError, OSError):
+        return
+    if first is None:  # hung up before the start (the agent stopped as it started this process)
+        return
+    config, mount = first
     start = _StartPose()
     mapper, why = make_local_mapper(config, mount, start)
     conn.send((mapper is not None, why, mapper.name if mapper is not None else ""))
@@ -273,11 +279,16 @@ class ProcessMapper:
     def _spawn(self, config: SlamConfig) -> None:
         blas = {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
         process, conn = start_child(self.worker_module, blas)
-        with self._send_lock:
+        with self._send_lock:  # the config first on the connection, before a stop begin_stop may send
             self._process, self._conn = process, conn
-            self._sent = self._received = 0
+            self._sent, self._received = 1, 0
+            interruptible = self._stop_deadline is None
+            with contextlib.suppress(OSError):  # gone at once: the wait below says so
+                conn.send((config, self.mount))
         self._started = False
-        ok, why, name = self._exchange((config, self.mount), _START_TIMEOUT_S)
+        if not interruptible:  # the stop began as this process started: it answers what comes after
+            raise WorkerStopping("the agent is stopping: the new SLAM process takes no scans")
+        ok, why, name = self._await(conn, 1, _START_TIMEOUT_S, interruptible)
         if not ok:
             self._stop_child()
             raise ValueError(f"the SLAM process could not build its filter: {why}")
@@ -289,13 +300,24 @@ class ProcessMapper:
         conn = self._conn
         if conn is None:
             raise WorkerLost("the SLAM process is not running")
-        interruptible = self._stop_deadline is None
-        waiting_on: list[Any] = [conn, self._wake_r] if interruptible else [conn]
         try:
             with self._send_lock:
+                interruptible = self._stop_deadline is None
                 conn.send(message)
                 self._sent += 1
                 mine = self._sent
+        except OSError as exc:
+            raise WorkerLost(f"the SLAM process is gone: {exc}") from exc
+        return self._await(conn, mine, timeout_s, interruptible)
+
+    def _await(
+        self, conn: multiprocessing.connection.Connection, mine: int, timeout_s: float, interruptible: bool
+    ) -> Any:
+        """The reply to request number ``mine``, those before it (abandoned) read and dropped. Up to
+        ``timeout_s``, and no later than the stop's deadline; ``interruptible``: sent before the stop
+        began, so the stop ends the wait (WorkerStopping)."""
+        waiting_on: list[Any] = [conn, self._wake_r] if interruptible else [conn]
+        try:
             deadline = time.monotonic() + timeout_s
             while True:
                 stop_deadline = self._stop_deadline
