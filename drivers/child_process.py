@@ -48,17 +48,14 @@ def start_child(
 
 
 def stop_child(
-    process: subprocess.Popen[bytes],
-    conn: multiprocessing.connection.Connection,
-    what: str,
-    wait_s: float = 2.0,
+    process: subprocess.Popen[bytes], conn: multiprocessing.connection.Connection, what: str
 ) -> None:
-    """Ask the child to stop (``None``), wait ``wait_s``, kill it if it did not, and close the connection."""
+    """Ask the child to stop (``None``), wait 2 s, kill it if it did not, and close the connection."""
     if process.poll() is None:
         with contextlib.suppress(OSError):
             conn.send(None)
         try:
-            process.wait(wait_s)
+            process.wait(2.0)
         except subprocess.TimeoutExpired:
             log.warning("the %s process did not stop; killing it", what)
             process.kill()

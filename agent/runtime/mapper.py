@@ -469,14 +469,14 @@ def save_map(
     the pair replaced is kept as ``name.prev.yaml``) and a picture of it for people (``name.png``:
     enlarged, with ``paths`` over it (default: the mapper's own trajectory), axes in metres, a legend and a
     scale bar), atomically. Nothing when there is no map (yet)."""
+    # Nothing lost in either case: no map yet (a SLAM process that could not hand its map over has said so
+    # itself). Asked before the map: at a stop, a SLAM process without one is not waited for.
+    if mapper.counters().get("filter_updates", 0) == 0:
+        log.info("no map saved to %s: no filter update yet", directory)
+        return []
     image = mapper.map_image()
-    if image is None or mapper.counters().get("filter_updates", 0) == 0:
-        # Nothing lost: no map yet (a SLAM process that could not hand its map over has said so itself).
-        log.info(
-            "no map saved to %s: %s",
-            directory,
-            "the mapper gave none" if image is None else "no filter update yet",
-        )
+    if image is None:
+        log.info("no map saved to %s: the mapper gave none", directory)
         return []
     from agent import figure
     from agent.slam import mapio

@@ -268,7 +268,9 @@ class ProcessMapper:
         # Set by begin_stop: until when the child may take to answer (monotonic s); None: not stopping.
         self._stop_deadline: float | None = None
         self._grace_s = _STOP_GRACE_S
-        self._final_map = False  # the map was taken out of the child after the stop began
+        # After the stop began: the final map was asked for / taken out of the child (for the log).
+        self._final_map_asked = False
+        self._final_map = False
         # Written once by begin_stop: wakes the SLAM thread waiting for a reply.
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
@@ -397,7 +399,7 @@ class ProcessMapper:
                     self._kill_child(str(exc))
                 else:
                     self._next_spawn_s = time.monotonic() + _RESTART_AFTER_S
-                    self._stop_child()
+                    self._drop_child()
                 raise
         self._take_counters(reply, counters)
         self._started = bool(started)
@@ -442,48 +444,71 @@ class ProcessMapper:
                     pass  # gone: the next request says so
         with contextlib.suppress(OSError):
             os.write(self._wake_w, b"\0")
+        self._renice()
         log.info(
             "stopping the SLAM process (the agent is stopping): %g s to hand over its final map", grace_s
         )
 
+    def _renice(self) -> None:
+        """The child back at the agent's own CPU priority where the system allows it (root, or a NICE
+        limit that does): its lower one was for the hot path, which has stopped, and on a busy machine it
+        hands over the final map sooner. Refused (an unprivileged service): it stays niced."""
+        process = self._process
+        if process is None:
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, process.pid, os.getpriority(os.PRIO_PROCESS, 0))
+        except OSError as exc:
+            log.debug("the SLAM process keeps its lower CPU priority for the stop: %s", exc)
+
     def close(self) -> None:
         """Stop the child for good (idempotent): later calls answer as a mapper without a filter. After
-        :meth:`begin_stop`, the replies still owed are read first (until its deadline), so that the child,
-        not blocked sending one, sees the hang-up and exits."""
+        :meth:`begin_stop` the child is hung up on at once and has until the stop's deadline (at least
+        2 s) to exit, the replies it still owes read meanwhile (so that it is never blocked sending one);
+        then it is killed."""
         if self._closed:
             return
+        stopping = self._stop_deadline is not None
         wait_s = 2.0 if self._stop_deadline is None else max(0.0, self._stop_deadline - time.monotonic())
         locked = self._call_lock.acquire(timeout=wait_s + 1.0)
         try:
             self._closed = True
-            if self._stop_deadline is not None and not self._drain(self._stop_deadline):
-                self._kill_child(f"the SLAM process gave no answer within {self._grace_s:g} s of the stop")
-            process = self._process
-            # Its exit after the hang-up: 2 s, or what is left of the stop's grace if that is more.
-            self._stop_child(2.0 if self._stop_deadline is None else self._stop_deadline - time.monotonic())
-            if process is not None and self._stop_deadline is not None:
-                log.info("SLAM process stopped (exit status %s)", process.returncode)
+            if stopping:
+                self._hang_up()
+            else:
+                self._stop_child()
         finally:
             if locked:
                 self._call_lock.release()
             self._close_wake()
 
-    def _drain(self, deadline: float) -> bool:
-        """Read the replies still owed (to requests abandoned at the stop) until ``deadline``; False: the
-        child did not answer in time."""
-        conn = self._conn
-        if conn is None:
-            return True
+    def _hang_up(self) -> None:
+        """After the stop: ``None`` to the child, then its exit waited for until the stop's deadline (at
+        least 2 s from now), what it still sends read and dropped; killed after that."""
+        process, conn = self._process, self._conn
+        self._process = self._conn = None
+        self._started = False
+        if process is None or conn is None:
+            return
+        assert self._stop_deadline is not None
+        deadline = max(self._stop_deadline, time.monotonic() + 2.0)
+        with self._send_lock, contextlib.suppress(OSError):
+            conn.send(None)
         try:
-            while self._received < self._sent:
-                if not conn.poll(max(0.0, deadline - time.monotonic())):
-                    return False
-                reply = conn.recv()
-                self._received += 1
-                self._dropped(reply)
-        except (EOFError, OSError):
-            return True  # gone already: nothing more to wait for
-        return True
+            while process.poll() is None:
+                left = deadline - time.monotonic()
+                if left <= 0.0 or not conn.poll(left):
+                    break
+                self._dropped(conn.recv())
+        except (EOFError, OSError):  # its end closed: it is exiting
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(max(0.0, deadline - time.monotonic()))
+        conn.close()
+        if process.poll() is None:
+            self._process = process
+            self._kill_child(f"the SLAM process had not exited {self._grace_s:g} s after the stop began")
+            return
+        log.info("SLAM process stopped (exit status %s)", process.returncode)
 
     def _close_wake(self) -> None:
         for fd in (self._wake_r, self._wake_w):
@@ -492,20 +517,21 @@ class ProcessMapper:
         self._wake_r = self._wake_w = -1
 
     def _kill_child(self, why: str) -> None:
-        """After the stop's deadline: the child is killed, and the log says what that lost."""
+        """After the stop: the child is killed, and the log says what that lost."""
         process, conn = self._process, self._conn
         self._process = self._conn = None
         self._started = False
         if process is None:
             return
-        if self._final_map:
-            log.error("%s: killing it (its final map had been taken out)", why)
-        else:
+        if self._final_map_asked and not self._final_map:
             log.error(
                 "%s: killing it; its final map was not taken out (the map on disk, if any, is the last "
                 "one saved as the robot went)",
                 why,
             )
+        else:
+            lost = "its final map had been taken out" if self._final_map else "no final map was asked of it"
+            log.warning("%s: killing it (%s)", why, lost)
         with contextlib.suppress(OSError):
             process.kill()
         with contextlib.suppress(subprocess.TimeoutExpired):
@@ -513,14 +539,27 @@ class ProcessMapper:
         if conn is not None:
             conn.close()
 
-    def _stop_child(self, wait_s: float = 2.0) -> None:
-        """Stop the child, waiting ``wait_s`` (at least 2 s) for its exit before a kill (the next call
-        starts a new one, unless closed or stopping)."""
+    def _drop_child(self) -> None:
+        """A child that died or stopped answering: killed if it is still there (asking it to stop is of no
+        use: it is not reading). The next call starts a new one."""
+        process, conn = self._process, self._conn
+        self._process = self._conn = None
+        self._started = False
+        if process is not None and process.poll() is None:
+            with contextlib.suppress(OSError):
+                process.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(2.0)
+        if conn is not None:
+            conn.close()
+
+    def _stop_child(self) -> None:
+        """Stop the child (the next call starts a new one, unless closed or stopping)."""
         process, conn = self._process, self._conn
         self._process = self._conn = None
         self._started = False  # a new child's filter starts afresh
         if process is not None and conn is not None:
-            stop_child(process, conn, "SLAM", max(2.0, wait_s))
+            stop_child(process, conn, "SLAM")
 
     # -- ScanMapper ------------------------------------------------------------------------------------
     def update(self, scan: Scan, odom_pose: Pose) -> MapperStep:
@@ -550,9 +589,11 @@ class ProcessMapper:
         return pose
 
     def map_image(self) -> Any | None:
+        stopping = self._stop_deadline is not None
+        self._final_map_asked = self._final_map_asked or stopping
         try:
             image = self._call("map")
-            self._final_map = self._stop_deadline is not None
+            self._final_map = self._final_map or (stopping and image is not None)
             return image
         except WorkerStopping:
             return None  # a periodic fetch the stop cut short: the final one comes after
