@@ -25,7 +25,10 @@ message there, while it serves a request, can only be the stop, so it leaves the
 maps stay as they were before it: the rebuild is built aside and put in place only whole) and from then
 on answers only for the map, the trajectory and the pose. Everything asked after the stop (the final map,
 the trajectory) is answered within ``grace_s`` of it (:data:`_STOP_GRACE_S`), or the child is killed and
-the log says that the final map was not saved. Then the agent hangs up and the child exits.
+the log says that the final map was not saved. Then the agent hangs up and the child exits at once
+(``os._exit``: no interpreter teardown), by the same deadline (at least 2 s after the hang-up) or killed.
+Where the system allows it, the child gets the agent's CPU priority back at the stop (its nice +5 was for
+the hot path, which has stopped).
 
 Where the map starts is the fused pose at a scan's time, which only the parent knows: until the child says
 its filter has started, each scan goes with that pose (``start_pose``), and the child's mapper reads it
