@@ -266,3 +266,21 @@ def test_a_slam_process_that_does_not_answer_the_stop_is_killed_at_the_deadline_
     assert process.returncode == -signal.SIGKILL
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert any("within 1 s of the stop" in m and "final map was not taken out" in m for m in errors), errors
+
+
+def test_a_slam_process_that_does_not_exit_after_the_hang_up_is_killed_and_the_log_says_nothing_was_lost(
+    run, monkeypatch, tmp_path, caplog
+) -> None:  # type: ignore[no-untyped-def]
+    """No final map asked for (no map folder, localization): at the hang-up a process stuck in an update
+    has until the stop's deadline (at least 2 s) to exit; then it is killed, with a warning that no final
+    map was asked of it (nothing lost), not an error."""
+    mapper, thread, _ = _busy(run, monkeypatch, tmp_path, stuck=True)
+    process = mapper._process
+    assert process is not None
+    mapper.begin_stop(grace_s=0.5)
+    thread.join(60.0)
+    mapper.close()
+    assert process.returncode == -signal.SIGKILL
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("had not exited" in m and "no final map was asked of it" in m for m in warnings), warnings
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
