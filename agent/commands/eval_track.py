@@ -15,13 +15,16 @@ import sys
 import textwrap
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from agent.commands.args import dumps_json
 from agent.following.anchor import ScaleAnchorConfig
 from agent.following.meanshift import Features, Silhouette, TrackerConfig
+
+if TYPE_CHECKING:  # imported where it is used: it loads OpenCV's detectors
+    from agent.following.prelocate import HeadShoulderLocator, ImageU8
 
 ANCHOR_PREFIX = "anchor_"
 
@@ -240,7 +243,7 @@ def track_target(
     return out, timing
 
 
-def _anchor_locator(anchor: ScaleAnchorConfig) -> Any:
+def _anchor_locator(anchor: ScaleAnchorConfig) -> HeadShoulderLocator:
     from agent.following.prelocate import HeadShoulderLocator, LocatorKind, PreLocatorConfig
 
     return HeadShoulderLocator(
@@ -249,7 +252,7 @@ def _anchor_locator(anchor: ScaleAnchorConfig) -> Any:
 
 
 def _around(
-    locator: Any, image: Any, box: FloatArray, anchor: ScaleAnchorConfig, scale: float
+    locator: HeadShoulderLocator, image: ImageU8, box: FloatArray, anchor: ScaleAnchorConfig, scale: float
 ) -> list[FloatArray]:
     found = locator.locate_around(image, box, scale, anchor.window_width, anchor.window_height)
     return [d.box for d in found]

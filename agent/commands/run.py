@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
                     break
                 shutdown.wait(0.2 if deadline is None else max(0.0, min(0.2, deadline - time.monotonic())))
         finally:
-            agent.stop()
+            agent.stop(why=shutdown.why("an error" if sys.exc_info()[1] is not None else "--seconds ran out"))
             status = agent.status()
             map_files: list[str] = []
             if agent.mapper is not None and directory is not None and mapping:

@@ -625,7 +625,7 @@ def run(args: argparse.Namespace) -> int:
             stop.set()
             autopilot.join(1.0)
             elapsed = time.monotonic() - t0
-            agent.stop()
+            agent.stop(why=shutdown.why("an error" if sys.exc_info()[1] is not None else "the run's end"))
             status = agent.status()
             slam_path = agent.mapper.trajectory() if agent.mapper is not None else np.zeros((0, 3))
             if controller is not None:

@@ -389,13 +389,19 @@ class Agent:
             gc.collect()
             gc.freeze()
 
-    def stop(self, timeout_s: float = 1.5) -> None:
-        """Stop the loops, command zero, close the devices and the output. Safe to call twice."""
+    def stop(self, timeout_s: float = 1.5, why: str = "") -> None:
+        """Stop the loops, command zero, close the devices and the output. Safe to call twice. ``why``: for
+        the log (e.g. ``SIGTERM``)."""
         if self._stopped:
             return
         self._stopped = True
+        log.info("stopping%s: wheels to zero, closing devices", f" ({why})" if why else "")
         self.health.stopping("stopping: wheels to zero, closing devices")
         self.state.stop.set()
+        if self.mapper is not None:
+            # A SLAM process leaves the update it is in now (and the SLAM thread its wait for it), so that
+            # the thread joins within the deadline below and the final map is taken out of it promptly.
+            self.mapper.begin_stop()
         self.hot_path.close()
         self.frames.close()
         self.forward_frames.close()

@@ -154,6 +154,11 @@ class ScanMapper(Protocol):
 
     def counters(self) -> dict[str, int]: ...
 
+    def begin_stop(self) -> None:
+        """The agent is stopping (from the thread that stops it, while the SLAM thread may be in an
+        update; returns at once): a mapper that can leave a long update does so now. What is asked after
+        (the final map) is still answered."""
+
     def close(self) -> None: ...
 
 
@@ -308,6 +313,9 @@ class RbpfMapper:
             out["loop_ms"] = round(self.slam.stats.loop_ms)
         return out
 
+    def begin_stop(self) -> None:
+        """Nothing to do: the SLAM thread's update runs to its end, and the agent's join waits for it."""
+
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""
 
@@ -425,6 +433,9 @@ class MclMapper:
             out["fixes_applied"] = int(self.localizer.stats.fixes_applied)
         return out
 
+    def begin_stop(self) -> None:
+        """Nothing to do: the SLAM thread's update runs to its end, and the agent's join waits for it."""
+
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""
 
@@ -458,8 +469,14 @@ def save_map(
     the pair replaced is kept as ``name.prev.yaml``) and a picture of it for people (``name.png``:
     enlarged, with ``paths`` over it (default: the mapper's own trajectory), axes in metres, a legend and a
     scale bar), atomically. Nothing when there is no map (yet)."""
+    # Nothing lost in either case: no map yet (a SLAM process that could not hand its map over has said so
+    # itself). Asked before the map: at a stop, a SLAM process without one is not waited for.
+    if mapper.counters().get("filter_updates", 0) == 0:
+        log.info("no map saved to %s: no filter update yet", directory)
+        return []
     image = mapper.map_image()
-    if image is None or mapper.counters().get("filter_updates", 0) == 0:
+    if image is None:
+        log.info("no map saved to %s: the mapper gave none", directory)
         return []
     from agent import figure
     from agent.slam import mapio

@@ -48,6 +48,15 @@ class ShutdownRequest:
         """Whether one of the signals arrived."""
         return self.signum is not None
 
+    def why(self, otherwise: str) -> str:
+        """Why the agent stops, for the log: the signal's name (``SIGTERM``), else ``otherwise``."""
+        if self.signum is None:
+            return otherwise
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"
+
     def wait(self, timeout_s: float) -> bool:
         """Sleep up to ``timeout_s``, waking at once on a signal; returns :attr:`requested`."""
         if self.signum is None and timeout_s > 0.0:

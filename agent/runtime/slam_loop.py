@@ -85,6 +85,10 @@ class SlamLoop:
             if mapper is None:
                 continue
             mapped = scan is not None and self._map_scan(mapper, scan)
+            if state.stop.is_set():
+                # Stopping: no fetch now (a SLAM process is then answering only the final save, and this
+                # thread would wait on it past its join); the command's final save comes after the stop.
+                break
             self._share_map(mapper, mapped)
 
     def _map_scan(self, mapper: ScanMapper, scan: Scan) -> bool:

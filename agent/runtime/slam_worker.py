@@ -16,6 +16,20 @@ threaded agent, and not ``multiprocessing``'s spawn, which re-imports the parent
 talk over a socketpair (AF_UNIX, no network) with ``multiprocessing.connection`` framing: one request, one
 reply, always from the SLAM thread (the agent's summary reads the counters kept from the last reply).
 
+**The stop.** When the agent stops (:meth:`ProcessMapper.begin_stop`, first thing in ``Agent.stop``), the
+parent sends ``("stop",)`` at once, even while a request is out, and wakes the SLAM thread from its wait
+(a self-pipe beside the socket): that request is abandoned (an update is answered ``rejected``), no scan
+or fix is sent any more and no new child is started. The child looks at its socket at every ``give_way``
+point of the filter (between the stages of an update, every 64 nodes of a loop closure's map rebuild): a
+message there, while it serves a request, can only be the stop, so it leaves the update unfinished (the
+maps stay as they were before it: the rebuild is built aside and put in place only whole) and from then
+on answers only for the map, the trajectory and the pose. Everything asked after the stop (the final map,
+the trajectory) is answered within ``grace_s`` of it (:data:`_STOP_GRACE_S`), or the child is killed and
+the log says that the final map was not saved. Then the agent hangs up and the child exits at once
+(``os._exit``: no interpreter teardown), by the same deadline (at least 2 s after the hang-up) or killed.
+Where the system allows it, the child gets the agent's CPU priority back at the stop (its nice +5 was for
+the hot path, which has stopped).
+
 Where the map starts is the fused pose at a scan's time, which only the parent knows: until the child says
 its filter has started, each scan goes with that pose (``start_pose``), and the child's mapper reads it
 from there. If the child dies, the step is ``rejected`` with the reason, the death is counted and logged,
@@ -45,13 +59,13 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.config_slam import MountConfig, SlamConfig, SlamMode
-from agent.runtime.mapper import MapperStep, Pose, make_local_mapper
+from agent.runtime.mapper import MapperStep, Pose, RbpfMapper, make_local_mapper
 from agent.runtime.types import AbsoluteFix
 from agent.slam.malloc import tune_malloc
 from drivers.child_process import child_connection, start_child, stop_child
 from drivers.samples import Scan
 
-__all__ = ["ProcessMapper"]
+__all__ = ["ProcessMapper", "WorkerLost", "WorkerStopping"]
 
 log = logging.getLogger(__name__)
 
@@ -65,9 +79,21 @@ _REPLY_TIMEOUT_S = 10.0
 _START_TIMEOUT_S = 40.0
 # The child's CPU priority below the agent's: on a busy core the hot path goes first.
 _NICE = 5
+# From the agent's stop: how long the SLAM process has to hand over the final map and trajectory before it
+# is killed (the stop's other waits, the threads' 1.5 s and the map saver's up to 5 s, run alongside;
+# systemd's TimeoutStopSec is 15 s). On the robot the answers take well under a second.
+_STOP_GRACE_S = 8.0
 # After the child died, the next one starts no sooner than this (a scan that kills it would otherwise have
 # a new interpreter started for every scan).
 _RESTART_AFTER_S = 5.0
+
+
+class WorkerLost(RuntimeError):
+    """The SLAM process died or stopped answering."""
+
+
+class WorkerStopping(WorkerLost):
+    """The agent is stopping: the request was abandoned (or never sent), not lost to a fault."""
 
 
 # -- the child ------------------------------------------------------------------------------------------
@@ -105,15 +131,40 @@ def _shared_kb() -> int:
     return total
 
 
+class _Interrupted(Exception):
+    """Raised at a ``give_way`` point of the filter when the agent asked the process to stop."""
+
+
+def _stop_check(conn: multiprocessing.connection.Connection) -> Callable[[], None]:
+    """The filter's ``give_way`` in the child: a message on the socket while a request is being served can
+    only be the agent's stop (the agent sends one request at a time otherwise), so the request is left."""
+
+    def give_way() -> None:
+        if conn.poll(0):
+            raise _Interrupted
+
+    return give_way
+
+
 def _serve(conn: multiprocessing.connection.Connection) -> None:
     """Build the mapper from the first message, then answer every request until the parent hangs up."""
-    config, mount = conn.recv()
+    try:
+        first = conn.recv()
+    except (EOFError, OSError):
+        return
+    if first is None:  # hung up before the start (the agent stopped as it started this process)
+        return
+    config, mount = first
     start = _StartPose()
     mapper, why = make_local_mapper(config, mount, start)
     conn.send((mapper is not None, why, mapper.name if mapper is not None else ""))
     if mapper is None:
         return
+    if isinstance(mapper, RbpfMapper):  # before its first update, which hands it to the filter
+        mapper.give_way = _stop_check(conn)
     shared_kb, shared_at = 0, -math.inf
+    stopping = False  # the agent is stopping: no scan or fix reaches the filter any more
+    interrupted = 0
     while True:
         try:
             request = conn.recv()
@@ -122,27 +173,45 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
         if request is None:
             return
         kind = request[0]
-        reply: Any
-        if kind == "update":
-            _, scan, odom_pose, start.pose = request
-            reply = mapper.update(scan, odom_pose)
-        elif kind == "fix":
-            _, fix, odom_pose = request
-            mapper.add_fix(fix, odom_pose)
-            reply = None
-        elif kind == "pose":
-            reply = mapper.pose(request[1])
-        elif kind == "map":
-            reply = mapper.map_image()
-        elif kind == "trajectory":
-            reply = mapper.trajectory()
-        else:
-            reply = ValueError(f"unknown request {kind!r}")
+        reply: Any = None
+        rebuilds = mapper.counters().get("loop_rebuilds", 0)
+        try:
+            if kind == "stop":
+                stopping = True
+            elif kind == "update":
+                _, scan, odom_pose, start.pose = request
+                if stopping:
+                    reply = MapperStep("rejected", reason="the SLAM process is stopping")
+                else:
+                    reply = mapper.update(scan, odom_pose)
+            elif kind == "fix":
+                _, fix, odom_pose = request
+                if not stopping:
+                    mapper.add_fix(fix, odom_pose)
+            elif kind == "pose":
+                reply = mapper.pose(request[1])
+            elif kind == "map":
+                reply = mapper.map_image()
+            elif kind == "trajectory":
+                reply = mapper.trajectory()
+            else:
+                reply = ValueError(f"unknown request {kind!r}")
+        except _Interrupted:
+            # The filter's state is half-way through this update: it takes nothing more. Its maps are those
+            # from before the update (a loop closure's rebuild is put in place only whole).
+            stopping = True
+            interrupted += 1
+            what = "filter update"
+            if mapper.counters().get("loop_rebuilds", 0) > rebuilds:
+                what = "loop closure's map rebuild (the map is the one from before that loop closure)"
+            # A step, not an exception: this module runs as __main__ here, and its classes would not unpickle.
+            reply = MapperStep("rejected", reason=f"the SLAM process left its {what} unfinished for the stop")
         counters = dict(mapper.counters())
         counters["worker_peak_rss_kb"] = _peak_rss_kb()
         if time.monotonic() - shared_at >= _SHARED_EVERY_S:
             shared_kb, shared_at = _shared_kb(), time.monotonic()
         counters["worker_shared_kb"] = shared_kb
+        counters["worker_interrupted"] = interrupted
         conn.send((reply, counters, mapper.pose() is not None))
 
 
@@ -159,18 +228,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.nice(_NICE)
     tune_malloc()  # the filter's per-update distance fields: agent.slam.malloc
     _serve(conn)
-    return 0
+    # Hung up on: the agent is stopping and waits for this exit. Nothing here is left to write (no files;
+    # stderr flushed), so the interpreter's teardown (freeing every module and array, seconds for a niced
+    # process on a busy machine) is skipped: the kernel frees the memory at once.
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(0)
 
 
 # -- the parent -----------------------------------------------------------------------------------------
-class WorkerLost(RuntimeError):
-    """The SLAM process died or stopped answering."""
-
-
 class ProcessMapper:
     """A :class:`~agent.runtime.mapper.ScanMapper` (the one ``make_local_mapper`` builds for ``config``)
     running in a child process. Same calls, same results; called from the SLAM thread (``counters`` from
-    any)."""
+    any; :meth:`begin_stop` from the thread that stops the agent)."""
+
+    # The child's module (``python -m MODULE FD``); a test runs a child of its own making.
+    worker_module = "agent.runtime.slam_worker"
 
     def __init__(
         self, config: SlamConfig, mount: MountConfig, start_pose: Callable[[int], Pose | None]
@@ -185,44 +259,123 @@ class ProcessMapper:
         self._counters_lock = threading.Lock()
         # One request at a time (the SLAM thread's; a map or trajectory asked for from elsewhere waits).
         self._call_lock = threading.RLock()
+        # Sending is also done by begin_stop, while a request is out: requests sent and replies received
+        # on this connection (the replies come in order; one to an abandoned request is read and dropped).
+        self._send_lock = threading.Lock()
+        self._sent = 0
+        self._received = 0
         self._conn: multiprocessing.connection.Connection | None = None
         self._process: subprocess.Popen[bytes] | None = None
         self._next_spawn_s = 0.0
         self._closed = False
+        # Set by begin_stop: until when the child may take to answer (monotonic s); None: not stopping.
+        self._stop_deadline: float | None = None
+        self._grace_s = _STOP_GRACE_S
+        # After the stop began: the final map was asked for / taken out of the child (for the log).
+        self._final_map_asked = False
+        self._final_map = False
+        # Written once by begin_stop: wakes the SLAM thread waiting for a reply.
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
         # The map last saved as the robot went (None: none yet); a child started after a death continues
         # it rather than starting the map again (``create_agent`` sets it to the map saver's).
         self.resume_map: Callable[[], Path | None] = lambda: None
-        self._spawn(config)
+        try:
+            self._spawn(config)
+        except BaseException:
+            self._close_wake()
+            raise
 
     # -- the child's life ------------------------------------------------------------------------------
     def _spawn(self, config: SlamConfig) -> None:
         blas = {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
-        self._process, self._conn = start_child("agent.runtime.slam_worker", blas)
+        process, conn = start_child(self.worker_module, blas)
+        with self._send_lock:  # the config first on the connection, before a stop begin_stop may send
+            self._process, self._conn = process, conn
+            self._sent, self._received = 1, 0
+            interruptible = self._stop_deadline is None
+            with contextlib.suppress(OSError):  # gone at once: the wait below says so
+                conn.send((config, self.mount))
         self._started = False
-        ok, why, name = self._exchange((config, self.mount), _START_TIMEOUT_S)
+        if not interruptible:  # the stop began as this process started: it answers what comes after
+            raise WorkerStopping("the agent is stopping: the new SLAM process takes no scans")
+        ok, why, name = self._await(conn, 1, _START_TIMEOUT_S, interruptible)
         if not ok:
             self._stop_child()
             raise ValueError(f"the SLAM process could not build its filter: {why}")
         self.name = str(name)
 
     def _exchange(self, message: object, timeout_s: float = _REPLY_TIMEOUT_S) -> Any:
+        """Send ``message`` and wait for its reply: at most ``timeout_s``, and once the agent is stopping
+        until the stop's deadline. A request out when the stop begins is abandoned (WorkerStopping)."""
         conn = self._conn
         if conn is None:
             raise WorkerLost("the SLAM process is not running")
         try:
-            conn.send(message)
-            if not conn.poll(timeout_s):
-                raise WorkerLost(f"the SLAM process gave no answer in {timeout_s:g} s")
-            return conn.recv()
+            with self._send_lock:
+                interruptible = self._stop_deadline is None
+                conn.send(message)
+                self._sent += 1
+                mine = self._sent
+        except OSError as exc:
+            raise WorkerLost(f"the SLAM process is gone: {exc}") from exc
+        return self._await(conn, mine, timeout_s, interruptible)
+
+    def _await(
+        self, conn: multiprocessing.connection.Connection, mine: int, timeout_s: float, interruptible: bool
+    ) -> Any:
+        """The reply to request number ``mine``, those before it (abandoned) read and dropped. Up to
+        ``timeout_s``, and no later than the stop's deadline; ``interruptible``: sent before the stop
+        began, so the stop ends the wait (WorkerStopping)."""
+        waiting_on: list[Any] = [conn, self._wake_r] if interruptible else [conn]
+        try:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                stop_deadline = self._stop_deadline
+                limit = deadline if stop_deadline is None else min(deadline, stop_deadline)
+                ready = multiprocessing.connection.wait(waiting_on, max(0.0, limit - time.monotonic()))
+                if conn in ready:
+                    reply = conn.recv()
+                    self._received += 1
+                    if self._received == mine:
+                        return reply
+                    self._dropped(reply)
+                elif ready:
+                    raise WorkerStopping("the agent is stopping: the request to the SLAM process was left")
+                elif time.monotonic() >= limit:
+                    if stop_deadline is not None and limit == stop_deadline:
+                        raise WorkerLost(
+                            f"the SLAM process gave no answer within {self._grace_s:g} s of the stop"
+                        )
+                    raise WorkerLost(f"the SLAM process gave no answer in {timeout_s:g} s")
         except (EOFError, OSError) as exc:
             raise WorkerLost(f"the SLAM process is gone: {exc}") from exc
+
+    def _dropped(self, reply: Any) -> None:
+        """A reply to a request abandoned at the stop (or the stop's own): its counters kept."""
+        if isinstance(reply, tuple) and len(reply) == 3 and isinstance(reply[1], dict):
+            self._take_counters(reply[0], reply[1])
+        # else the answer to a new child's start
+
+    def _take_counters(self, answer: Any, counters: dict[str, int]) -> None:
+        """The counters a reply came with; an update the child left unfinished for the stop is logged."""
+        with self._counters_lock:
+            before = self._counters.get("worker_interrupted", 0)
+            self._counters = counters
+        if counters.get("worker_interrupted", 0) > before and isinstance(answer, MapperStep):
+            log.info("%s: its scan is not in the map", answer.reason)
 
     def _call(self, *request: object) -> Any:
         """One request, its reply; the counters and whether the filter has started come with it."""
         with self._call_lock:
             if self._closed:
                 raise WorkerLost("the SLAM process was closed")
+            stopping = self._stop_deadline is not None
+            if stopping and request[0] in ("update", "fix"):
+                raise WorkerStopping("the agent is stopping: no more scans for the SLAM process")
             if self._conn is None:
+                if stopping:
+                    raise WorkerLost("the SLAM process is not running (the agent is stopping)")
                 if time.monotonic() < self._next_spawn_s:
                     raise WorkerLost("the SLAM process is down (a new one starts shortly)")
                 self.restarts += 1
@@ -242,12 +395,16 @@ class ProcessMapper:
                     raise WorkerLost(str(exc)) from exc
             try:
                 reply, counters, started = self._exchange(request)
-            except WorkerLost:
-                self._next_spawn_s = time.monotonic() + _RESTART_AFTER_S
-                self._stop_child()
+            except WorkerStopping:
+                raise  # the child is well: it answers the stop and what is asked after it
+            except WorkerLost as exc:
+                if self._stop_deadline is not None:
+                    self._kill_child(str(exc))
+                else:
+                    self._next_spawn_s = time.monotonic() + _RESTART_AFTER_S
+                    self._drop_child()
                 raise
-        with self._counters_lock:
-            self._counters = counters
+        self._take_counters(reply, counters)
         self._started = bool(started)
         if isinstance(reply, Exception):
             raise reply
@@ -270,13 +427,137 @@ class ProcessMapper:
             return self.config
         return dataclasses.replace(self.config, mode=SlamMode.CONTINUE, map=saved)
 
+    def begin_stop(self, grace_s: float = _STOP_GRACE_S) -> None:
+        """The agent is stopping (idempotent; returns at once): the child is told now, even in the middle
+        of an update, which it then leaves at its next ``give_way`` point; a request out is abandoned
+        (the SLAM thread's wait ends now); no scan or fix is sent any more, no new child started. What is
+        asked from now on (the final map, the trajectory) is waited for until ``grace_s`` from now, then
+        the child is killed."""
+        if self._closed or self._stop_deadline is not None:
+            return
+        self._grace_s = grace_s
+        self._stop_deadline = time.monotonic() + grace_s
+        with self._send_lock:
+            conn = self._conn
+            if conn is not None:
+                try:
+                    conn.send(("stop",))
+                    self._sent += 1
+                except OSError:
+                    pass  # gone: the next request says so
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"\0")
+        self._renice()
+        log.info(
+            "stopping the SLAM process (the agent is stopping): %g s to hand over its final map", grace_s
+        )
+
+    def _renice(self) -> None:
+        """The child back at the agent's own CPU priority where the system allows it (root, or a NICE
+        limit that does): its lower one was for the hot path, which has stopped, and on a busy machine it
+        hands over the final map sooner. Refused (an unprivileged service): it stays niced."""
+        process = self._process
+        if process is None:
+            return
+        try:
+            os.setpriority(os.PRIO_PROCESS, process.pid, os.getpriority(os.PRIO_PROCESS, 0))
+        except OSError as exc:
+            log.debug("the SLAM process keeps its lower CPU priority for the stop: %s", exc)
+
     def close(self) -> None:
-        """Stop the child for good (idempotent): later calls answer as a mapper without a filter."""
-        self._closed = True
-        self._stop_child()
+        """Stop the child for good (idempotent): later calls answer as a mapper without a filter. After
+        :meth:`begin_stop` the child is hung up on at once and has until the stop's deadline (at least
+        2 s) to exit, the replies it still owes read meanwhile (so that it is never blocked sending one);
+        then it is killed."""
+        if self._closed:
+            return
+        stopping = self._stop_deadline is not None
+        wait_s = 2.0 if self._stop_deadline is None else max(0.0, self._stop_deadline - time.monotonic())
+        locked = self._call_lock.acquire(timeout=wait_s + 1.0)
+        try:
+            self._closed = True
+            if stopping:
+                self._hang_up()
+            else:
+                self._stop_child()
+        finally:
+            if locked:
+                self._call_lock.release()
+            self._close_wake()
+
+    def _hang_up(self) -> None:
+        """After the stop: ``None`` to the child, then its exit waited for until the stop's deadline (at
+        least 2 s from now), what it still sends read and dropped; killed after that."""
+        process, conn = self._process, self._conn
+        self._process = self._conn = None
+        self._started = False
+        if process is None or conn is None:
+            return
+        assert self._stop_deadline is not None
+        deadline = max(self._stop_deadline, time.monotonic() + 2.0)
+        with self._send_lock, contextlib.suppress(OSError):
+            conn.send(None)
+        try:
+            while process.poll() is None:
+                left = deadline - time.monotonic()
+                if left <= 0.0 or not conn.poll(left):
+                    break
+                self._dropped(conn.recv())
+        except (EOFError, OSError):  # its end closed: it is exiting
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(max(0.0, deadline - time.monotonic()))
+        conn.close()
+        if process.poll() is None:
+            self._process = process
+            self._kill_child(f"the SLAM process had not exited {self._grace_s:g} s after the stop began")
+            return
+        log.info("SLAM process stopped (exit status %s)", process.returncode)
+
+    def _close_wake(self) -> None:
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._wake_r = self._wake_w = -1
+
+    def _kill_child(self, why: str) -> None:
+        """After the stop: the child is killed, and the log says what that lost."""
+        process, conn = self._process, self._conn
+        self._process = self._conn = None
+        self._started = False
+        if process is None:
+            return
+        if self._final_map_asked and not self._final_map:
+            log.error(
+                "%s: killing it; its final map was not taken out (the map on disk, if any, is the last "
+                "one saved as the robot went)",
+                why,
+            )
+        else:
+            lost = "its final map had been taken out" if self._final_map else "no final map was asked of it"
+            log.warning("%s: killing it (%s)", why, lost)
+        with contextlib.suppress(OSError):
+            process.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(2.0)
+        if conn is not None:
+            conn.close()
+
+    def _drop_child(self) -> None:
+        """A child that died or stopped answering: killed if it is still there (asking it to stop is of no
+        use: it is not reading). The next call starts a new one."""
+        process, conn = self._process, self._conn
+        self._process = self._conn = None
+        self._started = False
+        if process is not None and process.poll() is None:
+            with contextlib.suppress(OSError):
+                process.kill()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(2.0)
+        if conn is not None:
+            conn.close()
 
     def _stop_child(self) -> None:
-        """Stop the child (the next call starts a new one, unless closed)."""
+        """Stop the child (the next call starts a new one, unless closed or stopping)."""
         process, conn = self._process, self._conn
         self._process = self._conn = None
         self._started = False  # a new child's filter starts afresh
@@ -288,6 +569,8 @@ class ProcessMapper:
         start = None if self._started else self.start_pose(scan.host_time_ns)
         try:
             step: MapperStep = self._call("update", scan, odom_pose, start)
+        except WorkerStopping as exc:
+            return MapperStep("rejected", reason=str(exc))
         except WorkerLost as exc:
             log.error("%s", exc)
             return MapperStep("rejected", reason=str(exc))
@@ -296,6 +579,8 @@ class ProcessMapper:
     def add_fix(self, fix: AbsoluteFix, odom_pose: Pose) -> None:
         try:
             self._call("fix", fix, odom_pose)
+        except WorkerStopping:
+            pass
         except WorkerLost as exc:
             log.error("%s", exc)
 
@@ -307,15 +592,25 @@ class ProcessMapper:
         return pose
 
     def map_image(self) -> Any | None:
+        stopping = self._stop_deadline is not None
+        self._final_map_asked = self._final_map_asked or stopping
         try:
-            return self._call("map")
-        except WorkerLost:
+            image = self._call("map")
+            self._final_map = self._final_map or (stopping and image is not None)
+            return image
+        except WorkerStopping:
+            return None  # a periodic fetch the stop cut short: the final one comes after
+        except WorkerLost as exc:
+            if self._stop_deadline is not None:
+                log.error("no final map from the SLAM process: %s", exc)
             return None
 
     def trajectory(self) -> FloatArray:
         try:
             path: FloatArray = self._call("trajectory")
-        except WorkerLost:
+        except WorkerLost as exc:
+            if self._stop_deadline is not None and not isinstance(exc, WorkerStopping):
+                log.error("no final trajectory from the SLAM process: %s", exc)
             return np.zeros((0, 3))
         return path
 

@@ -285,7 +285,10 @@ class RbpfSlam:
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
         # Called between the stages of a filter update (the distance field, the proposal, the map): where
-        # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath).
+        # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath). It may
+        # raise to leave the update (the agent's SLAM process does when the agent stops): the filter is
+        # then half-way through it and takes no more scans, but its maps are whole, those from before the
+        # update (a loop closure's rebuild is put in place only once built).
         self.give_way: Callable[[], None] = _no_wait
         self.stats = FilterStats()
         # Loop closure: per node (filter update) its scan (for a map rebuild), its endpoints (for the old
@@ -863,10 +866,10 @@ class RbpfSlam:
         gather and a copy-on-write scatter per node: the same cells updated in the same order, the same
         map (checked on Intel's first 400 records), each rebuild 7-35 % less CPU."""
         cfg = self.config
-        self.maps.clear()
-        self._put_prior()
-        self._groups = np.zeros(cfg.particles, dtype=np.int64)
         if not self._node_scans:
+            self.maps.clear()
+            self._put_prior()
+            self._groups = np.zeros(cfg.particles, dtype=np.int64)
             return
         t = cfg.grid.tile_cells
         rects = []
@@ -885,7 +888,9 @@ class RbpfSlam:
             max(r.tx1 for r in rects),
         )
         row = np.array([0])
-        window = self.maps.gather(row, whole)
+        # Built aside, the maps left as they are until it is whole: a give_way that raises (the agent's
+        # SLAM process stopping) leaves the maps from before this loop closure, not half a map.
+        window = self._prior_window(whole)
         touched = np.zeros((1, *whole.shape), dtype=bool)
         for k, (scan, rect) in enumerate(zip(self._node_scans, rects, strict=True)):
             ty, tx = rect.ty0 - whole.ty0, rect.tx0 - whole.tx0
@@ -908,9 +913,32 @@ class RbpfSlam:
             window[cells] = part
             if k % 64 == 63:
                 self.give_way()
+        self.maps.clear()
+        self._put_prior()
+        self._groups = np.zeros(cfg.particles, dtype=np.int64)
         self.maps.scatter(row, whole, window, touched)
         if self.maps.maps > 1:
             self.maps.share(np.zeros(self.maps.maps - 1, dtype=np.int64), np.arange(1, self.maps.maps))
+
+    def _prior_window(self, whole: TileRect) -> Int8Array:
+        """Map 0 over ``whole`` as it is after ``maps.clear()`` and ``_put_prior()`` (the saved map's cells,
+        unknown elsewhere), shape (1, h*T, w*T), without clearing the maps."""
+        t = self.config.grid.tile_cells
+        window = np.zeros((1, whole.shape[0] * t, whole.shape[1] * t), dtype=np.int8)
+        if self._prior is None:
+            return window
+        rect, prior, _ = self._prior  # the prior's untouched tiles are unknown (0) in its window too
+        ty0, tx0 = max(rect.ty0, whole.ty0), max(rect.tx0, whole.tx0)
+        ty1, tx1 = min(rect.ty1, whole.ty1), min(rect.tx1, whole.tx1)
+        if ty0 < ty1 and tx0 < tx1:
+            rows, cols = slice(ty0 * t, ty1 * t), slice(tx0 * t, tx1 * t)  # in cells of the whole grid
+
+            def within(r: TileRect) -> tuple[int, slice, slice]:
+                dy, dx = r.ty0 * t, r.tx0 * t
+                return 0, slice(rows.start - dy, rows.stop - dy), slice(cols.start - dx, cols.stop - dx)
+
+            window[within(whole)] = prior[within(rect)]
+        return window
 
     def _record(self, t_s: float, odom: FloatArray, parents: IntArray) -> None:
         self.history_poses.append(self.poses.copy())

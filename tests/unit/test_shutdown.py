@@ -21,6 +21,12 @@ def test_signal_wakes_the_wait_at_once_and_is_remembered() -> None:
         assert time.monotonic() - t0 < 1.0
         assert shutdown.signum == signal.SIGTERM
         assert shutdown.wait(5.0)  # stays requested, returns at once
+        assert shutdown.why("--seconds ran out") == "SIGTERM"  # for the stop's log line
+
+
+def test_without_a_signal_the_stop_says_its_own_reason() -> None:
+    with ShutdownRequest() as shutdown:
+        assert shutdown.why("--seconds ran out") == "--seconds ran out"
 
 
 def test_previous_handlers_come_back_on_exit() -> None:

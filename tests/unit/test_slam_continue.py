@@ -186,3 +186,65 @@ def test_the_localization_map_may_have_another_resolution(tmp_path: Path) -> Non
     config = parse_config(sim_config(f'[slam]\nmode = "localization"\nmap = "{yaml}"\n'))
     assert config.slam.mode is SlamMode.LOCALIZATION
     assert math.isclose(load_map(yaml).resolution_m, 0.1)
+
+
+def _seeded_with_nodes(loop: tuple[np.ndarray, ...], tmp_path: Path) -> tuple[RbpfSlam, np.ndarray]:
+    """A filter seeded with the saved map, its first scan taken, and 70 graph nodes of that scan along a
+    short line (what a rebuild integrates), with their poses."""
+    times, truth, odometry, ranges = loop
+    slam = RbpfSlam(LASER, RbpfConfig(particles=4, initial_pose=tuple(truth[0])))
+    slam.seed_map(*_prior(load_map(true_map(loop, tmp_path))))
+    slam.process(float(times[0]), ranges[0], odometry[0])
+    slam._node_scans = slam._node_scans[:1] * 70
+    poses = np.tile(truth[0], (70, 1))
+    poses[:, 0] += np.linspace(0.0, 0.3, 70)
+    return slam, poses
+
+
+def test_a_rebuild_starts_from_the_seed_without_clearing_the_maps_first(
+    loop: tuple[np.ndarray, ...], tmp_path: Path
+) -> None:
+    """The rebuild builds its window aside from the saved map's cells (``_prior_window``): the same window
+    that clearing the maps and putting the seed back gave, so the rebuilt map is unchanged by building it
+    aside."""
+    import copy
+
+    slam, _ = _seeded_with_nodes(loop, tmp_path)
+    extent = slam.maps.extent(0)
+    assert extent is not None
+    # A window larger than the seed's on every side, and one inside it.
+    for whole in (
+        type(extent)(extent.ty0 - 2, extent.tx0 - 1, extent.ty1 + 3, extent.tx1 + 2),
+        type(extent)(extent.ty0 + 1, extent.tx0 + 1, extent.ty1 - 1, extent.tx1 - 2),
+    ):
+        cleared = copy.deepcopy(slam)
+        cleared.maps.clear()
+        cleared._put_prior()
+        window = slam._prior_window(whole)
+        assert np.count_nonzero(window) > 1000
+        np.testing.assert_array_equal(window, cleared.maps.gather([0], whole))
+
+
+def test_a_rebuild_left_half_way_leaves_the_maps_as_they_were(
+    loop: tuple[np.ndarray, ...], tmp_path: Path
+) -> None:
+    """A ``give_way`` that raises inside the rebuild (the agent's SLAM process stopping) leaves every
+    particle's map as it was before the loop closure, not cleared or half rebuilt."""
+
+    class Stop(Exception):
+        pass
+
+    slam, poses = _seeded_with_nodes(loop, tmp_path)
+    before = [slam.map_window(p) for p in range(4)]
+
+    def give_way() -> None:
+        raise Stop
+
+    slam.give_way = give_way
+    with pytest.raises(Stop):
+        slam._rebuild_maps(poses + np.array([0.5, 0.0, 0.0]))
+    for p, old in enumerate(before):
+        now = slam.map_window(p)
+        assert now is not None and old is not None
+        np.testing.assert_array_equal(now[0], old[0])
+        assert now[1] == old[1]
