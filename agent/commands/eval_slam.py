@@ -316,6 +316,13 @@ def add_parser(subparsers: Any) -> None:
         help="the pose graph widens a front-end edge only by the match's departure from odometry beyond K of "
         "the motion model's sigmas ([slam] loop_correction_odometry_sigmas; default: the whole departure)",
     )
+    p.add_argument(
+        "--search-heading-doubt",
+        action="store_true",
+        help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
+        "model) as after a straight search_increment_m, not only past the metres or radians thresholds "
+        "(RbpfConfig.search_heading_doubt; default: off)",
+    )
     p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(
@@ -493,6 +500,7 @@ def run(args: argparse.Namespace) -> int:
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
         **filter_keys,
+        search_heading_doubt=args.search_heading_doubt,
         linear_update_m=args.linear_update if args.linear_update is not None else defaults.linear_update_m,
         angular_update_rad=args.angular_update
         if args.angular_update is not None
