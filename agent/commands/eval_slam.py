@@ -103,7 +103,8 @@ REVERSAL_RATIO: dict[str, float | None] = {"breezyslam": None, "radish": 0.5, "s
 # The pose graph's front-end edges widened only by the match's departure from odometry beyond K of the
 # motion model's sigmas (``[slam] loop_correction_odometry_sigmas``). Unset for every source: K = 1 on the
 # radish logs (their odometry is rebuilt and as bad as the model says) takes Intel's 50-record relations
-# to 6 of 6 seeds within 0.21 m but ACES seed 1 from 0.121 to 0.186 m (docs/slam.md, "Loop closure").
+# to 6 of 6 seeds within 0.21 m but ACES seed 1 from 0.121 to 0.186 m; K = 0.5 folds Intel seed 3
+# (0.709 m), K = 1.5 puts seed 4 at 0.289 m and ACES seed 1 at 0.208 m (docs/slam.md, "Loop closure").
 LOOP_CORRECTION_ODOMETRY_SIGMAS: dict[str, float | None] = {
     "breezyslam": None,
     "radish": None,
