@@ -106,7 +106,8 @@ REVERSAL_RATIO: dict[str, float | None] = {"breezyslam": None, "radish": 0.5, "s
 # The pose graph's front-end edges widened only by the match's departure from odometry beyond K of the
 # motion model's sigmas (``[slam] loop_correction_odometry_sigmas``). Unset for every source: K = 1 on the
 # radish logs (their odometry is rebuilt and as bad as the model says) takes Intel's 50-record relations
-# to 6 of 6 seeds within 0.21 m but ACES seed 1 from 0.121 to 0.186 m (docs/slam.md, "Loop closure").
+# to 6 of 6 seeds within 0.21 m but ACES seed 1 from 0.121 to 0.186 m; K = 0.5 folds Intel seed 3
+# (0.709 m), K = 1.5 puts seed 4 at 0.289 m and ACES seed 1 at 0.208 m (docs/slam.md, "Loop closure").
 LOOP_CORRECTION_ODOMETRY_SIGMAS: dict[str, float | None] = {
     "breezyslam": None,
     "radish": None,
@@ -327,6 +328,13 @@ def add_parser(subparsers: Any) -> None:
         help="the pose graph widens a front-end edge only by the match's departure from odometry beyond K of "
         "the motion model's sigmas ([slam] loop_correction_odometry_sigmas; default: the whole departure)",
     )
+    p.add_argument(
+        "--search-heading-doubt",
+        action="store_true",
+        help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
+        "model) as after a straight search_increment_m, not only past the metres or radians thresholds "
+        "(RbpfConfig.search_heading_doubt; default: off)",
+    )
     p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(
@@ -512,6 +520,7 @@ def run(args: argparse.Namespace) -> int:
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
         **filter_keys,
+        search_heading_doubt=args.search_heading_doubt,
         linear_update_m=args.linear_update if args.linear_update is not None else defaults.linear_update_m,
         angular_update_rad=args.angular_update
         if args.angular_update is not None

@@ -118,6 +118,13 @@ class RbpfConfig:
     search_updates: int | None = 1
     search_increment_m: float = 1.0
     search_increment_rad: float = 0.5
+    # Also run it where the motion model's heading deviation for the increment (stt |dθ| + srt d) reaches
+    # that of a straight ``search_increment_m`` (srt × it): an increment just short of both thresholds,
+    # Intel's 0.93 m steps turning 10°, leaves odometry's heading as far from the scans as one past them
+    # (Intel seed 4, record 890: Gauss-Newton from the prior settled 16° off, the search's start 0.3°).
+    # False (the default): the two thresholds alone; measured on Intel and ACES seeds 0-5 and not adopted
+    # (ACES seed 1 0.121 -> 0.252 m: docs/slam.md, "Loop closure", *Intel's 50-record relations*).
+    search_heading_doubt: bool = False
     # Filter updates of trajectory history kept for ``trajectory()`` (about 1.2 KB each at 30 particles);
     # the oldest go first. 10 000 updates are 2.5 km of driving at 0.25 m per update, 12 MB: bounded on
     # board, and more than any log here needs (Intel: 897). None keeps everything.
@@ -258,6 +265,7 @@ class RbpfSlam:
         self.rng = np.random.default_rng(cfg.seed)
         self.gate = ScanGate(laser)
         self._without_search = dataclasses.replace(cfg.proposal, search=None)
+        self._search_heading_doubt = cfg.noise.srt * cfg.search_increment_m  # (search_heading_doubt)
         n = cfg.particles
         self.poses: FloatArray = np.tile(np.asarray(cfg.initial_pose, dtype=np.float64), (n, 1))
         self.log_weights: FloatArray = np.zeros(n)
@@ -538,9 +546,15 @@ class RbpfSlam:
             self.stats.updates < cfg.search_updates
             or math.hypot(increment[0], increment[1]) >= cfg.search_increment_m
             or abs(increment[2]) >= cfg.search_increment_rad
+            or (cfg.search_heading_doubt and self._heading_doubt(increment) >= self._search_heading_doubt)
         ):
             return cfg.proposal
         return self._without_search
+
+    def _heading_doubt(self, increment: FloatArray) -> float:
+        """The motion model's heading standard deviation for an odometry increment (radians)."""
+        noise = self.config.noise
+        return noise.stt * abs(float(increment[2])) + noise.srt * math.hypot(increment[0], increment[1])
 
     def _update(self, t_s: float, scan: ScanPoints, odom: FloatArray, increment: FloatArray) -> StepResult:
         cfg = self.config

@@ -517,6 +517,20 @@ def test_the_correlative_search_runs_where_it_is_due() -> None:
     assert first._proposal_for(step).matcher == first.config.proposal.matcher
 
 
+def test_the_search_can_also_be_due_on_odometry_heading_doubt() -> None:
+    # search_heading_doubt: an increment just short of both thresholds (Intel's 0.93 m turning 10 deg)
+    # leaves odometry's heading as doubtful as a straight search_increment_m, and gets the search too.
+    short = np.array([0.9, 0.1, 0.18])
+    small = np.array([0.3, 0.0, 0.05])
+    searched = []
+    for doubt in (False, True):
+        slam = RbpfSlam(LASER, RbpfConfig(particles=4, search_increment_rad=0.19, search_heading_doubt=doubt))
+        slam.stats.updates = 5
+        searched += [slam._proposal_for(increment).search is not None for increment in (short, small)]
+        assert slam._proposal_for(np.array([1.0, 0.0, 0.0])).search is not None
+    assert searched == [False, False, True, False]
+
+
 def test_each_node_keeps_its_scan_match_information_for_the_graph(loop: tuple[np.ndarray, ...]) -> None:
     # LoopClosureConfig.edge_match_sigma_m: the graph's front-end edges from each node's own match.
     _times, truth, _odometry, _ = loop
