@@ -237,6 +237,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     os._exit(0)
 
 
+def _kill(process: subprocess.Popen[bytes], conn: multiprocessing.connection.Connection | None) -> None:
+    """Kill the child, wait for it (2 s at most) and close its connection."""
+    with contextlib.suppress(OSError):
+        process.kill()
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        process.wait(2.0)
+    if conn is not None:
+        conn.close()
+
+
 # -- the parent -----------------------------------------------------------------------------------------
 class ProcessMapper:
     """A :class:`~agent.runtime.mapper.ScanMapper` (the one ``make_local_mapper`` builds for ``config``)
@@ -535,12 +545,7 @@ class ProcessMapper:
         else:
             lost = "its final map had been taken out" if self._final_map else "no final map was asked of it"
             log.warning("%s: killing it (%s)", why, lost)
-        with contextlib.suppress(OSError):
-            process.kill()
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            process.wait(2.0)
-        if conn is not None:
-            conn.close()
+        _kill(process, conn)
 
     def _drop_child(self) -> None:
         """A child that died or stopped answering: killed if it is still there (asking it to stop is of no
@@ -549,10 +554,7 @@ class ProcessMapper:
         self._process = self._conn = None
         self._started = False
         if process is not None and process.poll() is None:
-            with contextlib.suppress(OSError):
-                process.kill()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                process.wait(2.0)
+            _kill(process, None)
         if conn is not None:
             conn.close()
 
