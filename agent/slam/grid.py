@@ -161,6 +161,10 @@ class TiledMaps:
         self._free: list[int] = []  # slots used before and freed since (taken first)
         n = geometry.tiles_per_side
         self.tables: npt.NDArray[np.int32] = np.zeros((maps, n, n), dtype=np.int32)
+        # Tiles [ty0, ty1) x [tx0, tx1) holding every table entry that is not UNKNOWN_TILE (None: none):
+        # the reference counts are counted there only (a 30-map table of 128 x 128 tiles is ~0.5 M
+        # entries; what the maps know is a small part of it).
+        self._span: tuple[int, int, int, int] | None = None
 
     # -- bookkeeping -----------------------------------------------------------------------------------
     @property
@@ -197,7 +201,14 @@ class TiledMaps:
         return ids
 
     def _recount(self) -> None:
-        counts = np.bincount(self.tables.ravel(), minlength=self.pool.shape[0]).astype(np.int64)
+        if self._span is None:
+            counts = np.zeros(self.pool.shape[0], dtype=np.int64)
+        else:
+            # Outside the span every entry is UNKNOWN_TILE, whose count is pinned below: the same counts
+            # as over the whole table.
+            ty0, tx0, ty1, tx1 = self._span
+            used = self.tables[:, ty0:ty1, tx0:tx1]
+            counts = np.bincount(used.ravel(), minlength=self.pool.shape[0]).astype(np.int64)
         counts[UNKNOWN_TILE] = 1 << 40
         freed = np.flatnonzero((counts == 0) & (self.refcount > 0))
         self._free.extend(int(i) for i in freed)
@@ -210,6 +221,7 @@ class TiledMaps:
         particles' high-water (Intel: up to ~30 MB of tiles before a rebuild, ~8 MB after)."""
         release_pages(self.pool[1 : self._next])
         self.tables[...] = UNKNOWN_TILE
+        self._span = None
         self.refcount[1:] = 0
         self._free = []
         self._next = 1
@@ -230,7 +242,8 @@ class TiledMaps:
     # -- windows ---------------------------------------------------------------------------------------
     def gather(self, rows: npt.ArrayLike, rect: TileRect) -> Int8Array:
         """Copies of the maps' stored log-odds over ``rect``: shape (len(rows), h*T, w*T)."""
-        ids = self.tables[np.asarray(rows, dtype=np.int64)][:, rect.ty0 : rect.ty1, rect.tx0 : rect.tx1]
+        # (The rows' entries over the rectangle only, not whole table rows first.)
+        ids = self.tables[np.asarray(rows, dtype=np.int64), rect.ty0 : rect.ty1, rect.tx0 : rect.tx1]
         u, h, w = ids.shape
         t = self.geometry.tile_cells
         # One gather of tile rows (T bytes each, as one opaque item) in the window's order: window row
@@ -260,8 +273,17 @@ class TiledMaps:
             self.refcount[new_ids] = 1
             ids[shared] = new_ids
             self.tables[map_rows[shared], ty[shared] + rect.ty0, tx[shared] + rect.tx0] = new_ids
+            self._widen(rect)
         blocks = windows.reshape(u, h, t, w, t)
         self.pool[ids] = blocks[k, ty, :, tx, :]
+
+    def _widen(self, rect: TileRect) -> None:
+        """Grow the span of known table entries to hold ``rect``."""
+        if self._span is None:
+            self._span = (rect.ty0, rect.tx0, rect.ty1, rect.tx1)
+            return
+        ty0, tx0, ty1, tx1 = self._span
+        self._span = (min(ty0, rect.ty0), min(tx0, rect.tx0), max(ty1, rect.ty1), max(tx1, rect.tx1))
 
     def extent(self, row: int) -> TileRect | None:
         """The smallest rectangle holding every known tile of map ``row`` (None for an empty map)."""

@@ -867,13 +867,6 @@ def judge_loop(
     ]
     if config.require_confirmation and not partners:
         return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
-    before = (
-        optimize_graph(
-            poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
-        )
-        if loops
-        else None
-    )
     result = optimize_graph(
         poses,
         motions,
@@ -885,12 +878,15 @@ def judge_loop(
         odometry_sigmas,
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
-    bad_before = (
-        sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
-        if before is not None
-        else 0
-    )
     bad_after = sum(loop_residual_chi2(result.poses, c, config) > config.accept_chi2 for c in loops)
+    bad_before = 0
+    if residual <= config.accept_chi2 and bad_after > 0:
+        # The graph without the candidate, for the loops it already left off: only where the verdict
+        # turns on that count (with no loop off after, none can be more off than before).
+        before = optimize_graph(
+            poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
+        )
+        bad_before = sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
     if residual > config.accept_chi2 or bad_after > bad_before:
         log.debug(
             "loop %d -> %d: inconsistent (chi2 %.1f, %d -> %d loops off)",

@@ -252,10 +252,14 @@ class DistanceField:
         cy = y_m * inv_res + (0.5 - self.origin_m[1] * inv_res)
         _clip(cx, 0.0, wp - 1.001, out=cx)
         _clip(cy, 0.0, hp - 1.001, out=cy)
-        ix = cx.astype(np.int64)
-        iy = cy.astype(np.int64)
-        fx = cx - ix
-        fy = cy - iy
+        # The cell and the fraction: cx >= 0 after the clip, so floor(cx) is the integer astype truncates
+        # to and cx - floor(cx) is cx - ix, without subtracting an int64 array from a float one.
+        fx = np.floor(cx)
+        fy = np.floor(cy)
+        ix = fx.astype(np.int64)
+        iy = fy.astype(np.int64)
+        np.subtract(cx, fx, out=fx)
+        np.subtract(cy, fy, out=fy)
         flat = self.distance_m.reshape(-1)
         window_base = np.asarray(window_index, dtype=np.int64)[:, None] * hp
         base = (window_base + iy) * wp + ix
@@ -285,9 +289,11 @@ class DistanceField:
             d = np.where(known, d, self.cap_m)
             ddx = np.where(known, ddx, 0.0)
             ddy = np.where(known, ddy, 0.0)
+        if not medial:
+            return d, ddx, ddy, known, None
         # Near straight walls: the distance to the wall's medial line (see the class docstring).
         near = known & (d < MEDIAL_REACH_CELLS * self.resolution_m)
-        if not (medial and near.any()):
+        if not near.any():
             return d, ddx, ddy, known, None
         g = np.hypot(ddx, ddy)
         step = np.zeros_like(g)
@@ -350,6 +356,10 @@ def _medial_walls(
     low = np.where(along_y, left, below).view(np.int8)
     shift: FloatArray = (high - low) * 0.5
     return wall, along_y, shift
+
+
+_EYE3 = np.eye(3)[None, :, :]
+_EYE3.flags.writeable = False
 
 
 def _clip(a: npt.NDArray[Any], lo: float, hi: float, out: npt.NDArray[Any]) -> npt.NDArray[Any]:
@@ -719,7 +729,7 @@ def _gauss_newton_step(
     """One Gauss-Newton step of :func:`match` for every pose (P, 3): the clipped step (P, 3) and the
     information matrix sum_i w_i J_i J_iᵀ (P, 3, 3) at the poses."""
     n = points_xy.shape[0]
-    eye = np.eye(3)[None, :, :]
+    eye = _EYE3
     res = residuals(
         field, window_index, points_xy, poses, normals_xy, along_weight, fine, config.gate_on_residual
     )
@@ -727,7 +737,9 @@ def _gauss_newton_step(
     jac[..., 0] = res.jx
     jac[..., 1] = res.jy
     jac[..., 2] = res.jy * res.rx - res.jx * res.ry
-    wj = jac * (res.gate < bound_m)[..., None]
+    # The hard kernel's weights as float32 1s and 0s: the products jac * w are jac * bool's, without
+    # numpy casting the bool operand in buffered chunks (2.7x the time).
+    wj = jac * (res.gate < bound_m).astype(np.float32)[..., None]
     info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
     if config.min_translation_information > 0.0:
         # Which directions the scan observes, judged by the inliers with a surface normal where the scan
@@ -755,7 +767,7 @@ def _gauss_newton_step(
             jac_xy = np.einsum("pij,pnj->pni", projection, jac[..., :2].astype(np.float64))
             jac = jac.copy()
             jac[..., :2] = jac_xy
-            wj = jac * (res.gate < bound_m)[..., None]
+            wj = jac * (res.gate < bound_m).astype(np.float32)[..., None]
             raw_info = info
             info = np.matmul(wj.transpose(0, 2, 1), jac).astype(np.float64)
             step_info, info = info, raw_info
@@ -770,8 +782,8 @@ def _gauss_newton_step(
     scale = np.maximum(np.trace(info_total, axis1=1, axis2=2) / 3.0, 1e-9)[:, None, None]
     step = -np.linalg.solve(info_total + config.damping * scale * eye + 1e-12 * eye, grad[..., None])[..., 0]
     # Trust region: never jump farther than the stage can justify in one iteration.
-    step[:, :2] = np.clip(step[:, :2], -config.max_step_m, config.max_step_m)
-    step[:, 2] = np.clip(step[:, 2], -config.max_step_rad, config.max_step_rad)
+    _clip(step[:, :2], -config.max_step_m, config.max_step_m, out=step[:, :2])
+    _clip(step[:, 2], -config.max_step_rad, config.max_step_rad, out=step[:, 2])
     return step, info
 
 

@@ -748,13 +748,17 @@ class RbpfSlam:
         self.stats.loop_checks += 1
         _, path, _ = self.trajectory()
         since = self._last_agreement
-        travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
+        # The path's steps since the last agreement, once: their sum, and the sum of those since the last
+        # known-area judgement (a contiguous tail of the same values: the same sums as two separate
+        # diffs of the path).
+        steps = np.hypot(*np.diff(path[since:, :2], axis=0).T)
+        travelled = float(np.sum(steps))
         odometry = np.array(list(itertools.islice(self.history_odom, since, None)))
         doubt = yaw_doubt(
             between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
         )
         known_since = max(since, self._known_area_judged)
-        known_travelled = float(np.sum(np.hypot(*np.diff(path[known_since:, :2], axis=0).T)))
+        known_travelled = float(np.sum(steps[known_since - since :]))
         found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt, known_travelled)
         if found is not None:
             self._judge(path, found)
