@@ -251,7 +251,9 @@ class TiledMaps:
         # whole tiles and transposing them into place was two copies.)
         tile_rows = self.pool.reshape(-1, t).view(np.dtype((np.void, t))).reshape(-1)
         index = ids.astype(np.int64)[:, :, None, :] * t + np.arange(t)[None, None, :, None]
-        out: Int8Array = tile_rows[index.reshape(-1)].view(np.int8).reshape(u, h * t, w * t)
+        # np.take rather than tile_rows[index]: the same rows, ~2.5x faster (take copies items of a
+        # fixed size in its own loop; indexing copies opaque items one by one).
+        out: Int8Array = np.take(tile_rows, index.reshape(-1)).view(np.int8).reshape(u, h * t, w * t)
         return out
 
     def scatter(self, rows: npt.ArrayLike, rect: TileRect, windows: Int8Array, touched: BoolArray) -> None:
@@ -436,11 +438,19 @@ def integrate_scans(
     """Integrate one scan into each window (U, H, W) in place, window u seeing it from ``base_poses[u]``.
 
     Per window the swept cells are the fan polygon rasterised by ``cv2.fillPoly`` (code 1), endpoint
-    cells code 2; then l_t = clamp(l_{t-1} + lut[code]) for all windows in one pass. Returns which tiles
+    cells code 2 (drawn as their updates lut[code] themselves); then l_t = clamp(l_{t-1} + lut[code]) for
+    all windows in one pass. Returns which tiles
     (U, H/T, W/T) were updated. Points outside a window are dropped (the caller sizes it to the scan).
     """
     u, h, w = windows.shape
-    codes = np.zeros((u, h, w), dtype=np.uint8)
+    # Each cell's update l_inv(code) drawn straight (0 untouched, the miss where swept, the hit at an
+    # endpoint) rather than codes 0 / 1 / 2 mapped through a lookup table afterwards: one pass fewer.
+    # (Where the model rounds the miss or the hit to 0 counts, codes and the table as before: a code
+    # still marks its tile touched.)
+    lut = model.lut()
+    direct = bool(lut[1] != 0 and lut[2] != 0)
+    miss, hit = (int(lut[1]), int(lut[2])) if direct else (1, 2)
+    codes = np.zeros((u, h, w), dtype=np.int8)
     x0, y0 = window_origin_m
     poses = np.asarray(base_poses, dtype=np.float64).reshape(u, 3)
     # Continuous cell coordinates c = (x - x0) / res; cv2 puts pixel centres on integers: subtract 1/2.
@@ -452,28 +462,32 @@ def integrate_scans(
             np.round(vertices_px * float(1 << _SHIFT)).astype(np.int32)[:, scan.polygon, :]
         )
         for k in range(u):
-            cv2.fillPoly(codes[k], [fixed[k]], 1, cv2.LINE_8, _SHIFT)
+            cv2.fillPoly(codes[k], [fixed[k]], miss, cv2.LINE_8, _SHIFT)
     if scan.hit_xy.shape[0]:
         hits = transform_points(poses, scan.hit_xy[None, :, :])
         col = np.floor((hits[..., 0] - x0) / resolution_m).astype(np.int64)
         row = np.floor((hits[..., 1] - y0) / resolution_m).astype(np.int64)
         inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
         which = np.broadcast_to(np.arange(u)[:, None], col.shape)
-        codes.reshape(-1)[((which * h + row) * w + col)[inside]] = 2
+        codes.reshape(-1)[((which * h + row) * w + col)[inside]] = hit
     # l_t = clamp(l_{t-1} + l_inv(code)) in stored counts, as 2-D cv2 operations over the whole stack
-    # (table lookup, add, min, max run at memory speed; numpy's int8 clip with scalars does not).
+    # (add, min, max run at memory speed; numpy's int8 clip with scalars does not).
     flat_codes = codes.reshape(u * h, w)
     flat_windows = windows.reshape(u * h, w)
-    table = np.zeros(256, dtype=np.int8)
-    table[:3] = model.lut()
-    cv2.add(flat_windows, cv2.LUT(flat_codes, table), dst=flat_windows)
+    if direct:
+        cv2.add(flat_windows, flat_codes, dst=flat_windows)
+    else:
+        table = np.zeros(256, dtype=np.int8)
+        table[:3] = lut
+        cv2.add(flat_windows, cv2.LUT(flat_codes.view(np.uint8), table), dst=flat_windows)
     # (OpenCV's stubs do not list the scalar second operand these calls accept.)
     cv2.max(flat_windows, model.counts(model.minimum), dst=flat_windows)  # type: ignore[call-overload]
     cv2.min(flat_windows, model.counts(model.maximum), dst=flat_windows)  # type: ignore[call-overload]
     # A tile changed if any of its cells has a code: max over runs of T cells, then over T rows.
     # (numpy's max over the middle axis of (U, H/T, T, W/T) walks it with a strided inner loop, ~20x
     # slower than cv2.reduce over the runs laid out contiguously.)
-    runs = cv2.reduce(codes.reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
+    # (As bytes, the updates are nonzero exactly where a code was: max > 0.)
+    runs = cv2.reduce(codes.view(np.uint8).reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
     columns = runs.reshape(u * (h // tile_cells), tile_cells, w // tile_cells).transpose(0, 2, 1)
     tiles = cv2.reduce(np.ascontiguousarray(columns).reshape(-1, tile_cells), 1, cv2.REDUCE_MAX)
     touched: BoolArray = tiles.reshape(u, h // tile_cells, w // tile_cells) > 0
