@@ -901,14 +901,20 @@ def correlative_search(
     pad = 2 * far - 1
     window_d = field.distance_m[window]
     # (float32 throughout, as the per-point arithmetic on the gathered float32 distances was.)
-    truncated = np.minimum(window_d, config.truncate_m)
-    window_known = window_d >= 0.0
-    cost_table = np.full((h + 2 * pad, w + 2 * pad), np.float32(0.0), dtype=np.float32)
+    # where(known, min(d, c)², 0) as max(min(d, c), 0)²: known cells hold d >= +0 (the field holds no
+    # -0.0), unknown ones UNKNOWN < 0; the min and max as OpenCV's truncating and to-zero thresholds
+    # (the bound rounded to float32 as numpy's float32 scalar is: the same values, without numpy's
+    # NaN-aware minimum, the mask and the where over the window).
+    clipped = cv2.threshold(window_d, config.truncate_m, 0.0, cv2.THRESH_TRUNC)[1]
+    cv2.threshold(clipped, 0.0, 0.0, cv2.THRESH_TOZERO, dst=clipped)
+    cost_table = np.empty((h + 2 * pad, w + 2 * pad), dtype=np.float32)
     outside = np.minimum(np.float32(field.cap_m), np.float32(config.truncate_m))
     cost_table[...] = outside * outside
-    cost_table[pad:-pad, pad:-pad] = np.where(window_known, truncated * truncated, np.float32(0.0))
-    known_table = np.ones((h + 2 * pad, w + 2 * pad), dtype=bool)
-    known_table[pad:-pad, pad:-pad] = window_known
+    np.multiply(clipped, clipped, out=cost_table[pad:-pad, pad:-pad])
+    # Known cells as bytes (1 known): summed over the points straight into int64 counts, as the bool
+    # gather's sum was, without numpy casting bools in buffered chunks.
+    known_table = np.ones((h + 2 * pad, w + 2 * pad), dtype=np.uint8)
+    np.greater_equal(window_d, 0.0, out=known_table[pad:-pad, pad:-pad].view(bool))
     width = w + 2 * pad
     rows = np.clip(row, -far, h - 1 + far)[:, None, :] + (shifts + pad)[None, :, None]  # (R, S, N)
     rows *= width
@@ -916,7 +922,7 @@ def correlative_search(
     index = (rows[:, :, None, :] + cols[:, None, :, :]).reshape(yaws.size, s_count * s_count, -1)
     # Unknown cells: the mean cost of the candidate's other points (see scan_log_likelihood).
     n_points = points_xy.shape[0]
-    n_known = known_table.reshape(-1)[index].sum(axis=2)
+    n_known = np.take(known_table.reshape(-1), index).sum(axis=2, dtype=np.int64)
     cost = cost_table.reshape(-1)[index].sum(axis=2)  # (R, T)
     del index
     cost = np.where(n_known > 0, cost * n_points / np.maximum(n_known, 1), n_points * config.truncate_m**2)
