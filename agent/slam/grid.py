@@ -435,7 +435,8 @@ def integrate_scans(
     model: LogOddsModel,
     tile_cells: int,
 ) -> BoolArray:
-    """Integrate one scan into each window (U, H, W) in place, window u seeing it from ``base_poses[u]``.
+    """Integrate one scan into each window (U, H, W) in place (a stack: C-contiguous; one window may be
+    a view), window u seeing it from ``base_poses[u]``.
 
     Per window the swept cells are the fan polygon rasterised by ``cv2.fillPoly`` (code 1), endpoint
     cells code 2 (drawn as their updates lut[code] themselves); then l_t = clamp(l_{t-1} + lut[code]) for
@@ -443,6 +444,9 @@ def integrate_scans(
     (U, H/T, W/T) were updated. Points outside a window are dropped (the caller sizes it to the scan).
     """
     u, h, w = windows.shape
+    if u > 1 and not windows.flags.c_contiguous:
+        # (One window may be a view into a larger array: its rows are updated where they lie.)
+        raise ValueError("a stack of windows must be C-contiguous: it is updated in place")
     # Each cell's update l_inv(code) drawn straight (0 untouched, the miss where swept, the hit at an
     # endpoint) rather than codes 0 / 1 / 2 mapped through a lookup table afterwards: one pass fewer.
     # (Where the model rounds the miss or the hit to 0 counts, codes and the table as before: a code

@@ -899,9 +899,10 @@ class RbpfSlam:
                 slice(ty * t, (ty + rect.shape[0]) * t),
                 slice(tx * t, (tx + rect.shape[1]) * t),
             )
-            part = np.ascontiguousarray(window[cells])
+            # Integrated in place through the view of the node's cells (one window: integrate_scans'
+            # whole-stack operations run on its rows as they lie), not into a copy written back.
             touched[tiles] |= integrate_scans(
-                part,
+                window[cells],
                 rect.origin_m(cfg.grid),
                 cfg.grid.resolution_m,
                 poses[k][None, :],
@@ -909,7 +910,6 @@ class RbpfSlam:
                 cfg.log_odds,
                 t,
             )
-            window[cells] = part
             if k % 64 == 63:
                 self.give_way()
         self.maps.scatter(row, whole, window, touched)
