@@ -632,7 +632,42 @@ def match_with_residuals(
     Λ (``prior_information``, (P, 3, 3) or (3, 3); none by default) ties the match to ``centre``
     (default: the initial poses) in directions the scan does not constrain (a corridor, a scan of one
     wall), which is where an unconstrained matcher slides off.
+
+    Rows that are the same problem bit for bit (start, centre, prior and window: the copies of a resampled
+    particle, at the update after resampling) are matched once and their answers copied: each row's
+    iterations depend on that row alone, and the whole batch stops when every distinct row has converged,
+    so the answers are the ones the full batch gives.
     """
+    unique = _distinct_rows(window_index, initial_poses, prior_information, centre)
+    if unique is not None:
+        first, inverse = unique
+        count = np.asarray(initial_poses).shape[0]
+        windows = np.broadcast_to(np.asarray(window_index, dtype=np.int64), (count,))
+        priors = None
+        if prior_information is not None:
+            priors = np.broadcast_to(prior_information, (count, 3, 3))[first]
+        matched, matched_res = match_with_residuals(
+            field,
+            windows[first],
+            points_xy,
+            np.asarray(initial_poses, dtype=np.float64)[first],
+            config,
+            priors,
+            None if centre is None else np.asarray(centre, dtype=np.float64)[first],
+            normals_xy,
+            along_weight,
+        )
+        return (
+            MatchResult(
+                matched.poses[inverse],
+                matched.information[inverse],
+                matched.inlier_fraction[inverse],
+                matched.rms_m[inverse],
+                matched.ok[inverse],
+                matched.known_inlier_fraction[inverse],
+            ),
+            matched_res.rows(inverse),
+        )
     poses = np.array(initial_poses, dtype=np.float64, copy=True)
     x0 = poses.copy() if centre is None else np.asarray(centre, dtype=np.float64)
     prior = (
@@ -711,6 +746,37 @@ def match_with_residuals(
         & (known_fraction >= config.min_known_inlier_fraction)
     )
     return MatchResult(poses, info, fraction, rms, ok, known_fraction), res
+
+
+def _distinct_rows(
+    window_index: IntArray,
+    initial_poses: FloatArray,
+    prior_information: FloatArray | None,
+    centre: FloatArray | None,
+) -> tuple[IntArray, IntArray] | None:
+    """For a batch of matches: each distinct row's first index and every row's distinct row (inverse),
+    rows being equal when start, centre, prior and window are equal bit for bit; None when all differ."""
+    start = np.asarray(initial_poses, dtype=np.float64)
+    count = start.shape[0]
+    if count < 2:
+        return None
+    prior = np.zeros((count, 9))
+    if prior_information is not None:
+        information = np.asarray(prior_information, dtype=np.float64)
+        prior = np.broadcast_to(information, (count, 3, 3)).reshape(count, 9)
+    windows = np.ascontiguousarray(np.broadcast_to(np.asarray(window_index, dtype=np.int64), (count,)))
+    parts = [
+        start,
+        start if centre is None else np.asarray(centre, dtype=np.float64),
+        prior,
+        windows.view(np.float64)[:, None],  # the index's bits: equal exactly when the index is
+    ]
+    rows = np.ascontiguousarray(np.concatenate(parts, axis=1))
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(count)
+    _keys, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    if first.size == count:
+        return None
+    return first.astype(np.int64), np.asarray(inverse, dtype=np.int64).reshape(count)
 
 
 def _gauss_newton_step(
