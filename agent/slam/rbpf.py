@@ -284,6 +284,11 @@ class RbpfSlam:
         self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        # trajectory()'s last walk: (absolute update of its first row, _history_edits then, the particle
+        # index at every update, the poses); the history's first row's absolute update; rewrites counted.
+        self._lineage: tuple[int, int, list[int], FloatArray] | None = None
+        self._history_first = 0
+        self._history_edits = 0
         # Called between the stages of a filter update (the distance field, the proposal, the map): where
         # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath).
         self.give_way: Callable[[], None] = _no_wait
@@ -402,11 +407,27 @@ class RbpfSlam:
         current best particle: the path its map was built from."""
         if not self.history_poses:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
+        n = len(self.history_poses)
+        first = self._history_first
+        cached = (
+            self._lineage if self._lineage is not None and self._lineage[1] == self._history_edits else None
+        )
         index = self.best_index
-        out = np.zeros((len(self.history_poses), 3))
-        for k in range(len(self.history_poses) - 1, -1, -1):
+        out = np.zeros((n, 3))
+        lineage = [0] * n
+        for k in range(n - 1, -1, -1):
+            if cached is not None:
+                # Where this walk meets the last one's lineage, the rest is the last one's: the parents
+                # never change, and the poses only where _apply rewrites them (the cache is dropped then).
+                j = first + k - cached[0]
+                if 0 <= j < len(cached[2]) and cached[2][j] == index:
+                    out[: k + 1] = cached[3][j - k : j + 1]
+                    lineage[: k + 1] = cached[2][j - k : j + 1]
+                    break
             out[k] = self.history_poses[k][index]
+            lineage[k] = index
             index = int(self.history_parents[k][index])
+        self._lineage = (first, self._history_edits, lineage, out.copy())
         return np.array(self.history_t_s), out, np.array(self.history_odom)
 
     def map_window(
@@ -859,6 +880,7 @@ class RbpfSlam:
             self.history_poses[k][:] = optimised[k]
         self.history_poses[last][:] = self.poses
         self._anchored = last
+        self._history_edits += 1  # the history's poses were rewritten: trajectory's cache is stale
         self._rebuild_maps(optimised)
 
     def _rebuild_maps(self, poses: FloatArray) -> None:
@@ -917,6 +939,8 @@ class RbpfSlam:
             self.maps.share(np.zeros(self.maps.maps - 1, dtype=np.int64), np.arange(1, self.maps.maps))
 
     def _record(self, t_s: float, odom: FloatArray, parents: IntArray) -> None:
+        if self.history_poses.maxlen is not None and len(self.history_poses) == self.history_poses.maxlen:
+            self._history_first += 1  # the oldest entry goes
         self.history_poses.append(self.poses.copy())
         self.history_parents.append(np.asarray(parents, dtype=np.int64))
         self.history_t_s.append(t_s)
