@@ -292,6 +292,11 @@ class RbpfSlam:
         self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        # trajectory()'s last walk: (absolute update of its first row, _history_edits then, the particle
+        # index at every update, the poses); the history's first row's absolute update; rewrites counted.
+        self._lineage: tuple[int, int, list[int], FloatArray] | None = None
+        self._history_first = 0
+        self._history_edits = 0
         # Called between the stages of a filter update (the distance field, the proposal, the map): where
         # the agent's runtime lets a camera frame on its hot path go first (agent.runtime.hotpath). It may
         # raise to leave the update (the agent's SLAM process does when the agent stops): the filter is
@@ -413,11 +418,27 @@ class RbpfSlam:
         current best particle: the path its map was built from."""
         if not self.history_poses:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
+        n = len(self.history_poses)
+        first = self._history_first
+        cached = (
+            self._lineage if self._lineage is not None and self._lineage[1] == self._history_edits else None
+        )
         index = self.best_index
-        out = np.zeros((len(self.history_poses), 3))
-        for k in range(len(self.history_poses) - 1, -1, -1):
+        out = np.zeros((n, 3))
+        lineage = [0] * n
+        for k in range(n - 1, -1, -1):
+            if cached is not None:
+                # Where this walk meets the last one's lineage, the rest is the last one's: the parents
+                # never change, and the poses only where _apply rewrites them (the cache is dropped then).
+                j = first + k - cached[0]
+                if 0 <= j < len(cached[2]) and cached[2][j] == index:
+                    out[: k + 1] = cached[3][j - k : j + 1]
+                    lineage[: k + 1] = cached[2][j - k : j + 1]
+                    break
             out[k] = self.history_poses[k][index]
+            lineage[k] = index
             index = int(self.history_parents[k][index])
+        self._lineage = (first, self._history_edits, lineage, out.copy())
         return np.array(self.history_t_s), out, np.array(self.history_odom)
 
     def map_window(
@@ -765,13 +786,17 @@ class RbpfSlam:
         self.stats.loop_checks += 1
         _, path, _ = self.trajectory()
         since = self._last_agreement
-        travelled = float(np.sum(np.hypot(*np.diff(path[since:, :2], axis=0).T)))
+        # The path's steps since the last agreement, once: their sum, and the sum of those since the last
+        # known-area judgement (a contiguous tail of the same values: the same sums as two separate
+        # diffs of the path).
+        steps = np.hypot(*np.diff(path[since:, :2], axis=0).T)
+        travelled = float(np.sum(steps))
         odometry = np.array(list(itertools.islice(self.history_odom, since, None)))
         doubt = yaw_doubt(
             between(path[since:-1], path[since + 1 :]), between(odometry[:-1], odometry[1:]), lc
         )
         known_since = max(since, self._known_area_judged)
-        known_travelled = float(np.sum(np.hypot(*np.diff(path[known_since:, :2], axis=0).T)))
+        known_travelled = float(np.sum(steps[known_since - since :]))
         found = find_loop(path, self._node_hits, points, j, lc, travelled, doubt, known_travelled)
         if found is not None:
             self._judge(path, found)
@@ -872,6 +897,7 @@ class RbpfSlam:
             self.history_poses[k][:] = optimised[k]
         self.history_poses[last][:] = self.poses
         self._anchored = last
+        self._history_edits += 1  # the history's poses were rewritten: trajectory's cache is stale
         self._rebuild_maps(optimised)
 
     def _rebuild_maps(self, poses: FloatArray) -> None:
@@ -914,9 +940,10 @@ class RbpfSlam:
                 slice(ty * t, (ty + rect.shape[0]) * t),
                 slice(tx * t, (tx + rect.shape[1]) * t),
             )
-            part = np.ascontiguousarray(window[cells])
+            # Integrated in place through the view of the node's cells (one window: integrate_scans'
+            # whole-stack operations run on its rows as they lie), not into a copy written back.
             touched[tiles] |= integrate_scans(
-                part,
+                window[cells],
                 rect.origin_m(cfg.grid),
                 cfg.grid.resolution_m,
                 poses[k][None, :],
@@ -924,7 +951,6 @@ class RbpfSlam:
                 cfg.log_odds,
                 t,
             )
-            window[cells] = part
             if k % 64 == 63:
                 self.give_way()
         self.maps.clear()
@@ -955,6 +981,8 @@ class RbpfSlam:
         return window
 
     def _record(self, t_s: float, odom: FloatArray, parents: IntArray) -> None:
+        if self.history_poses.maxlen is not None and len(self.history_poses) == self.history_poses.maxlen:
+            self._history_first += 1  # the oldest entry goes
         self.history_poses.append(self.poses.copy())
         self.history_parents.append(np.asarray(parents, dtype=np.int64))
         self.history_t_s.append(t_s)

@@ -457,6 +457,26 @@ def test_history_can_be_bounded_for_long_runs(loop: tuple[np.ndarray, ...]) -> N
     np.testing.assert_allclose(poses[-1], slam.poses[slam.best_index])
 
 
+@pytest.mark.parametrize("limit", [None, 7])
+def test_trajectory_reuses_its_last_walk_exactly(loop: tuple[np.ndarray, ...], limit: int | None) -> None:
+    """trajectory() reuses the last walk's lineage where the new one joins it: after every scan (the
+    history shifting under a limit, the particles resampling) it is the plain ancestry walk, bit for bit."""
+    times, truth, odometry, ranges = (a[:90] for a in loop)
+    start = tuple(float(v) for v in truth[0])
+    config = RbpfConfig(particles=4, initial_pose=start, history_limit=limit, resample_threshold=1.0)
+    slam = RbpfSlam(LASER, config)
+    for t, odom, r in zip(times, odometry, ranges, strict=True):
+        slam.process(float(t), r, odom)
+        _times, poses, _odometry = slam.trajectory()
+        index = slam.best_index
+        walked = np.zeros((len(slam.history_poses), 3))
+        for k in range(len(slam.history_poses) - 1, -1, -1):
+            walked[k] = slam.history_poses[k][index]
+            index = int(slam.history_parents[k][index])
+        assert np.array_equal(poses, walked)
+    assert slam.stats.resamples > 0 and slam._lineage is not None
+
+
 def test_idle_loop_checks_wait_for_the_path(loop: tuple[np.ndarray, ...]) -> None:
     start = tuple(float(v) for v in loop[1][0])
     short = tuple(a[:120] for a in loop)

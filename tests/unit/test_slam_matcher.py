@@ -482,3 +482,38 @@ def test_degeneracy_aware_steps_leave_a_corridor_s_length_to_the_prior() -> None
     assert np.allclose(both, [[[1.0, 0.0], [0.0, 0.0]], [[1.0, 0.0], [0.0, 0.0]]])
     assert np.allclose(corridor_only, [[[1.0, 0.0], [0.0, 0.0]], np.eye(2)])
     assert degenerate_projection(info[1:], 2.0, ratio=10.0) is None
+
+
+def test_duplicate_rows_matched_once_as_the_whole_batch(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Rows that are the same problem bit for bit (a resampled particle's copies) are matched once; the
+    answers are those of the whole batch matched row by row in one run (forced by disabling the check)."""
+    from agent.slam import matcher as matcher_module
+
+    field = room_field()
+    points = voxel_filter(prepared((0.3, -0.2, 0.4)).hit_xy, 0.1, 200)
+    rng = np.random.default_rng(3)
+    distinct = np.array([0.3, -0.2, 0.4]) + rng.normal(0.0, [0.1, 0.1, 0.05], size=(4, 3))
+    starts = distinct[[0, 1, 1, 2, 0, 3, 1]]
+    prior = np.diag([5.0, 5.0, 1.0])
+    windows = np.zeros(starts.shape[0], dtype=np.int64)
+    calls: list[int] = []
+    real_step = matcher_module._gauss_newton_step
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(args[3].shape[0])
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(matcher_module, "_gauss_newton_step", counted)
+    once, once_res = matcher_module.match_with_residuals(
+        field, windows, points, starts, MatcherConfig(), prior, normals_xy=None
+    )
+    assert set(calls) == {4}  # four distinct rows stepped, not seven
+    monkeypatch.setattr(matcher_module, "_distinct_rows", lambda *args: None)
+    whole, whole_res = matcher_module.match_with_residuals(
+        field, windows, points, starts, MatcherConfig(), prior, normals_xy=None
+    )
+    for a, b in ((once.poses, whole.poses), (once.information, whole.information), (once.ok, whole.ok)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(once_res.r, whole_res.r) and np.array_equal(once_res.gate, whole_res.gate)
