@@ -27,10 +27,19 @@ def press_ctrl_c(child: Any) -> None:
 
 
 def signal_state(child: Any) -> str:
+    """The child's signal masks, and per thread its pending/blocked signals and where the kernel has it
+    waiting (``wchan``): for the message of a test whose Ctrl-C went unanswered."""
     try:
         with open(f"/proc/{child.pid}/status", encoding="ascii") as f:
-            return " ".join(
+            text = " ".join(
                 line.strip() for line in f if line.startswith(("SigPnd", "SigBlk", "SigIgn", "SigCgt"))
             )
+        for task in sorted(os.listdir(f"/proc/{child.pid}/task")):
+            with open(f"/proc/{child.pid}/task/{task}/status", encoding="ascii") as f:
+                masks = [line.split()[1] for line in f if line.startswith(("SigPnd", "SigBlk"))]
+            with open(f"/proc/{child.pid}/task/{task}/wchan", encoding="ascii") as f:
+                wchan = f.read().strip()
+            text += f"; thread {task} pending/blocked {'/'.join(masks)} waiting in {wchan or '-'}"
+        return text
     except OSError as exc:
         return f"(no signal state: {exc})"

@@ -102,7 +102,8 @@ def test_ctrl_c_in_a_step_writes_nothing_and_returns_to_the_menu(tmp_path: Path)
         child.expect(MENU)
         assert "status: interrupted" in child.before
         press_ctrl_c(child)  # at the menu, Ctrl-C leaves
-        child.expect("interrupted at the menu")
+        answered = child.expect(["interrupted at the menu", pexpect.TIMEOUT])
+        assert answered == 0, f"no answer to Ctrl-C at the menu: {signal_state(child)}"
         child.expect(pexpect.EOF)
     finally:
         child.close()
