@@ -110,7 +110,11 @@ class SlamLoop:
         # What SLAM took and with which odometry, for a replay (agent.recording.slam_replay).
         restarts = getattr(mapper, "restarts", 0)  # a SLAM process restarted: a new map from here
         state.record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom, step.kind, restarts))
-        state.count(f"slam_{step.kind}")
+        # slam_scans_updated / _skipped / _rejected: what the mapper did with the scan. Not slam_rejected,
+        # which counts the SLAM poses the fusion turned down (slam_fused + slam_rejected = the poses handed
+        # to it, as recorded on /slam/pose): a scan the mapper rejected, or the one in flight at a stop, has
+        # no pose.
+        state.count(f"slam_scans_{step.kind}")
         if step.kind == "updated":
             if step.fix is None:
                 state.slam_good = False

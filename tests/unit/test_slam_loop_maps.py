@@ -15,8 +15,11 @@ from agent.runtime.hotpath import HotPath
 from agent.runtime.loop_state import LoopState
 from agent.runtime.mailbox import BoundedQueue
 from agent.runtime.map_saver import MapSaver
+from agent.runtime.mapper import MapperStep
 from agent.runtime.slam_loop import SlamLoop
+from agent.runtime.types import AbsoluteFix
 from agent.slam.render import occupancy_image
+from drivers.samples import Scan
 from tests.unit.test_recording import OFFICE
 
 
@@ -80,3 +83,54 @@ def test_one_fetch_serves_every_one_due_and_none_is_made_for_nobody(tmp_path: Pa
         assert state.counts["map_fetches"] == 3
     finally:
         saver.close()
+
+
+class StepMapper(Mapper):
+    """Answers each scan with the next of ``steps``."""
+
+    def __init__(self, steps: list[MapperStep]) -> None:
+        super().__init__()
+        self.steps = steps
+
+    def add_fix(self, fix: AbsoluteFix, odom_pose: Any) -> None:
+        pass
+
+    def update(self, scan: Scan, odom_pose: Any) -> MapperStep:
+        return self.steps.pop(0)
+
+
+def test_scans_the_mapper_turned_away_are_not_counted_as_poses_the_fusion_rejected() -> None:
+    """``slam_fused + slam_rejected`` is the count of SLAM poses handed to the fusion, each recorded on
+    ``/slam/pose`` (the flight recorder's check holds the recording to it); what the mapper did with each scan
+    is counted apart (``slam_scans_<kind>``): a scan it rejected, or the one in flight when the agent stopped
+    (a SLAM process answers it ``rejected``), gave no pose."""
+    config = parse_config(f'[sim]\nworld = "{OFFICE}"\n')
+    state = LoopState(config, Devices(), lambda: 10**9)
+    recorded: list[str] = []
+    state.set_recorder(lambda kind, t_ns, sample: recorded.append(kind))
+    pose = AbsoluteFix(10**9, 0.0, 0.0, 0.0, np.eye(3) * 1e-4)
+    mapper = StepMapper(
+        [
+            MapperStep("updated", fix=pose),
+            MapperStep("gated"),
+            MapperStep("rejected", reason="the SLAM process left its filter update unfinished for the stop"),
+        ]
+    )
+    loop = SlamLoop(
+        state,
+        mapper=mapper,
+        fusion=PoseFilter(np.zeros(3), np.eye(3) * 1e-4, 0),
+        scans=BoundedQueue(4),
+        slam_fixes=BoundedQueue(4),
+        hot_path=HotPath(lambda: False),
+        odometry_track=None,
+        on_map=None,
+        map_period_s=2.0,
+        saver=None,
+    )
+    scan = Scan(np.full(10, 1000, dtype=np.int32), -0.5, 0.1, 20, 5600, 0, 10**9)
+    for _ in range(3):
+        assert loop._map_scan(mapper, scan)
+    counts = state.counts
+    assert recorded.count("slam_pose") == 1 == counts.get("slam_fused", 0) + counts.get("slam_rejected", 0)
+    assert counts["slam_scans_updated"] == counts["slam_scans_gated"] == counts["slam_scans_rejected"] == 1
