@@ -38,6 +38,22 @@ class Mapper:
         return {"filter_updates": 1}
 
 
+def _loop(state: LoopState, mapper: Any, on_map: Any, saver: MapSaver | None) -> SlamLoop:
+    """A SLAM loop over ``mapper``, no wheels (the fused pose is its odometry), the map every 2 s."""
+    return SlamLoop(
+        state,
+        mapper=mapper,
+        fusion=PoseFilter(np.zeros(3), np.eye(3) * 1e-4, 0),
+        scans=BoundedQueue(4),
+        slam_fixes=BoundedQueue(4),
+        hot_path=HotPath(lambda: False),
+        odometry_track=None,
+        on_map=on_map,
+        map_period_s=2.0,
+        saver=saver,
+    )
+
+
 def test_one_fetch_serves_every_one_due_and_none_is_made_for_nobody(tmp_path: Path) -> None:
     config = parse_config(f'[sim]\nworld = "{OFFICE}"\n[recorder]\nmap_period_s = 5\n')
     now = {"ns": 100 * 10**9}
@@ -48,18 +64,7 @@ def test_one_fetch_serves_every_one_due_and_none_is_made_for_nobody(tmp_path: Pa
     saver = MapSaver(tmp_path, 1.0, clock_s=lambda: clock["s"])
     navigation: list[Any] = []
     mapper = Mapper()
-    loop = SlamLoop(
-        state,
-        mapper=mapper,
-        fusion=PoseFilter(np.zeros(3), np.eye(3) * 1e-4, 0),
-        scans=BoundedQueue(4),
-        slam_fixes=BoundedQueue(4),
-        hot_path=HotPath(lambda: False),
-        odometry_track=None,
-        on_map=navigation.append,
-        map_period_s=2.0,
-        saver=saver,
-    )
+    loop = _loop(state, mapper, on_map=navigation.append, saver=saver)
     try:
         clock["s"] += 1.0  # the saver is due too
         loop._share_map(mapper, mapped=True)
@@ -116,18 +121,7 @@ def test_scans_the_mapper_turned_away_are_not_counted_as_poses_the_fusion_reject
             MapperStep("rejected", reason="the SLAM process left its filter update unfinished for the stop"),
         ]
     )
-    loop = SlamLoop(
-        state,
-        mapper=mapper,
-        fusion=PoseFilter(np.zeros(3), np.eye(3) * 1e-4, 0),
-        scans=BoundedQueue(4),
-        slam_fixes=BoundedQueue(4),
-        hot_path=HotPath(lambda: False),
-        odometry_track=None,
-        on_map=None,
-        map_period_s=2.0,
-        saver=None,
-    )
+    loop = _loop(state, mapper, on_map=None, saver=None)
     scan = Scan(np.full(10, 1000, dtype=np.int32), -0.5, 0.1, 20, 5600, 0, 10**9)
     for _ in range(3):
         assert loop._map_scan(mapper, scan)
