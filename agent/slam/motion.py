@@ -37,21 +37,15 @@ class OdometryNoise:
     floor_rad: float = 0.002
 
     def sigmas(self, increment: FloatArray) -> FloatArray:
-        """(sigma_x_m, sigma_y_m, sigma_yaw_rad) for an increment (..., 3)."""
-        dx, dy, dyaw = np.abs(increment[..., 0]), np.abs(increment[..., 1]), np.abs(increment[..., 2])
-        sx = self.srr * dx + self.str * dyaw + 0.3 * self.srr * dy
-        sy = self.srr * dy + self.str * dyaw + 0.3 * self.srr * dx
-        syaw = self.stt * dyaw + self.srt * np.hypot(dx, dy)
-        return np.stack(
-            [np.maximum(sx, self.floor_m), np.maximum(sy, self.floor_m), np.maximum(syaw, self.floor_rad)],
-            axis=-1,
-        )
+        """(sigma_x_m, sigma_y_m, sigma_yaw_rad) for an increment (..., 3): :meth:`spread`, floored."""
+        floor = np.array([self.floor_m, self.floor_m, self.floor_rad])
+        sigmas: FloatArray = np.maximum(self.spread(increment), floor)
+        return sigmas
 
     def spread(self, increment: FloatArray) -> FloatArray:
         """:meth:`sigmas` without the floor (..., 3): zero for no motion. The floor is for one filter
         update's motion density; the error odometry adds in carrying a measurement over a stretch (a VLP
-        fix taken a few centimetres before the scan) has none. ``sigmas`` keeps its own copy of these
-        terms: it is on every update's path (a test checks that the two agree above the floor)."""
+        fix taken a few centimetres before the scan) has none."""
         dx, dy, dyaw = np.abs(increment[..., 0]), np.abs(increment[..., 1]), np.abs(increment[..., 2])
         sx = self.srr * dx + self.str * dyaw + 0.3 * self.srr * dy
         sy = self.srr * dy + self.str * dyaw + 0.3 * self.srr * dx

@@ -567,15 +567,11 @@ class RbpfSlam:
             self.stats.updates < cfg.search_updates
             or math.hypot(increment[0], increment[1]) >= cfg.search_increment_m
             or abs(increment[2]) >= cfg.search_increment_rad
-            or (cfg.search_heading_doubt and self._heading_doubt(increment) >= self._search_heading_doubt)
+            # (the motion model's heading deviation for the increment: its spread's yaw)
+            or (cfg.search_heading_doubt and cfg.noise.spread(increment)[2] >= self._search_heading_doubt)
         ):
             return cfg.proposal
         return self._without_search
-
-    def _heading_doubt(self, increment: FloatArray) -> float:
-        """The motion model's heading standard deviation for an odometry increment (radians)."""
-        noise = self.config.noise
-        return noise.stt * abs(float(increment[2])) + noise.srt * math.hypot(increment[0], increment[1])
 
     def _update(self, t_s: float, scan: ScanPoints, odom: FloatArray, increment: FloatArray) -> StepResult:
         cfg = self.config
