@@ -98,6 +98,12 @@ class PtyServer:
         self._slave_path = ""
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        # A pipe in the serving thread's select that ``unplug()`` writes to, so the thread leaves at once
+        # however long it was told to sleep: a thread that outlived ``unplug()`` (joined with a timeout)
+        # woke later in a select whose fd number had meanwhile been reused by the next pty, and read the
+        # next client's first command (a test's first QT went unanswered that way, after a test whose
+        # server slept 5 s).
+        self._wake: tuple[int, int] | None = None
         self._lock = threading.Lock()
         self.bytes_in = 0
         self.bytes_out = 0
@@ -148,8 +154,12 @@ class PtyServer:
                     self._master = self._slave = None
                     raise
             self._stop.clear()
+            self._wake = os.pipe()
             self._thread = threading.Thread(
-                target=self._run, name=f"fake-pty {self._slave_path}", daemon=True
+                target=self._run,
+                args=(master, self._wake[0]),
+                name=f"fake-pty {self._slave_path}",
+                daemon=True,
             )
             self._thread.start()
         log.debug("fake device up on %s", self.path)
@@ -159,14 +169,19 @@ class PtyServer:
         with self._lock:
             thread = self._thread
             self._stop.set()
+            if self._wake is not None:
+                with contextlib.suppress(OSError):
+                    os.write(self._wake[1], b"x")
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=2.0)
+            if thread.is_alive():
+                log.warning("fake device on %s: its thread did not stop within 2 s", self.path)
         with self._lock:
-            for fd in (self._master, self._slave):
+            for fd in (self._master, self._slave, *(self._wake or ())):
                 if fd is not None:
                     with contextlib.suppress(OSError):
                         os.close(fd)
-            self._master = self._slave = None
+            self._master = self._slave = self._wake = None
             self._thread = None
             if self.link is not None and self._owns_link():
                 with contextlib.suppress(FileNotFoundError):
@@ -232,9 +247,7 @@ class PtyServer:
             view = view[n:]
             self.bytes_out += n
 
-    def _run(self) -> None:
-        master = self._master
-        assert master is not None
+    def _run(self, master: int, wake: int) -> None:
         self.on_thread_start()
         while not self._stop.is_set():
             timeout = self.poll_interval_s
@@ -245,9 +258,12 @@ class PtyServer:
                     timeout = min(max(due_in, 0.0) + _SCHEDULE_SLACK_S, timeout)
             slept = time.monotonic()
             try:
-                ready, _, _ = select.select([master], [], [], timeout)
+                ready, _, _ = select.select([master, wake], [], [], timeout)
             except (OSError, ValueError):
                 return
+            if self._stop.is_set():
+                return  # unplugged: the fds may already be closed, their numbers someone else's
+            ready = [fd for fd in ready if fd == master]
             self.give_way()
             now = time.monotonic()
             # Past the timeout slept for; a wait that bytes ended counts whole (when they came is not known).
@@ -270,9 +286,8 @@ class PtyServer:
                     self._write(master, due)
             except OSError as exc:
                 if exc.errno in (errno.EIO, errno.EBADF):
-                    if self._stop.is_set():
+                    if self._stop.wait(self.poll_interval_s):
                         return
-                    time.sleep(self.poll_interval_s)
                     continue
                 log.exception("fake device on %s failed", self.path)
                 return

@@ -289,6 +289,32 @@ def test_a_server_that_polls_rarely_still_sends_each_scan_when_it_falls_due(
             laser.close()
 
 
+def test_a_server_that_sleeps_long_stops_at_once_and_leaves_the_next_pty_alone(
+    sim: Simulation, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Its thread used to sit out its 5 s poll after unplug() had given up waiting for it (2 s) and closed
+    # the pty under it; woken by that close, it read on fd numbers the next test's pty could already have
+    # taken, and swallowed that test's first QT ("no reply to 'QT'" at open).
+    alive_at_close: list[bool] = []
+    real_close = os.close
+
+    def close(fd: int) -> None:
+        alive_at_close.append(thread.is_alive())
+        real_close(fd)
+
+    with PtyServer(FakeUrg(sim, seed=0), link=tmp_path / "old", poll_interval_s=5.0) as old:
+        assert old._thread is not None
+        thread = old._thread
+        monkeypatch.setattr(os, "close", close)
+    monkeypatch.undo()
+    assert alive_at_close and not any(alive_at_close)  # the thread had left before its fds were closed
+    with (
+        PtyServer(FakeUrg(sim, seed=0), link=tmp_path / "urg") as srv,
+        UrgLaser(srv.path, timeout_s=REPLY_TIMEOUT_S) as laser,
+    ):
+        assert laser.info().model
+
+
 def test_device_clock_wrap_is_unwrapped(sim: Simulation, tmp_path: Path) -> None:
     fake = FakeUrg(sim, clock_start_ms=WRAP - 500)
     with (
