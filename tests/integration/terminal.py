@@ -5,12 +5,20 @@ signal to the group directly rather than writing the interrupt character to the 
 discipline to turn it into one (on a loaded machine, twice in one run, that character never became a
 signal). What the program does with the SIGINT is what these tests check. :func:`signal_state` is put in
 the failure message: the child's blocked, ignored and caught signal masks.
+
+At a prompt, :func:`press_ctrl_c_at_prompt` first waits until the program sits in its read of the terminal.
+Python takes a SIGINT in its C handler and raises KeyboardInterrupt when the read it interrupts returns
+EINTR; a SIGINT that lands after the prompt was written but before that read began (a loaded machine
+can stop the program there) interrupts nothing, and the read then waits for input that never comes (a
+wizard test once hung so, its only thread in ``wait_woken`` with nothing pending). A person pressing Ctrl-C
+at a prompt is never that quick; a test reacting to the prompt's bytes can be.
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import time
 from typing import Any
 
 
@@ -24,6 +32,26 @@ def terminal_signals() -> None:
 
 def press_ctrl_c(child: Any) -> None:
     os.killpg(os.getpgid(child.pid), signal.SIGINT)
+
+
+def press_ctrl_c_at_prompt(child: Any, wait_s: float = 20.0) -> None:
+    """Ctrl-C once the child's main thread waits in a read of its terminal (or after ``wait_s``)."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline and _main_thread_wait(child) not in _TTY_READ_WAITS:
+        time.sleep(0.01)
+    press_ctrl_c(child)
+
+
+# Where the kernel has a task that waits in a read of a tty (n_tty_read sleeps in wait_woken).
+_TTY_READ_WAITS = frozenset({"wait_woken", "n_tty_read"})
+
+
+def _main_thread_wait(child: Any) -> str:
+    try:
+        with open(f"/proc/{child.pid}/wchan", encoding="ascii") as f:
+            return f.read().strip()
+    except OSError:
+        return ""
 
 
 def signal_state(child: Any) -> str:

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from calibration.camera_info import parse_camera_info
-from tests.integration.terminal import press_ctrl_c, signal_state, terminal_signals
+from tests.integration.terminal import press_ctrl_c, press_ctrl_c_at_prompt, signal_state, terminal_signals
 
 pexpect = pytest.importorskip("pexpect")
 
@@ -101,7 +101,7 @@ def test_ctrl_c_in_a_step_writes_nothing_and_returns_to_the_menu(tmp_path: Path)
         assert child.expect(["intrinsics: interrupted; no calibration file was written", MENU]) == 0, state
         child.expect(MENU)
         assert "status: interrupted" in child.before
-        press_ctrl_c(child)  # at the menu, Ctrl-C leaves
+        press_ctrl_c_at_prompt(child)  # at the menu, Ctrl-C leaves
         answered = child.expect(["interrupted at the menu", pexpect.TIMEOUT])
         assert answered == 0, f"no answer to Ctrl-C at the menu: {signal_state(child)}"
         child.expect(pexpect.EOF)
