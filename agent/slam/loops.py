@@ -885,21 +885,21 @@ def judge_loop(
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_after = sum(loop_residual_chi2(result.poses, c, config) > config.accept_chi2 for c in loops)
-    bad_before = 0
+    # The graph without the candidate, for the loops it already left off: counted only where the verdict
+    # turns on that count (with no loop off after, none can be more off than before); None: not computed.
+    bad_before: int | None = None
     if residual <= config.accept_chi2 and bad_after > 0:
-        # The graph without the candidate, for the loops it already left off: only where the verdict
-        # turns on that count (with no loop off after, none can be more off than before).
         before = optimize_graph(
             poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
         )
         bad_before = sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
-    if residual > config.accept_chi2 or bad_after > bad_before:
+    if residual > config.accept_chi2 or (bad_before is not None and bad_after > bad_before):
         log.debug(
-            "loop %d -> %d: inconsistent (chi2 %.1f, %d -> %d loops off)",
+            "loop %d -> %d: inconsistent (chi2 %.1f, loops off: %s before it, %d with it)",
             candidate.i,
             candidate.j,
             residual,
-            bad_before,
+            "not computed" if bad_before is None else bad_before,
             bad_after,
         )
         return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
