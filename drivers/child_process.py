@@ -20,7 +20,7 @@ import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["child_connection", "start_child", "stop_child"]
+__all__ = ["child_connection", "kill_child", "start_child", "stop_child"]
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +58,23 @@ def stop_child(
             process.wait(2.0)
         except subprocess.TimeoutExpired:
             log.warning("the %s process did not stop; killing it", what)
-            process.kill()
-            process.wait(1.0)
+            kill_child(process, wait_s=1.0)
     conn.close()
+
+
+def kill_child(
+    process: subprocess.Popen[bytes],
+    conn: multiprocessing.connection.Connection | None = None,
+    wait_s: float = 2.0,
+) -> None:
+    """Kill the child, wait for it (``wait_s`` at most; a child still there after that is left to the
+    kernel) and close ``conn``, where given."""
+    with contextlib.suppress(OSError):
+        process.kill()
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        process.wait(wait_s)
+    if conn is not None:
+        conn.close()
 
 
 def child_connection(

@@ -62,7 +62,7 @@ from agent.config_slam import MountConfig, SlamConfig, SlamMode
 from agent.runtime.mapper import MapperStep, Pose, RbpfMapper, make_local_mapper
 from agent.runtime.types import AbsoluteFix
 from agent.slam.malloc import tune_malloc
-from drivers.child_process import child_connection, start_child, stop_child
+from drivers.child_process import child_connection, kill_child, start_child, stop_child
 from drivers.samples import Scan
 
 __all__ = ["ProcessMapper", "WorkerLost", "WorkerStopping"]
@@ -235,16 +235,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError, ValueError):
             stream.flush()
     os._exit(0)
-
-
-def _kill(process: subprocess.Popen[bytes], conn: multiprocessing.connection.Connection | None) -> None:
-    """Kill the child, wait for it (2 s at most) and close its connection."""
-    with contextlib.suppress(OSError):
-        process.kill()
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        process.wait(2.0)
-    if conn is not None:
-        conn.close()
 
 
 # -- the parent -----------------------------------------------------------------------------------------
@@ -545,7 +535,7 @@ class ProcessMapper:
         else:
             lost = "its final map had been taken out" if self._final_map else "no final map was asked of it"
             log.warning("%s: killing it (%s)", why, lost)
-        _kill(process, conn)
+        kill_child(process, conn)
 
     def _drop_child(self) -> None:
         """A child that died or stopped answering: killed if it is still there (asking it to stop is of no
@@ -554,7 +544,7 @@ class ProcessMapper:
         self._process = self._conn = None
         self._started = False
         if process is not None and process.poll() is None:
-            _kill(process, None)
+            kill_child(process)
         if conn is not None:
             conn.close()
 

@@ -415,42 +415,75 @@ def find_loop(
     if float(distance.min()) > reach:
         log.debug("node %d: no old node within %.1f m", j, reach)
         return None
+    search = _LoopSearch(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
     if config.hypotheses > 0 and not config.known_area_fallback:
-        return _find_loop_known(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach)
+        return _find_loop_known(search)
     # The coarse tests' lattices, one per window, are the known-area rule's too (the same windows, field
     # and search): handed on, not rebuilt.
     lattices: dict[int, Lattice] = {}
-    found = _find_loop_coarse(poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach, lattices)
+    found = _find_loop_coarse(search, lattices)
     known_travelled = travelled_m if known_area_travelled_m is None else known_area_travelled_m
     if found is None and config.hypotheses > 0 and known_travelled >= config.known_area_after_m:
-        known = _find_loop_known(
-            poses, hits, match_points, j, config, xy_m, yaw_rad, distance, reach, lattices
-        )
+        known = _find_loop_known(search, lattices)
         if known is not None:
             return replace(known, known_area=True)
     return found
 
 
+@dataclass(frozen=True, eq=False)
+class _LoopSearch:
+    """What :func:`find_loop`'s two searches (:func:`_find_loop_coarse`, :func:`_find_loop_known`) share:
+    node j's endpoints ``match_points`` (robot frame) against the old nodes' map (``poses``, ``hits``),
+    within ±``xy_m`` and ±``yaw_rad`` of node j's pose, in windows around the old nodes within ``reach``
+    of it (``distance``: each old node's)."""
+
+    poses: FloatArray
+    hits: list[FloatArray]
+    match_points: FloatArray
+    j: int
+    config: LoopClosureConfig
+    xy_m: float
+    yaw_rad: float
+    distance: FloatArray
+    reach: float
+
+    @property
+    def old_end(self) -> int:
+        """The newest node old enough to match against (``min_separation`` before j)."""
+        return self.j - self.config.min_separation
+
+    @property
+    def cap_m(self) -> float:
+        """The fine field's cap: the matcher's first bound or the truncation, and a cell."""
+        config = self.config
+        return max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
+
+    def windows(self) -> list[tuple[int, range]]:
+        """The old windows to search, nearest first: each centre node (:func:`candidate_nodes`) and the
+        window's nodes (:func:`window_nodes`)."""
+        config = self.config
+        centres = candidate_nodes(
+            self.poses, self.distance, self.old_end, self.reach, config.window_path_m, config.max_windows
+        )
+        return [(i, window_nodes(self.poses, i, self.old_end, config.window_path_m)) for i in centres]
+
+    def coarse(self, nodes: range) -> Lattice:
+        """The coarse lattice search against the window ``nodes`` (:func:`coarse_lattice`)."""
+        return coarse_lattice(
+            self.poses, self.hits, self.match_points, self.j, nodes, self.config, self.xy_m, self.yaw_rad
+        )
+
+
 def _find_loop_coarse(
-    poses: FloatArray,
-    hits: list[FloatArray],
-    match_points: FloatArray,
-    j: int,
-    config: LoopClosureConfig,
-    xy_m: float,
-    yaw_rad: float,
-    distance: FloatArray,
-    reach: float,
-    lattices: dict[int, Lattice] | None = None,
+    search: _LoopSearch, lattices: dict[int, Lattice] | None = None
 ) -> LoopConstraint | None:
     """:func:`find_loop`'s coarse tests: the least coarse cost among the windows whose best is
     unambiguous (``max_ambiguity``), refined, with ``min_inlier_fraction`` of the endpoints on the old
     walls. ``lattices``: where given, each window's coarse lattice is stored in it by its centre node."""
-    old_end = j - config.min_separation
+    poses, j, config = search.poses, search.j, search.config
     best: tuple[float, int, range, FloatArray] | None = None
-    for i in candidate_nodes(poses, distance, old_end, reach, config.window_path_m, config.max_windows):
-        nodes = window_nodes(poses, i, old_end, config.window_path_m)
-        coarse = coarse_lattice(poses, hits, match_points, j, nodes, config, xy_m, yaw_rad)
+    for i, nodes in search.windows():
+        coarse = search.coarse(nodes)
         if lattices is not None:
             lattices[i] = coarse
         found = coarse_best(coarse, poses[j], j, i, config)
@@ -459,9 +492,8 @@ def _find_loop_coarse(
     if best is None:
         return None
     _cost, i, nodes, start = best
-    cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
-    old = old_map_field(poses, hits, nodes, config.resolution_m, cap)
-    refined = _refine(old, match_points, start, config)
+    old = old_map_field(poses, search.hits, nodes, config.resolution_m, search.cap_m)
+    refined = _refine(old, search.match_points, start, config)
     fraction = float(refined.inlier_fraction[0])
     if not refined.ok[0] or fraction < config.min_inlier_fraction:
         log.debug("node %d vs %d: %.2f of the endpoints on the old map", j, i, fraction)
@@ -622,30 +654,20 @@ class _Hypothesis:
 
 
 def _find_loop_known(
-    poses: FloatArray,
-    hits: list[FloatArray],
-    match_points: FloatArray,
-    j: int,
-    config: LoopClosureConfig,
-    xy_m: float,
-    yaw_rad: float,
-    distance: FloatArray,
-    reach: float,
-    lattices: dict[int, Lattice] | None = None,
+    search: _LoopSearch, lattices: dict[int, Lattice] | None = None
 ) -> LoopConstraint | None:
     """:func:`find_loop` with ``config.hypotheses`` > 0: every window's best distinct coarse poses
     refined, and judged over the old window's known area (``LoopClosureConfig.hypotheses``).
     ``lattices``: the coarse tests' lattices by window centre (:func:`_find_loop_coarse`), used where
     present instead of searching again."""
-    old_end = j - config.min_separation
-    cap = max(config.truncate_m, config.matcher.stages[0][0]) + config.resolution_m
+    poses, hits, match_points, j = search.poses, search.hits, search.match_points, search.j
+    config, old_end, cap = search.config, search.old_end, search.cap_m
     inlier_m = config.matcher.stages[-1][0]
     refined: list[_Hypothesis] = []
-    for i in candidate_nodes(poses, distance, old_end, reach, config.window_path_m, config.max_windows):
-        nodes = window_nodes(poses, i, old_end, config.window_path_m)
+    for i, nodes in search.windows():
         coarse = lattices.get(i) if lattices is not None else None
         if coarse is None:
-            coarse = coarse_lattice(poses, hits, match_points, j, nodes, config, xy_m, yaw_rad)
+            coarse = search.coarse(nodes)
         old = old_map_field(poses, hits, nodes, config.resolution_m, cap, cover_poses=True)
         known = known_cells(poses, hits, nodes, old)
         minima = distinct_minima(coarse, config.hypotheses, config.distinct_xy_m, config.distinct_yaw_rad)
@@ -677,8 +699,8 @@ def _find_loop_known(
         )
         return None
     offset = best.pose - poses[j]
-    prior_chi2 = (offset[0] ** 2 + offset[1] ** 2) / (xy_m / 3.0) ** 2 + (
-        wrap_angle(float(offset[2])) / (yaw_rad / 3.0)
+    prior_chi2 = (offset[0] ** 2 + offset[1] ** 2) / (search.xy_m / 3.0) ** 2 + (
+        wrap_angle(float(offset[2])) / (search.yaw_rad / 3.0)
     ) ** 2
     if prior_chi2 > config.prior_chi2:
         log.debug(
@@ -885,21 +907,21 @@ def judge_loop(
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_after = sum(loop_residual_chi2(result.poses, c, config) > config.accept_chi2 for c in loops)
-    bad_before = 0
+    # The graph without the candidate, for the loops it already left off: counted only where the verdict
+    # turns on that count (with no loop off after, none can be more off than before); None: not computed.
+    bad_before: int | None = None
     if residual <= config.accept_chi2 and bad_after > 0:
-        # The graph without the candidate, for the loops it already left off: only where the verdict
-        # turns on that count (with no loop off after, none can be more off than before).
         before = optimize_graph(
             poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
         )
         bad_before = sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
-    if residual > config.accept_chi2 or bad_after > bad_before:
+    if residual > config.accept_chi2 or (bad_before is not None and bad_after > bad_before):
         log.debug(
-            "loop %d -> %d: inconsistent (chi2 %.1f, %d -> %d loops off)",
+            "loop %d -> %d: inconsistent (chi2 %.1f, loops off: %s before it, %d with it)",
             candidate.i,
             candidate.j,
             residual,
-            bad_before,
+            "not computed" if bad_before is None else bad_before,
             bad_after,
         )
         return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)

@@ -17,7 +17,9 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import pytest
@@ -38,6 +40,29 @@ def assert_stopped_in_time(summary: dict[str, object], stderr: str) -> None:
     overruns = ("did not stop in time", "did not finish writing", "did not stop; killing it", "of the stop")
     for overrun in overruns:
         assert overrun not in stderr, stderr[-2000:]
+
+
+def stop_agent(
+    proc: subprocess.Popen[str], reader: PtyReader, signum: int, ready: Callable[[], None]
+) -> tuple[dict[str, Any], str, bytes]:
+    """Once ``ready()`` returns (the agent is where the test stops it), send ``signum`` and wait for the
+    agent to exit (``HANG_S`` at most; on a hang or a failed wait it is killed), its pty closed either
+    way; then it exited 0, without a traceback, and the stop was in time (:func:`assert_stopped_in_time`).
+    Returns its JSON summary, its stderr and what it wrote to the pty."""
+    try:
+        ready()
+        proc.send_signal(signum)
+        stdout, stderr = proc.communicate(timeout=HANG_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        data = reader.close()
+    assert proc.returncode == 0, stderr[-2000:]
+    assert "Traceback" not in stderr
+    summary = json.loads(stdout)
+    assert_stopped_in_time(summary, stderr)
+    return summary, stderr, data
 
 
 def wait_for_frames(
@@ -81,20 +106,10 @@ def test_sim_stops_within_two_seconds_with_its_files_intact(tmp_path: Path, sign
         text=True,
         cwd=REPO,
     )
-    try:
-        # Long enough for SLAM to make its first filter updates (a map to write) at 0.18 m/s.
-        wait_for_frames(reader, proc, 7 * 25, timeout_s=120.0, slam=True)
-        proc.send_signal(signum)
-        stdout, stderr = proc.communicate(timeout=HANG_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        data = reader.close()
-    assert proc.returncode == 0, stderr[-2000:]
-    assert "Traceback" not in stderr
-    summary = json.loads(stdout)
-    assert_stopped_in_time(summary, stderr)
+    # Long enough for SLAM to make its first filter updates (a map to write) at 0.18 m/s.
+    summary, _, data = stop_agent(
+        proc, reader, signum, lambda: wait_for_frames(reader, proc, 7 * 25, timeout_s=120.0, slam=True)
+    )
     assert set(summary["files"]) == {"map_yaml", "map_pgm", "map_png", "trajectory_png", "truth_csv"}
     for key in ("map_png", "trajectory_png"):
         image = cv2.imread(summary["files"][key])
@@ -127,18 +142,7 @@ def test_run_stops_within_two_seconds(tmp_path: Path) -> None:
         text=True,
         cwd=REPO,
     )
-    try:
-        wait_for_frames(reader, proc, 60)
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=HANG_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        reader.close()
-    assert proc.returncode == 0, stderr[-2000:]
-    summary = json.loads(stdout)
-    assert_stopped_in_time(summary, stderr)
+    summary, _, _ = stop_agent(proc, reader, signal.SIGTERM, lambda: wait_for_frames(reader, proc, 60))
     assert summary["counts"]["fixes_fused"] > 0
     assert all(d["ok"] for d in summary["devices"].values())
 
@@ -158,6 +162,14 @@ def test_sim_stops_a_slam_process_busy_in_a_long_update_and_saves_its_map(tmp_pa
         "from agent.cli import main; sys.exit(main())"
     )
     args = vlp_agent("sim", "--seconds", "300", "--json", "-v", "--out", str(out), "--output", reader.path)
+
+    def until_busy() -> None:
+        deadline = time.monotonic() + 120.0
+        while not busy.exists():
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+            assert time.monotonic() < deadline, "the SLAM process never got busy"
+            time.sleep(0.1)
+
     proc = subprocess.Popen(
         [args[0], "-c", patched, *args[3:]],
         stdout=subprocess.PIPE,
@@ -166,23 +178,7 @@ def test_sim_stops_a_slam_process_busy_in_a_long_update_and_saves_its_map(tmp_pa
         cwd=REPO,
         env={**os.environ, "VLP_TEST_SLAM_BUSY": str(busy)},
     )
-    try:
-        deadline = time.monotonic() + 120.0
-        while not busy.exists():
-            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-            assert time.monotonic() < deadline, "the SLAM process never got busy"
-            time.sleep(0.1)
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=HANG_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        reader.close()
-    assert proc.returncode == 0, stderr[-2000:]
-    assert "Traceback" not in stderr
-    summary = json.loads(stdout)
-    assert_stopped_in_time(summary, stderr)
+    summary, stderr, _ = stop_agent(proc, reader, signal.SIGTERM, until_busy)
     assert "left its filter update unfinished for the stop" in stderr, stderr[-3000:]
     assert "SLAM process stopped (exit status 0)" in stderr, stderr[-3000:]
     assert "killing it" not in stderr

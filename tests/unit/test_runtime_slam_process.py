@@ -3,6 +3,7 @@ filter in the agent's process, and the agent carrying on when the process dies."
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -194,27 +195,34 @@ def test_a_replaced_slam_process_continues_the_last_saved_map(run, monkeypatch, 
     assert len(occupied(saved) & occupied(after)) > 0.95 * len(occupied(saved))
 
 
+@contextlib.contextmanager
 def _busy(run, monkeypatch, tmp_path, stuck: bool):  # type: ignore[no-untyped-def]
     """A SLAM process (tests/busy_slam_worker.py) past its first filter update, and a thread whose update
-    it is busy in (the file it touches says it is in that update)."""
+    it is busy in (the file it touches says it is in that update): yields the mapper, its process, the
+    thread and the thread's steps; closes the mapper on the way out (the test's stop, or a failure's)."""
     scans, start, mount, _ = run
     busy = tmp_path / "busy"
     monkeypatch.setenv("VLP_TEST_SLAM_BUSY", str(busy))
     monkeypatch.setenv("VLP_TEST_SLAM_STUCK", "1" if stuck else "0")
     monkeypatch.setattr(ProcessMapper, "worker_module", "tests.busy_slam_worker")
     mapper = ProcessMapper(SlamConfig(seed=4), mount, lambda t_ns: start)
-    k = 0
-    while mapper.counters().get("filter_updates", 0) < 1:
-        assert mapper.update(*scans[k]).kind != "rejected"
-        k += 1
-    steps: list[MapperStep] = []
-    thread = threading.Thread(target=lambda: steps.append(mapper.update(*scans[k])), daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60.0  # a hang guard, not a timing: the process gets there at any load
-    while not busy.exists():
-        assert time.monotonic() < deadline and thread.is_alive()
-        time.sleep(0.05)
-    return mapper, thread, steps
+    try:
+        k = 0
+        while mapper.counters().get("filter_updates", 0) < 1:
+            assert mapper.update(*scans[k]).kind != "rejected"
+            k += 1
+        steps: list[MapperStep] = []
+        thread = threading.Thread(target=lambda: steps.append(mapper.update(*scans[k])), daemon=True)
+        thread.start()
+        deadline = time.monotonic() + 60.0  # a hang guard, not a timing: the process gets there at any load
+        while not busy.exists():
+            assert time.monotonic() < deadline and thread.is_alive()
+            time.sleep(0.05)
+        process = mapper._process
+        assert process is not None
+        yield mapper, process, thread, steps
+    finally:
+        mapper.close()
 
 
 def test_a_slam_process_busy_in_a_long_update_leaves_it_at_the_stop_and_hands_over_its_map(
@@ -224,10 +232,7 @@ def test_a_slam_process_busy_in_a_long_update_leaves_it_at_the_stop_and_hands_ov
     wait ends at once (its scan rejected, not an error), the final map and trajectory are answered, and
     the process exits by itself when the agent hangs up. (The bounds are hang guards, not timings.)"""
     caplog.set_level(logging.INFO, logger="agent.runtime.slam_worker")
-    mapper, thread, steps = _busy(run, monkeypatch, tmp_path, stuck=False)
-    process = mapper._process
-    assert process is not None
-    try:
+    with _busy(run, monkeypatch, tmp_path, stuck=False) as (mapper, process, thread, steps):
         mapper.begin_stop(grace_s=60.0)
         thread.join(60.0)
         assert not thread.is_alive()
@@ -237,8 +242,6 @@ def test_a_slam_process_busy_in_a_long_update_leaves_it_at_the_stop_and_hands_ov
         assert mapper.trajectory().shape[0] >= 1
         # No scan reaches the filter any more, and no new process is started for one.
         assert mapper.update(*run[0][-1]).kind == "rejected"
-    finally:
-        mapper.close()
     assert process.returncode == 0  # it exited at the hang-up: not killed
     messages = [r.getMessage() for r in caplog.records]
     assert any("left its filter update unfinished" in m for m in messages), messages
@@ -253,16 +256,11 @@ def test_a_slam_process_that_does_not_answer_the_stop_is_killed_at_the_deadline_
     """A filter stuck in one long computation (no give_way) cannot leave it: the SLAM thread's wait still
     ends at once; the final map is waited for until the stop's deadline, then the process is killed, and
     the log says the final map was not taken out."""
-    mapper, thread, steps = _busy(run, monkeypatch, tmp_path, stuck=True)
-    process = mapper._process
-    assert process is not None
-    try:
+    with _busy(run, monkeypatch, tmp_path, stuck=True) as (mapper, process, thread, steps):
         mapper.begin_stop(grace_s=1.0)
         thread.join(60.0)
         assert not thread.is_alive() and steps[0].kind == "rejected"
         assert mapper.map_image() is None
-    finally:
-        mapper.close()
     assert process.returncode == -signal.SIGKILL
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert any("within 1 s of the stop" in m and "final map was not taken out" in m for m in errors), errors
@@ -274,12 +272,9 @@ def test_a_slam_process_that_does_not_exit_after_the_hang_up_is_killed_and_the_l
     """No final map asked for (no map folder, localization): at the hang-up a process stuck in an update
     has until the stop's deadline (at least 2 s) to exit; then it is killed, with a warning that no final
     map was asked of it (nothing lost), not an error."""
-    mapper, thread, _ = _busy(run, monkeypatch, tmp_path, stuck=True)
-    process = mapper._process
-    assert process is not None
-    mapper.begin_stop(grace_s=0.5)
-    thread.join(60.0)
-    mapper.close()
+    with _busy(run, monkeypatch, tmp_path, stuck=True) as (mapper, process, thread, _):
+        mapper.begin_stop(grace_s=0.5)
+        thread.join(60.0)
     assert process.returncode == -signal.SIGKILL
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("had not exited" in m and "no final map was asked of it" in m for m in warnings), warnings

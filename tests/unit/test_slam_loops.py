@@ -3,6 +3,7 @@ against the map of old nodes (agent.slam.loops)."""
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 
@@ -390,7 +391,9 @@ def test_a_revisit_the_graph_already_agrees_with_changes_nothing() -> None:
     assert judgement.verdict is Verdict.AGREES and judgement.result is None
 
 
-def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected() -> None:
+def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     truth = chain_poses(np.zeros(3), _square())
     n = truth.shape[0]
     motions = _true_motions(truth)
@@ -402,9 +405,14 @@ def test_a_link_that_contradicts_the_graph_and_its_loops_is_rejected() -> None:
     # and the graph still will not take them.
     again = compose(compose(between(truth[6], truth[5]), wrong.z), between(truth[30], truth[31]))
     partner = LoopConstraint(6, 31, again, 0.9)
+    caplog.set_level(logging.DEBUG, logger="agent.slam.loops")
     judgement = judge_loop(truth, hits, motions, loops, wrong, config, pending=[partner])
     assert judgement.verdict is Verdict.INCONSISTENT
     assert judgement.residual_chi2 > config.accept_chi2
+    # Rejected on its own residual: the loops off the graph without it were not counted, and the log
+    # does not say there were none.
+    inconsistent = [r.getMessage() for r in caplog.records if "inconsistent" in r.getMessage()]
+    assert len(inconsistent) == 1 and "loops off: not computed before it" in inconsistent[0], inconsistent
 
 
 def test_a_lone_link_that_slid_is_not_confirmed_by_one_that_did_not() -> None:
