@@ -976,7 +976,18 @@ class MeanShiftTracker:
         z_t = (ev.rho_texture - rho_t) / noise_t
         z_c = (ev.rho_colour - rho_c) / noise_c
         threshold = cfg.select_off if self._texture_on else cfg.select_on
-        return z_t >= threshold and z_t > z_c
+        if not (z_t >= threshold and z_t > z_c):
+            return False
+        # And texture must be able to decide: at the exponents it would get (on's, a and b, below),
+        # its evidence for the target over the distractor, b log(rho_t / rho_t'), at least colour's
+        # either way, a |log(rho_c / rho_c')| (while on: half of it, the hysteresis again).
+        d_c, d_t = 1.0 - rho_c, 1.0 - rho_t
+        top = max(d_c, d_t, 1e-9)
+        a = max(d_c / top, cfg.min_feature_weight)
+        b = max(d_t / top, cfg.min_feature_weight)
+        e_t = b * math.log(max(ev.rho_texture, 1e-9) / max(rho_t, 1e-9))
+        e_c = a * abs(math.log(max(ev.rho_colour, 1e-9) / max(rho_c, 1e-9)))
+        return e_t >= (cfg.select_off / cfg.select_on if self._texture_on else 1.0) * e_c
 
     def _learn_feature_match(self, ev: _Evaluation) -> None:
         """The target's own colour and texture matches on a confident tracking frame: running means and
