@@ -32,6 +32,9 @@ Additions, each a standard one:
   ``rho_ref``.
 * Model update: ``q <- (1 - update_rate) q + update_rate p(y)`` only when ``rho`` is at least
   ``update_ratio`` times ``rho_ref``: slow, and never on an occluder.
+* Feature weights (``rho = rho_c^a * rho_t^b``) and feature selection (``texture_weighting=select``, the
+  default): texture's exponent is exactly 0, and the full tracker computes exactly what the colour-only
+  one does, unless texture measurably tells the target from a look-alike where colour does not.
 
 Images are BGR ``uint8`` (H, W, 3), as OpenCV reads them; boxes are ``(x, y, w, h)`` floats, top-left
 corner and size in pixels, 0-based. Only a window around the target is quantised and LBP-labelled each
@@ -158,7 +161,7 @@ class TrackerConfig:
     background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
     min_feature_weight: float = 0.5  # floor of a and b (of a only with texture_weighting=distractor)
-    texture_weighting: TextureWeighting = TextureWeighting.DISTRACTOR
+    texture_weighting: TextureWeighting = TextureWeighting.SELECT
     # distractor weighting: a neighbour (the box moved by distractor_offset box sizes, 8 directions) is a
     # distractor when its rho_colour is at least distractor_ratio times the target's; with none, a and b
     # relax toward the ring's by distractor_forget per confident tracking frame.
@@ -891,6 +894,13 @@ class MeanShiftTracker:
         the target, whom the neighbours no longer see) change nothing. Possegger, Mauthner, Bischof, "In
         defense of color-based model-free tracking" (CVPR 2015) and Zhu et al.'s DaSiamRPN (ECCV 2018)
         likewise weigh against distractors, not only the background.
+
+        ``TextureWeighting.SELECT`` (feature selection, the default) is the same with texture exactly
+        off, exponents (1, 0), wherever it carries no information: a distractor counts only when texture
+        tells it from the target where colour does not (``_texture_informative``), the weights relax to
+        (1, 0) (snapped there once within 0.02), and the ring turns texture on only where it separates
+        the target from its surroundings at least as well as colour. With texture off the tracker
+        computes exactly what the colour-only tracker does (``_evaluate``).
 
         ``rho_ref`` is rescaled to the new exponents (the target's match under them), so a change of
         weights is not taken for an occlusion."""

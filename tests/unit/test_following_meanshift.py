@@ -53,8 +53,7 @@ def test_distractor_weighting_gives_texture_its_say_only_near_a_look_alike() -> 
     beside the target it is at least the floor, and the target is held through the crossing."""
     frames = list(crossing_sequence(CrossingScene(seed=0)))
     truth = np.array([box for _, box in frames])
-    config = TrackerConfig()
-    assert config.texture_weighting is TextureWeighting.DISTRACTOR  # the default
+    config = TrackerConfig(texture_weighting=TextureWeighting.DISTRACTOR)
     tracker = MeanShiftTracker(config)
     tracker.start(*frames[0])
     weights = [tracker.feature_weights]
@@ -85,7 +84,13 @@ def test_the_near_ring_counts_a_neighbour_overlapping_the_target() -> None:
     floor = TrackerConfig().min_feature_weight
     texture = {}
     for near, ratio in ((0.5, 1.0), (0.5, 0.5), (0.0, 0.5)):
-        tracker = MeanShiftTracker(TrackerConfig(distractor_near=near, distractor_near_ratio=ratio))
+        tracker = MeanShiftTracker(
+            TrackerConfig(
+                texture_weighting=TextureWeighting.DISTRACTOR,
+                distractor_near=near,
+                distractor_near_ratio=ratio,
+            )
+        )
         tracker.start(image, box)
         texture[near, ratio] = tracker.feature_weights[1]
     assert texture[0.5, 1.0] < floor
@@ -122,7 +127,8 @@ def test_feature_selection_turns_texture_on_for_the_look_alike(seed: int) -> Non
     ``test_texture_holds_the_target_where_colour_follows_the_passer_by``)."""
     frames = list(crossing_sequence(CrossingScene(seed=seed)))
     truth = np.array([box for _, box in frames])
-    config = TrackerConfig(texture_weighting=TextureWeighting.SELECT)
+    config = TrackerConfig()
+    assert config.texture_weighting is TextureWeighting.SELECT  # the default
     tracker = MeanShiftTracker(config)
     tracker.start(*frames[0])
     texture = [tracker.feature_weights[1]]
