@@ -769,7 +769,12 @@ class MeanShiftTracker:
         return self._window(frame, (lo + hi) / 2.0, hi - lo)
 
     def _kernel(self, size: FloatArray) -> _Kernel:
-        hx, hy = max(1.0, size[0] / 2.0), max(1.0, size[1] / 2.0)
+        # The half-axes to a quarter pixel, and the kernel built from those, not from the exact size: a
+        # cached kernel is then a function of its key alone, whatever size first built it and whenever
+        # the cache was last cleared (the full tracker asks for kernels the colour-only one does not, and
+        # with b = 0 the two must compute the same).
+        hx = max(4, round(max(1.0, size[0] / 2.0) * 4)) / 4.0
+        hy = max(4, round(max(1.0, size[1] / 2.0) * 4)) / 4.0
         area = math.pi * hx * hy
         step = max(1, round(math.sqrt(area / self.config.max_pixels)))
         key = (round(hx * 4), round(hy * 4), step)
