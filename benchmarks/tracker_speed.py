@@ -42,6 +42,7 @@ from agent.following.meanshift import (
     MeanShiftTracker,
     ScaleSearch,
     Silhouette,
+    TextureWeighting,
     TrackerConfig,
     Translation,
 )
@@ -60,7 +61,12 @@ def _ms(samples: list[float]) -> dict[str, float]:
 
 
 def tracker_case(
-    size: tuple[int, int], silhouette: Silhouette, frames: int, scale: ScaleSearch, translation: Translation
+    size: tuple[int, int],
+    silhouette: Silhouette,
+    frames: int,
+    scale: ScaleSearch,
+    translation: Translation,
+    texture: TextureWeighting = TextureWeighting.SELECT,
 ) -> dict[str, object]:
     scene = CrossingScene(
         width_px=640,
@@ -83,7 +89,11 @@ def tracker_case(
     for features in Features:
         tracker = MeanShiftTracker(
             TrackerConfig(
-                features=features, silhouette=silhouette, scale_search=scale, translation=translation
+                features=features,
+                silhouette=silhouette,
+                scale_search=scale,
+                translation=translation,
+                texture_weighting=texture,
             )
         )
         tracker.start(sequence[0][0], sequence[0][1])
@@ -190,7 +200,12 @@ def rendered_frames(frames: int) -> list[np.ndarray]:
     return out
 
 
-def fine_layer_case(frames: int, scale: ScaleSearch, translation: Translation) -> dict[str, object]:
+def fine_layer_case(
+    frames: int,
+    scale: ScaleSearch,
+    translation: Translation,
+    texture: TextureWeighting = TextureWeighting.SELECT,
+) -> dict[str, object]:
     """The fine layer as ``eval follow`` runs it (HSV colour, Omega silhouette, the omega pre-locator
     correcting the box every 3 frames) on rendered frames: per frame, the tracker alone and the whole layer
     (pre-locator frames included), with this thread's CPU time beside the wall time."""
@@ -216,6 +231,7 @@ def fine_layer_case(frames: int, scale: ScaleSearch, translation: Translation) -
                 colour_space=ColourSpace.HSV,
                 scale_search=scale,
                 translation=translation,
+                texture_weighting=texture,
             )
         )
         layer = FineLayer(HeadShoulderLocator(PreLocatorConfig(kind=LocatorKind.OMEGA)), config)
@@ -256,7 +272,14 @@ def main() -> None:
         default=TrackerConfig().translation.value,
         help="the trackers' translation (DSST's translation filter; place needs --scale-search ladder)",
     )
+    parser.add_argument(
+        "--texture-weighting",
+        choices=[t.value for t in TextureWeighting],
+        default=TrackerConfig().texture_weighting.value,
+        help="the full tracker's texture_weighting (select: feature selection; default: TrackerConfig's)",
+    )
     args = parser.parse_args()
+    texture = TextureWeighting(args.texture_weighting)
     scale = ScaleSearch(args.scale_search)
     translation = Translation(args.translation)
     cv2.setNumThreads(1)
@@ -265,9 +288,14 @@ def main() -> None:
         "budget_ms": {"tracker_median": 5.0, "prelocator": 30.0},
         "scale_search": scale.value,
         "translation": translation.value,
-        "tracker_body": tracker_case((120, 300), Silhouette.ELLIPSE, args.frames, scale, translation),
-        "tracker_head_shoulder": tracker_case((160, 160), Silhouette.OMEGA, args.frames, scale, translation),
-        "fine_layer_rendered": fine_layer_case(args.frames, scale, translation),
+        "texture_weighting": texture.value,
+        "tracker_body": tracker_case(
+            (120, 300), Silhouette.ELLIPSE, args.frames, scale, translation, texture
+        ),
+        "tracker_head_shoulder": tracker_case(
+            (160, 160), Silhouette.OMEGA, args.frames, scale, translation, texture
+        ),
+        "fine_layer_rendered": fine_layer_case(args.frames, scale, translation, texture),
         "prelocator": prelocator_case(args.repeats),
     }
     print(json.dumps(result, indent=2))

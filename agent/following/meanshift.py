@@ -32,6 +32,9 @@ Additions, each a standard one:
   ``rho_ref``.
 * Model update: ``q <- (1 - update_rate) q + update_rate p(y)`` only when ``rho`` is at least
   ``update_ratio`` times ``rho_ref``: slow, and never on an occluder.
+* Feature weights (``rho = rho_c^a * rho_t^b``) and feature selection (``texture_weighting=select``, the
+  default): texture's exponent is exactly 0, and the full tracker computes exactly what the colour-only
+  one does, unless texture measurably tells the target from a look-alike where colour does not.
 
 Images are BGR ``uint8`` (H, W, 3), as OpenCV reads them; boxes are ``(x, y, w, h)`` floats, top-left
 corner and size in pixels, 0-based. Only a window around the target is quantised and LBP-labelled each
@@ -110,6 +113,11 @@ class TextureWeighting(enum.StrEnum):
     # target. With one, each feature counts by how well it tells the target from it (at least
     # min_feature_weight); with none, the weights relax to the ring's, texture unfloored.
     DISTRACTOR = "distractor"
+    # Feature selection: texture's exponent is exactly 0 (the tracker then computes what colour-only
+    # does) unless texture measurably tells the target from a distractor found as above (its texture
+    # match under the target's own running match by select_on noise levels; off again under
+    # select_off), or tells the target from its ring better than colour does.
+    SELECT = "select"
 
 
 class ScaleSearch(enum.StrEnum):
@@ -153,7 +161,7 @@ class TrackerConfig:
     background_every: int = 1  # model updates between looks at the background ring (1: every update)
     adaptive_weights: bool = True  # rho = rho_c^a * rho_t^b, a and b from how each feature stands out
     min_feature_weight: float = 0.5  # floor of a and b (of a only with texture_weighting=distractor)
-    texture_weighting: TextureWeighting = TextureWeighting.DISTRACTOR
+    texture_weighting: TextureWeighting = TextureWeighting.SELECT
     # distractor weighting: a neighbour (the box moved by distractor_offset box sizes, 8 directions) is a
     # distractor when its rho_colour is at least distractor_ratio times the target's; with none, a and b
     # relax toward the ring's by distractor_forget per confident tracking frame.
@@ -166,6 +174,13 @@ class TrackerConfig:
     # distractor_near = 0 turns this off.
     distractor_near: float = 0.5
     distractor_near_ratio: float = 1.0
+    # texture_weighting=select: texture switches on when a distractor's texture match lies select_on
+    # noise levels under the target's running match (the noise: the running deviation of the target's
+    # own match, at least the sampling mismatch of the kernel's histogram), and stays on while it lies
+    # select_off under; the running match needs select_samples confident frames first.
+    select_on: float = 3.0
+    select_off: float = 1.5
+    select_samples: int = 5
     max_iterations: int = 12
     epsilon_px: float = 0.5  # converged when a step is shorter
     max_pixels: int = 2500  # kernel samples per evaluation; bigger boxes are sampled on a grid
@@ -226,6 +241,8 @@ class TrackerConfig:
             raise ValueError("translation_confidence must be at least 0")
         if self.translation == Translation.PLACE and self.scale_search != ScaleSearch.LADDER:
             raise ValueError("translation=place places the scale ladder: it needs scale_search=ladder")
+        if not (0.0 <= self.select_off <= self.select_on and self.select_samples >= 1):
+            raise ValueError("need 0 <= select_off <= select_on and select_samples >= 1")
         if self.background_every < 1:
             raise ValueError("background_every must be at least 1")
         if not 0.0 < self.occlusion_ratio <= self.reacquire_ratio <= 1.0:
@@ -329,10 +346,15 @@ class MeanShiftTracker:
         self._levels = self.config.colour_levels
         self._bins = self._levels**3
         self._texture = self.config.features == Features.FULL
+        self._select = (
+            self._texture
+            and self.config.adaptive_weights
+            and self.config.texture_weighting == TextureWeighting.SELECT
+        )
         self._distractor_weighting = (
             self._texture
             and self.config.adaptive_weights
-            and self.config.texture_weighting == TextureWeighting.DISTRACTOR
+            and self.config.texture_weighting in (TextureWeighting.DISTRACTOR, TextureWeighting.SELECT)
         )
         riu2 = self.config.lbp_mapping == LbpMapping.RIU2
         self._lut = RIU2_LUT if riu2 else U2_LUT
@@ -350,6 +372,10 @@ class MeanShiftTracker:
         self._rho_ref = 1.0
         self._exponents = (1.0, 1.0)  # a, b in rho = rho_c^a * rho_t^b
         self._ring_exponents = (1.0, 0.0)  # distractor weighting: the exponents with no distractor near
+        # Feature selection (texture_weighting=select): the target's own colour and texture matches on
+        # confident tracking frames: running means and mean square deviations, and their count.
+        self._feature_match: tuple[float, float, float, float, int] = (1.0, 0.0, 1.0, 0.0, 0)
+        self._texture_on = False
         self._colour_factor = np.ones(self._bins)  # the background weighting of the colour bins
         self._updates = 0
         self._ladder: ScaleFilter | None = None
@@ -403,6 +429,10 @@ class MeanShiftTracker:
             # Learnt at the start box: the target as given, not the colour model's mode.
             self._translation = TranslationFilter(self.config.translation_filter_config())
             self._translation.start(frame, self._centre, self._size)
+        self._feature_match = (1.0, 0.0, 1.0, 0.0, 0)
+        self._texture_on = False
+        if self._select:
+            self._ring_exponents = (1.0, 0.0)
         if self._distractor_weighting:
             self._exponents = self._ring_exponents
         self._rho_ref = 1.0
@@ -647,7 +677,7 @@ class MeanShiftTracker:
 
     def _similarity(self, counts: tuple[FloatArray, ...]) -> float:
         rho = float(_bhattacharyya(counts[0], self._q_colour) ** self._exponents[0])
-        if len(counts) > 1:
+        if len(counts) > 1 and self._exponents[1] != 0.0:
             rho *= float(_bhattacharyya(counts[1], self._q_texture) ** self._exponents[1])
         return rho
 
@@ -739,7 +769,12 @@ class MeanShiftTracker:
         return self._window(frame, (lo + hi) / 2.0, hi - lo)
 
     def _kernel(self, size: FloatArray) -> _Kernel:
-        hx, hy = max(1.0, size[0] / 2.0), max(1.0, size[1] / 2.0)
+        # The half-axes to a quarter pixel, and the kernel built from those, not from the exact size: a
+        # cached kernel is then a function of its key alone, whatever size first built it and whenever
+        # the cache was last cleared (the full tracker asks for kernels the colour-only one does not, and
+        # with b = 0 the two must compute the same).
+        hx = max(4, round(max(1.0, size[0] / 2.0) * 4)) / 4.0
+        hy = max(4, round(max(1.0, size[1] / 2.0) * 4)) / 4.0
         area = math.pi * hx * hy
         step = max(1, round(math.sqrt(area / self.config.max_pixels)))
         key = (round(hx * 4), round(hy * 4), step)
@@ -800,6 +835,10 @@ class MeanShiftTracker:
         # eq. 12, the gradient of rho_c * rho_t, generalised to rho_c^a * rho_t^b (the feature weights,
         # 1 and 1 in the paper): a w_c / rho_c + b w_t / rho_t, up to a positive factor.
         a, b = self._exponents
+        if b == 0.0:
+            # Texture off (feature selection): exactly the colour-only tracker's weights and, for a = 1,
+            # its rho (a positive factor on the weights does not move their mean).
+            return _Evaluation(rho_c**a, rho_c, rho_t, p_colour, p_texture, w_colour, x, y)
         weights = a * w_colour / max(rho_c, 1e-9) + b * ratio_t[texture_labels] / max(rho_t, 1e-9)
         rho = rho_c**a * rho_t**b
         return _Evaluation(rho, rho_c, rho_t, p_colour, p_texture, weights, x, y)
@@ -822,7 +861,11 @@ class MeanShiftTracker:
                 d_t = 1.0 - _bhattacharyya(bg_texture, _normalised(self._q_texture_raw))
                 top = max(d_c, d_t)
                 a, b = (d_c / top, d_t / top) if top > 1e-6 else (1.0, 1.0)
-                if self._distractor_weighting:
+                if self._select:
+                    # Texture on from the ring only where it tells the target from its surroundings
+                    # at least as well as colour (b = 1); else exactly off.
+                    self._ring_exponents = (max(a, cfg.min_feature_weight), 1.0) if b >= 1.0 else (1.0, 0.0)
+                elif self._distractor_weighting:
                     # Unfloored: what the weights relax to while no distractor is near.
                     self._ring_exponents = (max(a, cfg.min_feature_weight), b)
                 else:
@@ -857,6 +900,13 @@ class MeanShiftTracker:
         defense of color-based model-free tracking" (CVPR 2015) and Zhu et al.'s DaSiamRPN (ECCV 2018)
         likewise weigh against distractors, not only the background.
 
+        ``TextureWeighting.SELECT`` (feature selection, the default) is the same with texture exactly
+        off, exponents (1, 0), wherever it carries no information: a distractor counts only when texture
+        tells it from the target where colour does not (``_texture_informative``), the weights relax to
+        (1, 0) (snapped there once within 0.02), and the ring turns texture on only where it separates
+        the target from its surroundings at least as well as colour. With texture off the tracker
+        computes exactly what the colour-only tracker does (``_evaluate``).
+
         ``rho_ref`` is rescaled to the new exponents (the target's match under them), so a change of
         weights is not taken for an occlusion."""
         texture = window.texture
@@ -886,29 +936,91 @@ class MeanShiftTracker:
                 if rho_c >= ratio * ev.rho_colour and (best is None or rho_c > best[0]):
                     best = (rho_c, rows, cols, k)
         a0, b0 = self._exponents
+        confident = ev.rho >= cfg.update_ratio * self._rho_ref
+        d_t = 0.0
         if best is not None:
             _, rows, cols, k = best
             p_texture = np.bincount(texture[rows, cols], weights=k, minlength=self._labels).astype(np.float64)
-            d_c = 1.0 - best[0]
             d_t = 1.0 - _bhattacharyya(p_texture, self._q_texture)
+            if self._select and not self._texture_informative(ev, best[0], 1.0 - d_t, kernel.k):
+                best = None  # texture does not tell the target from it: as if none were near
+        if self._select and confident:
+            self._learn_feature_match(ev)
+        if best is not None:
+            d_c = 1.0 - best[0]
             top = max(d_c, d_t)
             if top <= 1e-6:
                 return  # neither feature tells them apart: keep the weights
             a = max(d_c / top, cfg.min_feature_weight)
             b = max(d_t / top, cfg.min_feature_weight, self._ring_exponents[1])
-        elif ev.rho < cfg.update_ratio * self._rho_ref:
+            self._texture_on = self._select
+        elif not confident:
             return  # not a confident match (a passer-by over the target?): nothing learnt
         else:
             r = cfg.distractor_forget
             a_r, b_r = self._ring_exponents
             a, b = a0 + r * (a_r - a0), b0 + r * (b_r - b0)
-            if abs(a - a_r) + abs(b - b_r) < 1e-3:
+            # Feature selection snaps a texture on its way out to exactly off once its say is small
+            # (a 2 % exponent moves rho by well under 1 %).
+            snap = 0.02 if self._select else 1e-3
+            if abs(a - a_r) + abs(b - b_r) < snap:
                 a, b = a_r, b_r
+                self._texture_on = False
         if (a, b) == (a0, b0):
             return
         self._exponents = (a, b)
         rho_c, rho_t = max(ev.rho_colour, 1e-9), max(ev.rho_texture, 1e-9)
         self._rho_ref = max(self._rho_ref * rho_c ** (a - a0) * rho_t ** (b - b0), 1e-3)
+
+    def _texture_informative(self, ev: _Evaluation, rho_c: float, rho_t: float, k: FloatArray) -> bool:
+        """Feature selection: does texture tell the target (matching the model by ``ev``) from a
+        distractor (matching it by ``rho_c``, ``rho_t``) where colour does not? Each feature's margin,
+        the target's match less the distractor's, in units of its noise: the running deviation of the
+        target's own match on confident frames (for texture at least the mismatch two samples of one
+        texture show at the kernel's size, ``(labels - 1) / (4 n)``, ``n`` the kernel's effective sample
+        count: a Bhattacharyya coefficient's small-sample bias). Texture is informative when its margin
+        is at least ``select_on`` noise levels (``select_off`` while texture is on: hysteresis) and
+        larger than colour's."""
+        cfg = self.config
+        stats = self._feature_match
+        if stats[4] < cfg.select_samples:
+            return False
+        n = float(np.sum(k)) ** 2 / max(float(np.sum(k * k)), 1e-12)
+        noise_t = max(math.sqrt(stats[3]), (self._labels - 1) / (4.0 * max(n, 1.0)))
+        noise_c = max(math.sqrt(stats[1]), 1e-6)
+        z_t = (ev.rho_texture - rho_t) / noise_t
+        z_c = (ev.rho_colour - rho_c) / noise_c
+        threshold = cfg.select_off if self._texture_on else cfg.select_on
+        if not (z_t >= threshold and z_t > z_c):
+            return False
+        # And texture must be able to decide: at the exponents it would get (on's, a and b, below),
+        # its evidence for the target over the distractor, b log(rho_t / rho_t'), at least colour's
+        # either way, a |log(rho_c / rho_c')| (while on: half of it, the hysteresis again).
+        d_c, d_t = 1.0 - rho_c, 1.0 - rho_t
+        top = max(d_c, d_t, 1e-9)
+        a = max(d_c / top, cfg.min_feature_weight)
+        b = max(d_t / top, cfg.min_feature_weight)
+        e_t = b * math.log(max(ev.rho_texture, 1e-9) / max(rho_t, 1e-9))
+        e_c = a * abs(math.log(max(ev.rho_colour, 1e-9) / max(rho_c, 1e-9)))
+        return e_t >= (cfg.select_off / cfg.select_on if self._texture_on else 1.0) * e_c
+
+    def _learn_feature_match(self, ev: _Evaluation) -> None:
+        """The target's own colour and texture matches on a confident tracking frame: running means and
+        mean square deviations at ``rho_ref_rate`` (the first frame sets the means)."""
+        m_c, v_c, m_t, v_t, count = self._feature_match
+        x_c, x_t = ev.rho_colour, ev.rho_texture
+        if count == 0:
+            self._feature_match = (x_c, 0.0, x_t, 0.0, 1)
+            return
+        r = self.config.rho_ref_rate
+        d_c, d_t = x_c - m_c, x_t - m_t
+        self._feature_match = (
+            m_c + r * d_c,
+            (1.0 - r) * (v_c + r * d_c * d_c),
+            m_t + r * d_t,
+            (1.0 - r) * (v_t + r * d_t * d_t),
+            count + 1,
+        )
 
     def _reweight(self) -> None:
         """The models the candidates are compared with: the raw histograms, colour scaled by the last

@@ -53,8 +53,7 @@ def test_distractor_weighting_gives_texture_its_say_only_near_a_look_alike() -> 
     beside the target it is at least the floor, and the target is held through the crossing."""
     frames = list(crossing_sequence(CrossingScene(seed=0)))
     truth = np.array([box for _, box in frames])
-    config = TrackerConfig()
-    assert config.texture_weighting is TextureWeighting.DISTRACTOR  # the default
+    config = TrackerConfig(texture_weighting=TextureWeighting.DISTRACTOR)
     tracker = MeanShiftTracker(config)
     tracker.start(*frames[0])
     weights = [tracker.feature_weights]
@@ -85,12 +84,66 @@ def test_the_near_ring_counts_a_neighbour_overlapping_the_target() -> None:
     floor = TrackerConfig().min_feature_weight
     texture = {}
     for near, ratio in ((0.5, 1.0), (0.5, 0.5), (0.0, 0.5)):
-        tracker = MeanShiftTracker(TrackerConfig(distractor_near=near, distractor_near_ratio=ratio))
+        tracker = MeanShiftTracker(
+            TrackerConfig(
+                texture_weighting=TextureWeighting.DISTRACTOR,
+                distractor_near=near,
+                distractor_near_ratio=ratio,
+            )
+        )
         tracker.start(image, box)
         texture[near, ratio] = tracker.feature_weights[1]
     assert texture[0.5, 1.0] < floor
     assert texture[0.5, 0.5] >= floor
     assert texture[0.0, 0.5] == texture[0.5, 1.0]
+
+
+def test_feature_selection_without_a_look_alike_is_the_colour_only_tracker() -> None:
+    """``texture_weighting=select``: with no look-alike texture's exponent stays exactly 0 and the full
+    tracker computes exactly what colour-only does (the same boxes and rho, frame for frame): where
+    texture carries no information the two trackers tie."""
+    frames = list(crossing_sequence(CrossingScene(frames=30, passer=False, seed=1)))
+    full = MeanShiftTracker(TrackerConfig(texture_weighting=TextureWeighting.SELECT))
+    colour = MeanShiftTracker(TrackerConfig(features=Features.COLOUR))
+    full.start(*frames[0])
+    colour.start(*frames[0])
+    assert full.feature_weights == (1.0, 0.0)
+    moved = 0.0
+    for image, truth in frames[1:]:
+        a, b = full.update(image), colour.update(image)
+        assert full.feature_weights == (1.0, 0.0)
+        assert np.array_equal(a.box, b.box)
+        assert a.rho == b.rho == a.rho_colour
+        moved = max(moved, float(np.hypot(*(a.box[:2] - frames[0][1][:2]))))
+        assert float(np.hypot(*(a.box[:2] - truth[:2]))) < 10.0
+    assert moved > 10.0  # it tracked a moving target, not a still one
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_feature_selection_turns_texture_on_for_the_look_alike(seed: int) -> None:
+    """``texture_weighting=select``: texture is off (exponent exactly 0) until the same-colour passer-by
+    comes near, whose fine check texture tells from the stripes where colour cannot; then on (at least
+    the floor), and the target is held through the crossing (the colour-only tracker is not:
+    ``test_texture_holds_the_target_where_colour_follows_the_passer_by``)."""
+    frames = list(crossing_sequence(CrossingScene(seed=seed)))
+    truth = np.array([box for _, box in frames])
+    config = TrackerConfig()
+    assert config.texture_weighting is TextureWeighting.SELECT  # the default
+    tracker = MeanShiftTracker(config)
+    tracker.start(*frames[0])
+    texture = [tracker.feature_weights[1]]
+    boxes = [frames[0][1]]
+    for image, _ in frames[1:]:
+        boxes.append(tracker.update(image).box)
+        texture.append(tracker.feature_weights[1])
+    b = np.array(texture)
+    assert b[0] == 0.0
+    on = int(np.argmax(b >= config.min_feature_weight))
+    assert on > config.select_samples  # not before its noise is measured
+    assert np.all(b[:on] == 0.0)
+    errors = centre_errors(np.array(boxes), truth)
+    assert precision_at(errors, 20.0) >= 0.95
+    assert errors[-1] < 10.0
 
 
 def _occlusion_scene(frames: int = 70) -> list[tuple[np.ndarray, np.ndarray]]:
