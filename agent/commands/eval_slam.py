@@ -641,6 +641,7 @@ def run(args: argparse.Namespace) -> int:
             ate_m=_round(absolute_trajectory_error(truth, result.poses), 4),
             ate_aligned_m=_round(aligned_trajectory_error(truth, result.poses), 4),
             ate_online_m=_round(absolute_trajectory_error(truth, result.online_poses), 4),
+            ate_mean_m=_round(absolute_trajectory_error(truth, result.mean_poses), 4),
             ate_max_m=_round(float(position_error.max()), 4),
             final_error_m=_round(float(position_error[-1]), 4),
             odometry_ate_m=_round(absolute_trajectory_error(truth, odometry_world), 4),

@@ -29,11 +29,14 @@ class ReplayResult:
     """``poses`` (N, 3): the pose of every record of the log along the final best particle's ancestry
     (its pose at each filter update, carried between updates by odometry): the trajectory the final map
     was built from; ``online_poses`` (N, 3): the pose the filter reported right after each record (what
-    a robot would have used then); ``update_ms``: the time of each filter update (the scans that were
+    a robot would have used then); ``mean_poses`` (N, 3): as ``poses``, but along the weighted mean of
+    every final particle's ancestry (``RbpfSlam.mean_trajectory``: the path's posterior mean, not the
+    path any one map was built from); ``update_ms``: the time of each filter update (the scans that were
     not gated away), ``scan_ms`` of every scan."""
 
     poses: FloatArray
     online_poses: FloatArray
+    mean_poses: FloatArray
     update_ms: FloatArray
     scan_ms: FloatArray
     kinds: tuple[StepKind, ...]
@@ -95,6 +98,7 @@ def replay(
     return ReplayResult(
         trajectory_per_record(odometry, slam, update_records),
         online,
+        trajectory_per_record(odometry, slam, update_records, mean=True),
         update_ms,
         scan_ms,
         tuple(kinds),
@@ -104,11 +108,14 @@ def replay(
     )
 
 
-def trajectory_per_record(odometry: FloatArray, slam: RbpfSlam, update_records: list[int]) -> FloatArray:
+def trajectory_per_record(
+    odometry: FloatArray, slam: RbpfSlam, update_records: list[int], mean: bool = False
+) -> FloatArray:
     """One pose per record, given each record's odometry (N, 3) as the filter took it: the final best
-    particle's pose at the last update at or before the record, moved on by the odometry since
-    (x_i = x_k ⊕ (o_k⁻¹ ⊕ o_i)). Records before the first accepted scan get the odometry itself."""
-    _, update_poses, update_odom = slam.trajectory()
+    particle's pose at the last update at or before the record (with ``mean``, the weighted mean over
+    the final particles' ancestries there, ``RbpfSlam.mean_trajectory``), moved on by the odometry
+    since (x_i = x_k ⊕ (o_k⁻¹ ⊕ o_i)). Records before the first accepted scan get the odometry itself."""
+    _, update_poses, update_odom = slam.mean_trajectory() if mean else slam.trajectory()
     poses = odometry.copy()
     if not update_records:
         return poses

@@ -457,6 +457,32 @@ def test_history_can_be_bounded_for_long_runs(loop: tuple[np.ndarray, ...]) -> N
     np.testing.assert_allclose(poses[-1], slam.poses[slam.best_index])
 
 
+def test_mean_trajectory_weighs_each_ancestry() -> None:
+    """mean_trajectory(): at every update the weighted mean over the current particles' ancestries
+    (a particle that left no descendant counts nothing), the yaw averaged on the circle (across ±pi)."""
+    slam = RbpfSlam(LASER, RbpfConfig(particles=2))
+    slam.history_poses.extend(
+        [
+            np.array([[0.0, 0.0, 3.0], [9.0, 9.0, 0.0]]),
+            np.array([[1.0, 0.0, -3.0], [2.0, 1.0, 3.1]]),
+        ]
+    )
+    slam.history_parents.extend([np.array([0, 1]), np.array([0, 0])])  # both descend from particle 0
+    slam.history_t_s.extend([0.0, 1.0])
+    slam.history_odom.extend([np.zeros(3), np.ones(3)])
+    slam.log_weights = np.log(np.array([0.25, 0.75]))
+    times, poses, odometry = slam.mean_trajectory()
+    np.testing.assert_allclose(poses[0], [0.0, 0.0, 3.0])
+    np.testing.assert_allclose(poses[1, :2], [1.75, 0.75])
+    sin = 0.25 * math.sin(-3.0) + 0.75 * math.sin(3.1)
+    yaw = math.atan2(sin, 0.25 * math.cos(-3.0) + 0.75 * math.cos(3.1))
+    assert abs(poses[1, 2] - yaw) < 1e-12 and abs(abs(yaw) - math.pi) < 0.1
+    np.testing.assert_array_equal(times, [0.0, 1.0])
+    np.testing.assert_array_equal(odometry[1], np.ones(3))
+    slam.log_weights = np.array([0.0, -800.0])  # one particle: its own ancestry
+    np.testing.assert_allclose(slam.mean_trajectory()[1], slam.trajectory()[1], atol=1e-12)
+
+
 @pytest.mark.parametrize("limit", [None, 7])
 def test_trajectory_reuses_its_last_walk_exactly(loop: tuple[np.ndarray, ...], limit: int | None) -> None:
     """trajectory() reuses the last walk's lineage where the new one joins it: after every scan (the
