@@ -329,6 +329,21 @@ def add_parser(subparsers: Any) -> None:
         "the motion model's sigmas ([slam] loop_correction_odometry_sigmas; default: the whole departure)",
     )
     p.add_argument(
+        "--edge-match-sigma",
+        type=float,
+        metavar="S",
+        help="the pose graph's front-end edges get their covariance from each update's scan match, its "
+        "information over S² (an endpoint's residual, metres, in (0, 1]; LoopClosureConfig.edge_match_sigma_m; "
+        "default: off, the edges' sigmas from the match's departure from odometry)",
+    )
+    p.add_argument(
+        "--edge-information",
+        choices=("match", "normals"),
+        help="with --edge-match-sigma, which information: the match's own sum J Jᵀ (match), or the "
+        "point-to-line information of the endpoints with a surface normal only (normals: loose along a "
+        "corridor; LoopClosureConfig.edge_information; default: match)",
+    )
+    p.add_argument(
         "--search-heading-doubt",
         action="store_true",
         help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
@@ -487,6 +502,18 @@ def run(args: argparse.Namespace) -> int:
         filter_keys["loop_closure"] = dataclasses.replace(
             filter_keys["loop_closure"], correction_odometry_sigmas=args.loop_correction_odometry_sigmas
         )
+    if args.edge_information is not None and args.edge_match_sigma is None:
+        raise ConfigError("--edge-information", "needs --edge-match-sigma")
+    if args.edge_match_sigma is not None:
+        if args.loop_closure == "off":
+            raise ConfigError("--edge-match-sigma", "needs --loop-closure on")
+        if not 0.0 < args.edge_match_sigma <= 1.0:
+            raise ConfigError("--edge-match-sigma", "must be in (0, 1] metres")
+        filter_keys["loop_closure"] = dataclasses.replace(
+            filter_keys["loop_closure"],
+            edge_match_sigma_m=args.edge_match_sigma,
+            edge_information=args.edge_information or "match",
+        )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
     temperature = args.proposal_temperature
@@ -546,6 +573,8 @@ def run(args: argparse.Namespace) -> int:
         "proposal_temperature": config.proposal.proposal_temperature,
         "along_surface_weight": config.proposal.along_surface_weight,
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
+        "edge_match_sigma_m": config.loop_closure.edge_match_sigma_m if config.loop_closure else None,
+        "edge_information": config.loop_closure.edge_information if config.loop_closure else None,
         "updates": slam.stats.updates,
         "update_ms_median": _round(np.median(result.update_ms)) if result.update_ms.size else None,
         "update_ms_p95": _round(np.percentile(result.update_ms, 95)) if result.update_ms.size else None,

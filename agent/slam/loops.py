@@ -21,6 +21,7 @@ import enum
 import logging
 import math
 from dataclasses import dataclass, field, fields, replace
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -175,6 +176,17 @@ class LoopClosureConfig:
     # above. Measured for issue 20: docs/slam.md, "Open problems".
     edge_match_sigma_m: float | None = None
     edge_max_sigma: tuple[float, float, float] = (0.3, 0.3, 0.1)
+    # Which information of node k's match the edge's covariance is built from (with
+    # ``edge_match_sigma_m``): "match", the match's own Σ J Jᵀ over its inliers; "normals", the
+    # point-to-line information of the inliers that have a surface normal only (Σ g gᵀ, g = (n, p' × n):
+    # ``matcher.line_information``; where the filter matches point to point, without normals, the
+    # match's). On ACES an endpoint without a normal (60-75 % of an inner corridor's) is pulled along a
+    # side wall the map holds in patches, and Σ J Jᵀ counts that pull as information along the corridor
+    # (19-42 where scan-to-scan ICP has 1-6): the edge is then as tight along the corridor as across, and
+    # a loop closure cannot spread the corridor's length error along it. The heading block is the lines'
+    # too (each line's endpoints' lever arm), with its coupling to the translation across the lines.
+    # Measured for issue 20: docs/slam.md, "Loop closure".
+    edge_information: Literal["match", "normals"] = "match"
     # An optimisation that moves no node by more than this leaves the filter as it is (its map rebuild
     # costs a whole map's integration); the loop factor stays for the next one.
     apply_min_shift_m: float = 0.05
