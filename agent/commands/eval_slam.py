@@ -344,6 +344,13 @@ def add_parser(subparsers: Any) -> None:
         "corridor; LoopClosureConfig.edge_information; default: match)",
     )
     p.add_argument(
+        "--edge-departure-floor",
+        action="store_true",
+        help="with --edge-match-sigma, each edge's covariance sits on its sigmas widened by the match's "
+        "departure from odometry (the edges without --edge-match-sigma) instead of the plain motion sigmas "
+        "(LoopClosureConfig.edge_departure_floor; default: off)",
+    )
+    p.add_argument(
         "--search-heading-doubt",
         action="store_true",
         help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
@@ -504,6 +511,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.edge_information is not None and args.edge_match_sigma is None:
         raise ConfigError("--edge-information", "needs --edge-match-sigma")
+    if args.edge_departure_floor and args.edge_match_sigma is None:
+        raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
     if args.edge_match_sigma is not None:
         if args.loop_closure == "off":
             raise ConfigError("--edge-match-sigma", "needs --loop-closure on")
@@ -513,6 +522,7 @@ def run(args: argparse.Namespace) -> int:
             filter_keys["loop_closure"],
             edge_match_sigma_m=args.edge_match_sigma,
             edge_information=args.edge_information or "match",
+            edge_departure_floor=args.edge_departure_floor,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -575,6 +585,7 @@ def run(args: argparse.Namespace) -> int:
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
         "edge_match_sigma_m": config.loop_closure.edge_match_sigma_m if config.loop_closure else None,
         "edge_information": config.loop_closure.edge_information if config.loop_closure else None,
+        "edge_departure_floor": config.loop_closure.edge_departure_floor if config.loop_closure else None,
         "updates": slam.stats.updates,
         "update_ms_median": _round(np.median(result.update_ms)) if result.update_ms.size else None,
         "update_ms_p95": _round(np.percentile(result.update_ms, 95)) if result.update_ms.size else None,
