@@ -333,8 +333,9 @@ def add_parser(subparsers: Any) -> None:
         type=float,
         metavar="S",
         help="the pose graph's front-end edges get their covariance from each update's scan match, its "
-        "information over S² (an endpoint's residual, metres, in (0, 1]; LoopClosureConfig.edge_match_sigma_m; "
-        "default: off, the edges' sigmas from the match's departure from odometry)",
+        "information over S² (an endpoint's residual, metres, in (0, 1]; "
+        "LoopClosureConfig.edge_match_sigma_m; default: off, the edges' sigmas from the match's departure "
+        "from odometry)",
     )
     p.add_argument(
         "--edge-information",

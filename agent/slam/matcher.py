@@ -862,9 +862,7 @@ def _inlier_normals(
     return nx, ny
 
 
-def line_information(
-    res: Residuals, normals_xy: FloatArray, poses: FloatArray, bound_m: float
-) -> FloatArray:
+def line_information(res: Residuals, normals_xy: FloatArray, poses: FloatArray, bound_m: float) -> FloatArray:
     """Point-to-line information of a match (P, 3, 3, world x, y, yaw): sum g gᵀ over the endpoints that
     have a surface normal n (``normals_xy``, the scan's, rotated with the pose) and are inliers of
     ``bound_m``, g = (n_x, n_y, p' x n) with p' = R(yaw) p (``res.rx``, ``res.ry``: the endpoint's offset

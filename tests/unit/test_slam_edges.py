@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -144,3 +145,32 @@ def test_an_edge_from_the_lines_information_is_loose_along_a_corridor_and_tight_
     # (the normals' endpoints lie within ~3 m, mostly ahead: the two are correlated).
     assert by_lines[1] > 0.25 and by_lines[0] < 0.06 and by_lines[2] < 0.02
     assert by_match[1] < by_lines[1] / 4  # the match's own: nearly as tight along the corridor as across
+
+
+def test_an_edge_from_its_match_can_sit_on_its_departure_from_odometry() -> None:
+    """``edge_departure_floor``: the match's covariance is added to the edge's sigmas as the odometry
+    departure widened them (``correction_share``), not to ``motion_sigma``."""
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    information = np.zeros((3, 3, 3))
+    information[1:] = np.diag([1e8, 1e8, 1e8])  # a sure match: its covariance next to nothing
+    floor = np.array([[0.03, 0.03, 0.01], [0.03, 0.03, 0.2]])  # edge 2: the match turned 0.4 rad
+    config = LoopClosureConfig(edge_match_sigma_m=0.1)
+    plain = edge_covariances(motions, information, config)
+    widened = edge_covariances(motions, information, config, floor)
+    np.testing.assert_allclose(np.sqrt(np.diag(plain[1])), config.motion_sigma, rtol=1e-4)
+    np.testing.assert_allclose(np.sqrt(np.diag(widened[1])), floor[1], rtol=1e-4)
+    odometry = motions.copy()
+    odometry[2, 2] = 0.4
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    loops = [LoopConstraint(0, 2, np.array([2.0, 0.0, 0.1]), 1.0)]
+    on = replace(config, edge_departure_floor=True)
+    spread = optimize_graph(
+        path, motions, loops, config, odometry_motions=odometry, node_information=information
+    )
+    onto_turn = optimize_graph(
+        path, motions, loops, on, odometry_motions=odometry, node_information=information
+    )
+    # The loop's 0.1 rad goes on the edge whose match departed from odometry, not a third on each edge
+    # (and on the loop factor).
+    turn = [float(wrap_angle(between(r.poses[1], r.poses[2])[2])) for r in (spread, onto_turn)]
+    assert turn[0] < 0.04 and turn[1] > 0.09
