@@ -185,7 +185,10 @@ class LoopClosureConfig:
     # (19-42 where scan-to-scan ICP has 1-6): the edge is then as tight along the corridor as across, and
     # a loop closure cannot spread the corridor's length error along it. The heading block is the lines'
     # too (each line's endpoints' lever arm), with its coupling to the translation across the lines.
-    # Measured for issue 20: docs/slam.md, "Loop closure".
+    # Opt-in: on ACES (s 0.02-0.1) seeds 0, 3, 4 gain 0.03-0.11 m but seeds 1 and 5 lose up to 0.13 m (only
+    # 15-25 endpoints of a scan have a normal, so nearly every edge is loose in some direction and a loop's
+    # correction spreads over the whole chain); FR079 seed 0 0.197 -> 0.387 m at s = 0.02. Measured for
+    # issue 20: docs/slam.md, "Loop closure" and "Open problems" (ACES).
     edge_information: Literal["match", "normals"] = "match"
     # ... on a floor of each edge's own ``motion_sigma`` widened by ``correction_share`` of its departure
     # from odometry (the edges without ``edge_match_sigma_m``) instead of ``motion_sigma``: the match's
