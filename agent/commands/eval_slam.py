@@ -345,6 +345,14 @@ def add_parser(subparsers: Any) -> None:
         "corridor; LoopClosureConfig.edge_information; default: match)",
     )
     p.add_argument(
+        "--edge-normal-radius-per-m",
+        type=float,
+        metavar="R",
+        help="with --edge-information normals, the normals the information is taken from are estimated "
+        "for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
+        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals)",
+    )
+    p.add_argument(
         "--edge-departure-floor",
         action="store_true",
         help="with --edge-match-sigma, each edge's covariance sits on its sigmas widened by the match's "
@@ -512,6 +520,11 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.edge_information is not None and args.edge_match_sigma is None:
         raise ConfigError("--edge-information", "needs --edge-match-sigma")
+    if args.edge_normal_radius_per_m is not None:
+        if args.edge_information != "normals":
+            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals")
+        if not 0.0 <= args.edge_normal_radius_per_m <= 1.0:
+            raise ConfigError("--edge-normal-radius-per-m", "must be in [0, 1]")
     if args.edge_departure_floor and args.edge_match_sigma is None:
         raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
     if args.edge_match_sigma is not None:
@@ -524,6 +537,7 @@ def run(args: argparse.Namespace) -> int:
             edge_match_sigma_m=args.edge_match_sigma,
             edge_information=args.edge_information or "match",
             edge_departure_floor=args.edge_departure_floor,
+            edge_normal_radius_per_m=args.edge_normal_radius_per_m,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -584,9 +598,15 @@ def run(args: argparse.Namespace) -> int:
         "proposal_temperature": config.proposal.proposal_temperature,
         "along_surface_weight": config.proposal.along_surface_weight,
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
-        "edge_match_sigma_m": config.loop_closure.edge_match_sigma_m if config.loop_closure else None,
-        "edge_information": config.loop_closure.edge_information if config.loop_closure else None,
-        "edge_departure_floor": config.loop_closure.edge_departure_floor if config.loop_closure else None,
+        **{
+            key: None if config.loop_closure is None else getattr(config.loop_closure, key)
+            for key in (
+                "edge_match_sigma_m",
+                "edge_information",
+                "edge_departure_floor",
+                "edge_normal_radius_per_m",
+            )
+        },
         "updates": slam.stats.updates,
         "update_ms_median": _round(np.median(result.update_ms)) if result.update_ms.size else None,
         "update_ms_p95": _round(np.percentile(result.update_ms, 95)) if result.update_ms.size else None,

@@ -202,6 +202,11 @@ def test_eval_edge_information_is_checked_and_reported(
     for bad, message in (
         (["--edge-information", "normals"], "--edge-information: needs --edge-match-sigma"),
         (["--edge-match-sigma", "0"], "--edge-match-sigma: must be in (0, 1] metres"),
+        (["--edge-departure-floor"], "--edge-departure-floor: needs --edge-match-sigma"),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-normal-radius-per-m", "0.1"],
+            "--edge-normal-radius-per-m: needs --edge-information normals",
+        ),
         (
             ["--edge-match-sigma", "0.3", "--loop-closure", "off"],
             "--edge-match-sigma: needs --loop-closure on",
