@@ -116,6 +116,14 @@ def main() -> int:
         help="the pose graph's front-end edges from each update's scan match information "
         "(LoopClosureConfig.edge_match_sigma_m; default: off)",
     )
+    parser.add_argument(
+        "--edge-information",
+        choices=("match", "normals"),
+        default="match",
+        help="with --edge-match-sigma: the match's sum J Jᵀ, or the point-to-line information of the"
+        " endpoints with a surface normal (LoopClosureConfig.edge_information; exp1 matches point to point,"
+        " without normals, so both are the match's; default: match)",
+    )
     loop_defaults = LoopClosureConfig()
     parser.add_argument(
         "--loop-hypotheses",
@@ -161,6 +169,7 @@ def main() -> int:
             loop_closure=dataclasses.replace(
                 loop_defaults,
                 edge_match_sigma_m=args.edge_match_sigma,
+                edge_information=args.edge_information,
                 hypotheses=args.loop_hypotheses,
                 known_area_fallback=not args.loop_hypotheses_everywhere,
             ),

@@ -329,6 +329,37 @@ def add_parser(subparsers: Any) -> None:
         "the motion model's sigmas ([slam] loop_correction_odometry_sigmas; default: the whole departure)",
     )
     p.add_argument(
+        "--edge-match-sigma",
+        type=float,
+        metavar="S",
+        help="the pose graph's front-end edges get their covariance from each update's scan match, its "
+        "information over S² (an endpoint's residual, metres, in (0, 1]; "
+        "LoopClosureConfig.edge_match_sigma_m; default: off, the edges' sigmas from the match's departure "
+        "from odometry)",
+    )
+    p.add_argument(
+        "--edge-information",
+        choices=("match", "normals"),
+        help="with --edge-match-sigma, which information: the match's own sum J Jᵀ (match), or the "
+        "point-to-line information of the endpoints with a surface normal only (normals: loose along a "
+        "corridor; LoopClosureConfig.edge_information; default: match)",
+    )
+    p.add_argument(
+        "--edge-normal-radius-per-m",
+        type=float,
+        metavar="R",
+        help="with --edge-information normals, the normals the information is taken from are estimated "
+        "for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
+        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals)",
+    )
+    p.add_argument(
+        "--edge-departure-floor",
+        action="store_true",
+        help="with --edge-match-sigma, each edge's covariance sits on its sigmas widened by the match's "
+        "departure from odometry (the edges without --edge-match-sigma) instead of the plain motion sigmas "
+        "(LoopClosureConfig.edge_departure_floor; default: off)",
+    )
+    p.add_argument(
         "--search-heading-doubt",
         action="store_true",
         help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
@@ -487,6 +518,27 @@ def run(args: argparse.Namespace) -> int:
         filter_keys["loop_closure"] = dataclasses.replace(
             filter_keys["loop_closure"], correction_odometry_sigmas=args.loop_correction_odometry_sigmas
         )
+    if args.edge_information is not None and args.edge_match_sigma is None:
+        raise ConfigError("--edge-information", "needs --edge-match-sigma")
+    if args.edge_normal_radius_per_m is not None:
+        if args.edge_information != "normals":
+            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals")
+        if not 0.0 <= args.edge_normal_radius_per_m <= 1.0:
+            raise ConfigError("--edge-normal-radius-per-m", "must be in [0, 1]")
+    if args.edge_departure_floor and args.edge_match_sigma is None:
+        raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
+    if args.edge_match_sigma is not None:
+        if args.loop_closure == "off":
+            raise ConfigError("--edge-match-sigma", "needs --loop-closure on")
+        if not 0.0 < args.edge_match_sigma <= 1.0:
+            raise ConfigError("--edge-match-sigma", "must be in (0, 1] metres")
+        filter_keys["loop_closure"] = dataclasses.replace(
+            filter_keys["loop_closure"],
+            edge_match_sigma_m=args.edge_match_sigma,
+            edge_information=args.edge_information or "match",
+            edge_departure_floor=args.edge_departure_floor,
+            edge_normal_radius_per_m=args.edge_normal_radius_per_m,
+        )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
     temperature = args.proposal_temperature
@@ -546,6 +598,15 @@ def run(args: argparse.Namespace) -> int:
         "proposal_temperature": config.proposal.proposal_temperature,
         "along_surface_weight": config.proposal.along_surface_weight,
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
+        **{
+            key: None if config.loop_closure is None else getattr(config.loop_closure, key)
+            for key in (
+                "edge_match_sigma_m",
+                "edge_information",
+                "edge_departure_floor",
+                "edge_normal_radius_per_m",
+            )
+        },
         "updates": slam.stats.updates,
         "update_ms_median": _round(np.median(result.update_ms)) if result.update_ms.size else None,
         "update_ms_p95": _round(np.percentile(result.update_ms, 95)) if result.update_ms.size else None,

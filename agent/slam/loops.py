@@ -21,6 +21,7 @@ import enum
 import logging
 import math
 from dataclasses import dataclass, field, fields, replace
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -175,6 +176,33 @@ class LoopClosureConfig:
     # above. Measured for issue 20: docs/slam.md, "Open problems".
     edge_match_sigma_m: float | None = None
     edge_max_sigma: tuple[float, float, float] = (0.3, 0.3, 0.1)
+    # Which information of node k's match the edge's covariance is built from (with
+    # ``edge_match_sigma_m``): "match", the match's own Σ J Jᵀ over its inliers; "normals", the
+    # point-to-line information of the inliers that have a surface normal only (Σ g gᵀ, g = (n, p' × n):
+    # ``matcher.line_information``; where the filter matches point to point, without normals, the
+    # match's). On ACES an endpoint without a normal (60-75 % of an inner corridor's) is pulled along a
+    # side wall the map holds in patches, and Σ J Jᵀ counts that pull as information along the corridor
+    # (19-42 where scan-to-scan ICP has 1-6): the edge is then as tight along the corridor as across, and
+    # a loop closure cannot spread the corridor's length error along it. The heading block is the lines'
+    # too (each line's endpoints' lever arm), with its coupling to the translation across the lines.
+    # Opt-in: on ACES (s 0.02-0.1) seeds 0, 3, 4 gain 0.03-0.11 m but seeds 1 and 5 lose up to 0.13 m (only
+    # 15-25 endpoints of a scan have a normal, so nearly every edge is loose in some direction and a loop's
+    # correction spreads over the whole chain); FR079 seed 0 0.197 -> 0.387 m at s = 0.02. Measured for
+    # issue 20: docs/slam.md, "Loop closure" and "Open problems" (ACES).
+    edge_information: Literal["match", "normals"] = "match"
+    # ... with "normals", the surface normals the information is taken from: the match's own (None, the
+    # default), or the scan's normals estimated for the information alone from a neighbourhood of
+    # max(0.25 m, this × range) and up to ``edge_normal_thickness_m`` thick (``grid.surface_normals``; the
+    # match keeps its own normals). At the radish defaults only 24-40 % of ACES's inner corridors'
+    # endpoints get a normal (1 deg beams 0.1-0.5 m apart on a wall at a grazing angle, centimetre range
+    # noise); at 0.1 and 3 cm 61-81 %.
+    edge_normal_radius_per_m: float | None = None
+    edge_normal_thickness_m: float = 0.03
+    # ... on a floor of each edge's own ``motion_sigma`` widened by ``correction_share`` of its departure
+    # from odometry (the edges without ``edge_match_sigma_m``) instead of ``motion_sigma``: the match's
+    # covariance adds where the scan is weak (a corridor's length), the departure where the match turned
+    # against the wheels. False: ``motion_sigma``.
+    edge_departure_floor: bool = False
     # An optimisation that moves no node by more than this leaves the filter as it is (its map rebuild
     # costs a whole map's integration); the loop factor stays for the next one.
     apply_min_shift_m: float = 0.05
@@ -955,13 +983,17 @@ def robot_frame_information(information: FloatArray, yaw_rad: float) -> FloatArr
 
 
 def edge_covariances(
-    motions: FloatArray, node_information: FloatArray, config: LoopClosureConfig
+    motions: FloatArray,
+    node_information: FloatArray,
+    config: LoopClosureConfig,
+    floor_sigma: FloatArray | None = None,
 ) -> FloatArray:
     """(N-1, 3, 3) covariances of the front-end edges k-1 -> k (``motions[k]``, node k in node k-1's
     frame, k >= 1) from node k's scan match (``node_information[k]``: Σ J Jᵀ in node k's robot frame,
     :func:`robot_frame_information`; zeros where the match failed): diag(motion_sigma²) + B (Σ J Jᵀ / s²
     + diag(edge_max_sigma)⁻²)⁻¹ Bᵀ with s = ``edge_match_sigma_m`` and B = diag(R(motion yaw), 1), node
-    k's frame turned into node k-1's."""
+    k's frame turned into node k-1's. ``floor_sigma`` ((N-1, 3)): each edge's own sigmas in place of
+    ``motion_sigma``."""
     if config.edge_match_sigma_m is None:
         raise ValueError("edge_covariances needs LoopClosureConfig.edge_match_sigma_m")
     info = np.asarray(node_information[1:], dtype=np.float64) / config.edge_match_sigma_m**2
@@ -973,7 +1005,11 @@ def edge_covariances(
     b[:, 0, 0], b[:, 0, 1], b[:, 1, 0], b[:, 1, 1], b[:, 2, 2] = c, -s, s, c, 1.0
     covariance: FloatArray = b @ match_cov @ b.transpose(0, 2, 1)
     covariance = 0.5 * (covariance + covariance.transpose(0, 2, 1))
-    return covariance + np.diag(np.square(np.asarray(config.motion_sigma)))[None, :, :]
+    if floor_sigma is None:
+        return covariance + np.diag(np.square(np.asarray(config.motion_sigma)))[None, :, :]
+    floor = np.zeros_like(covariance)
+    floor[:, [0, 1, 2], [0, 1, 2]] = np.square(np.asarray(floor_sigma, dtype=np.float64))
+    return covariance + floor
 
 
 def optimize_graph(
@@ -996,7 +1032,7 @@ def optimize_graph(
     chain = np.arange(1, n, dtype=np.int64)
     motion_sigma = np.tile(np.asarray(config.motion_sigma), (n - 1, 1))
     from_matches = config.edge_match_sigma_m is not None and node_information is not None
-    if odometry_motions is not None and not from_matches:
+    if odometry_motions is not None and (not from_matches or config.edge_departure_floor):
         gap = np.abs(motions[1:n] - odometry_motions[1:n])
         gap[:, 2] = np.abs(wrap_angle(gap[:, 2]))
         if config.correction_odometry_sigmas is not None and odometry_sigmas is not None:
@@ -1016,7 +1052,10 @@ def optimize_graph(
         whitening = RelativeFactors(i, j, z, sigma).whitening()
     if from_matches:
         assert whitening is not None and node_information is not None
-        whitening[: n - 1] = sqrt_information(edge_covariances(motions[:n], node_information[:n], config))
+        floor = motion_sigma if config.edge_departure_floor else None
+        whitening[: n - 1] = sqrt_information(
+            edge_covariances(motions[:n], node_information[:n], config, floor)
+        )
     if any(c.covariance is not None for c in loops):
         assert whitening is not None
         whitening[n - 1 :] = np.array([loop_sqrt_information(c, config) for c in loops])

@@ -813,10 +813,7 @@ def _gauss_newton_step(
         # the map holds in patches, adds information along the wall that is no observation of it).
         observed = info[:, :2, :2]
         if normals_xy is not None:
-            has = ((normals_xy[:, 0] != 0.0) | (normals_xy[:, 1] != 0.0))[None, :] & (res.gate < bound_m)
-            c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-            nx = np.where(has, c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1], 0.0)
-            ny = np.where(has, s * normals_xy[None, :, 0] + c * normals_xy[None, :, 1], 0.0)
+            nx, ny = _inlier_normals(res, normals_xy, poses, bound_m)
             observed = np.stack(
                 [
                     np.stack([(nx * nx).sum(axis=1), (nx * ny).sum(axis=1)], axis=-1),
@@ -851,6 +848,33 @@ def _gauss_newton_step(
     _clip(step[:, :2], -config.max_step_m, config.max_step_m, out=step[:, :2])
     _clip(step[:, 2], -config.max_step_rad, config.max_step_rad, out=step[:, 2])
     return step, info
+
+
+def _inlier_normals(
+    res: Residuals, normals_xy: FloatArray, poses: FloatArray, bound_m: float
+) -> tuple[FloatArray, FloatArray]:
+    """The world-frame surface normals (x, y components, (P, N) each) of the endpoints that have one and
+    are inliers of ``bound_m`` (``res.gate`` below it) at ``poses``; (0, 0) for every other endpoint."""
+    has = ((normals_xy[:, 0] != 0.0) | (normals_xy[:, 1] != 0.0))[None, :] & (res.gate < bound_m)
+    c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    nx = np.where(has, c * normals_xy[None, :, 0] - s * normals_xy[None, :, 1], 0.0)
+    ny = np.where(has, s * normals_xy[None, :, 0] + c * normals_xy[None, :, 1], 0.0)
+    return nx, ny
+
+
+def line_information(res: Residuals, normals_xy: FloatArray, poses: FloatArray, bound_m: float) -> FloatArray:
+    """Point-to-line information of a match (P, 3, 3, world x, y, yaw): sum g gᵀ over the endpoints that
+    have a surface normal n (``normals_xy``, the scan's, rotated with the pose) and are inliers of
+    ``bound_m``, g = (n_x, n_y, p' x n) with p' = R(yaw) p (``res.rx``, ``res.ry``: the endpoint's offset
+    from the robot in the world), the Jacobian of the endpoint's offset across its surface. An endpoint
+    without a normal is left out: pulled along a wall the map holds in patches, its point-to-point
+    Jacobian says the wall fixes the pose along itself (sum J Jᵀ counts it), which it does not. So a
+    corridor's match is loose along the corridor here, and its heading is what the walls' lines give
+    (the lever arm of each line's endpoints), as in point-to-line ICP."""
+    nx, ny = _inlier_normals(res, normals_xy, poses, bound_m)
+    g = np.stack([nx, ny, res.rx * ny - res.ry * nx], axis=-1)
+    out: FloatArray = np.matmul(g.transpose(0, 2, 1), g)
+    return out
 
 
 def degenerate_projection(

@@ -44,6 +44,7 @@ from agent.slam.matcher import (
     DistanceField,
     MatcherConfig,
     MatchResult,
+    Residuals,
     SearchConfig,
     correlative_search,
     linearized_log_likelihood,
@@ -128,6 +129,7 @@ class ProposalResult:
     log_eta: FloatArray  # (P,) log weight increments
     matched: npt.NDArray[np.bool_]  # (P,) scan matching trusted
     match: MatchResult
+    residuals: Residuals  # the match's residuals at its poses (``match.poses``)
 
 
 _UNIT_GRID = np.stack(
@@ -359,7 +361,7 @@ def improved_proposal(
         fallback = draw
     poses = np.where(ok[:, None], draw, fallback)
     poses[:, 2] = wrap_angle(poses[:, 2])
-    return ProposalResult(poses, log_eta, ok, result)
+    return ProposalResult(poses, log_eta, ok, result, matched_res)
 
 
 def degenerate_scaling(information: FloatArray, prior: FloatArray, scale: float) -> FloatArray:

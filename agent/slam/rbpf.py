@@ -51,6 +51,7 @@ from agent.slam.grid import (
     TileRect,
     integrate_scans,
     prepare_scan,
+    surface_normals,
 )
 from agent.slam.loops import (
     LoopClosureConfig,
@@ -62,7 +63,7 @@ from agent.slam.loops import (
     yaw_doubt,
 )
 from agent.slam.malloc import trim_heap
-from agent.slam.matcher import DistanceField
+from agent.slam.matcher import DistanceField, line_information
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
@@ -671,7 +672,24 @@ class RbpfSlam:
             self.poses = result.poses
             proposal_log_eta = result.log_eta
             matched = result.matched
-            information = np.where(matched[:, None, None], result.match.information, 0.0)
+            match_information = result.match.information
+            lc_edges = self.config.loop_closure
+            if lc_edges is not None and lc_edges.edge_information == "normals" and normals is not None:
+                # The front-end edges' covariances from the endpoints with a surface normal only
+                # (LoopClosureConfig.edge_information), the match's normals or the information's own.
+                line_normals = normals
+                if lc_edges.edge_normal_radius_per_m is not None:
+                    line_normals = surface_normals(
+                        scan.hit_xy,
+                        voxel_indices(scan.hit_xy, cfg.match_voxel_m, cfg.max_match_points),
+                        max_thickness_m=lc_edges.edge_normal_thickness_m,
+                        radius_per_m=lc_edges.edge_normal_radius_per_m,
+                        origin_xy=scan.origin_xy,
+                    )
+                match_information = line_information(
+                    result.residuals, line_normals, result.match.poses, cfg.proposal.matcher.stages[-1][0]
+                )
+            information = np.where(matched[:, None, None], match_information, 0.0)
             # The field (up to ~27 MB for 30 maps of a 15 m scan's box) is done with: not held through
             # the map integration and a loop closure's rebuild below.
             del field, result

@@ -190,3 +190,34 @@ def test_eval_degenerate_noise_scale_is_checked_and_reported(
     assert json.loads(capsys.readouterr().out)["degenerate_noise_scale"] == 1.0  # radish: the paper's draw
     assert main([*args, "--degenerate-noise-scale", "0.15"]) == 0
     assert json.loads(capsys.readouterr().out)["degenerate_noise_scale"] == 0.15
+
+
+def test_eval_edge_information_is_checked_and_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "tiny_scans.txt"
+    ranges = " ".join(["2.0"] * 180)
+    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
+    for bad, message in (
+        (["--edge-information", "normals"], "--edge-information: needs --edge-match-sigma"),
+        (["--edge-match-sigma", "0"], "--edge-match-sigma: must be in (0, 1] metres"),
+        (["--edge-departure-floor"], "--edge-departure-floor: needs --edge-match-sigma"),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-normal-radius-per-m", "0.1"],
+            "--edge-normal-radius-per-m: needs --edge-information normals",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--loop-closure", "off"],
+            "--edge-match-sigma: needs --loop-closure on",
+        ),
+    ):
+        assert main([*args, *bad]) == 1
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["edge_match_sigma_m"] is None and summary["edge_information"] == "match"
+    assert main([*args, "--edge-match-sigma", "0.3", "--edge-information", "normals"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["edge_match_sigma_m"] == 0.3 and summary["edge_information"] == "normals"

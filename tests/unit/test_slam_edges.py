@@ -4,14 +4,19 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from agent.slam.loops import LoopClosureConfig, LoopConstraint, chain_poses, optimize_graph
+from agent.slam.grid import surface_normals
+from agent.slam.loops import LoopClosureConfig, LoopConstraint, chain_poses, edge_covariances, optimize_graph
+from agent.slam.matcher import DistanceField, MatcherConfig, line_information, match_with_residuals
 from agent.slam.motion import OdometryNoise
 from agent.slam.pose import between, wrap_angle
+from agent.slam.rbpf import voxel_indices
 from tests.unit.test_slam_loops import _square
+from tests.unit.test_slam_matcher import GEOMETRY, RES, _mapped_corridor
 
 
 def test_a_departure_the_odometry_noise_explains_does_not_draw_a_loop_correction() -> None:
@@ -88,3 +93,84 @@ def test_the_key_loads_and_reaches_the_filters_graph() -> None:
     assert log_config("radish", loop_closure=False).loop_closure is None
     with pytest.raises(ConfigError):
         parse_config(laser + "[slam]\nloop_correction_odometry_sigmas = -1\n")
+
+
+def test_an_edge_from_the_lines_information_is_loose_along_a_corridor_and_tight_across() -> None:
+    """A corridor whose walls are mapped on alternate metres, matched point to line. Its endpoints beyond
+    ~3 m have no surface normal (the beams land more than the normals' neighbourhood apart on the walls, as
+    ACES's 1 deg beams do at grazing angles): each is matched point to point and pulled along the wall
+    towards the mapped patches, and the match's Σ J Jᵀ counts that as information along the corridor. The
+    lines' information (the endpoints with a normal only, ``matcher.line_information``) has none there;
+    the edge built from it (``edge_information`` "normals") is loose along the corridor, tight across it
+    and in heading."""
+    scan, rect, obstacles = _mapped_corridor()
+    x_cells = rect.origin_m(GEOMETRY)[0] + (np.arange(obstacles.shape[2]) + 0.5) * RES
+    obstacles[0][:, (np.floor(x_cells) % 2) == 1] = False
+    field = DistanceField.from_obstacles(obstacles, rect.origin_m(GEOMETRY), RES, 0.6)
+    kept = voxel_indices(scan.hit_xy, 0.1, 200)
+    points = scan.hit_xy[kept]
+    normals = surface_normals(scan.hit_xy, kept)
+    has = np.hypot(normals[:, 0], normals[:, 1]) > 0.5
+    assert 0.3 < has.mean() < 0.9
+    config = MatcherConfig()
+    ix = np.zeros(1, dtype=np.int64)
+    start = np.array([[0.3, 0.05, 0.02]])
+    prior = np.diag([2.0, 2.0, 0.0])
+    result, res = match_with_residuals(
+        field, ix, points, start, config, prior, normals_xy=normals, along_weight=0.0
+    )
+    bound = config.stages[-1][0]
+    lines = line_information(res, normals, result.poses, bound)[0]
+    assert result.information[0, 0, 0] > 2.0  # the patches' pulls: "information" along the corridor
+    assert lines[0, 0] < 0.5 and lines[1, 1] > 20.0 and lines[2, 2] > 20.0
+    # Where every endpoint has a normal it is the point-to-line match's own Σ J Jᵀ over its inliers.
+    alone, alone_res = match_with_residuals(
+        field, ix, points[has], start, config, prior, normals_xy=normals[has], along_weight=0.0
+    )
+    inlier = (alone_res.gate < bound)[0]
+    jx, jy, rx, ry = alone_res.jx[0], alone_res.jy[0], alone_res.rx[0], alone_res.ry[0]
+    jac = np.stack([jx, jy, jy * rx - jx * ry], axis=1)[inlier]
+    np.testing.assert_allclose(
+        line_information(alone_res, normals[has], alone.poses, bound)[0], jac.T @ jac, rtol=1e-6, atol=1e-6
+    )
+    # The edge into node 1 (heading +90 deg from node 0: the corridor along node 0's y).
+    edge = LoopClosureConfig(edge_match_sigma_m=0.1)
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, math.pi / 2]])
+
+    def sigmas(information: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.diag(edge_covariances(motions, np.stack([np.zeros((3, 3)), information]), edge)[0]))
+
+    by_lines, by_match = sigmas(lines), sigmas(result.information[0])
+    # Loose along the corridor (up to ``edge_max_sigma``), a few centimetres across it and ~1 deg in heading
+    # (the normals' endpoints lie within ~3 m, mostly ahead: the two are correlated).
+    assert by_lines[1] > 0.25 and by_lines[0] < 0.06 and by_lines[2] < 0.02
+    assert by_match[1] < by_lines[1] / 4  # the match's own: nearly as tight along the corridor as across
+
+
+def test_an_edge_from_its_match_can_sit_on_its_departure_from_odometry() -> None:
+    """``edge_departure_floor``: the match's covariance is added to the edge's sigmas as the odometry
+    departure widened them (``correction_share``), not to ``motion_sigma``."""
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    information = np.zeros((3, 3, 3))
+    information[1:] = np.diag([1e8, 1e8, 1e8])  # a sure match: its covariance next to nothing
+    floor = np.array([[0.03, 0.03, 0.01], [0.03, 0.03, 0.2]])  # edge 2: the match turned 0.4 rad
+    config = LoopClosureConfig(edge_match_sigma_m=0.1)
+    plain = edge_covariances(motions, information, config)
+    widened = edge_covariances(motions, information, config, floor)
+    np.testing.assert_allclose(np.sqrt(np.diag(plain[1])), config.motion_sigma, rtol=1e-4)
+    np.testing.assert_allclose(np.sqrt(np.diag(widened[1])), floor[1], rtol=1e-4)
+    odometry = motions.copy()
+    odometry[2, 2] = 0.4
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    loops = [LoopConstraint(0, 2, np.array([2.0, 0.0, 0.1]), 1.0)]
+    on = replace(config, edge_departure_floor=True)
+    spread = optimize_graph(
+        path, motions, loops, config, odometry_motions=odometry, node_information=information
+    )
+    onto_turn = optimize_graph(
+        path, motions, loops, on, odometry_motions=odometry, node_information=information
+    )
+    # The loop's 0.1 rad goes on the edge whose match departed from odometry, not a third on each edge
+    # (and on the loop factor).
+    turn = [float(wrap_angle(between(r.poses[1], r.poses[2])[2])) for r in (spread, onto_turn)]
+    assert turn[0] < 0.04 and turn[1] > 0.09

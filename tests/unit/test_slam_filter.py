@@ -274,6 +274,30 @@ def test_slam_with_degenerate_noise_scale(loop: tuple[np.ndarray, ...]) -> None:
     assert absolute_trajectory_error(truth, estimate) < 0.05
 
 
+@pytest.mark.parametrize("radius_per_m", [None, 0.1])
+def test_slam_records_the_lines_information_for_its_edges(
+    loop: tuple[np.ndarray, ...], radius_per_m: float | None
+) -> None:
+    """``LoopClosureConfig.edge_information`` "normals" (point to line): each node's recorded information
+    is Σ g gᵀ over its match's inliers with a unit normal (the match's own, or with
+    ``edge_normal_radius_per_m`` the information's own), so its translation block's trace counts them."""
+    _times, truth, _odometry, _ = loop
+    lc = LoopClosureConfig(
+        edge_match_sigma_m=0.1, edge_information="normals", edge_normal_radius_per_m=radius_per_m
+    )
+    proposal = ProposalConfig(along_surface_weight=0.0)
+    config = RbpfConfig(
+        particles=8, initial_pose=tuple(float(v) for v in truth[0]), proposal=proposal, loop_closure=lc
+    )
+    slam, estimate = run_filter(loop, config)
+    assert absolute_trajectory_error(truth, estimate) < 0.05
+    info = np.array(slam._node_information[1:])
+    counts = np.trace(info[:, :2, :2], axis1=1, axis2=2)
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-6)  # whole endpoints, each |n|² = 1
+    assert np.all(counts <= config.max_match_points) and np.median(counts) >= 20
+    assert np.all(np.linalg.eigvalsh(info) > -1e-6)
+
+
 def test_slam_with_closed_form_eta(loop: tuple[np.ndarray, ...]) -> None:
     _times, truth, _odometry, _ = loop
     proposal = ProposalConfig(eta_integral="laplace")
