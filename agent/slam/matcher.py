@@ -30,6 +30,9 @@ IntArray = npt.NDArray[np.int64]
 
 UNKNOWN = -1.0  # distance-field value of cells the map has not observed
 MEDIAL_REACH_CELLS = 3.0  # within this distance of a wall, distances are taken to its medial point
+# A wall cell's straightness is judged over the (2 W + 1)-cell square around it, W this (docs/slam.md, "The
+# grid"): a wall seen at grazing angles is mapped in patches, one or two cells across, with gaps along it.
+MEDIAL_WINDOW_CELLS = 3
 
 
 @dataclass(frozen=True)
@@ -42,14 +45,19 @@ class DistanceField:
 
     Sampling is bilinear, except within ``MEDIAL_REACH_CELLS`` of a straight wall, where the distance is
     to the wall's medial line. The nearest obstacle cell is the one d |grad d|⁻¹ grad d back from the
-    sample; when its obstacle neighbours run along one axis (above and below it, or left and right, not
-    both), the wall runs along that axis, and its medial line passes through the cell centre, moved half
-    a cell towards an obstacle neighbour across the wall if it has one on that side only. A wall that
-    lies on a cell boundary is hit on both sides of it, so it is two cells thick in the map; bilinear
-    distances are 0 all across the pair, a flat-bottomed valley 5 cm wide in which matches drift with
-    odometry (the simulated office, whose walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it).
-    To the medial line the distance is |x - X| again, X the boundary. Corners, wall ends and clutter keep
-    the bilinear value.
+    sample. Its straightness is judged over the square of ``MEDIAL_WINDOW_CELLS`` cells either way
+    around it (:func:`_wall_lines`): the wall runs along x when the square's obstacles all lie in the
+    cell's row and the rows next to it, and some lie on either side of it along x (and the same along
+    y); its medial line passes through the cell centre, moved half a cell towards the row next to it
+    that holds obstacles if only one does. A wall that lies on a cell boundary is hit on both sides of
+    it, so it is two cells thick in the map; bilinear distances are 0 all across the pair, a
+    flat-bottomed valley 5 cm wide in which matches drift with odometry (the simulated office, whose
+    walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it). To the medial line the distance is
+    |x - X| again, X the boundary. Where such a wall is seen at grazing angles it is mapped in patches
+    that alternate between the two rows, with gaps between them; judged on the cell's four neighbours
+    alone those patches were no wall, and the bilinear distances to them pulled endpoints diagonally
+    (the office's first map turned the next scans' matches by 0.1-0.35 degrees). Corners, wall ends and
+    clutter keep the bilinear value.
     """
 
     distance_m: Float32Array
@@ -59,10 +67,10 @@ class DistanceField:
 
     @property
     def medial(self) -> npt.NDArray[np.int8]:
-        """Per cell (same layout as distance_m): 0, or for an obstacle cell on a straight wall
+        """Per cell (same layout as distance_m): 0, or for a cell on a straight wall (:func:`_wall_lines`)
         1 + 3 a + k, a = 0 for a wall along y (distance across it in x), 1 along x, k = 0, 1, 2 for a
         medial line half a cell below, at, or above the cell centre. Computed here for the whole stack
-        (for inspection); the lookups compute it for the cells they read (:func:`_medial_at`): as a
+        (for inspection); the lookups compute it for the cells they read (:func:`_medial_walls`): as a
         stored int8 stack it was a fifth of the field's memory (Intel: ~5.5 MB at the peak RSS)."""
         return _medial_codes(self.distance_m)
 
@@ -303,8 +311,11 @@ class DistanceField:
         jx = _clip(jx, 1, wp - 2, out=jx).astype(np.int64)
         jy = _clip(jy, 1, hp - 2, out=jy).astype(np.int64)
         cell = (window_base + jy) * wp + jx
-        wall, along_y, shift = _medial_walls(flat, cell, wp)
-        wall &= near
+        # The straightness test (a square of cells each) for the samples near a wall only.
+        wall = np.zeros(near.shape, dtype=bool)
+        along_y = np.zeros(near.shape, dtype=bool)
+        shift = np.zeros(near.shape)
+        wall[near], along_y[near], shift[near] = _medial_walls(flat, cell[near], wp, hp)
         # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
         # (The operands chosen per point first, then one expression: the same operations on the same
         # operands as computing both sides and choosing, in fewer passes.)
@@ -336,26 +347,85 @@ def _known_box(obstacles: npt.NDArray[np.bool_], known: npt.NDArray[np.bool_]) -
     return r0, r1, c0, c1
 
 
+def _wall_lines(
+    flat: Float32Array, cells: IntArray, wp: int, hp: int
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], npt.NDArray[np.int8]]:
+    """For cells (flat indices into a padded stack, windows of ``hp`` rows of ``wp``): whether each lies
+    on a straight wall, whether the wall runs along y, and where its medial line lies across it (-1, 0,
+    1: half a cell below/left of, at, above/right of the cell centre).
+
+    Judged over the square of ``MEDIAL_WINDOW_CELLS`` W cells either way (within the cell's window): for a
+    wall along x, the cell's row holds obstacles in the square (the cell itself may be a gap between
+    patches: where the distance field's gradient is flat, between patches, the cell it points back to
+    often is), the square's obstacles lie in the cell's row and the rows next to it only (none 2..W rows
+    away, which rejects corners and clutter), and some lie at either side along x within those three
+    rows (which rejects wall ends); along y the same with rows and columns exchanged; a cell that passes
+    both is no wall. Where one of the two rows next to it holds obstacles and the other none, the wall
+    is two cells thick (it lies on a cell boundary) and its medial line is that boundary, half a cell
+    towards them; otherwise the line is the cell centre. The rows' gaps are allowed: a wall seen at
+    grazing angles is mapped in patches (a beam every 5-10 cm along it, each hit in either row of a
+    boundary wall)."""
+    reach = MEDIAL_WINDOW_CELLS
+    span = 2 * reach + 1
+    steps = np.arange(-reach, reach + 1)
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+    col = cells % wp
+    row = (cells // wp) % hp
+    # The square's cells (span, span, M) and whether each lies inside the cell's window.
+    offsets = (steps[:, None] * wp + steps[None, :]).reshape(-1)
+    index = cells[None, :] + offsets[:, None]
+    np.clip(index, 0, flat.shape[0] - 1, out=index)
+    occupied = (flat[index] == 0.0).reshape(span, span, -1)
+    row_ok = (row[None, :] + steps[:, None] >= 0) & (row[None, :] + steps[:, None] < hp)
+    col_ok = (col[None, :] + steps[:, None] >= 0) & (col[None, :] + steps[:, None] < wp)
+    occupied &= row_ok[:, None, :]
+    occupied &= col_ok[None, :, :]
+    rows = occupied.any(axis=1)  # (span, M): any obstacle in the row dy (over the square's columns)
+    cols = occupied.any(axis=0)  # (span, M): any in the column dx
+    far_rows = rows[: reach - 1].any(axis=0) | rows[reach + 2 :].any(axis=0)
+    far_cols = cols[: reach - 1].any(axis=0) | cols[reach + 2 :].any(axis=0)
+    band_x = occupied[reach - 1 : reach + 2]  # the three rows (3, span, M)
+    band_y = occupied[:, reach - 1 : reach + 2]  # the three columns (span, 3, M)
+    both_sides_x = band_x[:, :reach].any(axis=(0, 1)) & band_x[:, reach + 1 :].any(axis=(0, 1))
+    both_sides_y = band_y[:reach].any(axis=(0, 1)) & band_y[reach + 1 :].any(axis=(0, 1))
+    along_x = rows[reach] & ~far_rows & both_sides_x
+    along_y = cols[reach] & ~far_cols & both_sides_y
+    crossed = along_x & along_y
+    along_x &= ~crossed
+    along_y &= ~crossed
+    high = np.where(along_y, cols[reach + 1], rows[reach + 1]).view(np.int8)
+    low = np.where(along_y, cols[reach - 1], rows[reach - 1]).view(np.int8)
+    return along_x | along_y, along_y, high - low
+
+
 def _medial_walls(
-    flat: Float32Array, cells: IntArray, wp: int
+    flat: Float32Array, cells: IntArray, wp: int, hp: int
 ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], FloatArray]:
-    """:func:`_medial_at` as the lookups use it: whether each cell lies on a straight wall (code > 0),
-    whether along y (code 1-3), and its medial line's shift across the wall in cells ((k - 1) / 2:
-    -0.5, 0, 0.5; meaningful on walls only). The same neighbour tests, without building the codes."""
-    # Through views of the table (flat[k:][low] is flat[low + k]): one index array for the five cells.
-    low = cells - wp
-    below, above = flat[low] == 0.0, flat[2 * wp :][low] == 0.0
-    left, right = flat[wp - 1 :][low] == 0.0, flat[wp + 1 :][low] == 0.0
-    across_x = left & right
-    across_y = below & above
-    along_y = across_y & ~across_x
-    along_x = across_x & ~across_y
-    wall = along_y | along_x
-    wall &= flat[wp:][low] == 0.0
-    high = np.where(along_y, right, above).view(np.int8)
-    low = np.where(along_y, left, below).view(np.int8)
-    shift: FloatArray = (high - low) * 0.5
-    return wall, along_y, shift
+    """:func:`_wall_lines` as the lookups use it (cells of any shape): whether each cell lies on a straight
+    wall, whether along y, and its medial line's shift across the wall in cells (-0.5, 0, 0.5)."""
+    shape = np.shape(cells)
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp)
+    shift: FloatArray = side.astype(np.float64) * 0.5
+    return wall.reshape(shape), along_y.reshape(shape), shift.reshape(shape)
+
+
+def _medial_at(flat: Float32Array, cells: IntArray, wp: int, hp: int) -> IntArray:
+    """``DistanceField.medial`` at flat indices ``cells`` of a padded stack (``flat``, windows of ``hp``
+    rows of ``wp``): the same tests as :func:`_medial_codes`, for these cells only."""
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp)
+    codes = np.where(along_y, 2 + side, 5 + side)
+    out: IntArray = np.where(wall, codes, 0).astype(np.int64)
+    return out
+
+
+def _medial_codes(padded: Float32Array) -> npt.NDArray[np.int8]:
+    """``DistanceField.medial`` for a padded distance stack whose obstacle cells hold 0: :func:`_wall_lines`
+    coded for every cell (a lookup lands on the cell its nearest-obstacle estimate gives, which need not
+    be an obstacle)."""
+    _u, hp, wp = padded.shape
+    flat = padded.reshape(-1)
+    codes = _medial_at(flat, np.arange(flat.size, dtype=np.int64), wp, hp).astype(np.int8)
+    return codes.reshape(padded.shape)
 
 
 _EYE3 = np.eye(3)[None, :, :]
@@ -367,44 +437,6 @@ def _clip(a: npt.NDArray[Any], lo: float, hi: float, out: npt.NDArray[Any]) -> n
     the lookups clip four arrays per residual evaluation): the same ufunc."""
     result: npt.NDArray[Any] = np.minimum(np.maximum(a, lo, out=out), hi, out=out)
     return result
-
-
-def _medial_at(flat: Float32Array, cells: IntArray, wp: int) -> IntArray:
-    """``DistanceField.medial`` at flat indices ``cells`` of a padded stack (``flat``, rows of ``wp``),
-    none of them on the one-cell border: the same tests as :func:`_medial_codes`, for these cells only."""
-    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
-    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
-    along_y = below & above & ~(left & right)
-    along_x = left & right & ~(below & above)
-    k_y = 1 + right.astype(np.int8) - left.astype(np.int8)
-    k_x = 1 + above.astype(np.int8) - below.astype(np.int8)
-    codes = np.where(along_y, 1 + k_y, np.where(along_x, 4 + k_x, 0)).astype(np.int8)
-    out: IntArray = np.where(flat[cells] == 0.0, codes, 0).astype(np.int64)
-    return out
-
-
-def _medial_codes(padded: Float32Array, cells: IntArray | None = None) -> npt.NDArray[np.int8]:
-    """``DistanceField.medial`` for a padded distance stack whose obstacle cells hold 0 (``cells``: their
-    flat indices, if known).
-
-    A cell with obstacle neighbours above and below but not both left and right lies on a wall along y
-    (and the other way round); its medial line is at its centre, or half a cell towards its one obstacle
-    neighbour across the wall (a wall two cells thick)."""
-    _u, _hp, wp = padded.shape
-    flat = padded.reshape(-1)
-    codes = np.zeros(flat.shape, dtype=np.int8)
-    if cells is None:
-        cells = np.flatnonzero(flat == 0.0)  # the one-cell border holds the cap: neighbours stay inside
-    if cells.size == 0:
-        return codes.reshape(padded.shape)
-    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
-    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
-    along_y = below & above & ~(left & right)
-    along_x = left & right & ~(below & above)
-    k_y = 1 + right.astype(np.int8) - left.astype(np.int8)  # 0, 1, 2: medial below, at, above the centre
-    k_x = 1 + above.astype(np.int8) - below.astype(np.int8)
-    codes[cells] = np.where(along_y, 1 + k_y, np.where(along_x, 4 + k_x, 0)).astype(np.int8)
-    return codes.reshape(padded.shape)
 
 
 @dataclass(frozen=True)

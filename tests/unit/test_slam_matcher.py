@@ -355,7 +355,8 @@ def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     whole = field.medial
     assert (whole > 0).sum() > 100
     np.testing.assert_array_equal(
-        _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp), whole.reshape(-1)[cells.reshape(-1)]
+        _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp, hp),
+        whole.reshape(-1)[cells.reshape(-1)],
     )
 
 
@@ -517,3 +518,39 @@ def test_duplicate_rows_matched_once_as_the_whole_batch(
     for a, b in ((once.poses, whole.poses), (once.information, whole.information), (once.ok, whole.ok)):
         assert np.array_equal(a, b)
     assert np.array_equal(once_res.r, whole_res.r) and np.array_equal(once_res.gate, whole_res.gate)
+
+
+def test_a_boundary_wall_mapped_in_patches_is_measured_to_the_boundary() -> None:
+    """A wall on the boundary between rows 10 and 11, mapped as a grazing view maps it: single cells with
+    gaps, alternating between the two rows. Its medial line is the boundary: a sample there is at 0, one
+    2 cm off at 2 cm, wherever it lies along the wall but on a saddle (bilinear distances, which the
+    patches' four-cell neighbourhoods left, pull diagonally towards the nearest patch: 0-3.5 cm on the
+    boundary). A corner and a wall's last cells keep the bilinear value."""
+    obstacles = np.zeros((1, 30, 60), dtype=bool)
+    obstacles[0, 10, 4:44:4] = True
+    obstacles[0, 11, 6:44:4] = True
+    obstacles[0, 11:25, 50] = True  # a wall along y ...
+    obstacles[0, 11, 47:51] = True  # ... with a short one along x into its corner
+    field = DistanceField.from_obstacles(obstacles, (0.0, 0.0), RES, 0.55)
+    boundary = 11 * RES
+    # (Anywhere but the exact saddles midway between two patches, where the gradient that finds the
+    # nearest obstacle cell is zero.)
+    x = np.random.default_rng(0).uniform(10 * RES, 40 * RES, 61)
+    for off in (0.0, 0.02, -0.02):
+        d, ddx, ddy, known = field.sample_known(
+            np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary + off)
+        )
+        assert known.all()
+        np.testing.assert_allclose(d[0], abs(off), atol=1e-6)
+        if off:
+            np.testing.assert_allclose(ddy[0], math.copysign(1.0, off))
+            np.testing.assert_allclose(ddx[0], 0.0)
+    bilinear, *_ = field.sample_known(
+        np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary), medial=False
+    )
+    assert bilinear.max() > 0.02
+    codes = field.medial[0, 1:-1, 1:-1]
+    assert codes[10, 8] == 1 + 3 + 2 and codes[11, 10] == 1 + 3 + 0  # along x, the line above / below
+    assert codes[10, 4] == 0  # the wall's end: nothing on its left
+    assert codes[11, 48] == 0 and codes[11, 50] == 0  # the corner's cells
+    assert codes[20, 50] == 1 + 1  # along y, one cell thick: the line through the centre
