@@ -30,9 +30,6 @@ IntArray = npt.NDArray[np.int64]
 
 UNKNOWN = -1.0  # distance-field value of cells the map has not observed
 MEDIAL_REACH_CELLS = 3.0  # within this distance of a wall, distances are taken to its medial point
-# A wall cell's straightness is judged over the (2 W + 1)-cell square around it, W this (docs/slam.md, "The
-# grid"): a wall seen at grazing angles is mapped in patches, one or two cells across, with gaps along it.
-MEDIAL_WINDOW_CELLS = 3
 
 
 @dataclass(frozen=True)
@@ -45,33 +42,40 @@ class DistanceField:
 
     Sampling is bilinear, except within ``MEDIAL_REACH_CELLS`` of a straight wall, where the distance is
     to the wall's medial line. The nearest obstacle cell is the one d |grad d|⁻¹ grad d back from the
-    sample. Its straightness is judged over the square of ``MEDIAL_WINDOW_CELLS`` cells either way
-    around it (:func:`_wall_lines`): the wall runs along x when the square's obstacles all lie in the
-    cell's row and the rows next to it, and some lie on either side of it along x (and the same along
-    y); its medial line passes through the cell centre, moved half a cell towards the row next to it
-    that holds obstacles if only one does. A wall that lies on a cell boundary is hit on both sides of
-    it, so it is two cells thick in the map; bilinear distances are 0 all across the pair, a
-    flat-bottomed valley 5 cm wide in which matches drift with odometry (the simulated office, whose
-    walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it). To the medial line the distance is
-    |x - X| again, X the boundary. Where such a wall is seen at grazing angles it is mapped in patches
-    that alternate between the two rows, with gaps between them; judged on the cell's four neighbours
-    alone those patches were no wall, and the bilinear distances to them pulled endpoints diagonally
-    (the office's first map turned the next scans' matches by 0.1-0.35 degrees). Corners, wall ends and
-    clutter keep the bilinear value.
+    sample; when its obstacle neighbours run along one axis (above and below it, or left and right, not
+    both), the wall runs along that axis, and its medial line passes through the cell centre, moved half
+    a cell towards an obstacle neighbour across the wall if it has one on that side only. A wall that
+    lies on a cell boundary is hit on both sides of it, so it is two cells thick in the map; bilinear
+    distances are 0 all across the pair, a flat-bottomed valley 5 cm wide in which matches drift with
+    odometry (the simulated office, whose walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it).
+    To the medial line the distance is |x - X| again, X the boundary. Corners, wall ends and clutter keep
+    the bilinear value.
+
+    ``medial_window_cells`` W > 0 judges straightness over the square of W cells either way around the
+    cell instead (:func:`_wall_lines`; ``MatcherConfig.medial_window_cells``): a boundary wall seen at
+    grazing angles is mapped in patches, single cells alternating between the two rows with gaps between
+    them, which the four neighbours take for no wall (the bilinear distances to the patches then pull
+    endpoints diagonally: the simulated office's first map turned the next scans' matches by 0.1-0.35
+    degrees). 0 (the default): the four neighbours.
     """
 
     distance_m: Float32Array
     origin_m: tuple[float, float]
     resolution_m: float
     cap_m: float
+    medial_window_cells: int = 0
 
     @property
     def medial(self) -> npt.NDArray[np.int8]:
-        """Per cell (same layout as distance_m): 0, or for a cell on a straight wall (:func:`_wall_lines`)
+        """Per cell (same layout as distance_m): 0, or for an obstacle cell on a straight wall
         1 + 3 a + k, a = 0 for a wall along y (distance across it in x), 1 along x, k = 0, 1, 2 for a
         medial line half a cell below, at, or above the cell centre. Computed here for the whole stack
-        (for inspection); the lookups compute it for the cells they read (:func:`_medial_walls`): as a
-        stored int8 stack it was a fifth of the field's memory (Intel: ~5.5 MB at the peak RSS)."""
+        (for inspection); the lookups compute it for the cells they read (:func:`_medial_at`): as a
+        stored int8 stack it was a fifth of the field's memory (Intel: ~5.5 MB at the peak RSS). With
+        ``medial_window_cells`` every cell is coded (:func:`_square_codes`): a lookup lands on the cell its
+        nearest-obstacle estimate gives, which need not be an obstacle there."""
+        if self.medial_window_cells > 0:
+            return _square_codes(self.distance_m, self.medial_window_cells)
         return _medial_codes(self.distance_m)
 
     @classmethod
@@ -311,11 +315,17 @@ class DistanceField:
         jx = _clip(jx, 1, wp - 2, out=jx).astype(np.int64)
         jy = _clip(jy, 1, hp - 2, out=jy).astype(np.int64)
         cell = (window_base + jy) * wp + jx
-        # The straightness test (a square of cells each) for the samples near a wall only.
-        wall = np.zeros(near.shape, dtype=bool)
-        along_y = np.zeros(near.shape, dtype=bool)
-        shift = np.zeros(near.shape)
-        wall[near], along_y[near], shift[near] = _medial_walls(flat, cell[near], wp, hp)
+        if self.medial_window_cells > 0:
+            # The square's test (its cells each) for the samples near a wall only.
+            wall = np.zeros(near.shape, dtype=bool)
+            along_y = np.zeros(near.shape, dtype=bool)
+            shift = np.zeros(near.shape)
+            wall[near], along_y[near], shift[near] = _square_walls(
+                flat, cell[near], wp, hp, self.medial_window_cells
+            )
+        else:
+            wall, along_y, shift = _medial_walls(flat, cell, wp)
+            wall &= near
         # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
         # (The operands chosen per point first, then one expression: the same operations on the same
         # operands as computing both sides and choosing, in fewer passes.)
@@ -347,14 +357,36 @@ def _known_box(obstacles: npt.NDArray[np.bool_], known: npt.NDArray[np.bool_]) -
     return r0, r1, c0, c1
 
 
+def _medial_walls(
+    flat: Float32Array, cells: IntArray, wp: int
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], FloatArray]:
+    """:func:`_medial_at` as the lookups use it: whether each cell lies on a straight wall (code > 0),
+    whether along y (code 1-3), and its medial line's shift across the wall in cells ((k - 1) / 2:
+    -0.5, 0, 0.5; meaningful on walls only). The same neighbour tests, without building the codes."""
+    # Through views of the table (flat[k:][low] is flat[low + k]): one index array for the five cells.
+    low = cells - wp
+    below, above = flat[low] == 0.0, flat[2 * wp :][low] == 0.0
+    left, right = flat[wp - 1 :][low] == 0.0, flat[wp + 1 :][low] == 0.0
+    across_x = left & right
+    across_y = below & above
+    along_y = across_y & ~across_x
+    along_x = across_x & ~across_y
+    wall = along_y | along_x
+    wall &= flat[wp:][low] == 0.0
+    high = np.where(along_y, right, above).view(np.int8)
+    low = np.where(along_y, left, below).view(np.int8)
+    shift: FloatArray = (high - low) * 0.5
+    return wall, along_y, shift
+
+
 def _wall_lines(
-    flat: Float32Array, cells: IntArray, wp: int, hp: int
+    flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int
 ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], npt.NDArray[np.int8]]:
     """For cells (flat indices into a padded stack, windows of ``hp`` rows of ``wp``): whether each lies
     on a straight wall, whether the wall runs along y, and where its medial line lies across it (-1, 0,
     1: half a cell below/left of, at, above/right of the cell centre).
 
-    Judged over the square of ``MEDIAL_WINDOW_CELLS`` W cells either way (within the cell's window): for a
+    Judged over the square of ``reach`` W cells either way (within the cell's window): for a
     wall along x, the cell's row holds obstacles in the square (the cell itself may be a gap between
     patches: where the distance field's gradient is flat, between patches, the cell it points back to
     often is), the square's obstacles lie in the cell's row and the rows next to it only (none 2..W rows
@@ -365,7 +397,6 @@ def _wall_lines(
     towards them; otherwise the line is the cell centre. The rows' gaps are allowed: a wall seen at
     grazing angles is mapped in patches (a beam every 5-10 cm along it, each hit in either row of a
     boundary wall)."""
-    reach = MEDIAL_WINDOW_CELLS
     span = 2 * reach + 1
     steps = np.arange(-reach, reach + 1)
     cells = np.asarray(cells, dtype=np.int64).reshape(-1)
@@ -398,33 +429,32 @@ def _wall_lines(
     return along_x | along_y, along_y, high - low
 
 
-def _medial_walls(
-    flat: Float32Array, cells: IntArray, wp: int, hp: int
+def _square_walls(
+    flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int
 ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], FloatArray]:
-    """:func:`_wall_lines` as the lookups use it (cells of any shape): whether each cell lies on a straight
-    wall, whether along y, and its medial line's shift across the wall in cells (-0.5, 0, 0.5)."""
+    """:func:`_wall_lines` as the lookups use it (as :func:`_medial_walls`): whether each cell lies on a
+    straight wall, whether along y, and its medial line's shift across the wall in cells (-0.5, 0, 0.5)."""
     shape = np.shape(cells)
-    wall, along_y, side = _wall_lines(flat, cells, wp, hp)
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp, reach)
     shift: FloatArray = side.astype(np.float64) * 0.5
     return wall.reshape(shape), along_y.reshape(shape), shift.reshape(shape)
 
 
-def _medial_at(flat: Float32Array, cells: IntArray, wp: int, hp: int) -> IntArray:
-    """``DistanceField.medial`` at flat indices ``cells`` of a padded stack (``flat``, windows of ``hp``
-    rows of ``wp``): the same tests as :func:`_medial_codes`, for these cells only."""
-    wall, along_y, side = _wall_lines(flat, cells, wp, hp)
+def _square_at(flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int) -> IntArray:
+    """``DistanceField.medial`` with ``medial_window_cells`` ``reach`` at flat indices ``cells`` of a padded
+    stack (``flat``, windows of ``hp`` rows of ``wp``)."""
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp, reach)
     codes = np.where(along_y, 2 + side, 5 + side)
     out: IntArray = np.where(wall, codes, 0).astype(np.int64)
     return out
 
 
-def _medial_codes(padded: Float32Array) -> npt.NDArray[np.int8]:
-    """``DistanceField.medial`` for a padded distance stack whose obstacle cells hold 0: :func:`_wall_lines`
-    coded for every cell (a lookup lands on the cell its nearest-obstacle estimate gives, which need not
-    be an obstacle)."""
+def _square_codes(padded: Float32Array, reach: int) -> npt.NDArray[np.int8]:
+    """``DistanceField.medial`` with ``medial_window_cells`` ``reach``: :func:`_wall_lines` coded for every
+    cell of a padded stack."""
     _u, hp, wp = padded.shape
     flat = padded.reshape(-1)
-    codes = _medial_at(flat, np.arange(flat.size, dtype=np.int64), wp, hp).astype(np.int8)
+    codes = _square_at(flat, np.arange(flat.size, dtype=np.int64), wp, hp, reach).astype(np.int8)
     return codes.reshape(padded.shape)
 
 
@@ -437,6 +467,44 @@ def _clip(a: npt.NDArray[Any], lo: float, hi: float, out: npt.NDArray[Any]) -> n
     the lookups clip four arrays per residual evaluation): the same ufunc."""
     result: npt.NDArray[Any] = np.minimum(np.maximum(a, lo, out=out), hi, out=out)
     return result
+
+
+def _medial_at(flat: Float32Array, cells: IntArray, wp: int) -> IntArray:
+    """``DistanceField.medial`` at flat indices ``cells`` of a padded stack (``flat``, rows of ``wp``),
+    none of them on the one-cell border: the same tests as :func:`_medial_codes`, for these cells only."""
+    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
+    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
+    along_y = below & above & ~(left & right)
+    along_x = left & right & ~(below & above)
+    k_y = 1 + right.astype(np.int8) - left.astype(np.int8)
+    k_x = 1 + above.astype(np.int8) - below.astype(np.int8)
+    codes = np.where(along_y, 1 + k_y, np.where(along_x, 4 + k_x, 0)).astype(np.int8)
+    out: IntArray = np.where(flat[cells] == 0.0, codes, 0).astype(np.int64)
+    return out
+
+
+def _medial_codes(padded: Float32Array, cells: IntArray | None = None) -> npt.NDArray[np.int8]:
+    """``DistanceField.medial`` for a padded distance stack whose obstacle cells hold 0 (``cells``: their
+    flat indices, if known).
+
+    A cell with obstacle neighbours above and below but not both left and right lies on a wall along y
+    (and the other way round); its medial line is at its centre, or half a cell towards its one obstacle
+    neighbour across the wall (a wall two cells thick)."""
+    _u, _hp, wp = padded.shape
+    flat = padded.reshape(-1)
+    codes = np.zeros(flat.shape, dtype=np.int8)
+    if cells is None:
+        cells = np.flatnonzero(flat == 0.0)  # the one-cell border holds the cap: neighbours stay inside
+    if cells.size == 0:
+        return codes.reshape(padded.shape)
+    left, right = flat[cells - 1] == 0.0, flat[cells + 1] == 0.0
+    below, above = flat[cells - wp] == 0.0, flat[cells + wp] == 0.0
+    along_y = below & above & ~(left & right)
+    along_x = left & right & ~(below & above)
+    k_y = 1 + right.astype(np.int8) - left.astype(np.int8)  # 0, 1, 2: medial below, at, above the centre
+    k_x = 1 + above.astype(np.int8) - below.astype(np.int8)
+    codes[cells] = np.where(along_y, 1 + k_y, np.where(along_x, 4 + k_x, 0)).astype(np.int8)
+    return codes.reshape(padded.shape)
 
 
 @dataclass(frozen=True)
@@ -473,6 +541,12 @@ class MatcherConfig:
     # it there: a corridor's length).
     # 0: off (the default). ``[slam] match_min_translation_information``; docs/slam.md, "Scan matching".
     min_translation_information: float = 0.0
+    # The distance field's straight-wall test (``DistanceField.medial_window_cells``): 0 a wall cell's four
+    # neighbours (the default), W > 0 the square of W cells either way around it, which also finds a
+    # boundary wall mapped in patches, and misplaces walls that lie elsewhere in their cells.
+    # ``[slam] match_medial_window_cells``; off everywhere (docs/slam.md, "Scan matching", *Walls on cell
+    # boundaries*).
+    medial_window_cells: int = 0
     # ... and only where the other translation direction is observed at least this many times as well
     # (a corridor: walls on both sides, nothing along it; a scan with few surfaces in any direction, a
     # cluttered room, is left to the whole Σ J Jᵀ). 0: any weak direction.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -23,6 +24,7 @@ from agent.slam.matcher import (
     MatcherConfig,
     SearchConfig,
     _medial_at,
+    _square_walls,
     correlative_search,
     degenerate_projection,
     match,
@@ -355,8 +357,7 @@ def test_medial_codes_at_lookup_match_the_whole_stack() -> None:
     whole = field.medial
     assert (whole > 0).sum() > 100
     np.testing.assert_array_equal(
-        _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp, hp),
-        whole.reshape(-1)[cells.reshape(-1)],
+        _medial_at(field.distance_m.reshape(-1), cells.reshape(-1), wp), whole.reshape(-1)[cells.reshape(-1)]
     )
 
 
@@ -521,17 +522,18 @@ def test_duplicate_rows_matched_once_as_the_whole_batch(
 
 
 def test_a_boundary_wall_mapped_in_patches_is_measured_to_the_boundary() -> None:
-    """A wall on the boundary between rows 10 and 11, mapped as a grazing view maps it: single cells with
-    gaps, alternating between the two rows. Its medial line is the boundary: a sample there is at 0, one
-    2 cm off at 2 cm, wherever it lies along the wall but on a saddle (bilinear distances, which the
-    patches' four-cell neighbourhoods left, pull diagonally towards the nearest patch: 0-3.5 cm on the
-    boundary). A corner and a wall's last cells keep the bilinear value."""
+    """``medial_window_cells`` 3: a wall on the boundary between rows 10 and 11, mapped as a grazing view maps
+    it: single cells with gaps, alternating between the two rows. Its medial line is the boundary: a sample
+    there is at 0, one 2 cm off at 2 cm, wherever it lies along the wall but on a saddle (bilinear distances,
+    which the patches' four-cell neighbourhoods left, pull diagonally towards the nearest patch: 0-3.5 cm on
+    the boundary). A corner and a wall's last cells keep the bilinear value."""
     obstacles = np.zeros((1, 30, 60), dtype=bool)
     obstacles[0, 10, 4:44:4] = True
     obstacles[0, 11, 6:44:4] = True
     obstacles[0, 11:25, 50] = True  # a wall along y ...
     obstacles[0, 11, 47:51] = True  # ... with a short one along x into its corner
-    field = DistanceField.from_obstacles(obstacles, (0.0, 0.0), RES, 0.55)
+    four = DistanceField.from_obstacles(obstacles, (0.0, 0.0), RES, 0.55)
+    field = dataclasses.replace(four, medial_window_cells=3)
     boundary = 11 * RES
     # (Anywhere but the exact saddles midway between two patches, where the gradient that finds the
     # nearest obstacle cell is zero.)
@@ -549,6 +551,17 @@ def test_a_boundary_wall_mapped_in_patches_is_measured_to_the_boundary() -> None
         np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary), medial=False
     )
     assert bilinear.max() > 0.02
+    by_neighbours, *_ = four.sample_known(
+        np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary)
+    )  # the four-neighbour test (the default) finds no wall here: the bilinear values
+    np.testing.assert_array_equal(by_neighbours, bilinear)
+    cells = np.arange(field.distance_m.size)
+    _u, hp, wp = field.distance_m.shape
+    wall, along_y, shift = _square_walls(field.distance_m.reshape(-1), cells, wp, hp, 3)
+    whole = field.medial.reshape(-1)  # the lookups' test, coded
+    np.testing.assert_array_equal(wall, whole > 0)
+    np.testing.assert_array_equal(along_y & wall, (whole >= 1) & (whole <= 3))
+    np.testing.assert_array_equal(shift[wall], ((whole[wall] - 1) % 3 - 1) * 0.5)
     codes = field.medial[0, 1:-1, 1:-1]
     assert codes[10, 8] == 1 + 3 + 2 and codes[11, 10] == 1 + 3 + 0  # along x, the line above / below
     assert codes[10, 4] == 0  # the wall's end: nothing on its left
