@@ -1365,6 +1365,11 @@ class _Reader:
             match_min_translation_information=t.number(
                 "match_min_translation_information", d.match_min_translation_information, _NON_NEGATIVE
             ),
+            match_medial_window_cells=t.integer(
+                "match_medial_window_cells",
+                d.match_medial_window_cells,
+                (lambda v: 0 <= v <= 8, "must be in [0, 8]"),
+            ),
             failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
             miss_log_odds=t.number(
                 "miss_log_odds", d.miss_log_odds, (lambda v: -2.0 <= v < 0, "must be in [-2, 0)")

@@ -70,6 +70,10 @@ class SlamConfig:
     # Degeneracy-aware match steps (MatcherConfig.min_translation_information; 0 off): the scan does not
     # move the pose along a translation direction whose information is below this
     match_min_translation_information: float = 0.0
+    # The distance field's straight-wall test (MatcherConfig.medial_window_cells): 0 a wall cell's four
+    # neighbours; W > 0 the square of W cells either way around it (a wall on a cell boundary mapped in
+    # patches, as grazing views map it, is measured to its boundary)
+    match_medial_window_cells: int = 0
     # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
     # motion model) or "grid" (near the odometry prediction, where its weight was taken)
     failed_match_draw: str = "motion"

@@ -16,6 +16,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
+    python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --medial-window-cells 3
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 0
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 4 --loop-hypotheses-everywhere
@@ -110,6 +111,14 @@ def main() -> int:
         help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
     )
     parser.add_argument(
+        "--medial-window-cells",
+        type=int,
+        default=0,
+        metavar="W",
+        help="MatcherConfig.medial_window_cells: a wall's straightness judged over the square of W cells "
+        "either way (default 0: a wall cell's four neighbours)",
+    )
+    parser.add_argument(
         "--edge-match-sigma",
         type=float,
         metavar="S",
@@ -153,6 +162,7 @@ def main() -> int:
         temperature=args.temperature,
         prior_weight=args.prior_weight,
         eta_integral=args.eta_integral,
+        matcher=dataclasses.replace(ProposalConfig().matcher, medial_window_cells=args.medial_window_cells),
     )
     closed = []
     errors = []

@@ -20,6 +20,7 @@ view cost the map.
     python benchmarks/slam_office.py --seeds $(seq 8 23) --tune 0 1 2 3 4 5 6 7 --degenerate-noise-scale 1
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5 --edge-sigma 0.005 0.005 0.001 --match-sigma 0.1
     python benchmarks/slam_office.py --seeds 10 14 18 22 --loop-hypotheses 0
+    python benchmarks/slam_office.py --seeds $(seq 0 23) --medial-window-cells 3
 """
 
 from __future__ import annotations
@@ -106,6 +107,7 @@ def run_seed(
     free_margin: float | None = None,
     edge_match_sigma: float | None = None,
     hypotheses: int | None = None,
+    medial_window: int | None = None,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -117,6 +119,10 @@ def run_seed(
     proposal = log_proposal("simulated", ProposalConfig())
     if degenerate_scale is not None:
         proposal = dataclasses.replace(proposal, degenerate_noise_scale=degenerate_scale)
+    if medial_window is not None:
+        proposal = dataclasses.replace(
+            proposal, matcher=dataclasses.replace(proposal.matcher, medial_window_cells=medial_window)
+        )
     config = RbpfConfig(
         particles=particles,
         noise=MOTION_NOISE,
@@ -226,6 +232,13 @@ def main() -> int:
         help="LoopClosureConfig.hypotheses: the known-area rule's best coarse poses per window, where the"
         f" coarse tests find nothing (0: off; default the config's, {LoopClosureConfig().hypotheses})",
     )
+    parser.add_argument(
+        "--medial-window-cells",
+        type=int,
+        metavar="W",
+        help="MatcherConfig.medial_window_cells: a wall's straightness judged over the square of W cells "
+        "either way (default: eval slam's for the simulated robot, 0: a wall cell's four neighbours)",
+    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -248,6 +261,7 @@ def main() -> int:
             args.free_margin if args.free_margin is not None else front_end("simulated").free_margin_m,
             args.edge_match_sigma,
             args.loop_hypotheses,
+            args.medial_window_cells,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -267,6 +281,7 @@ def main() -> int:
         "particles": args.particles,
         "grid_offset_m": args.grid_offset,
         "free_margin_m": args.free_margin,
+        "medial_window_cells": args.medial_window_cells,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

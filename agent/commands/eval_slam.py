@@ -132,6 +132,14 @@ MATCH_GATE_RESIDUAL = {"breezyslam": False, "radish": False, "simulated": False,
 NORMAL_RADIUS_PER_M = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
 NORMAL_THICKNESS_M = {"breezyslam": 0.015, "radish": 0.015, "simulated": 0.015, "mcap": 0.015}
 MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulated": 0.0, "mcap": 0.0}
+# MatcherConfig.medial_window_cells per format ([slam] match_medial_window_cells; eval slam
+# --medial-window-cells W): a wall's straightness judged over the 7 x 7 cells around it (3), so that a wall on
+# a cell boundary mapped in patches is measured to the boundary. Off everywhere: it cures the office's walls,
+# all on 5 cm boundaries (seeds 0-23 mean 2.90 -> 1.02 cm, 7 -> 2 of 24 over 3 cm), and hurts walls anywhere
+# else (the office moved half a cell, seeds 0 / 16 / 1: 0.85 / 0.86 / 0.88 -> 3.06 / 3.17 / 3.10 cm), exp1's
+# loop (3 of 6 closed), Intel seeds 0 / 3, ACES seed 1 and FR079 (0.197 -> 0.464 m). docs/slam.md, "Scan
+# matching", *Walls on cell boundaries*.
+MATCH_MEDIAL_WINDOW_CELLS = {"breezyslam": 0, "radish": 0, "simulated": 0, "mcap": 0}
 
 
 def front_end(source_format: str) -> Any:
@@ -139,7 +147,7 @@ def front_end(source_format: str) -> Any:
     ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``,
     ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, ``REVERSAL_RATIO``, ``LOOP_CORRECTION_ODOMETRY_SIGMAS``,
     ``MATCH_GATE_RESIDUAL``, ``NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``,
-    ``MATCH_MIN_TRANSLATION_INFORMATION``, the
+    ``MATCH_MIN_TRANSLATION_INFORMATION``, ``MATCH_MEDIAL_WINDOW_CELLS``, the
     simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
     trusted on 10 endpoints whatever their share, from both starts, a failed match drawn near the
     odometry prediction and the correlative search at turns over a wider yaw window. The
@@ -160,6 +168,7 @@ def front_end(source_format: str) -> Any:
         normal_radius_per_m=NORMAL_RADIUS_PER_M[source_format],
         normal_thickness_m=NORMAL_THICKNESS_M[source_format],
         match_min_translation_information=MATCH_MIN_TRANSLATION_INFORMATION[source_format],
+        match_medial_window_cells=MATCH_MEDIAL_WINDOW_CELLS[source_format],
     )
     if source_format == "simulated":
         from agent.slam.simlog import MOTION_NOISE
@@ -314,6 +323,14 @@ def add_parser(subparsers: Any) -> None:
         help="a particle's draw is K times narrower in the directions its scan match does not hold (a "
         "corridor's length), ~1 where it does ([slam] degenerate_noise_scale, in (0, 1]; default: 0.3 for "
         "--world, 1 otherwise: the paper's draw)",
+    )
+    p.add_argument(
+        "--medial-window-cells",
+        type=int,
+        metavar="W",
+        help="judge a wall's straightness, for the match's distance to its medial line, over the square of W "
+        "cells either way around it ([slam] match_medial_window_cells, 0-8; default 0: a wall cell's four "
+        "neighbours): finds walls on cell boundaries mapped in patches, hurts walls elsewhere (docs/slam.md)",
     )
     p.add_argument(
         "--loop-closure",
@@ -562,6 +579,14 @@ def run(args: argparse.Namespace) -> int:
         along_surface_weight=along,
         degenerate_noise_scale=degenerate,
     )
+    if args.medial_window_cells is not None:
+        if not 0 <= args.medial_window_cells <= 8:
+            raise ConfigError("--medial-window-cells", "must be in [0, 8]")
+        proposal = filter_keys["proposal"]
+        filter_keys["proposal"] = dataclasses.replace(
+            proposal,
+            matcher=dataclasses.replace(proposal.matcher, medial_window_cells=args.medial_window_cells),
+        )
     initial_pose = defaults.initial_pose
     reference = log.reference_poses()
     if simulated is not None:
@@ -598,6 +623,7 @@ def run(args: argparse.Namespace) -> int:
         "proposal_temperature": config.proposal.proposal_temperature,
         "along_surface_weight": config.proposal.along_surface_weight,
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
+        "medial_window_cells": config.proposal.matcher.medial_window_cells,
         **{
             key: None if config.loop_closure is None else getattr(config.loop_closure, key)
             for key in (

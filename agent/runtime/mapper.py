@@ -61,7 +61,8 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
     """``base`` (an ``agent.slam.proposal.ProposalConfig``) with the scan match's front end the ``[slam]``
     keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*`` (``match_gate_residual``:
     ``MatcherConfig.gate_on_residual``; ``match_min_translation_information``:
-    ``MatcherConfig.min_translation_information``), ``normal_radius_per_m``, ``normal_thickness_m``,
+    ``MatcherConfig.min_translation_information``; ``match_medial_window_cells``:
+    ``MatcherConfig.medial_window_cells``), ``normal_radius_per_m``, ``normal_thickness_m``,
     ``failed_match_draw``,
     ``search_yaw_rad``). The agent's filters are built with it, and so is what ``vlp-agent eval slam`` runs
     for each source (``eval_slam.front_end``): what was measured is what runs."""
@@ -73,6 +74,7 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         min_inlier_fraction=config.match_min_inlier_fraction,
         gate_on_residual=config.match_gate_residual,
         min_translation_information=config.match_min_translation_information,
+        medial_window_cells=config.match_medial_window_cells,
     )
     return dataclasses.replace(
         base,

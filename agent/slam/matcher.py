@@ -50,12 +50,20 @@ class DistanceField:
     odometry (the simulated office, whose walls all lie on 5 cm boundaries, lost 2.5 cm per axis to it).
     To the medial line the distance is |x - X| again, X the boundary. Corners, wall ends and clutter keep
     the bilinear value.
+
+    ``medial_window_cells`` W > 0 judges straightness over the square of W cells either way around the
+    cell instead (:func:`_wall_lines`; ``MatcherConfig.medial_window_cells``): a boundary wall seen at
+    grazing angles is mapped in patches, single cells alternating between the two rows with gaps between
+    them, which the four neighbours take for no wall (the bilinear distances to the patches then pull
+    endpoints diagonally: the simulated office's first map turned the next scans' matches by 0.1-0.35
+    degrees). 0 (the default): the four neighbours.
     """
 
     distance_m: Float32Array
     origin_m: tuple[float, float]
     resolution_m: float
     cap_m: float
+    medial_window_cells: int = 0
 
     @property
     def medial(self) -> npt.NDArray[np.int8]:
@@ -63,7 +71,11 @@ class DistanceField:
         1 + 3 a + k, a = 0 for a wall along y (distance across it in x), 1 along x, k = 0, 1, 2 for a
         medial line half a cell below, at, or above the cell centre. Computed here for the whole stack
         (for inspection); the lookups compute it for the cells they read (:func:`_medial_at`): as a
-        stored int8 stack it was a fifth of the field's memory (Intel: ~5.5 MB at the peak RSS)."""
+        stored int8 stack it was a fifth of the field's memory (Intel: ~5.5 MB at the peak RSS). With
+        ``medial_window_cells`` every cell is coded (:func:`_square_codes`): a lookup lands on the cell its
+        nearest-obstacle estimate gives, which need not be an obstacle there."""
+        if self.medial_window_cells > 0:
+            return _square_codes(self.distance_m, self.medial_window_cells)
         return _medial_codes(self.distance_m)
 
     @classmethod
@@ -303,8 +315,17 @@ class DistanceField:
         jx = _clip(jx, 1, wp - 2, out=jx).astype(np.int64)
         jy = _clip(jy, 1, hp - 2, out=jy).astype(np.int64)
         cell = (window_base + jy) * wp + jx
-        wall, along_y, shift = _medial_walls(flat, cell, wp)
-        wall &= near
+        if self.medial_window_cells > 0:
+            # The square's test (its cells each) for the samples near a wall only.
+            wall = np.zeros(near.shape, dtype=bool)
+            along_y = np.zeros(near.shape, dtype=bool)
+            shift = np.zeros(near.shape)
+            wall[near], along_y[near], shift[near] = _square_walls(
+                flat, cell[near], wp, hp, self.medial_window_cells
+            )
+        else:
+            wall, along_y, shift = _medial_walls(flat, cell, wp)
+            wall &= near
         # The medial line across the wall: cell centre (j - 1/2) res + origin, plus the shift.
         # (The operands chosen per point first, then one expression: the same operations on the same
         # operands as computing both sides and choosing, in fewer passes.)
@@ -356,6 +377,85 @@ def _medial_walls(
     low = np.where(along_y, left, below).view(np.int8)
     shift: FloatArray = (high - low) * 0.5
     return wall, along_y, shift
+
+
+def _wall_lines(
+    flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], npt.NDArray[np.int8]]:
+    """For cells (flat indices into a padded stack, windows of ``hp`` rows of ``wp``): whether each lies
+    on a straight wall, whether the wall runs along y, and where its medial line lies across it (-1, 0,
+    1: half a cell below/left of, at, above/right of the cell centre).
+
+    Judged over the square of ``reach`` W cells either way (within the cell's window): for a
+    wall along x, the cell's row holds obstacles in the square (the cell itself may be a gap between
+    patches: where the distance field's gradient is flat, between patches, the cell it points back to
+    often is), the square's obstacles lie in the cell's row and the rows next to it only (none 2..W rows
+    away, which rejects corners and clutter), and some lie at either side along x within those three
+    rows (which rejects wall ends); along y the same with rows and columns exchanged; a cell that passes
+    both is no wall. Where one of the two rows next to it holds obstacles and the other none, the wall
+    is two cells thick (it lies on a cell boundary) and its medial line is that boundary, half a cell
+    towards them; otherwise the line is the cell centre. The rows' gaps are allowed: a wall seen at
+    grazing angles is mapped in patches (a beam every 5-10 cm along it, each hit in either row of a
+    boundary wall)."""
+    span = 2 * reach + 1
+    steps = np.arange(-reach, reach + 1)
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+    col = cells % wp
+    row = (cells // wp) % hp
+    # The square's cells (span, span, M) and whether each lies inside the cell's window.
+    offsets = (steps[:, None] * wp + steps[None, :]).reshape(-1)
+    index = cells[None, :] + offsets[:, None]
+    np.clip(index, 0, flat.shape[0] - 1, out=index)
+    occupied = (flat[index] == 0.0).reshape(span, span, -1)
+    row_ok = (row[None, :] + steps[:, None] >= 0) & (row[None, :] + steps[:, None] < hp)
+    col_ok = (col[None, :] + steps[:, None] >= 0) & (col[None, :] + steps[:, None] < wp)
+    occupied &= row_ok[:, None, :]
+    occupied &= col_ok[None, :, :]
+    rows = occupied.any(axis=1)  # (span, M): any obstacle in the row dy (over the square's columns)
+    cols = occupied.any(axis=0)  # (span, M): any in the column dx
+    far_rows = rows[: reach - 1].any(axis=0) | rows[reach + 2 :].any(axis=0)
+    far_cols = cols[: reach - 1].any(axis=0) | cols[reach + 2 :].any(axis=0)
+    band_x = occupied[reach - 1 : reach + 2]  # the three rows (3, span, M)
+    band_y = occupied[:, reach - 1 : reach + 2]  # the three columns (span, 3, M)
+    both_sides_x = band_x[:, :reach].any(axis=(0, 1)) & band_x[:, reach + 1 :].any(axis=(0, 1))
+    both_sides_y = band_y[:reach].any(axis=(0, 1)) & band_y[reach + 1 :].any(axis=(0, 1))
+    along_x = rows[reach] & ~far_rows & both_sides_x
+    along_y = cols[reach] & ~far_cols & both_sides_y
+    crossed = along_x & along_y
+    along_x &= ~crossed
+    along_y &= ~crossed
+    high = np.where(along_y, cols[reach + 1], rows[reach + 1]).view(np.int8)
+    low = np.where(along_y, cols[reach - 1], rows[reach - 1]).view(np.int8)
+    return along_x | along_y, along_y, high - low
+
+
+def _square_walls(
+    flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_], FloatArray]:
+    """:func:`_wall_lines` as the lookups use it (as :func:`_medial_walls`): whether each cell lies on a
+    straight wall, whether along y, and its medial line's shift across the wall in cells (-0.5, 0, 0.5)."""
+    shape = np.shape(cells)
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp, reach)
+    shift: FloatArray = side.astype(np.float64) * 0.5
+    return wall.reshape(shape), along_y.reshape(shape), shift.reshape(shape)
+
+
+def _square_at(flat: Float32Array, cells: IntArray, wp: int, hp: int, reach: int) -> IntArray:
+    """``DistanceField.medial`` with ``medial_window_cells`` ``reach`` at flat indices ``cells`` of a padded
+    stack (``flat``, windows of ``hp`` rows of ``wp``)."""
+    wall, along_y, side = _wall_lines(flat, cells, wp, hp, reach)
+    codes = np.where(along_y, 2 + side, 5 + side)
+    out: IntArray = np.where(wall, codes, 0).astype(np.int64)
+    return out
+
+
+def _square_codes(padded: Float32Array, reach: int) -> npt.NDArray[np.int8]:
+    """``DistanceField.medial`` with ``medial_window_cells`` ``reach``: :func:`_wall_lines` coded for every
+    cell of a padded stack."""
+    _u, hp, wp = padded.shape
+    flat = padded.reshape(-1)
+    codes = _square_at(flat, np.arange(flat.size, dtype=np.int64), wp, hp, reach).astype(np.int8)
+    return codes.reshape(padded.shape)
 
 
 _EYE3 = np.eye(3)[None, :, :]
@@ -441,6 +541,12 @@ class MatcherConfig:
     # it there: a corridor's length).
     # 0: off (the default). ``[slam] match_min_translation_information``; docs/slam.md, "Scan matching".
     min_translation_information: float = 0.0
+    # The distance field's straight-wall test (``DistanceField.medial_window_cells``): 0 a wall cell's four
+    # neighbours (the default), W > 0 the square of W cells either way around it, which also finds a
+    # boundary wall mapped in patches, and misplaces walls that lie elsewhere in their cells.
+    # ``[slam] match_medial_window_cells``; off everywhere (docs/slam.md, "Scan matching", *Walls on cell
+    # boundaries*).
+    medial_window_cells: int = 0
     # ... and only where the other translation direction is observed at least this many times as well
     # (a corridor: walls on both sides, nothing along it; a scan with few surfaces in any direction, a
     # cluttered room, is left to the whole Σ J Jᵀ). 0: any weak direction.

@@ -578,6 +578,8 @@ class RbpfSlam:
             res,
             field_cap + res,
         )
+        if cfg.proposal.matcher.medial_window_cells > 0:
+            field = dataclasses.replace(field, medial_window_cells=cfg.proposal.matcher.medial_window_cells)
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
 
     def _proposal_for(self, increment: FloatArray) -> ProposalConfig:

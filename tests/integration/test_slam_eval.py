@@ -221,3 +221,19 @@ def test_eval_edge_information_is_checked_and_reported(
     assert main([*args, "--edge-match-sigma", "0.3", "--edge-information", "normals"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["edge_match_sigma_m"] == 0.3 and summary["edge_information"] == "normals"
+
+
+def test_eval_medial_window_is_checked_and_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "tiny_scans.txt"
+    ranges = " ".join(["2.0"] * 180)
+    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
+    assert main([*args, "--medial-window-cells", "9"]) == 1
+    err = capsys.readouterr().err
+    assert "--medial-window-cells: must be in [0, 8]" in err and "Traceback" not in err
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["medial_window_cells"] == 0
+    assert main([*args, "--medial-window-cells", "3"]) == 0
+    assert json.loads(capsys.readouterr().out)["medial_window_cells"] == 3

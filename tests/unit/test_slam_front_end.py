@@ -60,9 +60,12 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
         f"normal_thickness_m = {NORMAL_THICKNESS_M['radish']}\n"
         f"match_min_translation_information = {MATCH_MIN_TRANSLATION_INFORMATION['radish']}\n"
+        "match_medial_window_cells = 3\n"
     )
     config = parse_config(text).slam
-    radish = dataclasses.replace(front_end("radish"), degenerate_noise_scale=0.3, match_gate_residual=True)
+    radish = dataclasses.replace(
+        front_end("radish"), degenerate_noise_scale=0.3, match_gate_residual=True, match_medial_window_cells=3
+    )
     assert [getattr(config, f) for f in _FRONT_END_KEYS] == [getattr(radish, f) for f in _FRONT_END_KEYS]
     assert front_end_noise(config) == MOTION_NOISE
 
@@ -74,8 +77,11 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     assert built.proposal == dataclasses.replace(
         radish_proposal,
         degenerate_noise_scale=0.3,
-        matcher=dataclasses.replace(radish_proposal.matcher, gate_on_residual=True),
+        matcher=dataclasses.replace(radish_proposal.matcher, gate_on_residual=True, medial_window_cells=3),
     )
+    # The filter's distance fields take the straight-wall test from the matcher's key.
+    field, _windows = mapper.slam._field(np.zeros((1, 3)), np.array([[1.0, 0.0]]))
+    assert field.medial_window_cells == 3
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
     assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
@@ -100,6 +106,7 @@ _FRONT_END_KEYS = (
     "normal_radius_per_m",
     "normal_thickness_m",
     "match_min_translation_information",
+    "match_medial_window_cells",
 )
 
 
@@ -124,6 +131,8 @@ _FRONT_END_KEYS = (
         ("normal_radius_per_m = -0.1", "slam.normal_radius_per_m"),
         ("normal_thickness_m = 0", "slam.normal_thickness_m"),
         ("match_min_translation_information = -1", "slam.match_min_translation_information"),
+        ("match_medial_window_cells = -1", "slam.match_medial_window_cells"),
+        ("match_medial_window_cells = 1.5", "slam.match_medial_window_cells"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -23,6 +24,7 @@ from agent.slam.matcher import (
     MatcherConfig,
     SearchConfig,
     _medial_at,
+    _square_walls,
     correlative_search,
     degenerate_projection,
     match,
@@ -517,3 +519,51 @@ def test_duplicate_rows_matched_once_as_the_whole_batch(
     for a, b in ((once.poses, whole.poses), (once.information, whole.information), (once.ok, whole.ok)):
         assert np.array_equal(a, b)
     assert np.array_equal(once_res.r, whole_res.r) and np.array_equal(once_res.gate, whole_res.gate)
+
+
+def test_a_boundary_wall_mapped_in_patches_is_measured_to_the_boundary() -> None:
+    """``medial_window_cells`` 3: a wall on the boundary between rows 10 and 11, mapped as a grazing view maps
+    it: single cells with gaps, alternating between the two rows. Its medial line is the boundary: a sample
+    there is at 0, one 2 cm off at 2 cm, wherever it lies along the wall but on a saddle (bilinear distances,
+    which the patches' four-cell neighbourhoods left, pull diagonally towards the nearest patch: 0-3.5 cm on
+    the boundary). A corner and a wall's last cells keep the bilinear value."""
+    obstacles = np.zeros((1, 30, 60), dtype=bool)
+    obstacles[0, 10, 4:44:4] = True
+    obstacles[0, 11, 6:44:4] = True
+    obstacles[0, 11:25, 50] = True  # a wall along y ...
+    obstacles[0, 11, 47:51] = True  # ... with a short one along x into its corner
+    four = DistanceField.from_obstacles(obstacles, (0.0, 0.0), RES, 0.55)
+    field = dataclasses.replace(four, medial_window_cells=3)
+    boundary = 11 * RES
+    # (Anywhere but the exact saddles midway between two patches, where the gradient that finds the
+    # nearest obstacle cell is zero.)
+    x = np.random.default_rng(0).uniform(10 * RES, 40 * RES, 61)
+    for off in (0.0, 0.02, -0.02):
+        d, ddx, ddy, known = field.sample_known(
+            np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary + off)
+        )
+        assert known.all()
+        np.testing.assert_allclose(d[0], abs(off), atol=1e-6)
+        if off:
+            np.testing.assert_allclose(ddy[0], math.copysign(1.0, off))
+            np.testing.assert_allclose(ddx[0], 0.0)
+    bilinear, *_ = field.sample_known(
+        np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary), medial=False
+    )
+    assert bilinear.max() > 0.02
+    by_neighbours, *_ = four.sample_known(
+        np.zeros(1, dtype=np.int64), x[None, :], np.full((1, 61), boundary)
+    )  # the four-neighbour test (the default) finds no wall here: the bilinear values
+    np.testing.assert_array_equal(by_neighbours, bilinear)
+    cells = np.arange(field.distance_m.size)
+    _u, hp, wp = field.distance_m.shape
+    wall, along_y, shift = _square_walls(field.distance_m.reshape(-1), cells, wp, hp, 3)
+    whole = field.medial.reshape(-1)  # the lookups' test, coded
+    np.testing.assert_array_equal(wall, whole > 0)
+    np.testing.assert_array_equal(along_y & wall, (whole >= 1) & (whole <= 3))
+    np.testing.assert_array_equal(shift[wall], ((whole[wall] - 1) % 3 - 1) * 0.5)
+    codes = field.medial[0, 1:-1, 1:-1]
+    assert codes[10, 8] == 1 + 3 + 2 and codes[11, 10] == 1 + 3 + 0  # along x, the line above / below
+    assert codes[10, 4] == 0  # the wall's end: nothing on its left
+    assert codes[11, 48] == 0 and codes[11, 50] == 0  # the corner's cells
+    assert codes[20, 50] == 1 + 1  # along y, one cell thick: the line through the centre
