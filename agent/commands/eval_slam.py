@@ -339,18 +339,34 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--edge-information",
-        choices=("match", "normals"),
+        choices=("match", "normals", "scan"),
         help="with --edge-match-sigma, which information: the match's own sum J Jᵀ (match), or the "
         "point-to-line information of the endpoints with a surface normal only (normals: loose along a "
-        "corridor; LoopClosureConfig.edge_information; default: match)",
+        "corridor), or that of a relative measurement, the update's scan matched point to line against "
+        "the last update's (scan: only what the two scans share; LoopClosureConfig.edge_information; "
+        "default: match)",
+    )
+    p.add_argument(
+        "--edge-scan-mean",
+        action="store_true",
+        help="with --edge-information scan, the edges' means from that scan-to-scan match too, not the "
+        "filter's steps (LoopClosureConfig.edge_scan_mean; default: off)",
+    )
+    p.add_argument(
+        "--edge-scan-gate-chi2",
+        type=float,
+        metavar="C",
+        help="with --edge-scan-mean, only at the edges where the scan-to-scan step and the filter's differ "
+        "by more than C (squared Mahalanobis distance under the edge's covariance; "
+        "LoopClosureConfig.edge_scan_gate_chi2; default: 0, every edge)",
     )
     p.add_argument(
         "--edge-normal-radius-per-m",
         type=float,
         metavar="R",
-        help="with --edge-information normals, the normals the information is taken from are estimated "
-        "for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
-        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals)",
+        help="with --edge-information normals or scan, the normals the information is taken from are "
+        "estimated for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
+        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals; with scan 0.1)",
     )
     p.add_argument(
         "--edge-departure-floor",
@@ -521,10 +537,17 @@ def run(args: argparse.Namespace) -> int:
     if args.edge_information is not None and args.edge_match_sigma is None:
         raise ConfigError("--edge-information", "needs --edge-match-sigma")
     if args.edge_normal_radius_per_m is not None:
-        if args.edge_information != "normals":
-            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals")
+        if args.edge_information not in ("normals", "scan"):
+            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals or scan")
         if not 0.0 <= args.edge_normal_radius_per_m <= 1.0:
             raise ConfigError("--edge-normal-radius-per-m", "must be in [0, 1]")
+    if args.edge_scan_mean and args.edge_information != "scan":
+        raise ConfigError("--edge-scan-mean", "needs --edge-information scan")
+    if args.edge_scan_gate_chi2 is not None:
+        if not args.edge_scan_mean:
+            raise ConfigError("--edge-scan-gate-chi2", "needs --edge-scan-mean")
+        if not 0.0 <= args.edge_scan_gate_chi2 <= 1e6:
+            raise ConfigError("--edge-scan-gate-chi2", "must be in [0, 1e6]")
     if args.edge_departure_floor and args.edge_match_sigma is None:
         raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
     if args.edge_match_sigma is not None:
@@ -538,6 +561,8 @@ def run(args: argparse.Namespace) -> int:
             edge_information=args.edge_information or "match",
             edge_departure_floor=args.edge_departure_floor,
             edge_normal_radius_per_m=args.edge_normal_radius_per_m,
+            edge_scan_mean=args.edge_scan_mean,
+            edge_scan_gate_chi2=args.edge_scan_gate_chi2 or 0.0,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -605,6 +630,8 @@ def run(args: argparse.Namespace) -> int:
                 "edge_information",
                 "edge_departure_floor",
                 "edge_normal_radius_per_m",
+                "edge_scan_mean",
+                "edge_scan_gate_chi2",
             )
         },
         "updates": slam.stats.updates,

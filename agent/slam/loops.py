@@ -189,7 +189,21 @@ class LoopClosureConfig:
     # 15-25 endpoints of a scan have a normal, so nearly every edge is loose in some direction and a loop's
     # correction spreads over the whole chain); FR079 seed 0 0.197 -> 0.387 m at s = 0.02. Measured for
     # issue 20: docs/slam.md, "Loop closure" and "Open problems" (ACES).
-    edge_information: Literal["match", "normals"] = "match"
+    # "scan": the information of a relative measurement instead, node k's scan matched point to line
+    # against node k-1's scan (``relative.match_relative``, the reference's normals as below, 0.1 × range
+    # where ``edge_normal_radius_per_m`` is unset): only what the two scans share, so a corridor whose
+    # ends are out of view is loose along it, and a step where the map's far walls come back into view
+    # (the front end's snap by the whole corridor's length error, ACES record 329) is not made tight by
+    # the map having seen them. Measured for issue 20: docs/slam.md, "Open problems" (ACES).
+    edge_information: Literal["match", "normals", "scan"] = "match"
+    # ... and, with "scan", the edge's mean from that match too (True) rather than the filter's step
+    # (False, the default): the filter's step where the two scans do not fix a direction (damped).
+    edge_scan_mean: bool = False
+    # ... only at the edges where the two steps differ by more than this squared Mahalanobis distance
+    # under the edge's covariance (0: every edge the relative match measured).
+    edge_scan_gate_chi2: float = 0.0
+    # ... the relative match's bound on a pair's offset across its line (m).
+    edge_scan_bound_m: float = 0.15
     # ... with "normals", the surface normals the information is taken from: the match's own (None, the
     # default), or the scan's normals estimated for the information alone from a neighbourhood of
     # max(0.25 m, this × range) and up to ``edge_normal_thickness_m`` thick (``grid.surface_normals``; the

@@ -57,6 +57,7 @@ from agent.slam.loops import (
     LoopClosureConfig,
     LoopConstraint,
     Verdict,
+    edge_covariances,
     find_loop,
     judge_loop,
     robot_frame_information,
@@ -68,6 +69,7 @@ from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals, travel_reversed
+from agent.slam.relative import match_relative
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
@@ -313,6 +315,11 @@ class RbpfSlam:
         self._node_hits: list[FloatArray] = []
         self._node_motions: list[FloatArray] = []
         self._node_information: list[FloatArray] = []
+        # With LoopClosureConfig.edge_information "scan": the last node's endpoints and their normals
+        # (the next node's relative match's reference), and per node its step from that match (NaN where
+        # it failed or was not run: the filter's step stands).
+        self._scan_reference: tuple[FloatArray, FloatArray] | None = None
+        self._node_scan_motions: list[FloatArray] = []
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
         # The last node a known-area link (LoopClosureConfig.hypotheses) was judged at without being acted
@@ -805,6 +812,9 @@ class RbpfSlam:
             node_information = robot_frame_information(
                 information[int(parents[best])], float(self.history_poses[-1][best, 2])
             )
+        if lc.edge_information == "scan":
+            node_information, scan_motion = self._relative_edge(scan, motion, len(self.history_poses) > 1)
+            self._node_scan_motions.append(scan_motion)
         self._node_information.append(node_information)
         j = len(self._node_scans) - 1
         if self._node_fix is not None:
@@ -837,6 +847,36 @@ class RbpfSlam:
         if found is not None:
             self._judge(path, found)
         self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
+
+    def _relative_edge(
+        self, scan: ScanPoints, motion: FloatArray, has_parent: bool
+    ) -> tuple[FloatArray, FloatArray]:
+        """This node's scan matched point to line against the last node's (LoopClosureConfig.
+        edge_information "scan"): its information in this node's robot frame (zeros where it failed) and
+        its step (NaN where it failed); the scan's endpoints and normals become the next reference."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        radius = lc.edge_normal_radius_per_m if lc.edge_normal_radius_per_m is not None else 0.1
+        information = np.zeros((3, 3))
+        step = np.full(3, np.nan)
+        if has_parent and self._scan_reference is not None:
+            reference, normals = self._scan_reference
+            found = match_relative(
+                reference, normals, self._node_hits[-1], motion, bound_m=lc.edge_scan_bound_m
+            )
+            if found.pairs >= 3:
+                information = robot_frame_information(found.information, float(found.pose[2]))
+                step = found.pose
+        self._scan_reference = (
+            scan.hit_xy,
+            surface_normals(
+                scan.hit_xy,
+                max_thickness_m=lc.edge_normal_thickness_m,
+                radius_per_m=radius,
+                origin_xy=scan.origin_xy,
+            ),
+        )
+        return information, step
 
     def _judge(self, path: FloatArray, found: LoopConstraint) -> None:
         """Judge a candidate (``loops.judge_loop``); an accepted one joins the graph and is applied."""
@@ -896,6 +936,23 @@ class RbpfSlam:
         motions = np.array(self._node_motions)
         recent = np.arange(self._anchored + 1, path.shape[0])
         motions[recent] = between(path[recent - 1], path[recent])
+        lc = self.config.loop_closure
+        if lc is not None and lc.edge_scan_mean and len(self._node_scan_motions) == motions.shape[0]:
+            # The relative matches' steps in place of the filter's (LoopClosureConfig.edge_scan_mean).
+            # Only where the two disagree by more than the edge's own covariance (edge_scan_gate_chi2):
+            # the front end's snap onto its map, not the relative match's own noise.
+            scan_motions = np.array(self._node_scan_motions)
+            measured = np.isfinite(scan_motions[:, 0])
+            if lc.edge_scan_gate_chi2 > 0.0 and motions.shape[0] > 1:
+                gap = np.where(measured[:, None], scan_motions - motions, 0.0)
+                gap[:, 2] = wrap_angle(gap[:, 2])
+                covariance = edge_covariances(motions, np.array(self._node_information), lc)
+                chi2 = np.zeros(motions.shape[0])
+                chi2[1:] = np.einsum(
+                    "ki,ki->k", gap[1:], np.linalg.solve(covariance, gap[1:, :, None])[..., 0]
+                )
+                measured &= chi2 > lc.edge_scan_gate_chi2
+            motions[measured] = scan_motions[measured]
         odometry = np.array(self.history_odom)
         odometry_motions = np.zeros_like(odometry)
         odometry_motions[1:] = between(odometry[:-1], odometry[1:])
