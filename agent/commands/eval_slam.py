@@ -361,6 +361,21 @@ def add_parser(subparsers: Any) -> None:
         "LoopClosureConfig.edge_scan_gate_chi2; default: 0, every edge)",
     )
     p.add_argument(
+        "--edge-scan-coarse-iterations",
+        type=int,
+        metavar="N",
+        help="with --edge-information scan, the scan-to-scan match's first N iterations pair endpoints "
+        "within 0.5 m, so a step the filter put tens of centimetres off is pulled back "
+        "(LoopClosureConfig.edge_scan_coarse_iterations; default: 0)",
+    )
+    p.add_argument(
+        "--edge-scan-anchor",
+        type=float,
+        metavar="A",
+        help="with --edge-information scan, the scan-to-scan match's pull towards the filter's step "
+        "(per m² and rad², against one per paired endpoint; LoopClosureConfig.edge_scan_anchor; default: 5)",
+    )
+    p.add_argument(
         "--edge-normal-radius-per-m",
         type=float,
         metavar="R",
@@ -548,6 +563,16 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--edge-scan-gate-chi2", "needs --edge-scan-mean")
         if not 0.0 <= args.edge_scan_gate_chi2 <= 1e6:
             raise ConfigError("--edge-scan-gate-chi2", "must be in [0, 1e6]")
+    if args.edge_scan_coarse_iterations is not None:
+        if args.edge_information != "scan":
+            raise ConfigError("--edge-scan-coarse-iterations", "needs --edge-information scan")
+        if not 0 <= args.edge_scan_coarse_iterations <= 100:
+            raise ConfigError("--edge-scan-coarse-iterations", "must be in [0, 100]")
+    if args.edge_scan_anchor is not None:
+        if args.edge_information != "scan":
+            raise ConfigError("--edge-scan-anchor", "needs --edge-information scan")
+        if not 0.0 < args.edge_scan_anchor <= 1e6:
+            raise ConfigError("--edge-scan-anchor", "must be in (0, 1e6]")
     if args.edge_departure_floor and args.edge_match_sigma is None:
         raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
     if args.edge_match_sigma is not None:
@@ -563,6 +588,8 @@ def run(args: argparse.Namespace) -> int:
             edge_normal_radius_per_m=args.edge_normal_radius_per_m,
             edge_scan_mean=args.edge_scan_mean,
             edge_scan_gate_chi2=args.edge_scan_gate_chi2 or 0.0,
+            edge_scan_coarse_iterations=args.edge_scan_coarse_iterations or 0,
+            edge_scan_anchor=args.edge_scan_anchor if args.edge_scan_anchor is not None else 5.0,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -632,6 +659,8 @@ def run(args: argparse.Namespace) -> int:
                 "edge_normal_radius_per_m",
                 "edge_scan_mean",
                 "edge_scan_gate_chi2",
+                "edge_scan_coarse_iterations",
+                "edge_scan_anchor",
             )
         },
         "updates": slam.stats.updates,

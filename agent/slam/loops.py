@@ -202,7 +202,16 @@ class LoopClosureConfig:
     # ... only at the edges where the two steps differ by more than this squared Mahalanobis distance
     # under the edge's covariance (0: every edge the relative match measured).
     edge_scan_gate_chi2: float = 0.0
-    # ... the relative match's bound on a pair's offset across its line (m).
+    # ... the relative match's bound on a pair's offset across its line (m); a relative match that
+    # turns or shifts the filter's step by more than these failed (a wrong minimum: the filter's heading
+    # is held by the whole map), and its edge is the filter's (``edge_max_sigma`` loose).
+    edge_scan_max_turn_rad: float = 0.05
+    # ... with this many first iterations pairing within 0.5 m (``relative.match_relative``'s coarse
+    # bound), so that a step the filter put tens of centimetres off is still pulled back.
+    edge_scan_coarse_iterations: int = 0
+    # ... and the weight of its pull towards the filter's step (per m², rad²; ``match_relative``'s anchor).
+    edge_scan_anchor: float = 5.0
+    edge_scan_max_shift_m: float = 0.5
     edge_scan_bound_m: float = 0.15
     # ... with "normals", the surface normals the information is taken from: the match's own (None, the
     # default), or the scan's normals estimated for the information alone from a neighbourhood of

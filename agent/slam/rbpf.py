@@ -320,6 +320,8 @@ class RbpfSlam:
         # it failed or was not run: the filter's step stands).
         self._scan_reference: tuple[FloatArray, FloatArray] | None = None
         self._node_scan_motions: list[FloatArray] = []
+        self._node_scan_guesses: list[FloatArray] = []  # the filter's step each was matched from
+        self._node_normals: list[npt.NDArray[np.float32] | None] = []  # each node's scan's normals
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
         # The last node a known-area link (LoopClosureConfig.hypotheses) was judged at without being acted
@@ -815,6 +817,7 @@ class RbpfSlam:
         if lc.edge_information == "scan":
             node_information, scan_motion = self._relative_edge(scan, motion, len(self.history_poses) > 1)
             self._node_scan_motions.append(scan_motion)
+            self._node_scan_guesses.append(motion)
         self._node_information.append(node_information)
         j = len(self._node_scans) - 1
         if self._node_fix is not None:
@@ -862,21 +865,63 @@ class RbpfSlam:
         if has_parent and self._scan_reference is not None:
             reference, normals = self._scan_reference
             found = match_relative(
-                reference, normals, self._node_hits[-1], motion, bound_m=lc.edge_scan_bound_m
+                reference,
+                normals,
+                self._node_hits[-1],
+                motion,
+                bound_m=lc.edge_scan_bound_m,
+                coarse_iterations=lc.edge_scan_coarse_iterations,
+                anchor=lc.edge_scan_anchor,
             )
-            if found.pairs >= 3:
+            step = self._checked_step(found.pose, found.pairs, motion)
+            if np.isfinite(step[0]):
                 information = robot_frame_information(found.information, float(found.pose[2]))
-                step = found.pose
-        self._scan_reference = (
+        normals = surface_normals(
             scan.hit_xy,
-            surface_normals(
-                scan.hit_xy,
-                max_thickness_m=lc.edge_normal_thickness_m,
-                radius_per_m=radius,
-                origin_xy=scan.origin_xy,
-            ),
+            max_thickness_m=lc.edge_normal_thickness_m,
+            radius_per_m=radius,
+            origin_xy=scan.origin_xy,
         )
+        self._scan_reference = (scan.hit_xy, normals)
+        # Kept per node (float32) only where edges may be matched again (edge_scan_mean).
+        self._node_normals.append(normals.astype(np.float32) if lc.edge_scan_mean else None)
         return information, step
+
+    def _rematch_relative(self, motions: FloatArray, recent: IntArray) -> None:
+        """The relative matches (``_relative_edge``) of the ``recent`` nodes from ``motions`` where the
+        step they started from differs from it (another lineage leads now)."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        for k in recent.tolist():
+            if k < 1 or self._node_normals[k - 1] is None:
+                continue
+            guess = self._node_scan_guesses[k]
+            if np.all(np.abs(guess - motions[k]) < np.array([0.01, 0.01, 0.005])):
+                continue
+            normals = self._node_normals[k - 1]
+            assert normals is not None
+            found = match_relative(
+                self._node_scans[k - 1].hit_xy,
+                normals.astype(np.float64),
+                self._node_hits[k],
+                motions[k],
+                bound_m=lc.edge_scan_bound_m,
+                coarse_iterations=lc.edge_scan_coarse_iterations,
+                anchor=lc.edge_scan_anchor,
+            )
+            self._node_scan_guesses[k] = motions[k].copy()
+            self._node_scan_motions[k] = self._checked_step(found.pose, found.pairs, motions[k])
+
+    def _checked_step(self, pose: FloatArray, pairs: int, guess: FloatArray) -> FloatArray:
+        """A relative match's step, NaN where it failed (too few pairs, or it turned or shifted the
+        filter's step by more than ``edge_scan_max_turn_rad`` / ``edge_scan_max_shift_m``)."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        turn = abs(float(wrap_angle(pose[2] - guess[2])))
+        shift = float(np.hypot(pose[0] - guess[0], pose[1] - guess[1]))
+        if pairs >= 3 and turn <= lc.edge_scan_max_turn_rad and shift <= lc.edge_scan_max_shift_m:
+            return np.asarray(pose, dtype=np.float64)
+        return np.full(3, np.nan)
 
     def _judge(self, path: FloatArray, found: LoopConstraint) -> None:
         """Judge a candidate (``loops.judge_loop``); an accepted one joins the graph and is applied."""
@@ -941,8 +986,15 @@ class RbpfSlam:
             # The relative matches' steps in place of the filter's (LoopClosureConfig.edge_scan_mean).
             # Only where the two disagree by more than the edge's own covariance (edge_scan_gate_chi2):
             # the front end's snap onto its map, not the relative match's own noise.
+            # Only where the chain's step is the one the relative match started from (the leading
+            # lineage then): another lineage's step was matched from another guess.
+            # A recent node whose lineage's step is not the one its relative match started from is
+            # matched again from this one.
+            self._rematch_relative(motions, recent)
             scan_motions = np.array(self._node_scan_motions)
-            measured = np.isfinite(scan_motions[:, 0])
+            guesses = np.array(self._node_scan_guesses)
+            same = np.all(np.abs(guesses - motions) < np.array([0.01, 0.01, 0.005]), axis=1)
+            measured = np.isfinite(scan_motions[:, 0]) & same
             if lc.edge_scan_gate_chi2 > 0.0 and motions.shape[0] > 1:
                 gap = np.where(measured[:, None], scan_motions - motions, 0.0)
                 gap[:, 2] = wrap_angle(gap[:, 2])
@@ -952,6 +1004,7 @@ class RbpfSlam:
                     "ki,ki->k", gap[1:], np.linalg.solve(covariance, gap[1:, :, None])[..., 0]
                 )
                 measured &= chi2 > lc.edge_scan_gate_chi2
+            log.debug("edges from the relative matches' steps: %s", np.flatnonzero(measured).tolist())
             motions[measured] = scan_motions[measured]
         odometry = np.array(self.history_odom)
         odometry_motions = np.zeros_like(odometry)

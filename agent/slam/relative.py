@@ -71,6 +71,8 @@ def match_relative(
     max_pair_m: float = 0.5,
     bound_m: float = 0.15,
     anchor: float = 5.0,
+    coarse_iterations: int = 0,
+    coarse_bound_m: float = 0.5,
 ) -> RelativeMatch:
     """Point-to-line ICP of ``scan_xy`` (scan k's endpoints, its base frame) against ``reference_xy``
     (scan k-1's, its base frame) with the reference's unit normals ((R, 2), (0, 0) where none:
@@ -80,7 +82,9 @@ def match_relative(
     has a normal, keeps the pairs whose offset across that line is below ``bound_m``, and takes a
     Gauss-Newton step of Σ r² + ``anchor`` |pose - guess|² (H + ``anchor`` I) δ = -(Σ g r + ``anchor``
     (pose - guess)): a direction the lines do not fix (along a corridor: information near zero) stays at
-    the guess instead of sliding, one they fix (information in the tens) goes where they say. The returned
+    the guess instead of sliding, one they fix (information in the tens) goes where they say. The first
+    ``coarse_iterations`` pair within and bound by ``coarse_bound_m`` instead (a step the filter's
+    match put tens of centimetres off, its snap onto a junction, is outside the fine bound). The returned
     information is the undamped Σ g gᵀ at the final pose (zeros with fewer than 3 pairs)."""
     reference_xy = np.asarray(reference_xy, dtype=np.float64)
     normals = np.asarray(reference_normals_xy, dtype=np.float64)
@@ -90,14 +94,23 @@ def match_relative(
     if reference_xy.shape[0] == 0 or scan_xy.shape[0] == 0:
         return RelativeMatch(pose, np.zeros((3, 3)), 0)
     tree = cKDTree(reference_xy)
-    for _ in range(iterations):
-        g, offset, _ = _pairs(tree, reference_xy, normals, scan_xy, pose, max_pair_m, bound_m)
+    for it in range(coarse_iterations + iterations):
+        coarse = it < coarse_iterations
+        g, offset, _ = _pairs(
+            tree,
+            reference_xy,
+            normals,
+            scan_xy,
+            pose,
+            max(max_pair_m, coarse_bound_m) if coarse else max_pair_m,
+            max(bound_m, coarse_bound_m) if coarse else bound_m,
+        )
         if offset.size < 3:
             break
         h = g.T @ g + anchor * np.eye(3)
         step = -np.linalg.solve(h, g.T @ offset + anchor * (pose - start))
         pose = pose + step
-        if float(np.hypot(step[0], step[1])) < 1e-4 and abs(float(step[2])) < 1e-5:
+        if not coarse and float(np.hypot(step[0], step[1])) < 1e-4 and abs(float(step[2])) < 1e-5:
             break
     g, offset, _ = _pairs(tree, reference_xy, normals, scan_xy, pose, max_pair_m, bound_m)
     if offset.size < 3:
