@@ -212,6 +212,14 @@ def test_eval_edge_information_is_checked_and_reported(
             "--edge-scan-mean: needs --edge-information scan",
         ),
         (
+            ["--edge-match-sigma", "0.3", "--edge-scan-coarse-iterations", "5"],
+            "--edge-scan-coarse-iterations: needs --edge-information scan",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-information", "scan", "--edge-scan-gate-chi2", "5"],
+            "--edge-scan-gate-chi2: needs --edge-scan-mean",
+        ),
+        (
             ["--edge-match-sigma", "0.3", "--loop-closure", "off"],
             "--edge-match-sigma: needs --loop-closure on",
         ),

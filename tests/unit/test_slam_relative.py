@@ -72,3 +72,23 @@ def test_no_shared_surface_gives_no_information() -> None:
     found = match_relative(reference, normals, elsewhere, np.zeros(3))
     assert found.pairs < 3 and not found.information.any()
     np.testing.assert_array_equal(found.pose, np.zeros(3))
+
+
+def test_a_junction_pulls_back_a_step_the_filter_put_far_off_along_the_corridor() -> None:
+    """A cross wall 3 m ahead fixes the corridor's length: a step 0.35 m too long (the front end's snap
+    onto its map) is pulled back once the first iterations pair within the coarse bound."""
+    y = np.arange(-1.2, 1.0, 0.05)
+    world = np.vstack([_corridor(), np.stack([np.full_like(y, 3.0), y], 1)])
+    world = world[world[:, 0] <= 3.0]
+    before, after = np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.05, 0.01])
+    truth = between(before, after)
+    guess = truth + np.array([-0.35, -0.05, 0.0])
+    fine = _match(world, before, after, guess)
+    assert abs(fine.pose[0] - truth[0]) > 0.2  # the junction's pairs are outside the fine bound
+    reference = _scan(world, before, 6.0)
+    normals = surface_normals(reference, max_thickness_m=0.03, radius_per_m=0.1)
+    found = match_relative(
+        reference, normals, _scan(world, after, 6.0), guess, coarse_iterations=5, anchor=1.0
+    )
+    np.testing.assert_allclose(found.pose, truth, atol=0.02)
+    assert np.min(np.linalg.eigvalsh(found.information[:2, :2])) > 10.0
