@@ -369,6 +369,12 @@ def add_parser(subparsers: Any) -> None:
         "(LoopClosureConfig.edge_scan_coarse_iterations; default: 0)",
     )
     p.add_argument(
+        "--edge-scan-fallback",
+        action="store_true",
+        help="with --edge-information scan, an edge whose scan-to-scan match failed takes the update's "
+        "own match's information instead of none (LoopClosureConfig.edge_scan_fallback; default: off)",
+    )
+    p.add_argument(
         "--edge-scan-anchor",
         type=float,
         metavar="A",
@@ -568,6 +574,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--edge-scan-coarse-iterations", "needs --edge-information scan")
         if not 0 <= args.edge_scan_coarse_iterations <= 100:
             raise ConfigError("--edge-scan-coarse-iterations", "must be in [0, 100]")
+    if args.edge_scan_fallback and args.edge_information != "scan":
+        raise ConfigError("--edge-scan-fallback", "needs --edge-information scan")
     if args.edge_scan_anchor is not None:
         if args.edge_information != "scan":
             raise ConfigError("--edge-scan-anchor", "needs --edge-information scan")
@@ -590,6 +598,7 @@ def run(args: argparse.Namespace) -> int:
             edge_scan_gate_chi2=args.edge_scan_gate_chi2 or 0.0,
             edge_scan_coarse_iterations=args.edge_scan_coarse_iterations or 0,
             edge_scan_anchor=args.edge_scan_anchor if args.edge_scan_anchor is not None else 5.0,
+            edge_scan_fallback=args.edge_scan_fallback,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -661,6 +670,7 @@ def run(args: argparse.Namespace) -> int:
                 "edge_scan_gate_chi2",
                 "edge_scan_coarse_iterations",
                 "edge_scan_anchor",
+                "edge_scan_fallback",
             )
         },
         "updates": slam.stats.updates,

@@ -211,6 +211,9 @@ class LoopClosureConfig:
     edge_scan_coarse_iterations: int = 0
     # ... and the weight of its pull towards the filter's step (per m², rad²; ``match_relative``'s anchor).
     edge_scan_anchor: float = 5.0
+    # ... and where the relative match failed (too few pairs, or past the guards), the front end's own
+    # match's information (True) rather than none (``edge_max_sigma`` loose; False, the default).
+    edge_scan_fallback: bool = False
     edge_scan_max_shift_m: float = 0.5
     edge_scan_bound_m: float = 0.15
     # ... with "normals", the surface normals the information is taken from: the match's own (None, the

@@ -815,7 +815,9 @@ class RbpfSlam:
                 information[int(parents[best])], float(self.history_poses[-1][best, 2])
             )
         if lc.edge_information == "scan":
-            node_information, scan_motion = self._relative_edge(scan, motion, len(self.history_poses) > 1)
+            relative, scan_motion = self._relative_edge(scan, motion, len(self.history_poses) > 1)
+            if relative.any() or not lc.edge_scan_fallback:
+                node_information = relative
             self._node_scan_motions.append(scan_motion)
             self._node_scan_guesses.append(motion)
         self._node_information.append(node_information)

@@ -220,6 +220,10 @@ def test_eval_edge_information_is_checked_and_reported(
             "--edge-scan-gate-chi2: needs --edge-scan-mean",
         ),
         (
+            ["--edge-match-sigma", "0.3", "--edge-scan-fallback"],
+            "--edge-scan-fallback: needs --edge-information scan",
+        ),
+        (
             ["--edge-match-sigma", "0.3", "--loop-closure", "off"],
             "--edge-match-sigma: needs --loop-closure on",
         ),
