@@ -375,6 +375,13 @@ def add_parser(subparsers: Any) -> None:
         "own match's information instead of none (LoopClosureConfig.edge_scan_fallback; default: off)",
     )
     p.add_argument(
+        "--edge-judge-plain",
+        action="store_true",
+        help="with --edge-match-sigma, a loop candidate's consistency tests run on the chain without the "
+        "edges' covariances (the departure-widened sigmas), the accepted graph with them "
+        "(LoopClosureConfig.edge_judge_plain; default: off)",
+    )
+    p.add_argument(
         "--edge-scan-anchor",
         type=float,
         metavar="A",
@@ -574,6 +581,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("--edge-scan-coarse-iterations", "needs --edge-information scan")
         if not 0 <= args.edge_scan_coarse_iterations <= 100:
             raise ConfigError("--edge-scan-coarse-iterations", "must be in [0, 100]")
+    if args.edge_judge_plain and args.edge_match_sigma is None:
+        raise ConfigError("--edge-judge-plain", "needs --edge-match-sigma")
     if args.edge_scan_fallback and args.edge_information != "scan":
         raise ConfigError("--edge-scan-fallback", "needs --edge-information scan")
     if args.edge_scan_anchor is not None:
@@ -599,6 +608,7 @@ def run(args: argparse.Namespace) -> int:
             edge_scan_coarse_iterations=args.edge_scan_coarse_iterations or 0,
             edge_scan_anchor=args.edge_scan_anchor if args.edge_scan_anchor is not None else 5.0,
             edge_scan_fallback=args.edge_scan_fallback,
+            edge_judge_plain=args.edge_judge_plain,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -671,6 +681,7 @@ def run(args: argparse.Namespace) -> int:
                 "edge_scan_coarse_iterations",
                 "edge_scan_anchor",
                 "edge_scan_fallback",
+                "edge_judge_plain",
             )
         },
         "updates": slam.stats.updates,
