@@ -356,18 +356,62 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--edge-information",
-        choices=("match", "normals"),
+        choices=("match", "normals", "scan"),
         help="with --edge-match-sigma, which information: the match's own sum J Jᵀ (match), or the "
         "point-to-line information of the endpoints with a surface normal only (normals: loose along a "
-        "corridor; LoopClosureConfig.edge_information; default: match)",
+        "corridor), or that of a relative measurement, the update's scan matched point to line against "
+        "the last update's (scan: only what the two scans share; LoopClosureConfig.edge_information; "
+        "default: match)",
+    )
+    p.add_argument(
+        "--edge-scan-mean",
+        action="store_true",
+        help="with --edge-information scan, the edges' means from that scan-to-scan match too, not the "
+        "filter's steps (LoopClosureConfig.edge_scan_mean; default: off)",
+    )
+    p.add_argument(
+        "--edge-scan-gate-chi2",
+        type=float,
+        metavar="C",
+        help="with --edge-scan-mean, only at the edges where the scan-to-scan step and the filter's differ "
+        "by more than C (squared Mahalanobis distance under the edge's covariance; "
+        "LoopClosureConfig.edge_scan_gate_chi2; default: 0, every edge)",
+    )
+    p.add_argument(
+        "--edge-scan-coarse-iterations",
+        type=int,
+        metavar="N",
+        help="with --edge-information scan, the scan-to-scan match's first N iterations pair endpoints "
+        "within 0.5 m, so a step the filter put tens of centimetres off is pulled back "
+        "(LoopClosureConfig.edge_scan_coarse_iterations; default: 0)",
+    )
+    p.add_argument(
+        "--edge-scan-fallback",
+        action="store_true",
+        help="with --edge-information scan, an edge whose scan-to-scan match failed takes the update's "
+        "own match's information instead of none (LoopClosureConfig.edge_scan_fallback; default: off)",
+    )
+    p.add_argument(
+        "--edge-judge-plain",
+        action="store_true",
+        help="with --edge-match-sigma, a loop candidate's consistency tests run on the chain without the "
+        "edges' covariances (the departure-widened sigmas), the accepted graph with them "
+        "(LoopClosureConfig.edge_judge_plain; default: off)",
+    )
+    p.add_argument(
+        "--edge-scan-anchor",
+        type=float,
+        metavar="A",
+        help="with --edge-information scan, the scan-to-scan match's pull towards the filter's step "
+        "(per m² and rad², against one per paired endpoint; LoopClosureConfig.edge_scan_anchor; default: 5)",
     )
     p.add_argument(
         "--edge-normal-radius-per-m",
         type=float,
         metavar="R",
-        help="with --edge-information normals, the normals the information is taken from are estimated "
-        "for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
-        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals)",
+        help="with --edge-information normals or scan, the normals the information is taken from are "
+        "estimated for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
+        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals; with scan 0.1)",
     )
     p.add_argument(
         "--edge-departure-floor",
@@ -538,10 +582,31 @@ def run(args: argparse.Namespace) -> int:
     if args.edge_information is not None and args.edge_match_sigma is None:
         raise ConfigError("--edge-information", "needs --edge-match-sigma")
     if args.edge_normal_radius_per_m is not None:
-        if args.edge_information != "normals":
-            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals")
+        if args.edge_information not in ("normals", "scan"):
+            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals or scan")
         if not 0.0 <= args.edge_normal_radius_per_m <= 1.0:
             raise ConfigError("--edge-normal-radius-per-m", "must be in [0, 1]")
+    if args.edge_scan_mean and args.edge_information != "scan":
+        raise ConfigError("--edge-scan-mean", "needs --edge-information scan")
+    if args.edge_scan_gate_chi2 is not None:
+        if not args.edge_scan_mean:
+            raise ConfigError("--edge-scan-gate-chi2", "needs --edge-scan-mean")
+        if not 0.0 <= args.edge_scan_gate_chi2 <= 1e6:
+            raise ConfigError("--edge-scan-gate-chi2", "must be in [0, 1e6]")
+    if args.edge_scan_coarse_iterations is not None:
+        if args.edge_information != "scan":
+            raise ConfigError("--edge-scan-coarse-iterations", "needs --edge-information scan")
+        if not 0 <= args.edge_scan_coarse_iterations <= 100:
+            raise ConfigError("--edge-scan-coarse-iterations", "must be in [0, 100]")
+    if args.edge_judge_plain and args.edge_match_sigma is None:
+        raise ConfigError("--edge-judge-plain", "needs --edge-match-sigma")
+    if args.edge_scan_fallback and args.edge_information != "scan":
+        raise ConfigError("--edge-scan-fallback", "needs --edge-information scan")
+    if args.edge_scan_anchor is not None:
+        if args.edge_information != "scan":
+            raise ConfigError("--edge-scan-anchor", "needs --edge-information scan")
+        if not 0.0 < args.edge_scan_anchor <= 1e6:
+            raise ConfigError("--edge-scan-anchor", "must be in (0, 1e6]")
     if args.edge_departure_floor and args.edge_match_sigma is None:
         raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
     if args.edge_match_sigma is not None:
@@ -555,6 +620,12 @@ def run(args: argparse.Namespace) -> int:
             edge_information=args.edge_information or "match",
             edge_departure_floor=args.edge_departure_floor,
             edge_normal_radius_per_m=args.edge_normal_radius_per_m,
+            edge_scan_mean=args.edge_scan_mean,
+            edge_scan_gate_chi2=args.edge_scan_gate_chi2 or 0.0,
+            edge_scan_coarse_iterations=args.edge_scan_coarse_iterations or 0,
+            edge_scan_anchor=args.edge_scan_anchor if args.edge_scan_anchor is not None else 5.0,
+            edge_scan_fallback=args.edge_scan_fallback,
+            edge_judge_plain=args.edge_judge_plain,
         )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
@@ -631,6 +702,12 @@ def run(args: argparse.Namespace) -> int:
                 "edge_information",
                 "edge_departure_floor",
                 "edge_normal_radius_per_m",
+                "edge_scan_mean",
+                "edge_scan_gate_chi2",
+                "edge_scan_coarse_iterations",
+                "edge_scan_anchor",
+                "edge_scan_fallback",
+                "edge_judge_plain",
             )
         },
         "updates": slam.stats.updates,

@@ -189,7 +189,39 @@ class LoopClosureConfig:
     # 15-25 endpoints of a scan have a normal, so nearly every edge is loose in some direction and a loop's
     # correction spreads over the whole chain); FR079 seed 0 0.197 -> 0.387 m at s = 0.02. Measured for
     # issue 20: docs/slam.md, "Loop closure" and "Open problems" (ACES).
-    edge_information: Literal["match", "normals"] = "match"
+    # "scan": the information of a relative measurement instead, node k's scan matched point to line
+    # against node k-1's scan (``relative.match_relative``, the reference's normals as below, 0.1 × range
+    # where ``edge_normal_radius_per_m`` is unset): only what the two scans share, so a corridor whose
+    # ends are out of view is loose along it, and a step where the map's far walls come back into view
+    # (the front end's snap by the whole corridor's length error, ACES record 329) is not made tight by
+    # the map having seen them. Measured for issue 20: docs/slam.md, "Open problems" (ACES).
+    edge_information: Literal["match", "normals", "scan"] = "match"
+    # ... and, with "scan", the edge's mean from that match too (True) rather than the filter's step
+    # (False, the default): the filter's step where the two scans do not fix a direction (damped).
+    edge_scan_mean: bool = False
+    # ... only at the edges where the two steps differ by more than this squared Mahalanobis distance
+    # under the edge's covariance (0: every edge the relative match measured).
+    edge_scan_gate_chi2: float = 0.0
+    # ... the relative match's bound on a pair's offset across its line (m); a relative match that
+    # turns or shifts the filter's step by more than these failed (a wrong minimum: the filter's heading
+    # is held by the whole map), and its edge is the filter's (``edge_max_sigma`` loose).
+    edge_scan_max_turn_rad: float = 0.05
+    # ... with this many first iterations pairing within 0.5 m (``relative.match_relative``'s coarse
+    # bound), so that a step the filter put tens of centimetres off is still pulled back.
+    edge_scan_coarse_iterations: int = 0
+    # ... and the weight of its pull towards the filter's step (per m², rad²; ``match_relative``'s anchor).
+    edge_scan_anchor: float = 5.0
+    # ... and where the relative match failed (too few pairs, or past the guards), the front end's own
+    # match's information (True) rather than none (``edge_max_sigma`` loose; False, the default).
+    edge_scan_fallback: bool = False
+    # With ``edge_match_sigma_m``: a candidate's consistency tests (:func:`judge_loop`: its residual after
+    # the optimisation, the loops it leaves off) on the chain without the edges' covariances (True: the
+    # sigmas widened by the departure from odometry), the accepted graph with them. Loose edges let the
+    # chain absorb a wrong link (FR079 seed 0, relative edges: 12 -> 75, innovation χ² 7007, residual 1.0
+    # where the plain chain leaves 233). False (the default): the edges' covariances throughout.
+    edge_judge_plain: bool = False
+    edge_scan_max_shift_m: float = 0.5
+    edge_scan_bound_m: float = 0.15
     # ... with "normals", the surface normals the information is taken from: the match's own (None, the
     # default), or the scan's normals estimated for the information alone from a neighbourhood of
     # max(0.25 m, this × range) and up to ``edge_normal_thickness_m`` thick (``grid.surface_normals``; the
@@ -923,6 +955,8 @@ def judge_loop(
     ]
     if config.require_confirmation and not partners:
         return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
+    # The consistency tests on the front end's own edges (``edge_judge_plain``) or the edges' covariances.
+    judged = None if config.edge_judge_plain else node_information
     result = optimize_graph(
         poses,
         motions,
@@ -930,7 +964,7 @@ def judge_loop(
         config,
         absolute,
         odometry_motions,
-        node_information,
+        judged,
         odometry_sigmas,
     )
     residual = loop_residual_chi2(result.poses, candidate, config)
@@ -940,7 +974,7 @@ def judge_loop(
     bad_before: int | None = None
     if residual <= config.accept_chi2 and bad_after > 0:
         before = optimize_graph(
-            poses, motions, loops, config, absolute, odometry_motions, node_information, odometry_sigmas
+            poses, motions, loops, config, absolute, odometry_motions, judged, odometry_sigmas
         )
         bad_before = sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
     if residual > config.accept_chi2 or (bad_before is not None and bad_after > bad_before):
@@ -953,6 +987,17 @@ def judge_loop(
             bad_after,
         )
         return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
+    if judged is not node_information:
+        result = optimize_graph(
+            poses,
+            motions,
+            [*loops, *partners, candidate],
+            config,
+            absolute,
+            odometry_motions,
+            node_information,
+            odometry_sigmas,
+        )
     score_after = scan_map_score(result.poses, hits, old, new, config)
     ratio = config.known_area_verify_ratio if candidate.known_area else config.verify_ratio
     if score_after > ratio * score_before or (candidate.known_area and not math.isfinite(score_before)):

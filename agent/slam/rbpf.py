@@ -57,6 +57,7 @@ from agent.slam.loops import (
     LoopClosureConfig,
     LoopConstraint,
     Verdict,
+    edge_covariances,
     find_loop,
     judge_loop,
     robot_frame_information,
@@ -68,6 +69,7 @@ from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals, travel_reversed
+from agent.slam.relative import match_relative
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
@@ -313,6 +315,13 @@ class RbpfSlam:
         self._node_hits: list[FloatArray] = []
         self._node_motions: list[FloatArray] = []
         self._node_information: list[FloatArray] = []
+        # With LoopClosureConfig.edge_information "scan": the last node's endpoints and their normals
+        # (the next node's relative match's reference), and per node its step from that match (NaN where
+        # it failed or was not run: the filter's step stands).
+        self._scan_reference: tuple[FloatArray, FloatArray] | None = None
+        self._node_scan_motions: list[FloatArray] = []
+        self._node_scan_guesses: list[FloatArray] = []  # the filter's step each was matched from
+        self._node_normals: list[npt.NDArray[np.float32] | None] = []  # each node's scan's normals
         self._loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
         # The last node a known-area link (LoopClosureConfig.hypotheses) was judged at without being acted
@@ -807,6 +816,12 @@ class RbpfSlam:
             node_information = robot_frame_information(
                 information[int(parents[best])], float(self.history_poses[-1][best, 2])
             )
+        if lc.edge_information == "scan":
+            relative, scan_motion = self._relative_edge(scan, motion, len(self.history_poses) > 1)
+            if relative.any() or not lc.edge_scan_fallback:
+                node_information = relative
+            self._node_scan_motions.append(scan_motion)
+            self._node_scan_guesses.append(motion)
         self._node_information.append(node_information)
         j = len(self._node_scans) - 1
         if self._node_fix is not None:
@@ -839,6 +854,78 @@ class RbpfSlam:
         if found is not None:
             self._judge(path, found)
         self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
+
+    def _relative_edge(
+        self, scan: ScanPoints, motion: FloatArray, has_parent: bool
+    ) -> tuple[FloatArray, FloatArray]:
+        """This node's scan matched point to line against the last node's (LoopClosureConfig.
+        edge_information "scan"): its information in this node's robot frame (zeros where it failed) and
+        its step (NaN where it failed); the scan's endpoints and normals become the next reference."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        radius = lc.edge_normal_radius_per_m if lc.edge_normal_radius_per_m is not None else 0.1
+        information = np.zeros((3, 3))
+        step = np.full(3, np.nan)
+        if has_parent and self._scan_reference is not None:
+            reference, normals = self._scan_reference
+            found = match_relative(
+                reference,
+                normals,
+                self._node_hits[-1],
+                motion,
+                bound_m=lc.edge_scan_bound_m,
+                coarse_iterations=lc.edge_scan_coarse_iterations,
+                anchor=lc.edge_scan_anchor,
+            )
+            step = self._checked_step(found.pose, found.pairs, motion)
+            if np.isfinite(step[0]):
+                information = robot_frame_information(found.information, float(found.pose[2]))
+        normals = surface_normals(
+            scan.hit_xy,
+            max_thickness_m=lc.edge_normal_thickness_m,
+            radius_per_m=radius,
+            origin_xy=scan.origin_xy,
+        )
+        self._scan_reference = (scan.hit_xy, normals)
+        # Kept per node (float32) only where edges may be matched again (edge_scan_mean).
+        self._node_normals.append(normals.astype(np.float32) if lc.edge_scan_mean else None)
+        return information, step
+
+    def _rematch_relative(self, motions: FloatArray, recent: IntArray) -> None:
+        """The relative matches (``_relative_edge``) of the ``recent`` nodes from ``motions`` where the
+        step they started from differs from it (another lineage leads now)."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        for k in recent.tolist():
+            if k < 1 or self._node_normals[k - 1] is None:
+                continue
+            guess = self._node_scan_guesses[k]
+            if np.all(np.abs(guess - motions[k]) < np.array([0.01, 0.01, 0.005])):
+                continue
+            normals = self._node_normals[k - 1]
+            assert normals is not None
+            found = match_relative(
+                self._node_scans[k - 1].hit_xy,
+                normals.astype(np.float64),
+                self._node_hits[k],
+                motions[k],
+                bound_m=lc.edge_scan_bound_m,
+                coarse_iterations=lc.edge_scan_coarse_iterations,
+                anchor=lc.edge_scan_anchor,
+            )
+            self._node_scan_guesses[k] = motions[k].copy()
+            self._node_scan_motions[k] = self._checked_step(found.pose, found.pairs, motions[k])
+
+    def _checked_step(self, pose: FloatArray, pairs: int, guess: FloatArray) -> FloatArray:
+        """A relative match's step, NaN where it failed (too few pairs, or it turned or shifted the
+        filter's step by more than ``edge_scan_max_turn_rad`` / ``edge_scan_max_shift_m``)."""
+        lc = self.config.loop_closure
+        assert lc is not None
+        turn = abs(float(wrap_angle(pose[2] - guess[2])))
+        shift = float(np.hypot(pose[0] - guess[0], pose[1] - guess[1]))
+        if pairs >= 3 and turn <= lc.edge_scan_max_turn_rad and shift <= lc.edge_scan_max_shift_m:
+            return np.asarray(pose, dtype=np.float64)
+        return np.full(3, np.nan)
 
     def _judge(self, path: FloatArray, found: LoopConstraint) -> None:
         """Judge a candidate (``loops.judge_loop``); an accepted one joins the graph and is applied."""
@@ -898,6 +985,31 @@ class RbpfSlam:
         motions = np.array(self._node_motions)
         recent = np.arange(self._anchored + 1, path.shape[0])
         motions[recent] = between(path[recent - 1], path[recent])
+        lc = self.config.loop_closure
+        if lc is not None and lc.edge_scan_mean and len(self._node_scan_motions) == motions.shape[0]:
+            # The relative matches' steps in place of the filter's (LoopClosureConfig.edge_scan_mean).
+            # Only where the two disagree by more than the edge's own covariance (edge_scan_gate_chi2):
+            # the front end's snap onto its map, not the relative match's own noise.
+            # Only where the chain's step is the one the relative match started from (the leading
+            # lineage then): another lineage's step was matched from another guess.
+            # A recent node whose lineage's step is not the one its relative match started from is
+            # matched again from this one.
+            self._rematch_relative(motions, recent)
+            scan_motions = np.array(self._node_scan_motions)
+            guesses = np.array(self._node_scan_guesses)
+            same = np.all(np.abs(guesses - motions) < np.array([0.01, 0.01, 0.005]), axis=1)
+            measured = np.isfinite(scan_motions[:, 0]) & same
+            if lc.edge_scan_gate_chi2 > 0.0 and motions.shape[0] > 1:
+                gap = np.where(measured[:, None], scan_motions - motions, 0.0)
+                gap[:, 2] = wrap_angle(gap[:, 2])
+                covariance = edge_covariances(motions, np.array(self._node_information), lc)
+                chi2 = np.zeros(motions.shape[0])
+                chi2[1:] = np.einsum(
+                    "ki,ki->k", gap[1:], np.linalg.solve(covariance, gap[1:, :, None])[..., 0]
+                )
+                measured &= chi2 > lc.edge_scan_gate_chi2
+            log.debug("edges from the relative matches' steps: %s", np.flatnonzero(measured).tolist())
+            motions[measured] = scan_motions[measured]
         odometry = np.array(self.history_odom)
         odometry_motions = np.zeros_like(odometry)
         odometry_motions[1:] = between(odometry[:-1], odometry[1:])

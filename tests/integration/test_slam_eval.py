@@ -205,7 +205,23 @@ def test_eval_edge_information_is_checked_and_reported(
         (["--edge-departure-floor"], "--edge-departure-floor: needs --edge-match-sigma"),
         (
             ["--edge-match-sigma", "0.3", "--edge-normal-radius-per-m", "0.1"],
-            "--edge-normal-radius-per-m: needs --edge-information normals",
+            "--edge-normal-radius-per-m: needs --edge-information normals or scan",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-scan-mean"],
+            "--edge-scan-mean: needs --edge-information scan",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-scan-coarse-iterations", "5"],
+            "--edge-scan-coarse-iterations: needs --edge-information scan",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-information", "scan", "--edge-scan-gate-chi2", "5"],
+            "--edge-scan-gate-chi2: needs --edge-scan-mean",
+        ),
+        (
+            ["--edge-match-sigma", "0.3", "--edge-scan-fallback"],
+            "--edge-scan-fallback: needs --edge-information scan",
         ),
         (
             ["--edge-match-sigma", "0.3", "--loop-closure", "off"],
@@ -221,6 +237,9 @@ def test_eval_edge_information_is_checked_and_reported(
     assert main([*args, "--edge-match-sigma", "0.3", "--edge-information", "normals"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["edge_match_sigma_m"] == 0.3 and summary["edge_information"] == "normals"
+    assert main([*args, "--edge-match-sigma", "0.3", "--edge-information", "scan", "--edge-scan-mean"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["edge_information"] == "scan" and summary["edge_scan_mean"] is True
 
 
 def test_eval_medial_window_is_checked_and_reported(

@@ -298,6 +298,27 @@ def test_slam_records_the_lines_information_for_its_edges(
     assert np.all(np.linalg.eigvalsh(info) > -1e-6)
 
 
+def test_slam_records_relative_edges_from_scan_to_scan_matches(loop: tuple[np.ndarray, ...]) -> None:
+    """``LoopClosureConfig.edge_information`` "scan": each node's recorded information is the point-to-line
+    information of its scan matched against the node before's (whole unit normals counted), and the
+    relative match's step (``edge_scan_mean``) is within centimetres of the true step."""
+    _times, truth, _odometry, _ = loop
+    lc = LoopClosureConfig(edge_match_sigma_m=0.1, edge_information="scan", edge_scan_mean=True)
+    config = RbpfConfig(particles=8, initial_pose=tuple(float(v) for v in truth[0]), loop_closure=lc)
+    slam, estimate = run_filter(loop, config)
+    assert absolute_trajectory_error(truth, estimate) < 0.05
+    info = np.array(slam._node_information[1:])
+    counts = np.trace(info[:, :2, :2], axis1=1, axis2=2)
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-6)
+    assert np.median(counts) >= 20 and np.all(np.linalg.eigvalsh(info) > -1e-6)
+    steps = np.array(slam._node_scan_motions[1:])
+    measured = np.isfinite(steps[:, 0])
+    assert measured.mean() > 0.9
+    filter_steps = np.array(slam._node_scan_guesses[1:])
+    gap = np.hypot(*(steps[measured, :2] - filter_steps[measured, :2]).T)
+    assert np.median(gap) < 0.02
+
+
 def test_slam_with_closed_form_eta(loop: tuple[np.ndarray, ...]) -> None:
     _times, truth, _odometry, _ = loop
     proposal = ProposalConfig(eta_integral="laplace")

@@ -526,3 +526,28 @@ def test_a_batch_of_refinements_is_each_refinement_alone() -> None:
         alone = loops._refine(old, hits[60], start, config)
         for f in fields(MatchResult):
             assert np.array_equal(getattr(batch, f.name)[k], getattr(alone, f.name)[0]), (k, f.name)
+
+
+@pytest.mark.parametrize("plain", [False, True])
+def test_loose_edges_absorb_a_wrong_link_unless_it_is_judged_on_the_plain_chain(plain: bool) -> None:
+    """Edges from matches that measured nothing (``edge_max_sigma`` loose) let the optimisation bend the
+    chain to a wrong link, so its residual passes; ``edge_judge_plain`` judges it on the front end's own
+    edges (3 cm / 0.01 rad), where it does not."""
+    truth = chain_poses(np.zeros(3), _square())
+    n = truth.shape[0]
+    motions = _true_motions(truth)
+    hits = [np.zeros((0, 2)) for _ in range(n)]
+    config = LoopClosureConfig(min_separation=10, edge_match_sigma_m=0.1, edge_judge_plain=plain)
+    loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
+    wrong = LoopConstraint(5, 30, compose(between(truth[5], truth[30]), np.array([2.0, -1.5, 0.5])), 0.9)
+    again = compose(compose(between(truth[6], truth[5]), wrong.z), between(truth[30], truth[31]))
+    partner = LoopConstraint(6, 31, again, 0.9)
+    information = np.zeros((n, 3, 3))  # no match measured anything
+    judgement = judge_loop(
+        truth, hits, motions, loops, wrong, config, pending=[partner], node_information=information
+    )
+    if plain:
+        assert judgement.verdict is Verdict.INCONSISTENT
+    else:
+        assert judgement.verdict is not Verdict.INCONSISTENT
+        assert judgement.residual_chi2 <= config.accept_chi2
