@@ -957,25 +957,20 @@ def judge_loop(
         return Judgement(Verdict.UNCONFIRMED, innovation, score_before=score_before)
     # The consistency tests on the front end's own edges (``edge_judge_plain``) or the edges' covariances.
     judged = None if config.edge_judge_plain else node_information
-    result = optimize_graph(
-        poses,
-        motions,
-        [*loops, *partners, candidate],
-        config,
-        absolute,
-        odometry_motions,
-        judged,
-        odometry_sigmas,
-    )
+
+    def optimise(links: list[LoopConstraint], information: FloatArray | None) -> GraphResult:
+        return optimize_graph(
+            poses, motions, links, config, absolute, odometry_motions, information, odometry_sigmas
+        )
+
+    result = optimise([*loops, *partners, candidate], judged)
     residual = loop_residual_chi2(result.poses, candidate, config)
     bad_after = sum(loop_residual_chi2(result.poses, c, config) > config.accept_chi2 for c in loops)
     # The graph without the candidate, for the loops it already left off: counted only where the verdict
     # turns on that count (with no loop off after, none can be more off than before); None: not computed.
     bad_before: int | None = None
     if residual <= config.accept_chi2 and bad_after > 0:
-        before = optimize_graph(
-            poses, motions, loops, config, absolute, odometry_motions, judged, odometry_sigmas
-        )
+        before = optimise(list(loops), judged)
         bad_before = sum(loop_residual_chi2(before.poses, c, config) > config.accept_chi2 for c in loops)
     if residual > config.accept_chi2 or (bad_before is not None and bad_after > bad_before):
         log.debug(
@@ -988,16 +983,7 @@ def judge_loop(
         )
         return Judgement(Verdict.INCONSISTENT, innovation, residual, score_before)
     if judged is not node_information:
-        result = optimize_graph(
-            poses,
-            motions,
-            [*loops, *partners, candidate],
-            config,
-            absolute,
-            odometry_motions,
-            node_information,
-            odometry_sigmas,
-        )
+        result = optimise([*loops, *partners, candidate], node_information)
     score_after = scan_map_score(result.poses, hits, old, new, config)
     ratio = config.known_area_verify_ratio if candidate.known_area else config.verify_ratio
     if score_after > ratio * score_before or (candidate.known_area and not math.isfinite(score_before)):

@@ -165,10 +165,16 @@ def test_eval_without_what_says_what(capsys: pytest.CaptureFixture[str]) -> None
     assert "slam" in capsys.readouterr().out
 
 
-def test_eval_span_must_be_a_scan_or_more(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    log = tmp_path / "tiny_scans.txt"
+def tiny_log(folder: Path) -> Path:
+    """A two-record radish log: enough for the CLI to check and report its options."""
+    log = folder / "tiny_scans.txt"
     ranges = " ".join(["2.0"] * 180)
     log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    return log
+
+
+def test_eval_span_must_be_a_scan_or_more(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tiny_log(tmp_path)
     args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out")]
     assert main([*args, "--span", "0"]) == 1
     err = capsys.readouterr().err
@@ -178,9 +184,7 @@ def test_eval_span_must_be_a_scan_or_more(tmp_path: Path, capsys: pytest.Capture
 def test_eval_degenerate_noise_scale_is_checked_and_reported(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    log = tmp_path / "tiny_scans.txt"
-    ranges = " ".join(["2.0"] * 180)
-    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    log = tiny_log(tmp_path)
     args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
     for bad in ("0", "1.5"):
         assert main([*args, "--degenerate-noise-scale", bad]) == 1
@@ -195,9 +199,7 @@ def test_eval_degenerate_noise_scale_is_checked_and_reported(
 def test_eval_edge_information_is_checked_and_reported(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    log = tmp_path / "tiny_scans.txt"
-    ranges = " ".join(["2.0"] * 180)
-    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    log = tiny_log(tmp_path)
     args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
     for bad, message in (
         (["--edge-information", "normals"], "--edge-information: needs --edge-match-sigma"),
@@ -245,9 +247,7 @@ def test_eval_edge_information_is_checked_and_reported(
 def test_eval_medial_window_is_checked_and_reported(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    log = tmp_path / "tiny_scans.txt"
-    ranges = " ".join(["2.0"] * 180)
-    log.write_text(f"0.0 0 0 0 0 0 0 180 {ranges}\n1.0 0.1 0 0 0.1 0 0 180 {ranges}\n")
+    log = tiny_log(tmp_path)
     args = ["eval", "slam", "--log", str(log), "--format", "radish", "--out", str(tmp_path / "out"), "--json"]
     assert main([*args, "--medial-window-cells", "9"]) == 1
     err = capsys.readouterr().err
