@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -93,6 +96,10 @@ def match_relative(
     pose = start.copy()
     if reference_xy.shape[0] == 0 or scan_xy.shape[0] == 0:
         return RelativeMatch(pose, np.zeros((3, 3)), 0)
+    # Imported here: scipy.spatial adds ~29 MB to the process's peak RSS, which the filter's default path,
+    # with relative edges off, must not pay (issue 20's 120 MB line on Intel).
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(reference_xy)
     for it in range(coarse_iterations + iterations):
         coarse = it < coarse_iterations

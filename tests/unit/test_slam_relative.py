@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 
@@ -92,3 +94,11 @@ def test_a_junction_pulls_back_a_step_the_filter_put_far_off_along_the_corridor(
     )
     np.testing.assert_allclose(found.pose, truth, atol=0.02)
     assert np.min(np.linalg.eigvalsh(found.information[:2, :2])) > 10.0
+
+
+def test_the_filter_does_not_import_scipy_spatial_until_relative_edges_run() -> None:
+    # scipy.spatial costs the process ~29 MB of peak RSS: on Intel that alone broke issue 20's 120 MB line
+    # (111 -> 138 MB) while relative edges were off.
+    code = "import sys, agent.commands.eval_slam, agent.slam.rbpf; print('scipy.spatial' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
