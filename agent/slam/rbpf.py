@@ -69,10 +69,13 @@ from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals, travel_reversed
-from agent.slam.relative import match_relative
+from agent.slam.relative import RelativeMatch, match_relative
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
 FloatArray = npt.NDArray[np.float64]
+# A relative edge's step counts as the one its match started from within these (x, y metres, yaw radians).
+_SAME_STEP = np.array([0.01, 0.01, 0.005])
+_SAME_STEP.flags.writeable = False
 IntArray = npt.NDArray[np.int64]
 Int8Array = npt.NDArray[np.int8]
 BoolArray = npt.NDArray[np.bool_]
@@ -868,16 +871,7 @@ class RbpfSlam:
         step = np.full(3, np.nan)
         if has_parent and self._scan_reference is not None:
             reference, normals = self._scan_reference
-            found = match_relative(
-                reference,
-                normals,
-                self._node_hits[-1],
-                motion,
-                bound_m=lc.edge_scan_bound_m,
-                coarse_iterations=lc.edge_scan_coarse_iterations,
-                anchor=lc.edge_scan_anchor,
-            )
-            step = self._checked_step(found.pose, found.pairs, motion)
+            found, step = self._relative_step(reference, normals, self._node_hits[-1], motion)
             if np.isfinite(step[0]):
                 information = robot_frame_information(found.information, float(found.pose[2]))
         normals = surface_normals(
@@ -900,32 +894,41 @@ class RbpfSlam:
             if k < 1 or self._node_normals[k - 1] is None:
                 continue
             guess = self._node_scan_guesses[k]
-            if np.all(np.abs(guess - motions[k]) < np.array([0.01, 0.01, 0.005])):
+            if np.all(np.abs(guess - motions[k]) < _SAME_STEP):
                 continue
             normals = self._node_normals[k - 1]
             assert normals is not None
-            found = match_relative(
-                self._node_scans[k - 1].hit_xy,
-                normals.astype(np.float64),
-                self._node_hits[k],
-                motions[k],
-                bound_m=lc.edge_scan_bound_m,
-                coarse_iterations=lc.edge_scan_coarse_iterations,
-                anchor=lc.edge_scan_anchor,
+            reference = self._node_scans[k - 1].hit_xy
+            _, step = self._relative_step(
+                reference, normals.astype(np.float64), self._node_hits[k], motions[k]
             )
             self._node_scan_guesses[k] = motions[k].copy()
-            self._node_scan_motions[k] = self._checked_step(found.pose, found.pairs, motions[k])
+            self._node_scan_motions[k] = step
 
-    def _checked_step(self, pose: FloatArray, pairs: int, guess: FloatArray) -> FloatArray:
-        """A relative match's step, NaN where it failed (too few pairs, or it turned or shifted the
-        filter's step by more than ``edge_scan_max_turn_rad`` / ``edge_scan_max_shift_m``)."""
+    def _relative_step(
+        self, reference: FloatArray, normals: FloatArray, hits: FloatArray, guess: FloatArray
+    ) -> tuple[RelativeMatch, FloatArray]:
+        """``hits`` matched against the last node's ``reference`` endpoints from ``guess``
+        (``relative.match_relative`` with the loop closure's settings), and its step: NaN where it failed
+        (too few pairs, or it turned or shifted the filter's step by more than ``edge_scan_max_turn_rad`` /
+        ``edge_scan_max_shift_m``)."""
         lc = self.config.loop_closure
         assert lc is not None
+        found = match_relative(
+            reference,
+            normals,
+            hits,
+            guess,
+            bound_m=lc.edge_scan_bound_m,
+            coarse_iterations=lc.edge_scan_coarse_iterations,
+            anchor=lc.edge_scan_anchor,
+        )
+        pose, pairs = found.pose, found.pairs
         turn = abs(float(wrap_angle(pose[2] - guess[2])))
         shift = float(np.hypot(pose[0] - guess[0], pose[1] - guess[1]))
         if pairs >= 3 and turn <= lc.edge_scan_max_turn_rad and shift <= lc.edge_scan_max_shift_m:
-            return np.asarray(pose, dtype=np.float64)
-        return np.full(3, np.nan)
+            return found, np.asarray(pose, dtype=np.float64)
+        return found, np.full(3, np.nan)
 
     def _judge(self, path: FloatArray, found: LoopConstraint) -> None:
         """Judge a candidate (``loops.judge_loop``); an accepted one joins the graph and is applied."""
@@ -997,7 +1000,7 @@ class RbpfSlam:
             self._rematch_relative(motions, recent)
             scan_motions = np.array(self._node_scan_motions)
             guesses = np.array(self._node_scan_guesses)
-            same = np.all(np.abs(guesses - motions) < np.array([0.01, 0.01, 0.005]), axis=1)
+            same = np.all(np.abs(guesses - motions) < _SAME_STEP, axis=1)
             measured = np.isfinite(scan_motions[:, 0]) & same
             if lc.edge_scan_gate_chi2 > 0.0 and motions.shape[0] > 1:
                 gap = np.where(measured[:, None], scan_motions - motions, 0.0)

@@ -46,9 +46,9 @@ def _pairs(
     pose: FloatArray,
     max_pair_m: float,
     bound_m: float,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray]:
     """Per pair within ``max_pair_m`` of a reference endpoint that has a normal, and within ``bound_m``
-    of its line: g (K, 3) and the signed offset across the line (K,), and the endpoints' offsets (K, 2)."""
+    of its line: g (K, 3) and the signed offset across the line (K,)."""
     c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
     rx = c * scan_xy[:, 0] - s * scan_xy[:, 1]
     ry = s * scan_xy[:, 0] + c * scan_xy[:, 1]
@@ -62,7 +62,7 @@ def _pairs(
     keep = has & (np.abs(offset) < bound_m)
     n, offset = n[keep], offset[keep]
     g = np.stack([n[:, 0], n[:, 1], rx[keep] * n[:, 1] - ry[keep] * n[:, 0]], axis=1)
-    return g, offset, np.stack([rx[keep], ry[keep]], axis=1)
+    return g, offset
 
 
 def match_relative(
@@ -103,7 +103,7 @@ def match_relative(
     tree = cKDTree(reference_xy)
     for it in range(coarse_iterations + iterations):
         coarse = it < coarse_iterations
-        g, offset, _ = _pairs(
+        g, offset = _pairs(
             tree,
             reference_xy,
             normals,
@@ -119,7 +119,7 @@ def match_relative(
         pose = pose + step
         if not coarse and float(np.hypot(step[0], step[1])) < 1e-4 and abs(float(step[2])) < 1e-5:
             break
-    g, offset, _ = _pairs(tree, reference_xy, normals, scan_xy, pose, max_pair_m, bound_m)
+    g, offset = _pairs(tree, reference_xy, normals, scan_xy, pose, max_pair_m, bound_m)
     if offset.size < 3:
         return RelativeMatch(pose, np.zeros((3, 3)), int(offset.size))
     information: FloatArray = g.T @ g
