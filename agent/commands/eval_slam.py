@@ -26,6 +26,11 @@ import numpy as np
 import numpy.typing as npt
 
 from agent.commands.args import dumps_json, positive_seconds
+from agent.commands.eval_slam_options import (
+    add_research_options,
+    apply_research_options,
+    check_research_options,
+)
 
 if TYPE_CHECKING:
     from agent.slam.metrics import RelativePoseError
@@ -304,129 +309,12 @@ def add_parser(subparsers: Any) -> None:
         "--max-range", type=float, metavar="M", help="usable range (5.5 breezyslam and --world, 15 radish)"
     )
     p.add_argument(
-        "--along-surface-weight",
-        type=float,
-        metavar="W",
-        help="weight of a scan point's offset along its surface in the match: 1 point to point, 0 point to "
-        "line (default: 0 for radish, 1 otherwise)",
-    )
-    p.add_argument(
-        "--proposal-temperature",
-        type=float,
-        metavar="T",
-        help="the proposal's likelihood temperature T' (default: 1)",
-    )
-    p.add_argument(
-        "--degenerate-noise-scale",
-        type=float,
-        metavar="K",
-        help="a particle's draw is K times narrower in the directions its scan match does not hold (a "
-        "corridor's length), ~1 where it does ([slam] degenerate_noise_scale, in (0, 1]; default: 0.3 for "
-        "--world, 1 otherwise: the paper's draw)",
-    )
-    p.add_argument(
-        "--medial-window-cells",
-        type=int,
-        metavar="W",
-        help="judge a wall's straightness, for the match's distance to its medial line, over the square of W "
-        "cells either way around it ([slam] match_medial_window_cells, 0-8; default 0: a wall cell's four "
-        "neighbours): finds walls on cell boundaries mapped in patches, hurts walls elsewhere (docs/slam.md)",
-    )
-    p.add_argument(
         "--loop-closure",
         choices=("on", "off"),
         default="on",
         help="match scans against the map built long ago and optimise the pose graph (default: on)",
     )
-    p.add_argument(
-        "--loop-correction-odometry-sigmas",
-        type=float,
-        metavar="K",
-        help="the pose graph widens a front-end edge only by the match's departure from odometry beyond K of "
-        "the motion model's sigmas ([slam] loop_correction_odometry_sigmas; default: the whole departure)",
-    )
-    p.add_argument(
-        "--edge-match-sigma",
-        type=float,
-        metavar="S",
-        help="the pose graph's front-end edges get their covariance from each update's scan match, its "
-        "information over S² (an endpoint's residual, metres, in (0, 1]; "
-        "LoopClosureConfig.edge_match_sigma_m; default: off, the edges' sigmas from the match's departure "
-        "from odometry)",
-    )
-    p.add_argument(
-        "--edge-information",
-        choices=("match", "normals", "scan"),
-        help="with --edge-match-sigma, which information: the match's own sum J Jᵀ (match), or the "
-        "point-to-line information of the endpoints with a surface normal only (normals: loose along a "
-        "corridor), or that of a relative measurement, the update's scan matched point to line against "
-        "the last update's (scan: only what the two scans share; LoopClosureConfig.edge_information; "
-        "default: match)",
-    )
-    p.add_argument(
-        "--edge-scan-mean",
-        action="store_true",
-        help="with --edge-information scan, the edges' means from that scan-to-scan match too, not the "
-        "filter's steps (LoopClosureConfig.edge_scan_mean; default: off)",
-    )
-    p.add_argument(
-        "--edge-scan-gate-chi2",
-        type=float,
-        metavar="C",
-        help="with --edge-scan-mean, only at the edges where the scan-to-scan step and the filter's differ "
-        "by more than C (squared Mahalanobis distance under the edge's covariance; "
-        "LoopClosureConfig.edge_scan_gate_chi2; default: 0, every edge)",
-    )
-    p.add_argument(
-        "--edge-scan-coarse-iterations",
-        type=int,
-        metavar="N",
-        help="with --edge-information scan, the scan-to-scan match's first N iterations pair endpoints "
-        "within 0.5 m, so a step the filter put tens of centimetres off is pulled back "
-        "(LoopClosureConfig.edge_scan_coarse_iterations; default: 0)",
-    )
-    p.add_argument(
-        "--edge-scan-fallback",
-        action="store_true",
-        help="with --edge-information scan, an edge whose scan-to-scan match failed takes the update's "
-        "own match's information instead of none (LoopClosureConfig.edge_scan_fallback; default: off)",
-    )
-    p.add_argument(
-        "--edge-judge-plain",
-        action="store_true",
-        help="with --edge-match-sigma, a loop candidate's consistency tests run on the chain without the "
-        "edges' covariances (the departure-widened sigmas), the accepted graph with them "
-        "(LoopClosureConfig.edge_judge_plain; default: off)",
-    )
-    p.add_argument(
-        "--edge-scan-anchor",
-        type=float,
-        metavar="A",
-        help="with --edge-information scan, the scan-to-scan match's pull towards the filter's step "
-        "(per m² and rad², against one per paired endpoint; LoopClosureConfig.edge_scan_anchor; default: 5)",
-    )
-    p.add_argument(
-        "--edge-normal-radius-per-m",
-        type=float,
-        metavar="R",
-        help="with --edge-information normals or scan, the normals the information is taken from are "
-        "estimated for it alone, from a neighbourhood of max(0.25 m, R x range), up to 3 cm thick "
-        "(LoopClosureConfig.edge_normal_radius_per_m; default: the match's own normals; with scan 0.1)",
-    )
-    p.add_argument(
-        "--edge-departure-floor",
-        action="store_true",
-        help="with --edge-match-sigma, each edge's covariance sits on its sigmas widened by the match's "
-        "departure from odometry (the edges without --edge-match-sigma) instead of the plain motion sigmas "
-        "(LoopClosureConfig.edge_departure_floor; default: off)",
-    )
-    p.add_argument(
-        "--search-heading-doubt",
-        action="store_true",
-        help="also run the correlative search at an update whose odometry heading is as doubtful (motion "
-        "model) as after a straight search_increment_m, not only past the metres or radians thresholds "
-        "(RbpfConfig.search_heading_doubt; default: off)",
-    )
+    add_research_options(p)
     p.add_argument("--scans", type=int, metavar="N", help="use only the first N scans of the log")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(
@@ -495,6 +383,7 @@ def run(args: argparse.Namespace) -> int:
     tune_malloc()  # as the agent's SLAM process does (agent.slam.malloc): what is measured is what runs
     if args.particles < 1:
         raise ConfigError("--particles", "must be at least 1")
+    check_research_options(args)  # before a log is read or a world driven
     simulated = None
     fixes: tuple[TimedFix, ...] = ()
     recording_summary: dict[str, Any] | None = None
@@ -573,91 +462,9 @@ def run(args: argparse.Namespace) -> int:
     filter_keys = front_end_filter(front_end(source_format), defaults.proposal)
     if args.loop_closure == "off":
         filter_keys["loop_closure"] = None
-    elif args.loop_correction_odometry_sigmas is not None:
-        if not 0.0 <= args.loop_correction_odometry_sigmas <= 10.0:
-            raise ConfigError("--loop-correction-odometry-sigmas", "must be in [0, 10]")
-        filter_keys["loop_closure"] = dataclasses.replace(
-            filter_keys["loop_closure"], correction_odometry_sigmas=args.loop_correction_odometry_sigmas
-        )
-    if args.edge_information is not None and args.edge_match_sigma is None:
-        raise ConfigError("--edge-information", "needs --edge-match-sigma")
-    if args.edge_normal_radius_per_m is not None:
-        if args.edge_information not in ("normals", "scan"):
-            raise ConfigError("--edge-normal-radius-per-m", "needs --edge-information normals or scan")
-        if not 0.0 <= args.edge_normal_radius_per_m <= 1.0:
-            raise ConfigError("--edge-normal-radius-per-m", "must be in [0, 1]")
-    if args.edge_scan_mean and args.edge_information != "scan":
-        raise ConfigError("--edge-scan-mean", "needs --edge-information scan")
-    if args.edge_scan_gate_chi2 is not None:
-        if not args.edge_scan_mean:
-            raise ConfigError("--edge-scan-gate-chi2", "needs --edge-scan-mean")
-        if not 0.0 <= args.edge_scan_gate_chi2 <= 1e6:
-            raise ConfigError("--edge-scan-gate-chi2", "must be in [0, 1e6]")
-    if args.edge_scan_coarse_iterations is not None:
-        if args.edge_information != "scan":
-            raise ConfigError("--edge-scan-coarse-iterations", "needs --edge-information scan")
-        if not 0 <= args.edge_scan_coarse_iterations <= 100:
-            raise ConfigError("--edge-scan-coarse-iterations", "must be in [0, 100]")
-    if args.edge_judge_plain and args.edge_match_sigma is None:
-        raise ConfigError("--edge-judge-plain", "needs --edge-match-sigma")
-    if args.edge_scan_fallback and args.edge_information != "scan":
-        raise ConfigError("--edge-scan-fallback", "needs --edge-information scan")
-    if args.edge_scan_anchor is not None:
-        if args.edge_information != "scan":
-            raise ConfigError("--edge-scan-anchor", "needs --edge-information scan")
-        if not 0.0 < args.edge_scan_anchor <= 1e6:
-            raise ConfigError("--edge-scan-anchor", "must be in (0, 1e6]")
-    if args.edge_departure_floor and args.edge_match_sigma is None:
-        raise ConfigError("--edge-departure-floor", "needs --edge-match-sigma")
-    if args.edge_match_sigma is not None:
-        if args.loop_closure == "off":
-            raise ConfigError("--edge-match-sigma", "needs --loop-closure on")
-        if not 0.0 < args.edge_match_sigma <= 1.0:
-            raise ConfigError("--edge-match-sigma", "must be in (0, 1] metres")
-        filter_keys["loop_closure"] = dataclasses.replace(
-            filter_keys["loop_closure"],
-            edge_match_sigma_m=args.edge_match_sigma,
-            edge_information=args.edge_information or "match",
-            edge_departure_floor=args.edge_departure_floor,
-            edge_normal_radius_per_m=args.edge_normal_radius_per_m,
-            edge_scan_mean=args.edge_scan_mean,
-            edge_scan_gate_chi2=args.edge_scan_gate_chi2 or 0.0,
-            edge_scan_coarse_iterations=args.edge_scan_coarse_iterations or 0,
-            edge_scan_anchor=args.edge_scan_anchor if args.edge_scan_anchor is not None else 5.0,
-            edge_scan_fallback=args.edge_scan_fallback,
-            edge_judge_plain=args.edge_judge_plain,
-        )
     if args.odometry_noise:
         filter_keys["noise"] = OdometryNoise(*args.odometry_noise)
-    temperature = args.proposal_temperature
-    if temperature is None:
-        temperature = defaults.proposal.proposal_temperature
-    if not temperature > 0.0:
-        raise ConfigError("--proposal-temperature", "must be positive")
-    along = args.along_surface_weight
-    if along is None:
-        along = DEFAULT_ALONG_SURFACE_WEIGHT[source_format]
-    if not 0.0 <= along <= 1.0:
-        raise ConfigError("--along-surface-weight", "must be in [0, 1]")
-    degenerate = args.degenerate_noise_scale
-    if degenerate is None:
-        degenerate = DEGENERATE_NOISE_SCALE[source_format]
-    if not 0.0 < degenerate <= 1.0:
-        raise ConfigError("--degenerate-noise-scale", "must be in (0, 1]")
-    filter_keys["proposal"] = dataclasses.replace(
-        filter_keys["proposal"],
-        proposal_temperature=temperature,
-        along_surface_weight=along,
-        degenerate_noise_scale=degenerate,
-    )
-    if args.medial_window_cells is not None:
-        if not 0 <= args.medial_window_cells <= 8:
-            raise ConfigError("--medial-window-cells", "must be in [0, 8]")
-        proposal = filter_keys["proposal"]
-        filter_keys["proposal"] = dataclasses.replace(
-            proposal,
-            matcher=dataclasses.replace(proposal.matcher, medial_window_cells=args.medial_window_cells),
-        )
+    filter_options = apply_research_options(args, filter_keys)
     initial_pose = defaults.initial_pose
     reference = log.reference_poses()
     if simulated is not None:
@@ -668,7 +475,7 @@ def run(args: argparse.Namespace) -> int:
         particles=args.particles,
         map_mode=MapMode(args.map_mode),
         **filter_keys,
-        search_heading_doubt=args.search_heading_doubt,
+        **filter_options,
         linear_update_m=args.linear_update if args.linear_update is not None else defaults.linear_update_m,
         angular_update_rad=args.angular_update
         if args.angular_update is not None
