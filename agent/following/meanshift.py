@@ -951,8 +951,8 @@ class MeanShiftTracker:
             top = max(d_c, d_t)
             if top <= 1e-6:
                 return  # neither feature tells them apart: keep the weights
-            a = max(d_c / top, cfg.min_feature_weight)
-            b = max(d_t / top, cfg.min_feature_weight, self._ring_exponents[1])
+            a, b = _separation_exponents(d_c, d_t, cfg.min_feature_weight)
+            b = max(b, self._ring_exponents[1])
             self._texture_on = self._select
         elif not confident:
             return  # not a confident match (a passer-by over the target?): nothing learnt
@@ -996,10 +996,7 @@ class MeanShiftTracker:
         # And texture must be able to decide: at the exponents it would get (on's, a and b, below),
         # its evidence for the target over the distractor, b log(rho_t / rho_t'), at least colour's
         # either way, a |log(rho_c / rho_c')| (while on: half of it, the hysteresis again).
-        d_c, d_t = 1.0 - rho_c, 1.0 - rho_t
-        top = max(d_c, d_t, 1e-9)
-        a = max(d_c / top, cfg.min_feature_weight)
-        b = max(d_t / top, cfg.min_feature_weight)
+        a, b = _separation_exponents(1.0 - rho_c, 1.0 - rho_t, cfg.min_feature_weight)
         e_t = b * math.log(max(ev.rho_texture, 1e-9) / max(rho_t, 1e-9))
         e_c = a * abs(math.log(max(ev.rho_colour, 1e-9) / max(rho_c, 1e-9)))
         return e_t >= (cfg.select_off / cfg.select_on if self._texture_on else 1.0) * e_c
@@ -1071,6 +1068,14 @@ def _background_factor(background: FloatArray) -> FloatArray:
     return np.minimum(
         np.divide(smallest, background, out=np.ones_like(background), where=background > 0), 1.0
     )
+
+
+def _separation_exponents(d_colour: float, d_texture: float, floor: float) -> tuple[float, float]:
+    """The feature exponents (a, b) against a distractor: each feature's distance between the target and
+    it, ``1 - BC``, over the larger of the two (the feature that tells them apart better counts whole),
+    and never below ``floor``."""
+    top = max(d_colour, d_texture, 1e-9)
+    return max(d_colour / top, floor), max(d_texture / top, floor)
 
 
 def _bhattacharyya(counts: FloatArray, q: FloatArray) -> float:
