@@ -94,8 +94,5 @@ class SlamConfig:
     loop_correction_odometry_sigmas: float | None = None
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
-    # Free space only where neighbouring beams agree (RbpfConfig.free_min_window): K > 0 ends each beam's
-    # free space at the shortest range among the K beams either side; 0: off (docs/slam.md, "Open problems")
-    free_min_window: int = 0
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's
     odometry_noise: tuple[float, float, float, float] | None = None

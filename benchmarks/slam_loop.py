@@ -111,14 +111,6 @@ def main() -> int:
         help="a beam's free space stops M metres short of its endpoint (default: half a cell)",
     )
     parser.add_argument(
-        "--free-min-window",
-        type=int,
-        default=defaults.free_min_window,
-        metavar="K",
-        help="RbpfConfig.free_min_window: each beam's free space ends at the shortest range among the K"
-        " beams either side (default 0: off)",
-    )
-    parser.add_argument(
         "--medial-window-cells",
         type=int,
         default=0,
@@ -184,7 +176,6 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
-            free_min_window=args.free_min_window,
             loop_closure=dataclasses.replace(
                 loop_defaults,
                 edge_match_sigma_m=args.edge_match_sigma,

@@ -21,7 +21,6 @@ view cost the map.
     python benchmarks/slam_office.py --seeds 0 1 2 3 4 5 --edge-sigma 0.005 0.005 0.001 --match-sigma 0.1
     python benchmarks/slam_office.py --seeds 10 14 18 22 --loop-hypotheses 0
     python benchmarks/slam_office.py --seeds $(seq 0 23) --medial-window-cells 3
-    python benchmarks/slam_office.py --seeds $(seq 0 23) --free-min-window 8
 """
 
 from __future__ import annotations
@@ -109,7 +108,6 @@ def run_seed(
     edge_match_sigma: float | None = None,
     hypotheses: int | None = None,
     medial_window: int | None = None,
-    free_min_window: int = 0,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -131,7 +129,6 @@ def run_seed(
         proposal=proposal,
         initial_pose=tuple(np.add(simulated.start_pose(from_fix=False), (grid_offset, grid_offset, 0.0))),
         free_margin_m=free_margin,
-        free_min_window=free_min_window,
         seed=seed,
         loop_closure=(
             loop_config(edge_sigma, match_sigma, edge_match_sigma, hypotheses) if loop_closure else None
@@ -242,14 +239,6 @@ def main() -> int:
         help="MatcherConfig.medial_window_cells: a wall's straightness judged over the square of W cells "
         "either way (default: eval slam's for the simulated robot, 0: a wall cell's four neighbours)",
     )
-    parser.add_argument(
-        "--free-min-window",
-        type=int,
-        default=0,
-        metavar="K",
-        help="RbpfConfig.free_min_window: each beam's free space ends at the shortest range among the K "
-        "beams either side (0, the default: off)",
-    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -273,7 +262,6 @@ def main() -> int:
             args.edge_match_sigma,
             args.loop_hypotheses,
             args.medial_window_cells,
-            args.free_min_window,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -294,7 +282,6 @@ def main() -> int:
         "grid_offset_m": args.grid_offset,
         "free_margin_m": args.free_margin,
         "medial_window_cells": args.medial_window_cells,
-        "free_min_window": args.free_min_window,
         "budget_m": args.budget,
         "tuned": summary(tuned, args.budget),
         "not_tuned": summary(other, args.budget),

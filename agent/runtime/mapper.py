@@ -93,9 +93,9 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
 
 def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
     """The ``agent.slam.rbpf.RbpfConfig`` fields the ``[slam]`` front-end keys set: ``noise``,
-    ``free_margin_m``, ``free_min_window``, ``log_odds``, ``search_increment_rad``, ``reversal_ratio``,
-    ``proposal`` (``base_proposal`` with the match's keys, ``front_end_proposal``) and ``loop_closure``
-    (the default loop closure with ``loop_correction_odometry_sigmas``). The agent's mapping filter and
+    ``free_margin_m``, ``log_odds``, ``search_increment_rad``, ``reversal_ratio``, ``proposal``
+    (``base_proposal`` with the match's keys, ``front_end_proposal``) and ``loop_closure`` (the default
+    loop closure with ``loop_correction_odometry_sigmas``). The agent's mapping filter and
     ``vlp-agent eval slam`` are both configured with it."""
     from agent.slam.loops import LoopClosureConfig
 
@@ -103,7 +103,6 @@ def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
         "loop_closure": LoopClosureConfig(correction_odometry_sigmas=config.loop_correction_odometry_sigmas),
         "noise": front_end_noise(config),
         "free_margin_m": config.free_margin_m,
-        "free_min_window": config.free_min_window,
         "log_odds": front_end_log_odds(config),
         "search_increment_rad": config.search_increment_rad,
         "reversal_ratio": config.reversal_ratio,

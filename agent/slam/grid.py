@@ -325,7 +325,6 @@ def prepare_scan(
     max_usable_m: float,
     free_shrink_m: float,
     beam_offsets: FloatArray | None = None,
-    free_min_window: int = 0,
 ) -> ScanPoints:
     """Split a scan into endpoints and free-space fan, both in the base frame.
 
@@ -336,20 +335,12 @@ def prepare_scan(
     ``beam_offsets`` (B, 3), if given, is where the base was when each beam was measured, relative to
     the base at the scan's timestamp (a scanning laser sweeps while the robot moves): each point is then
     placed at offset_k ⊕ mount ⊕ p_k, which removes the skew a turning robot puts into a scan.
-
-    ``free_min_window`` K > 0 keeps free space only where the neighbouring beams agree: each beam's free
-    end comes back to the shortest range among beams k - K .. k + K (:func:`neighbour_min_ranges`) less
-    ``free_shrink_m``, so the fan's chord between two consecutive free ends never runs past a hit.
     """
     r = np.asarray(ranges_m, dtype=np.float64)
     hit = (r >= min_range_m) & (r < min(no_return_m, max_usable_m))
     far = (r >= max_usable_m) & (r < no_return_m) & ~hit
     free = hit | far
-    free_all = np.where(hit, np.maximum(r - free_shrink_m, 0.0), max_usable_m)
-    if free_min_window > 0:
-        reach = np.where(hit, r, np.where(far, max_usable_m, np.inf))
-        free_all = agreed_free_ranges(free_all, reach, free_min_window, free_shrink_m)
-    free_r = free_all[free]
+    free_r = np.where(hit, np.maximum(r - free_shrink_m, 0.0), max_usable_m)[free]
     c, s = np.cos(angles_rad), np.sin(angles_rad)
     laser_hits = np.stack([r[hit] * c[hit], r[hit] * s[hit]], axis=1)
     laser_fan = np.stack([free_r * c[free], free_r * s[free]], axis=1)
@@ -433,31 +424,6 @@ def surface_normals(
     normals[line, 0] = (-ay / safe)[line]
     normals[line, 1] = (ax / safe)[line]
     return normals
-
-
-def agreed_free_ranges(free_r: FloatArray, reach: FloatArray, window: int, shrink_m: float) -> FloatArray:
-    """Each beam's free range ``free_r`` (B,) cut back to the shortest ``reach`` (B,: a hit's range,
-    the usable range for a far beam, inf for a beam without information) among its ``window`` neighbours
-    on either side, less ``shrink_m``, where a neighbour reaches less far than the beam itself.
-
-    On a wall seen head-on the neighbours agree and nothing changes; at grazing incidence or a depth edge
-    the free end comes back to the nearer neighbour's range, and the band between stays unknown instead
-    of cleared by the chord between two far-apart free ends.
-    """
-    low = neighbour_min_ranges(reach, window)
-    cut = np.where(low < reach, np.maximum(low - shrink_m, 0.0), np.inf)
-    out: FloatArray = np.minimum(free_r, cut)
-    return out
-
-
-def neighbour_min_ranges(reach: FloatArray, window: int) -> FloatArray:
-    """min(reach[k - window], ..., reach[k + window]) per k (the ends padded with inf)."""
-    low = np.array(reach, dtype=np.float64, copy=True)
-    n = low.size
-    for d in range(1, min(window, n - 1) + 1):
-        np.minimum(low[d:], reach[:-d], out=low[d:])
-        np.minimum(low[:-d], reach[d:], out=low[:-d])
-    return low
 
 
 def integrate_scans(

@@ -113,10 +113,6 @@ class RbpfConfig:
     # trajectory settles there (the simulated office, whose walls all lie on 5 cm boundaries:
     # docs/slam.md, "Open problems").
     free_margin_m: float | None = None
-    # Free space only where neighbouring beams agree (grid.agreed_free_ranges): K > 0 brings each beam's
-    # free end back to the shortest range among the K beams either side (less the margin above), so the
-    # fan's chords do not clear the cells between grazing hits on a far wall; 0 (default): off.
-    free_min_window: int = 0
     # The correlative search of ``proposal.search`` (for the leading particle, its correction moving every
     # particle's start) runs at the first ``search_updates`` filter updates and at an update whose odometry
     # increment reaches ``search_increment_m`` or ``search_increment_rad`` (after a gap in the scans), where
@@ -420,7 +416,6 @@ class RbpfSlam:
             cfg.max_usable_range_m,
             cfg.grid.resolution_m / 2.0 if cfg.free_margin_m is None else cfg.free_margin_m,
             beam_offsets,
-            cfg.free_min_window,
         )
         if not self._started:
             self._started = True

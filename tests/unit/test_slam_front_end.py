@@ -21,7 +21,6 @@ from agent.config import MountConfig, SlamConfig, parse_config
 from agent.runtime.mapper import RbpfMapper, front_end_noise, front_end_proposal
 from agent.slam.motion import OdometryNoise
 from agent.slam.proposal import ProposalConfig
-from agent.slam.rbpf import RbpfConfig
 from agent.slam.simlog import MOTION_NOISE
 from drivers.errors import ConfigError
 from drivers.samples import Scan
@@ -61,7 +60,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
         f"normal_thickness_m = {NORMAL_THICKNESS_M['radish']}\n"
         f"match_min_translation_information = {MATCH_MIN_TRANSLATION_INFORMATION['radish']}\n"
-        "match_medial_window_cells = 3\nfree_min_window = 8\n"
+        "match_medial_window_cells = 3\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(
@@ -85,7 +84,6 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     assert field.medial_window_cells == 3
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
-    assert built.free_min_window == 8 and SlamConfig().free_min_window == 0 == RbpfConfig().free_min_window
     assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
     assert built.proposal.search is not None and built.proposal.search.yaw_range_rad == 0.45
     assert built.reversal_ratio == 0.5 == front_end("radish").reversal_ratio
@@ -135,7 +133,6 @@ _FRONT_END_KEYS = (
         ("match_min_translation_information = -1", "slam.match_min_translation_information"),
         ("match_medial_window_cells = -1", "slam.match_medial_window_cells"),
         ("match_medial_window_cells = 1.5", "slam.match_medial_window_cells"),
-        ("free_min_window = -1", "slam.free_min_window"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:

@@ -7,7 +7,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 
 from agent.slam.grid import (
@@ -16,7 +15,6 @@ from agent.slam.grid import (
     LogOddsModel,
     TiledMaps,
     TileRect,
-    agreed_free_ranges,
     integrate_scans,
     prepare_scan,
     surface_normals,
@@ -82,45 +80,6 @@ def test_prepare_scan_mount_and_deskew() -> None:
     offsets = np.array([[-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
     skewed = prepare_scan(ranges, angles, (0.0, 0.0, 0.0), 0.1, 5.0, 5.0, 0.0, offsets)
     np.testing.assert_allclose(skewed.hit_xy, [[0.9, 0.0], [0.0, 1.0]], atol=1e-12)
-
-
-def test_agreed_free_ranges_cut_back_to_the_nearer_neighbour() -> None:
-    shrink = 0.025
-    # Beams: a wall head-on (2.0, 2.0), a depth edge (2.0 -> 3.0), no information (inf), a far beam.
-    reach = np.array([2.0, 2.0, 2.0, 3.0, 3.0, np.inf, 6.0, 6.0])
-    free_r = np.array([1.975, 1.975, 1.975, 2.975, 2.975, 0.0, 6.0, 6.0])
-    np.testing.assert_allclose(agreed_free_ranges(free_r, reach, 0, shrink), free_r)
-    one = agreed_free_ranges(free_r, reach, 1, shrink)
-    # Head-on nothing changes; beyond the edge the first far beam stops at its neighbour's 2 m; a beam
-    # without information does not cut its neighbours; the far beams agree with each other.
-    np.testing.assert_allclose(one, [1.975, 1.975, 1.975, 1.975, 2.975, 0.0, 6.0, 6.0])
-    # Two either side: the window counts beams, so it reaches across the beam without information.
-    two = agreed_free_ranges(free_r, reach, 2, shrink)
-    np.testing.assert_allclose(two, [1.975, 1.975, 1.975, 1.975, 1.975, 0.0, 2.975, 6.0])
-
-
-def test_free_min_window_keeps_the_row_in_front_of_a_grazing_boundary_wall() -> None:
-    """A wall on a cell boundary (y = 0.5 m) seen at 3-40 degrees with 1 cm range noise: the fan's chords
-    between consecutive free ends clear the row in front of it beyond 2 m (where hits land in either row);
-    with the free ends cut back to the shortest range among their neighbours they leave it alone."""
-    angles = np.radians(np.arange(3.0, 40.0, 0.36))
-    ranges = 0.5 / np.sin(angles) + np.random.default_rng(0).normal(0.0, 0.01, angles.size)
-    origin = (-0.8, -0.8)
-    row = round((0.45 - origin[1]) / RES)
-    beyond = np.arange(round((2.0 - origin[0]) / RES), 256)
-
-    def near_row(window: int) -> npt.NDArray[np.int8]:
-        scan = prepare_scan(ranges, angles, (0.0, 0.0, 0.0), 0.1, 30.0, 10.0, RES / 2, None, window)
-        windows = np.zeros((1, 64, 256), dtype=np.int8)
-        integrate_scans(windows, origin, RES, np.zeros((1, 3)), scan, MODEL, 32)
-        return windows[0, row, beyond]
-
-    miss, hit = MODEL.counts(MODEL.miss), MODEL.counts(MODEL.hit)
-    off, on = near_row(0), near_row(5)
-    assert (off == miss).sum() > 100 and (on == miss).sum() == 0
-    # The hits are the same; the cells the chords cleared are unknown instead.
-    np.testing.assert_array_equal(off == hit, on == hit)
-    assert ((on == 0) == ((off == miss) | (off == 0))).all()
 
 
 # -- ray casting ----------------------------------------------------------------------------------------
