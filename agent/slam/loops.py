@@ -173,9 +173,9 @@ class LoopClosureConfig:
     # at record 890 (the update ran without the search) was corrected at record 897 by a link with
     # innovation chi2 2572-2822, and with every edge widened the graph put part of it on edges 60-140
     # records back that links had checked (their matches 10-11 deg from odometry, so 5 deg loose),
-    # turning the end rooms by 2-2.5 deg. Opt-in: Intel's 50-record spans 6 of 6 within 0.21 m,
-    # ACES's seeds 0-2 0.02-0.07 m worse, FR079 seed 0 0.04 m (docs/slam.md, "Loop closure", *The edges a
-    # link has checked*).
+    # turning the end rooms by 2-2.5 deg. Opt-in, not recommended: Intel's 50-record spans 6 of 6 within
+    # 0.21 m at seeds 0-5 but a draw at seeds 6-11, ACES worse (seeds 0-11 mean 0.178 -> 0.203 m), FR079
+    # seed 0 0.04 m worse (docs/slam.md, "Loop closure", *The edges a link has checked*).
     widen_unspanned_only: bool = False
     # A front-end edge's covariance from its own scan match instead (``edge_match_sigma_m`` set; the
     # filter then records each node's match information, :func:`edge_covariances`): the edge k-1 -> k
