@@ -174,3 +174,48 @@ def test_an_edge_from_its_match_can_sit_on_its_departure_from_odometry() -> None
     # (and on the loop factor).
     turn = [float(wrap_angle(between(r.poses[1], r.poses[2])[2])) for r in (spread, onto_turn)]
     assert turn[0] < 0.04 and turn[1] > 0.09
+
+
+def test_only_the_edges_no_link_spans_take_a_correction_widened() -> None:
+    """A straight chain of 12 nodes 1 m apart; the matches at edges 5 and 10 turned 10 deg against
+    odometry (both widened to 5 deg). A link 0 -> 6 (the chain's own relative pose) spans edge 5; a new
+    link 4 -> 11 says node 11 is turned 0.2 rad further. Every edge widened, the loose edge 5 is a hinge
+    inside the checked span that the new link's residuals bend (-0.017 rad); with
+    ``widen_unspanned_only`` it is held at the motion sigma, and the unchecked edge 10 takes the turn."""
+    from agent.slam.loops import spanned_edges
+
+    n = 12
+    motions = np.zeros((n, 3))
+    motions[1:, 0] = 1.0
+    odometry = motions.copy()
+    odometry[[5, 10], 2] = math.radians(10.0)
+    poses = np.zeros((n, 3))
+    poses[:, 0] = np.arange(n, dtype=np.float64)
+    old = LoopConstraint(0, 6, between(poses[0], poses[6]), 1.0)
+    z = between(poses[4], poses[11])
+    z[2] += 0.2
+    new = LoopConstraint(4, 11, z, 1.0)
+    assert spanned_edges(n, [old]).tolist() == [False] + [True] * 6 + [False] * 5
+
+    def turns(config: LoopClosureConfig) -> np.ndarray:
+        result = optimize_graph(poses, motions, [old, new], config, None, odometry, spanning=[old])
+        return np.asarray(between(result.poses[:-1], result.poses[1:])[:, 2])
+
+    every = turns(LoopClosureConfig())
+    unspanned = turns(LoopClosureConfig(widen_unspanned_only=True))
+    assert every[4] < -0.012  # edge 5 (node 4 -> 5)
+    assert abs(unspanned[4]) < 0.006
+    assert 0.19 < unspanned[9] < 0.21  # edge 10 (node 9 -> 10)
+    assert abs(unspanned[9] - 0.2) < abs(every[9] - 0.2)
+
+
+def test_the_unspanned_key_loads_and_reaches_the_filters_graph() -> None:
+    from agent.config import parse_config
+    from agent.runtime.mapper import front_end_filter
+    from agent.slam.proposal import ProposalConfig
+    from tests.helpers import REAL_ROBOT
+
+    laser = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+    config = parse_config(laser + "[slam]\nloop_widen_unspanned_only = true\n").slam
+    loop = front_end_filter(config, ProposalConfig())["loop_closure"]
+    assert loop == LoopClosureConfig(widen_unspanned_only=True)
