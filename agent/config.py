@@ -1389,7 +1389,6 @@ class _Reader:
             )
             if t.has("loop_correction_odometry_sigmas")
             else None,
-            loop_widen_unspanned_only=t.boolean("loop_widen_unspanned_only", d.loop_widen_unspanned_only),
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

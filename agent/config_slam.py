@@ -92,10 +92,6 @@ class SlamConfig:
     # None: by the whole departure (wheel odometry; the radish logs' rebuilt odometry is as bad as the
     # model says)
     loop_correction_odometry_sigmas: float | None = None
-    # The pose graph widens by that departure only the edges no loop link already in the graph spans
-    # (loops.LoopClosureConfig.widen_unspanned_only): a link's cycle was checked against the old map, so a
-    # new link's innovation arose on the edges since; off: every edge
-    loop_widen_unspanned_only: bool = False
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's

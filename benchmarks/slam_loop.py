@@ -151,12 +151,6 @@ def main() -> int:
         " theirs (LoopClosureConfig.known_area_fallback false); default: only where the coarse tests find"
         " nothing, acting only on links that disagree with the graph",
     )
-    parser.add_argument(
-        "--loop-widen-unspanned-only",
-        action="store_true",
-        help="widen by the match's departure from odometry only the front-end edges no loop link already"
-        " in the graph spans (LoopClosureConfig.widen_unspanned_only; default: every edge)",
-    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
     log = read_log(DATA / "slam/breezyslam/exp1.dat", "breezyslam").sliced(0, RECORDS)
@@ -188,7 +182,6 @@ def main() -> int:
                 edge_information=args.edge_information,
                 hypotheses=args.loop_hypotheses,
                 known_area_fallback=not args.loop_hypotheses_everywhere,
-                widen_unspanned_only=args.loop_widen_unspanned_only,
             ),
             seed=seed,
         )

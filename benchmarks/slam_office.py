@@ -77,12 +77,11 @@ def loop_config(
     match_sigma: float | None,
     edge_match_sigma: float | None = None,
     hypotheses: int | None = None,
-    widen_unspanned_only: bool = False,
 ) -> LoopClosureConfig:
     """The loop closure's defaults with the pose graph's edge sigmas, loop-factor covariance,
     front-end edges from the match's information (``edge_match_sigma_m``) and the known-area rule
-    (``hypotheses``) set, and the edges' widening only where no link spans them (``widen_unspanned_only``)."""
-    config = LoopClosureConfig(widen_unspanned_only=widen_unspanned_only)
+    (``hypotheses``) set."""
+    config = LoopClosureConfig()
     if hypotheses is not None:
         config = dataclasses.replace(config, hypotheses=hypotheses)
     if edge_match_sigma is not None:
@@ -109,7 +108,6 @@ def run_seed(
     edge_match_sigma: float | None = None,
     hypotheses: int | None = None,
     medial_window: int | None = None,
-    widen_unspanned_only: bool = False,
 ) -> dict[str, Any]:
     errors = WheelErrorModel()
     geometry = None
@@ -133,9 +131,7 @@ def run_seed(
         free_margin_m=free_margin,
         seed=seed,
         loop_closure=(
-            loop_config(edge_sigma, match_sigma, edge_match_sigma, hypotheses, widen_unspanned_only)
-            if loop_closure
-            else None
+            loop_config(edge_sigma, match_sigma, edge_match_sigma, hypotheses) if loop_closure else None
         ),
     )
     t0, c0 = time.perf_counter(), time.process_time()
@@ -243,12 +239,6 @@ def main() -> int:
         help="MatcherConfig.medial_window_cells: a wall's straightness judged over the square of W cells "
         "either way (default: eval slam's for the simulated robot, 0: a wall cell's four neighbours)",
     )
-    parser.add_argument(
-        "--loop-widen-unspanned-only",
-        action="store_true",
-        help="widen by the match's departure from odometry only the front-end edges no loop link already"
-        " in the graph spans (LoopClosureConfig.widen_unspanned_only; default: every edge)",
-    )
     parser.add_argument("--particles", type=int, default=30, help="RbpfConfig.particles (the agent's 30)")
     parser.add_argument("--budget", type=float, default=0.03, help="metres (issue 20: 3 cm)")
     parser.add_argument("--out", type=Path, help="also write the whole result here as JSON")
@@ -272,7 +262,6 @@ def main() -> int:
             args.edge_match_sigma,
             args.loop_hypotheses,
             args.medial_window_cells,
-            args.loop_widen_unspanned_only,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)

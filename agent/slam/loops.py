@@ -165,18 +165,6 @@ class LoopClosureConfig:
     # trajectory there (a heading kink that every later node inherits until the next loop). None (the
     # default): the whole departure. Measured for issue 20: docs/slam.md, "Loop closure".
     correction_odometry_sigmas: float | None = None
-    # Widen (``correction_share``) only the edges that no link already in the graph spans (True): an edge
-    # k with i < k <= j for a link i -> j (AGREES or ACCEPTED) sits on a cycle that link checked against
-    # the old map, and is held at ``motion_sigma``; the widening, a hypothesis that the match there
-    # failed, stays on the edges no loop has checked yet (the tail since the newest link, a stretch
-    # between links), which is where a candidate's innovation arose. Intel seed 4: a match 16 deg off
-    # at record 890 (the update ran without the search) was corrected at record 897 by a link with
-    # innovation chi2 2572-2822, and with every edge widened the graph put part of it on edges 60-140
-    # records back that links had checked (their matches 10-11 deg from odometry, so 5 deg loose),
-    # turning the end rooms by 2-2.5 deg. Opt-in, not recommended: Intel's 50-record spans 6 of 6 within
-    # 0.21 m at seeds 0-5 but a draw at seeds 6-11, ACES worse (seeds 0-11 mean 0.178 -> 0.203 m), FR079
-    # seed 0 0.04 m worse (docs/slam.md, "Loop closure", *The edges a link has checked*).
-    widen_unspanned_only: bool = False
     # A front-end edge's covariance from its own scan match instead (``edge_match_sigma_m`` set; the
     # filter then records each node's match information, :func:`edge_covariances`): the edge k-1 -> k
     # is diag(motion_sigma²) plus the covariance of node k's match against its particle's map,
@@ -972,15 +960,7 @@ def judge_loop(
 
     def optimise(links: list[LoopConstraint], information: FloatArray | None) -> GraphResult:
         return optimize_graph(
-            poses,
-            motions,
-            links,
-            config,
-            absolute,
-            odometry_motions,
-            information,
-            odometry_sigmas,
-            loops,
+            poses, motions, links, config, absolute, odometry_motions, information, odometry_sigmas
         )
 
     result = optimise([*loops, *partners, candidate], judged)
@@ -1072,14 +1052,12 @@ def optimize_graph(
     odometry_motions: FloatArray | None = None,
     node_information: FloatArray | None = None,
     odometry_sigmas: FloatArray | None = None,
-    spanning: list[LoopConstraint] | None = None,
 ) -> GraphResult:
     """The chain 0 -> 1 -> ... (``motions[k]``: node k in node k-1's frame, k >= 1) plus the loop factors,
     optimised from ``poses``. The chain's sigmas: ``motion_sigma``, widened by ``correction_share`` of
     each edge's departure from ``odometry_motions`` (less ``correction_odometry_sigmas`` times
     ``odometry_sigmas``, (N, 3): the motion model's sigmas of each odometry increment, where both are
-    set; with ``widen_unspanned_only``, not the edges a link of ``spanning`` spans, :func:`spanned_edges`:
-    the graph's links before a candidate); or, with ``edge_match_sigma_m`` and
+    set); or, with ``edge_match_sigma_m`` and
     ``node_information`` (each node's match, robot frame), :func:`edge_covariances`."""
     n = poses.shape[0]
     chain = np.arange(1, n, dtype=np.int64)
@@ -1090,10 +1068,7 @@ def optimize_graph(
         gap[:, 2] = np.abs(wrap_angle(gap[:, 2]))
         if config.correction_odometry_sigmas is not None and odometry_sigmas is not None:
             gap = np.maximum(gap - config.correction_odometry_sigmas * odometry_sigmas[1:n], 0.0)
-        widened = np.maximum(motion_sigma, config.correction_share * gap)
-        if config.widen_unspanned_only and spanning is not None:
-            widened[spanned_edges(n, spanning)[1:]] = motion_sigma[0]
-        motion_sigma = widened
+        motion_sigma = np.maximum(motion_sigma, config.correction_share * gap)
     i = np.concatenate([chain - 1, np.array([c.i for c in loops], dtype=np.int64)])
     j = np.concatenate([chain, np.array([c.j for c in loops], dtype=np.int64)])
     z = np.vstack([motions[1:n], np.array([c.z for c in loops]).reshape(-1, 3)])
@@ -1116,19 +1091,6 @@ def optimize_graph(
         assert whitening is not None
         whitening[n - 1 :] = np.array([loop_sqrt_information(c, config) for c in loops])
     return optimize(poses, RelativeFactors(i, j, z, sigma, whitening), absolute, huber=config.huber)
-
-
-def spanned_edges(n: int, links: list[LoopConstraint]) -> BoolArray:
-    """(n,) True at each node k (the edge k-1 -> k) with i < k <= j for some link i -> j of ``links``
-    (i < j): the edges on a cycle a link has checked."""
-    delta = np.zeros(n + 1, dtype=np.int64)
-    for c in links:
-        a, b = sorted((int(c.i), int(c.j)))
-        if b > a:
-            delta[min(a + 1, n)] += 1
-            delta[min(b + 1, n)] -= 1
-    covered: BoolArray = np.cumsum(delta[:n]) > 0
-    return covered
 
 
 def yaw_doubt(motions: FloatArray, odometry_motions: FloatArray, config: LoopClosureConfig) -> float:
