@@ -1389,6 +1389,10 @@ class _Reader:
             )
             if t.has("loop_correction_odometry_sigmas")
             else None,
+            loop_accept_graph_chi2=(
+                t.number("loop_accept_graph_chi2", 16.3, (lambda v: 0 <= v <= 1e6, "must be in [0, 1e6]"))
+                or None
+            ),
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

@@ -92,6 +92,10 @@ class SlamConfig:
     # None: by the whole departure (wheel odometry; the radish logs' rebuilt odometry is as bad as the
     # model says)
     loop_correction_odometry_sigmas: float | None = None
+    # A loop link is rejected when it raises the optimised pose graph's chi² by more than this over the
+    # graph without it (loops.LoopClosureConfig.accept_graph_chi2: a link that slid along a corridor and
+    # bends the chain to fit); None (the key at 0): not tested
+    loop_accept_graph_chi2: float | None = 16.3
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's

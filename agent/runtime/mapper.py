@@ -95,12 +95,15 @@ def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
     """The ``agent.slam.rbpf.RbpfConfig`` fields the ``[slam]`` front-end keys set: ``noise``,
     ``free_margin_m``, ``log_odds``, ``search_increment_rad``, ``reversal_ratio``, ``proposal``
     (``base_proposal`` with the match's keys, ``front_end_proposal``) and ``loop_closure`` (the default
-    loop closure with ``loop_correction_odometry_sigmas``). The agent's mapping filter and
-    ``vlp-agent eval slam`` are both configured with it."""
+    loop closure with ``loop_correction_odometry_sigmas`` and ``loop_accept_graph_chi2``). The agent's
+    mapping filter and ``vlp-agent eval slam`` are both configured with it."""
     from agent.slam.loops import LoopClosureConfig
 
     return {
-        "loop_closure": LoopClosureConfig(correction_odometry_sigmas=config.loop_correction_odometry_sigmas),
+        "loop_closure": LoopClosureConfig(
+            correction_odometry_sigmas=config.loop_correction_odometry_sigmas,
+            accept_graph_chi2=config.loop_accept_graph_chi2,
+        ),
         "noise": front_end_noise(config),
         "free_margin_m": config.free_margin_m,
         "log_odds": front_end_log_odds(config),

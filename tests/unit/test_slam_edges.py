@@ -174,3 +174,22 @@ def test_an_edge_from_its_match_can_sit_on_its_departure_from_odometry() -> None
     # (and on the loop factor).
     turn = [float(wrap_angle(between(r.poses[1], r.poses[2])[2])) for r in (spread, onto_turn)]
     assert turn[0] < 0.04 and turn[1] > 0.09
+
+
+def test_the_graph_test_key_loads_and_reaches_the_filters_graph() -> None:
+    from agent.config import SlamConfig, parse_config
+    from agent.runtime.mapper import front_end_filter
+    from agent.slam.proposal import ProposalConfig
+    from drivers.errors import ConfigError
+    from tests.helpers import REAL_ROBOT
+
+    laser = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+    config = parse_config(laser + "[slam]\nloop_accept_graph_chi2 = 30\n").slam
+    loop = front_end_filter(config, ProposalConfig())["loop_closure"]
+    assert loop == LoopClosureConfig(accept_graph_chi2=30.0)
+    off = parse_config(laser + "[slam]\nloop_accept_graph_chi2 = 0\n").slam
+    assert front_end_filter(off, ProposalConfig())["loop_closure"].accept_graph_chi2 is None
+    assert parse_config(laser).slam.loop_accept_graph_chi2 == LoopClosureConfig().accept_graph_chi2 == 16.3
+    assert front_end_filter(SlamConfig(), ProposalConfig())["loop_closure"] == LoopClosureConfig()
+    with pytest.raises(ConfigError):
+        parse_config(laser + "[slam]\nloop_accept_graph_chi2 = -1\n")

@@ -551,3 +551,46 @@ def test_loose_edges_absorb_a_wrong_link_unless_it_is_judged_on_the_plain_chain(
     else:
         assert judgement.verdict is not Verdict.INCONSISTENT
         assert judgement.residual_chi2 <= config.accept_chi2
+
+
+@pytest.mark.parametrize("limit", [None, 16.3])
+def test_a_link_that_bends_the_chain_onto_one_loose_edge_is_rejected_by_the_graph_test(
+    limit: float | None,
+) -> None:
+    """ACES seed 4's link 192 -> 363: a link slid 1 m along a corridor fits its own factor and every
+    earlier loop's because the graph puts it on one edge the match widened (its departure from odometry,
+    ``correction_share``), far beyond Huber's threshold. ``accept_graph_chi2`` rejects it: the graph's
+    chi² with it rises by far more than a true link's; a true link is still accepted."""
+    truth = chain_poses(np.zeros(3), _square())
+    n = truth.shape[0]
+    motions = _true_motions(truth)
+    odometry = motions.copy()
+    odometry[25, 0] += 3.0  # the match departed 3 m from odometry there: that edge is 1.5 m loose
+    hits = [np.zeros((0, 2)) for _ in range(n)]
+    config = LoopClosureConfig(min_separation=10, accept_graph_chi2=limit)
+    loops = [LoopConstraint(0, n - 1, between(truth[0], truth[n - 1]), 1.0)]
+    slid = LoopConstraint(5, 30, compose(between(truth[5], truth[30]), np.array([0.0, 1.0, 0.0])), 0.9)
+    wrong = judge_loop(truth, hits, motions, loops, slid, config, odometry_motions=odometry)
+    assert wrong.residual_chi2 <= config.accept_chi2  # its own factor fits: the loose edge took it
+    assert (wrong.verdict is Verdict.INCONSISTENT) == (limit is not None)
+    true = LoopConstraint(5, 30, between(truth[5], truth[30]), 0.9)
+    assert judge_loop(truth, hits, motions, loops, true, config, odometry_motions=odometry).verdict in (
+        Verdict.ACCEPTED,
+        Verdict.AGREES,
+    )
+
+
+def test_the_graph_test_optimises_without_the_link_only_when_it_could_fail() -> None:
+    from agent.slam.loops import graph_bent
+    from agent.slam.posegraph import GraphResult
+
+    def result(chi2: float) -> GraphResult:
+        return GraphResult(np.zeros((1, 3)), 1, chi2, chi2, 0)
+
+    def never() -> GraphResult:
+        raise AssertionError("optimised without the link")
+
+    assert not graph_bent(result(1e6), never, None)
+    assert not graph_bent(result(10.0), never, 16.3)
+    assert graph_bent(result(150.0), lambda: result(2.5), 16.3)
+    assert not graph_bent(result(160.0), lambda: result(150.0), 16.3)
