@@ -230,13 +230,19 @@ def test_a_slam_process_busy_in_a_long_update_leaves_it_at_the_stop_and_hands_ov
 ) -> None:  # type: ignore[no-untyped-def]
     """The stop reaches the process inside the update: it leaves it at its next give_way, the SLAM thread's
     wait ends at once (its scan rejected, not an error), the final map and trajectory are answered, and
-    the process exits by itself when the agent hangs up. (The bounds are hang guards, not timings.)"""
+    the process exits by itself when the agent hangs up. (The bounds are hang guards, not timings.) The
+    thread's step says either that the agent is stopping (the stop woke the wait first) or that the
+    process left its update for the stop (its answer was already there when the wait woke: seen beside a
+    CPU hog); both are the stop's."""
     caplog.set_level(logging.INFO, logger="agent.runtime.slam_worker")
     with _busy(run, monkeypatch, tmp_path, stuck=False) as (mapper, process, thread, steps):
         mapper.begin_stop(grace_s=60.0)
         thread.join(60.0)
         assert not thread.is_alive()
-        assert steps[0].kind == "rejected" and "stopping" in steps[0].reason
+        assert steps[0].kind == "rejected", steps[0]
+        assert steps[0].reason.startswith("the agent is stopping") or steps[0].reason.endswith(
+            "left its filter update unfinished for the stop"
+        ), steps[0].reason
         image = mapper.map_image()
         assert image is not None and image.pixels.size > 0
         assert mapper.trajectory().shape[0] >= 1
