@@ -331,6 +331,41 @@ def score(log: SlamLog, poses: FloatArray, span: int) -> dict[str, Any]:
     }
 
 
+def machine() -> dict[str, Any]:
+    """What the ratios were measured on: the same code gives another ``cpu_ratio`` on another CPU or
+    Python build (docs/slam.md, "Measurements": 0.41-0.46 on one machine, 0.54-0.60 on another), so the
+    JSON names the CPU, the interpreter and the libraries beside the figures."""
+    import platform
+
+    import cv2
+    import scipy
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cxx = os.environ.get("CXX", "g++")
+    compiler = None
+    if shutil.which(cxx) is not None:
+        done = subprocess.run([cxx, "--version"], capture_output=True, text=True, check=False)
+        compiler = (done.stdout.splitlines() or [None])[0]
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+        "python_build": f"{platform.python_compiler()}, {' '.join(platform.python_build())}",
+        "python_executable": sys.executable,
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+        "gmapping_compiler": compiler,
+    }
+
+
 def benchmark(args: argparse.Namespace) -> dict[str, Any]:
     work = Path(tempfile.mkdtemp(prefix="slam-vs-gmapping-"))
     driver: Path | None = None
@@ -344,6 +379,7 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
         "loop_closure": args.loop_closure,
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
+        "machine": machine(),
         "gmapping": {"driver": str(driver), "urange_frac": args.urange_frac}
         if driver
         else {"skipped": skip_reason},

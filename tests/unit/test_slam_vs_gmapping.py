@@ -83,3 +83,8 @@ def test_the_benchmark_reports_skips_in_its_json(
     assert "not found" in result["gmapping"]["skipped"]
     assert "log not found" in result["logs"]["intel"]["skipped"]
     assert json.loads(capsys.readouterr().out) == result
+    # What the ratios were measured on: the CPU, the interpreter and the libraries, named.
+    machine = result["machine"]
+    assert machine["python"].split()[1] == ".".join(str(v) for v in sys.version_info[:3])
+    assert machine["numpy"] == np.__version__
+    assert machine["cpu"] and machine["cores"] >= 1 and machine["opencv"] and machine["scipy"]
