@@ -1380,6 +1380,7 @@ class _Reader:
             search_yaw_rad=t.number(
                 "search_yaw_rad", d.search_yaw_rad, (lambda v: 0 < v <= math.pi, "must be in (0, pi]")
             ),
+            search_below_inliers=t.number("search_below_inliers", d.search_below_inliers, _UNIT_INTERVAL),
             odometry_noise=self._odometry_noise(t),
             reversal_ratio=t.number("reversal_ratio", 0.5, (lambda v: 0 < v <= 1, "must be in (0, 1]"))
             if t.has("reversal_ratio")

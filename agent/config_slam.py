@@ -83,6 +83,9 @@ class SlamConfig:
     # (RbpfConfig.search_increment_rad), over +-search_yaw_rad (SearchConfig.yaw_range_rad)
     search_increment_rad: float = 0.5
     search_yaw_rad: float = 0.2
+    # ... and again at an update that ran without it where the leading particle's match explained fewer
+    # than this fraction of its endpoints (RbpfConfig.search_below_inliers); 0: never
+    search_below_inliers: float = 0.0
     # The direction-of-travel check (RbpfConfig.reversal_ratio): the scan may reverse an update's odometry
     # translation when the reversed prediction's match energy is below this ratio of the forward one's;
     # None: off (wheel odometry knows its sign; the radish logs' rebuilt odometry does not)

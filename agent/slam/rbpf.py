@@ -131,6 +131,11 @@ class RbpfConfig:
     # False (the default): the two thresholds alone; measured on Intel and ACES seeds 0-5 and not adopted
     # (ACES seed 1 0.121 -> 0.252 m: docs/slam.md, "Loop closure", *Intel's 50-record relations*).
     search_heading_doubt: bool = False
+    # And again where an update that ran without it matched the leading particle poorly: fewer than this
+    # fraction of its endpoints within the last stage's bound (``MatchResult.inlier_fraction``). The update
+    # is then proposed afresh with the search (where the search's start is worse, each particle keeps the
+    # prior's match: ``ProposalConfig.keep_better_start``). 0 (the default): never.
+    search_below_inliers: float = 0.0
     # Filter updates of trajectory history kept for ``trajectory()`` (about 1.2 KB each at 30 particles);
     # the oldest go first. 10 000 updates are 2.5 km of driving at 0.25 m per update, 12 MB: bounded on
     # board, and more than any log here needs (Intel: 897). None keeps everything.
@@ -188,6 +193,7 @@ class FilterStats:
     resamples: int = 0
     match_failures: int = 0
     reversals: int = 0  # checks that reversed the direction of travel (RbpfConfig.reversal_ratio)
+    searches_on_doubt: int = 0  # updates proposed again with the search (RbpfConfig.search_below_inliers)
     fixes_applied: int = 0
     loop_checks: int = 0
     loop_closures: int = 0
@@ -670,6 +676,7 @@ class RbpfSlam:
                 measurement = fuse_fixes(self._pending_fixes, odom, cfg.noise, heading)
                 self._node_fix = measurement
                 fixes_weighted = True
+            proposal = self._proposal_for(increment)
             result = improved_proposal(
                 field,
                 window_index,
@@ -677,12 +684,36 @@ class RbpfSlam:
                 self.poses,
                 increment,
                 cfg.noise,
-                self._proposal_for(increment),
+                proposal,
                 self.rng,
                 self.log_weights,
                 normals,
                 measurement,
             )
+            if (
+                proposal.search is None
+                and cfg.proposal.search is not None
+                and result.match.inlier_fraction[self.best_index] < cfg.search_below_inliers
+            ):
+                log.debug(
+                    "update %d: the lead matched %.2f of its endpoints without the search; with it",
+                    self.stats.updates,
+                    result.match.inlier_fraction[self.best_index],
+                )
+                self.stats.searches_on_doubt += 1
+                result = improved_proposal(
+                    field,
+                    window_index,
+                    points,
+                    self.poses,
+                    increment,
+                    cfg.noise,
+                    cfg.proposal,
+                    self.rng,
+                    self.log_weights,
+                    normals,
+                    measurement,
+                )
             self.poses = result.poses
             proposal_log_eta = result.log_eta
             matched = result.matched

@@ -7,6 +7,7 @@ truth is known.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from pathlib import Path
@@ -620,6 +621,50 @@ def test_the_search_can_also_be_due_on_odometry_heading_doubt() -> None:
         searched += [slam._proposal_for(increment).search is not None for increment in (short, small)]
         assert slam._proposal_for(np.array([1.0, 0.0, 0.0])).search is not None
     assert searched == [False, False, True, False]
+
+
+@pytest.mark.parametrize(
+    ("threshold", "inliers", "again"), [(0.5, 0.3, True), (0.5, 0.9, False), (0.0, 0.3, False)]
+)
+def test_an_update_the_lead_matched_poorly_without_the_search_is_proposed_again_with_it(
+    loop: tuple[np.ndarray, ...],
+    monkeypatch: pytest.MonkeyPatch,
+    threshold: float,
+    inliers: float,
+    again: bool,
+) -> None:
+    # RbpfConfig.search_below_inliers: an update that ran without the correlative search and whose lead
+    # matched fewer than that fraction of its endpoints is proposed afresh, with the search (Intel: Gauss-
+    # Newton from a prior 16 deg off settles there with few endpoints explained). Each unsearched proposal
+    # here is made to report `inliers` for every particle.
+    import agent.slam.rbpf as rbpf_module
+
+    real = rbpf_module.improved_proposal
+    searched: list[bool] = []
+
+    def proposal(*args: object, **kwargs: object) -> object:
+        result = real(*args, **kwargs)
+        config = args[6]
+        assert isinstance(config, ProposalConfig)
+        searched.append(config.search is not None)
+        if config.search is not None:
+            return result
+        fraction = np.full_like(result.match.inlier_fraction, inliers)
+        return dataclasses.replace(result, match=dataclasses.replace(result.match, inlier_fraction=fraction))
+
+    monkeypatch.setattr(rbpf_module, "improved_proposal", proposal)
+    times, truth, odometry, ranges = (a[:60] for a in loop)
+    start = tuple(float(v) for v in truth[0])
+    config = RbpfConfig(particles=4, initial_pose=start, search_below_inliers=threshold)
+    slam, _estimate = run_filter((times, truth, odometry, ranges), config)
+    later = searched[1:]  # the first update searches anyway (search_updates)
+    assert searched[0] and slam.stats.updates >= 5
+    if again:
+        # Each update: the proposal without the search, then again with it.
+        assert later == [False, True] * (slam.stats.updates - 1)
+        assert slam.stats.searches_on_doubt == slam.stats.updates - 1
+    else:
+        assert later == [False] * (slam.stats.updates - 1) and slam.stats.searches_on_doubt == 0
 
 
 def test_each_node_keeps_its_scan_match_information_for_the_graph(loop: tuple[np.ndarray, ...]) -> None:
