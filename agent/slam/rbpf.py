@@ -68,7 +68,13 @@ from agent.slam.matcher import DistanceField, line_information
 from agent.slam.motion import OdometryNoise, sample_motion
 from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
-from agent.slam.proposal import ProposalConfig, improved_proposal, scan_normals, travel_reversed
+from agent.slam.proposal import (
+    ProposalConfig,
+    ProposalResult,
+    improved_proposal,
+    scan_normals,
+    travel_reversed,
+)
 from agent.slam.relative import RelativeMatch, match_relative
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
 
@@ -676,44 +682,36 @@ class RbpfSlam:
                 measurement = fuse_fixes(self._pending_fixes, odom, cfg.noise, heading)
                 self._node_fix = measurement
                 fixes_weighted = True
-            proposal = self._proposal_for(increment)
-            result = improved_proposal(
-                field,
-                window_index,
-                points,
-                self.poses,
-                increment,
-                cfg.noise,
-                proposal,
-                self.rng,
-                self.log_weights,
-                normals,
-                measurement,
-            )
-            if (
-                proposal.search is None
-                and cfg.proposal.search is not None
-                and result.match.inlier_fraction[self.best_index] < cfg.search_below_inliers
-            ):
-                log.debug(
-                    "update %d: the lead matched %.2f of its endpoints without the search; with it",
-                    self.stats.updates,
-                    result.match.inlier_fraction[self.best_index],
-                )
-                self.stats.searches_on_doubt += 1
-                result = improved_proposal(
+
+            def propose(proposal: ProposalConfig) -> ProposalResult:
+                return improved_proposal(
                     field,
                     window_index,
                     points,
                     self.poses,
                     increment,
                     cfg.noise,
-                    cfg.proposal,
+                    proposal,
                     self.rng,
                     self.log_weights,
                     normals,
                     measurement,
                 )
+
+            proposal = self._proposal_for(increment)
+            result = propose(proposal)
+            lead_inliers = float(result.match.inlier_fraction[self.best_index])
+            if (
+                proposal.search is None
+                and cfg.proposal.search is not None
+                and lead_inliers < cfg.search_below_inliers
+            ):
+                # (RbpfConfig.search_below_inliers: the match from the prior explained too little.)
+                log.debug(
+                    "update %d: the lead matched %.2f without the search", self.stats.updates, lead_inliers
+                )
+                self.stats.searches_on_doubt += 1
+                result = propose(cfg.proposal)
             self.poses = result.poses
             proposal_log_eta = result.log_eta
             matched = result.matched
