@@ -139,8 +139,9 @@ class RbpfConfig:
     search_heading_doubt: bool = False
     # And again where an update that ran without it matched the leading particle poorly: fewer than this
     # fraction of its endpoints within the last stage's bound (``MatchResult.inlier_fraction``). The update
-    # is then proposed afresh with the search (where the search's start is worse, each particle keeps the
-    # prior's match: ``ProposalConfig.keep_better_start``). 0 (the default): never.
+    # is then proposed afresh with the search (with ``ProposalConfig.keep_better_start``, as the radish logs
+    # run, each particle still keeps the prior's match where the search's start is worse). 0 (the default):
+    # never.
     search_below_inliers: float = 0.0
     # Filter updates of trajectory history kept for ``trajectory()`` (about 1.2 KB each at 30 particles);
     # the oldest go first. 10 000 updates are 2.5 km of driving at 0.25 m per update, 12 MB: bounded on
