@@ -1381,6 +1381,9 @@ class _Reader:
                 "search_yaw_rad", d.search_yaw_rad, (lambda v: 0 < v <= math.pi, "must be in (0, pi]")
             ),
             search_below_inliers=t.number("search_below_inliers", d.search_below_inliers, _UNIT_INTERVAL),
+            shared_field_updates=t.integer(
+                "shared_field_updates", d.shared_field_updates, (lambda v: 0 <= v <= 1000, "must be 0..1000")
+            ),
             odometry_noise=self._odometry_noise(t),
             reversal_ratio=t.number("reversal_ratio", 0.5, (lambda v: 0 < v <= 1, "must be in (0, 1]"))
             if t.has("reversal_ratio")

@@ -86,6 +86,9 @@ class SlamConfig:
     # ... and again at an update that ran without it where the leading particle's match explained fewer
     # than this fraction of its endpoints (RbpfConfig.search_below_inliers); 0: never
     search_below_inliers: float = 0.0
+    # For this many filter updates after a resampling, the particles drawn from one parent match against
+    # one distance field, the heaviest one's map (RbpfConfig.shared_field_updates); 0: a field per map
+    shared_field_updates: int = 20
     # The direction-of-travel check (RbpfConfig.reversal_ratio): the scan may reverse an update's odometry
     # translation when the reversed prediction's match energy is below this ratio of the forward one's;
     # None: off (wheel odometry knows its sign; the radish logs' rebuilt odometry does not)

@@ -6,7 +6,8 @@ Per accepted scan (``process``):
 2. update gating: the filter only works once the odometry since the last update exceeds
    ``linear_update_m`` or ``angular_update_rad``; in between, the pose is the best particle's ⊕ odometry;
 3. proposal: each particle is scan-matched against its own map and sampled around the match
-   (``agent.slam.proposal``), its weight multiplied by eta;
+   (``agent.slam.proposal``), its weight multiplied by eta; for ``shared_field_updates`` after a
+   resampling, the particles drawn from one parent are matched against the heaviest one's map;
 4. absolute fixes (VLP) taken since the last update, carried forward by odometry and fused
    (``agent.slam.fix.fuse_fixes``), join the proposal as a third factor (so eta includes them); only when
    there is too little to match do they weight the particles alone: w_i *= N(z_fix; x_i, Sigma_fix);
@@ -110,6 +111,16 @@ class RbpfConfig:
     match_voxel_m: float = 0.1
     max_match_points: int = 200
     field_margin_m: float = 0.6
+    # For this many filter updates after a resampling, the particles drawn from one parent match against
+    # one distance field: the map of the heaviest of them. Their maps are the parent's and the few scans
+    # each has added since, at poses the proposal drew a few centimetres apart, so the heaviest one's
+    # stands for them all, and an update computes a field per lineage instead of per particle (Intel: 20
+    # fields an update against 29; the transforms and their masks are a third of the filter's CPU). Past
+    # it each particle has its own field again: the longer a lineage shares one, the more its particles
+    # follow their leader (the office, which resamples every ~40 updates, sharing until the next
+    # resampling: 9 of 24 seeds over 3 cm, against 7 before). 0 or 1: a field per distinct map.
+    # docs/slam.md, "The filter", *One distance field per lineage*.
+    shared_field_updates: int = 20
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     deskew: bool = True
     # How far short of its endpoint a beam's free space stops (metres); None: half a cell. The swept fan
@@ -253,6 +264,8 @@ def voxel_filter(points_xy: FloatArray, voxel_m: float, max_points: int) -> Floa
 
 # Cells of map windows integrated in one pass (``RbpfSlam._integrate``): bounds the scratch memory.
 _INTEGRATE_CELLS = 2_000_000
+# (RbpfSlam._lineage_age where no lineage shares a field: before the first resampling, after a rebuild.)
+_NO_LINEAGE = 1 << 30
 # The direction-of-travel check (RbpfConfig.reversal_ratio) runs at updates that translate at least
 # REVERSAL_MIN_M (below it the two predictions are within the match's first robust bound of each other
 # anyway), and only within REVERSAL_WINDOW_M of odometry path after a standstill: a robot changes its
@@ -292,6 +305,10 @@ class RbpfSlam:
         self.maps = TiledMaps(cfg.grid, rows)
         # Particles with the same group id have identical maps (duplicates after resampling).
         self._groups: IntArray = np.zeros(n, dtype=np.int64)
+        # Particles with the same _field_lineage id were drawn from one parent at the last resampling,
+        # _lineage_age updates ago (shared_field_updates); a rebuilt map ends every lineage.
+        self._field_lineage: IntArray = np.zeros(n, dtype=np.int64)
+        self._lineage_age = _NO_LINEAGE
         self._started = False
         # Odometry as the filter sees it: C ⊕ o for the odometry o it is given, C taking out the pose jumps
         # it dropped, so that it stays continuous.
@@ -574,8 +591,8 @@ class RbpfSlam:
         lo -= cfg.field_margin_m
         hi += cfg.field_margin_m
         rect = TileRect.covering(cfg.grid, (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
-        _groups, first, window_index = np.unique(self._groups, return_index=True, return_inverse=True)
-        rows = self._map_rows(first.astype(np.int64))
+        first, window_index = self._field_owners()
+        rows = self._map_rows(first)
         if cfg.map_mode is MapMode.SHARED:
             rows = rows[:1]
             window_index = np.zeros(cfg.particles, dtype=np.int64)
@@ -606,6 +623,22 @@ class RbpfSlam:
         if cfg.proposal.matcher.medial_window_cells > 0:
             field = dataclasses.replace(field, medial_window_cells=cfg.proposal.matcher.medial_window_cells)
         return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
+
+    def _field_owners(self) -> tuple[IntArray, IntArray]:
+        """Whose map each distance field is made of (F,), and each particle's field (P,): one field per
+        distinct map, or per lineage for ``shared_field_updates`` after a resampling (the heaviest
+        particle's map; of equal weights, the first's)."""
+        if self._lineage_age < self.config.shared_field_updates:
+            order = np.lexsort((-self.log_weights, self._field_lineage))
+            _keys, first_sorted, window_index = np.unique(
+                self._field_lineage[order], return_index=True, return_inverse=True
+            )
+            first = order[first_sorted]
+            inverse = np.empty_like(order)
+            inverse[order] = np.asarray(window_index, dtype=np.int64).reshape(-1)
+            return first.astype(np.int64), inverse
+        _groups, first, window_index = np.unique(self._groups, return_index=True, return_inverse=True)
+        return first.astype(np.int64), np.asarray(window_index, dtype=np.int64).reshape(-1)
 
     def _proposal_for(self, increment: FloatArray) -> ProposalConfig:
         """The proposal's settings for this update: with the correlative search only where it is due
@@ -762,6 +795,11 @@ class RbpfSlam:
         else:
             parents = np.arange(cfg.particles)
         self._integrate(scan, parents, fresh=False)
+        if resampled and cfg.map_mode is MapMode.PER_PARTICLE:
+            self._field_lineage = self._groups.copy()  # (the copies of one parent: _integrate's groups)
+            self._lineage_age = 0
+        else:
+            self._lineage_age += 1
         self._update_odom = odom
         self._record(t_s, odom, parents)
         self.stats.updates += 1
@@ -1093,6 +1131,7 @@ class RbpfSlam:
             self.maps.clear()
             self._put_prior()
             self._groups = np.zeros(cfg.particles, dtype=np.int64)
+            self._lineage_age = _NO_LINEAGE
             return
         t = cfg.grid.tile_cells
         rects = []
@@ -1139,6 +1178,7 @@ class RbpfSlam:
         self.maps.clear()
         self._put_prior()
         self._groups = np.zeros(cfg.particles, dtype=np.int64)
+        self._lineage_age = _NO_LINEAGE
         self.maps.scatter(row, whole, window, touched)
         if self.maps.maps > 1:
             self.maps.share(np.zeros(self.maps.maps - 1, dtype=np.int64), np.arange(1, self.maps.maps))

@@ -682,3 +682,72 @@ def test_each_node_keeps_its_scan_match_information_for_the_graph(loop: tuple[np
     held = np.linalg.eigvalsh(information[1:])[:, 0] > 1.0
     assert np.count_nonzero(held) >= 0.9 * (information.shape[0] - 1)
     assert absolute_trajectory_error(truth[:120], estimate) < 0.05
+
+
+@pytest.mark.parametrize("shared", [0, 3])
+def test_particles_of_one_lineage_share_a_distance_field_for_a_few_updates(
+    loop: tuple[np.ndarray, ...], monkeypatch: pytest.MonkeyPatch, shared: int
+) -> None:
+    # RbpfConfig.shared_field_updates: for that many updates after a resampling, the particles drawn from
+    # one parent are matched against one field (the heaviest one's map); otherwise one field per distinct
+    # map: the copies of one parent share one at the update right after the resampling (their maps are
+    # the same), and every particle has its own after an update that did not resample.
+    import agent.slam.rbpf as rbpf_module
+
+    real = rbpf_module.improved_proposal
+    fields: list[np.ndarray] = []
+
+    def proposal(*args: object, **kwargs: object) -> object:
+        window_index = args[1]
+        assert isinstance(window_index, np.ndarray)
+        fields.append(window_index.copy())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rbpf_module, "improved_proposal", proposal)
+    times, truth, odometry, ranges = (a[:150] for a in loop)
+    config = RbpfConfig(
+        particles=8,
+        initial_pose=tuple(float(v) for v in truth[0]),
+        resample_threshold=0.9,
+        shared_field_updates=shared,
+    )
+    slam = RbpfSlam(LASER, config)
+    lineage: np.ndarray | None = None  # the parents of the last resampling
+    since = 0  # updates since it
+    shared_later = 0  # updates that shared fields between particles whose maps differ
+    for t, odom, r in zip(times, odometry, ranges, strict=True):
+        before = len(fields)
+        step = slam.process(float(t), r, odom)
+        if step.kind is not StepKind.UPDATED:
+            continue
+        assert len(fields) == before + 1
+        windows = fields[-1]
+        if lineage is not None and 0 < since <= max(shared, 1):
+            # One field per lineage, exactly.
+            same_window = windows[:, None] == windows[None, :]
+            np.testing.assert_array_equal(same_window, lineage[:, None] == lineage[None, :])
+            shared_later += since > 1 and np.unique(lineage).size < config.particles
+        elif lineage is not None and since > 0:
+            assert np.unique(windows).size == config.particles  # each its own map, each its own field
+        if step.resampled:
+            lineage = np.unique(slam._groups, return_inverse=True)[1].reshape(-1)
+            since = 0
+        since += 1
+    assert slam.stats.resamples >= 3
+    assert (shared_later > 0) == (shared > 1)
+
+
+def test_a_lineage_field_is_made_of_its_heaviest_particle_s_map() -> None:
+    slam = RbpfSlam(LASER, RbpfConfig(particles=6, shared_field_updates=5))
+    slam._field_lineage = np.array([0, 0, 1, 1, 1, 2])
+    slam._lineage_age = 2
+    slam.log_weights = np.array([-3.0, -1.0, -2.0, 0.0, 0.0, -5.0])
+    owners, windows = slam._field_owners()
+    # Lineage 1's two heaviest weigh the same: the first of them.
+    np.testing.assert_array_equal(owners, [1, 3, 5])
+    np.testing.assert_array_equal(windows, [0, 0, 1, 1, 1, 2])
+    slam._lineage_age = 5  # past shared_field_updates: a field per distinct map
+    slam._groups = np.array([0, 1, 2, 2, 3, 4])
+    owners, windows = slam._field_owners()
+    np.testing.assert_array_equal(owners, [0, 1, 2, 4, 5])
+    np.testing.assert_array_equal(windows, [0, 1, 2, 2, 3, 4])

@@ -56,7 +56,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         "[slam]\nalong_surface_weight = 0.0\ndegenerate_noise_scale = 0.3\nmatch_min_inliers = 10\n"
         'match_min_inlier_fraction = 0.0\nmatch_both_starts = true\nfailed_match_draw = "grid"\n'
         "miss_log_odds = -0.1\nsearch_increment_rad = 0.19\nsearch_yaw_rad = 0.45\n"
-        "search_below_inliers = 0.5\n"
+        "search_below_inliers = 0.5\nshared_field_updates = 5\n"
         "odometry_noise = [0.03, 0.05, 0.03, 0.05]\nfree_margin_m = 0.1\nreversal_ratio = 0.5\n"
         "match_gate_residual = true\nprocess = false\n"
         f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
@@ -88,6 +88,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     assert built.free_margin_m == 0.1
     assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
     assert built.search_below_inliers == 0.5 and log_config("breezyslam").search_below_inliers == 0.0
+    assert built.shared_field_updates == 5 and log_config("radish").shared_field_updates == 20
     assert built.proposal.search is not None and built.proposal.search.yaw_range_rad == 0.45
     assert built.reversal_ratio == 0.5 == front_end("radish").reversal_ratio
     assert SlamConfig().free_margin_m is None and front_end("breezyslam").free_margin_m is None
@@ -128,6 +129,8 @@ _FRONT_END_KEYS = (
         ("search_increment_rad = 0", "slam.search_increment_rad"),
         ("search_yaw_rad = 4.0", "slam.search_yaw_rad"),
         ("search_below_inliers = 1.5", "slam.search_below_inliers"),
+        ("shared_field_updates = -1", "slam.shared_field_updates"),
+        ("shared_field_updates = 2.5", "slam.shared_field_updates"),
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
         ("free_margin_m = -0.01", "slam.free_margin_m"),
