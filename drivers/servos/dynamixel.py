@@ -474,17 +474,27 @@ class DynamixelWheels(WheelServos):
 
     def _check_watchdogs(self) -> bool:
         """Read Bus Watchdog back from each suspect servo (from all of them once a second) and start again
-        any that does not hold what was armed. True when one was started again (its goal is now 0)."""
+        any that does not hold what was armed. True when one was started again (its goal is now 0).
+
+        One servo found stopped makes every servo a suspect in the same pass: what cut it off (a stalled
+        caller, a pulled cable, a bus that lost a burst of packets) may have stopped the other wheel too,
+        and a servo still latched would refuse the next goal while the one started again follows it, so the
+        robot would pivot (a sync read stops at the first servo that does not answer, so a timeout names
+        only one)."""
         now = time.monotonic()
         if now >= self._next_watchdog_check:
             self._watchdog_suspects.update(self.ids)
             self._next_watchdog_check = now + _WATCHDOG_CHECK_S
         restarted = False
-        for servo_id in sorted(self._watchdog_suspects - self._no_watchdog):
+        checked: set[int] = set()
+        while pending := sorted(self._watchdog_suspects - self._no_watchdog - checked):
+            servo_id = pending[0]
+            checked.add(servo_id)
             value = self._read(servo_id, _BUS_WATCHDOG)
             if value == self.bus_watchdog_units:
                 self._watchdog_suspects.discard(servo_id)
                 continue
+            self._watchdog_suspects.update(set(self.ids) - checked)
             if value == BUS_WATCHDOG_EXPIRED:
                 self.count("bus_watchdog_stops")
                 self.note_error(f"servo {servo_id}: Bus Watchdog fired (it heard nothing for too long)")

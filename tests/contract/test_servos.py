@@ -571,3 +571,28 @@ def test_odometry_turning_on_the_spot() -> None:
     assert (odom.x_m, odom.y_m) == pytest.approx((0.0, 0.0), abs=1e-12)
     assert odom.yaw_rad == pytest.approx(math.pi / 2) and odom.omega_radps == pytest.approx(math.pi / 2)
     assert odom.v_mps == pytest.approx(0.0, abs=1e-12)
+
+
+def test_one_servo_found_stopped_gets_the_other_checked_so_the_robot_does_not_pivot(fake: Backend) -> None:
+    # The bus cut off from both servos (a cable between the adapter and the first servo): both watchdogs
+    # fire, but the sync reads that time out name only the first servo that did not answer. Found
+    # stopped, it makes the other a suspect in the same check: both are started again together, and the
+    # next goal turns both wheels (the other, still latched, would refuse it and the robot would pivot).
+    sim, bus, _ = fake_parts(fake)
+    servos = fake.servos
+    drive_like_the_agent(servos, 0.3, 2.0)
+    servos._next_watchdog_check = time.monotonic() + 60.0  # no once-a-second check of both in this test
+    bus.mute(1)
+    bus.mute(2)
+    cut = time.monotonic()
+    while time.monotonic() - cut < 0.6:
+        drive_like_the_agent(servos, 0.02, 2.0)
+    assert [bus.register(i, "Bus Watchdog") for i in (1, 2)] == [-1, -1]
+    bus.mute(1, False)
+    bus.mute(2, False)
+    servos.read()
+    units = servos.bus_watchdog_units
+    assert [bus.register(i, "Bus Watchdog") for i in (1, 2)] == [units, units]
+    assert servos.health().counters["bus_watchdog_stops"] == 2
+    drive_until(servos, sim, 2.0)
+    assert sim.wheels().velocity_radps == pytest.approx((2.0, 2.0), abs=ONE_UNIT)
