@@ -39,6 +39,7 @@ driver reads Hardware Error Status (70), which latches until a reboot, and repor
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -472,9 +473,13 @@ class DynamixelWheels(WheelServos):
         self._watchdog_suspects.update(self.ids)
         return True
 
-    def _check_watchdogs(self) -> bool:
+    def _check_watchdogs(self, put_off_silent: bool = False) -> bool:
         """Read Bus Watchdog back from each suspect servo (from all of them once a second) and start again
         any that does not hold what was armed. True when one was started again (its goal is now 0).
+
+        The read is retried as any read is (``retries``). A servo that still does not answer raises
+        :class:`DeviceTimeout`, or with ``put_off_silent`` stays a suspect (counted and noted as a timeout)
+        for the next check: a reply lost to a loaded host then costs the check, not what the caller did.
 
         One servo found stopped makes every servo a suspect in the same pass: what cut it off (a stalled
         caller, a pulled cable, a bus that lost a burst of packets) may have stopped the other wheel too,
@@ -490,7 +495,13 @@ class DynamixelWheels(WheelServos):
         while pending := sorted(self._watchdog_suspects - self._no_watchdog - checked):
             servo_id = pending[0]
             checked.add(servo_id)
-            value = self._read(servo_id, _BUS_WATCHDOG)
+            try:
+                value = self._retrying(functools.partial(self._read, servo_id, _BUS_WATCHDOG))
+            except DeviceTimeout as exc:
+                if not put_off_silent:
+                    raise
+                log.warning("%s: Bus Watchdog check put off: %s", self.name, exc)
+                continue
             if value == self.bus_watchdog_units:
                 self._watchdog_suspects.discard(servo_id)
                 continue
@@ -733,8 +744,9 @@ class DynamixelWheels(WheelServos):
             state = self._retrying(self._read_once)
             self.count("reads")
             if self.bus_watchdog_units:
-                # Both servos just answered, so a check gets its replies.
-                self._check_watchdogs()
+                # Both servos just answered, so a check gets its replies; one lost all the same leaves
+                # its servo a suspect and the state just read is returned.
+                self._check_watchdogs(put_off_silent=True)
             return state
 
     def torque(self, on: bool) -> None:

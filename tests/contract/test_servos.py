@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from dynamixel_sdk import COMM_RX_TIMEOUT
 
 from drivers.errors import (
     ConfigError,
@@ -596,3 +597,67 @@ def test_one_servo_found_stopped_gets_the_other_checked_so_the_robot_does_not_pi
     assert servos.health().counters["bus_watchdog_stops"] == 2
     drive_until(servos, sim, 2.0)
     assert sim.wheels().velocity_radps == pytest.approx((2.0, 2.0), abs=ONE_UNIT)
+
+
+def _lose_bus_watchdog_replies(
+    servos: DynamixelWheels, monkeypatch: pytest.MonkeyPatch, count: int
+) -> list[int]:
+    """The next ``count`` Bus Watchdog reads time out as a reply lost to a loaded host would (the real
+    SDK's packet handler answers every other read); returns the servos whose replies were lost."""
+    real = servos._ph.readTxRx
+    address = next(item.address for item in XL430_W250 if item.name == "Bus Watchdog")
+    lost: list[int] = []
+
+    def read(port: object, servo_id: int, at: int, length: int) -> tuple[list[int], int, int]:
+        if at == address and len(lost) < count:
+            lost.append(servo_id)
+            return [], COMM_RX_TIMEOUT, 0
+        return real(port, servo_id, at, length)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(servos._ph, "readTxRx", read)
+    return lost
+
+
+def test_a_lost_bus_watchdog_reply_is_read_again(fake: Backend, monkeypatch: pytest.MonkeyPatch) -> None:
+    servos = fake.servos
+    assert isinstance(servos, DynamixelWheels)
+    lost = _lose_bus_watchdog_replies(servos, monkeypatch, 1)
+    retries = servos.health().counters.get("retries", 0)
+    servos._next_watchdog_check = 0.0  # the once-a-second check of both servos, now
+    servos.read()
+    assert lost == [1]
+    assert servos.health().counters["retries"] == retries + 1
+    assert servos._watchdog_suspects == set()  # read again and found armed
+
+
+def test_a_bus_watchdog_check_that_times_out_keeps_the_state_read_and_its_suspect(
+    fake: Backend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every try of the check's read lost: read() still returns the state both servos just sent, the
+    # silent one stays a suspect, and the next read checks it again.
+    servos = fake.servos
+    assert isinstance(servos, DynamixelWheels)
+    lost = _lose_bus_watchdog_replies(servos, monkeypatch, servos.retries + 1)
+    timeouts = servos.health().counters.get("timeouts", 0)
+    servos._next_watchdog_check = 0.0
+    state = servos.read()
+    assert isinstance(state, WheelState)
+    assert lost == [1] * (servos.retries + 1)
+    assert servos.health().counters["timeouts"] == timeouts + servos.retries + 1
+    assert 1 in servos._watchdog_suspects
+    servos.read()
+    assert servos._watchdog_suspects == set()
+
+
+def test_a_command_whose_bus_watchdog_check_times_out_says_so(
+    fake: Backend, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # After a stall a command checks the watchdogs before it returns; a servo that does not answer that
+    # check is an error of the command (the wheel may still be latched), not silence.
+    servos = fake.servos
+    assert isinstance(servos, DynamixelWheels)
+    _lose_bus_watchdog_replies(servos, monkeypatch, servos.retries + 1)
+    servos._watchdog_suspects.update(servos.ids)
+    servos._last_transaction = time.monotonic() - 10.0  # the caller stalled
+    with pytest.raises(DeviceTimeout, match="READ Bus Watchdog"):
+        servos.set_velocity(0.0, 0.0)
