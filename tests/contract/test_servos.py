@@ -602,8 +602,8 @@ def test_one_servo_found_stopped_gets_the_other_checked_so_the_robot_does_not_pi
 def _lose_bus_watchdog_replies(
     servos: DynamixelWheels, monkeypatch: pytest.MonkeyPatch, count: int
 ) -> list[int]:
-    """The next ``count`` Bus Watchdog reads time out as a reply lost to a loaded host would (the real
-    SDK's packet handler answers every other read); returns the servos whose replies were lost."""
+    """The next ``count`` Bus Watchdog reads time out as a reply lost to a loaded host would; every other
+    read goes to the real SDK's packet handler. Returns the servos whose replies were lost."""
     real = servos._ph.readTxRx
     address = next(item.address for item in XL430_W250 if item.name == "Bus Watchdog")
     lost: list[int] = []

@@ -34,8 +34,8 @@ def test_sim_follow_locks_on_to_the_user_and_follows_without_contact(tmp_path: P
     assert f["collisions_people"] <= 1 and s["collisions_people"] <= 1
     assert f["min_person_gap_m"] is not None
     if f["collisions_people"] == 0:
-        # (With that one contact the gap is the walker's overlap with the robot at rest: -0.07 m in a CI
-        # run where the robot stood for the camera stall and a passer-by walked on into it.)
+        # (With that one contact the gap is the walker's overlap with the robot at rest: -0.07 m in a
+        # full-suite run where the robot stood for the camera stall and a passer-by walked on into it.)
         assert f["min_person_gap_m"] > 0.0
     assert s["distance_m"] > 1.0  # it drove after them
     for key in ("within_band", "distance_m_median", "time_lost_s", "stop_latency_s_max", "lost_events"):
