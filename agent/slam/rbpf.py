@@ -622,7 +622,7 @@ class RbpfSlam:
         )
         if cfg.proposal.matcher.medial_window_cells > 0:
             field = dataclasses.replace(field, medial_window_cells=cfg.proposal.matcher.medial_window_cells)
-        return field, np.asarray(window_index, dtype=np.int64).reshape(-1)
+        return field, window_index
 
     def _field_owners(self) -> tuple[IntArray, IntArray]:
         """Whose map each distance field is made of (F,), and each particle's field (P,): one field per
