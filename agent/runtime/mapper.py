@@ -137,12 +137,15 @@ def front_end_noise(config: SlamConfig) -> Any:
 @dataclass(frozen=True, slots=True)
 class MapperStep:
     """What one scan did: ``kind`` is the filter's word (``updated``, ``gated``, ``first``, ``rejected``,
-    ``waiting``); ``fix`` is the pose to fuse (filter updates only); ``reason`` why a scan was turned away."""
+    ``waiting``); ``fix`` is the pose to fuse (filter updates only); ``reason`` why a scan was turned away;
+    ``stopped``: turned away (``rejected``) because the agent is stopping, so the filter never took it or
+    left its update unfinished: no input of the run's filter (a replay does not feed it)."""
 
     kind: str
     fix: AbsoluteFix | None = None
     reason: str = ""
     matched: bool = True
+    stopped: bool = False
 
 
 class ScanMapper(Protocol):

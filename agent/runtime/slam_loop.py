@@ -107,9 +107,12 @@ class SlamLoop:
             state.count("slam_scans_without_odometry")
             return False
         step = mapper.update(scan, odom)
-        # What SLAM took and with which odometry, for a replay (agent.recording.slam_replay).
+        # What SLAM took and with which odometry, for a replay (agent.recording.slam_replay). Not the scan
+        # in flight when the agent stopped: the filter never took it or left its update unfinished, and a
+        # replay fed it would make an update the run did not.
         restarts = getattr(mapper, "restarts", 0)  # a SLAM process restarted: a new map from here
-        state.record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom, step.kind, restarts))
+        if not step.stopped:
+            state.record("slam_scan", scan.host_time_ns, SlamScanSample(scan, odom, step.kind, restarts))
         # slam_scans_updated / _skipped / _rejected: what the mapper did with the scan. Not slam_rejected,
         # which counts the SLAM poses the fusion turned down (slam_fused + slam_rejected = the poses handed
         # to it, as recorded on /slam/pose): a scan the mapper rejected, or the one in flight at a stop, has

@@ -181,7 +181,7 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             elif kind == "update":
                 _, scan, odom_pose, start.pose = request
                 if stopping:
-                    reply = MapperStep("rejected", reason="the SLAM process is stopping")
+                    reply = MapperStep("rejected", reason="the SLAM process is stopping", stopped=True)
                 else:
                     reply = mapper.update(scan, odom_pose)
             elif kind == "fix":
@@ -205,7 +205,9 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             if mapper.counters().get("loop_rebuilds", 0) > rebuilds:
                 what = "loop closure's map rebuild (the map is the one from before that loop closure)"
             # A step, not an exception: this module runs as __main__ here, and its classes would not unpickle.
-            reply = MapperStep("rejected", reason=f"the SLAM process left its {what} unfinished for the stop")
+            reply = MapperStep(
+                "rejected", reason=f"the SLAM process left its {what} unfinished for the stop", stopped=True
+            )
         counters = dict(mapper.counters())
         counters["worker_peak_rss_kb"] = _peak_rss_kb()
         if time.monotonic() - shared_at >= _SHARED_EVERY_S:
@@ -562,7 +564,7 @@ class ProcessMapper:
         try:
             step: MapperStep = self._call("update", scan, odom_pose, start)
         except WorkerStopping as exc:
-            return MapperStep("rejected", reason=str(exc))
+            return MapperStep("rejected", reason=str(exc), stopped=True)
         except WorkerLost as exc:
             log.error("%s", exc)
             return MapperStep("rejected", reason=str(exc))
