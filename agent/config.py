@@ -1400,6 +1400,7 @@ class _Reader:
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,
+            grid_phase_from_walls=t.boolean("grid_phase_from_walls", d.grid_phase_from_walls),
         )
         if not slam.angular_update_rad > 0:
             raise t.error("angular_update_rad", "must be > 0")

@@ -104,5 +104,8 @@ class SlamConfig:
     loop_accept_graph_chi2: float | None = 16.3
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
+    # The grid's lattice moved at the first scan so that the walls it sees along the map's axes run through
+    # cell centres (RbpfConfig.grid_phase_from_walls, agent.slam.lattice); False: the lattice as it is
+    grid_phase_from_walls: bool = True
     # The motion model (motion.OdometryNoise: srr, srt, str, stt); None: slam_gmapping's
     odometry_noise: tuple[float, float, float, float] | None = None

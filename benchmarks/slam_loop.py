@@ -16,6 +16,7 @@ defaults are the filter's.
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --odometry-shift -0.5
     python benchmarks/slam_loop.py --seeds $(seq 0 23) --search-updates every
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --free-margin 0.1
+    python benchmarks/slam_loop.py --seeds $(seq 0 23) --grid-phase fixed
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --medial-window-cells 3
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --edge-match-sigma 0.1
     python benchmarks/slam_loop.py --seeds 0 1 2 3 4 5 --loop-hypotheses 0
@@ -104,6 +105,13 @@ def main() -> int:
         help="read each record's odometry R records later (negative: earlier), interpolated",
     )
     parser.add_argument(
+        "--grid-phase",
+        choices=("walls", "fixed"),
+        default="walls" if defaults.grid_phase_from_walls else "fixed",
+        help="RbpfConfig.grid_phase_from_walls: the lattice moved at the first scan so that its walls run "
+        "through cell centres (walls, the default), or left with a cell corner at the origin (fixed)",
+    )
+    parser.add_argument(
         "--free-margin",
         type=float,
         default=defaults.free_margin_m,
@@ -176,6 +184,7 @@ def main() -> int:
             max_match_points=args.max_match_points,
             match_voxel_m=args.match_voxel,
             free_margin_m=args.free_margin,
+            grid_phase_from_walls=args.grid_phase == "walls",
             loop_closure=dataclasses.replace(
                 loop_defaults,
                 edge_match_sigma_m=args.edge_match_sigma,

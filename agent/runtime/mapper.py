@@ -93,10 +93,10 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
 
 def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
     """The ``agent.slam.rbpf.RbpfConfig`` fields the ``[slam]`` front-end keys set: ``noise``,
-    ``free_margin_m``, ``log_odds``, ``search_increment_rad``, ``search_below_inliers``,
-    ``shared_field_updates``, ``reversal_ratio``, ``proposal`` (``base_proposal`` with the match's keys,
-    ``front_end_proposal``) and ``loop_closure`` (the default loop closure with
-    ``loop_correction_odometry_sigmas`` and ``loop_accept_graph_chi2``).
+    ``free_margin_m``, ``grid_phase_from_walls``, ``log_odds``, ``search_increment_rad``,
+    ``search_below_inliers``, ``shared_field_updates``, ``reversal_ratio``, ``proposal``
+    (``base_proposal`` with the match's keys, ``front_end_proposal``) and ``loop_closure`` (the default
+    loop closure with ``loop_correction_odometry_sigmas`` and ``loop_accept_graph_chi2``).
     The agent's mapping filter and ``vlp-agent eval slam`` are both configured with it."""
     from agent.slam.loops import LoopClosureConfig
 
@@ -107,6 +107,7 @@ def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
         ),
         "noise": front_end_noise(config),
         "free_margin_m": config.free_margin_m,
+        "grid_phase_from_walls": config.grid_phase_from_walls,
         "log_odds": front_end_log_odds(config),
         "search_increment_rad": config.search_increment_rad,
         "search_below_inliers": config.search_below_inliers,

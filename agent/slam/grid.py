@@ -92,11 +92,19 @@ class LogOddsModel:
 
 @dataclass(frozen=True)
 class GridGeometry:
-    """Cell size and the fixed extent a map table covers (default 204.8 m x 204.8 m at 0.05 m)."""
+    """Cell size and the fixed extent a map table covers (default 204.8 m x 204.8 m at 0.05 m), and
+    ``phase_m``: how far (x, y) the whole lattice is moved from the one with a cell corner at the
+    world origin, each in [0, resolution_m) (``agent.slam.lattice``: the filter moves its grid so that
+    the walls of its first scan run through cell centres)."""
 
     resolution_m: float = 0.05
     tile_cells: int = 32
     tiles_per_side: int = 128
+    phase_m: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not all(0.0 <= p < self.resolution_m for p in self.phase_m):
+            raise ValueError(f"phase_m must lie in [0, {self.resolution_m}) per axis, got {self.phase_m}")
 
     @property
     def cells_per_side(self) -> int:
@@ -105,7 +113,7 @@ class GridGeometry:
     @property
     def origin_m(self) -> tuple[float, float]:
         half = self.cells_per_side * self.resolution_m / 2.0
-        return (-half, -half)
+        return (-half + self.phase_m[0], -half + self.phase_m[1])
 
     @property
     def tile_m(self) -> float:

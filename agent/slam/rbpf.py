@@ -54,6 +54,7 @@ from agent.slam.grid import (
     prepare_scan,
     surface_normals,
 )
+from agent.slam.lattice import fit_grid_phase, phase_of
 from agent.slam.loops import (
     LoopClosureConfig,
     LoopConstraint,
@@ -67,7 +68,7 @@ from agent.slam.loops import (
 from agent.slam.malloc import trim_heap
 from agent.slam.matcher import DistanceField, line_information
 from agent.slam.motion import OdometryNoise, sample_motion
-from agent.slam.pose import between, compose, inverse, transform_bounds, wrap_angle
+from agent.slam.pose import between, compose, inverse, transform_bounds, transform_points, wrap_angle
 from agent.slam.posegraph import AbsoluteFactors, GraphResult
 from agent.slam.proposal import (
     ProposalConfig,
@@ -169,6 +170,12 @@ class RbpfConfig:
     # unsigned increments (the radish logs: FR079's robot backs 3 m out of a room at records 1372-1400
     # while its odometry drives on forward). docs/slam.md, "Scan matching".
     reversal_ratio: float | None = None
+    # Move the grid's lattice (``GridGeometry.phase_m``) at the first scan so that the walls it sees along
+    # the map's axes run through cell centres (``agent.slam.lattice``): a wall on a cell boundary comes
+    # out ragged and the trajectory settles up to half a cell off (docs/slam.md, "The grid", *The grid's
+    # phase*). With ``seed_map`` the saved map's own phase is kept instead (its cells line up).
+    # False: the lattice as ``grid`` gives it.
+    grid_phase_from_walls: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -449,6 +456,8 @@ class RbpfSlam:
         )
         if not self._started:
             self._started = True
+            if cfg.grid_phase_from_walls and self._prior is None:
+                self._fit_grid_phase(scan)
             self._integrate(scan, np.zeros(cfg.particles, dtype=np.int64), fresh=True)
             self._update_odom = odom
             self._record(t_s, odom, np.arange(cfg.particles))
@@ -530,6 +539,14 @@ class RbpfSlam:
         cell of this grid (a map saved by this filter lines up exactly)."""
         if self._started:
             raise ValueError("seed_map comes before the first scan")
+        if self.config.grid_phase_from_walls:
+            # The saved map's own lattice (RbpfConfig.grid_phase_from_walls): its cells line up exactly.
+            res = self.config.grid.resolution_m
+            self._set_grid(
+                dataclasses.replace(
+                    self.config.grid, phase_m=(phase_of(origin_m[0], res), phase_of(origin_m[1], res))
+                )
+            )
         cfg = self.config
         grid, model = cfg.grid, cfg.log_odds
         res = grid.resolution_m
@@ -562,6 +579,34 @@ class RbpfSlam:
         )
         self._prior = (rect, window[None].copy(), touched[None].copy())
         self._put_prior()
+
+    def _fit_grid_phase(self, scan: ScanPoints) -> None:
+        """Before the first scan is mapped: the lattice through the walls it sees from the start pose
+        (``RbpfConfig.grid_phase_from_walls``); an axis without a clear wall offset keeps its phase."""
+        cfg = self.config
+        start = np.asarray(cfg.initial_pose, dtype=np.float64)
+        normals = surface_normals(scan.hit_xy)
+        c, s = math.cos(float(start[2])), math.sin(float(start[2]))
+        turned = normals @ np.array([[c, s], [-s, c]])
+        fit = fit_grid_phase(transform_points(start, scan.hit_xy), turned, cfg.grid.resolution_m)
+        old_x, old_y = cfg.grid.phase_m
+        phase_x = old_x if fit.phase_m[0] is None else fit.phase_m[0]
+        phase_y = old_y if fit.phase_m[1] is None else fit.phase_m[1]
+        log.info(
+            "grid phase (%.4f, %.4f) m from the first scan's walls (resultant %.2f / %.2f, %d / %d votes)",
+            phase_x,
+            phase_y,
+            fit.resultant[0],
+            fit.resultant[1],
+            fit.votes[0],
+            fit.votes[1],
+        )
+        self._set_grid(dataclasses.replace(cfg.grid, phase_m=(phase_x, phase_y)))
+
+    def _set_grid(self, grid: GridGeometry) -> None:
+        """Use ``grid`` from now on: only before anything is mapped (the maps hold cells, not points)."""
+        self.config = dataclasses.replace(self.config, grid=grid)
+        self.maps.geometry = grid
 
     def _put_prior(self) -> None:
         if self._prior is None:

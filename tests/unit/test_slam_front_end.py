@@ -62,7 +62,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
         f"normal_thickness_m = {NORMAL_THICKNESS_M['radish']}\n"
         f"match_min_translation_information = {MATCH_MIN_TRANSLATION_INFORMATION['radish']}\n"
-        "match_medial_window_cells = 3\n"
+        "match_medial_window_cells = 3\ngrid_phase_from_walls = false\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(
@@ -86,6 +86,8 @@ def test_the_keys_load_and_reach_the_filter() -> None:
     assert field.medial_window_cells == 3
     assert built.noise == MOTION_NOISE
     assert built.free_margin_m == 0.1
+    assert not built.grid_phase_from_walls and built.grid.phase_m == (0.0, 0.0)
+    assert SlamConfig().grid_phase_from_walls and log_config("radish").grid_phase_from_walls
     assert built.log_odds == log_odds_model("radish") and built.search_increment_rad == 0.19
     assert built.search_below_inliers == 0.5 and log_config("breezyslam").search_below_inliers == 0.0
     assert built.shared_field_updates == 5 and log_config("radish").shared_field_updates == 20
@@ -134,6 +136,7 @@ _FRONT_END_KEYS = (
         ("odometry_noise = [0.1, 0.2]", "slam.odometry_noise"),
         ("odometry_noise = [0.1, -0.2, 0.1, 0.2]", "slam.odometry_noise"),
         ("free_margin_m = -0.01", "slam.free_margin_m"),
+        ('grid_phase_from_walls = "yes"', "slam.grid_phase_from_walls"),
         ("reversal_ratio = 0", "slam.reversal_ratio"),
         ("reversal_ratio = 1.5", "slam.reversal_ratio"),
         ("normal_radius_per_m = -0.1", "slam.normal_radius_per_m"),
