@@ -512,6 +512,8 @@ def run(args: argparse.Namespace) -> int:
         "along_surface_weight": config.proposal.along_surface_weight,
         "degenerate_noise_scale": config.proposal.degenerate_noise_scale,
         "medial_window_cells": config.proposal.matcher.medial_window_cells,
+        # The lattice the map was built on (RbpfConfig.grid_phase_from_walls: fitted to the first scan).
+        "grid_phase_m": [round(p, 4) for p in slam.config.grid.phase_m],
         **{
             key: None if config.loop_closure is None else getattr(config.loop_closure, key)
             for key in (

@@ -253,6 +253,8 @@ def test_eval_medial_window_is_checked_and_reported(
     err = capsys.readouterr().err
     assert "--medial-window-cells: must be in [0, 8]" in err and "Traceback" not in err
     assert main(args) == 0
-    assert json.loads(capsys.readouterr().out)["medial_window_cells"] == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["medial_window_cells"] == 0
+    assert len(summary["grid_phase_m"]) == 2 and all(0.0 <= p < 0.05 for p in summary["grid_phase_m"])
     assert main([*args, "--medial-window-cells", "3"]) == 0
     assert json.loads(capsys.readouterr().out)["medial_window_cells"] == 3
