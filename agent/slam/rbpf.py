@@ -535,8 +535,9 @@ class RbpfSlam:
         """Start from a saved map (lifelong mapping): ``log_odds`` (rows = y, this grid's cell size) with
         its first cell's lower-left corner at ``origin_m``, clamped to the model's limits, becomes every
         particle's map before the first scan; its unknown cells (0) stay unknown. It is also the base a loop
-        closure rebuilds the map on (the nodes only hold this run's scans). Cells are placed on the nearest
-        cell of this grid (a map saved by this filter lines up exactly)."""
+        closure rebuilds the map on (the nodes only hold this run's scans). With
+        ``grid_phase_from_walls`` (the default) this grid takes the saved map's phase first, so its cells
+        line up exactly; without, cells are placed on the nearest cell of this grid."""
         if self._started:
             raise ValueError("seed_map comes before the first scan")
         if self.config.grid_phase_from_walls:
