@@ -50,19 +50,45 @@ def scan(log: SlamLog, i: int) -> ScanPoints:
 
 
 def map_along(
-    log: SlamLog, poses: np.ndarray, indices: range | list[int]
+    log: SlamLog, poses: np.ndarray, indices: range | list[int], geometry: GridGeometry = GEOMETRY
 ) -> tuple[np.ndarray, tuple[float, float]]:
     """Stored log-odds of the scans ``indices`` placed at ``poses``."""
-    rect = TileRect.covering(GEOMETRY, (-9.0, -6.0), (9.0, 9.0))
+    rect = TileRect.covering(geometry, (-9.0, -6.0), (9.0, 9.0))
     windows = np.zeros((1, rect.shape[0] * 32, rect.shape[1] * 32), dtype=np.int8)
     for i in indices:
-        integrate_scans(windows, rect.origin_m(GEOMETRY), 0.05, poses[i][None, :], scan(log, i), MODEL, 32)
-    return windows[0], rect.origin_m(GEOMETRY)
+        integrate_scans(windows, rect.origin_m(geometry), 0.05, poses[i][None, :], scan(log, i), MODEL, 32)
+    return windows[0], rect.origin_m(geometry)
 
 
-def loop_closure_errors(log: SlamLog, poses: np.ndarray) -> tuple[float, float, float]:
+def _registered(log: SlamLog, scans: range, geometry: GridGeometry) -> tuple[float, int, np.ndarray]:
+    """(inlier fraction, scan, pose) of the scan among ``scans`` that registers best on a map of the first
+    six scans (the rover stood still for them) drawn on ``geometry``'s lattice."""
+    odometry = log.odometry_poses()
+    stored, origin = map_along(log, np.zeros((len(log), 3)), range(6), geometry)
+    field = DistanceField.from_obstacles((stored > MODEL.counts(MODEL.occupied))[None], origin, 0.05, 0.6)
+    search = SearchConfig(
+        xy_range_m=0.8, xy_step_m=0.05, yaw_range_rad=0.35, yaw_step_rad=0.01, truncate_m=0.3
+    )
+    best: tuple[float, int, np.ndarray] | None = None
+    for j in scans:
+        points = voxel_filter(scan(log, j).hit_xy, 0.1, 200)
+        coarse, _ = correlative_search(field, 0, points, between(odometry[0], odometry[j]), search)
+        registered = match(field, np.zeros(1, dtype=np.int64), points, coarse[None, :], MatcherConfig())
+        if registered.ok[0] and (best is None or registered.inlier_fraction[0] > best[0]):
+            best = (float(registered.inlier_fraction[0]), j, registered.poses[0])
+    assert best is not None and best[0] > 0.5
+    return best
+
+
+def loop_closure_errors(log: SlamLog, poses: np.ndarray, lattices: int = 1) -> tuple[float, float, float]:
     """(SLAM error m, SLAM error deg, odometry error m) of the relative pose start -> revisit, against a
-    direct registration of the revisit scan on a map of the first scans."""
+    direct registration of the revisit scan on a map of the first scans.
+
+    That registration is itself a grid match, and the grid's lattice moves it: drawn on 16 lattices
+    (phases 0, 1/4, 1/2, 3/4 of a cell per axis) its heading spreads by 0.30 deg (one standard deviation;
+    1.07 deg from end to end) and its position by 0.9 cm in x. ``lattices`` n > 1 registers the scan the
+    unmoved lattice picks on n x n lattices and takes their mean: a reference free of any one lattice
+    (docs/slam.md, "Open problems", the first item, *The loop's measure has a lattice too*)."""
     odometry = log.odometry_poses()
     # The place where the rover passes its start again, found on the raw odometry (no filter involved).
     late = np.arange(300, len(log))
@@ -70,22 +96,19 @@ def loop_closure_errors(log: SlamLog, poses: np.ndarray) -> tuple[float, float, 
         late[np.argmin(np.hypot(odometry[late, 0] - odometry[0, 0], odometry[late, 1] - odometry[0, 1]))]
     )
     assert np.hypot(*(odometry[nearest, :2] - odometry[0, :2])) < 1.0
-    # Register the scans around there against a map of the first six scans (the rover stood still for
-    # them); keep the one that registers best.
-    stored, origin = map_along(log, np.zeros((len(log), 3)), range(6))
-    field = DistanceField.from_obstacles((stored > MODEL.counts(MODEL.occupied))[None], origin, 0.05, 0.6)
-    search = SearchConfig(
-        xy_range_m=0.8, xy_step_m=0.05, yaw_range_rad=0.35, yaw_step_rad=0.01, truncate_m=0.3
-    )
-    best: tuple[float, int, np.ndarray] | None = None
-    for j in range(nearest - 10, min(nearest + 11, len(log))):
-        points = voxel_filter(scan(log, j).hit_xy, 0.1, 200)
-        coarse, _ = correlative_search(field, 0, points, between(odometry[0], odometry[j]), search)
-        registered = match(field, np.zeros(1, dtype=np.int64), points, coarse[None, :], MatcherConfig())
-        if registered.ok[0] and (best is None or registered.inlier_fraction[0] > best[0]):
-            best = (float(registered.inlier_fraction[0]), j, registered.poses[0])
-    assert best is not None and best[0] > 0.5
-    _, j, truth_like = best
+    # Register the scans around there; keep the one that registers best.
+    _, j, truth_like = _registered(log, range(nearest - 10, min(nearest + 11, len(log))), GEOMETRY)
+    if lattices > 1:
+        steps = [k * GEOMETRY.resolution_m / lattices for k in range(lattices)]
+        found = np.array(
+            [
+                _registered(log, range(j, j + 1), GridGeometry(phase_m=(px, py)))[2]
+                for px in steps
+                for py in steps
+            ]
+        )
+        yaw = float(np.arctan2(np.sin(found[:, 2]).mean(), np.cos(found[:, 2]).mean()))
+        truth_like = np.array([found[:, 0].mean(), found[:, 1].mean(), yaw])
     slam_error = between(truth_like, between(poses[0], poses[j]))
     odometry_error = between(truth_like, between(odometry[0], odometry[j]))
     return (
@@ -103,10 +126,10 @@ def test_at_the_revisit_slam_beats_odometry(run: tuple[SlamLog, ReplayResult]) -
 
 
 def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
-    # 0.088 m / 0.64 deg with seed 0; over seeds 0-23 the loop closes within 0.1 m / 2 deg for 18 of 24
-    # (the misses: seed 1 0.427 m, seeds 9, 14, 18 2.1-5.0 deg, seeds 22, 23 0.104 / 0.134 m; docs/slam.md,
-    # "Open problems"; `python benchmarks/slam_loop.py --seeds $(seq 0 23)`): this guards the seed the
-    # other checks use, not every seed.
+    # 0.085 m / 0.36 deg with seed 0; over seeds 0-23 the loop closes within 0.1 m / 2 deg for 18 of 24
+    # (the misses: seeds 3, 17, 20 0.111-0.144 m, seeds 4, 8, 12 2.05-3.81 deg; docs/slam.md, "Open
+    # problems"; `python benchmarks/slam_loop.py --seeds $(seq 0 23)`): this guards the seed the other
+    # checks use, not every seed.
     log, result = run
     slam_m, slam_deg, _ = loop_closure_errors(log, result.poses)
     assert slam_m < 0.1
@@ -114,8 +137,9 @@ def test_the_loop_closes(run: tuple[SlamLog, ReplayResult]) -> None:
 
 
 def test_the_loop_closes_for_most_seeds(run: tuple[SlamLog, ReplayResult]) -> None:
-    # Not one lucky seed: seeds 0-5 close for 5 of 6 (seed 1 misses by 0.427 m); with the correlative
-    # search at every update, the former default, they closed for 3 of 6 and seeds 0-23 for 5 of 24.
+    # Not one lucky seed: seeds 0-5 close for 4 of 6 (seed 3 misses by 0.128 m, seed 4 by 2.05 deg; the
+    # grid's phase fitted to the walls, the default: 18 of 24 over seeds 0-23 against 12 without it); with
+    # the correlative search at every update, a former default, they closed for 3 of 6.
     log, result = run
     closed = []
     for seed in range(6):
