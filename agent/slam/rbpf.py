@@ -586,9 +586,8 @@ class RbpfSlam:
         (``RbpfConfig.grid_phase_from_walls``); an axis without a clear wall offset keeps its phase."""
         cfg = self.config
         start = np.asarray(cfg.initial_pose, dtype=np.float64)
-        normals = surface_normals(scan.hit_xy)
-        c, s = math.cos(float(start[2])), math.sin(float(start[2]))
-        turned = normals @ np.array([[c, s], [-s, c]])
+        # The normals turned by the start's heading alone: directions, not points.
+        turned = transform_points((0.0, 0.0, start[2]), surface_normals(scan.hit_xy))
         fit = fit_grid_phase(transform_points(start, scan.hit_xy), turned, cfg.grid.resolution_m)
         old_x, old_y = cfg.grid.phase_m
         phase_x = old_x if fit.phase_m[0] is None else fit.phase_m[0]
