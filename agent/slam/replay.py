@@ -6,6 +6,7 @@ progress is reported through an optional callback.
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -16,7 +17,7 @@ import numpy.typing as npt
 
 from agent.slam.fix import TimedFix
 from agent.slam.logs import SlamLog
-from agent.slam.pose import between, compose
+from agent.slam.pose import between, compose, wrap_angle
 from agent.slam.rbpf import RbpfConfig, RbpfSlam, StepKind
 
 FloatArray = npt.NDArray[np.float64]
@@ -27,9 +28,10 @@ Progress = Callable[[int, int, "RbpfSlam"], None]
 @dataclass(frozen=True)
 class ReplayResult:
     """``poses`` (N, 3): the pose of every record of the log along the final best particle's ancestry
-    (its pose at each filter update, carried between updates by odometry): the trajectory the final map
-    was built from; ``online_poses`` (N, 3): the pose the filter reported right after each record (what
-    a robot would have used then); ``mean_poses`` (N, 3): as ``poses``, but along the weighted mean of
+    (its pose at each filter update, placed between updates by the odometry carried from the updates
+    on either side, :func:`poses_per_record`): the trajectory the final map was built from;
+    ``online_poses`` (N, 3): the pose the filter reported right after each record (what a robot would
+    have used then); ``mean_poses`` (N, 3): as ``poses``, but along the weighted mean of
     every final particle's ancestry (``RbpfSlam.mean_trajectory``: the path's posterior mean, not the
     path any one map was built from); ``update_ms``: the time of each filter update (the scans that were
     not gated away), ``scan_ms`` of every scan."""
@@ -109,22 +111,74 @@ def replay(
 
 
 def trajectory_per_record(
-    odometry: FloatArray, slam: RbpfSlam, update_records: list[int], mean: bool = False
+    odometry: FloatArray,
+    slam: RbpfSlam,
+    update_records: list[int],
+    mean: bool = False,
+    blend: bool = True,
 ) -> FloatArray:
-    """One pose per record, given each record's odometry (N, 3) as the filter took it: the final best
-    particle's pose at the last update at or before the record (with ``mean``, the weighted mean over
-    the final particles' ancestries there, ``RbpfSlam.mean_trajectory``), moved on by the odometry
-    since (x_i = x_k ⊕ (o_k⁻¹ ⊕ o_i)). Records before the first accepted scan get the odometry itself."""
+    """One pose per record, given each record's odometry (N, 3) as the filter took it, along the final best
+    particle's path at the filter's updates (with ``mean``, the weighted mean over the final particles'
+    ancestries, ``RbpfSlam.mean_trajectory``), placed between the updates by :func:`poses_per_record`
+    with the filter's own exchange rate of turning for driving (its update gates, 0.25 m per 0.2 rad by
+    default)."""
     _, update_poses, update_odom = slam.mean_trajectory() if mean else slam.trajectory()
-    poses = odometry.copy()
-    if not update_records:
-        return poses
     # With a bounded history only the last updates are kept: line them up with the newest records.
-    update_records = update_records[len(update_records) - update_poses.shape[0] :]
-    k = -1
-    for i in range(odometry.shape[0]):
-        while k + 1 < len(update_records) and update_records[k + 1] <= i:
-            k += 1
-        if k >= 0:
-            poses[i] = compose(update_poses[k], between(update_odom[k], odometry[i]))
+    kept = update_records[len(update_records) - update_poses.shape[0] :]
+    metres_per_rad = slam.config.linear_update_m / slam.config.angular_update_rad
+    return poses_per_record(odometry, kept, update_poses, update_odom, metres_per_rad, blend)
+
+
+def poses_per_record(
+    odometry: FloatArray,
+    update_records: Sequence[int],
+    update_poses: FloatArray,
+    update_odom: FloatArray,
+    metres_per_rad: float,
+    blend: bool = True,
+) -> FloatArray:
+    """(N, 3) a pose for each record, given each record's odometry (N, 3) and the path at the updates
+    (``update_poses`` (U, 3) at the records ``update_records``, increasing, where the odometry read
+    ``update_odom`` (U, 3)). An update's record takes its pose. A record between updates k and k+1 is the
+    odometry carried forward from update k, x_k ⊕ (o_k⁻¹ ⊕ o_i), and back from update k+1, blended by the
+    share of the odometry's motion from k to k+1 already driven at the record (:func:`motion_shares`,
+    :func:`blend_between`): the filter corrects the odometry at k+1, and a record just before it should
+    carry nearly all of that correction, not none (exp1's URG rover turns 0.2 rad between updates with its
+    odometry's turn several degrees off). Records after the last update are carried forward alone (nothing
+    later is known), as every record is with ``blend`` False; records before the first update keep the
+    odometry itself."""
+    poses = np.array(odometry, dtype=np.float64, copy=True)
+    bounds = [*update_records, odometry.shape[0]]
+    for k, (first, stop) in enumerate(itertools.pairwise(bounds)):
+        span = odometry[first:stop]
+        forward = compose(update_poses[k], between(update_odom[k], span))
+        if not blend or k + 1 >= len(update_records):
+            poses[first:stop] = forward
+            continue
+        backward = compose(update_poses[k + 1], between(update_odom[k + 1], span))
+        shares = motion_shares(np.vstack([span, update_odom[k + 1][None, :]]), metres_per_rad)[:-1]
+        poses[first:stop] = blend_between(forward, backward, shares)
     return poses
+
+
+def motion_shares(odometry: FloatArray, metres_per_rad: float) -> FloatArray:
+    """(N,) how far along the odometry's motion from its first pose to its last each pose lies, 0 to 1:
+    the motion summed record by record (a record's translation plus ``metres_per_rad`` times its turn,
+    so that turning on the spot counts). A path without motion gives 0 throughout."""
+    steps = between(odometry[:-1], odometry[1:]) if odometry.shape[0] > 1 else np.zeros((0, 3))
+    moved = np.hypot(steps[:, 0], steps[:, 1]) + metres_per_rad * np.abs(steps[:, 2])
+    travelled = np.concatenate([[0.0], np.cumsum(moved)])
+    total = travelled[-1]
+    if total <= 0.0:
+        return np.zeros(odometry.shape[0])
+    shares: FloatArray = travelled / total
+    return shares
+
+
+def blend_between(forward: FloatArray, backward: FloatArray, shares: FloatArray) -> FloatArray:
+    """(N, 3) poses ``forward`` (1 - s) + ``backward`` s, the headings on the circle (their difference
+    wrapped, then the share of it added)."""
+    s = shares[:, None]
+    out = forward * (1.0 - s) + backward * s
+    out[:, 2] = wrap_angle(forward[:, 2] + shares * wrap_angle(backward[:, 2] - forward[:, 2]))
+    return out
