@@ -37,8 +37,6 @@ def test_row_time_3_percent_off_is_found(tmp_path: Path) -> None:
             "--json",
             "--dir",
             str(out_dir),
-            "--frames",
-            "24",
         ],
         capture_output=True,
         stdin=subprocess.DEVNULL,
@@ -47,7 +45,10 @@ def test_row_time_3_percent_off_is_found(tmp_path: Path) -> None:
         cwd=REPO,
         check=False,
     )
-    assert out.returncode == 0, out.stderr[-3000:]
+    # The step's own default of 30 frames: with 24 its uncertainty, 0.12-0.17 % beside a loaded machine,
+    # stood close to the 0.2 % its check allows, and one CI run in many failed a check. On failure the
+    # JSON says which check (its "checks").
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
     r = strict_loads(out.stdout)
     assert r["ok"] and r["config_t_row_s"] == stated
     assert abs(r["change_pct"] - 3.0) < 0.3
