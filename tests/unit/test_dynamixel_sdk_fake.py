@@ -132,8 +132,15 @@ def test_ping_finds_two_xl430(rig: Rig) -> None:
 def test_an_id_written_takes_effect_at_once(rig: Rig) -> None:
     # ID (7) is EEPROM: writable with the torque off (as after power-on). The servo answers that very
     # write from its new id already (which the SDK, waiting for id 2, does not take: sent without waiting
-    # here), and from then on it answers to the new id only.
+    # here, its status then received on its own), and from then on it answers to the new id only.
     assert rig.ph.write1ByteTxOnly(rig.port, 2, 7, 9) == COMM_SUCCESS
+    # That status must be read before the next instruction: the SDK flushes its input only when it sends,
+    # and a status still on its way then (the fake's thread off the CPU beside a CPU hog) would be taken
+    # as the ping's answer (id 9, no parameters: the model read from its checksum).
+    rig.port.setPacketTimeout(11)  # a status without parameters: 11 bytes
+    status, result = rig.ph.rxPacket(rig.port, False)
+    assert result == COMM_SUCCESS
+    assert (status[4], status[7], status[8]) == (9, 0x55, 0)  # from id 9, a status, no error
     assert wait_for(lambda: rig.bus.ids == (1, 9))
     model, result, error = rig.ph.ping(rig.port, 9)
     ok(result, error)
