@@ -10,7 +10,7 @@ are not independent of each other). An LED whose own row time (over all its sigh
 the mean of those within ``reject_sigmas`` robust deviations of its own median) stands apart says its
 frequency in the map is not the one its driver blinks at (``led_deviation``). Its mean, not its median: an
 LED of few stripe periods across its disk reads its periods with a skewed spread (Environment 1's L1, 3.4
-periods of 8 px over 28 px: sightings 2.6 % below to 1.9 % above the estimate, their median 0.45-0.85 %
+periods of 8 px over 28 px: sightings 2.6 % below to 1.9 % above the estimate, their median 0.40-0.84 %
 below it where their mean is 0.1-0.2 % below), and a median then stands apart from a right frequency.
 
 Which signature a sighting is (``recognise_signatures``) is decided for all sightings together: a row-time

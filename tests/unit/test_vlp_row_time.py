@@ -55,7 +55,7 @@ def test_an_led_with_the_wrong_frequency_in_the_map_stands_apart() -> None:
 
 def test_an_led_read_with_a_skewed_spread_does_not_stand_apart() -> None:
     # Environment 1's L1 (3.4 stripe periods across its disk) reads its row time with a skewed spread:
-    # most sightings a little low, a tail high, centred on the truth. Its median stood 0.45-0.85 % below
+    # most sightings a little low, a tail high, centred on the truth. Its median stood 0.40-0.84 % below
     # the estimate in the row-time step's runs, and a check at 1 % failed now and then; its mean does not.
     t_true = 32e-6
     rng = np.random.default_rng(4)
