@@ -184,9 +184,7 @@ def estimate_row_time(
     if p.size == 0 or p.size != f.size or p.size != len(ids):
         raise ValueError("need as many periods, frequencies and ids, at least one")
     t = 1.0 / (f * p * sensor_rows_per_row)
-    median = float(np.median(t))
-    mad = 1.4826 * float(np.median(np.abs(t - median)))
-    keep = np.abs(t - median) <= reject_sigmas * max(mad, 1e-5 * median)
+    keep = _near_median(t, reject_sigmas)
     kept = t[keep]
     mean = float(kept.mean())
     n = kept.size
@@ -202,8 +200,14 @@ def estimate_row_time(
     per_led: dict[str, tuple[float, int]] = {}
     for led in dict.fromkeys(ids):
         values = t[[j for j, i in enumerate(ids) if i == led]]
-        own = float(np.median(values))
-        own_mad = 1.4826 * float(np.median(np.abs(values - own)))
-        near = values[np.abs(values - own) <= reject_sigmas * max(own_mad, 1e-5 * own)]
-        per_led[led] = (float(near.mean()), int(values.size))
+        per_led[led] = (float(values[_near_median(values, reject_sigmas)].mean()), int(values.size))
     return RowTimeEstimate(mean, se, int(n), int(p.size - n), per_led)
+
+
+def _near_median(values: npt.NDArray[np.float64], reject_sigmas: float) -> npt.NDArray[np.bool_]:
+    """Which ``values`` lie within ``reject_sigmas`` robust deviations (1.4826 MAD, at least 1e-5 of the
+    median) of their median: the sightings the estimate keeps, and those an LED's own row time averages."""
+    median = float(np.median(values))
+    mad = 1.4826 * float(np.median(np.abs(values - median)))
+    near: npt.NDArray[np.bool_] = np.abs(values - median) <= reject_sigmas * max(mad, 1e-5 * median)
+    return near
