@@ -820,6 +820,22 @@ def _find_loop_known(
     return LoopConstraint(i, j, between(poses[i], pose), best.fit.inlier_fraction, covariance)
 
 
+@dataclass(frozen=True)
+class GraphState:
+    """A filter's pose graph as it stands: its nodes' poses (``path``, (N, 3), the leading lineage's, the
+    optimised ones where a loop closure put them), each front-end edge's step (``motions[k]``, node k in
+    node k-1's frame; row 0 unused), the odometry's step beside it (``odometry_motions``), the loop
+    factors, and the VLP fixes' absolute factors: what :func:`optimize_graph` optimises. For diagnosis
+    (``benchmarks/slam_error_budget.py``): the graph optimised again with some factors replaced shows
+    how much of a trajectory's error each kind of factor carries."""
+
+    path: FloatArray
+    motions: FloatArray
+    odometry_motions: FloatArray
+    loops: tuple[LoopConstraint, ...]
+    absolute: AbsoluteFactors | None
+
+
 def window_nodes(poses: FloatArray, i: int, old_end: int, path_m: float) -> range:
     """The nodes up to ``old_end`` within ``path_m`` of path length of node i (the old map's window)."""
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[: old_end + 1, :2], axis=0).T))])

@@ -56,6 +56,7 @@ from agent.slam.grid import (
 )
 from agent.slam.lattice import fit_grid_phase, phase_of
 from agent.slam.loops import (
+    GraphState,
     LoopClosureConfig,
     LoopConstraint,
     Verdict,
@@ -1094,6 +1095,23 @@ class RbpfSlam:
         self._node_motions = list(motions)
         self.give_way()
         self._apply(path, judgement.result)
+
+    def graph_state(self) -> GraphState:
+        """The loop closure's pose graph as it stands (``loops.GraphState``): the nodes along the current
+        best particle's ancestry, the chain's steps as the next optimisation would take them, the
+        odometry's, the loop factors and the fixes' absolute factors. Raises ``ValueError`` when the
+        filter runs without loop closure or its history no longer lines up with the graph's nodes
+        (``history_limit`` reached)."""
+        if self.config.loop_closure is None:
+            raise ValueError("this filter runs without loop closure: it keeps no pose graph")
+        path = self.trajectory()[1]
+        if path.shape[0] != len(self._node_scans):
+            raise ValueError(
+                f"the history ({path.shape[0]} updates) no longer lines up with the graph's "
+                f"{len(self._node_scans)} nodes (history_limit reached)"
+            )
+        motions, odometry_motions, absolute = self._graph_inputs(path)
+        return GraphState(path, motions, odometry_motions, tuple(self._loops), absolute)
 
     def _graph_inputs(self, path: FloatArray) -> tuple[FloatArray, FloatArray, AbsoluteFactors | None]:
         """The chain's motions (since the last optimisation: the leading lineage's ancestry, the front
