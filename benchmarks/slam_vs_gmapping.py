@@ -18,11 +18,16 @@ process time, GMapping's driver's loop thread), which the machine's other work m
   (imported from it) on the first 365 records of the whole-log run: closed when the revisit is within
   0.1 m and 2 deg of a direct registration on the first map.
 
+With ``--repeat N`` each system runs N times per log and seed, the order alternating from round to round;
+the times are then the medians (each run's listed beside them, ``cpu_ratio_rounds`` each round's ratio),
+the accuracy the first run's (``repeats_differ`` flags a system whose runs gave other poses).
+
 GMapping is skipped, with the reason in the JSON, where ``../shared/peers/gmapping`` or a C++ compiler is
 absent or the build fails; a log whose file is absent is skipped the same way.
 
     nice -n 15 python benchmarks/slam_vs_gmapping.py --logs intel aces --seeds 0 1 2 --out intel_aces.json
     nice -n 15 python benchmarks/slam_vs_gmapping.py --logs exp1 --seeds 0 1 2 3 4 5
+    python benchmarks/slam_vs_gmapping.py --logs exp1 --seeds 0 1 2 3 4 5 --repeat 3
     python benchmarks/slam_vs_gmapping.py --logs intel --seeds 0 --no-gmapping
 """
 
@@ -300,6 +305,30 @@ def run_ours(
     return np.load(out_npy), figures
 
 
+def combine_runs(results: Sequence[tuple[FloatArray, dict[str, Any]]]) -> dict[str, Any]:
+    """One system's figures over repeated runs of the same log and seed (``--repeat``): the first run's,
+    with the times (``wall_s``, ``cpu_s``, ``update_ms_median``) the median over the runs and each run's
+    beside them (``wall_s_runs``, ``cpu_s_runs``). Both systems are seeded, so every run should give the
+    same poses; ``repeats_differ`` says where they did not (the accuracy figures are the first run's)."""
+    if not results:
+        raise ValueError("no runs to combine")
+    first_poses, first = results[0]
+    out = dict(first)
+    for key in ("wall_s", "cpu_s", "update_ms_median"):
+        values = [figures[key] for _poses, figures in results]
+        if any(v is None for v in values):
+            continue
+        out[key] = round(float(np.median(values)), 3)
+        if key != "update_ms_median" and len(results) > 1:
+            out[f"{key}_runs"] = values
+    if len(results) > 1:
+        out["repeats_differ"] = any(
+            poses.shape != first_poses.shape or not np.array_equal(poses, first_poses)
+            for poses, _figures in results[1:]
+        )
+    return out
+
+
 # -- scoring ------------------------------------------------------------------------------------------------
 
 
@@ -379,6 +408,7 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
         "loop_closure": args.loop_closure,
         "edge_sigma": args.edge_sigma,
         "match_sigma": args.match_sigma,
+        "repeat": args.repeat,
         "machine": machine(),
         "gmapping": {"driver": str(driver), "urange_frac": args.urange_frac}
         if driver
@@ -396,31 +426,47 @@ def benchmark(args: argparse.Namespace) -> dict[str, Any]:
         runs = []
         for k, seed in enumerate(args.seeds):
             row: dict[str, Any] = {"seed": seed}
-            order = ("ours", "gmapping") if k % 2 == 0 else ("gmapping", "ours")
-            for system in order:
-                if system == "ours":
-                    poses, figures = run_ours(
-                        path,
-                        log_format,
-                        seed,
-                        args.particles,
-                        work / "ours.npy",
-                        args.loop_closure == "on",
-                        graph_knobs(args),
-                    )
-                elif driver is not None and gm_input is not None:
-                    poses, figures = run_gmapping(
-                        driver, gm_input, work / f"gm_{name}_{seed}", args.particles, seed, args.urange_frac
-                    )
-                else:
-                    continue
-                row[system] = {**figures, **score(log, poses, args.span)}
+            done: dict[str, list[tuple[FloatArray, dict[str, Any]]]] = {"ours": [], "gmapping": []}
+            for round_ in range(args.repeat):
+                order = ("ours", "gmapping") if (k + round_) % 2 == 0 else ("gmapping", "ours")
+                for system in order:
+                    if system == "ours":
+                        done["ours"].append(
+                            run_ours(
+                                path,
+                                log_format,
+                                seed,
+                                args.particles,
+                                work / "ours.npy",
+                                args.loop_closure == "on",
+                                graph_knobs(args),
+                            )
+                        )
+                    elif driver is not None and gm_input is not None:
+                        done["gmapping"].append(
+                            run_gmapping(
+                                driver,
+                                gm_input,
+                                work / f"gm_{name}_{seed}",
+                                args.particles,
+                                seed,
+                                args.urange_frac,
+                            )
+                        )
+            for system, results in done.items():
+                if results:
+                    row[system] = {**combine_runs(results), **score(log, results[0][0], args.span)}
             if "gmapping" in row:
                 row["wall_ratio"] = round(row["ours"]["wall_s"] / row["gmapping"]["wall_s"], 3)
                 row["cpu_ratio"] = round(row["ours"]["cpu_s"] / row["gmapping"]["cpu_s"], 3)
                 row["update_ratio"] = round(
                     row["ours"]["update_ms_median"] / row["gmapping"]["update_ms_median"], 3
                 )
+                if args.repeat > 1:
+                    row["cpu_ratio_rounds"] = [
+                        round(a / b, 3)
+                        for a, b in zip(row["ours"]["cpu_s_runs"], row["gmapping"]["cpu_s_runs"], strict=True)
+                    ]
             print(json.dumps({"log": name, **row}), file=sys.stderr, flush=True)
             runs.append(row)
         out["logs"][name] = {"records": len(log), "runs": runs}
@@ -434,6 +480,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--logs", nargs="+", choices=sorted(LOGS), default=["intel", "aces", "fr079", "exp1"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--particles", type=int, default=30)
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="runs of each system per log and seed, the order alternating from round to round; the "
+        "times are then the medians (each run's beside them) and cpu_ratio their ratio (default 1)",
+    )
     parser.add_argument("--span", type=int, default=50, help="records between the span_* pairs")
     parser.add_argument(
         "--urange-frac", type=float, default=0.8, help="GMapping's maxUrange / maxRange (driver default)"
@@ -456,6 +509,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error(f"--repeat must be at least 1, got {args.repeat}")
     if args.worker:
         log_path, log_format, seed, particles, out_npy = args.worker
         return ours_worker(

@@ -88,3 +88,42 @@ def test_the_benchmark_reports_skips_in_its_json(
     assert machine["python"].split()[1] == ".".join(str(v) for v in sys.version_info[:3])
     assert machine["numpy"] == np.__version__
     assert machine["cpu"] and machine["cores"] >= 1 and machine["opencv"] and machine["scipy"]
+
+
+def _figures(cpu_s: float, wall_s: float, update_ms: float | None) -> dict[str, object]:
+    return {
+        "cpu_s": cpu_s,
+        "wall_s": wall_s,
+        "update_ms_median": update_ms,
+        "updates": 7,
+        "peak_rss_mb": 80.0,
+    }
+
+
+def test_repeated_runs_report_the_median_times_and_each_run() -> None:
+    poses = np.arange(12.0).reshape(4, 3)
+    runs = [
+        (poses, _figures(2.4, 2.5, 11.0)),
+        (poses.copy(), _figures(2.1, 2.2, 10.0)),
+        (poses, _figures(2.2, 2.9, 12.0)),
+    ]
+    out = bench.combine_runs(runs)
+    assert out["cpu_s"] == 2.2 and out["cpu_s_runs"] == [2.4, 2.1, 2.2]
+    assert out["wall_s"] == 2.5 and out["wall_s_runs"] == [2.5, 2.2, 2.9]
+    assert out["update_ms_median"] == 11.0
+    assert out["updates"] == 7 and out["peak_rss_mb"] == 80.0  # the first run's
+    assert out["repeats_differ"] is False
+    moved = poses.copy()
+    moved[2, 0] += 1e-9
+    assert bench.combine_runs([runs[0], (moved, _figures(2.0, 2.0, None))])["repeats_differ"] is True
+    # One run: its own figures, nothing added; a missing time is left as it was.
+    assert bench.combine_runs(runs[:1]) == runs[0][1]
+    assert bench.combine_runs([runs[0], (poses, _figures(2.0, 2.0, None))])["update_ms_median"] == 11.0
+    with pytest.raises(ValueError, match="no runs"):
+        bench.combine_runs([])
+
+
+def test_repeat_must_be_at_least_one(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        bench.main(["--logs", "intel", "--repeat", "0"])
+    assert "--repeat must be at least 1" in capsys.readouterr().err
