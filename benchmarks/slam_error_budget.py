@@ -36,25 +36,23 @@ from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 import numpy.typing as npt
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.commands.eval_slam import log_config  # noqa: E402
-from agent.slam.logs import LogFormat, read_log  # noqa: E402
-from agent.slam.loops import GraphState, LoopClosureConfig, optimize_graph  # noqa: E402
-from agent.slam.metrics import aligned_trajectory_error  # noqa: E402
-from agent.slam.pose import between  # noqa: E402
-from agent.slam.rbpf import StepKind  # noqa: E402
-from agent.slam.replay import replay  # noqa: E402
+from agent.commands.eval_slam import log_config
+from agent.slam.logs import LogFormat, read_log
+from agent.slam.loops import GraphState, LoopClosureConfig, optimize_graph
+from agent.slam.metrics import aligned_trajectory_error
+from agent.slam.pose import between
+from agent.slam.rbpf import StepKind
+from agent.slam.replay import replay
+from tests.conftest import DATA
 
 FloatArray = npt.NDArray[np.float64]
 
-SHARED = Path(os.environ.get("VLP_SHARED", REPO.parent / "shared"))
 LOGS = {
     "intel": "slam/radish/intel_scans.txt",
     "aces": "slam/radish/aces_scans.txt",
@@ -150,7 +148,7 @@ def main() -> int:
     args = parser.parse_args()
     lines: list[dict[str, Any]] = []
     for name in args.logs:
-        path = SHARED / "data" / LOGS[name]
+        path = DATA / LOGS[name]
         if not path.is_file():
             lines.append({"log": name, "skipped": f"log not found: {path} (set VLP_SHARED)"})
             print(json.dumps(lines[-1]), flush=True)
