@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -51,7 +52,7 @@ def test_vlp_error_calibration_halves_the_error(tmp_path: Path) -> None:
     )
     assert out.returncode == 0, out.stderr
     assert "Traceback" not in out.stderr, out.stderr[-3000:]
-    r = strict_loads(out.stdout)
+    r = step_json(out)
     assert r["ok"], r["checks"]
     assert r["mean_error_cm_before"] > 0.8
     assert r["mean_error_cm_after"] <= 0.5
@@ -72,6 +73,14 @@ def test_vlp_error_calibration_halves_the_error(tmp_path: Path) -> None:
         assert calibration.residual.points == r["known_point_fixes"] and r["residual_refused"] is None
     else:
         assert r["residual_refused"] and r["residual_rms_after_m"] is None
+
+
+def step_json(out: subprocess.CompletedProcess[str]) -> Any:
+    """The step's JSON report; where it printed none, a failure that says how the step ended (its exit
+    status and the end of its stderr: a CI run once found stdout empty and nothing more)."""
+    ended = f"exit status {out.returncode}; stderr:\n{out.stderr[-3000:]}"
+    assert out.stdout.strip(), f"no JSON on stdout; {ended}"
+    return strict_loads(out.stdout)
 
 
 def run_step(tmp_path: Path, *argv: str) -> subprocess.CompletedProcess[str]:
@@ -107,7 +116,7 @@ def test_clustered_known_points_give_no_residual_correction(tmp_path: Path) -> N
         "--turn-radps", "1.5",
     )  # fmt: skip
     assert "Traceback" not in out.stderr, out.stderr[-3000:]
-    r = strict_loads(out.stdout)
+    r = step_json(out)
     assert "not spread out" in r["residual_refused"]
     assert r["residual_rms_after_m"] is None and r["rotation_centre_refused"] is None
     # The file is written only when every check passes: say which did not (a loaded machine once left no
@@ -127,7 +136,7 @@ def test_sparse_ceiling_keeps_the_nominal_principal_point_and_goes_on(tmp_path: 
         "--headings", "4", "--frames", "2", "--test-points", "2", "--turn-radps", "1.5",
     )  # fmt: skip
     assert "Traceback" not in out.stderr, out.stderr[-3000:]
-    r = strict_loads(out.stdout)
+    r = step_json(out)
     assert "no LED of the map was tracked during the turn" in r["rotation_centre_refused"]
     assert r["principal_point_px"] is None and r["circles"] == 0
     assert r["known_point_fixes"] >= 6
