@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.commands.eval_slam import log_config
 from agent.slam.logs import LogFormat, read_log
-from agent.slam.loops import GraphState, LoopClosureConfig, optimize_graph
+from agent.slam.loops import GraphState, LoopClosureConfig, LoopConstraint, optimize_graph
 from agent.slam.metrics import aligned_trajectory_error
 from agent.slam.pose import between
 from agent.slam.rbpf import StepKind
@@ -69,7 +69,7 @@ def budget(state: GraphState, reference: FloatArray, config: LoopClosureConfig) 
     steps = np.zeros_like(state.motions)
     steps[1:] = between(reference[:-1], reference[1:])
 
-    def optimised(motions: FloatArray, loops: tuple[Any, ...]) -> float:
+    def optimised(motions: FloatArray, loops: tuple[LoopConstraint, ...]) -> float:
         result = optimize_graph(
             state.path, motions, list(loops), config, state.absolute, state.odometry_motions
         )
