@@ -10,7 +10,11 @@ factors) is then optimised again (``loops.optimize_graph``, the filter's own opt
 - ``reference_loops``: every loop factor's measurement replaced by the reference poses' relative pose;
 - ``reference_steps``: every front-end step replaced by the reference's;
 - ``reference_steps_forward`` / ``_sideways`` / ``_heading``: one component of the steps replaced (in the
-  earlier node's frame: forward is along the robot's track).
+  earlier node's frame: forward is along the robot's track);
+- ``odometry_snaps_M`` (with ``--odometry-snaps M ...``): not the reference's but a rule the filter could
+  apply itself: the forward step of each edge whose forward component departs from the odometry's by more
+  than M metres (the front end's snaps onto an older part of its map, or the wheels' slips) replaced by
+  the odometry's, which ``optimize_graph`` then holds at ``motion_sigma``.
 
 Each variant's ``ate_aligned_m`` is against the log's reference poses at the graph's nodes (the filter's
 updates), after the best rigid alignment, as ``eval slam`` scores it. A variant that brings the error down
@@ -23,6 +27,7 @@ One JSON object per log and seed, then a summary per log (mean per variant, seed
 
     python benchmarks/slam_error_budget.py --logs aces --seeds 0 1 2 3 4 5
     python benchmarks/slam_error_budget.py --logs intel aces --seeds 0 1 2
+    python benchmarks/slam_error_budget.py --logs aces intel fr079 --odometry-snaps 0.15 0.2
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import dataclasses
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -63,9 +69,15 @@ COMPONENTS = {"forward": 0, "sideways": 1, "heading": 2}
 WITHIN_M = 0.15  # issue 20's line for Intel and ACES
 
 
-def budget(state: GraphState, reference: FloatArray, config: LoopClosureConfig) -> dict[str, float]:
+def budget(
+    state: GraphState,
+    reference: FloatArray,
+    config: LoopClosureConfig,
+    snap_limits_m: Sequence[float] = (),
+) -> dict[str, float]:
     """``ate_aligned_m`` of the nodes as run and of the graph optimised again with each variant's
-    factors (the module docstring); ``reference`` (N, 3) holds the reference pose at each node."""
+    factors (the module docstring); ``reference`` (N, 3) holds the reference pose at each node;
+    ``snap_limits_m``, the ``odometry_snaps_M`` variants' M."""
     steps = np.zeros_like(state.motions)
     steps[1:] = between(reference[:-1], reference[1:])
 
@@ -88,10 +100,23 @@ def budget(state: GraphState, reference: FloatArray, config: LoopClosureConfig) 
         motions = state.motions.copy()
         motions[:, column] = steps[:, column]
         out[f"reference_steps_{name}"] = optimised(motions, state.loops)
+    for limit in snap_limits_m:
+        out[f"odometry_snaps_{limit:g}"] = optimised(odometry_snaps(state, limit), state.loops)
     return {key: round(float(value), 4) for key, value in out.items()}
 
 
-def run_seed(name: str, path: Path, seed: int, particles: int) -> dict[str, Any]:
+def odometry_snaps(state: GraphState, limit_m: float) -> FloatArray:
+    """``state.motions`` with the forward step of each edge whose forward component departs from the
+    odometry's by more than ``limit_m`` replaced by the odometry's."""
+    motions = state.motions.copy()
+    snapped = np.abs(motions[1:, 0] - state.odometry_motions[1:, 0]) > limit_m
+    motions[1:, 0] = np.where(snapped, state.odometry_motions[1:, 0], motions[1:, 0])
+    return motions
+
+
+def run_seed(
+    name: str, path: Path, seed: int, particles: int, snap_limits_m: Sequence[float] = ()
+) -> dict[str, Any]:
     log = read_log(path, LogFormat.RADISH)
     config = log_config("radish", seed=seed, particles=particles)
     result = replay(log, config)
@@ -109,7 +134,11 @@ def run_seed(name: str, path: Path, seed: int, particles: int) -> dict[str, Any]
         "seed": seed,
         "nodes": len(nodes),
         "loops": len(state.loops),
-        "ate_aligned_m": budget(state, reference, config.loop_closure),
+        "snaps": {
+            f"{limit:g}": int(np.sum(np.abs(state.motions[1:, 0] - state.odometry_motions[1:, 0]) > limit))
+            for limit in snap_limits_m
+        },
+        "ate_aligned_m": budget(state, reference, config.loop_closure, snap_limits_m),
     }
 
 
@@ -144,8 +173,20 @@ def main() -> int:
         "--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5], help="filter seeds (default 0-5)"
     )
     parser.add_argument("--particles", type=int, default=30, help="particles (default 30, eval slam's)")
+    parser.add_argument(
+        "--odometry-snaps",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="M",
+        help="also the odometry_snaps_M variants: each front-end step whose forward component departs from "
+        "the odometry's by more than M metres takes the odometry's (the count of such steps per seed is "
+        "printed as snaps)",
+    )
     parser.add_argument("--out", type=Path, help="also write the JSON lines here")
     args = parser.parse_args()
+    if any(limit <= 0 for limit in args.odometry_snaps):
+        parser.error("--odometry-snaps: each limit must be above 0 m")
     lines: list[dict[str, Any]] = []
     for name in args.logs:
         path = DATA / LOGS[name]
@@ -156,7 +197,7 @@ def main() -> int:
         rows = []
         for seed in args.seeds:
             print(f"{name} seed {seed} ...", file=sys.stderr, flush=True)
-            rows.append(run_seed(name, path, seed, args.particles))
+            rows.append(run_seed(name, path, seed, args.particles, args.odometry_snaps))
             lines.append(rows[-1])
             print(json.dumps(rows[-1]), flush=True)
         lines.append(summary(name, rows))

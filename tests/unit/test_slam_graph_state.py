@@ -6,12 +6,15 @@ without loop closure says it keeps no graph."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
-from agent.slam.loops import chain_poses, optimize_graph
+from agent.slam.loops import GraphState, chain_poses, optimize_graph
 from agent.slam.pose import between, wrap_angle
 from agent.slam.rbpf import RbpfConfig
 from agent.slam.replay import ReplayResult, replay
@@ -57,3 +60,28 @@ def test_a_filter_without_loop_closure_keeps_no_graph() -> None:
     result = replay(drive.log, dataclasses.replace(RbpfConfig(particles=4, seed=0), loop_closure=None))
     with pytest.raises(ValueError, match="without loop closure"):
         result.slam.graph_state()
+
+
+def _budget_module() -> ModuleType:
+    spec = importlib.util.spec_from_file_location(
+        "slam_error_budget", Path(__file__).resolve().parents[2] / "benchmarks" / "slam_error_budget.py"
+    )
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_budget_s_odometry_snaps_take_the_wheels_forward_step_only_where_the_match_departs() -> None:
+    budget = _budget_module()
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.02, 0.01], [0.49, -0.01, 0.0], [1.3, 0.0, 0.2]])
+    odometry = np.array([[0.0, 0.0, 0.0], [1.05, 0.0, 0.0], [1.01, 0.0, 0.05], [1.0, 0.1, 0.0]])
+    state = GraphState(chain_poses(np.zeros(3), motions), motions, odometry, (), None)
+    out = budget.odometry_snaps(state, 0.2)
+    # Steps 2 (0.52 m short) and 3 (0.3 m long) departed by more than 0.2 m: their forward step is the
+    # wheels'; their sideways step and heading, and step 1 (5 cm), are the match's.
+    np.testing.assert_array_equal(out[:, 0], [0.0, 1.0, 1.01, 1.0])
+    np.testing.assert_array_equal(out[:, 1:], motions[:, 1:])
+    np.testing.assert_array_equal(state.motions[2], [0.49, -0.01, 0.0])  # a copy: the state is kept
+    assert budget.odometry_snaps(state, 0.6)[2, 0] == 0.49
