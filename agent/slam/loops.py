@@ -157,6 +157,20 @@ class LoopClosureConfig:
     # match turned the robot by 10 deg against its wheels, either the wheels slipped or the match failed,
     # and a loop's correction belongs there rather than spread over every edge.
     correction_share: float = 0.5
+    # A front-end edge whose forward step (x in node k-1's frame) departs from the odometry's by more than
+    # ``snap_forward_m`` while the robot drives steadily (at least ``snap_steady_m`` of odometry since its
+    # last standstill at both of the edge's nodes) takes the odometry's forward step: a snap. Along a
+    # corridor the walls hardly fix the match's position along the way, and the front end can jump in one
+    # step onto an older part of its map that carries the corridor's whole length error (ACES's record
+    # 329: 0.52 m short in one 1 m step); no loop link spans the corridor to move that jump, and widening
+    # the edge's sigma lets the graph keep it (``correction_share``). Over one steady metre the wheels'
+    # forward step errs by centimetres. Near a standstill it does not: where a log's odometry does not
+    # know the direction of travel (FR079's, rebuilt: 48 of its 1550 steps 0.2-0.7 m off, each a reversal
+    # or a back-and-forth between two updates) the match is right. The odometry there is taken in the
+    # direction the filter took it (``RbpfConfig.reversal_ratio``). None: the match's step everywhere.
+    # Measured for issue 20: docs/slam.md, "Open problems" (session 24).
+    snap_forward_m: float | None = 0.15
+    snap_steady_m: float = 1.0
     # ... counting only the part of that departure the odometry's own noise does not explain
     # (``correction_odometry_sigmas`` = k set, and the filter's motion model's sigmas of each odometry
     # increment handed in, ``OdometryNoise.sigmas``): the edge is widened by share * max(0, |match -
@@ -1131,6 +1145,18 @@ def optimize_graph(
         assert whitening is not None
         whitening[n - 1 :] = np.array([loop_sqrt_information(c, config) for c in loops])
     return optimize(poses, RelativeFactors(i, j, z, sigma, whitening), absolute, huber=config.huber)
+
+
+def odometry_forward_at_snaps(
+    motions: FloatArray, odometry_motions: FloatArray, steady: npt.NDArray[np.bool_], limit_m: float
+) -> FloatArray:
+    """``motions`` (N, 3; row k node k in node k-1's frame, row 0 unused) with the forward step (x) of each
+    edge k whose forward component departs from ``odometry_motions``' by more than ``limit_m`` where
+    ``steady[k]`` replaced by the odometry's (a copy; ``LoopClosureConfig.snap_forward_m``)."""
+    out = motions.copy()
+    snapped = steady[1:] & (np.abs(out[1:, 0] - odometry_motions[1:, 0]) > limit_m)
+    out[1:, 0] = np.where(snapped, odometry_motions[1:, 0], out[1:, 0])
+    return out
 
 
 def yaw_doubt(motions: FloatArray, odometry_motions: FloatArray, config: LoopClosureConfig) -> float:

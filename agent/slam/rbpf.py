@@ -63,6 +63,7 @@ from agent.slam.loops import (
     edge_covariances,
     find_loop,
     judge_loop,
+    odometry_forward_at_snaps,
     robot_frame_information,
     yaw_doubt,
 )
@@ -336,6 +337,11 @@ class RbpfSlam:
         self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
+        # ... the direction of travel the odometry was taken in at each update (+1 or -1, ``_direction``),
+        # and the odometry path since the last standstill then (``_since_stop_m``): the pose graph's
+        # odometry steps and where it trusts their length (LoopClosureConfig.snap_forward_m).
+        self.history_direction: collections.deque[float] = collections.deque(maxlen=limit)
+        self.history_since_stop_m: collections.deque[float] = collections.deque(maxlen=limit)
         # trajectory()'s last walk: (absolute update of its first row, _history_edits then, the particle
         # index at every update, the poses); the history's first row's absolute update; rewrites counted.
         self._lineage: tuple[int, int, list[int], FloatArray] | None = None
@@ -1147,6 +1153,13 @@ class RbpfSlam:
         odometry = np.array(self.history_odom)
         odometry_motions = np.zeros_like(odometry)
         odometry_motions[1:] = between(odometry[:-1], odometry[1:])
+        # In the direction of travel the filter took them in (reversed where the scans said so).
+        odometry_motions[:, :2] *= np.array(self.history_direction)[:, None]
+        if lc is not None and lc.snap_forward_m is not None:
+            since = np.array(self.history_since_stop_m)
+            steady = np.zeros(since.shape[0], dtype=bool)
+            steady[1:] = (since[1:] >= lc.snap_steady_m) & (since[:-1] >= lc.snap_steady_m)
+            motions = odometry_forward_at_snaps(motions, odometry_motions, steady, lc.snap_forward_m)
         absolute = None
         if self._fix_factors:
             absolute = AbsoluteFactors(
@@ -1273,3 +1286,5 @@ class RbpfSlam:
         self.history_parents.append(np.asarray(parents, dtype=np.int64))
         self.history_t_s.append(t_s)
         self.history_odom.append(odom.copy())
+        self.history_direction.append(self._direction)
+        self.history_since_stop_m.append(self._since_stop_m)

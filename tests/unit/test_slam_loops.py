@@ -24,6 +24,7 @@ from agent.slam.loops import (
     known_cells,
     known_fit,
     match_covariance,
+    odometry_forward_at_snaps,
     old_map_field,
     optimize_graph,
     robot_frame_information,
@@ -594,3 +595,41 @@ def test_the_graph_test_optimises_without_the_link_only_when_it_could_fail() -> 
     assert not graph_bent(result(10.0), never, 16.3)
     assert graph_bent(result(150.0), lambda: result(2.5), 16.3)
     assert not graph_bent(result(160.0), lambda: result(150.0), 16.3)
+
+
+def test_a_snap_takes_the_wheels_forward_step_where_the_robot_drives_steadily() -> None:
+    """``odometry_forward_at_snaps``: an edge whose forward step departs from the odometry's by more than
+    the limit takes the odometry's, only where the robot drove steadily; sideways and heading stay the
+    match's, and so does every edge within the limit."""
+    motions = np.array([[0.0, 0.0, 0.0], [1.0, 0.02, 0.01], [0.48, -0.01, 0.0], [1.3, 0.0, 0.2], [0.3, 0, 0]])
+    odometry = np.array([[0.0, 0.0, 0.0], [1.05, 0.0, 0.0], [1.0, 0.0, 0.05], [1.0, 0.1, 0.0], [0.9, 0, 0]])
+    steady = np.array([True, True, True, True, False])  # node 4: near a standstill
+    out = odometry_forward_at_snaps(motions, odometry, steady, 0.15)
+    np.testing.assert_array_equal(out[:, 0], [0.0, 1.0, 1.0, 1.0, 0.3])
+    np.testing.assert_array_equal(out[:, 1:], motions[:, 1:])
+    assert motions[2, 0] == 0.48  # a copy
+    np.testing.assert_array_equal(odometry_forward_at_snaps(motions, odometry, steady, 0.6), motions)
+
+
+def test_the_graph_keeps_a_corridor_s_length_through_a_snap_no_loop_spans() -> None:
+    """A corridor driven in 1 m steps whose front end snapped 0.5 m short at step 10, a loop link at each
+    end tying it to the map before and after (neither spans the snap): with the rule the optimised
+    corridor is the odometry's 20 m; without it, 0.5 m short (``correction_share`` widens the edge, and
+    nothing pulls it)."""
+    n = 21
+    motions = np.tile([1.0, 0.0, 0.0], (n, 1))
+    motions[0] = 0.0
+    motions[10, 0] = 0.5
+    odometry = np.tile([1.0, 0.0, 0.0], (n, 1))
+    odometry[0] = 0.0
+    steady = np.ones(n, dtype=bool)
+    poses = chain_poses(np.zeros(3), motions)
+    loops = [
+        LoopConstraint(0, 2, between(poses[0], poses[2]), 0.9),
+        LoopConstraint(18, 20, between(poses[18], poses[20]), 0.9),
+    ]
+    config = LoopClosureConfig()
+    for snap, length in ((None, 19.5), (0.15, 20.0)):
+        chain = motions if snap is None else odometry_forward_at_snaps(motions, odometry, steady, snap)
+        result = optimize_graph(poses, chain, loops, config, None, odometry)
+        assert float(result.poses[-1, 0] - result.poses[0, 0]) == pytest.approx(length, abs=0.01)

@@ -124,3 +124,26 @@ def test_a_forward_match_stuck_in_a_local_minimum_is_not_a_reversal(shared_data:
     config = log_config("radish", seed=5)
     assert config.reversal_ratio is not None  # the check runs on this log
     assert replay(log, config).slam.stats.reversals == 0
+
+
+def test_the_pose_graph_takes_the_odometry_in_the_direction_the_filter_found() -> None:
+    """Backing up with odometry that drives on forward: the pose graph's odometry steps are the filter's
+    (reversed after the standstill, as the scan said), not the log's, so that the graph neither widens
+    the backing edges for a 'departure' from odometry nor takes a forward step from it
+    (``LoopClosureConfig.snap_forward_m``)."""
+    poses, odometry, ranges = _there_and_back(3)
+    config = RbpfConfig(particles=8, initial_pose=tuple(poses[0]), reversal_ratio=0.5)
+    slam = RbpfSlam(LASER, config)
+    for k, (odom, r) in enumerate(zip(odometry, ranges, strict=True)):
+        slam.process(0.1 * k, r, odom)
+    assert slam.stats.reversals > 0
+    state = slam.graph_state()
+    raw = np.array(slam.history_odom)
+    raw_steps = between(raw[:-1], raw[1:])
+    assert np.all(raw_steps[:, 0] > -1e-9)  # the log's odometry never backs
+    backing = np.flatnonzero(state.motions[1:, 0] < -0.1) + 1  # the filter's steps back
+    assert backing.size > 3
+    np.testing.assert_allclose(state.odometry_motions[backing, :2], -raw_steps[backing - 1, :2])
+    np.testing.assert_allclose(state.odometry_motions[backing, 2], raw_steps[backing - 1, 2])
+    # ... and there the filter's steps and the odometry's agree to centimetres.
+    assert float(np.max(np.abs(state.motions[backing, 0] - state.odometry_motions[backing, 0]))) < 0.05
