@@ -1397,6 +1397,9 @@ class _Reader:
                 t.number("loop_accept_graph_chi2", 16.3, (lambda v: 0 <= v <= 1e6, "must be in [0, 1e6]"))
                 or None
             ),
+            loop_snap_forward_m=(
+                t.number("loop_snap_forward_m", 0.15, (lambda v: 0 <= v <= 10, "must be 0..10 m")) or None
+            ),
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

@@ -102,6 +102,11 @@ class SlamConfig:
     # graph without it (loops.LoopClosureConfig.accept_graph_chi2: a link that slid along a corridor and
     # bends the chain to fit); None (the key at 0): not tested
     loop_accept_graph_chi2: float | None = 16.3
+    # A front-end step whose forward component departs from the odometry's by more than this (m) while the
+    # robot drives steadily takes the odometry's in the pose graph (loops.LoopClosureConfig.snap_forward_m:
+    # the front end's snap onto an older part of its map along a corridor); None (the key at 0): the
+    # match's step everywhere
+    loop_snap_forward_m: float | None = 0.15
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The grid's lattice moved at the first scan so that the walls it sees along the map's axes run through

@@ -13,8 +13,10 @@ factors) is then optimised again (``loops.optimize_graph``, the filter's own opt
   earlier node's frame: forward is along the robot's track);
 - ``odometry_snaps_M`` (with ``--odometry-snaps M ...``): not the reference's but a rule the filter could
   apply itself: the forward step of each edge whose forward component departs from the odometry's by more
-  than M metres (the front end's snaps onto an older part of its map, or the wheels' slips) replaced by
-  the odometry's, which ``optimize_graph`` then holds at ``motion_sigma``.
+  than M metres (the front end's snaps onto an older part of its map, or the odometry's own errors)
+  replaced by the odometry's, which ``optimize_graph`` then holds at ``motion_sigma``. The filter applies
+  it at 0.15 m where the robot drives steadily (``LoopClosureConfig.snap_forward_m``), so the graph it
+  leaves has those steps already; this variant takes every edge, near standstills too.
 
 Each variant's ``ate_aligned_m`` is against the log's reference poses at the graph's nodes (the filter's
 updates), after the best rigid alignment, as ``eval slam`` scores it. A variant that brings the error down

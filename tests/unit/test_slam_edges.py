@@ -176,7 +176,7 @@ def test_an_edge_from_its_match_can_sit_on_its_departure_from_odometry() -> None
     assert turn[0] < 0.04 and turn[1] > 0.09
 
 
-def test_the_graph_test_key_loads_and_reaches_the_filters_graph() -> None:
+def test_the_graph_keys_load_and_reach_the_filters_graph() -> None:
     from agent.config import SlamConfig, parse_config
     from agent.runtime.mapper import front_end_filter
     from agent.slam.proposal import ProposalConfig
@@ -193,3 +193,10 @@ def test_the_graph_test_key_loads_and_reaches_the_filters_graph() -> None:
     assert front_end_filter(SlamConfig(), ProposalConfig())["loop_closure"] == LoopClosureConfig()
     with pytest.raises(ConfigError):
         parse_config(laser + "[slam]\nloop_accept_graph_chi2 = -1\n")
+    snaps = parse_config(laser + "[slam]\nloop_snap_forward_m = 0.3\n").slam
+    assert front_end_filter(snaps, ProposalConfig())["loop_closure"].snap_forward_m == 0.3
+    none = parse_config(laser + "[slam]\nloop_snap_forward_m = 0\n").slam
+    assert front_end_filter(none, ProposalConfig())["loop_closure"].snap_forward_m is None
+    assert parse_config(laser).slam.loop_snap_forward_m == LoopClosureConfig().snap_forward_m == 0.15
+    with pytest.raises(ConfigError):
+        parse_config(laser + "[slam]\nloop_snap_forward_m = -0.1\n")
