@@ -52,7 +52,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agent.commands.eval_slam import log_config
 from agent.slam.logs import LogFormat, read_log
-from agent.slam.loops import GraphState, LoopClosureConfig, LoopConstraint, optimize_graph
+from agent.slam.loops import (
+    GraphState,
+    LoopClosureConfig,
+    LoopConstraint,
+    odometry_forward_at_snaps,
+    optimize_graph,
+)
 from agent.slam.metrics import aligned_trajectory_error
 from agent.slam.pose import between
 from agent.slam.rbpf import StepKind
@@ -109,11 +115,10 @@ def budget(
 
 def odometry_snaps(state: GraphState, limit_m: float) -> FloatArray:
     """``state.motions`` with the forward step of each edge whose forward component departs from the
-    odometry's by more than ``limit_m`` replaced by the odometry's."""
-    motions = state.motions.copy()
-    snapped = np.abs(motions[1:, 0] - state.odometry_motions[1:, 0]) > limit_m
-    motions[1:, 0] = np.where(snapped, state.odometry_motions[1:, 0], motions[1:, 0])
-    return motions
+    odometry's by more than ``limit_m`` replaced by the odometry's: the filter's own rule
+    (``loops.odometry_forward_at_snaps``) at every edge, near standstills too."""
+    everywhere = np.ones(state.motions.shape[0], dtype=bool)
+    return odometry_forward_at_snaps(state.motions, state.odometry_motions, everywhere, limit_m)
 
 
 def run_seed(
@@ -137,7 +142,7 @@ def run_seed(
         "nodes": len(nodes),
         "loops": len(state.loops),
         "snaps": {
-            f"{limit:g}": int(np.sum(np.abs(state.motions[1:, 0] - state.odometry_motions[1:, 0]) > limit))
+            f"{limit:g}": int(np.count_nonzero(odometry_snaps(state, limit)[1:, 0] != state.motions[1:, 0]))
             for limit in snap_limits_m
         },
         "ate_aligned_m": budget(state, reference, config.loop_closure, snap_limits_m),
