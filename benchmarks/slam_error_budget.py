@@ -25,11 +25,18 @@ measurements change nothing and the reference's forward steps take most of the e
 logs' reference poses are GMapping's output, so a step "error" here is a disagreement with that run, not
 with the truth.
 
-One JSON object per log and seed, then a summary per log (mean per variant, seeds within 0.15 m).
+One JSON object per log and seed, then a summary per log (mean per variant, seeds within 0.15 m), and
+the front end's steps against the reference's split over the seeds (``step_disagreement``,
+:func:`shared_and_own`): the part every seed shares (the mean over seeds of each step's disagreement) and
+each seed's own part, forward and in heading, beside the odometry's disagreement and its correlation with
+the shared part. A shared part that tracks the odometry's (correlation near 1) says the front end's steps
+lean towards the wheels where the reference's do not, the same in every draw: no seed, particle count or
+other draw removes it.
 
     python benchmarks/slam_error_budget.py --logs aces --seeds 0 1 2 3 4 5
     python benchmarks/slam_error_budget.py --logs intel aces --seeds 0 1 2
     python benchmarks/slam_error_budget.py --logs aces intel fr079 --odometry-snaps 0.15 0.2
+    python benchmarks/slam_error_budget.py --logs aces --seeds 0 1 2 3 4 5 6 7 8 9 10 11
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ import json
 import os
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -60,12 +68,13 @@ from agent.slam.loops import (
     optimize_graph,
 )
 from agent.slam.metrics import aligned_trajectory_error
-from agent.slam.pose import between
+from agent.slam.pose import between, wrap_angle
 from agent.slam.rbpf import StepKind
 from agent.slam.replay import replay
 from tests.conftest import DATA
 
 FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 LOGS = {
     "intel": "slam/radish/intel_scans.txt",
@@ -121,9 +130,69 @@ def odometry_snaps(state: GraphState, limit_m: float) -> FloatArray:
     return odometry_forward_at_snaps(state.motions, state.odometry_motions, everywhere, limit_m)
 
 
+@dataclass(frozen=True)
+class StepErrors:
+    """One seed's front-end steps against the reference's: ``records`` (M, 2) the log records each step
+    joins; ``ours`` and ``odometry`` (M, 3) the front end's step and the odometry's, less the reference's
+    (x forward, y sideways in the earlier node's frame; yaw wrapped)."""
+
+    records: IntArray
+    ours: FloatArray
+    odometry: FloatArray
+
+
+def step_errors(state: GraphState, reference: FloatArray, nodes: Sequence[int]) -> StepErrors:
+    """The graph's steps (``state.motions``, ``state.odometry_motions``) against the reference's
+    (``reference`` (N, 3): the reference pose at each node; ``nodes``: each node's log record)."""
+    steps = between(reference[:-1], reference[1:])
+    ours = state.motions[1:] - steps
+    odometry = state.odometry_motions[1:] - steps
+    ours[:, 2] = wrap_angle(ours[:, 2])
+    odometry[:, 2] = wrap_angle(odometry[:, 2])
+    records = np.asarray(nodes, dtype=np.int64)
+    return StepErrors(np.stack([records[:-1], records[1:]], axis=1), ours, odometry)
+
+
+def _rms(values: FloatArray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if values.size else float("nan")
+
+
+def shared_and_own(errors: Sequence[StepErrors]) -> dict[str, Any]:
+    """The steps' disagreement with the reference over several seeds, on the steps every seed took between
+    the same two records: RMS forward (m) and in heading (deg) of all of it, of the part the seeds share
+    (each step's mean over the seeds) and of each seed's own (the rest); the odometry's RMS disagreement;
+    and the correlation of the shared forward part with the odometry's forward disagreement."""
+    if not errors:
+        raise ValueError("no seeds")
+    keys = [{(int(a), int(b)): k for k, (a, b) in enumerate(e.records)} for e in errors]
+    common = sorted(set.intersection(*(set(k) for k in keys)))
+    ours = np.array([[e.ours[k[step]] for step in common] for e, k in zip(errors, keys, strict=True)])
+    odometry = np.array([errors[0].odometry[keys[0][step]] for step in common]).reshape(-1, 3)
+    ours = ours.reshape(len(errors), len(common), 3)
+    shared = ours.mean(axis=0)
+    own = ours - shared[None]
+    correlation = float("nan")
+    if len(common) > 2 and np.std(shared[:, 0]) > 0 and np.std(odometry[:, 0]) > 0:
+        correlation = float(np.corrcoef(shared[:, 0], odometry[:, 0])[0, 1])
+
+    def split(column: int, scale: float) -> dict[str, float]:
+        parts = {"all": ours[..., column], "shared": shared[:, column], "own": own[..., column]}
+        return {name: round(scale * _rms(part), 4) for name, part in parts.items()}
+
+    return {
+        "steps": len(common),
+        "seeds": len(errors),
+        "forward_rms_m": split(0, 1.0),
+        "heading_rms_deg": split(2, float(np.degrees(1.0))),
+        "odometry_forward_rms_m": round(_rms(odometry[:, 0]), 4),
+        "odometry_heading_rms_deg": round(float(np.degrees(_rms(odometry[:, 2]))), 4),
+        "shared_forward_odometry_correlation": round(correlation, 3),
+    }
+
+
 def run_seed(
     name: str, path: Path, seed: int, particles: int, snap_limits_m: Sequence[float] = ()
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], StepErrors]:
     log = read_log(path, LogFormat.RADISH)
     config = log_config("radish", seed=seed, particles=particles)
     result = replay(log, config)
@@ -136,7 +205,7 @@ def run_seed(
         raise RuntimeError(f"{path} has no reference poses")
     reference = reference_poses[np.array(nodes)]
     assert config.loop_closure is not None
-    return {
+    row = {
         "log": name,
         "seed": seed,
         "nodes": len(nodes),
@@ -147,9 +216,10 @@ def run_seed(
         },
         "ate_aligned_m": budget(state, reference, config.loop_closure, snap_limits_m),
     }
+    return row, step_errors(state, reference, nodes)
 
 
-def summary(name: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
+def summary(name: str, rows: list[dict[str, Any]], errors: Sequence[StepErrors]) -> dict[str, Any]:
     variants = rows[0]["ate_aligned_m"].keys()
     return {
         "log": name,
@@ -160,6 +230,7 @@ def summary(name: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
         f"within_{WITHIN_M}_m": {
             v: sum(row["ate_aligned_m"][v] <= WITHIN_M for row in rows) for v in variants
         },
+        "step_disagreement": shared_and_own(errors),
     }
 
 
@@ -201,13 +272,15 @@ def main() -> int:
             lines.append({"log": name, "skipped": f"log not found: {path} (set VLP_SHARED)"})
             print(json.dumps(lines[-1]), flush=True)
             continue
-        rows = []
+        rows, errors = [], []
         for seed in args.seeds:
             print(f"{name} seed {seed} ...", file=sys.stderr, flush=True)
-            rows.append(run_seed(name, path, seed, args.particles, args.odometry_snaps))
-            lines.append(rows[-1])
-            print(json.dumps(rows[-1]), flush=True)
-        lines.append(summary(name, rows))
+            row, steps = run_seed(name, path, seed, args.particles, args.odometry_snaps)
+            rows.append(row)
+            errors.append(steps)
+            lines.append(row)
+            print(json.dumps(row), flush=True)
+        lines.append(summary(name, rows, errors))
         print(json.dumps(lines[-1]), flush=True)
     if args.out is not None:
         args.out.write_text("".join(json.dumps(line) + "\n" for line in lines))

@@ -85,3 +85,53 @@ def test_the_budget_s_odometry_snaps_take_the_wheels_forward_step_only_where_the
     np.testing.assert_array_equal(out[:, 1:], motions[:, 1:])
     np.testing.assert_array_equal(state.motions[2], [0.49, -0.01, 0.0])  # a copy: the state is kept
     assert budget.odometry_snaps(state, 0.6)[2, 0] == 0.49
+
+
+def test_the_budget_splits_the_steps_disagreement_into_what_every_seed_shares_and_each_seed_s_own() -> None:
+    budget = _budget_module()
+    rng = np.random.default_rng(3)
+    shared = np.zeros((40, 3))
+    shared[:, 0] = rng.normal(0.0, 0.05, 40)  # the same forward error in every seed
+    odometry = np.zeros((40, 3))
+    odometry[:, 0] = 1.5 * shared[:, 0] + rng.normal(0.0, 0.005, 40)  # ... following the wheels' error
+    odometry[:, 2] = 0.02
+    records = np.stack([np.arange(40), np.arange(1, 41)], axis=1)
+    own = [np.zeros((40, 3)), np.zeros((40, 3))]
+    own[0][:, 0], own[1][:, 0] = 0.01, -0.01
+    own[0][:, 2], own[1][:, 2] = np.radians(0.5), -np.radians(0.5)
+    errors = [budget.StepErrors(records, shared + o, odometry) for o in own]
+    # A third seed took one more node (step 10 -> 11 split in two): only the steps all three took count.
+    extra = budget.StepErrors(
+        np.vstack([records[:10], [[10, 100], [100, 11]], records[11:]]),
+        np.vstack([shared[:10] - own[0][:10], [[9.0, 9.0, 1.0], [9.0, 9.0, 1.0]], shared[11:] - own[0][11:]]),
+        np.vstack([odometry[:10], np.zeros((2, 3)), odometry[11:]]),
+    )
+    out = budget.shared_and_own([*errors, extra])
+    assert out["steps"] == 39 and out["seeds"] == 3
+    kept = np.delete(shared[:, 0], 10)
+    third = (0.01 - 0.01 - 0.01) / 3.0  # the mean of the three seeds' own parts, in the shared part
+    assert out["forward_rms_m"]["shared"] == round(float(np.sqrt(np.mean((kept + third) ** 2))), 4)
+    # Own parts: +0.01, -0.01, -0.01 less their mean.
+    own_rms = np.sqrt(((0.01 - third) ** 2 + 2 * (0.01 + third) ** 2) / 3)
+    assert out["forward_rms_m"]["own"] == pytest.approx(own_rms, abs=1e-4)
+    assert out["heading_rms_deg"]["shared"] == pytest.approx(abs(0.5 - 0.5 - 0.5) / 3.0, abs=1e-4)
+    assert out["odometry_heading_rms_deg"] == pytest.approx(np.degrees(0.02), abs=1e-4)
+    assert out["shared_forward_odometry_correlation"] > 0.95
+    # One seed: all of it is shared, none its own.
+    alone = budget.shared_and_own(errors[:1])
+    assert alone["forward_rms_m"]["own"] == 0.0
+    assert alone["forward_rms_m"]["shared"] == alone["forward_rms_m"]["all"]
+    with pytest.raises(ValueError, match="no seeds"):
+        budget.shared_and_own([])
+
+
+def test_the_budget_s_steps_are_the_graph_s_less_the_reference_s() -> None:
+    budget = _budget_module()
+    reference = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.pi / 2], [1.0, 1.0, np.pi / 2]])
+    motions = np.array([[0.0, 0.0, 0.0], [1.1, 0.0, np.pi / 2], [0.9, 0.05, -0.01]])
+    odometry = np.array([[0.0, 0.0, 0.0], [0.8, 0.0, np.pi / 2 + 0.1], [1.0, 0.0, 0.0]])
+    state = GraphState(chain_poses(np.zeros(3), motions), motions, odometry, (), None)
+    steps = budget.step_errors(state, reference, [0, 5, 9])
+    np.testing.assert_array_equal(steps.records, [[0, 5], [5, 9]])
+    np.testing.assert_allclose(steps.ours, [[0.1, 0.0, 0.0], [-0.1, 0.05, -0.01]], atol=1e-12)
+    np.testing.assert_allclose(steps.odometry, [[-0.2, 0.0, 0.1], [0.0, 0.0, 0.0]], atol=1e-12)
