@@ -1400,6 +1400,7 @@ class _Reader:
             loop_snap_forward_m=(
                 t.number("loop_snap_forward_m", 0.15, (lambda v: 0 <= v <= 10, "must be 0..10 m")) or None
             ),
+            loop_final_scan_chain=t.boolean("loop_final_scan_chain", d.loop_final_scan_chain),
             free_margin_m=t.number("free_margin_m", 0.0, (lambda v: 0 <= v <= 0.5, "must be 0..0.5 m"))
             if t.has("free_margin_m")
             else None,

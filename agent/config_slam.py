@@ -107,6 +107,10 @@ class SlamConfig:
     # the front end's snap onto an older part of its map along a corridor); None (the key at 0): the
     # match's step everywhere
     loop_snap_forward_m: float | None = 0.15
+    # The final optimisation where the filter is finished (RbpfSlam.finish: the end of a log replayed by
+    # eval slam): the pose graph's chain measured scan to scan (loops.LoopClosureConfig.final_scan_chain);
+    # False: the graph as the filter left it. The agent's live mapper does not finish its filter yet.
+    loop_final_scan_chain: bool = True
     # How far short of its endpoint a beam's free space stops (RbpfConfig.free_margin_m); None: half a cell
     free_margin_m: float | None = None
     # The grid's lattice moved at the first scan so that the walls it sees along the map's axes run through

@@ -45,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agent.commands.eval_slam import front_end, log_proposal
+from agent.commands.eval_slam import FINAL_SCAN_CHAIN, front_end, log_proposal
 from agent.slam.loops import LoopClosureConfig
 from agent.slam.metrics import absolute_trajectory_error, aligned_trajectory_error
 from agent.slam.pose import compose, inverse
@@ -86,6 +86,8 @@ def loop_config(
     front-end edges from the match's information (``edge_match_sigma_m``) and the known-area rule
     (``hypotheses``) set."""
     config = LoopClosureConfig()
+    if not FINAL_SCAN_CHAIN["simulated"]:  # as eval slam --world runs the simulated robot
+        config = dataclasses.replace(config, final_scan_chain=None)
     if hypotheses is not None:
         config = dataclasses.replace(config, hypotheses=hypotheses)
     if edge_match_sigma is not None:

@@ -96,16 +96,18 @@ def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:
     ``free_margin_m``, ``grid_phase_from_walls``, ``log_odds``, ``search_increment_rad``,
     ``search_below_inliers``, ``shared_field_updates``, ``reversal_ratio``, ``proposal``
     (``base_proposal`` with the match's keys, ``front_end_proposal``) and ``loop_closure`` (the default
-    loop closure with ``loop_correction_odometry_sigmas``, ``loop_accept_graph_chi2`` and
-    ``loop_snap_forward_m``).
+    loop closure with ``loop_correction_odometry_sigmas``, ``loop_accept_graph_chi2``,
+    ``loop_snap_forward_m`` and ``loop_final_scan_chain``).
     The agent's mapping filter and ``vlp-agent eval slam`` are both configured with it."""
     from agent.slam.loops import LoopClosureConfig
+    from agent.slam.scan_chain import ScanChainConfig
 
     return {
         "loop_closure": LoopClosureConfig(
             correction_odometry_sigmas=config.loop_correction_odometry_sigmas,
             accept_graph_chi2=config.loop_accept_graph_chi2,
             snap_forward_m=config.loop_snap_forward_m,
+            final_scan_chain=ScanChainConfig() if config.loop_final_scan_chain else None,
         ),
         "noise": front_end_noise(config),
         "free_margin_m": config.free_margin_m,

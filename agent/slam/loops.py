@@ -38,6 +38,7 @@ from agent.slam.posegraph import (
     relative_residuals,
     sqrt_information,
 )
+from agent.slam.scan_chain import ScanChainConfig
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -250,6 +251,15 @@ class LoopClosureConfig:
     # covariance adds where the scan is weak (a corridor's length), the departure where the match turned
     # against the wheels. False: ``motion_sigma``.
     edge_departure_floor: bool = False
+    # The final optimisation (``RbpfSlam.finish``, at the end of a log or a mapping run): the graph with
+    # its chain's steps measured by the scans alone, each node's scan registered against the one before
+    # it (``scan_chain.scan_chain``: point to point, from the front end's step; where a registration is
+    # not kept, the front end's step), held at ``motion_sigma`` (not widened by the departure from
+    # odometry), with every loop factor and fix the filter gathered; run only where the graph has a loop
+    # factor (a chain alone drifts like odometry: the front end's map match drifts less). None: off.
+    # ACES seeds 0-5 (offline, on the final graphs): 0.159 -> 0.112 m mean; FR079 0.117 -> 0.077; Intel
+    # 0.083 -> 0.080 (docs/slam.md, "Loop closure", *The final optimisation*).
+    final_scan_chain: ScanChainConfig | None = field(default_factory=ScanChainConfig)
     # An optimisation that moves no node by more than this leaves the filter as it is (its map rebuild
     # costs a whole map's integration); the loop factor stays for the next one.
     apply_min_shift_m: float = 0.05

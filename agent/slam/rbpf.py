@@ -64,6 +64,7 @@ from agent.slam.loops import (
     find_loop,
     judge_loop,
     odometry_forward_at_snaps,
+    optimize_graph,
     robot_frame_information,
     yaw_doubt,
 )
@@ -81,6 +82,7 @@ from agent.slam.proposal import (
 )
 from agent.slam.relative import RelativeMatch, match_relative
 from agent.slam.scan import LaserGeometry, Rejection, ScanGate
+from agent.slam.scan_chain import scan_chain
 
 FloatArray = npt.NDArray[np.float64]
 # A relative edge's step counts as the one its match started from within these (x, y metres, yaw radians).
@@ -226,6 +228,8 @@ class FilterStats:
     loop_closures: int = 0
     loop_rebuilds: int = 0
     loop_ms: float = 0.0  # time spent on loop search, optimisation and map rebuilds
+    # The final optimisation (RbpfSlam.finish): the chain's steps the scans measured (-1: not run).
+    final_scan_edges: int = -1
     # Candidates found, by ``loops.Verdict`` value (accepted, agrees, inconsistent, worse).
     loop_verdicts: collections.Counter[str] = field(default_factory=collections.Counter)
     n_eff: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=10_000))
@@ -370,6 +374,9 @@ class RbpfSlam:
         self._node_scan_guesses: list[FloatArray] = []  # the filter's step each was matched from
         self._node_normals: list[npt.NDArray[np.float32] | None] = []  # each node's scan's normals
         self._loops: list[LoopConstraint] = []
+        # Known-area links the graph already agreed with (loops.Verdict.NEAR): not in the graph's
+        # optimisations while the filter runs, but factors of the final one (``finish``).
+        self._near_loops: list[LoopConstraint] = []
         self._last_agreement = 0  # the last node a loop match agreed with the graph at (or closed)
         # The last node a known-area link (LoopClosureConfig.hypotheses) was judged at without being acted
         # on: the rule waits known_area_after_m from here too.
@@ -1071,6 +1078,8 @@ class RbpfSlam:
         self.stats.loop_verdicts[judgement.verdict.value] += 1
         if found.known_area and judgement.verdict is not Verdict.ACCEPTED:
             self._known_area_judged = found.j
+        if judgement.verdict is Verdict.NEAR:
+            self._near_loops.append(found)
         log.debug(
             "loop %d -> %d: %s (innovation chi2 %.1f, residual %.1f, scans %.4f -> %.4f)",
             found.i,
@@ -1101,6 +1110,38 @@ class RbpfSlam:
         self._node_motions = list(motions)
         self.give_way()
         self._apply(path, judgement.result)
+
+    def finish(self) -> bool:
+        """The final optimisation (``LoopClosureConfig.final_scan_chain``): the pose graph with its chain
+        measured scan to scan and every loop factor and fix, applied to the history, the particles and the
+        map as a loop closure is. For the end of a log or of a mapping run, before the map is saved; the
+        filter may go on after it. Returns whether it ran (off, no loop factor yet, or a history that no
+        longer lines up with the graph: it does not)."""
+        lc = self.config.loop_closure
+        loops = self._loops + self._near_loops
+        if lc is None or lc.final_scan_chain is None or not loops:
+            return False
+        try:
+            state = self.graph_state()
+        except ValueError as exc:
+            log.info("no final optimisation: %s", exc)
+            return False
+        t0 = time.perf_counter()
+        chain, measured = scan_chain(self._node_hits, state.motions, lc.final_scan_chain)
+        result = optimize_graph(state.path, chain, loops, lc, state.absolute)
+        self.stats.final_scan_edges = int(np.count_nonzero(measured))
+        self._node_motions = list(chain)
+        self._apply(state.path, result)
+        self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
+        log.info(
+            "final optimisation: %d of %d steps measured scan to scan, %d loop factors, chi2 %.1f -> %.1f",
+            self.stats.final_scan_edges,
+            max(len(chain) - 1, 0),
+            len(loops),
+            result.chi2_initial,
+            result.chi2_final,
+        )
+        return True
 
     def graph_state(self) -> GraphState:
         """The loop closure's pose graph as it stands (``loops.GraphState``): the nodes along the current

@@ -92,6 +92,7 @@ def replay(
         if progress is not None and t1 - last_progress >= progress_every_s:
             last_progress = t1
             progress(i + 1, n, slam)
+    slam.finish()  # the final optimisation: the log is over (LoopClosureConfig.final_scan_chain)
     wall_s = time.perf_counter() - start_wall
     cpu_s = time.process_time() - start_cpu
     if progress is not None:

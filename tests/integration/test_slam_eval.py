@@ -65,6 +65,9 @@ def test_eval_slam_json_on_radish(
     assert 0.03 < summary["turning_point_m"][0] < 0.15 and abs(summary["turning_point_m"][1]) < 0.05
     assert summary["loop_closure"] == "on" and summary["loop_checks"] >= 1
     assert summary["loop_closures"] >= summary["loop_rebuilds"] >= 0
+    # The final optimisation runs where a loop factor holds the chain (else -1: not run).
+    factors = summary["loop_closures"] + summary["loop_agreeing"]
+    assert (summary["final_scan_edges"] >= 0) == (factors > 0)
     image = load_map(out / "map.yaml")
     assert image.pixels.shape[0] > 100 and image.occupied_mask().sum() > 500
     assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"

@@ -200,3 +200,25 @@ def test_the_graph_keys_load_and_reach_the_filters_graph() -> None:
     assert parse_config(laser).slam.loop_snap_forward_m == LoopClosureConfig().snap_forward_m == 0.15
     with pytest.raises(ConfigError):
         parse_config(laser + "[slam]\nloop_snap_forward_m = -0.1\n")
+
+
+def test_the_final_optimisation_key_loads_and_reaches_the_filter() -> None:
+    from agent.commands.eval_slam import front_end
+    from agent.config import parse_config
+    from agent.runtime.mapper import front_end_filter
+    from agent.slam.proposal import ProposalConfig
+    from agent.slam.scan_chain import ScanChainConfig
+    from drivers.errors import ConfigError
+    from tests.helpers import REAL_ROBOT
+
+    laser = REAL_ROBOT + '[laser]\nbackend = "urg"\nurl = "/dev/ttyACM0"\n'
+    on = parse_config(laser).slam
+    assert on.loop_final_scan_chain is True
+    assert front_end_filter(on, ProposalConfig())["loop_closure"].final_scan_chain == ScanChainConfig()
+    off = parse_config(laser + "[slam]\nloop_final_scan_chain = false\n").slam
+    assert front_end_filter(off, ProposalConfig())["loop_closure"].final_scan_chain is None
+    with pytest.raises(ConfigError):
+        parse_config(laser + '[slam]\nloop_final_scan_chain = "yes"\n')
+    # eval slam: on for the recorded logs, off for the simulated robot.
+    assert front_end("radish").loop_final_scan_chain and front_end("breezyslam").loop_final_scan_chain
+    assert not front_end("simulated").loop_final_scan_chain
