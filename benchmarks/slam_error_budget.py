@@ -1,7 +1,9 @@
 """Where a SLAM trajectory's error lies: its pose graph optimised again with one kind of factor replaced by
 the reference's.
 
-For each radish log and seed the filter runs as ``vlp-agent eval slam`` runs it (``eval_slam.log_config``).
+For each radish log and seed the filter runs as ``vlp-agent eval slam`` runs it (``eval_slam.log_config``),
+but without the final optimisation (``LoopClosureConfig.final_scan_chain``: its chain is the scans', not
+the front end's, and ``as_run`` is the graph as the filter left it).
 Its final pose graph (``RbpfSlam.graph_state``: the nodes, the front end's steps between them, the loop
 factors) is then optimised again (``loops.optimize_graph``, the filter's own optimisation) with:
 
@@ -195,6 +197,12 @@ def run_seed(
 ) -> tuple[dict[str, Any], StepErrors]:
     log = read_log(path, LogFormat.RADISH)
     config = log_config("radish", seed=seed, particles=particles)
+    assert config.loop_closure is not None
+    # The graph as the filter leaves it, before the final optimisation (its chain measured scan to scan):
+    # the front end's own steps are what this diagnoses.
+    config = dataclasses.replace(
+        config, loop_closure=dataclasses.replace(config.loop_closure, final_scan_chain=None)
+    )
     result = replay(log, config)
     state = result.slam.graph_state()
     nodes = [k for k, kind in enumerate(result.kinds) if kind in (StepKind.FIRST, StepKind.UPDATED)]
