@@ -212,7 +212,6 @@ def run_seed(
     if reference_poses is None:
         raise RuntimeError(f"{path} has no reference poses")
     reference = reference_poses[np.array(nodes)]
-    assert config.loop_closure is not None
     row = {
         "log": name,
         "seed": seed,

@@ -62,6 +62,8 @@ class ScanChainConfig:
 
 
 def _moved(points_xy: FloatArray, pose: tuple[float, float, float]) -> FloatArray:
+    """``pose.transform_points`` for one pose given as floats: the same points, without its broadcasting
+    over stacks of poses, which costs this loop a fifth more (Intel's chain 0.53 -> 0.65 s)."""
     x, y, yaw = pose
     c, s = math.cos(yaw), math.sin(yaw)
     out: FloatArray = points_xy @ np.array([[c, s], [-s, c]]) + np.array([x, y])
