@@ -241,6 +241,7 @@ def ours_worker(
                 "update_ms_median": round(float(np.median(result.update_ms)), 2),
                 "updates": slam.stats.updates,
                 "peak_rss_mb": round(peak_rss_kb() / 1024.0, 1),
+                **{f"{k}_end_mb": round(v / 1024.0, 1) for k, v in rss_parts_kb().items()},
                 "resamples": slam.stats.resamples,
                 "match_failures": slam.stats.match_failures,
                 **slam_extras(slam),
@@ -261,6 +262,22 @@ def peak_rss_kb() -> float:
     except OSError:
         pass
     return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def rss_parts_kb() -> dict[str, float]:
+    """This process's resident memory now, split: ``rss_anon`` (its own data: heap, arrays) and
+    ``rss_file`` (pages of mapped files, mostly the shared libraries: OpenCV's alone is ~15 MB). The file
+    part moves with the machine's state (its page cache), and ``peak_rss_mb`` with it: docs/benchmarks.md,
+    "SLAM beside GMapping"."""
+    parts: dict[str, float] = {}
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            key = line.split(":", 1)[0]
+            if key in ("RssAnon", "RssFile"):
+                parts[key.lower().replace("rss", "rss_")] = float(line.split()[1])
+    except OSError:
+        pass
+    return parts
 
 
 def slam_extras(slam: Any) -> dict[str, Any]:

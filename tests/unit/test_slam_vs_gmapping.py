@@ -127,3 +127,14 @@ def test_repeat_must_be_at_least_one(capsys: pytest.CaptureFixture[str]) -> None
     with pytest.raises(SystemExit):
         bench.main(["--logs", "intel", "--repeat", "0"])
     assert "--repeat must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="Linux /proc only")
+def test_resident_memory_splits_into_own_data_and_mapped_files() -> None:
+    held = np.ones(8 * 1024 * 1024 // 8)  # 8 MB of this process's own data, touched
+    parts = bench.rss_parts_kb()
+    assert set(parts) == {"rss_anon", "rss_file"}
+    assert parts["rss_anon"] >= held.nbytes / 1024  # the array alone is that much
+    assert parts["rss_file"] > 0  # the interpreter's own mapped pages at least
+    # Both within the peak so far (a shared-memory part aside, which this process has none of).
+    assert parts["rss_anon"] + parts["rss_file"] <= bench.peak_rss_kb() + 1024
