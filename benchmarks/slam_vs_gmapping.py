@@ -266,9 +266,8 @@ def peak_rss_kb() -> float:
 
 def rss_parts_kb() -> dict[str, float]:
     """This process's resident memory now, split: ``rss_anon`` (its own data: heap, arrays) and
-    ``rss_file`` (pages of mapped files, mostly the shared libraries: OpenCV's alone is ~15 MB). The file
-    part moves with the machine's state (its page cache), and ``peak_rss_mb`` with it: docs/benchmarks.md,
-    "SLAM beside GMapping"."""
+    ``rss_file`` (pages of mapped files, mostly the shared libraries: OpenCV's alone is ~15 MB).
+    ``peak_rss_mb`` moves with the machine's state for the same poses (docs/slam.md, "Running it")."""
     parts: dict[str, float] = {}
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
