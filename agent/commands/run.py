@@ -37,7 +37,7 @@ from agent.config import AgentConfig, SlamMode, load_config
 from agent.runtime import create_agent
 from agent.runtime.follow_loop import follow_summary
 from agent.runtime.map_saver import save_topology_beside
-from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.mapper import save_final_map, tidy_map_folder
 from agent.runtime.priority import SWITCH_INTERVAL_S
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
 from firmware_protocol.command_frame import GoalState
@@ -202,8 +202,12 @@ def run(args: argparse.Namespace) -> int:
             agent.stop(why=shutdown.why("an error" if sys.exc_info()[1] is not None else "--seconds ran out"))
             status = agent.status()
             map_files: list[str] = []
+            map_optimised = False
             if agent.mapper is not None and directory is not None and mapping:
-                map_files = [str(p) for p in save_map(agent.mapper, directory)]
+                # The filter's map, then the final optimisation and the map again (the first kept beside
+                # it as map.prev.yaml): docs/slam.md, "Loop closure", *The final optimisation*.
+                saved, map_optimised = save_final_map(agent.mapper, directory)
+                map_files = [str(p) for p in saved]
                 if map_files and agent.missions is not None:
                     map_files += save_topology_beside(directory / "map.yaml", agent.missions.topology)
             if controller is not None:
@@ -225,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
         "follow_control": None if agent.follow_control is None else agent.follow_control.summary(),
         "frames_received": controller.frames if controller is not None else None,
         "map_files": map_files,
+        "map_optimised": map_optimised,
     }
     summary["stop"] = shutdown.stop_times()  # from SIGTERM / SIGINT to here; None: none came
     if args.json:

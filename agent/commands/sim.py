@@ -46,7 +46,7 @@ from agent.recording.messages import TruthSample
 from agent.recording.writer import McapRecorder
 from agent.runtime import Agent, ScanMapper, create_agent
 from agent.runtime.follow_loop import FollowLoop
-from agent.runtime.mapper import save_map, tidy_map_folder
+from agent.runtime.mapper import save_final_map, tidy_map_folder
 from agent.runtime.mission_loop import MissionLoop, NamedPlace
 from agent.runtime.priority import SWITCH_INTERVAL_S, realtime_thread
 from agent.runtime.shutdown import AgentRequests, ShutdownRequest
@@ -773,12 +773,16 @@ def _write_files(
 ) -> dict[str, str]:
     files: dict[str, str] = {}
     if mapper is not None:
-        saved = save_map(
+        # As `vlp-agent run` saves it at a stop: the filter's map, then the final optimisation (off in the
+        # shipped simulated configs: [slam] loop_final_scan_chain) and the map again.
+        saved, optimised = save_final_map(
             mapper,
             out_dir,
-            paths=_map_paths(scorer, slam_path),
+            paths_for=lambda slam: _map_paths(scorer, slam),
             title=f"map.png: laser SLAM map of {sim.world.name}",
         )
+        if optimised:
+            slam_path = mapper.trajectory()
         if saved:
             files["map_yaml"], files["map_pgm"], files["map_png"] = (str(p) for p in saved)
     if args.record_fusion:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,7 @@ __all__ = [
     "front_end_proposal",
     "make_local_mapper",
     "prior_log_odds",
+    "save_final_map",
     "save_map",
     "tidy_map_folder",
 ]
@@ -174,6 +176,11 @@ class ScanMapper(Protocol):
         """The agent is stopping (from the thread that stops it, while the SLAM thread may be in an
         update; returns at once): a mapper that can leave a long update does so now. What is asked after
         (the final map) is still answered."""
+
+    def finish(self) -> bool:
+        """The final optimisation before the final map is taken (after the stop): True if it ran and the
+        map and trajectory changed with it (``RbpfSlam.finish``; off with ``[slam]
+        loop_final_scan_chain = false``)."""
 
     def close(self) -> None: ...
 
@@ -327,10 +334,25 @@ class RbpfMapper:
             out["loop_closures"] = int(self.slam.stats.loop_closures)
             out["loop_rebuilds"] = int(self.slam.stats.loop_rebuilds)
             out["loop_ms"] = round(self.slam.stats.loop_ms)
+            # The final optimisation's steps measured scan to scan (-1: it has not run).
+            out["final_scan_edges"] = int(self.slam.stats.final_scan_edges)
         return out
 
     def begin_stop(self) -> None:
         """Nothing to do: the SLAM thread's update runs to its end, and the agent's join waits for it."""
+
+    def finish(self) -> bool:
+        """The filter's final optimisation (``RbpfSlam.finish``): the pose graph with its chain measured scan
+        to scan and every loop link, the history, particles and map put on it. Not without a loop link
+        (nothing to gain), with ``loop_final_scan_chain = false``, or once the history was cut
+        (``_HISTORY_UPDATES``). The filter may go on after it."""
+        if self.slam is None:
+            return False
+        t0 = time.perf_counter()
+        done = bool(self.slam.finish())
+        if done:
+            log.info("final optimisation of the SLAM map in %.2f s", time.perf_counter() - t0)
+        return done
 
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""
@@ -452,6 +474,10 @@ class MclMapper:
     def begin_stop(self) -> None:
         """Nothing to do: the SLAM thread's update runs to its end, and the agent's join waits for it."""
 
+    def finish(self) -> bool:
+        """Nothing to optimise: the map is the saved one, localization only."""
+        return False
+
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""
 
@@ -504,6 +530,30 @@ def save_map(
     picture = map_picture(image, paths, title or f"{name}.png: laser map ({mapper.name})")
     png = mapio.write_png(directory / f"{name}.png", picture)
     return [files.yaml, files.image, png]
+
+
+def save_final_map(
+    mapper: ScanMapper,
+    directory: Path,
+    name: str = "map",
+    paths_for: Callable[[FloatArray], Sequence[MapPath]] | None = None,
+    title: str = "",
+) -> tuple[list[Path], bool]:
+    """The map saved at a stop: first the filter's map as it stands (:func:`save_map`), then the final
+    optimisation (:meth:`ScanMapper.finish`) and, where it ran, the optimised map saved over it, the
+    filter's own kept beside it as ``name.prev.yaml``. Saving first loses nothing where the optimisation
+    is cut short (a SLAM process still at it when the stop's grace runs out is killed, and the map saved
+    first stays). ``paths_for``: the paths drawn over the picture for the mapper's trajectory (default:
+    that trajectory alone). The files written last, and whether the optimisation ran."""
+
+    def paths() -> Sequence[MapPath] | None:
+        return None if paths_for is None else paths_for(mapper.trajectory())
+
+    files = save_map(mapper, directory, name, paths(), title)
+    if not files or not mapper.finish():
+        return files, False
+    # (A map that cannot be taken out after the optimisation leaves the first one on disk, as it was.)
+    return save_map(mapper, directory, name, paths(), title) or files, True
 
 
 def tidy_map_folder(directory: Path, name: str = "map") -> list[Path]:

@@ -23,10 +23,12 @@ or fix is sent any more and no new child is started. The child looks at its sock
 point of the filter (between the stages of an update, every 64 nodes of a loop closure's map rebuild): a
 message there, while it serves a request, can only be the stop, so it leaves the update unfinished (the
 maps stay as they were before it: the rebuild is built aside and put in place only whole) and from then
-on answers only for the map, the trajectory and the pose. Everything asked after the stop (the final map,
-the trajectory) is answered within ``grace_s`` of it (:data:`_STOP_GRACE_S`), or the child is killed and
-the log says that the final map was not saved. Then the agent hangs up and the child exits at once
-(``os._exit``: no interpreter teardown), by the same deadline (at least 2 s after the hang-up) or killed.
+on answers only for the map, the trajectory, the pose and the final optimisation (``finish``). Everything
+asked after the stop (the final map, the final optimisation, the map again) is answered within ``grace_s``
+of it (:data:`_STOP_GRACE_S`), or the child is killed and the log says what that lost (a final map
+not yet taken out; ``mapper.save_final_map`` takes it out before the optimisation). Then the agent hangs
+up and the child exits at once (``os._exit``: no interpreter teardown), by the same deadline (at least 2 s
+after the hang-up) or killed.
 Where the system allows it, the child gets the agent's CPU priority back at the stop (its nice +5 was for
 the hot path, which has stopped).
 
@@ -194,6 +196,8 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
                 reply = mapper.map_image()
             elif kind == "trajectory":
                 reply = mapper.trajectory()
+            elif kind == "finish":  # the final optimisation, asked after the stop, before the final map
+                reply = mapper.finish()
             else:
                 reply = ValueError(f"unknown request {kind!r}")
         except _Interrupted:
@@ -202,12 +206,17 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             stopping = True
             interrupted += 1
             what = "filter update"
-            if mapper.counters().get("loop_rebuilds", 0) > rebuilds:
+            if kind == "finish":
+                what = "final optimisation (the map is the one from before it)"
+            elif mapper.counters().get("loop_rebuilds", 0) > rebuilds:
                 what = "loop closure's map rebuild (the map is the one from before that loop closure)"
             # A step, not an exception: this module runs as __main__ here, and its classes would not unpickle.
             reply = MapperStep(
                 "rejected", reason=f"the SLAM process left its {what} unfinished for the stop", stopped=True
             )
+            if kind == "finish":
+                log.info("%s", reply.reason)
+                reply = False
         counters = dict(mapper.counters())
         counters["worker_peak_rss_kb"] = _peak_rss_kb()
         if time.monotonic() - shared_at >= _SHARED_EVERY_S:
@@ -598,6 +607,17 @@ class ProcessMapper:
             if self._stop_deadline is not None:
                 log.error("no final map from the SLAM process: %s", exc)
             return None
+
+    def finish(self) -> bool:
+        """The child's final optimisation (``RbpfMapper.finish``), waited for until the stop's deadline
+        after the stop (then the child is killed: take the final map out first, as
+        ``mapper.save_final_map`` does)."""
+        try:
+            return bool(self._call("finish"))
+        except WorkerLost as exc:
+            if not isinstance(exc, WorkerStopping):
+                log.error("no final optimisation from the SLAM process: %s", exc)
+            return False
 
     def trajectory(self) -> FloatArray:
         try:
