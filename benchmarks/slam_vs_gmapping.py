@@ -251,32 +251,31 @@ def ours_worker(
     return 0
 
 
+def _status_kb(keys: tuple[str, ...]) -> dict[str, float]:
+    """The fields ``keys`` of /proc/self/status in kB (absent: a field it lacks, or all where it cannot
+    be read)."""
+    try:
+        lines = Path("/proc/self/status").read_text().splitlines()
+    except OSError:
+        return {}
+    fields = (line.split(":", 1) for line in lines if ":" in line)
+    return {key: float(value.split()[0]) for key, value in fields if key in keys}
+
+
 def peak_rss_kb() -> float:
     """This process's peak resident memory (VmHWM, as GMapping's driver reads it). Not ``ru_maxrss``:
     Linux carries that across ``exec`` from the forking parent, so a child of a benchmark that has read
     several logs would report the parent's peak (exp1 measured 285.8 MB that way, 107 MB alone)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return float(line.split()[1])
-    except OSError:
-        pass
-    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    peak = _status_kb(("VmHWM",)).get("VmHWM")
+    return peak if peak is not None else float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
 def rss_parts_kb() -> dict[str, float]:
     """This process's resident memory now, split: ``rss_anon`` (its own data: heap, arrays) and
     ``rss_file`` (pages of mapped files, mostly the shared libraries: OpenCV's alone is ~15 MB).
     ``peak_rss_mb`` moves with the machine's state for the same poses (docs/slam.md, "Running it")."""
-    parts: dict[str, float] = {}
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            key = line.split(":", 1)[0]
-            if key in ("RssAnon", "RssFile"):
-                parts[key.lower().replace("rss", "rss_")] = float(line.split()[1])
-    except OSError:
-        pass
-    return parts
+    parts = _status_kb(("RssAnon", "RssFile"))
+    return {key.lower().replace("rss", "rss_"): kb for key, kb in parts.items()}
 
 
 def slam_extras(slam: Any) -> dict[str, Any]:

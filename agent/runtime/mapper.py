@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -346,13 +345,7 @@ class RbpfMapper:
         to scan and every loop link, the history, particles and map put on it. Not without a loop link
         (nothing to gain), with ``loop_final_scan_chain = false``, or once the history was cut
         (``_HISTORY_UPDATES``). The filter may go on after it."""
-        if self.slam is None:
-            return False
-        t0 = time.perf_counter()
-        done = bool(self.slam.finish())
-        if done:
-            log.info("final optimisation of the SLAM map in %.2f s", time.perf_counter() - t0)
-        return done
+        return self.slam is not None and bool(self.slam.finish())
 
     def close(self) -> None:
         """Nothing to release (the filter lives in this process)."""

@@ -205,18 +205,20 @@ def _serve(conn: multiprocessing.connection.Connection) -> None:
             # from before the update (a loop closure's rebuild is put in place only whole).
             stopping = True
             interrupted += 1
-            what = "filter update"
-            if kind == "finish":
-                what = "final optimisation (the map is the one from before it)"
-            elif mapper.counters().get("loop_rebuilds", 0) > rebuilds:
-                what = "loop closure's map rebuild (the map is the one from before that loop closure)"
-            # A step, not an exception: this module runs as __main__ here, and its classes would not unpickle.
-            reply = MapperStep(
-                "rejected", reason=f"the SLAM process left its {what} unfinished for the stop", stopped=True
-            )
-            if kind == "finish":
-                log.info("%s", reply.reason)
+            if kind == "finish":  # not run: the map is the one from before it
+                log.info("the SLAM process left its final optimisation unfinished for the stop")
                 reply = False
+            else:
+                what = "filter update"
+                if mapper.counters().get("loop_rebuilds", 0) > rebuilds:
+                    what = "loop closure's map rebuild (the map is the one from before that loop closure)"
+                # A step, not an exception: this module runs as __main__ here, and its classes would not
+                # unpickle.
+                reply = MapperStep(
+                    "rejected",
+                    reason=f"the SLAM process left its {what} unfinished for the stop",
+                    stopped=True,
+                )
         counters = dict(mapper.counters())
         counters["worker_peak_rss_kb"] = _peak_rss_kb()
         if time.monotonic() - shared_at >= _SHARED_EVERY_S:

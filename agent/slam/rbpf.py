@@ -1132,9 +1132,12 @@ class RbpfSlam:
         self.stats.final_scan_edges = int(np.count_nonzero(measured))
         self._node_motions = list(chain)
         self._apply(state.path, result)
-        self.stats.loop_ms += (time.perf_counter() - t0) * 1e3
+        elapsed_s = time.perf_counter() - t0
+        self.stats.loop_ms += elapsed_s * 1e3
         log.info(
-            "final optimisation: %d of %d steps measured scan to scan, %d loop factors, chi2 %.1f -> %.1f",
+            "final optimisation in %.2f s: %d of %d steps measured scan to scan, %d loop factors, "
+            "chi2 %.1f -> %.1f",
+            elapsed_s,
             self.stats.final_scan_edges,
             max(len(chain) - 1, 0),
             len(loops),
