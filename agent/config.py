@@ -1370,6 +1370,7 @@ class _Reader:
                 d.match_medial_window_cells,
                 (lambda v: 0 <= v <= 8, "must be in [0, 8]"),
             ),
+            match_iterations=self._match_iterations(t, d.match_iterations),
             failed_match_draw=t.choice("failed_match_draw", d.failed_match_draw, ("motion", "grid")),
             miss_log_odds=t.number(
                 "miss_log_odds", d.miss_log_odds, (lambda v: -2.0 <= v < 0, "must be in [-2, 0)")
@@ -1412,6 +1413,18 @@ class _Reader:
             raise t.error("sigma_yaw_rad", "must be > 0")
         t.finish()
         return slam
+
+    @staticmethod
+    def _match_iterations(t: _Table, default: tuple[int, int, int]) -> tuple[int, int, int]:
+        """``[slam] match_iterations``: the proposal match's Gauss-Newton iterations per stage, three
+        integers in 1..20 (wide, middle, fine)."""
+        values = t.numbers("match_iterations", 3)
+        if values is None:
+            return default
+        if not all(v == int(v) and 1 <= v <= 20 for v in values):
+            raise t.error("match_iterations", f"must be three integers in 1..20, got {list(values)}")
+        wide, middle, fine = (int(v) for v in values)
+        return wide, middle, fine
 
     @staticmethod
     def _odometry_noise(t: _Table) -> tuple[float, float, float, float] | None:

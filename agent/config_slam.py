@@ -74,6 +74,9 @@ class SlamConfig:
     # neighbours; W > 0 the square of W cells either way around it (a wall on a cell boundary mapped in
     # patches, as grazing views map it, is measured to its boundary)
     match_medial_window_cells: int = 0
+    # Gauss-Newton iterations in each of the proposal match's three stages, wide to fine (the stages'
+    # bounds 0.5, 0.25, 0.12 m: MatcherConfig.stages); the loop closure's matches keep 4 / 4 / 4
+    match_iterations: tuple[int, int, int] = (4, 4, 4)
     # Where a particle whose match fails is drawn (ProposalConfig.failed_match_draw): "motion" (the whole
     # motion model) or "grid" (near the odometry prediction, where its weight was taken)
     failed_match_draw: str = "motion"

@@ -153,6 +153,20 @@ MATCH_MIN_TRANSLATION_INFORMATION = {"breezyslam": 0.0, "radish": 0.0, "simulate
 # loop (3 of 6 closed), Intel seeds 0 / 3, ACES seed 1 and FR079 (0.197 -> 0.464 m). docs/slam.md, "Scan
 # matching", *Walls on cell boundaries*.
 MATCH_MEDIAL_WINDOW_CELLS = {"breezyslam": 0, "radish": 0, "simulated": 0, "mcap": 0}
+# The proposal match's Gauss-Newton iterations per stage ([slam] match_iterations): 3 / 3 / 4 for the radish
+# logs, 4 / 4 / 4 elsewhere. A wide stage never converges within its count (its steps halve an iteration,
+# and the next stage starts with a step larger than the last one taken), so its last iteration buys little:
+# on Intel seeds 0-5 3 / 3 / 4 gave 0.066-0.077 m against 0.064-0.081, ACES 0.086-0.136 against
+# 0.089-0.141, FR079 0.078-0.131 against 0.075-0.106 (GMapping 2.2-5.4), 5-6 % less CPU. Not for the
+# others: the simulated office's worst seed of 24 went 1.68 -> 2.70 cm, and the direction-of-travel test's
+# robot that stops and backs (tests/unit/test_slam_travel.py, the search at every update) was followed
+# with its odometry (docs/slam.md, "Scan matching", *The match's iterations*).
+MATCH_ITERATIONS = {
+    "breezyslam": (4, 4, 4),
+    "radish": (3, 3, 4),
+    "simulated": (4, 4, 4),
+    "mcap": (4, 4, 4),
+}
 # The final optimisation at the end of the log (``[slam] loop_final_scan_chain``): on for the recorded
 # logs, whose front-end steps are 2-5 cm from a registration of the two scans alone and bend towards the
 # wheels (ACES seeds 0-11: 12 of 12 within 0.15 m against 6; exp1's loop 23 of 24 seeds against 19);
@@ -167,7 +181,8 @@ def front_end(source_format: str) -> Any:
     ``source_format`` is run with: ``DEFAULT_ALONG_SURFACE_WEIGHT``, ``DEGENERATE_NOISE_SCALE``,
     ``FREE_MARGIN_M``, ``MISS_LOG_ODDS``, ``REVERSAL_RATIO``, ``LOOP_CORRECTION_ODOMETRY_SIGMAS``,
     ``MATCH_GATE_RESIDUAL``, ``NORMAL_RADIUS_PER_M``, ``NORMAL_THICKNESS_M``,
-    ``MATCH_MIN_TRANSLATION_INFORMATION``, ``MATCH_MEDIAL_WINDOW_CELLS``, ``FINAL_SCAN_CHAIN``, the
+    ``MATCH_MIN_TRANSLATION_INFORMATION``, ``MATCH_MEDIAL_WINDOW_CELLS``, ``MATCH_ITERATIONS``,
+    ``FINAL_SCAN_CHAIN``, the
     simulated robot's motion model (``simlog.MOTION_NOISE``) and, for ``SPARSE_SCAN_FORMATS``, a match
     trusted on 10 endpoints whatever their share, from both starts, a failed match drawn near the
     odometry prediction and the correlative search at turns over a wider yaw window and where the lead
@@ -190,6 +205,7 @@ def front_end(source_format: str) -> Any:
         normal_thickness_m=NORMAL_THICKNESS_M[source_format],
         match_min_translation_information=MATCH_MIN_TRANSLATION_INFORMATION[source_format],
         match_medial_window_cells=MATCH_MEDIAL_WINDOW_CELLS[source_format],
+        match_iterations=MATCH_ITERATIONS[source_format],
         loop_final_scan_chain=FINAL_SCAN_CHAIN[source_format],
     )
     if source_format == "simulated":

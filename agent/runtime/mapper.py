@@ -63,7 +63,8 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
     keys set (``along_surface_weight``, ``degenerate_noise_scale``, ``match_*`` (``match_gate_residual``:
     ``MatcherConfig.gate_on_residual``; ``match_min_translation_information``:
     ``MatcherConfig.min_translation_information``; ``match_medial_window_cells``:
-    ``MatcherConfig.medial_window_cells``), ``normal_radius_per_m``, ``normal_thickness_m``,
+    ``MatcherConfig.medial_window_cells``; ``match_iterations``: ``MatcherConfig.stages``' iterations),
+    ``normal_radius_per_m``, ``normal_thickness_m``,
     ``failed_match_draw``,
     ``search_yaw_rad``). The agent's filters are built with it, and so is what ``vlp-agent eval slam`` runs
     for each source (``eval_slam.front_end``): what was measured is what runs."""
@@ -76,6 +77,7 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         gate_on_residual=config.match_gate_residual,
         min_translation_information=config.match_min_translation_information,
         medial_window_cells=config.match_medial_window_cells,
+        stages=_stages_with(base.matcher.stages, config.match_iterations),
     )
     return dataclasses.replace(
         base,
@@ -90,6 +92,15 @@ def front_end_proposal(config: SlamConfig, base: Any) -> Any:
         if base.search is None
         else dataclasses.replace(base.search, yaw_range_rad=config.search_yaw_rad),
     )
+
+
+def _stages_with(
+    stages: tuple[tuple[float, int], ...], iterations: tuple[int, ...]
+) -> tuple[tuple[float, int], ...]:
+    """The matcher's ``stages`` (bound, iterations) with the iterations ``[slam] match_iterations`` sets."""
+    if len(stages) != len(iterations):
+        raise ValueError(f"match_iterations names {len(iterations)} stages, the matcher has {len(stages)}")
+    return tuple((bound, count) for (bound, _), count in zip(stages, iterations, strict=True))
 
 
 def front_end_filter(config: SlamConfig, base_proposal: Any) -> dict[str, Any]:

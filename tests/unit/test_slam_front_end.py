@@ -44,6 +44,12 @@ def test_eval_slam_sets_each_source_through_the_agents_function() -> None:
         radish.failed_match_draw == "grid"
         and log_proposal("breezyslam", ProposalConfig()).failed_match_draw == "motion"
     )
+    # One iteration fewer in the wide stages for the radish logs' proposal match (and the direction check,
+    # which matches with it); the loop closure's matcher keeps its own (eval_slam.MATCH_ITERATIONS).
+    assert [n for _bound, n in radish.matcher.stages] == [3, 3, 4]
+    assert [b for b, _n in radish.matcher.stages] == [b for b, _n in ProposalConfig().matcher.stages]
+    assert log_proposal("breezyslam", ProposalConfig()).matcher.stages == ProposalConfig().matcher.stages
+    assert SlamConfig().match_iterations == (4, 4, 4)
     simulated = log_proposal("simulated", ProposalConfig())
     assert simulated.degenerate_noise_scale == 0.3
     assert simulated.matcher == ProposalConfig().matcher and not simulated.keep_better_start
@@ -62,7 +68,7 @@ def test_the_keys_load_and_reach_the_filter() -> None:
         f"normal_radius_per_m = {NORMAL_RADIUS_PER_M['radish']}\n"
         f"normal_thickness_m = {NORMAL_THICKNESS_M['radish']}\n"
         f"match_min_translation_information = {MATCH_MIN_TRANSLATION_INFORMATION['radish']}\n"
-        "match_medial_window_cells = 3\ngrid_phase_from_walls = false\n"
+        "match_medial_window_cells = 3\ngrid_phase_from_walls = false\nmatch_iterations = [3, 3, 4]\n"
     )
     config = parse_config(text).slam
     radish = dataclasses.replace(
@@ -114,6 +120,7 @@ _FRONT_END_KEYS = (
     "normal_thickness_m",
     "match_min_translation_information",
     "match_medial_window_cells",
+    "match_iterations",
 )
 
 
@@ -144,6 +151,10 @@ _FRONT_END_KEYS = (
         ("match_min_translation_information = -1", "slam.match_min_translation_information"),
         ("match_medial_window_cells = -1", "slam.match_medial_window_cells"),
         ("match_medial_window_cells = 1.5", "slam.match_medial_window_cells"),
+        ("match_iterations = [3, 3]", "slam.match_iterations"),
+        ("match_iterations = [3, 0, 4]", "slam.match_iterations"),
+        ("match_iterations = [3, 2.5, 4]", "slam.match_iterations"),
+        ("match_iterations = [3, 3, 21]", "slam.match_iterations"),
     ],
 )
 def test_a_bad_value_names_its_key(line: str, key: str) -> None:
