@@ -567,6 +567,7 @@ def run(args: argparse.Namespace) -> int:
         "resamples": slam.stats.resamples,
         "match_failures": slam.stats.match_failures,
         "reversals": slam.stats.reversals,
+        "turns_in_place": slam.stats.turns_in_place,
         "searches_on_doubt": slam.stats.searches_on_doubt,
         "loop_closure": args.loop_closure,
         "loop_checks": slam.stats.loop_checks,
@@ -784,7 +785,8 @@ def _print_table(s: dict[str, Any]) -> None:
     print(f"  particles          {s['particles']} ({s['map_mode']} maps)")
     print(
         f"  filter updates     {s['updates']}, {s['resamples']} resamplings, "
-        f"{s['match_failures']} failed matches, {s['reversals']} odometry translations reversed, "
+        f"{s['match_failures']} failed matches, {s['reversals']} odometry translations reversed "
+        f"({s['turns_in_place']} dropped: turned round in place), "
         f"{s['searches_on_doubt']} proposed again with the search"
     )
     print(

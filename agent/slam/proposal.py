@@ -452,12 +452,20 @@ def laplace_log_eta(
 
 @dataclass(frozen=True)
 class TravelCheck:
-    """:func:`travel_reversed`'s verdict and the two truncated energies it compared (the match from the
-    odometry's prediction, and from the prediction with the translation reversed)."""
+    """:func:`travel_reversed`'s verdict and the truncated energies it compared. ``share``: the share of the
+    odometry increment's translation the scan says the robot drove (1 the odometry's, -1 reversed, 0 no net
+    translation: it turned round within the update); the energies of the matches from the odometry's
+    prediction, from the prediction with the translation reversed and (where that hypothesis was tried,
+    NaN otherwise) from the one without it."""
 
-    reversed: bool
+    share: float
     energy_forward: float
     energy_reversed: float
+    energy_in_place: float = math.nan
+
+    @property
+    def reversed(self) -> bool:
+        return self.share < 0.0
 
 
 def travel_reversed(
@@ -470,27 +478,41 @@ def travel_reversed(
     config: ProposalConfig,
     ratio: float,
     normals_xy: FloatArray | None = None,
+    in_place_ratio: float | None = None,
 ) -> TravelCheck:
-    """Whether the scan says the robot drove the odometry increment's translation the other way.
+    """Whether the scan says the robot drove the odometry increment's translation the other way (or, with
+    ``in_place_ratio``, not at all).
 
-    One particle (``previous``, (3,), with its map's ``window`` of ``field``) is matched twice: from
-    x ⊕ u and from x ⊕ ū, where ū is ``increment`` with its translation reversed (the same turn), each
-    under the motion prior centred on its own prediction (the proposal's prior, so a scan the match
-    cannot place, a featureless corridor, costs both the same). Reversed when the reversed match is
-    trusted and its truncated energy (:func:`agent.slam.matcher.truncated_energy`, each with its own
-    prior) is below ``ratio`` times the forward one's. Odometry rebuilt from unsigned increments (the
-    radish logs': the robot backs out of a room and the odometry drives on forward) puts the prediction
-    twice the step off, beyond Gauss-Newton's reach, and the match follows the odometry. Where the proposal
-    searches (``config.search``), a reversal must also beat the forward side's best fit from a correlative
-    search around its prediction (below)."""
+    One particle (``previous``, (3,), with its map's ``window`` of ``field``) is matched from x ⊕ u and from
+    x ⊕ ū, where ū is ``increment`` with its translation reversed (the same turn), each under the motion
+    prior centred on its own prediction (the proposal's prior, so a scan the match cannot place, a
+    featureless corridor, costs both the same). Reversed when the reversed match is trusted and its
+    truncated energy (:func:`agent.slam.matcher.truncated_energy`, each with its own prior) is below
+    ``ratio`` times the forward one's. Odometry rebuilt from unsigned increments (the radish logs': the
+    robot backs out of a room and the odometry drives on forward) puts the prediction twice the step off,
+    beyond Gauss-Newton's reach, and the match follows the odometry. Where the proposal searches
+    (``config.search``), a reversal must also beat the forward side's best fit from a correlative search
+    around its prediction (below).
+
+    With ``in_place_ratio`` a third hypothesis, the turn without the translation, is matched the same way
+    and taken where its energy is below ``in_place_ratio`` times the forward one's and below the best of
+    the others that qualify: an update in which the robot stopped and turned round drove part of its path
+    one way and part the other, its net translation anywhere between u's and ū's, and from either end the
+    match may settle short of it (``RbpfSlam`` tries it at the first update after a standstill)."""
     # The check's energies as its ratio was measured: endpoints judged by their distance to the nearest
     # obstacle whatever ``MatcherConfig.gate_on_residual`` says (with the residual gate, ACES seed 1
     # reversed one update falsely and ended 8.6 m off).
     matcher = dataclasses.replace(config.matcher, gate_on_residual=False)
-    reversed_increment = increment * np.array([-1.0, -1.0, 1.0])
-    predicted = compose(np.broadcast_to(previous, (2, 3)), np.stack([increment, reversed_increment]))
-    # The same prior for both (the motion model's spread does not depend on the direction of travel,
-    # and the turn is the same), rotated into the world frame at the predicted heading.
+    # The hypotheses: the share of the translation driven, and the ratio to the forward energy under which
+    # each is taken.
+    shares = [1.0, -1.0] + ([0.0] if in_place_ratio is not None else [])
+    limits = [1.0, ratio] + ([in_place_ratio] if in_place_ratio is not None else [])
+    k = len(shares)
+    factors = np.array([[a, a, 1.0] for a in shares])
+    predicted = compose(np.broadcast_to(previous, (k, 3)), increment[None, :] * factors)
+    # The same prior for each (the motion model's spread for the odometry's increment: it does not depend
+    # on the direction of travel, and the turn is the same), rotated into the world frame at the predicted
+    # heading.
     sig = noise.sigmas(increment)
     c, s = math.cos(predicted[0, 2]), math.sin(predicted[0, 2])
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -538,7 +560,14 @@ def travel_reversed(
         normals_xy,
         config.along_surface_weight,
     )
-    # Rows: forward, reversed (from the predictions), then the same from the searches' poses.
-    forward, backward = float(energy[0]), float(energy[1])
-    confirmed = float(energy[1::2].min()) < float(energy[0::2].min())
-    return TravelCheck(bool(result.ok[1]) and backward < ratio * forward and confirmed, forward, backward)
+    # Rows: the hypotheses from their predictions, then the same from the searches' poses; each
+    # hypothesis's best fit is the lower of its two.
+    rows = energy.reshape(-1, k)
+    best = rows.min(axis=0)
+    forward = float(rows[0, 0])
+    chosen = 0
+    for h in range(1, k):
+        if bool(result.ok[h]) and float(rows[0, h]) < limits[h] * forward and best[h] < best[chosen]:
+            chosen = h
+    in_place = float(rows[0, 2]) if k > 2 else math.nan
+    return TravelCheck(shares[chosen], forward, float(rows[0, 1]), in_place)

@@ -222,6 +222,7 @@ class FilterStats:
     resamples: int = 0
     match_failures: int = 0
     reversals: int = 0  # checks that reversed the direction of travel (RbpfConfig.reversal_ratio)
+    turns_in_place: int = 0  # checks that found no net translation (the robot turned round: IN_PLACE_RATIO)
     searches_on_doubt: int = 0  # updates proposed again with the search (RbpfConfig.search_below_inliers)
     fixes_applied: int = 0
     loop_checks: int = 0
@@ -294,6 +295,16 @@ _NO_LINEAGE = 1 << 30
 REVERSAL_MIN_M = 0.1
 REVERSAL_WINDOW_M = 1.0
 REVERSAL_STOP_M_S = 0.07
+# At the first update after a standstill the check also tries the turn without the translation
+# (``proposal.travel_reversed``'s ``in_place_ratio``): the robot may have stopped and turned round within
+# that update, its net translation anywhere between the odometry's and the reversed one, and a match from
+# either end may settle short of it and put the scan into the map that far off, which the next updates'
+# checks then read against (``tests/unit/test_slam_travel.py``: 5 cm forward, then backing, against
+# predictions of +25 and -25 cm; with the two hypotheses alone the robot was followed with its odometry,
+# 2.3-2.5 m off, in 25 of 42 variants of matcher schedules, search triggers and standstills, with this in
+# none). Its ratio is looser than the reversal's: a wrong call costs the odometry's step, not twice it
+# (docs/slam.md, "Scan matching", *The turn in place*).
+IN_PLACE_RATIO = 0.75
 
 
 def _no_wait() -> None:
@@ -333,6 +344,8 @@ class RbpfSlam:
         # odometry path since the last standstill.
         self._direction = 1.0
         self._since_stop_m = 0.0
+        self._stood_since_update = False  # a standstill since the last update (IN_PLACE_RATIO)
+        self._update_share = 1.0  # the share of the odometry's translation this update took (history)
         self._pending_fixes: list[tuple[PoseFix, FloatArray]] = []
         # Per update: poses (P, 3) after resampling, parent index of each in the previous update, time,
         # odometry. Bounded by ``history_limit`` on board; the oldest entries go first.
@@ -341,10 +354,11 @@ class RbpfSlam:
         self.history_parents: collections.deque[IntArray] = collections.deque(maxlen=limit)
         self.history_t_s: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_odom: collections.deque[FloatArray] = collections.deque(maxlen=limit)
-        # ... the direction of travel the odometry was taken in at each update (+1 or -1, ``_direction``),
-        # and the odometry path since the last standstill then (``_since_stop_m``): the pose graph's
-        # odometry steps and where it trusts their length (LoopClosureConfig.snap_forward_m).
-        self.history_direction: collections.deque[float] = collections.deque(maxlen=limit)
+        # ... the share of the odometry's translation each update took (+1, -1 reversed, 0 turned round in
+        # place: ``_update_share``), and the odometry path since the last standstill then
+        # (``_since_stop_m``): the pose graph's odometry steps and where it trusts their length
+        # (LoopClosureConfig.snap_forward_m).
+        self.history_share: collections.deque[float] = collections.deque(maxlen=limit)
         self.history_since_stop_m: collections.deque[float] = collections.deque(maxlen=limit)
         # trajectory()'s last walk: (absolute update of its first row, _history_edits then, the particle
         # index at every update, the poses); the history's first row's absolute update; rewrites counted.
@@ -444,6 +458,7 @@ class RbpfSlam:
             step_m = math.hypot(moved[0], moved[1])
             if step_m < REVERSAL_STOP_M_S * (t_s - self._last_t_s):
                 self._since_stop_m = 0.0
+                self._stood_since_update = True
             else:
                 self._since_stop_m += step_m
         self._last_odom = odom
@@ -724,10 +739,15 @@ class RbpfSlam:
             and math.hypot(increment[0], increment[1]) >= REVERSAL_MIN_M
             and self._since_stop_m <= REVERSAL_WINDOW_M
         )
+        # The turn without the translation is a hypothesis only where the robot stood still since the last
+        # update (IN_PLACE_RATIO).
+        in_place_ratio = IN_PLACE_RATIO if self._stood_since_update else None
+        self._stood_since_update = False
         if check:
             self._direction = 1.0  # the odometry's direction, unless the scan clearly says otherwise
         elif self._direction < 0:
             increment = increment * flip
+        self._update_share = self._direction
         fixes_weighted = False
         if points.shape[0] < cfg.proposal.matcher.min_inliers:
             # Too little structure to match: move by the motion model only, keep the weights.
@@ -756,18 +776,25 @@ class RbpfSlam:
                     cfg.proposal,
                     cfg.reversal_ratio,
                     normals,
+                    in_place_ratio,
                 )
                 log.debug(
-                    "travel check at update %d: energy forward %.4f, reversed %.4f",
+                    "travel check at update %d: energy forward %.4f, reversed %.4f, in place %.4f: share %g",
                     self.stats.updates,
                     travel.energy_forward,
                     travel.energy_reversed,
+                    travel.energy_in_place,
+                    travel.share,
                 )
-                if travel.reversed:
-                    increment = increment * flip
+                if travel.share != 1.0:
+                    # Reversed, the direction holds until the next check; turned round in place, the
+                    # odometry's (the next update is checked again: it is within the window).
+                    increment = increment * np.array([travel.share, travel.share, 1.0])
                     predicted = compose(self.poses, increment[None, :])
-                    self._direction = -1.0
-                    self.stats.reversals += 1
+                    self._direction = -1.0 if travel.reversed else 1.0
+                    self._update_share = travel.share
+                    self.stats.reversals += int(travel.reversed)
+                    self.stats.turns_in_place += int(not travel.reversed)
             measurement = None
             if self._pending_fixes:
                 # The fixes join the proposal (and so eta): see ``improved_proposal``.
@@ -1198,7 +1225,7 @@ class RbpfSlam:
         odometry_motions = np.zeros_like(odometry)
         odometry_motions[1:] = between(odometry[:-1], odometry[1:])
         # In the direction of travel the filter took them in (reversed where the scans said so).
-        odometry_motions[:, :2] *= np.array(self.history_direction)[:, None]
+        odometry_motions[:, :2] *= np.array(self.history_share)[:, None]
         if lc is not None and lc.snap_forward_m is not None:
             since = np.array(self.history_since_stop_m)
             steady = np.zeros(since.shape[0], dtype=bool)
@@ -1330,5 +1357,5 @@ class RbpfSlam:
         self.history_parents.append(np.asarray(parents, dtype=np.int64))
         self.history_t_s.append(t_s)
         self.history_odom.append(odom.copy())
-        self.history_direction.append(self._direction)
+        self.history_share.append(self._update_share)
         self.history_since_stop_m.append(self._since_stop_m)
