@@ -1012,12 +1012,14 @@ def truncated_energy(
     along_weight: float = 1.0,
     residuals_at_poses: Residuals | None = None,
     gate_residual: bool = False,
+    unknown_as_bound: bool = False,
 ) -> FloatArray:
     """The objective :func:`match` minimises, with every endpoint's residual truncated at ``bound_m``
     (an endpoint farther than that from every wall counts ``bound_m``²), for poses (P, 3): sum_i
     min(r_i, bound)² + (x - x0)ᵀ Λ (x - x0). Endpoints among unmapped cells count as the mean of the
-    others (as :func:`scan_log_likelihood`). Comparable between two matches of the same scan in the same
-    window: the lower one explains the scan better at the price the prior puts on its move.
+    others (as :func:`scan_log_likelihood`), or with ``unknown_as_bound`` as ``bound_m``² (as far from
+    every wall as counts at all). Comparable between two matches of the same scan in the same window: the
+    lower one explains the scan better at the price the prior puts on its move.
     ``residuals_at_poses``: :func:`residuals` at these poses if already computed (the match's own, from
     :func:`match_with_residuals`), not computed again. ``gate_residual``: as :func:`residuals`."""
     res = residuals_at_poses
@@ -1027,12 +1029,15 @@ def truncated_energy(
         )
     e2 = np.where(res.gate < bound_m, res.r * res.r, bound_m * bound_m)
     n = points_xy.shape[0]
-    n_known = res.known.sum(axis=1)
-    total = np.where(
-        n_known > 0,
-        np.where(res.known, e2, 0.0).sum(axis=1) * n / np.maximum(n_known, 1),
-        n * bound_m * bound_m,
-    )
+    if unknown_as_bound:
+        total = np.where(res.known, e2, bound_m * bound_m).sum(axis=1)
+    else:
+        n_known = res.known.sum(axis=1)
+        total = np.where(
+            n_known > 0,
+            np.where(res.known, e2, 0.0).sum(axis=1) * n / np.maximum(n_known, 1),
+            n * bound_m * bound_m,
+        )
     if prior_information is not None and centre is not None:
         offset = poses - centre
         offset[:, 2] = wrap_angle(offset[:, 2])

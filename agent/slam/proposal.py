@@ -559,6 +559,11 @@ def travel_reversed(
         centres,
         normals_xy,
         config.along_surface_weight,
+        # An endpoint a hypothesis puts among unmapped cells pays as one far from every wall: counted as
+        # the mean of the others it costs nothing, and a robot backing out of a dead end, the end wall's
+        # endpoints pushed behind the mapped wall by the odometry's forward prediction, was called forward
+        # (the match there fitted the corridor's walls as well as the reversed one did).
+        unknown_as_bound=True,
     )
     # Rows: the hypotheses from their predictions, then the same from the searches' poses; each
     # hypothesis's best fit is the lower of its two.
